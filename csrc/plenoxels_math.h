@@ -1,0 +1,184 @@
+// Per-sample math of the Plenoxels renderer, shared by the CPU (C++/OpenMP) and CUDA kernels so the
+// two cannot drift. Plain inline functions on scalars and fixed-size arrays: no torch, no std::
+// containers, so a .cu file can include this header unchanged.
+//
+// Conventions (the PyTorch twin in plenoxels/reference.py states the same math):
+// - Grid coordinates: vertex (i, j, k) sits at integer coordinates; a fit-frame point p maps to
+//   g = (p - bbox_min) * scale with scale = (R - 1) / (bbox_max - bbox_min) per axis.
+// - A sample at grid point g interpolates the 8 vertices of cell floor(g) (clamped to the last cell).
+// - Density: sigma = relu(interpolated raw density), per fit-frame unit of distance.
+// - Colour: c = relu(sum_k sh_k * Y_k(dir) + 0.5) per channel, dir the unit fit-frame direction.
+// - Compositing front to back: alpha = 1 - exp(-sigma * delta), weight = T * alpha, T *= 1 - alpha.
+#pragma once
+
+#include <math.h>
+#include <stdint.h>
+
+#ifdef __CUDACC__
+#define PLX_HD __host__ __device__ __forceinline__
+#else
+#define PLX_HD inline
+#endif
+
+namespace plx {
+
+// Real spherical-harmonic basis constants up to degree 3.
+constexpr float kSH_C0 = 0.28209479177387814f;
+constexpr float kSH_C1 = 0.4886025119029199f;
+constexpr float kSH_C2_0 = 1.0925484305920792f;
+constexpr float kSH_C2_1 = -1.0925484305920792f;
+constexpr float kSH_C2_2 = 0.31539156525252005f;
+constexpr float kSH_C2_3 = -1.0925484305920792f;
+constexpr float kSH_C2_4 = 0.5462742152960396f;
+constexpr float kSH_C3_0 = -0.5900435899266435f;
+constexpr float kSH_C3_1 = 2.890611442640554f;
+constexpr float kSH_C3_2 = -0.4570457994644658f;
+constexpr float kSH_C3_3 = 0.3731763325901154f;
+constexpr float kSH_C3_4 = -0.4570457994644658f;
+constexpr float kSH_C3_5 = 1.445305721320277f;
+constexpr float kSH_C3_6 = -0.5900435899266435f;
+
+// Added to the SH colour before the relu, so that all-zero coefficients give mid grey.
+constexpr float kColourOffset = 0.5f;
+
+// Number of SH coefficients per colour channel for a degree.
+PLX_HD int sh_count(int degree) { return (degree + 1) * (degree + 1); }
+
+// Evaluates the first (degree+1)^2 basis functions at unit direction (x, y, z) into `out`.
+PLX_HD void sh_basis(int degree, float x, float y, float z, float* out) {
+    out[0] = kSH_C0;
+    if (degree < 1) return;
+    out[1] = -kSH_C1 * y;
+    out[2] = kSH_C1 * z;
+    out[3] = -kSH_C1 * x;
+    if (degree < 2) return;
+    const float xx = x * x, yy = y * y, zz = z * z;
+    const float xy = x * y, yz = y * z, xz = x * z;
+    out[4] = kSH_C2_0 * xy;
+    out[5] = kSH_C2_1 * yz;
+    out[6] = kSH_C2_2 * (2.0f * zz - xx - yy);
+    out[7] = kSH_C2_3 * xz;
+    out[8] = kSH_C2_4 * (xx - yy);
+    if (degree < 3) return;
+    out[9] = kSH_C3_0 * y * (3.0f * xx - yy);
+    out[10] = kSH_C3_1 * xy * z;
+    out[11] = kSH_C3_2 * y * (4.0f * zz - xx - yy);
+    out[12] = kSH_C3_3 * z * (2.0f * zz - 3.0f * xx - 3.0f * yy);
+    out[13] = kSH_C3_4 * x * (4.0f * zz - xx - yy);
+    out[14] = kSH_C3_5 * z * (xx - yy);
+    out[15] = kSH_C3_6 * x * (xx - 3.0f * yy);
+}
+
+// Colour of one channel from its K interpolated coefficients; `raw` keeps the pre-relu value,
+// whose sign decides whether the gradient passes.
+PLX_HD float sh_colour(const float* coeffs, const float* basis, int K, float* raw) {
+    float s = kColourOffset;
+    for (int k = 0; k < K; ++k) s += coeffs[k] * basis[k];
+    *raw = s;
+    return s > 0.0f ? s : 0.0f;
+}
+
+// d colour / d raw: the relu's gradient (0 at and below 0, as torch's relu).
+PLX_HD float colour_relu_grad(float raw) { return raw > 0.0f ? 1.0f : 0.0f; }
+
+// Ray against the box [0, hi] in grid coordinates. Origin og and direction dg are in grid units per
+// unit of t. Returns false if the ray misses or only touches the box (an empty interval).
+// A direction component that is exactly zero keeps the ray inside that slab or outside it for all t.
+PLX_HD bool ray_box(const double og[3], const double dg[3], const double hi[3], double* t_enter,
+                    double* t_exit) {
+    double t0 = -1e300, t1 = 1e300;
+    for (int a = 0; a < 3; ++a) {
+        if (dg[a] == 0.0) {
+            if (og[a] < 0.0 || og[a] > hi[a]) return false;
+            continue;
+        }
+        double ta = (0.0 - og[a]) / dg[a];
+        double tb = (hi[a] - og[a]) / dg[a];
+        if (ta > tb) {
+            const double s = ta;
+            ta = tb;
+            tb = s;
+        }
+        t0 = ta > t0 ? ta : t0;
+        t1 = tb < t1 ? tb : t1;
+    }
+    *t_enter = t0;
+    *t_exit = t1;
+    return t1 > t0;
+}
+
+// The sample lattice of one ray: samples at t = t_start + (i + 0.5) * dt for 0 <= i < n, all with
+// t < t_end. dt is `step` grid units converted to t; a ray needing more than max_samples samples
+// gets a longer step so that it has exactly max_samples. Computed in double so every backend
+// (float32 elsewhere) agrees on the number of samples.
+PLX_HD int sample_lattice(double t_start, double t_end, double step_t, int max_samples, double* dt) {
+    const double length = t_end - t_start;
+    if (!(length > 0.0)) {
+        *dt = step_t;
+        return 0;
+    }
+    double n = ceil(length / step_t - 0.5);
+    if (n < 0.0) n = 0.0;
+    if (n > (double)max_samples) {
+        *dt = length / (double)max_samples;
+        return max_samples;
+    }
+    *dt = step_t;
+    return (int)n;
+}
+
+// Cell and trilinear weights of grid point g (already clamped to [0, res-1]); res >= 2 per axis.
+// Corner c = 4*dx + 2*dy + dz, with (dx, dy, dz) in {0,1}^3, gets weight w[c].
+PLX_HD void trilinear(const float g[3], const int res[3], int cell[3], float w[8]) {
+    float f[3];
+    for (int a = 0; a < 3; ++a) {
+        int i = (int)floorf(g[a]);
+        if (i > res[a] - 2) i = res[a] - 2;
+        if (i < 0) i = 0;
+        cell[a] = i;
+        f[a] = g[a] - (float)i;
+    }
+    const float fx0 = 1.0f - f[0], fy0 = 1.0f - f[1], fz0 = 1.0f - f[2];
+    w[0] = fx0 * fy0 * fz0;
+    w[1] = fx0 * fy0 * f[2];
+    w[2] = fx0 * f[1] * fz0;
+    w[3] = fx0 * f[1] * f[2];
+    w[4] = f[0] * fy0 * fz0;
+    w[5] = f[0] * fy0 * f[2];
+    w[6] = f[0] * f[1] * fz0;
+    w[7] = f[0] * f[1] * f[2];
+}
+
+// Flat index into links of corner c of a cell (links is [Rx, Ry, Rz], C order).
+PLX_HD int64_t corner_index(const int cell[3], const int res[3], int c) {
+    const int x = cell[0] + ((c >> 2) & 1), y = cell[1] + ((c >> 1) & 1), z = cell[2] + (c & 1);
+    return ((int64_t)x * res[1] + y) * res[2] + z;
+}
+
+// One compositing step: alpha of a sample and the transmittance after it.
+PLX_HD float sample_alpha(float sigma, float delta, float* transmittance_factor) {
+    const float f = expf(-sigma * delta);
+    *transmittance_factor = f;
+    return 1.0f - f;
+}
+
+// d(pixel colour)/d(sigma_i) for one channel, with
+//   t_after = transmittance after sample i, c = its colour,
+//   behind = everything composited behind sample i (later samples plus the background term).
+// Derivation: sigma_i scales every later transmittance by exp(-sigma_i delta) and sets
+// alpha_i = 1 - exp(-sigma_i delta).
+PLX_HD float dcolour_dsigma(float delta, float t_after, float c, float behind) {
+    return delta * (t_after * c - behind);
+}
+
+// Total-variation term at one vertex for one channel: sqrt(dx^2 + dy^2 + dz^2 + eps), and its
+// gradient with respect to the vertex value and the three +axis neighbours (absent differences
+// are 0 and pass no gradient).
+constexpr float kTVEps = 1e-9f;
+PLX_HD float tv_term(float dx, float dy, float dz, float* inv_norm) {
+    const float n = sqrtf(dx * dx + dy * dy + dz * dz + kTVEps);
+    *inv_norm = 1.0f / n;
+    return n;
+}
+
+}  // namespace plx

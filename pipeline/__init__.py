@@ -1,0 +1,1 @@
+"""Orchestration: the stage graph, the on-disk cache, settings, the CLI, logging and progress."""

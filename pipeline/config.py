@@ -1,0 +1,156 @@
+"""Settings: one typed dataclass per stage, filled from a YAML preset, a scene-type overlay and
+command-line overrides, validated on load.
+
+Resolution order (later wins): the dataclass defaults, `configs/<preset>.yaml`,
+`configs/scene_types/<type>.yaml` (only for stages after `normalize`, once the scene type is known),
+then `--set section.key=value` overrides. A stage's section in the YAML is its name.
+"""
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+
+from pipeline.errors import UserError
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+def preset_names() -> list[str]:
+    return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+
+
+def _read_yaml(path: Path) -> dict[str, dict[str, Any]]:
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise UserError(f"{path} is not valid YAML ({e.__class__.__name__}); fix the file") from None
+    if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
+        raise UserError(f"{path} must map stage names to sections of key: value settings")
+    return data
+
+
+def load_preset(name: str) -> dict[str, dict[str, Any]]:
+    path = CONFIG_DIR / f"{name}.yaml"
+    if not path.is_file():
+        raise UserError(f"unknown preset '{name}'; choose one of: {', '.join(preset_names())}")
+    return _read_yaml(path)
+
+
+def load_scene_type_overlay(scene_type: str | None) -> dict[str, dict[str, Any]]:
+    if scene_type is None:
+        return {}
+    path = CONFIG_DIR / "scene_types" / f"{scene_type}.yaml"
+    return _read_yaml(path) if path.is_file() else {}
+
+
+def parse_overrides(pairs: list[str]) -> dict[str, dict[str, Any]]:
+    """['fit.sh_degree=1', 'ingest.max_side=800'] -> {'fit': {'sh_degree': 1}, 'ingest': {'max_side': 800}}.
+    Values are read as YAML scalars/lists, so 1 is an int, 0.5 a float, [128, 256] a list, auto a string."""
+    out: dict[str, dict[str, Any]] = {}
+    for pair in pairs:
+        key, sep, raw = pair.partition("=")
+        section, dot, name = key.strip().partition(".")
+        if not sep or not dot or not section or not name:
+            raise UserError(f"--set '{pair}' must look like section.key=value (for example fit.sh_degree=1)")
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else ""
+        except yaml.YAMLError:
+            value = raw
+        out.setdefault(section, {})[name] = value
+    return out
+
+
+def merge(*layers: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    merged: dict[str, dict[str, Any]] = {}
+    for layer in layers:
+        for section, values in layer.items():
+            merged.setdefault(section, {}).update(values)
+    return merged
+
+
+def _type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in typing.get_args(tp))
+    if origin in (list, tuple):
+        return f"a list of {_type_name(typing.get_args(tp)[0])}"
+    return "null" if tp is type(None) else getattr(tp, "__name__", str(tp))
+
+
+def _coerce(value: Any, tp: Any) -> Any:
+    """Returns value as type tp, or raises ValueError. Only safe widenings (int -> float, list -> tuple)."""
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        if value in typing.get_args(tp):
+            return value
+        raise ValueError
+    if origin in (typing.Union, types.UnionType):
+        for arg in typing.get_args(tp):
+            try:
+                return _coerce(value, arg)
+            except ValueError:
+                continue
+        raise ValueError
+    if origin in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            value = [value]
+        inner = typing.get_args(tp)[0]
+        items = [_coerce(v, inner) for v in value]
+        return tuple(items) if origin is tuple else items
+    if tp is type(None):
+        if value is None:
+            return None
+        raise ValueError
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise ValueError
+    if tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise ValueError
+    if tp is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise ValueError
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        raise ValueError
+    raise ValueError
+
+
+def build(cls: type, section: str, values: dict[str, Any]):
+    """Builds settings dataclass `cls` from `values`, with one-line errors naming the key and what is allowed.
+    A dataclass may define `check(self) -> None` that raises UserError for bad combinations."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for key, value in values.items():
+        if key not in fields:
+            raise UserError(f"unknown setting '{section}.{key}'; allowed: {', '.join(sorted(fields)) or 'none'}")
+        try:
+            kwargs[key] = _coerce(value, hints[key])
+        except ValueError:
+            raise UserError(f"bad value {value!r} for '{section}.{key}': expected {_type_name(hints[key])}") from None
+    settings = cls(**kwargs)
+    if hasattr(settings, "check"):
+        settings.check()
+    return settings
+
+
+def to_dict(settings) -> dict[str, Any]:
+    return dataclasses.asdict(settings)
+
+
+def require(condition: bool, message: str) -> None:
+    """For `check()` methods: one line that names the key and the allowed values."""
+    if not condition:
+        raise UserError(message)

@@ -1,0 +1,38 @@
+"""What a person sees while the pipeline runs: progress bars with an ETA, warnings, one summary line per stage."""
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterable, Iterator
+from typing import TypeVar
+
+from tqdm import tqdm
+
+T = TypeVar("T")
+
+
+class Reporter:
+    """Prints to stderr (progress, warnings) and stdout (stage summary lines).
+
+    `quiet` hides progress and info but never warnings or summaries, so scripts still see what happened.
+    """
+
+    def __init__(self, quiet: bool = False):
+        self.quiet = quiet
+
+    def info(self, message: str) -> None:
+        if not self.quiet:
+            print(f"  {message}", file=sys.stderr, flush=True)
+
+    def warn(self, message: str) -> None:
+        print(f"  warning: {message}", file=sys.stderr, flush=True)
+
+    def summary(self, stage: str, line: str) -> None:
+        print(f"[{stage}] {line}", flush=True)
+
+    def bar(self, iterable: Iterable[T] | None = None, total: int | None = None, desc: str = "") -> tqdm:
+        """A tqdm bar (iterate it, or call .update/.set_postfix); silent when quiet or not a terminal-friendly run."""
+        return tqdm(iterable, total=total, desc=f"  {desc}", disable=self.quiet, leave=False,
+                    file=sys.stderr, dynamic_ncols=True, mininterval=0.5)
+
+    def track(self, iterable: Iterable[T], total: int | None = None, desc: str = "") -> Iterator[T]:
+        yield from self.bar(iterable, total=total, desc=desc)

@@ -1,0 +1,191 @@
+"""Runs stages in order, skipping those whose cache key matches their last complete output.
+
+On-disk protocol, under a scene's output root:
+    <stage>/manifest.json    a complete output; the manifest is written last, so its presence means complete
+    .work/<stage>/           the output being written by a run in progress (wiped at the start of each run)
+    .resume/<stage>/         checkpoints a stage may resume from when re-run with the same key
+    .trash/<stage>/          the previous complete output during the swap; restored if a run dies mid-swap
+A stage's key hashes its upstream manifests, its resolved settings, its code and (for stages that read the
+input folder) a fingerprint of the input. Killing the process at any moment leaves the last complete output.
+"""
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import os
+import shutil
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+from pipeline import config
+from pipeline.errors import UserError
+from pipeline.io import write_json
+from pipeline.report import Reporter
+from pipeline.stage import STAGE_ORDER, StageContext, code_hash, load_stage, upstream_closure
+
+
+@dataclass
+class Plan:
+    """Everything that decides a stage's key, computed from what is on disk now."""
+    name: str
+    settings: Any
+    settings_dict: dict
+    upstream_keys: dict[str, str]
+    code: str
+    fingerprint: Any
+    scene_type: str | None
+
+    @property
+    def key(self) -> str:
+        blob = json.dumps({"stage": self.name, "settings": self.settings_dict, "upstream": self.upstream_keys,
+                           "code": self.code, "input": self.fingerprint}, sort_keys=True, default=str)
+        return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def read_manifest(folder: Path) -> dict | None:
+    try:
+        return json.loads((folder / "manifest.json").read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+
+
+def manifest_digest(manifest: dict) -> str:
+    return hashlib.sha256(json.dumps(manifest, sort_keys=True).encode()).hexdigest()[:20]
+
+
+class Pipeline:
+    def __init__(self, scene: Path, out: Path, preset: str = "default", overrides: list[str] | None = None,
+                 reporter: Reporter | None = None):
+        self.scene = scene.resolve()
+        self.out = out.resolve()
+        self.report = reporter or Reporter()
+        self.layers = [config.load_preset(preset)]
+        self.overrides = config.parse_overrides(overrides or [])
+        unknown = set(self.overrides) - set(STAGE_ORDER)
+        if unknown:
+            raise UserError(f"unknown settings section '{sorted(unknown)[0]}'; sections are: {', '.join(STAGE_ORDER)}")
+
+    # ---- keys and status -------------------------------------------------------------------------------
+    def scene_type(self) -> str | None:
+        try:
+            return json.loads((self.out / "normalize" / "scene.json").read_text())["type"]
+        except (FileNotFoundError, KeyError, json.JSONDecodeError):
+            return None
+
+    def plan(self, name: str) -> Plan:
+        module = load_stage(name)
+        scene_type = self.scene_type() if "normalize" in upstream_closure(name) else None
+        values = config.merge(*self.layers, config.load_scene_type_overlay(scene_type), self.overrides).get(name, {})
+        settings = config.build(module.Settings, name, values)
+        upstream_keys = {}
+        for dep in module.DEPENDS:
+            manifest = read_manifest(self.out / dep)
+            upstream_keys[dep] = manifest_digest(manifest) if manifest else "missing"
+        fingerprint = module.fingerprint(self.scene) if hasattr(module, "fingerprint") else None
+        return Plan(name, settings, config.to_dict(settings), upstream_keys, code_hash(module), fingerprint, scene_type)
+
+    def status(self, name: str) -> tuple[str, str]:
+        """('done' | 'stale' | 'missing', why)."""
+        manifest = read_manifest(self.out / name)
+        if manifest is None:
+            return "missing", "never completed"
+        plan = self.plan(name)
+        if manifest.get("key") == plan.key:
+            return "done", f"completed {manifest.get('finished', '?')}"
+        reasons = [f"{dep} changed" for dep, k in plan.upstream_keys.items() if manifest.get("upstream", {}).get(dep) != k]
+        changed = sorted(k for k in set(plan.settings_dict) | set(manifest.get("settings", {}))
+                         if plan.settings_dict.get(k) != manifest.get("settings", {}).get(k))
+        if changed:
+            reasons.append("settings changed: " + ", ".join(changed))
+        if manifest.get("code") != plan.code:
+            reasons.append("code changed")
+        if manifest.get("input") != json.loads(json.dumps(plan.fingerprint, default=str)):
+            reasons.append("input photos changed")
+        return "stale", "; ".join(reasons) or "key changed"
+
+    # ---- running -----------------------------------------------------------------------------------------
+    def run(self, targets: list[str], force: set[str] = frozenset()) -> dict[str, dict]:
+        """Runs each target and whatever it needs, in order; returns the manifests of the targets."""
+        wanted = set(targets)
+        for t in targets:
+            wanted.update(upstream_closure(t))
+        self.out.mkdir(parents=True, exist_ok=True)
+        results = {}
+        with self._lock():
+            self._recover()
+            for name in STAGE_ORDER:
+                if name in wanted:
+                    results[name] = self._run_one(name, force=name in force)
+        return {t: results[t] for t in targets}
+
+    def _run_one(self, name: str, force: bool) -> dict:
+        plan = self.plan(name)
+        final = self.out / name
+        manifest = read_manifest(final)
+        if manifest and manifest.get("key") == plan.key and not force:
+            self.report.summary(name, f"up to date, skipped ({manifest['summary']['line']})")
+            return manifest
+
+        module = load_stage(name)
+        work, scratch = self.out / ".work" / name, self.out / ".resume" / name
+        shutil.rmtree(work, ignore_errors=True)
+        work.mkdir(parents=True)
+        if (scratch / "KEY").is_file() and (scratch / "KEY").read_text() != plan.key or force:
+            shutil.rmtree(scratch, ignore_errors=True)
+        scratch.mkdir(parents=True, exist_ok=True)
+        (scratch / "KEY").write_text(plan.key)
+
+        ctx = StageContext(scene=self.scene, out=self.out, work=work, scratch=scratch, settings=plan.settings,
+                           upstream={d: self.out / d for d in module.DEPENDS}, scene_type=plan.scene_type,
+                           report=self.report)
+        self.report.info(f"{name}: running")
+        started = time.time()
+        summary = module.run(ctx)
+        if not isinstance(summary, dict) or "line" not in summary:
+            raise TypeError(f"stage {name} must return a summary dict with a 'line'")
+        manifest = {
+            "stage": name, "key": plan.key, "upstream": plan.upstream_keys, "settings": plan.settings_dict,
+            "code": plan.code, "input": plan.fingerprint, "scene": str(self.scene), "scene_type": plan.scene_type,
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(started)),
+            "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "seconds": round(time.time() - started, 2),
+            "summary": summary,
+        }
+        write_json(work / "manifest.json", manifest)
+        self._swap_into_place(work, final)
+        shutil.rmtree(scratch, ignore_errors=True)
+        self.report.summary(name, summary["line"])
+        return manifest
+
+    def _swap_into_place(self, work: Path, final: Path) -> None:
+        trash = self.out / ".trash" / final.name
+        shutil.rmtree(trash, ignore_errors=True)
+        trash.parent.mkdir(exist_ok=True)
+        if final.exists():
+            os.replace(final, trash)
+        os.replace(work, final)
+        shutil.rmtree(trash, ignore_errors=True)
+
+    def _recover(self) -> None:
+        """Undo a swap that was cut off between its two renames."""
+        trash_root = self.out / ".trash"
+        for trash in trash_root.glob("*") if trash_root.is_dir() else []:
+            final = self.out / trash.name
+            if not final.exists() and read_manifest(trash) is not None:
+                os.replace(trash, final)
+            else:
+                shutil.rmtree(trash, ignore_errors=True)
+
+    @contextmanager
+    def _lock(self) -> Iterator[None]:
+        with open(self.out / ".lock", "w") as handle:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise UserError(f"another run is using {self.out}; wait for it to finish or use a different --out") from None
+            yield
+
+

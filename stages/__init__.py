@@ -1,0 +1,1 @@
+"""One module per stage; see pipeline/stage.py for what a stage module defines."""
