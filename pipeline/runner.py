@@ -16,6 +16,7 @@ import json
 import os
 import shutil
 import time
+import uuid
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +26,7 @@ from pipeline import config
 from pipeline.errors import UserError
 from pipeline.io import write_json
 from pipeline.report import Reporter
-from pipeline.stage import STAGE_ORDER, StageContext, code_hash, load_stage, upstream_closure
+from pipeline.stage import StageContext, StageGraph, code_hash
 
 
 @dataclass
@@ -59,15 +60,16 @@ def manifest_digest(manifest: dict) -> str:
 
 class Pipeline:
     def __init__(self, scene: Path, out: Path, preset: str = "default", overrides: list[str] | None = None,
-                 reporter: Reporter | None = None):
+                 reporter: Reporter | None = None, graph: StageGraph = StageGraph()):
         self.scene = scene.resolve()
         self.out = out.resolve()
         self.report = reporter or Reporter()
+        self.graph = graph
         self.layers = [config.load_preset(preset)]
         self.overrides = config.parse_overrides(overrides or [])
-        unknown = set(self.overrides) - set(STAGE_ORDER)
+        unknown = set(self.overrides) - set(graph.order)
         if unknown:
-            raise UserError(f"unknown settings section '{sorted(unknown)[0]}'; sections are: {', '.join(STAGE_ORDER)}")
+            raise UserError(f"unknown settings section '{sorted(unknown)[0]}'; sections are: {', '.join(graph.order)}")
 
     # ---- keys and status -------------------------------------------------------------------------------
     def scene_type(self) -> str | None:
@@ -77,8 +79,8 @@ class Pipeline:
             return None
 
     def plan(self, name: str) -> Plan:
-        module = load_stage(name)
-        scene_type = self.scene_type() if "normalize" in upstream_closure(name) else None
+        module = self.graph.load(name)
+        scene_type = self.scene_type() if "normalize" in self.graph.upstream(name) else None
         values = config.merge(*self.layers, config.load_scene_type_overlay(scene_type), self.overrides).get(name, {})
         settings = config.build(module.Settings, name, values)
         upstream_keys = {}
@@ -112,12 +114,12 @@ class Pipeline:
         """Runs each target and whatever it needs, in order; returns the manifests of the targets."""
         wanted = set(targets)
         for t in targets:
-            wanted.update(upstream_closure(t))
+            wanted.update(self.graph.upstream(t))
         self.out.mkdir(parents=True, exist_ok=True)
         results = {}
         with self._lock():
             self._recover()
-            for name in STAGE_ORDER:
+            for name in self.graph.order:
                 if name in wanted:
                     results[name] = self._run_one(name, force=name in force)
         return {t: results[t] for t in targets}
@@ -130,7 +132,7 @@ class Pipeline:
             self.report.summary(name, f"up to date, skipped ({manifest['summary']['line']})")
             return manifest
 
-        module = load_stage(name)
+        module = self.graph.load(name)
         work, scratch = self.out / ".work" / name, self.out / ".resume" / name
         shutil.rmtree(work, ignore_errors=True)
         work.mkdir(parents=True)
@@ -148,7 +150,8 @@ class Pipeline:
         if not isinstance(summary, dict) or "line" not in summary:
             raise TypeError(f"stage {name} must return a summary dict with a 'line'")
         manifest = {
-            "stage": name, "key": plan.key, "upstream": plan.upstream_keys, "settings": plan.settings_dict,
+            # A fresh id per run, so downstream keys change whenever this output is rebuilt, even with the same key.
+            "stage": name, "run_id": uuid.uuid4().hex, "key": plan.key, "upstream": plan.upstream_keys, "settings": plan.settings_dict,
             "code": plan.code, "input": plan.fingerprint, "scene": str(self.scene), "scene_type": plan.scene_type,
             "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(started)),
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "seconds": round(time.time() - started, 2),

@@ -44,20 +44,25 @@ class StageContext:
         return json.loads((self.upstream[name] / "manifest.json").read_text())
 
 
-def load_stage(name: str) -> ModuleType:
-    return importlib.import_module(f"stages.{name}")
+@dataclass(frozen=True)
+class StageGraph:
+    """Where the stage modules live and the order they run in (tests use a graph of tiny stages)."""
+    package: str = "stages"
+    order: tuple[str, ...] = STAGE_ORDER
 
+    def load(self, name: str) -> ModuleType:
+        return importlib.import_module(f"{self.package}.{name}")
 
-def upstream_closure(name: str) -> list[str]:
-    """All stages `name` needs, transitively, in execution order (not including itself)."""
-    needed: set[str] = set()
-    pending = list(load_stage(name).DEPENDS)
-    while pending:
-        dep = pending.pop()
-        if dep not in needed:
-            needed.add(dep)
-            pending.extend(load_stage(dep).DEPENDS)
-    return [s for s in STAGE_ORDER if s in needed]
+    def upstream(self, name: str) -> list[str]:
+        """All stages `name` needs, transitively, in execution order (not including itself)."""
+        needed: set[str] = set()
+        pending = list(self.load(name).DEPENDS)
+        while pending:
+            dep = pending.pop()
+            if dep not in needed:
+                needed.add(dep)
+                pending.extend(self.load(dep).DEPENDS)
+        return [s for s in self.order if s in needed]
 
 
 def code_hash(module: ModuleType) -> str:
@@ -68,7 +73,7 @@ def code_hash(module: ModuleType) -> str:
         p = REPO_ROOT / rel
         paths.extend(sorted(f for f in p.rglob("*") if f.suffix in {".py", ".h", ".cpp", ".cu", ".yaml"}) if p.is_dir() else [p])
     for p in paths:
-        digest.update(str(p.relative_to(REPO_ROOT)).encode())
+        digest.update(p.name.encode())
         digest.update(p.read_bytes())
     digest.update(str(getattr(module, "VERSION", 0)).encode())
     return digest.hexdigest()[:16]

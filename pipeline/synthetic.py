@@ -1,0 +1,539 @@
+"""Synthetic scenes with exact cameras: ray-cast textured analytic shapes, for the demo and the tests.
+
+Three kinds, matching the scene types the pipeline handles:
+- `object`: a still life (spheres and boxes on a slab) seen by an inward orbit; nothing else in the
+  scene, so rays that miss it see a plain background colour (or are transparent, with `alpha=True`).
+- `forward`: objects at several depths in front of a textured floor and back wall, seen by cameras
+  on a small grid in one plane that all look the same way (like LLFF's fern).
+- `unbounded`: the `object` still life on an endless textured ground, inside a textured environment
+  sphere about 20 times the object's size, seen by an inward orbit: a bounded grid cannot hold it.
+
+The world frame is deliberately not normalised (z up, the object about 2 units wide, centred at
+OBJECT_CENTRE, off the origin) so the normalize stage has real work to do.
+
+Surfaces carry solid textures (value noise over several octaves, hard-edged colour patches and
+spots), so the same 3D point looks the same from every view and SIFT has plenty to match; Lambertian
+shading from one fixed light makes the geometry read. Colours are supersampled per pixel to keep the
+fine texture from aliasing differently in each view; depth and coverage come from the pixel centre.
+
+Written to disk by `write_scene`:
+    images/NNNN.png              8-bit RGB (RGBA with alpha=True, object kind only)
+    transforms.json              shared PINHOLE camera + OpenGL camera-to-world per frame, as the poses stage writes it
+    ground_truth/mesh.ply        the foreground shapes, triangulated, in the same world frame
+    ground_truth/scene.json      kind, object bounds, world up, the shapes, and each view's near/far hit depths
+"""
+from __future__ import annotations
+
+import colorsys
+import math
+import os
+import shutil
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+
+from pipeline.cameras import Intrinsics, pixel_directions
+from pipeline.errors import UserError
+from pipeline.io import read_json, write_json, write_png
+from pipeline.report import Reporter
+
+KINDS = ("object", "forward", "unbounded")
+WORLD_UP = (0.0, 0.0, 1.0)
+OBJECT_CENTRE = np.array([0.3, -0.2, 0.5])
+ENVIRONMENT_RADIUS = 24.0
+HORIZONTAL_FOV_DEG = {"object": 50.0, "forward": 60.0, "unbounded": 60.0}
+# Hits closer than this along a ray are ignored, so a ray never hits the surface it starts on.
+MIN_HIT_DISTANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class Texture:
+    """A solid (3D) texture: the colour at a point depends only on where the point is in space."""
+    seed: int
+    frequency: float                      # noise cells per world unit in the coarsest octave
+    base: tuple[float, float, float]      # the two colours of the hard-edged patches
+    patch: tuple[float, float, float]
+    spot: tuple[float, float, float]      # the colour of the small round spots
+
+    def albedo(self, points: np.ndarray) -> np.ndarray:
+        """Reflectance [N,3] in [0,1] at world points [N,3]."""
+        p = points * self.frequency
+        patches = _smoothstep(0.46, 0.54, _value_noise(p * 0.8, self.seed)[:, 0])[:, None]
+        colour = (1 - patches) * np.asarray(self.base) + patches * np.asarray(self.patch)
+        for octave, weight in enumerate((0.45, 0.35, 0.28, 0.22)):
+            colour = colour + weight * (_value_noise(p * 2.0 ** octave, self.seed + 1 + octave) - 0.5)
+        spots = _smoothstep(0.74, 0.8, _value_noise(p * 3.0, self.seed + 9)[:, 0])[:, None]
+        colour = (1 - spots) * colour + spots * np.asarray(self.spot)
+        return np.clip(colour, 0.03, 0.97)
+
+
+@dataclass(frozen=True)
+class Sphere:
+    centre: tuple[float, float, float]
+    radius: float
+    texture: Texture
+    foreground: bool = True
+    inward: bool = False                  # seen from inside: the unbounded scene's environment
+    shaded: bool = True
+
+    def intersect(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """Ray parameter t of the first hit (inf for a miss) for rays origin + t * dirs."""
+        oc = origin - np.asarray(self.centre)
+        a = np.einsum("ij,ij->i", dirs, dirs)
+        b = dirs @ oc
+        c = oc @ oc - self.radius ** 2
+        disc = b * b - a * c
+        root = np.sqrt(np.maximum(disc, 0.0))
+        near, far = (-b - root) / a, (-b + root) / a
+        t = far if self.inward else np.where(near > MIN_HIT_DISTANCE, near, far)
+        return np.where((disc >= 0) & (t > MIN_HIT_DISTANCE), t, np.inf)
+
+    def normals(self, points: np.ndarray) -> np.ndarray:
+        n = (points - np.asarray(self.centre)) / self.radius
+        return -n if self.inward else n
+
+    def mesh(self) -> trimesh.Trimesh:
+        return trimesh.creation.icosphere(subdivisions=4, radius=self.radius).apply_translation(self.centre)
+
+
+@dataclass(frozen=True)
+class Box:
+    centre: tuple[float, float, float]
+    half_extents: tuple[float, float, float]
+    yaw: float                            # rotation about the world z axis, radians
+    texture: Texture
+    foreground: bool = True
+    shaded: bool = True
+
+    def rotation(self) -> np.ndarray:
+        """World-from-box rotation."""
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+    def intersect(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        rot, h = self.rotation(), np.asarray(self.half_extents)
+        o = rot.T @ (origin - np.asarray(self.centre))
+        d = dirs @ rot
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (-h - o) / d, (h - o) / d
+        t_enter = np.minimum(t1, t2).max(axis=1)
+        t_exit = np.maximum(t1, t2).min(axis=1)
+        t = np.where(t_enter > MIN_HIT_DISTANCE, t_enter, t_exit)
+        return np.where((t_exit >= t_enter) & (t > MIN_HIT_DISTANCE), t, np.inf)
+
+    def normals(self, points: np.ndarray) -> np.ndarray:
+        rot, h = self.rotation(), np.asarray(self.half_extents)
+        local = (points - np.asarray(self.centre)) @ rot
+        axis = np.argmax(np.abs(local) / h, axis=1)
+        n_local = np.zeros_like(local)
+        rows = np.arange(len(local))
+        n_local[rows, axis] = np.sign(local[rows, axis])
+        return n_local @ rot.T
+
+    def mesh(self) -> trimesh.Trimesh:
+        transform = np.eye(4)
+        transform[:3, :3], transform[:3, 3] = self.rotation(), self.centre
+        return trimesh.creation.box(extents=2 * np.asarray(self.half_extents), transform=transform)
+
+
+@dataclass(frozen=True)
+class Plane:
+    """An endless plane; `normal` is the side the cameras see, and the side that is lit."""
+    point: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    texture: Texture
+    foreground: bool = False
+    shaded: bool = True
+
+    def intersect(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        n = np.asarray(self.normal)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = ((np.asarray(self.point) - origin) @ n) / (dirs @ n)
+        return np.where(t > MIN_HIT_DISTANCE, t, np.inf)
+
+    def normals(self, points: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(np.asarray(self.normal, dtype=np.float64), points.shape)
+
+
+Shape = Sphere | Box | Plane
+SHAPE_TYPES = {"sphere": Sphere, "box": Box, "plane": Plane}
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """Everything that decides what the cameras see; `build_scene(kind, seed)` makes one."""
+    kind: str
+    seed: int
+    shapes: tuple[Shape, ...]
+    background: tuple[float, float, float]   # what a ray that hits nothing sees (object kind)
+    light: tuple[float, float, float]        # unit vector towards the light
+    ambient: float                           # share of the light that reaches surfaces facing away from it
+    look_at: tuple[float, float, float]      # where the orbit cameras point (the object's centre)
+
+    def foreground(self) -> list[Shape]:
+        return [s for s in self.shapes if s.foreground]
+
+    def object_bounds(self) -> np.ndarray:
+        """[2,3] min and max corners of the foreground shapes' axis-aligned bounding box."""
+        return self.mesh().bounds
+
+    def mesh(self) -> trimesh.Trimesh:
+        """The foreground shapes, triangulated, in the world frame."""
+        return trimesh.util.concatenate([s.mesh() for s in self.foreground()])
+
+    def to_json(self) -> dict:
+        shapes = [{"type": type(s).__name__.lower(), **asdict(s)} for s in self.shapes]
+        return {**asdict(self), "shapes": shapes}
+
+
+def surface_colour(scene: SceneSpec, shape: Shape, points: np.ndarray) -> np.ndarray:
+    """The shaded colour [N,3] in [0,1] of `shape` at world points [N,3] on its surface (view-independent)."""
+    albedo = shape.texture.albedo(points)
+    if not shape.shaded:
+        return albedo
+    lambert = np.clip(shape.normals(points) @ np.asarray(scene.light), 0.0, None)
+    return albedo * (scene.ambient + (1 - scene.ambient) * lambert)[:, None]
+
+
+def trace(scene: SceneSpec, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest hit per ray: ray parameter t [N] (inf for a miss) and index into scene.shapes [N] (-1 for a miss)."""
+    t = np.full(len(dirs), np.inf)
+    index = np.full(len(dirs), -1)
+    for k, shape in enumerate(scene.shapes):
+        t_k = shape.intersect(origin, dirs)
+        closer = t_k < t
+        t[closer], index[closer] = t_k[closer], k
+    return t, index
+
+
+def render_view(scene: SceneSpec, c2w: np.ndarray, intrinsics: Intrinsics,
+                supersample: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Renders one view.
+
+    Returns rgb [h,w,3] uint8 (background colour where nothing is hit), depth [h,w] float64 along the
+    camera's viewing axis (-z in camera space) at the pixel centre, inf where nothing is hit, and
+    alpha [h,w] float64 in [0,1]: the share of the pixel covered by foreground shapes.
+    """
+    rgb, depth, alpha = _render_float(scene, c2w, intrinsics, supersample)
+    return _to_uint8(rgb), depth, alpha
+
+
+def _render_float(scene: SceneSpec, c2w: np.ndarray, k: Intrinsics, supersample: int):
+    c2w = np.asarray(c2w, dtype=np.float64)
+    origin, rot = c2w[:3, 3], c2w[:3, :3]
+    # Camera-space directions have z = -1, so the ray parameter t is the depth along the viewing axis.
+    centre_dirs = pixel_directions(k, torch.float64).numpy().reshape(-1, 3) @ rot.T
+    depth, _ = trace(scene, origin, centre_dirs)
+
+    colour = np.zeros((k.h * k.w, 3))
+    coverage = np.zeros(k.h * k.w)
+    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+    foreground = np.array([s.foreground for s in scene.shapes])
+    for dy in offsets:
+        for dx in offsets:
+            # A principal point moved by -offset puts the rays through (i + 0.5 + dx, j + 0.5 + dy).
+            shifted = Intrinsics(k.fl_x, k.fl_y, k.cx - dx, k.cy - dy, k.w, k.h)
+            dirs = pixel_directions(shifted, torch.float64).numpy().reshape(-1, 3) @ rot.T
+            t, index = trace(scene, origin, dirs)
+            sample = np.broadcast_to(np.asarray(scene.background), colour.shape).copy()
+            for s, shape in enumerate(scene.shapes):
+                hit = index == s
+                if hit.any():
+                    sample[hit] = surface_colour(scene, shape, origin + t[hit, None] * dirs[hit])
+            colour += sample
+            coverage += (index >= 0) & foreground[np.maximum(index, 0)]
+    n = supersample * supersample
+    return (colour / n).reshape(k.h, k.w, 3), depth.reshape(k.h, k.w), (coverage / n).reshape(k.h, k.w)
+
+
+def _to_uint8(values: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(values, 0.0, 1.0) * 255).astype(np.uint8)
+
+
+# ----------------------------------------------------------------------------------------------
+# Scene layouts
+
+
+def build_scene(kind: str, seed: int = 0) -> SceneSpec:
+    """The shapes, light and background of one kind of scene; the seed varies layout, sizes and textures."""
+    if kind not in KINDS:
+        raise UserError(f"unknown synthetic scene kind {kind!r}; choose one of {', '.join(KINDS)}")
+    rng = np.random.default_rng([seed, KINDS.index(kind)])
+    light = np.array([0.45, -0.35, 0.82])
+    if kind == "forward":
+        shapes = _forward_shapes(rng)
+    else:
+        shapes = _still_life(rng, with_slab=kind == "object")
+        if kind == "unbounded":
+            ground_z = float(OBJECT_CENTRE[2] - 0.5)
+            shapes += [
+                Plane((0.0, 0.0, ground_z), (0.0, 0.0, 1.0), _texture(rng, 1.5)),
+                Sphere(tuple(OBJECT_CENTRE), ENVIRONMENT_RADIUS, _texture(rng, 0.4),
+                       foreground=False, inward=True, shaded=False),
+            ]
+    return SceneSpec(kind=kind, seed=seed, shapes=tuple(shapes), background=(1.0, 1.0, 1.0),
+                     light=tuple(light / np.linalg.norm(light)), ambient=0.35, look_at=tuple(OBJECT_CENTRE))
+
+
+def _still_life(rng: np.random.Generator, with_slab: bool) -> list[Shape]:
+    """Two spheres and two boxes standing on the plane z = OBJECT_CENTRE.z - 0.5, inside about
+    OBJECT_CENTRE +- (1, 1, 0.6), with gaps between them so their meshes do not intersect."""
+    cx, cy, cz = OBJECT_CENTRE
+    floor = cz - 0.5
+    spin = rng.uniform(0, 2 * math.pi)
+    c, s = math.cos(spin), math.sin(spin)
+    shapes: list[Shape] = []
+    if with_slab:
+        shapes.append(Box((cx, cy, floor - 0.06), (1.05, 0.9, 0.06), spin, _texture(rng, 2.0)))
+    # The corners of a 0.84-unit square on the slab, in order around it; every piece fits within
+    # 0.4 of its corner, so neighbours (0.84 apart) keep a gap.
+    corners = [(0.42, 0.42), (-0.42, 0.42), (-0.42, -0.42), (0.42, -0.42)]
+    x0, x1, x2, x3 = (cx + c * u - s * v for u, v in corners)
+    y0, y1, y2, y3 = (cy + s * u + c * v for u, v in corners)
+    big_r, small_r = rng.uniform(0.34, 0.4), rng.uniform(0.2, 0.26)
+    box_a = (rng.uniform(0.22, 0.28), rng.uniform(0.2, 0.24), rng.uniform(0.4, 0.55))
+    box_b = (rng.uniform(0.16, 0.2), rng.uniform(0.16, 0.2), rng.uniform(0.15, 0.22))
+    shapes += [
+        Sphere((x0, y0, floor + big_r), big_r, _texture(rng, 2.5)),
+        Box((x1, y1, floor + box_a[2]), box_a, rng.uniform(0, math.pi), _texture(rng, 2.5)),
+        Sphere((x2, y2, floor + small_r), small_r, _texture(rng, 3.0)),
+        Box((x3, y3, floor + box_b[2]), box_b, rng.uniform(0, math.pi), _texture(rng, 3.0)),
+    ]
+    return shapes
+
+
+# The forward-facing rig: camera grid centre, the direction every camera faces, and where the back wall stands.
+FORWARD_EYE = np.array([0.3, -4.2, 1.0])
+FORWARD_DIRECTION = np.array([0.0, 1.0, 0.0])
+FORWARD_WALL_DEPTH = 9.0
+FORWARD_FLOOR_Z = 0.0
+
+
+def _forward_shapes(rng: np.random.Generator) -> list[Shape]:
+    """Objects standing on the floor at depths 2.5 to 7 from the camera grid, spread across the view."""
+    shapes: list[Shape] = []
+    # (sideways offset, depth) slots; sizes grow with depth so far objects still fill some pixels.
+    slots = [(-0.75, 2.6), (0.7, 3.3), (-1.6, 4.4), (0.25, 5.0), (1.9, 5.8), (-0.8, 6.8)]
+    for n, (side, depth) in enumerate(slots):
+        x = FORWARD_EYE[0] + side + rng.uniform(-0.1, 0.1)
+        y = FORWARD_EYE[1] + depth + rng.uniform(-0.15, 0.15)
+        size = 0.3 + 0.06 * depth + rng.uniform(-0.05, 0.05)
+        if n % 2 == 0:
+            shapes.append(Sphere((x, y, FORWARD_FLOOR_Z + size), size, _texture(rng, 2.5)))
+        else:
+            half = (size * 0.8, size * 0.7, size * rng.uniform(0.9, 1.4))
+            shapes.append(Box((x, y, FORWARD_FLOOR_Z + half[2]), half, rng.uniform(0, math.pi), _texture(rng, 2.5)))
+    wall_y = FORWARD_EYE[1] + FORWARD_WALL_DEPTH
+    shapes += [
+        Plane((0.0, 0.0, FORWARD_FLOOR_Z), (0.0, 0.0, 1.0), _texture(rng, 1.5)),
+        Plane((0.0, wall_y, 0.0), (0.0, -1.0, 0.0), _texture(rng, 1.2), shaded=False),
+    ]
+    return shapes
+
+
+def _texture(rng: np.random.Generator, frequency: float) -> Texture:
+    """Random, contrasting colours: a light base, a darker patch colour of another hue, and bright or dark spots."""
+    hue = rng.uniform()
+    base = colorsys.hsv_to_rgb(hue, rng.uniform(0.35, 0.8), rng.uniform(0.65, 0.9))
+    patch = colorsys.hsv_to_rgb((hue + rng.uniform(0.3, 0.7)) % 1.0, rng.uniform(0.4, 0.9), rng.uniform(0.2, 0.45))
+    spot = colorsys.hsv_to_rgb(rng.uniform(), rng.uniform(0.0, 0.6), rng.choice([0.08, 0.97]))
+    return Texture(int(rng.integers(0, 2 ** 31)), frequency, base, patch, spot)
+
+
+# ----------------------------------------------------------------------------------------------
+# Cameras
+
+
+def camera_poses(scene: SceneSpec, n_views: int) -> np.ndarray:
+    """[n,4,4] OpenGL camera-to-world matrices, ordered so that consecutive views are neighbours."""
+    rng = np.random.default_rng([scene.seed, KINDS.index(scene.kind), 1])
+    centre = np.asarray(scene.look_at)
+    if scene.kind == "forward":
+        return _forward_grid(rng, n_views)
+    # A two-turn spiral up the upper hemisphere: neighbours are 720/n degrees apart, and each
+    # azimuth is seen from two elevations.
+    s = (np.arange(n_views) + 0.5) / n_views
+    low, high, radius = (12.0, 65.0, 4.2) if scene.kind == "object" else (6.0, 40.0, 4.0)
+    azimuth = rng.uniform(0, 2 * math.pi) + 4 * math.pi * s
+    elevation = np.radians(low + (high - low) * s)
+    offsets = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], -1)
+    return np.stack([look_at(centre + radius * o, centre) for o in offsets])
+
+
+def _forward_grid(rng: np.random.Generator, n_views: int) -> np.ndarray:
+    """Cameras on a grid about 1.2 x 0.8 units in the plane facing FORWARD_DIRECTION, visited row by row
+    in a snake so neighbours stay close; all look at one point near the back wall."""
+    cols = max(1, math.ceil(math.sqrt(n_views * 1.5)))
+    rows = math.ceil(n_views / cols)
+    right = np.cross(FORWARD_DIRECTION, WORLD_UP)
+    target = FORWARD_EYE + FORWARD_DIRECTION * (FORWARD_WALL_DEPTH - 1.0)
+    poses = []
+    for n in range(n_views):
+        row, col = divmod(n, cols)
+        if row % 2:
+            col = cols - 1 - col
+        x = (col / max(cols - 1, 1) - 0.5) * 1.2 + rng.uniform(-0.03, 0.03)
+        z = (row / max(rows - 1, 1) - 0.5) * 0.8 + rng.uniform(-0.03, 0.03)
+        eye = FORWARD_EYE + x * right + z * np.asarray(WORLD_UP)
+        poses.append(look_at(eye, target))
+    return np.stack(poses)
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up=WORLD_UP) -> np.ndarray:
+    """OpenGL camera-to-world for a camera at `eye` looking at `target`, with image-up towards `up`."""
+    forward = np.asarray(target, dtype=np.float64) - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(right, forward), -forward, eye
+    return c2w
+
+
+def intrinsics_for(kind: str, width: int, height: int) -> Intrinsics:
+    """Square pixels, principal point at the image centre, the kind's horizontal field of view."""
+    focal = (width / 2) / math.tan(math.radians(HORIZONTAL_FOV_DEG[kind]) / 2)
+    return Intrinsics(focal, focal, width / 2, height / 2, width, height)
+
+
+# ----------------------------------------------------------------------------------------------
+# Writing a scene
+
+
+def write_scene(kind: str, out_dir: Path | str, n_views: int = 40, width: int = 320, height: int = 240,
+                seed: int = 0, alpha: bool = False, supersample: int = 2,
+                reporter: Reporter | None = None) -> Path:
+    """Renders a synthetic scene into out_dir (replacing an earlier synthetic scene there) and returns out_dir.
+
+    The scene is assembled in a sibling folder and renamed into place, so out_dir is either the old
+    scene or the complete new one. Same arguments, same bytes.
+    """
+    scene = build_scene(kind, seed)
+    _check_arguments(kind, n_views, width, height, alpha, supersample)
+    out_dir = Path(out_dir)
+    _check_replaceable(out_dir)
+    reporter = reporter or Reporter(quiet=True)
+
+    tmp = out_dir.with_name(f".{out_dir.name}.tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "images").mkdir(parents=True)
+    (tmp / "ground_truth").mkdir()
+    k = intrinsics_for(kind, width, height)
+    poses = camera_poses(scene, n_views)
+    frames, views = [], []
+    for n, c2w in enumerate(reporter.track(poses, total=n_views, desc=f"rendering {kind} scene")):
+        rgb, depth, coverage = _render_float(scene, c2w, k, supersample)
+        name = f"images/{n:04d}.png"
+        if alpha:
+            # Unpremultiplied colour: compositing the PNG over the background gives the RGB render back.
+            with np.errstate(divide="ignore", invalid="ignore"):
+                fg = (rgb - (1 - coverage[..., None]) * np.asarray(scene.background)) / coverage[..., None]
+            fg = np.where(coverage[..., None] > 0, fg, 0.0)
+            write_png(tmp / name, np.concatenate([_to_uint8(fg), _to_uint8(coverage)[..., None]], axis=-1))
+        else:
+            write_png(tmp / name, _to_uint8(rgb))
+        frames.append({"file_path": name, "transform_matrix": c2w.tolist()})
+        views.append({"file_path": name, **_depth_range(depth, k)})
+
+    write_json(tmp / "transforms.json", {
+        "camera_model": "PINHOLE",
+        "fl_x": k.fl_x, "fl_y": k.fl_y, "cx": k.cx, "cy": k.cy, "w": k.w, "h": k.h,
+        "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+        "frames": frames,
+        "synthetic": {"kind": kind, "seed": seed, "n_views": n_views, "alpha": alpha, "supersample": supersample},
+    })
+    scene.mesh().export(tmp / "ground_truth" / "mesh.ply")
+    bounds = scene.object_bounds()
+    write_json(tmp / "ground_truth" / "scene.json", {
+        "kind": kind,
+        "seed": seed,
+        "world_up": list(WORLD_UP),
+        "object_bounds": {"min": bounds[0].tolist(), "max": bounds[1].tolist()},
+        "object_centre": list(scene.look_at),
+        "environment_radius": ENVIRONMENT_RADIUS if kind == "unbounded" else None,
+        "depth_convention": "depth = distance along the camera's viewing axis; distance = along the ray",
+        "views": views,
+        "scene": scene.to_json(),
+    })
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    os.replace(tmp, out_dir)
+    return out_dir
+
+
+def _depth_range(depth: np.ndarray, k: Intrinsics) -> dict:
+    """Nearest and farthest surface hit in a view, as depth along the viewing axis and as distance along the ray."""
+    hit = np.isfinite(depth)
+    if not hit.any():
+        return {"near_depth": None, "far_depth": None, "near_distance": None, "far_distance": None}
+    ray_length = np.linalg.norm(pixel_directions(k, torch.float64).numpy(), axis=-1)
+    distance = depth[hit] * ray_length[hit]
+    return {"near_depth": float(depth[hit].min()), "far_depth": float(depth[hit].max()),
+            "near_distance": float(distance.min()), "far_distance": float(distance.max())}
+
+
+def _check_arguments(kind: str, n_views: int, width: int, height: int, alpha: bool, supersample: int) -> None:
+    if n_views < 1:
+        raise UserError(f"the number of views must be at least 1 (got {n_views})")
+    if width < 8 or height < 8:
+        raise UserError(f"images must be at least 8x8 pixels (got {width}x{height})")
+    if supersample < 1:
+        raise UserError(f"supersample must be at least 1 (got {supersample})")
+    if alpha and kind != "object":
+        raise UserError(f"alpha only applies to the object kind (the {kind} scene has no empty background)")
+
+
+def _check_replaceable(out_dir: Path) -> None:
+    """Only an empty folder or an earlier synthetic scene may be replaced: never a user's photos."""
+    if not out_dir.exists():
+        return
+    if not out_dir.is_dir():
+        raise UserError(f"{out_dir} is a file; give a folder path for the synthetic scene")
+    transforms = out_dir / "transforms.json"
+    earlier_scene = transforms.is_file() and "synthetic" in read_json(transforms)
+    if any(out_dir.iterdir()) and not earlier_scene:
+        raise UserError(f"{out_dir} already holds files that are not a synthetic scene; choose an empty or new folder")
+
+
+# ----------------------------------------------------------------------------------------------
+# Value noise
+
+
+def _smoothstep(lo: float, hi: float, x: np.ndarray) -> np.ndarray:
+    x = np.clip((x - lo) / (hi - lo), 0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
+def _hash(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, seed: int) -> np.ndarray:
+    """A well-mixed uint32 per integer lattice point: no table, so the noise never repeats."""
+    mask = 0xFFFFFFFF
+    h = (ix * 0x8DA6B343 ^ iy * 0xD8163841 ^ iz * 0xCB1AB31F ^ (seed & mask)) & mask
+    h = h.astype(np.uint32)
+    h ^= h >> np.uint32(16)
+    h *= np.uint32(0x7FEB352D)
+    h ^= h >> np.uint32(15)
+    h *= np.uint32(0x846CA68B)
+    h ^= h >> np.uint32(16)
+    return h
+
+
+def _value_noise(p: np.ndarray, seed: int) -> np.ndarray:
+    """Three independent channels [N,3] in [0,1] of smooth value noise with one cell per unit of p."""
+    cell = np.floor(p)
+    f = p - cell
+    w = f * f * (3 - 2 * f)
+    ix, iy, iz = cell.astype(np.int64).T
+    out = np.zeros_like(p)
+    for dx in (0, 1):
+        wx = w[:, 0] if dx else 1 - w[:, 0]
+        for dy in (0, 1):
+            wy = wx * (w[:, 1] if dy else 1 - w[:, 1])
+            for dz in (0, 1):
+                weight = wy * (w[:, 2] if dz else 1 - w[:, 2])
+                h = _hash(ix + dx, iy + dy, iz + dz, seed)
+                rgb = np.stack([h & 0xFF, (h >> 8) & 0xFF, (h >> 16) & 0xFF], axis=-1)
+                out += weight[:, None] * rgb
+    return out / 255.0
