@@ -1,0 +1,509 @@
+"""Export: the fitted radiance field -> a coloured mesh and a coloured point cloud, in the input frame.
+
+Writes export/mesh.ply, mesh.obj and mesh.glb (one mesh: marching cubes over the fitted density,
+view-averaged colours, small pieces and floaters removed, cropped to the foreground, optionally
+decimated), export/points.ply (points where the training views' rays terminate, with colours and
+normals) and export/export.json (the frame, counts, sizes, bounds, level and resolution).
+
+Frames: geometry is extracted in the fit frame (the normalised world, or NDC for forward scenes),
+mapped to the normalised world, cropped there, then written in the input (COLMAP) frame through
+scene.json's `input_from_world`, or left in the normalised frame with `frame: normalized`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+import trimesh
+from scipy.spatial import cKDTree
+from skimage.measure import marching_cubes
+from trimesh.exchange.ply import export_ply
+
+from pipeline.cameras import Intrinsics, rays_from_camera
+from pipeline.config import require
+from pipeline.errors import UserError
+from pipeline.io import read_json, write_json
+
+NAME = "export"
+DEPENDS: tuple[str, ...] = ("normalize", "fit")
+VERSION = 1
+CODE = ("plenoxels",)
+
+# Real SH basis constant of degree 0: the DC coefficient times this is the colour averaged over all directions.
+SH_C0 = 0.28209479177387814
+# The fit adds this to the SH sum before its relu, so all-zero coefficients give mid grey (csrc/plenoxels_math.h).
+COLOUR_OFFSET = 0.5
+# glTF is y-up; these axes make a z-up frame stand upright in glTF viewers, and importers that convert
+# glTF to z-up (Blender) get the frame's own coordinates back.
+GLTF_FROM_ZUP = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
+# Where along the inward normal a vertex's colour is gathered, in voxels (negative: outside the surface).
+COLOUR_PROBE_VOXELS = np.arange(-1.0, 3.01, 0.5)
+# Points sampled per chunk when asking the grid for values, to bound memory.
+CHUNK = 1 << 18
+
+
+@dataclass
+class Settings:
+    frame: Literal["input", "normalized"] = "input"   # input: the poses' (COLMAP) frame; normalized: the fit's world
+    resolution: int | Literal["auto"] = "auto"         # marching-cubes cells along the grid's longest axis; auto: the fit's own
+    level: float | Literal["auto"] = "auto"            # density iso-level; auto: see level_opacity
+    level_opacity: float = 0.5        # auto level: the density at which crossing one voxel gives this opacity
+    crop_margin: float = 0.05         # the foreground box is grown by this share of its size before cropping
+    min_piece_fraction: float = 0.01  # pieces with fewer faces than this share of the largest piece are dropped
+    max_gap: float = 0.05             # pieces farther than this share of the foreground diagonal from the largest are dropped
+    target_faces: int = 0             # decimate to this many faces; 0 keeps every face
+    points: int = 200_000             # points kept in points.ply (a random, seeded subset)
+    point_scale: float = 0.25         # training views are rendered at this share of their size for the points
+    point_views: int = 0              # training views rendered for the points; 0: all
+    point_opacity: float = 0.95       # a pixel gives a point only where its ray is at least this opaque
+    seed: int = 0
+
+    def check(self) -> None:
+        require(self.resolution == "auto" or 8 <= self.resolution <= 2048,
+                "export.resolution must be auto or between 8 and 2048 cells")
+        require(self.level == "auto" or self.level > 0, "export.level must be auto or a positive density")
+        require(0.0 < self.level_opacity < 1.0, "export.level_opacity must be in (0, 1)")
+        require(self.crop_margin >= 0.0, "export.crop_margin must be 0 or more")
+        require(0.0 <= self.min_piece_fraction <= 1.0, "export.min_piece_fraction must be in [0, 1]")
+        require(self.max_gap > 0.0, "export.max_gap must be positive")
+        require(self.target_faces == 0 or self.target_faces >= 4, "export.target_faces must be 0 (keep all) or at least 4")
+        require(self.points >= 0, "export.points must be 0 (no point cloud) or more")
+        require(0.0 < self.point_scale <= 1.0, "export.point_scale must be in (0, 1]")
+        require(self.point_views >= 0, "export.point_views must be 0 (all training views) or more")
+        require(0.0 < self.point_opacity < 1.0, "export.point_opacity must be in (0, 1)")
+
+
+# ---------------------------------------------------------------------------------------------------
+# The fitted grid, read through its documented attributes only
+
+
+@dataclass
+class Lattice:
+    """Raw (pre-activation) density on a regular lattice of the fit frame: vertex (i, j, k) is at
+    origin + (i, j, k) * spacing. Unallocated grid vertices hold 0, as the renderer reads them."""
+    values: np.ndarray    # [X, Y, Z] float32
+    origin: np.ndarray    # [3]
+    spacing: np.ndarray   # [3]
+
+    @property
+    def voxel(self) -> float:
+        return float(np.mean(self.spacing))
+
+
+def _numpy(x: Any) -> np.ndarray:
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def grid_box(grid) -> tuple[np.ndarray, np.ndarray]:
+    return _numpy(grid.bbox_min).astype(np.float64).reshape(3), _numpy(grid.bbox_max).astype(np.float64).reshape(3)
+
+
+def grid_lattice(grid) -> Lattice:
+    """The grid's own vertices as a dense array of raw density."""
+    links = _numpy(grid.links)
+    density = _numpy(grid.density).reshape(-1).astype(np.float32)
+    values = np.zeros(links.shape, dtype=np.float32)
+    allocated = links >= 0
+    values[allocated] = density[links[allocated]]
+    lo, hi = grid_box(grid)
+    return Lattice(values, lo, (hi - lo) / (np.array(links.shape) - 1))
+
+
+def refine(lattice: Lattice, resolution: int, level: float) -> Lattice:
+    """The lattice resampled (trilinearly, as the renderer interpolates) so its longest axis has
+    `resolution` cells, over the part that holds density above `level` only (plus one cell)."""
+    cells = np.array(lattice.values.shape) - 1
+    factor = resolution / cells.max()
+    if abs(factor - 1.0) < 1e-9:
+        return lattice
+    above = np.argwhere(lattice.values > level)
+    if len(above) == 0:
+        return lattice
+    lo = np.maximum(above.min(0) - 1, 0)
+    hi = np.minimum(above.max(0) + 1, cells)
+    crop = lattice.values[lo[0]:hi[0] + 1, lo[1]:hi[1] + 1, lo[2]:hi[2] + 1]
+    size = [max(2, int(round((h - l) * factor)) + 1) for l, h in zip(lo, hi)]
+    fine = torch.nn.functional.interpolate(torch.from_numpy(np.ascontiguousarray(crop))[None, None], size=size,
+                                           mode="trilinear", align_corners=True)[0, 0].numpy()
+    spacing = lattice.spacing * (hi - lo) / (np.array(size) - 1)
+    return Lattice(fine, lattice.origin + lo * lattice.spacing, spacing)
+
+
+def auto_level(lattice: Lattice, opacity: float) -> float:
+    """The density at which one voxel of travel has `opacity`: sigma = -ln(1 - opacity) / voxel.
+    Density is per fit-frame unit, so this level means the same on coarse and fine grids."""
+    return -math.log(1.0 - opacity) / lattice.voxel
+
+
+def extract_surface(lattice: Lattice, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """Marching cubes at `level`: vertices [V,3] in the fit frame and faces [F,3] wound so their
+    normals point out of the dense region."""
+    if not (lattice.values > level).any():
+        peak = float(lattice.values.max(initial=0.0))
+        raise UserError(f"no fitted density reaches the export level {level:.3g} (the highest is {peak:.3g}); "
+                        f"set export.level lower or export.level_opacity lower")
+    padded = np.pad(lattice.values, 1, constant_values=min(0.0, float(lattice.values.min())))
+    vertices, faces, _, _ = marching_cubes(padded, level=level, spacing=tuple(lattice.spacing))
+    vertices = vertices - lattice.spacing + lattice.origin
+    # skimage winds faces so their normals point towards decreasing values: flip them to point outwards.
+    return vertices, np.ascontiguousarray(faces[:, ::-1])
+
+
+def _sample(grid, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Density [N] (activated) and SH [N, 3, K] at fit-frame points, in chunks."""
+    densities, coefficients = [], []
+    for start in range(0, len(points), CHUNK):
+        chunk = torch.as_tensor(points[start:start + CHUNK], dtype=torch.float32)
+        with torch.no_grad():
+            density, sh = grid.sample(chunk)
+        densities.append(np.maximum(_numpy(density).reshape(-1), 0.0))
+        coefficients.append(_numpy(sh).reshape(len(chunk), 3, -1))
+    if not densities:
+        return np.zeros(0), np.zeros((0, 3, 1))
+    return np.concatenate(densities), np.concatenate(coefficients)
+
+
+def density_gradient(grid, points: np.ndarray, step: float) -> np.ndarray:
+    """Central-difference gradient [N,3] of the activated density at fit-frame points."""
+    offsets = np.eye(3) * step
+    stacked = np.concatenate([points + o for o in offsets] + [points - o for o in offsets])
+    density, _ = _sample(grid, stacked)
+    density = density.reshape(6, len(points))
+    return (density[:3] - density[3:]).T / (2 * step)
+
+
+def surface_colours(grid, points: np.ndarray, voxel: float) -> np.ndarray:
+    """View-averaged colour [N,3] in [0,1] at surface points of the fit frame.
+
+    Each point's colour is composited, as a ray would be, along a short probe that enters the surface
+    against the density gradient, from one voxel outside to a few inside: the colour a camera facing
+    the surface sees, rather than the grey that unallocated neighbours would blend into a colour read
+    at the surface itself. Each sample's colour is the SH degree-0 term (the mean over directions)."""
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    gradient = density_gradient(grid, points, 0.5 * voxel)
+    inward = gradient / np.maximum(np.linalg.norm(gradient, axis=1, keepdims=True), 1e-12)
+    offsets = COLOUR_PROBE_VOXELS * voxel
+    probes = points[None] + offsets[:, None, None] * inward[None]
+    density, sh = _sample(grid, probes.reshape(-1, 3))
+    density = density.reshape(len(offsets), len(points))
+    colour = np.clip(SH_C0 * sh[:, :, 0] + COLOUR_OFFSET, 0.0, 1.0).reshape(len(offsets), len(points), 3)
+    alpha = 1.0 - np.exp(-density * (offsets[1] - offsets[0]))
+    transmittance = np.cumprod(np.vstack([np.ones((1, len(points))), 1.0 - alpha[:-1]]), axis=0)
+    weight = transmittance * alpha
+    total = weight.sum(0)
+    # Where the probe finds (almost) nothing, fall back to the colour one voxel inside.
+    one_inside = int(np.argmin(np.abs(COLOUR_PROBE_VOXELS - 1.0)))
+    blended = (weight[..., None] * colour).sum(0) / np.maximum(total, 1e-12)[:, None]
+    return np.where((total > 1e-3)[:, None], blended, colour[one_inside])
+
+
+# ---------------------------------------------------------------------------------------------------
+# Mesh cleaning
+
+
+@dataclass
+class CleanReport:
+    faces_in: int
+    cropped_faces: int
+    pieces: int
+    dropped_small: int
+    dropped_far: int
+
+
+def clean_mesh(mesh: trimesh.Trimesh, box_min: np.ndarray, box_max: np.ndarray, min_piece_fraction: float,
+               max_gap: float) -> tuple[trimesh.Trimesh, CleanReport]:
+    """Crops to the box (faces with a vertex outside go), then keeps the largest connected piece and
+    every piece that is both big enough and close enough to it. `max_gap` is in the mesh's units."""
+    faces_in = len(mesh.faces)
+    inside = np.all((mesh.vertices >= box_min) & (mesh.vertices <= box_max), axis=1)
+    keep_faces = inside[mesh.faces].all(axis=1)
+    mesh = _submesh(mesh, keep_faces)
+    cropped = faces_in - len(mesh.faces)
+    if len(mesh.faces) == 0:
+        return mesh, CleanReport(faces_in, cropped, 0, 0, 0)
+
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    sizes = np.bincount(labels)
+    main = int(np.argmax(sizes))
+    main_tree = cKDTree(mesh.vertices[np.unique(mesh.faces[labels == main])])
+    kept, small, far = {main}, 0, 0
+    for label in np.argsort(-sizes):
+        if label == main:
+            continue
+        if sizes[label] < min_piece_fraction * sizes[main]:
+            small += 1
+            continue
+        gap, _ = main_tree.query(mesh.vertices[np.unique(mesh.faces[labels == label])], k=1)
+        if gap.min() > max_gap:
+            far += 1
+            continue
+        kept.add(int(label))
+    mesh = _submesh(mesh, np.isin(labels, list(kept)))
+    return mesh, CleanReport(faces_in, cropped, len(sizes), small, far)
+
+
+def _submesh(mesh: trimesh.Trimesh, face_mask: np.ndarray) -> trimesh.Trimesh:
+    """The faces in face_mask, with unreferenced vertices removed and vertex colours carried along."""
+    faces = mesh.faces[face_mask]
+    used = np.unique(faces)
+    remap = np.full(len(mesh.vertices), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    out = trimesh.Trimesh(mesh.vertices[used], remap[faces], process=False)
+    if mesh.visual.kind == "vertex":
+        out.visual.vertex_colors = mesh.visual.vertex_colors[used]
+    return out
+
+
+def decimate(mesh: trimesh.Trimesh, target_faces: int) -> trimesh.Trimesh:
+    """Quadric decimation (fast-simplification through trimesh) to about target_faces."""
+    if target_faces <= 0 or len(mesh.faces) <= target_faces:
+        return mesh
+    return mesh.simplify_quadric_decimation(face_count=target_faces)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Frames
+
+
+def transform_points(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return points @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def transform_normals(matrix: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    n = normals @ np.linalg.inv(matrix[:3, :3])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+class FitFrame:
+    """Maps between the fit frame (where the grid lives) and the normalised world: the identity, or NDC."""
+
+    def __init__(self, ndc=None):
+        self.ndc = ndc
+
+    def to_world(self, points: np.ndarray) -> np.ndarray:
+        if self.ndc is None:
+            return points
+        return self.ndc.points_to_world(torch.as_tensor(points, dtype=torch.float64)).numpy()
+
+    def from_world(self, points: np.ndarray) -> np.ndarray:
+        if self.ndc is None:
+            return points
+        return self.ndc.points_to_ndc(torch.as_tensor(points, dtype=torch.float64)).numpy()
+
+    def flips_orientation(self, near: np.ndarray) -> bool:
+        """Whether the map to the world mirrors (its Jacobian at `near` has a negative determinant),
+        which reverses which side of a face is out. The NDC map is smooth, so one point decides."""
+        if self.ndc is None:
+            return False
+        h = 1e-4
+        columns = [(self.to_world(near[None] + h * e) - self.to_world(near[None] - h * e))[0] / (2 * h) for e in np.eye(3)]
+        return bool(np.linalg.det(np.stack(columns, axis=1)) < 0)
+
+
+def mesh_to_world(vertices: np.ndarray, faces: np.ndarray, frame: FitFrame) -> tuple[np.ndarray, np.ndarray]:
+    world = frame.to_world(vertices)
+    if len(vertices) and frame.flips_orientation(vertices.mean(0)):
+        faces = faces[:, ::-1]
+    return world, np.ascontiguousarray(faces)
+
+
+# ---------------------------------------------------------------------------------------------------
+# The point cloud
+
+
+def surface_points(model, frames: list[dict], s: Settings, report) -> tuple[np.ndarray, np.ndarray]:
+    """Points (normalised world) [N,3] and colours [N,3] in [0,1] at the expected ray-termination
+    depth of the training views' pixels whose rays are at least `point_opacity` opaque."""
+    train = [f for f in frames if f.get("split", "train") == "train"] or frames
+    if s.point_views and len(train) > s.point_views:
+        pick = np.linspace(0, len(train) - 1, s.point_views).round().astype(int)
+        train = [train[i] for i in pick]
+    points, colours = [], []
+    for frame in report.track(train, desc="rendering depth for the point cloud"):
+        k = Intrinsics(float(frame["fl_x"]), float(frame["fl_y"]), float(frame["cx"]), float(frame["cy"]),
+                       int(frame["w"]), int(frame["h"])).scaled(s.point_scale)
+        c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
+        with torch.no_grad():
+            out = model.render_camera(c2w, k)
+        depth = _numpy(out["depth"]).reshape(-1)
+        opacity = _numpy(out["opacity"]).reshape(-1)
+        rgb = _numpy(out["rgb"]).reshape(-1, 3)
+        origins, directions = rays_from_camera(c2w, k, dtype=torch.float64)
+        origins, directions = origins.reshape(-1, 3).numpy(), directions.reshape(-1, 3).numpy()
+        # Depth is distance along the unit ray; a mostly transparent ray's depth is a blend of nothing.
+        good = (opacity >= s.point_opacity) & np.isfinite(depth)
+        points.append(origins[good] + depth[good, None] * directions[good])
+        colours.append(np.clip(rgb[good], 0.0, 1.0))
+    return (np.concatenate(points) if points else np.zeros((0, 3)),
+            np.concatenate(colours) if colours else np.zeros((0, 3)))
+
+
+def point_normals(grid, frame: FitFrame, points_world: np.ndarray, voxel: float) -> np.ndarray:
+    """Outward normals [N,3] (normalised world): minus the fitted density's gradient at each point."""
+    fit_points = frame.from_world(points_world)
+    gradient = density_gradient(grid, fit_points, 0.5 * voxel)
+    if frame.ndc is not None:
+        # The world gradient is J^T times the fit-frame one, J = d(fit point)/d(world point) at each point.
+        h = 1e-5
+        jacobian = np.stack([(frame.from_world(points_world + h * e) - frame.from_world(points_world - h * e)) / (2 * h)
+                             for e in np.eye(3)], axis=2)
+        gradient = np.einsum("nji,nj->ni", jacobian, gradient)
+    outward = -gradient
+    return outward / np.maximum(np.linalg.norm(outward, axis=1, keepdims=True), 1e-12)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Writing
+
+
+def write_mesh_files(mesh: trimesh.Trimesh, folder: Path) -> dict[str, str]:
+    """mesh.ply (binary, with normals and colours), mesh.obj (vertex colours) and mesh.glb (y-up axes)."""
+    paths = {"ply": folder / "mesh.ply", "obj": folder / "mesh.obj", "glb": folder / "mesh.glb"}
+    paths["ply"].write_bytes(export_ply(mesh, encoding="binary", vertex_normal=True))
+    mesh.export(paths["obj"], include_normals=True)
+    gltf = mesh.copy()
+    gltf.apply_transform(GLTF_FROM_ZUP)
+    gltf.export(paths["glb"])
+    return {k: str(p.name) for k, p in paths.items()}
+
+
+def write_points(path: Path, points: np.ndarray, colours: np.ndarray, normals: np.ndarray) -> None:
+    """A binary PLY of vertices with normals and 8-bit colours (no faces)."""
+    cloud = trimesh.Trimesh(vertices=points, faces=np.zeros((0, 3), dtype=np.int64), vertex_normals=normals,
+                            vertex_colors=_rgba8(colours), process=False)
+    path.write_bytes(export_ply(cloud, encoding="binary", vertex_normal=True))
+
+
+def _rgba8(colours: np.ndarray) -> np.ndarray:
+    rgb = np.round(np.clip(colours, 0.0, 1.0) * 255).astype(np.uint8)
+    return np.concatenate([rgb, np.full((len(rgb), 1), 255, dtype=np.uint8)], axis=1)
+
+
+def _size(n_bytes: int) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if n_bytes < 1000 or unit == "GB":
+            return f"{n_bytes:.0f} {unit}" if unit == "B" else f"{n_bytes:.1f} {unit}"
+        n_bytes /= 1000
+    return f"{n_bytes} B"
+
+
+def _count(n: int) -> str:
+    return f"{n / 1e6:.2f}M" if n >= 1e6 else f"{n / 1e3:.1f}k" if n >= 1e4 else str(n)
+
+
+def _bounds(points: np.ndarray) -> dict:
+    if len(points) == 0:
+        return {"min": None, "max": None}
+    return {"min": points.min(0).round(6).tolist(), "max": points.max(0).round(6).tolist()}
+
+
+# ---------------------------------------------------------------------------------------------------
+# The stage
+
+
+def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, s: Settings,
+               report) -> tuple[trimesh.Trimesh, dict]:
+    """The cleaned, coloured mesh in the normalised world, and what was decided on the way."""
+    lattice = grid_lattice(grid)
+    level = auto_level(lattice, s.level_opacity) if s.level == "auto" else float(s.level)
+    native = int(np.max(lattice.values.shape) - 1)
+    resolution = native if s.resolution == "auto" else int(s.resolution)
+    fine = refine(lattice, resolution, level)
+    report.info(f"marching cubes at density {level:.4g} on a {'x'.join(map(str, fine.values.shape))} lattice")
+    vertices, faces = extract_surface(fine, level)
+    world, faces = mesh_to_world(vertices, faces, frame)
+    mesh = trimesh.Trimesh(world, faces, process=False)
+
+    size = box_max - box_min
+    margin = s.crop_margin * size
+    mesh, cleaning = clean_mesh(mesh, box_min - margin, box_max + margin, s.min_piece_fraction,
+                                s.max_gap * float(np.linalg.norm(size)))
+    if len(mesh.faces) == 0:
+        raise UserError("the mesh is empty after cropping to the foreground box; check normalize's foreground "
+                        "or raise export.crop_margin")
+    faces_before_decimation = len(mesh.faces)
+    mesh = decimate(mesh, s.target_faces)
+    colours = surface_colours(grid, frame.from_world(np.asarray(mesh.vertices)), lattice.voxel)
+    mesh.visual.vertex_colors = _rgba8(colours)
+    decisions = {
+        "level": level,
+        "level_source": f"auto: one voxel ({lattice.voxel:.4g} fit units) at this density is "
+                        f"{s.level_opacity:.0%} opaque" if s.level == "auto" else "set",
+        "resolution": resolution,
+        "fit_resolution": list(lattice.values.shape),
+        "lattice": list(fine.values.shape),
+        "voxel": fine.voxel,
+        "cleaning": vars(cleaning),
+        "faces_before_decimation": faces_before_decimation,
+        "decimated": len(mesh.faces) < faces_before_decimation,
+    }
+    return mesh, decisions
+
+
+def load_model(fit_dir: Path):
+    from plenoxels.scene_model import SceneModel
+
+    return SceneModel.load(fit_dir)
+
+
+def run(ctx) -> dict:
+    s: Settings = ctx.settings
+    scene = read_json(ctx.upstream["normalize"] / "scene.json")
+    model = load_model(ctx.upstream["fit"])
+    grid = model.grid
+    frame = FitFrame(getattr(model, "ndc", None))
+    box_min = np.asarray(scene["foreground"]["min"], dtype=np.float64)
+    box_max = np.asarray(scene["foreground"]["max"], dtype=np.float64)
+
+    mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report)
+
+    points = colours = normals = np.zeros((0, 3))
+    if s.points > 0:
+        points, colours = surface_points(model, scene["frames"], s, ctx.report)
+        size = box_max - box_min
+        inside = np.all((points >= box_min - s.crop_margin * size) & (points <= box_max + s.crop_margin * size), axis=1)
+        points, colours = points[inside], colours[inside]
+        if len(points) > s.points:
+            pick = np.sort(np.random.default_rng(s.seed).choice(len(points), s.points, replace=False))
+            points, colours = points[pick], colours[pick]
+        normals = point_normals(grid, frame, points, decisions["voxel"])
+
+    if s.frame == "input":
+        to_output = np.asarray(scene["input_from_world"], dtype=np.float64)
+        mesh.apply_transform(to_output)
+        points, normals = transform_points(to_output, points), transform_normals(to_output, normals)
+    else:
+        to_output = np.eye(4)
+    files = write_mesh_files(mesh, ctx.work)
+    if s.points > 0:
+        write_points(ctx.work / "points.ply", points, colours, normals)
+        files["points"] = "points.ply"
+    sizes = {name: (ctx.work / f).stat().st_size for name, f in files.items()}
+
+    frame_name = "input (the poses' COLMAP frame)" if s.frame == "input" else "normalized (z up, foreground in [-1, 1]^3)"
+    record = {
+        "frame": s.frame,
+        "frame_description": frame_name,
+        "output_from_normalized": to_output.tolist(),
+        "scene_type": scene.get("type"),
+        "fit_frame": "ndc" if frame.ndc is not None else "normalized",
+        "files": files,
+        "file_bytes": sizes,
+        "mesh": {"vertices": len(mesh.vertices), "faces": len(mesh.faces), "bounds": _bounds(mesh.vertices)},
+        "points": {"count": len(points), "bounds": _bounds(points)},
+        "glb_axes": "glTF y-up: (x, z, -y) of the frame; z-up importers such as Blender's restore the frame's coordinates",
+        **decisions,
+    }
+    write_json(ctx.work / "export.json", record)
+    lo, hi = record["mesh"]["bounds"]["min"], record["mesh"]["bounds"]["max"]
+    line = (f"mesh {_count(len(mesh.faces))} faces ({_size(sizes['ply'])} PLY), {_count(len(points))} points "
+            f"({_size(sizes.get('points', 0))}) in the {s.frame} frame, bounds "
+            f"[{', '.join(f'{v:.3g}' for v in lo)}] to [{', '.join(f'{v:.3g}' for v in hi)}], "
+            f"level {decisions['level']:.3g}{' (auto)' if s.level == 'auto' else ''}, resolution {decisions['resolution']}")
+    return {"line": line, "frame": s.frame, "faces": len(mesh.faces), "vertices": len(mesh.vertices),
+            "points": len(points), "level": decisions["level"], "resolution": decisions["resolution"]}

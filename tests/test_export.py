@@ -1,0 +1,200 @@
+"""Export: marching cubes level and frame on analytic density fields, colours, cleaning, decimation,
+NDC mapping back to the world, files that reload with the same counts, the frame round trip."""
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from pipeline.errors import UserError
+from plenoxels.ndc import NDCMapping
+from stages import export
+from stages.export import FitFrame, Settings
+
+SH_K = 4  # SH degree 1: the export must read only the degree-0 term of each channel
+
+
+class DenseField:
+    """A grid with every vertex allocated, read as the renderer reads one: trilinear raw density and SH.
+    Has the attributes the export reads from a fitted grid (links, density, sh, bbox_min/max, sample)."""
+
+    def __init__(self, density: np.ndarray, sh: np.ndarray, bbox_min, bbox_max):
+        self.shape = density.shape
+        self.links = torch.arange(density.size, dtype=torch.int32).reshape(self.shape)
+        self.density = torch.as_tensor(density.reshape(-1, 1), dtype=torch.float32)
+        self.sh = torch.as_tensor(sh.reshape(density.size, 3 * SH_K), dtype=torch.float32)
+        self.bbox_min = torch.tensor(bbox_min, dtype=torch.float32)
+        self.bbox_max = torch.tensor(bbox_max, dtype=torch.float32)
+        self.sh_degree = 1
+        self._volume = torch.cat([self.density, self.sh], 1).T.reshape(1, 1 + 3 * SH_K, *self.shape)
+
+    def sample(self, points: torch.Tensor):
+        unit = (points - self.bbox_min) / (self.bbox_max - self.bbox_min) * 2 - 1
+        # grid_sample reads (x, y, z) against a volume laid out [D, H, W] = [Z, Y, X].
+        values = torch.nn.functional.grid_sample(self._volume.permute(0, 1, 4, 3, 2), unit.reshape(1, -1, 1, 1, 3),
+                                                 mode="bilinear", align_corners=True, padding_mode="border")
+        values = values.reshape(1 + 3 * SH_K, -1).T
+        return torch.relu(values[:, 0]), values[:, 1:].reshape(-1, 3, SH_K)
+
+
+def lattice_points(res: int, lo, hi) -> np.ndarray:
+    axes = [np.linspace(lo[a], hi[a], res) for a in range(3)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+
+
+def colour_sh(points: np.ndarray) -> np.ndarray:
+    """SH whose view-average is red where x > centre and blue elsewhere, with a strong degree-1 term
+    (a wrong read of the layout or of the degree-0 term would change the colour)."""
+    sh = np.zeros(points.shape[:-1] + (3, SH_K))
+    red = points[..., 0] > 0.1
+    target = np.where(red[..., None], [0.9, 0.1, 0.1], [0.1, 0.1, 0.9])
+    sh[..., 0] = (target - export.COLOUR_OFFSET) / export.SH_C0
+    sh[..., 1:] = 0.8
+    return sh
+
+
+SPHERE_CENTRE = np.array([0.1, -0.05, 0.02])
+SPHERE_RADIUS = 0.55
+
+
+def sphere_field(res: int, points_to_world=lambda p: p, lo=(-1, -1, -1), hi=(1, 1, 1), voxel=None):
+    """A soft sphere whose density equals the auto level (50% opacity per voxel) exactly on its surface:
+    D * sigmoid((r - dist) / w) with D twice that level."""
+    p_fit = lattice_points(res, lo, hi)
+    p_world = points_to_world(p_fit.reshape(-1, 3)).reshape(p_fit.shape)
+    voxel = voxel or float(np.mean((np.asarray(hi) - np.asarray(lo)) / (res - 1)))
+    peak = 2 * math.log(2) / voxel
+    dist = np.linalg.norm(p_world - SPHERE_CENTRE, axis=-1)
+    density = peak / (1 + np.exp(-(SPHERE_RADIUS - dist) / 0.03))
+    return DenseField(density, colour_sh(p_world), lo, hi)
+
+
+def radial_error(vertices: np.ndarray) -> np.ndarray:
+    return np.abs(np.linalg.norm(vertices - SPHERE_CENTRE, axis=1) - SPHERE_RADIUS)
+
+
+BOX = (np.full(3, -1.0), np.full(3, 1.0))
+
+
+def test_sphere_surface_sits_where_the_auto_level_says_with_outward_normals_and_colours(tmp_path):
+    field = sphere_field(48)
+    mesh, decisions = export.build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet())
+    voxel = 2 / 47
+    assert decisions["level"] == pytest.approx(math.log(2) / voxel, rel=1e-6)
+    assert radial_error(mesh.vertices).max() < 0.15 * voxel
+    assert mesh.volume > 0  # faces wound outwards
+    outward = mesh.vertex_normals @ np.eye(3)
+    assert (np.einsum("ij,ij->i", outward, mesh.vertices - SPHERE_CENTRE) > 0).mean() > 0.99
+    colours = mesh.visual.vertex_colors[:, :3] / 255
+    away_from_seam = np.abs(mesh.vertices[:, 0] - 0.1) > 2 * voxel
+    red = mesh.vertices[:, 0] > 0.1
+    expected = np.where(red[:, None], [0.9, 0.1, 0.1], [0.1, 0.1, 0.9])
+    assert np.abs(colours - expected)[away_from_seam].max() < 0.03
+
+
+def test_a_different_level_moves_the_surface_and_finer_resolution_follows_the_trilinear_field():
+    field = sphere_field(32)
+    voxel = 2 / 31
+    auto_level = math.log(2) / voxel
+    higher, _ = export.build_mesh(field, FitFrame(), *BOX, Settings(level=1.6 * auto_level), _Quiet())
+    # density = 2L sigmoid((r - d) / w) = 1.6 L  ->  d = r - w * logit(0.8)
+    expected = SPHERE_RADIUS - 0.03 * math.log(4)
+    radii = np.linalg.norm(higher.vertices - SPHERE_CENTRE, axis=1)
+    assert abs(np.median(radii) - expected) < 0.1 * voxel
+    fine, decisions = export.build_mesh(field, FitFrame(), *BOX, Settings(resolution=93), _Quiet())
+    assert decisions["resolution"] == 93 and max(decisions["lattice"]) < 94
+    assert len(fine.faces) > 5 * len(higher.faces)
+    assert radial_error(fine.vertices).max() < 0.3 * voxel
+
+
+def test_level_above_all_density_is_a_user_error():
+    field = sphere_field(16)
+    with pytest.raises(UserError, match="export.level"):
+        export.build_mesh(field, FitFrame(), *BOX, Settings(level=1e6), _Quiet())
+
+
+def test_cleaning_drops_floaters_far_pieces_and_what_lies_outside_the_box():
+    main = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    near_piece = trimesh.creation.icosphere(subdivisions=2, radius=0.1).apply_translation([0.65, 0, 0])
+    tiny_floater = trimesh.creation.icosphere(subdivisions=0, radius=0.02).apply_translation([0, 0.7, 0])
+    far_piece = trimesh.creation.icosphere(subdivisions=2, radius=0.1).apply_translation([0, 0, -0.9])
+    outside = trimesh.creation.icosphere(subdivisions=2, radius=0.1).apply_translation([1.5, 0, 0])
+    mesh = trimesh.util.concatenate([main, near_piece, tiny_floater, far_piece, outside])
+    cleaned, report = export.clean_mesh(mesh, np.full(3, -1.2), np.full(3, 1.2), min_piece_fraction=0.05, max_gap=0.2)
+    assert len(cleaned.faces) == len(main.faces) + len(near_piece.faces)
+    assert report.cropped_faces == len(outside.faces)
+    assert (report.pieces, report.dropped_small, report.dropped_far) == (4, 1, 1)
+
+
+def test_decimation_reaches_the_target_and_keeps_the_shape():
+    field = sphere_field(40)
+    mesh, decisions = export.build_mesh(field, FitFrame(), *BOX, Settings(target_faces=800), _Quiet())
+    assert 700 <= len(mesh.faces) <= 800 < decisions["faces_before_decimation"]
+    assert radial_error(mesh.vertices).max() < 0.02
+    assert len(mesh.visual.vertex_colors) == len(mesh.vertices)
+
+
+def test_ndc_grid_maps_back_to_the_world_sphere():
+    # A reference camera 3 units in front of the sphere, looking at it; the grid lives in NDC.
+    eye = SPHERE_CENTRE + np.array([0.0, -3.0, 0.4])
+    forward = (SPHERE_CENTRE - eye) / np.linalg.norm(SPHERE_CENTRE - eye)
+    right = np.cross(forward, [0, 0, 1.0])
+    right /= np.linalg.norm(right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(right, forward), -forward, eye
+    ndc = NDCMapping(reference_c2w=tuple(map(tuple, c2w)), near=1.5, fl_x=60.0, fl_y=60.0, cx=40.0, cy=30.0, w=80, h=60)
+    frame = FitFrame(ndc)
+    lo, hi = (-1.0, -1.0, -1.0), (1.0, 1.0, 0.5)
+    field = sphere_field(56, frame.to_world, lo, hi)
+    mesh, _ = export.build_mesh(field, frame, *BOX, Settings(), _Quiet())
+    # Only the side facing the camera has samples dense enough; it must lie on the world sphere.
+    seen = mesh.vertices[(mesh.vertices - SPHERE_CENTRE) @ -forward > 0.3 * SPHERE_RADIUS]
+    assert len(seen) > 100
+    assert np.median(radial_error(seen)) < 0.02
+    facing = mesh.vertex_normals @ -forward > 0.5
+    assert (np.einsum("ij,ij->i", mesh.vertex_normals[facing], mesh.vertices[facing] - SPHERE_CENTRE) > 0).mean() > 0.95
+
+
+def test_files_reload_with_the_same_counts_and_the_frame_round_trips(tmp_path):
+    field = sphere_field(24)
+    mesh, _ = export.build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet())
+    rotation = trimesh.transformations.rotation_matrix(0.7, [0.3, -0.5, 0.8])
+    input_from_world = rotation * 2.5
+    input_from_world[3] = [0, 0, 0, 1]
+    input_from_world[:3, 3] = [4.0, -1.0, 7.0]
+    world_from_input = np.linalg.inv(input_from_world)
+    normalized = mesh.vertices.copy()
+    mesh.apply_transform(input_from_world)
+    assert np.allclose(export.transform_points(world_from_input, mesh.vertices), normalized, atol=1e-9)
+    assert mesh.volume > 0
+
+    files = export.write_mesh_files(mesh, tmp_path)
+    for kind, name in files.items():
+        loaded = trimesh.load(tmp_path / name, force="mesh", process=False)
+        assert (len(loaded.vertices), len(loaded.faces)) == (len(mesh.vertices), len(mesh.faces)), kind
+        assert loaded.visual.kind == "vertex" and np.array_equal(loaded.visual.vertex_colors[:, :3],
+                                                                 mesh.visual.vertex_colors[:, :3]), kind
+        vertices = loaded.vertices
+        if kind == "glb":
+            vertices = export.transform_points(np.linalg.inv(export.GLTF_FROM_ZUP), vertices)
+        assert np.allclose(vertices, mesh.vertices, atol=1e-4), kind
+
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(50, 3))
+    normals = points / np.linalg.norm(points, axis=1, keepdims=True)
+    export.write_points(tmp_path / "points.ply", points, rng.uniform(size=(50, 3)), normals)
+    cloud = trimesh.load(tmp_path / "points.ply")
+    assert len(cloud.vertices) == 50 and np.allclose(cloud.vertices, points, atol=1e-5)
+    raw = cloud.metadata["_ply_raw"]["vertex"]["data"]
+    assert np.allclose(np.stack([raw["nx"], raw["ny"], raw["nz"]], 1), normals, atol=1e-5)
+    moved = export.transform_normals(input_from_world, normals)
+    assert np.allclose(export.transform_normals(world_from_input, moved), normals, atol=1e-9)
+
+
+class _Quiet:
+    def info(self, message):
+        pass
+
+    def track(self, iterable, total=None, desc=""):
+        return iterable
