@@ -1,0 +1,403 @@
+// CUDA kernels of the Plenoxels core, one thread per ray (or per voxel / parameter). They mirror
+// kernels_cpu.cpp step by step: the same ray set-up, the same sample lattice computed in double,
+// the same empty-space skipping and the same per-sample math from plenoxels_math.h, so a ray meets
+// the same samples on either device. Gradients are scattered with atomicAdd instead of the CPU's
+// per-thread buffers, and the backward pass re-marches the ray instead of keeping its samples.
+#include <cuda_runtime.h>
+#include <stdint.h>
+
+#include "cuda_kernels.h"
+#include "plenoxels_math.h"
+
+namespace plx_cuda {
+namespace {
+
+constexpr int kThreads = 128;
+
+inline unsigned blocks_for(int64_t n) { return (unsigned)((n + kThreads - 1) / kThreads); }
+
+struct RayState {
+    double og[3], dg[3];  // grid-space origin and direction (per unit of fit-frame distance)
+    float dir[3];         // unit fit-frame direction
+    double t_start, dt;
+    int n;
+};
+
+// Ternaries rather than fmin/fmax so NaN behaves as std::min/std::max do on the CPU.
+__device__ __forceinline__ float clampf(float v, float lo, float hi) {
+    const float a = v < lo ? lo : v;
+    return hi < a ? hi : a;
+}
+
+__device__ void setup_ray(const Grid& g, const float* o, const float* d, const March& opt, RayState* r) {
+    const double norm = sqrt((double)d[0] * d[0] + (double)d[1] * d[1] + (double)d[2] * d[2]);
+    double dg2 = 0.0, hi[3];
+    for (int a = 0; a < 3; ++a) {
+        const double u = d[a] / norm;
+        r->dir[a] = (float)u;
+        r->og[a] = ((double)o[a] - g.bmin[a]) * g.scale[a];
+        r->dg[a] = u * g.scale[a];
+        dg2 += r->dg[a] * r->dg[a];
+        hi[a] = g.res[a] - 1;
+    }
+    double t_enter, t_exit;
+    r->n = 0;
+    r->dt = 1.0;
+    r->t_start = 0.0;
+    if (!plx::ray_box(r->og, r->dg, hi, &t_enter, &t_exit)) return;
+    r->t_start = t_enter < opt.near ? opt.near : t_enter;
+    r->n = plx::sample_lattice(r->t_start, t_exit, opt.step / sqrt(dg2), opt.max_samples, &r->dt);
+}
+
+__device__ __forceinline__ int cell_of(float p, int res) {
+    int i = (int)floorf(p);
+    i = i < 0 ? 0 : i;
+    return i < res - 2 ? i : res - 2;
+}
+
+// Index of the first sample at or after the point where the ray leaves the occupancy block that
+// holds `cell`; always > i so the march advances.
+__device__ int skip_block(const Grid& g, const RayState& r, const int cell[3], int i) {
+    double t_out = 1e300;
+    for (int a = 0; a < 3; ++a) {
+        if (r.dg[a] == 0.0) continue;
+        const int b = cell[a] / g.block;
+        const int upper = (b + 1) * g.block < g.res[a] - 1 ? (b + 1) * g.block : g.res[a] - 1;
+        const double face = r.dg[a] > 0.0 ? (double)upper : (double)(b * g.block);
+        const double t_face = (face - r.og[a]) / r.dg[a];
+        t_out = t_face < t_out ? t_face : t_out;
+    }
+    const double next = ceil((t_out - r.t_start) / r.dt - 0.5);
+    if (!(next > (double)i)) return i + 1;
+    return next < (double)r.n ? (int)next : r.n;
+}
+
+struct Sample {
+    int32_t rows[8];
+    float w[8];
+    float alpha, transmittance_factor, t_before, t;
+};
+
+// Marches one ray front to back and calls visit(sample, interp) for each sample that passes the
+// occupancy test and the density threshold; `interp` holds the first C interpolated columns of the
+// sample's row. visit returns the transmittance after the sample; the march stops below the
+// threshold. Returns the final transmittance.
+template <int C, typename Visit>
+__device__ float march(const Grid& g, const RayState& r, const March& opt, Visit visit) {
+    float transmittance = 1.0f;
+    const float delta = (float)r.dt;
+    const int S = g.stride;
+    int i = 0;
+    while (i < r.n) {
+        const double t = r.t_start + (i + 0.5) * r.dt;
+        float p[3];
+        for (int a = 0; a < 3; ++a) p[a] = clampf((float)(r.og[a] + t * r.dg[a]), 0.0f, (float)(g.res[a] - 1));
+        int cell[3] = {cell_of(p[0], g.res[0]), cell_of(p[1], g.res[1]), cell_of(p[2], g.res[2])};
+        const int64_t block_index =
+            ((int64_t)(cell[0] / g.block) * g.bres[1] + cell[1] / g.block) * g.bres[2] + cell[2] / g.block;
+        if (!g.block_occ[block_index]) {
+            i = skip_block(g, r, cell, i);
+            continue;
+        }
+        const int64_t cell_index = ((int64_t)cell[0] * (g.res[1] - 1) + cell[1]) * (g.res[2] - 1) + cell[2];
+        if (!g.cell_occ[cell_index]) {
+            ++i;
+            continue;
+        }
+        Sample s;
+        plx::trilinear(p, g.res, cell, s.w);
+        float raw_density = 0.0f;
+#pragma unroll
+        for (int c = 0; c < 8; ++c) {
+            s.rows[c] = g.links[plx::corner_index(cell, g.res, c)];
+            if (s.rows[c] >= 0) raw_density += s.w[c] * g.data[(int64_t)s.rows[c] * S];
+        }
+        ++i;
+        if (!(raw_density > opt.sigma_threshold)) continue;
+        float interp[C];
+#pragma unroll
+        for (int k = 0; k < C; ++k) interp[k] = 0.0f;
+#pragma unroll
+        for (int c = 0; c < 8; ++c) {
+            if (s.rows[c] < 0) continue;
+            const float* row = g.data + (int64_t)s.rows[c] * S;
+            const float w = s.w[c];
+#pragma unroll
+            for (int k = 0; k < C; ++k) interp[k] += w * row[k];
+        }
+        s.alpha = plx::sample_alpha(raw_density, delta, &s.transmittance_factor);
+        s.t_before = transmittance;
+        s.t = (float)t;
+        transmittance = visit(s, raw_density, interp);
+        if (transmittance < opt.stop_transmittance) break;
+    }
+    return transmittance;
+}
+
+template <int D>
+__global__ void render_kernel(Grid g, March opt, Rays rays, float* __restrict__ rgb, float* __restrict__ depth,
+                              float* __restrict__ opacity) {
+    constexpr int K = (D + 1) * (D + 1);
+    const int64_t b = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    if (b >= rays.count) return;
+    RayState r;
+    setup_ray(g, rays.origins + 3 * b, rays.dirs + 3 * b, opt, &r);
+    float basis[16];
+    plx::sh_basis(D, r.dir[0], r.dir[1], r.dir[2], basis);
+    float acc[3] = {0.0f, 0.0f, 0.0f}, acc_depth = 0.0f;
+    const float t_final = march<1 + 3 * K>(g, r, opt, [&](const Sample& s, float, const float* row) {
+        const float w = s.t_before * s.alpha;
+        for (int ch = 0; ch < 3; ++ch) {
+            float raw;
+            acc[ch] += w * plx::sh_colour(row + 1 + ch * K, basis, K, &raw);
+        }
+        acc_depth += w * s.t;
+        return s.t_before * s.transmittance_factor;
+    });
+    for (int ch = 0; ch < 3; ++ch)
+        rgb[3 * b + ch] = acc[ch] + (rays.background ? t_final * rays.background[3 * b + ch] : 0.0f);
+    depth[b] = acc_depth;
+    opacity[b] = 1.0f - t_final;
+}
+
+template <int D>
+__global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __restrict__ targets, float loss_scale,
+                                 double* __restrict__ sse, float* __restrict__ grad_background,
+                                 float* __restrict__ grad, uint8_t* __restrict__ mask) {
+    constexpr int K = (D + 1) * (D + 1);
+    constexpr int C = 1 + 3 * K;
+    const int64_t b = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    if (b >= rays.count) return;
+    RayState r;
+    setup_ray(g, rays.origins + 3 * b, rays.dirs + 3 * b, opt, &r);
+    float basis[16];
+    plx::sh_basis(D, r.dir[0], r.dir[1], r.dir[2], basis);
+    float acc[3] = {0.0f, 0.0f, 0.0f};
+    const float t_final = march<C>(g, r, opt, [&](const Sample& s, float, const float* row) {
+        const float w = s.t_before * s.alpha;
+        for (int ch = 0; ch < 3; ++ch) {
+            float raw;
+            acc[ch] += w * plx::sh_colour(row + 1 + ch * K, basis, K, &raw);
+        }
+        return s.t_before * s.transmittance_factor;
+    });
+    float total[3], dl_drgb[3];
+    double sq = 0.0;
+    for (int ch = 0; ch < 3; ++ch) {
+        total[ch] = acc[ch] + t_final * rays.background[3 * b + ch];
+        const float err = total[ch] - targets[3 * b + ch];
+        sq += (double)err * err;
+        dl_drgb[ch] = 2.0f * loss_scale * err;
+        grad_background[3 * b + ch] = dl_drgb[ch] * t_final;
+    }
+    sse[b] = sq;
+    // Backward: march the same samples again; what lies behind each one follows from the total.
+    const float delta = (float)r.dt;
+    const int S = g.stride;
+    float front[3] = {0.0f, 0.0f, 0.0f};
+    march<C>(g, r, opt, [&](const Sample& s, float, const float* row) {
+        const float w = s.t_before * s.alpha;
+        const float t_after = s.t_before * s.transmittance_factor;
+        float grow[C];
+        float dsigma = 0.0f;
+        for (int ch = 0; ch < 3; ++ch) {
+            float raw;
+            const float colour = plx::sh_colour(row + 1 + ch * K, basis, K, &raw);
+            front[ch] += w * colour;
+            const float behind = total[ch] - front[ch];
+            dsigma += dl_drgb[ch] * plx::dcolour_dsigma(delta, t_after, colour, behind);
+            const float dc = dl_drgb[ch] * w * plx::colour_relu_grad(raw);
+            for (int k = 0; k < K; ++k) grow[1 + ch * K + k] = dc * basis[k];
+        }
+        grow[0] = dsigma;
+        for (int c = 0; c < 8; ++c) {
+            const int32_t row_index = s.rows[c];
+            if (row_index < 0) continue;
+            mask[row_index] = 1;
+            float* dst = grad + (int64_t)row_index * S;
+            const float wc = s.w[c];
+#pragma unroll
+            for (int k = 0; k < C; ++k) {
+                const float v = wc * grow[k];
+                if (v != 0.0f) atomicAdd(dst + k, v);
+            }
+        }
+        return t_after;
+    });
+}
+
+__global__ void max_weights_kernel(Grid g, March opt, Rays rays, unsigned int* __restrict__ out_bits) {
+    const int64_t b = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    if (b >= rays.count) return;
+    RayState r;
+    setup_ray(g, rays.origins + 3 * b, rays.dirs + 3 * b, opt, &r);
+    march<1>(g, r, opt, [&](const Sample& s, float, const float*) {
+        const float w = s.t_before * s.alpha;
+        // Non-negative floats order like their bit patterns, so an integer max is a float max.
+        const unsigned int bits = __float_as_uint(w);
+        for (int c = 0; c < 8; ++c) {
+            if (s.rows[c] < 0 || s.w[c] <= 0.0f) continue;
+            atomicMax(out_bits + s.rows[c], bits);
+        }
+        return s.t_before * s.transmittance_factor;
+    });
+}
+
+__global__ void tv_kernel(TVArgs a, double* __restrict__ loss_out, float* __restrict__ grad,
+                          uint8_t* __restrict__ mask) {
+    const int64_t m = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    if (m >= a.count) return;
+    const int32_t row = (int32_t)a.sample_rows[m];
+    const int32_t* p = a.coords + 3 * (int64_t)row;
+    int32_t nb[3];
+    for (int axis = 0; axis < 3; ++axis) {
+        int q[3] = {p[0], p[1], p[2]};
+        q[axis] += 1;
+        nb[axis] = q[axis] < a.res[axis] ? a.links[((int64_t)q[0] * a.res[1] + q[1]) * a.res[2] + q[2]] : -1;
+    }
+    double loss = 0.0;
+    if (nb[0] >= 0 || nb[1] >= 0 || nb[2] >= 0) {
+        mask[row] = 1;
+        for (int axis = 0; axis < 3; ++axis)
+            if (nb[axis] >= 0) mask[nb[axis]] = 1;
+        const float* v = a.data + (int64_t)row * a.stride;
+        for (int k = a.column_begin; k < a.column_end; ++k) {
+            const float scale = k == 0 ? a.scale_density : a.scale_sh;
+            float diff[3];
+            for (int axis = 0; axis < 3; ++axis)
+                diff[axis] = nb[axis] >= 0 ? a.data[(int64_t)nb[axis] * a.stride + k] - v[k] : 0.0f;
+            float inv;
+            loss += scale * plx::tv_term(diff[0], diff[1], diff[2], &inv);
+            float self = 0.0f;
+            for (int axis = 0; axis < 3; ++axis) {
+                if (nb[axis] < 0) continue;
+                const float gd = scale * diff[axis] * inv;
+                atomicAdd(grad + (int64_t)nb[axis] * a.stride + k, gd);
+                self -= gd;
+            }
+            atomicAdd(grad + (int64_t)row * a.stride + k, self);
+        }
+    }
+    loss_out[m] = loss;
+}
+
+__global__ void rmsprop_kernel(RMSPropArgs a) {
+    const int64_t i = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    if (i >= a.count * a.columns) return;
+    const int64_t j = i / a.columns;
+    const int k = (int)(i - j * a.columns);
+    const int64_t at = (int64_t)a.rows[j] * a.stride + k;
+    const float gk = a.grad_data[at];
+    const float vk = a.beta * a.second_moment[at] + (1.0f - a.beta) * gk * gk;
+    a.second_moment[at] = vk;
+    a.data[at] -= (k == 0 ? a.lr_density : a.lr_sh) * gk / (sqrtf(vk) + a.eps);
+    a.grad_data[at] = 0.0f;
+    if (k == 0) a.grad_mask[a.rows[j]] = 0;
+}
+
+__global__ void cell_occupancy_kernel(const int32_t* __restrict__ links, int rx, int ry, int rz,
+                                      uint8_t* __restrict__ cells) {
+    const int64_t i = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    const int64_t cy = ry - 1, cz = rz - 1;
+    if (i >= (int64_t)(rx - 1) * cy * cz) return;
+    const int64_t x = i / (cy * cz), y = (i / cz) % cy, z = i % cz;
+    bool any = false;
+    for (int k = 0; k < 8 && !any; ++k)
+        any = links[((x + ((k >> 2) & 1)) * ry + y + ((k >> 1) & 1)) * rz + z + (k & 1)] >= 0;
+    cells[i] = any;
+}
+
+__global__ void block_occupancy_kernel(const uint8_t* __restrict__ cells, int cx, int cy, int cz, int block,
+                                       int bx, int by, int bz, uint8_t* __restrict__ blocks) {
+    const int64_t i = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    if (i >= (int64_t)bx * by * bz) return;
+    const int x = (int)(i / ((int64_t)by * bz)), y = (int)((i / bz) % by), z = (int)(i % bz);
+    bool any = false;
+    for (int a = x * block; a < min((x + 1) * block, cx) && !any; ++a)
+        for (int b = y * block; b < min((y + 1) * block, cy) && !any; ++b)
+            for (int c = z * block; c < min((z + 1) * block, cz) && !any; ++c)
+                any = cells[((int64_t)a * cy + b) * cz + c];
+    blocks[i] = any;
+}
+
+__global__ void row_coords_kernel(const int32_t* __restrict__ links, int ry, int rz, int64_t total, int64_t rows,
+                                  int32_t* __restrict__ out) {
+    const int64_t i = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    if (i >= total) return;
+    const int32_t r = links[i];
+    if (r < 0 || r >= rows) return;
+    out[3 * (int64_t)r] = (int32_t)(i / ((int64_t)ry * rz));
+    out[3 * (int64_t)r + 1] = (int32_t)((i / rz) % ry);
+    out[3 * (int64_t)r + 2] = (int32_t)(i % rz);
+}
+
+}  // namespace
+
+#define PLX_CUDA_DEGREE(degree, ...)                   \
+    switch (degree) {                                  \
+        case 0: { constexpr int D = 0; __VA_ARGS__; } break; \
+        case 1: { constexpr int D = 1; __VA_ARGS__; } break; \
+        case 2: { constexpr int D = 2; __VA_ARGS__; } break; \
+        case 3: { constexpr int D = 3; __VA_ARGS__; } break; \
+        default: return cudaErrorInvalidValue;         \
+    }
+
+cudaError_t render(const Grid& grid, const March& march, int degree, const Rays& rays, float* rgb, float* depth,
+                   float* opacity, cudaStream_t stream) {
+    if (rays.count == 0) return cudaSuccess;
+    PLX_CUDA_DEGREE(degree, render_kernel<D><<<blocks_for(rays.count), kThreads, 0, stream>>>(
+                                grid, march, rays, rgb, depth, opacity));
+    return cudaGetLastError();
+}
+
+cudaError_t loss_and_grad(const Grid& grid, const March& march, int degree, const Rays& rays, const float* targets,
+                          float loss_scale, double* sse_per_ray, float* grad_background, float* grad_data,
+                          uint8_t* grad_mask, cudaStream_t stream) {
+    if (rays.count == 0) return cudaSuccess;
+    PLX_CUDA_DEGREE(degree, loss_grad_kernel<D><<<blocks_for(rays.count), kThreads, 0, stream>>>(
+                                grid, march, rays, targets, loss_scale, sse_per_ray, grad_background, grad_data,
+                                grad_mask));
+    return cudaGetLastError();
+}
+
+cudaError_t max_weights(const Grid& grid, const March& march, const Rays& rays, float* out, cudaStream_t stream) {
+    if (rays.count == 0) return cudaSuccess;
+    max_weights_kernel<<<blocks_for(rays.count), kThreads, 0, stream>>>(grid, march, rays,
+                                                                       reinterpret_cast<unsigned int*>(out));
+    return cudaGetLastError();
+}
+
+cudaError_t tv_loss_and_grad(const TVArgs& args, double* loss_per_sample, float* grad_data, uint8_t* grad_mask,
+                             cudaStream_t stream) {
+    if (args.count == 0) return cudaSuccess;
+    tv_kernel<<<blocks_for(args.count), kThreads, 0, stream>>>(args, loss_per_sample, grad_data, grad_mask);
+    return cudaGetLastError();
+}
+
+cudaError_t rmsprop_step(const RMSPropArgs& args, cudaStream_t stream) {
+    const int64_t n = args.count * args.columns;
+    if (n == 0) return cudaSuccess;
+    rmsprop_kernel<<<blocks_for(n), kThreads, 0, stream>>>(args);
+    return cudaGetLastError();
+}
+
+cudaError_t build_occupancy(const int32_t* links, const int res[3], int block, uint8_t* cells, uint8_t* blocks,
+                            cudaStream_t stream) {
+    const int cx = res[0] - 1, cy = res[1] - 1, cz = res[2] - 1;
+    const int bx = (cx + block - 1) / block, by = (cy + block - 1) / block, bz = (cz + block - 1) / block;
+    const int64_t ncells = (int64_t)cx * cy * cz, nblocks = (int64_t)bx * by * bz;
+    if (ncells == 0) return cudaSuccess;
+    cell_occupancy_kernel<<<blocks_for(ncells), kThreads, 0, stream>>>(links, res[0], res[1], res[2], cells);
+    block_occupancy_kernel<<<blocks_for(nblocks), kThreads, 0, stream>>>(cells, cx, cy, cz, block, bx, by, bz,
+                                                                        blocks);
+    return cudaGetLastError();
+}
+
+cudaError_t row_coords(const int32_t* links, const int res[3], int64_t rows, int32_t* out, cudaStream_t stream) {
+    const int64_t total = (int64_t)res[0] * res[1] * res[2];
+    if (total == 0) return cudaSuccess;
+    row_coords_kernel<<<blocks_for(total), kThreads, 0, stream>>>(links, res[1], res[2], total, rows, out);
+    return cudaGetLastError();
+}
+
+}  // namespace plx_cuda
