@@ -1,0 +1,685 @@
+// CPU kernels of the Plenoxels core: render, fused loss+gradient, max weights, total variation and
+// the sparse RMSProp step. All per-sample math comes from plenoxels_math.h.
+//
+// Parameters live in one packed table `data` [N, S]: column 0 is raw density, columns 1..3K the SH
+// coefficients (K per channel, R then G then B), the rest padding so that rows are whole vectors.
+// Gradients use the same layout. Each thread accumulates into its own lazily allocated buffer (the
+// first thread writes straight into the caller's), and a thread records which rows it touched, so
+// no step ever zeroes or scans the whole grid.
+#include <torch/extension.h>
+
+#include <omp.h>
+
+#include <algorithm>
+#include <cstdlib>
+#include <cstring>
+#include <memory>
+#include <vector>
+
+#include "plenoxels_math.h"
+
+namespace {
+
+constexpr int padded_stride(int columns) { return columns <= 4 ? 4 : (columns + 15) / 16 * 16; }
+
+struct GridView {
+    const float* data;
+    const int32_t* links;
+    const uint8_t* cell_occ;   // [Rx-1, Ry-1, Rz-1]: any corner allocated
+    const uint8_t* block_occ;  // cells grouped in cubes of `block`: any cell occupied
+    int res[3];
+    int block;
+    int bres[3];
+    double bmin[3];
+    double scale[3];
+};
+
+struct MarchOptions {
+    double step;  // grid units
+    float stop_transmittance;
+    double near;
+    float sigma_threshold;
+    int max_samples;
+};
+
+struct Ray {
+    double og[3], dg[3];  // grid-space origin and direction (per unit of fit-frame distance)
+    float dir[3];         // unit fit-frame direction
+    double t_start, dt;
+    int n;
+};
+
+GridView make_view(const torch::Tensor& data, const torch::Tensor& links, const torch::Tensor& cell_occ,
+                   const torch::Tensor& block_occ, int block, const std::vector<double>& bmin,
+                   const std::vector<double>& bmax) {
+    GridView g;
+    g.data = data.data_ptr<float>();
+    g.links = links.data_ptr<int32_t>();
+    g.cell_occ = cell_occ.data_ptr<uint8_t>();
+    g.block_occ = block_occ.data_ptr<uint8_t>();
+    g.block = block;
+    for (int a = 0; a < 3; ++a) {
+        g.res[a] = (int)links.size(a);
+        g.bres[a] = (int)block_occ.size(a);
+        g.bmin[a] = bmin[a];
+        g.scale[a] = (g.res[a] - 1) / (bmax[a] - bmin[a]);
+    }
+    return g;
+}
+
+void setup_ray(const GridView& g, const float* o, const float* d, const MarchOptions& opt, Ray* r) {
+    const double norm = std::sqrt((double)d[0] * d[0] + (double)d[1] * d[1] + (double)d[2] * d[2]);
+    double dg2 = 0.0, hi[3];
+    for (int a = 0; a < 3; ++a) {
+        const double u = d[a] / norm;
+        r->dir[a] = (float)u;
+        r->og[a] = ((double)o[a] - g.bmin[a]) * g.scale[a];
+        r->dg[a] = u * g.scale[a];
+        dg2 += r->dg[a] * r->dg[a];
+        hi[a] = g.res[a] - 1;
+    }
+    double t_enter, t_exit;
+    r->n = 0;
+    r->dt = 1.0;
+    r->t_start = 0.0;
+    if (!plx::ray_box(r->og, r->dg, hi, &t_enter, &t_exit)) return;
+    r->t_start = std::max(t_enter, opt.near);
+    r->n = plx::sample_lattice(r->t_start, t_exit, opt.step / std::sqrt(dg2), opt.max_samples, &r->dt);
+}
+
+inline void grid_point(const GridView& g, const Ray& r, double t, float p[3]) {
+    for (int a = 0; a < 3; ++a) {
+        const float v = (float)(r.og[a] + t * r.dg[a]);
+        p[a] = std::min(std::max(v, 0.0f), (float)(g.res[a] - 1));
+    }
+}
+
+// Index of the first sample at or after the point where the ray leaves the occupancy block that
+// holds `cell`; always > i so the march advances.
+inline int skip_block(const GridView& g, const Ray& r, const int cell[3], int i) {
+    double t_out = 1e300;
+    for (int a = 0; a < 3; ++a) {
+        if (r.dg[a] == 0.0) continue;
+        const int b = cell[a] / g.block;
+        const double face = r.dg[a] > 0.0 ? (double)std::min((b + 1) * g.block, g.res[a] - 1) : (double)(b * g.block);
+        t_out = std::min(t_out, (face - r.og[a]) / r.dg[a]);
+    }
+    const double next = std::ceil((t_out - r.t_start) / r.dt - 0.5);
+    return next > (double)i ? (int)std::min(next, (double)r.n) : i + 1;
+}
+
+inline int cell_of(float p, int res) { return std::min(std::max((int)std::floor(p), 0), res - 2); }
+
+// A sample that passed empty-space skipping and has density above the threshold.
+struct Sample {
+    int32_t rows[8];
+    float w[8];
+    float sigma, alpha, transmittance_factor, t_before, t;
+    float colour[3], raw[3];
+};
+
+// Marches one ray and calls visit(sample, shading) for each contributing sample in front-to-back
+// order; visit returns the transmittance after the sample, and the march stops below the threshold.
+// `interp` receives the interpolated row (density and SH) of the sample.
+template <int S, typename Visit>
+inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, float* interp, Visit visit) {
+    float transmittance = 1.0f;
+    const float delta = (float)r.dt;
+    int i = 0;
+    while (i < r.n) {
+        const double t = r.t_start + (i + 0.5) * r.dt;
+        float p[3];
+        grid_point(g, r, t, p);
+        int cell[3] = {cell_of(p[0], g.res[0]), cell_of(p[1], g.res[1]), cell_of(p[2], g.res[2])};
+        const int64_t block_index =
+            ((int64_t)(cell[0] / g.block) * g.bres[1] + cell[1] / g.block) * g.bres[2] + cell[2] / g.block;
+        if (!g.block_occ[block_index]) {
+            i = skip_block(g, r, cell, i);
+            continue;
+        }
+        const int64_t cell_index = ((int64_t)cell[0] * (g.res[1] - 1) + cell[1]) * (g.res[2] - 1) + cell[2];
+        if (!g.cell_occ[cell_index]) {
+            ++i;
+            continue;
+        }
+        Sample s;
+        plx::trilinear(p, g.res, cell, s.w);
+        float raw_density = 0.0f;
+        for (int c = 0; c < 8; ++c) {
+            s.rows[c] = g.links[plx::corner_index(cell, g.res, c)];
+            if (s.rows[c] >= 0) raw_density += s.w[c] * g.data[(int64_t)s.rows[c] * S];
+        }
+        ++i;
+        if (!(raw_density > opt.sigma_threshold)) continue;
+        for (int k = 0; k < S; ++k) interp[k] = 0.0f;
+        for (int c = 0; c < 8; ++c) {
+            if (s.rows[c] < 0) continue;
+            const float* row = g.data + (int64_t)s.rows[c] * S;
+            const float w = s.w[c];
+#pragma omp simd
+            for (int k = 0; k < S; ++k) interp[k] += w * row[k];
+        }
+        s.sigma = raw_density;
+        s.alpha = plx::sample_alpha(s.sigma, delta, &s.transmittance_factor);
+        s.t_before = transmittance;
+        s.t = (float)t;
+        transmittance = visit(s, interp);
+        if (transmittance < opt.stop_transmittance) break;
+    }
+    return transmittance;
+}
+
+// Per-thread gradient accumulation into the packed [N, S] layout, with touched-row bookkeeping.
+class ThreadGrads {
+   public:
+    ThreadGrads(int64_t rows, int stride) : rows_(rows), stride_(stride) {}
+    ~ThreadGrads() {
+        for (float* b : buffers_) std::free(b);
+        for (uint8_t* m : masks_) std::free(m);
+    }
+    ThreadGrads(const ThreadGrads&) = delete;
+    ThreadGrads& operator=(const ThreadGrads&) = delete;
+
+    int64_t rows() const { return rows_; }
+    int stride() const { return stride_; }
+
+    // Allocates the slots of threads 1..threads-1 (thread 0 writes into the caller's tensors); call
+    // outside parallel regions. calloc of a large block maps zero pages lazily, so a thread's buffer
+    // costs memory only for the rows it ever touches.
+    void reserve(int threads) {
+        if ((int)buffers_.size() >= threads) return;
+        const int first = (int)buffers_.size();
+        buffers_.resize(threads, nullptr);
+        masks_.resize(threads, nullptr);
+        lists_.resize(threads);
+        for (int t = std::max(first, 1); t < threads; ++t) {
+            buffers_[t] = (float*)std::calloc((size_t)rows_ * stride_, sizeof(float));
+            masks_[t] = (uint8_t*)std::calloc((size_t)rows_, 1);
+            TORCH_CHECK(buffers_[t] && masks_[t], "out of memory for per-thread gradient buffers");
+        }
+    }
+    float* buffer(int thread) { return buffers_[thread]; }
+    uint8_t* mask(int thread) { return masks_[thread]; }
+    std::vector<int32_t>& list(int thread) { return lists_[thread]; }
+
+   private:
+    int64_t rows_;
+    int stride_;
+    std::vector<float*> buffers_;
+    std::vector<uint8_t*> masks_;
+    std::vector<std::vector<int32_t>> lists_;
+};
+
+// Where one thread writes gradients: thread 0 writes into the caller's tensors.
+struct GradSink {
+    float* buf;
+    uint8_t* mask;
+    int32_t* main_rows;  // thread 0 only: the caller's touched-row list
+    int64_t* main_count;
+    std::vector<int32_t>* list;  // other threads
+
+    inline void touch(int32_t row) {
+        if (mask[row]) return;
+        mask[row] = 1;
+        if (main_rows)
+            main_rows[(*main_count)++] = row;
+        else
+            list->push_back(row);
+    }
+};
+
+struct GradTarget {
+    float* data;
+    uint8_t* mask;
+    int32_t* rows;
+    int64_t count;
+};
+
+GradSink sink_for(int thread, GradTarget* target, ThreadGrads* scratch) {
+    if (thread == 0) return GradSink{target->data, target->mask, target->rows, &target->count, nullptr};
+    return GradSink{scratch->buffer(thread), scratch->mask(thread), nullptr, nullptr, &scratch->list(thread)};
+}
+
+// Adds every other thread's gradients into the caller's tensors and clears what they touched.
+void merge(GradTarget* target, ThreadGrads* scratch, int threads) {
+    const int S = scratch->stride();
+    for (int t = 1; t < threads; ++t) {
+        std::vector<int32_t>& list = scratch->list(t);
+        if (list.empty()) continue;
+        float* buf = scratch->buffer(t);
+        uint8_t* mask = scratch->mask(t);
+        const int64_t n = (int64_t)list.size();
+#pragma omp parallel for schedule(static)
+        for (int64_t j = 0; j < n; ++j) {
+            const int64_t row = list[j];
+            float* src = buf + row * S;
+            float* dst = target->data + row * S;
+#pragma omp simd
+            for (int k = 0; k < S; ++k) {
+                dst[k] += src[k];
+                src[k] = 0.0f;
+            }
+            mask[row] = 0;
+        }
+        for (int32_t row : list) {
+            if (!target->mask[row]) {
+                target->mask[row] = 1;
+                target->rows[target->count++] = row;
+            }
+        }
+        list.clear();
+    }
+}
+
+void check_float_rows(const torch::Tensor& t, const char* name) {
+    TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == torch::kFloat32 && t.is_contiguous(), name,
+                " must be a contiguous float32 CPU tensor");
+}
+
+template <int D>
+void render_impl(const GridView& g, const MarchOptions& opt, const float* origins, const float* dirs,
+                 const float* background, int64_t B, float* rgb, float* depth, float* opacity) {
+    constexpr int K = (D + 1) * (D + 1);
+    constexpr int S = padded_stride(1 + 3 * K);
+#pragma omp parallel
+    {
+        alignas(64) float interp[S];
+#pragma omp for schedule(dynamic, 16)
+        for (int64_t b = 0; b < B; ++b) {
+            Ray r;
+            setup_ray(g, origins + 3 * b, dirs + 3 * b, opt, &r);
+            float basis[16];
+            plx::sh_basis(D, r.dir[0], r.dir[1], r.dir[2], basis);
+            float acc[3] = {0.0f, 0.0f, 0.0f}, acc_depth = 0.0f;
+            const float t_final = march<S>(g, r, opt, interp, [&](Sample& s, const float* row) {
+                const float w = s.t_before * s.alpha;
+                for (int ch = 0; ch < 3; ++ch) {
+                    float raw;
+                    acc[ch] += w * plx::sh_colour(row + 1 + ch * K, basis, K, &raw);
+                }
+                acc_depth += w * s.t;
+                return s.t_before * s.transmittance_factor;
+            });
+            for (int ch = 0; ch < 3; ++ch) rgb[3 * b + ch] = acc[ch] + (background ? t_final * background[3 * b + ch] : 0.0f);
+            depth[b] = acc_depth;
+            opacity[b] = 1.0f - t_final;
+        }
+    }
+}
+
+template <int D>
+double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* origins, const float* dirs,
+                      const float* targets, const float* background, int64_t B, float loss_scale,
+                      float* grad_background, GradTarget* target, ThreadGrads* scratch) {
+    constexpr int K = (D + 1) * (D + 1);
+    constexpr int S = padded_stride(1 + 3 * K);
+    const int threads = omp_get_max_threads();
+    scratch->reserve(threads);
+    double sse = 0.0;
+#pragma omp parallel reduction(+ : sse)
+    {
+        GradSink sink = sink_for(omp_get_thread_num(), target, scratch);
+        std::vector<Sample> samples;
+        samples.reserve(512);
+        alignas(64) float interp[S];
+        alignas(64) float grow[S];
+#pragma omp for schedule(dynamic, 16)
+        for (int64_t b = 0; b < B; ++b) {
+            Ray r;
+            setup_ray(g, origins + 3 * b, dirs + 3 * b, opt, &r);
+            float basis[16];
+            plx::sh_basis(D, r.dir[0], r.dir[1], r.dir[2], basis);
+            samples.clear();
+            float acc[3] = {0.0f, 0.0f, 0.0f};
+            const float t_final = march<S>(g, r, opt, interp, [&](Sample& s, const float* row) {
+                const float w = s.t_before * s.alpha;
+                for (int ch = 0; ch < 3; ++ch) {
+                    s.colour[ch] = plx::sh_colour(row + 1 + ch * K, basis, K, &s.raw[ch]);
+                    acc[ch] += w * s.colour[ch];
+                }
+                samples.push_back(s);
+                return s.t_before * s.transmittance_factor;
+            });
+            float total[3], dl_drgb[3];
+            for (int ch = 0; ch < 3; ++ch) {
+                total[ch] = acc[ch] + t_final * background[3 * b + ch];
+                const float err = total[ch] - targets[3 * b + ch];
+                sse += (double)err * err;
+                dl_drgb[ch] = 2.0f * loss_scale * err;
+                grad_background[3 * b + ch] = dl_drgb[ch] * t_final;
+            }
+            // Backward: walk the same samples again, with what lies behind each one known from the total.
+            const float delta = (float)r.dt;
+            float front[3] = {0.0f, 0.0f, 0.0f};
+            for (const Sample& s : samples) {
+                const float w = s.t_before * s.alpha;
+                const float t_after = s.t_before * s.transmittance_factor;
+                float dsigma = 0.0f;
+                for (int k = 0; k < S; ++k) grow[k] = 0.0f;
+                for (int ch = 0; ch < 3; ++ch) {
+                    front[ch] += w * s.colour[ch];
+                    const float behind = total[ch] - front[ch];
+                    dsigma += dl_drgb[ch] * plx::dcolour_dsigma(delta, t_after, s.colour[ch], behind);
+                    const float dc = dl_drgb[ch] * w * plx::colour_relu_grad(s.raw[ch]);
+                    for (int k = 0; k < K; ++k) grow[1 + ch * K + k] = dc * basis[k];
+                }
+                grow[0] = dsigma;
+                for (int c = 0; c < 8; ++c) {
+                    const int32_t row = s.rows[c];
+                    if (row < 0) continue;
+                    sink.touch(row);
+                    float* dst = sink.buf + (int64_t)row * S;
+                    const float wc = s.w[c];
+#pragma omp simd
+                    for (int k = 0; k < S; ++k) dst[k] += wc * grow[k];
+                }
+            }
+        }
+    }
+    merge(target, scratch, threads);
+    return sse;
+}
+
+template <int D>
+void max_weights_impl(const GridView& g, const MarchOptions& opt, const float* origins, const float* dirs,
+                      int64_t B, float* out) {
+    constexpr int K = (D + 1) * (D + 1);
+    constexpr int S = padded_stride(1 + 3 * K);
+    uint32_t* bits = reinterpret_cast<uint32_t*>(out);  // non-negative floats order like their bits
+#pragma omp parallel
+    {
+        alignas(64) float interp[S];
+#pragma omp for schedule(dynamic, 16)
+        for (int64_t b = 0; b < B; ++b) {
+            Ray r;
+            setup_ray(g, origins + 3 * b, dirs + 3 * b, opt, &r);
+            march<S>(g, r, opt, interp, [&](Sample& s, const float*) {
+                const float w = s.t_before * s.alpha;
+                uint32_t wbits;
+                std::memcpy(&wbits, &w, 4);
+                for (int c = 0; c < 8; ++c) {
+                    if (s.rows[c] < 0 || s.w[c] <= 0.0f) continue;
+                    uint32_t cur = __atomic_load_n(bits + s.rows[c], __ATOMIC_RELAXED);
+                    while (wbits > cur &&
+                           !__atomic_compare_exchange_n(bits + s.rows[c], &cur, wbits, true, __ATOMIC_RELAXED,
+                                                        __ATOMIC_RELAXED)) {
+                    }
+                }
+                return s.t_before * s.transmittance_factor;
+            });
+        }
+    }
+}
+
+using torch::Tensor;
+
+MarchOptions make_options(double step, double stop_transmittance, double near, double sigma_threshold,
+                          int64_t max_samples) {
+    return MarchOptions{step, (float)stop_transmittance, near, (float)sigma_threshold, (int)max_samples};
+}
+
+#define PLX_DISPATCH_DEGREE(degree, ...)                                     \
+    switch (degree) {                                                        \
+        case 0: { constexpr int D = 0; __VA_ARGS__; break; }                 \
+        case 1: { constexpr int D = 1; __VA_ARGS__; break; }                 \
+        case 2: { constexpr int D = 2; __VA_ARGS__; break; }                 \
+        case 3: { constexpr int D = 3; __VA_ARGS__; break; }                 \
+        default: TORCH_CHECK(false, "sh_degree must be 0..3, got ", degree); \
+    }
+
+void check_grid(const Tensor& data, const Tensor& links, const Tensor& cell_occ, const Tensor& block_occ, int degree) {
+    check_float_rows(data, "data");
+    TORCH_CHECK(degree >= 0 && degree <= 3, "sh_degree must be 0..3");
+    TORCH_CHECK(data.dim() == 2 && data.size(1) == padded_stride(1 + 3 * (degree + 1) * (degree + 1)),
+                "data must be [N, padded row] for this SH degree");
+    TORCH_CHECK(links.scalar_type() == torch::kInt32 && links.is_contiguous() && links.dim() == 3, "links must be int32 [Rx,Ry,Rz]");
+    TORCH_CHECK(links.size(0) >= 2 && links.size(1) >= 2 && links.size(2) >= 2, "grid resolution must be >= 2 per axis");
+    TORCH_CHECK(cell_occ.scalar_type() == torch::kUInt8 && cell_occ.is_contiguous(), "cell_occ must be uint8");
+    TORCH_CHECK(block_occ.scalar_type() == torch::kUInt8 && block_occ.is_contiguous() && block_occ.dim() == 3, "block_occ must be uint8 3-D");
+}
+
+void check_rays(const Tensor& origins, const Tensor& dirs) {
+    check_float_rows(origins, "origins");
+    check_float_rows(dirs, "dirs");
+    TORCH_CHECK(origins.dim() == 2 && origins.size(1) == 3 && dirs.sizes() == origins.sizes(), "origins and dirs must be [B,3]");
+}
+
+std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
+                           std::vector<double> bmin, std::vector<double> bmax, int64_t degree, Tensor origins,
+                           Tensor dirs, c10::optional<Tensor> background, double step, double stop_transmittance,
+                           double near, double sigma_threshold, int64_t max_samples) {
+    check_grid(data, links, cell_occ, block_occ, (int)degree);
+    check_rays(origins, dirs);
+    const int64_t B = origins.size(0);
+    const float* bg = nullptr;
+    if (background.has_value()) {
+        check_float_rows(*background, "background");
+        TORCH_CHECK(background->sizes() == origins.sizes(), "background must be [B,3]");
+        bg = background->data_ptr<float>();
+    }
+    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
+    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples);
+    Tensor rgb = torch::empty({B, 3}, data.options());
+    Tensor depth = torch::empty({B}, data.options());
+    Tensor opacity = torch::empty({B}, data.options());
+    PLX_DISPATCH_DEGREE(degree, render_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(), bg, B,
+                                               rgb.data_ptr<float>(), depth.data_ptr<float>(), opacity.data_ptr<float>()));
+    return {rgb, depth, opacity};
+}
+
+std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ,
+                                                  int64_t block, std::vector<double> bmin, std::vector<double> bmax,
+                                                  int64_t degree, Tensor origins, Tensor dirs, Tensor targets,
+                                                  Tensor background, double step, double stop_transmittance,
+                                                  double near, double sigma_threshold, int64_t max_samples,
+                                                  Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
+                                                  int64_t num_touched, ThreadGrads& scratch) {
+    check_grid(data, links, cell_occ, block_occ, (int)degree);
+    check_rays(origins, dirs);
+    check_float_rows(targets, "targets");
+    check_float_rows(background, "background");
+    check_float_rows(grad_data, "grad data");
+    TORCH_CHECK(targets.sizes() == origins.sizes() && background.sizes() == origins.sizes(), "targets and background must be [B,3]");
+    TORCH_CHECK(grad_data.sizes() == data.sizes(), "gradient storage does not match the grid");
+    TORCH_CHECK(scratch.rows() == data.size(0) && scratch.stride() == data.size(1), "scratch does not match the grid");
+    const int64_t B = origins.size(0);
+    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
+    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples);
+    Tensor grad_background = torch::empty({B, 3}, data.options());
+    GradTarget target{grad_data.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), grad_rows.data_ptr<int32_t>(), num_touched};
+    const float loss_scale = B > 0 ? 1.0f / (3.0f * (float)B) : 0.0f;
+    double sse = 0.0;
+    PLX_DISPATCH_DEGREE(degree, sse = loss_grad_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
+                                                        targets.data_ptr<float>(), background.data_ptr<float>(), B,
+                                                        loss_scale, grad_background.data_ptr<float>(), &target, &scratch));
+    return {sse, grad_background, target.count};
+}
+
+Tensor max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
+                   std::vector<double> bmin, std::vector<double> bmax, int64_t degree, Tensor origins, Tensor dirs,
+                   double step, double stop_transmittance, double near, double sigma_threshold, int64_t max_samples,
+                   Tensor out) {
+    check_grid(data, links, cell_occ, block_occ, (int)degree);
+    check_rays(origins, dirs);
+    check_float_rows(out, "out");
+    TORCH_CHECK(out.numel() == data.size(0), "out must have one entry per row");
+    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
+    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples);
+    PLX_DISPATCH_DEGREE(degree, max_weights_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
+                                                    origins.size(0), out.data_ptr<float>()));
+    return out;
+}
+
+// Occupancy for empty-space skipping: a cell is occupied when any of its corners is allocated, a
+// block when any of its cells is.
+std::vector<Tensor> build_occupancy(Tensor links, int64_t block) {
+    TORCH_CHECK(links.scalar_type() == torch::kInt32 && links.is_contiguous() && links.dim() == 3, "links must be int32 [Rx,Ry,Rz]");
+    const int64_t rx = links.size(0), ry = links.size(1), rz = links.size(2);
+    TORCH_CHECK(rx >= 2 && ry >= 2 && rz >= 2, "grid resolution must be >= 2 per axis");
+    const int64_t cx = rx - 1, cy = ry - 1, cz = rz - 1;
+    const int64_t bx = (cx + block - 1) / block, by = (cy + block - 1) / block, bz = (cz + block - 1) / block;
+    Tensor cells = torch::zeros({cx, cy, cz}, torch::kUInt8);
+    Tensor blocks = torch::zeros({bx, by, bz}, torch::kUInt8);
+    const int32_t* l = links.data_ptr<int32_t>();
+    uint8_t* c = cells.data_ptr<uint8_t>();
+    uint8_t* bl = blocks.data_ptr<uint8_t>();
+#pragma omp parallel for schedule(static)
+    for (int64_t x = 0; x < cx; ++x) {
+        for (int64_t y = 0; y < cy; ++y) {
+            for (int64_t z = 0; z < cz; ++z) {
+                bool any = false;
+                for (int k = 0; k < 8 && !any; ++k)
+                    any = l[((x + ((k >> 2) & 1)) * ry + y + ((k >> 1) & 1)) * rz + z + (k & 1)] >= 0;
+                c[(x * cy + y) * cz + z] = any;
+            }
+        }
+    }
+#pragma omp parallel for schedule(static)
+    for (int64_t x = 0; x < bx; ++x) {
+        for (int64_t y = 0; y < by; ++y) {
+            for (int64_t z = 0; z < bz; ++z) {
+                bool any = false;
+                for (int64_t i = x * block; i < std::min((x + 1) * block, cx) && !any; ++i)
+                    for (int64_t j = y * block; j < std::min((y + 1) * block, cy) && !any; ++j)
+                        for (int64_t k = z * block; k < std::min((z + 1) * block, cz) && !any; ++k)
+                            any = c[(i * cy + j) * cz + k];
+                bl[(x * by + y) * bz + z] = any;
+            }
+        }
+    }
+    return {cells, blocks};
+}
+
+// Total variation at sampled rows: for each channel with a non-zero weight,
+// weight * mean over samples of sqrt(dx^2 + dy^2 + dz^2 + eps), with d* the forward differences to
+// the allocated +x, +y, +z neighbours (a missing neighbour contributes no difference).
+std::tuple<double, int64_t> tv_loss_and_grad(Tensor data, Tensor links, Tensor coords, Tensor sample_rows,
+                                              double weight_density, double weight_sh, int64_t degree,
+                                              Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
+                                              int64_t num_touched, ThreadGrads& scratch) {
+    check_float_rows(data, "data");
+    check_float_rows(grad_data, "grad data");
+    TORCH_CHECK(coords.scalar_type() == torch::kInt32 && coords.is_contiguous(), "coords must be int32 [N,3]");
+    TORCH_CHECK(sample_rows.scalar_type() == torch::kInt64 && sample_rows.is_contiguous(), "sample rows must be int64");
+    const int S = (int)data.size(1);
+    const int C = 1 + 3 * (int)((degree + 1) * (degree + 1));
+    const int res[3] = {(int)links.size(0), (int)links.size(1), (int)links.size(2)};
+    const int64_t M = sample_rows.numel();
+    if (M == 0) return {0.0, num_touched};
+    const float* d = data.data_ptr<float>();
+    const int32_t* l = links.data_ptr<int32_t>();
+    const int32_t* xyz = coords.data_ptr<int32_t>();
+    const int64_t* rows = sample_rows.data_ptr<int64_t>();
+    GradTarget target{grad_data.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), grad_rows.data_ptr<int32_t>(), num_touched};
+    const int threads = omp_get_max_threads();
+    scratch.reserve(threads);
+    const int c_begin = weight_density != 0.0 ? 0 : 1;
+    const int c_end = weight_sh != 0.0 ? C : 1;
+    double loss = 0.0;
+#pragma omp parallel reduction(+ : loss)
+    {
+        GradSink sink = sink_for(omp_get_thread_num(), &target, &scratch);
+#pragma omp for schedule(static)
+        for (int64_t m = 0; m < M; ++m) {
+            const int32_t row = (int32_t)rows[m];
+            const int32_t* p = xyz + 3 * (int64_t)row;
+            int32_t nb[3];
+            for (int a = 0; a < 3; ++a) {
+                int q[3] = {p[0], p[1], p[2]};
+                q[a] += 1;
+                nb[a] = q[a] < res[a] ? l[((int64_t)q[0] * res[1] + q[1]) * res[2] + q[2]] : -1;
+            }
+            if (nb[0] < 0 && nb[1] < 0 && nb[2] < 0) continue;
+            sink.touch(row);
+            for (int a = 0; a < 3; ++a)
+                if (nb[a] >= 0) sink.touch(nb[a]);
+            const float* v = d + (int64_t)row * S;
+            for (int k = c_begin; k < c_end; ++k) {
+                const float scale = (float)((k == 0 ? weight_density : weight_sh) / (double)M);
+                float diff[3];
+                for (int a = 0; a < 3; ++a) diff[a] = nb[a] >= 0 ? d[(int64_t)nb[a] * S + k] - v[k] : 0.0f;
+                float inv;
+                loss += scale * plx::tv_term(diff[0], diff[1], diff[2], &inv);
+                float self = 0.0f;
+                for (int a = 0; a < 3; ++a) {
+                    if (nb[a] < 0) continue;
+                    const float gd = scale * diff[a] * inv;
+                    sink.buf[(int64_t)nb[a] * S + k] += gd;
+                    self -= gd;
+                }
+                sink.buf[(int64_t)row * S + k] += self;
+            }
+        }
+    }
+    merge(&target, &scratch, threads);
+    return {loss, target.count};
+}
+
+// RMSProp on the touched rows only: v = beta v + (1 - beta) g^2; p -= lr g / (sqrt(v) + eps).
+// Clears the gradient of those rows afterwards. A zero gradient with zero v moves nothing.
+void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
+                  int64_t num_touched, int64_t columns, double lr_density, double lr_sh, double beta, double eps) {
+    check_float_rows(data, "data");
+    check_float_rows(second_moment, "second moment");
+    check_float_rows(grad_data, "grad data");
+    const int64_t S = data.size(1);
+    float* p = data.data_ptr<float>();
+    float* v = second_moment.data_ptr<float>();
+    float* g = grad_data.data_ptr<float>();
+    uint8_t* mask = grad_mask.data_ptr<uint8_t>();
+    const int32_t* rows = grad_rows.data_ptr<int32_t>();
+    const float b = (float)beta, one_minus_b = (float)(1.0 - beta), e = (float)eps;
+    const float lr_d = (float)lr_density, lr_s = (float)lr_sh;
+#pragma omp parallel for schedule(static)
+    for (int64_t j = 0; j < num_touched; ++j) {
+        const int64_t row = rows[j];
+        float* pr = p + row * S;
+        float* vr = v + row * S;
+        float* gr = g + row * S;
+        for (int64_t k = 0; k < columns; ++k) {
+            const float gk = gr[k];
+            const float vk = b * vr[k] + one_minus_b * gk * gk;
+            vr[k] = vk;
+            pr[k] -= (k == 0 ? lr_d : lr_s) * gk / (std::sqrt(vk) + e);
+            gr[k] = 0.0f;
+        }
+        mask[row] = 0;
+    }
+}
+
+// Grid coordinates (x, y, z) of every allocated row.
+Tensor row_coords(Tensor links, int64_t rows) {
+    TORCH_CHECK(links.scalar_type() == torch::kInt32 && links.is_contiguous() && links.dim() == 3, "links must be int32 [Rx,Ry,Rz]");
+    Tensor out = torch::full({rows, 3}, -1, torch::kInt32);
+    const int64_t ry = links.size(1), rz = links.size(2), total = links.numel();
+    const int32_t* l = links.data_ptr<int32_t>();
+    int32_t* o = out.data_ptr<int32_t>();
+#pragma omp parallel for schedule(static)
+    for (int64_t i = 0; i < total; ++i) {
+        const int32_t r = l[i];
+        if (r < 0 || r >= rows) continue;
+        o[3 * (int64_t)r] = (int32_t)(i / (ry * rz));
+        o[3 * (int64_t)r + 1] = (int32_t)((i / rz) % ry);
+        o[3 * (int64_t)r + 2] = (int32_t)(i % rz);
+    }
+    return out;
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+    m.doc() = "Plenoxels CPU kernels (C++/OpenMP)";
+    pybind11::class_<ThreadGrads>(m, "ThreadGrads")
+        .def(pybind11::init<int64_t, int>())
+        .def_property_readonly("rows", &ThreadGrads::rows)
+        .def_property_readonly("stride", &ThreadGrads::stride);
+    m.def("padded_stride", [](int columns) { return padded_stride(columns); });
+    m.def("num_threads", []() { return omp_get_max_threads(); });
+    m.def("build_occupancy", &build_occupancy);
+    m.def("row_coords", &row_coords);
+    m.def("render", &render);
+    m.def("loss_and_grad", &loss_and_grad);
+    m.def("max_weights", &max_weights);
+    m.def("tv_loss_and_grad", &tv_loss_and_grad);
+    m.def("rmsprop_step", &rmsprop_step);
+}

@@ -1,0 +1,12 @@
+"""The Plenoxels model: sparse voxel grid, volume rendering, sparse RMSProp and TV.
+
+The native C++/OpenMP kernels (plenoxels._C, built by `make install`) do the work; reference.py is
+their PyTorch twin.
+"""
+from plenoxels.grid import SparseGrid
+from plenoxels.optim import GridGrad, SparseRMSProp
+from plenoxels.regularizers import tv_loss_and_grad
+from plenoxels.render import RenderOptions, RenderResult, loss_and_grad, max_weights, native_available, render
+
+__all__ = ["SparseGrid", "GridGrad", "SparseRMSProp", "RenderOptions", "RenderResult", "render", "loss_and_grad",
+           "max_weights", "tv_loss_and_grad", "native_available"]

@@ -1,0 +1,266 @@
+"""The sparse voxel grid: a dense index volume pointing into a compact table of occupied vertices.
+
+Values live at grid vertices. A fit-frame point p maps to grid coordinates
+g = (p - bbox_min) * (R - 1) / (bbox_max - bbox_min) per axis, so vertex (i, j, k) sits at integer
+coordinates in [0, R-1]; a point is interpolated trilinearly from the 8 vertices of its cell, and an
+unallocated vertex counts as all zeros.
+
+Parameters are stored packed, one padded row per vertex (`data` [N, S]: raw density, then the SH
+coefficients of R, G and B), so the kernels read a whole vertex in one or two cache lines.
+`density` and `sh` are views into that table; write through them (in place), never rebind them.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from pipeline.errors import UserError
+
+FORMAT = "voxfield-plenoxels-grid"
+FORMAT_VERSION = 1
+OCCUPANCY_BLOCK = 8  # cells per side of the coarse blocks used to skip empty space
+
+
+def sh_count(sh_degree: int) -> int:
+    """SH coefficients per colour channel."""
+    return (sh_degree + 1) ** 2
+
+
+def row_stride(sh_degree: int) -> int:
+    """Floats per packed row: 1 + 3K rounded up to whole 16-float (64-byte) vectors."""
+    columns = 1 + 3 * sh_count(sh_degree)
+    return 4 if columns <= 4 else (columns + 15) // 16 * 16
+
+
+def _check_box(bbox_min, bbox_max) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    lo, hi = tuple(float(v) for v in bbox_min), tuple(float(v) for v in bbox_max)
+    if len(lo) != 3 or len(hi) != 3 or not all(h > l for l, h in zip(lo, hi)):
+        raise UserError(f"grid box must satisfy bbox_min < bbox_max on every axis, got {lo} and {hi}")
+    return lo, hi
+
+
+def _check_resolution(resolution) -> tuple[int, int, int]:
+    res = tuple(int(r) for r in resolution)
+    if len(res) != 3 or min(res) < 2:
+        raise UserError(f"grid resolution must be three integers >= 2, got {tuple(resolution)}")
+    return res
+
+
+class SparseGrid:
+    def __init__(self, links: torch.Tensor, data: torch.Tensor, bbox_min, bbox_max, sh_degree: int):
+        if not 0 <= int(sh_degree) <= 3:
+            raise UserError(f"sh_degree must be 0, 1, 2 or 3, got {sh_degree}")
+        self.sh_degree = int(sh_degree)
+        self.bbox_min, self.bbox_max = _check_box(bbox_min, bbox_max)
+        _check_resolution(links.shape)
+        stride = row_stride(self.sh_degree)
+        if data.dim() != 2 or data.shape[1] != stride:
+            raise ValueError(f"packed data must be [N, {stride}] for SH degree {sh_degree}, got {tuple(data.shape)}")
+        self._links = links.to(torch.int32).contiguous()
+        self.data = data.to(torch.float32).contiguous()
+        self._occupancy = None
+        self._coords = None
+
+    # ---- construction -------------------------------------------------------------------------
+    @classmethod
+    def from_values(cls, links, density, sh, bbox_min, bbox_max, sh_degree) -> "SparseGrid":
+        """A grid from unpacked values: density [N], sh [N, 3K]."""
+        k3 = 3 * sh_count(sh_degree)
+        if sh.shape != (density.shape[0], k3):
+            raise ValueError(f"sh must be [N, {k3}] for SH degree {sh_degree}, got {tuple(sh.shape)}")
+        data = torch.zeros(density.shape[0], row_stride(sh_degree), dtype=torch.float32)
+        data[:, 0] = density
+        data[:, 1 : 1 + k3] = sh
+        return cls(links, data, bbox_min, bbox_max, sh_degree)
+
+    @classmethod
+    def dense(cls, resolution, bbox_min, bbox_max, sh_degree: int, init_density=0.1, init_sh=0.0) -> "SparseGrid":
+        res = _check_resolution(resolution)
+        n = res[0] * res[1] * res[2]
+        links = torch.arange(n, dtype=torch.int32).reshape(res)
+        data = torch.zeros(n, row_stride(int(sh_degree)), dtype=torch.float32)
+        data[:, 0] = init_density
+        data[:, 1 : 1 + 3 * sh_count(int(sh_degree))] = init_sh
+        return cls(links, data, bbox_min, bbox_max, sh_degree)
+
+    # ---- views and facts ----------------------------------------------------------------------
+    @property
+    def links(self) -> torch.Tensor:
+        return self._links
+
+    @property
+    def density(self) -> torch.Tensor:
+        return self.data[:, 0]
+
+    @property
+    def sh(self) -> torch.Tensor:
+        return self.data[:, 1 : 1 + 3 * sh_count(self.sh_degree)]
+
+    @property
+    def resolution(self) -> tuple[int, int, int]:
+        return tuple(self._links.shape)
+
+    @property
+    def num_occupied(self) -> int:
+        return self.data.shape[0]
+
+    @property
+    def scale(self) -> tuple[float, float, float]:
+        """Grid units per fit-frame unit, per axis."""
+        return tuple((r - 1) / (hi - lo) for r, lo, hi in zip(self.resolution, self.bbox_min, self.bbox_max))
+
+    def memory_bytes(self) -> int:
+        """Parameters plus the index volume (and the occupancy structure once built)."""
+        total = self.data.numel() * 4 + self._links.numel() * 4
+        if self._occupancy is not None:
+            total += sum(t.numel() for t in self._occupancy)
+        return total
+
+    def world_to_grid(self, points: torch.Tensor) -> torch.Tensor:
+        lo = torch.tensor(self.bbox_min, dtype=points.dtype)
+        scale = torch.tensor(self.scale, dtype=points.dtype)
+        return (points - lo) * scale
+
+    # ---- cached helpers for the kernels -------------------------------------------------------
+    def occupancy(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(cells, blocks) uint8: cell occupied if any corner is allocated; block of OCCUPANCY_BLOCK^3
+        cells occupied if any cell is. Built once per grid (links never change in place)."""
+        if self._occupancy is None:
+            from plenoxels.render import native_core
+
+            self._occupancy = tuple(native_core().build_occupancy(self._links, OCCUPANCY_BLOCK))
+        return self._occupancy
+
+    def coords(self) -> torch.Tensor:
+        """int32 [N, 3]: the vertex (x, y, z) of each row."""
+        if self._coords is None:
+            occupied = torch.nonzero(self._links.reshape(-1) >= 0).squeeze(1)
+            rows = self._links.reshape(-1)[occupied].long()
+            ry, rz = self.resolution[1], self.resolution[2]
+            xyz = torch.stack([occupied // (ry * rz), (occupied // rz) % ry, occupied % rz], dim=1)
+            coords = torch.full((self.num_occupied, 3), -1, dtype=torch.int32)
+            coords[rows] = xyz.to(torch.int32)
+            self._coords = coords
+        return self._coords
+
+    # ---- queries ------------------------------------------------------------------------------
+    def sample(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Trilinear raw density [M] and SH [M, 3K] at fit-frame points; outside the box -> 0."""
+        from plenoxels import reference
+
+        points = points.to(torch.float32).reshape(-1, 3)
+        g64 = self.world_to_grid(points.double())
+        hi = torch.tensor(self.resolution, dtype=torch.float64) - 1
+        inside = ((g64 >= 0) & (g64 <= hi)).all(dim=1)
+        values = reference.interpolate(self._links, self.data, g64.to(torch.float32))
+        values = values * inside.unsqueeze(1)
+        return values[:, 0], values[:, 1 : 1 + 3 * sh_count(self.sh_degree)]
+
+    # ---- structure changes (each returns a new grid) ------------------------------------------
+    def prune(self, keep: torch.Tensor) -> tuple["SparseGrid", torch.Tensor]:
+        """Keeps rows where `keep` is true; returns the new grid and, for each new row, its old row."""
+        keep = keep.to(torch.bool).reshape(-1)
+        if keep.shape[0] != self.num_occupied:
+            raise ValueError(f"keep must have one entry per occupied vertex ({self.num_occupied}), got {keep.shape[0]}")
+        old_rows = torch.nonzero(keep).squeeze(1)
+        new_index = torch.full((self.num_occupied,), -1, dtype=torch.int32)
+        new_index[old_rows] = torch.arange(old_rows.shape[0], dtype=torch.int32)
+        flat = self._links.reshape(-1)
+        occupied = flat >= 0
+        links = torch.full_like(flat, -1)
+        links[occupied] = new_index[flat[occupied].long()]
+        grid = SparseGrid(links.reshape(self._links.shape), self.data[old_rows], self.bbox_min, self.bbox_max, self.sh_degree)
+        return grid, old_rows
+
+    def dilate(self, keep: torch.Tensor, radius: int = 1) -> torch.Tensor:
+        """Grows a per-row keep mask to every allocated vertex within `radius` voxels (Chebyshev)."""
+        keep = keep.to(torch.bool).reshape(-1)
+        if radius <= 0:
+            return keep.clone()
+        volume = torch.zeros(self.resolution, dtype=torch.float32)
+        xyz = self.coords().long()
+        kept = xyz[keep]
+        volume[kept[:, 0], kept[:, 1], kept[:, 2]] = 1.0
+        size = 2 * radius + 1
+        grown = F.max_pool3d(volume[None, None], kernel_size=size, stride=1, padding=radius)[0, 0]
+        return grown[xyz[:, 0], xyz[:, 1], xyz[:, 2]] > 0
+
+    def upsample(self, resolution, chunk_points: int = 1 << 19) -> tuple["SparseGrid", torch.Tensor]:
+        """Trilinear resample to a new resolution over the same box.
+
+        New vertices are allocated where they fall in an old cell with an allocated corner after a
+        one-voxel dilation of the old allocation. Returns the new grid and, for each new row, the old
+        row of the nearest old vertex (-1 where that vertex is empty): the optimiser copies its state
+        from there.
+        """
+        res = _check_resolution(resolution)
+        old = torch.tensor(self.resolution, dtype=torch.float64)
+        ratio = (old - 1) / (torch.tensor(res, dtype=torch.float64) - 1)
+        alive = (self._links >= 0).to(torch.float32)[None, None]
+        dilated = F.max_pool3d(alive, kernel_size=3, stride=1, padding=1)[0, 0] > 0
+        ry, rz = res[1], res[2]
+        yz = torch.stack(torch.meshgrid(torch.arange(ry), torch.arange(rz), indexing="ij"), dim=-1).reshape(-1, 2)
+        slab = max(1, chunk_points // (ry * rz))
+        links = torch.full(res, -1, dtype=torch.int32)
+        values, nearest, next_row = [], [], 0
+        from plenoxels import reference
+
+        for x0 in range(0, res[0], slab):
+            xs = torch.arange(x0, min(x0 + slab, res[0]))
+            vert = torch.cat([xs.repeat_interleave(yz.shape[0])[:, None], yz.repeat(xs.shape[0], 1)], dim=1)
+            g = vert.double() * ratio
+            cell = torch.minimum(g.floor().long(), old.long() - 2).clamp_min(0)
+            keep = torch.zeros(vert.shape[0], dtype=torch.bool)
+            for corner in range(8):
+                offset = torch.tensor([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1])
+                c = cell + offset
+                keep |= dilated[c[:, 0], c[:, 1], c[:, 2]]
+            vert, g = vert[keep], g[keep]
+            if vert.shape[0] == 0:
+                continue
+            values.append(reference.interpolate(self._links, self.data, g.to(torch.float32)))
+            near = torch.minimum(g.round().long(), old.long() - 1)
+            nearest.append(self._links[near[:, 0], near[:, 1], near[:, 2]].long())
+            links[vert[:, 0], vert[:, 1], vert[:, 2]] = torch.arange(next_row, next_row + vert.shape[0], dtype=torch.int32)
+            next_row += vert.shape[0]
+        stride = row_stride(self.sh_degree)
+        data = torch.cat(values) if values else torch.zeros(0, stride)
+        old_rows = torch.cat(nearest) if nearest else torch.zeros(0, dtype=torch.int64)
+        return SparseGrid(links, data, self.bbox_min, self.bbox_max, self.sh_degree), old_rows
+
+    # ---- persistence --------------------------------------------------------------------------
+    def save(self, path, extra: dict | None = None) -> None:
+        payload = {
+            "format": FORMAT,
+            "version": FORMAT_VERSION,
+            "links": self._links,
+            "density": self.density.contiguous(),
+            "sh": self.sh.contiguous(),
+            "bbox_min": list(self.bbox_min),
+            "bbox_max": list(self.bbox_max),
+            "sh_degree": self.sh_degree,
+            "extra": dict(extra or {}),
+        }
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(payload, tmp)
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path) -> tuple["SparseGrid", dict]:
+        path = Path(path)
+        if not path.is_file():
+            raise UserError(f"grid file {path} does not exist: run the fit stage first")
+        try:
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # a truncated or foreign file
+            raise UserError(f"{path} is not a readable grid file ({exc.__class__.__name__}): fit again") from exc
+        if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+            raise UserError(f"{path} is not a voxfield Plenoxels grid: fit again")
+        if payload.get("version") != FORMAT_VERSION:
+            raise UserError(f"{path} has grid format version {payload.get('version')}, expected {FORMAT_VERSION}: fit again")
+        grid = cls.from_values(payload["links"], payload["density"], payload["sh"], payload["bbox_min"],
+                               payload["bbox_max"], payload["sh_degree"])
+        return grid, payload["extra"]

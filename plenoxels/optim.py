@@ -1,0 +1,125 @@
+"""Sparse gradients and the sparse RMSProp optimiser of the grid.
+
+Gradients are kept in one persistent table shaped like the grid's packed parameters, with a record of
+the rows touched since the last optimiser step. A step updates and clears only those rows, so no step
+ever zeroes or scans the whole grid.
+"""
+from __future__ import annotations
+
+import torch
+
+from plenoxels.grid import SparseGrid, sh_count
+
+
+class GridGrad:
+    """d(loss)/d(parameters) of one grid, plus which rows were touched since the last clear."""
+
+    def __init__(self, grid: SparseGrid):
+        n = grid.num_occupied
+        self.sh_degree = grid.sh_degree
+        self.data = torch.zeros_like(grid.data)
+        self.touched_mask = torch.zeros(n, dtype=torch.uint8)
+        self.touched_rows = torch.zeros(n, dtype=torch.int32)
+        self.num_touched = 0
+        self._thread_buffers = None
+
+    @property
+    def density(self) -> torch.Tensor:
+        return self.data[:, 0]
+
+    @property
+    def sh(self) -> torch.Tensor:
+        return self.data[:, 1 : 1 + 3 * sh_count(self.sh_degree)]
+
+    def touched(self) -> torch.Tensor:
+        """int64 rows touched since the last clear, in first-touch order."""
+        return self.touched_rows[: self.num_touched].long()
+
+    def thread_buffers(self):
+        """The native kernels' per-thread gradient buffers (lazily allocated, pages on first touch)."""
+        if self._thread_buffers is None:
+            from plenoxels.render import native_core
+
+            self._thread_buffers = native_core().ThreadGrads(self.data.shape[0], self.data.shape[1])
+        return self._thread_buffers
+
+    def accumulate(self, rows: torch.Tensor, density: torch.Tensor, sh: torch.Tensor) -> None:
+        """Adds gradients for distinct rows (the PyTorch path) and records them as touched."""
+        rows = rows.long()
+        self.data[rows, 0] += density
+        self.data[rows, 1 : 1 + sh.shape[1]] += sh
+        new = rows[self.touched_mask[rows] == 0]
+        self.touched_mask[new] = 1
+        self.touched_rows[self.num_touched : self.num_touched + new.shape[0]] = new.to(torch.int32)
+        self.num_touched += new.shape[0]
+
+    def clear(self) -> None:
+        rows = self.touched()
+        self.data[rows] = 0
+        self.touched_mask[rows] = 0
+        self.num_touched = 0
+
+
+class SparseRMSProp:
+    """RMSProp on touched rows only: v = beta v + (1 - beta) g^2; p -= lr g / (sqrt(v) + eps).
+
+    A row's second moment decays only when the row is touched. Density and SH have their own rates.
+    """
+
+    def __init__(self, grid: SparseGrid, lr_density: float, lr_sh: float, beta: float = 0.95, eps: float = 1e-8,
+                 backend: str = "native"):
+        if not 0.0 <= beta < 1.0:
+            raise ValueError(f"beta must be in [0, 1), got {beta}")
+        if eps <= 0.0:
+            raise ValueError(f"eps must be > 0, got {eps}")
+        self.grid = grid
+        self.lr_density, self.lr_sh = float(lr_density), float(lr_sh)
+        self.beta, self.eps = float(beta), float(eps)
+        self.backend = backend
+        self.second_moment = torch.zeros_like(grid.data)
+
+    def set_lr(self, lr_density: float | None = None, lr_sh: float | None = None) -> None:
+        if lr_density is not None:
+            self.lr_density = float(lr_density)
+        if lr_sh is not None:
+            self.lr_sh = float(lr_sh)
+
+    def step(self, grad: GridGrad) -> None:
+        """Updates the rows `grad` touched, then clears them from `grad`."""
+        if grad.data.shape != self.grid.data.shape:
+            raise ValueError("gradient storage belongs to another grid: make a new GridGrad after prune/upsample")
+        columns = 1 + 3 * sh_count(self.grid.sh_degree)
+        if self.backend == "torch":
+            from plenoxels import reference
+
+            reference.rmsprop_step(self.grid.data, self.second_moment, grad, columns, self.lr_density, self.lr_sh,
+                                   self.beta, self.eps)
+            return
+        from plenoxels.render import native_core
+
+        native_core().rmsprop_step(self.grid.data, self.second_moment, grad.data, grad.touched_mask, grad.touched_rows,
+                                   grad.num_touched, columns, self.lr_density, self.lr_sh, self.beta, self.eps)
+        grad.num_touched = 0
+
+    def remap(self, new_grid: SparseGrid, old_rows: torch.Tensor) -> None:
+        """Carries the state to a grid from prune/upsample: new row i takes old row old_rows[i]
+        (-1: fresh state)."""
+        old_rows = old_rows.long()
+        if old_rows.shape[0] != new_grid.num_occupied:
+            raise ValueError("old_rows must have one entry per row of the new grid")
+        state = torch.zeros_like(new_grid.data)
+        has = old_rows >= 0
+        state[has] = self.second_moment[old_rows[has]]
+        self.second_moment = state
+        self.grid = new_grid
+
+    def state_dict(self) -> dict:
+        return {"lr_density": self.lr_density, "lr_sh": self.lr_sh, "beta": self.beta, "eps": self.eps,
+                "second_moment": self.second_moment}
+
+    def load_state_dict(self, state: dict) -> None:
+        if state["second_moment"].shape != self.grid.data.shape:
+            raise ValueError("optimiser state does not match the grid it is loaded for")
+        self.lr_density, self.lr_sh = state["lr_density"], state["lr_sh"]
+        self.beta, self.eps = state["beta"], state["eps"]
+        self.second_moment = state["second_moment"].clone()

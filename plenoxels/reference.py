@@ -1,0 +1,249 @@
+"""The PyTorch twin of every native kernel: short, vectorised, autograd-based. It is the readable
+statement of the math; tests hold the C++ (and CUDA) kernels to it, and it is far too slow to fit with.
+
+Rendering one ray (all kernels agree on every step):
+1. Normalise the direction u = d/|d|. In grid coordinates the ray is og + t * dg with
+   og = (o - bbox_min) * scale and dg = u * scale; t is fit-frame distance along the ray.
+2. Clip to the grid box [0, R-1]^3 and to t >= near: [t_start, t_exit).
+3. Samples at t_i = t_start + (i + 0.5) * dt, dt = step_size / |dg| (step_size voxels in grid units),
+   keeping t_i < t_exit; a ray that would need more than max_samples_per_ray gets exactly that many.
+   This lattice is computed in float64 so that every backend takes the same samples.
+4. At each sample: raw density and SH coefficients interpolated trilinearly from the 8 corners of its
+   cell (an empty corner counts as zeros). sigma = raw density; samples with sigma <= sigma_threshold
+   (>= 0) are skipped. colour = relu(sum_k sh_k Y_k(u) + 0.5) per channel.
+5. alpha_i = 1 - exp(-sigma_i dt), T_i = prod_{j<i} (1 - alpha_j), weight_i = T_i alpha_i.
+   A sample is used only while T_i >= stop_transmittance (early termination).
+6. rgb = sum_i weight_i c_i + T_final * background; depth = sum_i weight_i t_i; opacity = 1 - T_final.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from plenoxels.grid import SparseGrid, sh_count
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+         1.445305721320277, -0.5900435899266435)
+COLOUR_OFFSET = 0.5
+TV_EPS = 1e-9
+
+
+def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
+    """Real SH basis [B, (degree+1)^2] at unit directions [B, 3]."""
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [SH_C2[0] * (x * y), SH_C2[1] * (y * z), SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * (x * z),
+                SH_C2[4] * (xx - yy)]
+    if degree >= 3:
+        out += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * (x * y) * z, SH_C3[2] * y * (4 * zz - xx - yy),
+                SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy),
+                SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3 * yy)]
+    return torch.stack(out, dim=-1)
+
+
+def corners(links: torch.Tensor, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rows [P, 8] (-1 = empty) and trilinear weights [P, 8] of grid points g [P, 3] (float32,
+    inside [0, R-1]). Corner c = 4*dx + 2*dy + dz."""
+    res = torch.tensor(links.shape)
+    cell = torch.minimum(g.floor().long(), res - 2).clamp_min(0)
+    f = g - cell.to(g.dtype)
+    f0 = 1 - f
+    rows, weights = [], []
+    for c in range(8):
+        d = ((c >> 2) & 1, (c >> 1) & 1, c & 1)
+        rows.append(links[cell[:, 0] + d[0], cell[:, 1] + d[1], cell[:, 2] + d[2]])
+        fx, fy, fz = (f[:, a] if d[a] else f0[:, a] for a in range(3))
+        weights.append(fx * fy * fz)
+    return torch.stack(rows, dim=1), torch.stack(weights, dim=1)
+
+
+def interpolate(links: torch.Tensor, values: torch.Tensor, g: torch.Tensor, rows=None, weights=None) -> torch.Tensor:
+    """Trilinear interpolation of per-row values [N, C] at grid points g [P, 3]; empty corners are 0."""
+    if rows is None:
+        rows, weights = corners(links, g)
+    out = torch.zeros(g.shape[0], values.shape[1], dtype=values.dtype)
+    for c in range(8):
+        r = rows[:, c]
+        out = out + weights[:, c : c + 1] * (values[r.clamp_min(0).long()] * (r >= 0).unsqueeze(1))
+    return out
+
+
+def ray_lattice(grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opts) -> dict:
+    """Step 1-3 of the module docstring, in float64: per ray t_start, dt, n, and grid-space og, dg."""
+    o, d = origins.double(), dirs.double()
+    unit = d / d.norm(dim=1, keepdim=True)
+    lo = torch.tensor(grid.bbox_min, dtype=torch.float64)
+    scale = torch.tensor(grid.scale, dtype=torch.float64)
+    hi = torch.tensor(grid.resolution, dtype=torch.float64) - 1
+    og, dg = (o - lo) * scale, unit * scale
+    zero = dg == 0
+    safe = torch.where(zero, torch.ones_like(dg), dg)
+    ta, tb = (0 - og) / safe, (hi - og) / safe
+    inside = (og >= 0) & (og <= hi)
+    big = torch.full_like(ta, 1e300)
+    t_lo = torch.where(zero, torch.where(inside, -big, big), torch.minimum(ta, tb))
+    t_hi = torch.where(zero, torch.where(inside, big, -big), torch.maximum(ta, tb))
+    t_enter, t_exit = t_lo.max(dim=1).values, t_hi.min(dim=1).values
+    hit = t_exit > t_enter
+    t_start = torch.clamp_min(t_enter, opts.near)
+    length = t_exit - t_start
+    step_t = opts.step_size / dg.norm(dim=1)
+    n = torch.ceil(length / step_t - 0.5).clamp_min(0)
+    n = torch.where(hit & (length > 0), n, torch.zeros_like(n))
+    capped = n > opts.max_samples_per_ray
+    dt = torch.where(capped, length / opts.max_samples_per_ray, step_t)
+    n = torch.where(capped, torch.full_like(n, opts.max_samples_per_ray), n).long()
+    return {"t_start": t_start, "dt": dt, "n": n, "og": og, "dg": dg, "unit": unit.to(torch.float32)}
+
+
+def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torch.Tensor) -> dict:
+    """All samples of a batch with their weights and colours (steps 1-5), differentiable in density and sh."""
+    lat = ray_lattice(grid, origins, dirs, opts)
+    B, M = origins.shape[0], int(lat["n"].max()) if origins.shape[0] else 0
+    i = torch.arange(M, dtype=torch.float64)
+    valid = i.long()[None, :] < lat["n"][:, None]
+    ray, idx = torch.nonzero(valid, as_tuple=True)
+    t = lat["t_start"][ray] + (idx.double() + 0.5) * lat["dt"][ray]
+    hi = torch.tensor(grid.resolution, dtype=torch.float32) - 1
+    g = (lat["og"][ray] + t[:, None] * lat["dg"][ray]).to(torch.float32)
+    g = torch.minimum(g.clamp_min(0), hi)
+    rows, weights = corners(grid.links, g)
+    raw = interpolate(grid.links, density[:, None], g, rows, weights)[:, 0]
+    used = raw > opts.sigma_threshold
+    sigma = torch.where(used, raw, torch.zeros_like(raw))
+    delta = lat["dt"].to(torch.float32)
+    tau = torch.zeros(B, M, dtype=torch.float32).index_put((ray, idx), sigma * delta[ray])
+    used_pad = torch.zeros(B, M, dtype=torch.bool).index_put((ray, idx), used)
+    t_before = torch.exp(-(torch.cumsum(tau, dim=1) - tau))
+    alive = used_pad & (t_before >= opts.stop_transmittance)
+    alpha = 1 - torch.exp(-tau)
+    weight = torch.where(alive, t_before * alpha, torch.zeros_like(alpha))
+    t_final = torch.exp(-(tau * alive).sum(dim=1))
+    K = sh_count(grid.sh_degree)
+    coeffs = interpolate(grid.links, sh, g, rows, weights).reshape(-1, 3, K)
+    basis = sh_basis(grid.sh_degree, lat["unit"])[ray]
+    colour = torch.relu((coeffs * basis[:, None, :]).sum(-1) + COLOUR_OFFSET)
+    colour_pad = torch.zeros(B, M, 3, dtype=torch.float32).index_put((ray, idx), colour)
+    t_pad = torch.zeros(B, M, dtype=torch.float32).index_put((ray, idx), t.to(torch.float32))
+    return {"weight": weight, "colour": colour_pad, "t": t_pad, "t_final": t_final, "alive": alive,
+            "ray": ray, "idx": idx, "rows": rows, "corner_weights": weights}
+
+
+def render(grid: SparseGrid, origins, dirs, background, opts, density=None, sh=None):
+    """(rgb [B,3], depth [B], opacity [B]); differentiable in density, sh and background."""
+    density = grid.density if density is None else density
+    sh = grid.sh if sh is None else sh
+    m = march(grid, origins, dirs, opts, density, sh)
+    rgb = (m["weight"][..., None] * m["colour"]).sum(dim=1)
+    if background is not None:
+        rgb = rgb + m["t_final"][:, None] * background
+    depth = (m["weight"] * m["t"]).sum(dim=1)
+    return rgb, depth, 1 - m["t_final"]
+
+
+def _used_rows(m: dict) -> torch.Tensor:
+    """Rows read by samples that contributed (alive), as the native kernels touch them."""
+    alive = m["alive"][m["ray"], m["idx"]]
+    rows = m["rows"][alive].reshape(-1)
+    return torch.unique(rows[rows >= 0]).long()
+
+
+def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts, grad) -> tuple[float, torch.Tensor]:
+    """Mean squared error over the batch's B*3 values; adds its gradient into `grad`."""
+    density = grid.density.detach().clone().requires_grad_(True)
+    sh = grid.sh.detach().clone().requires_grad_(True)
+    bg = background.detach().clone().requires_grad_(True)
+    m = march(grid, origins, dirs, opts, density, sh)
+    rgb = (m["weight"][..., None] * m["colour"]).sum(dim=1) + m["t_final"][:, None] * bg
+    mse = ((rgb - targets) ** 2).mean()
+    mse.backward()
+    rows = _used_rows(m)
+    grad.accumulate(rows, density.grad[rows], sh.grad[rows])
+    return float(mse.detach()), bg.grad
+
+
+def max_weights(grid: SparseGrid, origins, dirs, opts) -> torch.Tensor:
+    """Per row, the largest weight of any sample that reads it with a non-zero trilinear weight."""
+    with torch.no_grad():
+        m = march(grid, origins, dirs, opts, grid.density, grid.sh)
+        w = m["weight"][m["ray"], m["idx"]]
+        rows, cw = m["rows"], m["corner_weights"]
+        use = (rows >= 0) & (cw > 0) & m["alive"][m["ray"], m["idx"]][:, None]
+        w8 = w[:, None].expand_as(cw)
+        out = torch.zeros(grid.num_occupied, dtype=torch.float32)
+        return out.scatter_reduce(0, rows[use].long(), w8[use], reduce="amax")
+
+
+def tv_neighbours(grid: SparseGrid, rows: torch.Tensor) -> torch.Tensor:
+    """Rows of the +x, +y, +z neighbours [M, 3] of the given rows (-1 = empty or outside)."""
+    xyz = grid.coords()[rows].long()
+    res = grid.resolution
+    out = []
+    for a in range(3):
+        q = xyz.clone()
+        q[:, a] += 1
+        inside = q[:, a] < res[a]
+        q[:, a] = q[:, a].clamp_max(res[a] - 1)
+        out.append(torch.where(inside, grid.links[q[:, 0], q[:, 1], q[:, 2]], torch.full_like(q[:, 0], -1, dtype=torch.int32)))
+    return torch.stack(out, dim=1)
+
+
+def tv_loss(grid: SparseGrid, rows, weight_density, weight_sh, density=None, sh=None) -> torch.Tensor:
+    """weight * mean over the sampled rows of sum over channels of sqrt(dx^2 + dy^2 + dz^2 + eps),
+    with forward differences to allocated +axis neighbours (rows with none are left out)."""
+    density = grid.density if density is None else density
+    sh = grid.sh if sh is None else sh
+    nb = tv_neighbours(grid, rows)
+    has = nb >= 0
+    counted = has.any(dim=1)
+    total = torch.zeros((), dtype=torch.float32)
+    for weight, values in ((weight_density, density[:, None]), (weight_sh, sh)):
+        if weight == 0:
+            continue
+        v = values[rows][:, None, :]
+        diff = torch.where(has[..., None], values[nb.clamp_min(0).long()] - v, torch.zeros_like(v))
+        term = torch.sqrt((diff * diff).sum(dim=1) + TV_EPS)
+        total = total + weight / rows.shape[0] * (term.sum(dim=1) * counted).sum()
+    return total
+
+
+def tv_loss_and_grad(grid: SparseGrid, grad, rows, weight_density, weight_sh) -> float:
+    density = grid.density.detach().clone().requires_grad_(True)
+    sh = grid.sh.detach().clone().requires_grad_(True)
+    if rows.shape[0] == 0:
+        return 0.0
+    loss = tv_loss(grid, rows, weight_density, weight_sh, density, sh)
+    if not loss.requires_grad:
+        return float(loss)
+    loss.backward()
+    nb = tv_neighbours(grid, rows)
+    counted = (nb >= 0).any(dim=1)
+    touched = torch.cat([rows[counted], nb[nb >= 0].long()])
+    touched = torch.unique(touched)
+    grad.accumulate(touched, density.grad[touched], sh.grad[touched])
+    return float(loss.detach())
+
+
+def rmsprop_step(data, second_moment, grad, columns: int, lr_density, lr_sh, beta, eps) -> None:
+    """v = beta v + (1 - beta) g^2; p -= lr g / (sqrt(v) + eps) on the touched rows; clears them."""
+    rows = grad.touched()
+    g = grad.data[rows, :columns]
+    v = beta * second_moment[rows, :columns] + (1 - beta) * g * g
+    lr = torch.full((columns,), float(lr_sh), dtype=torch.float32)
+    lr[0] = lr_density
+    second_moment[rows, :columns] = v
+    data[rows, :columns] -= lr * g / (torch.sqrt(v) + eps)
+    grad.clear()
+
+
+def expected_samples(length_voxels: float, step_size: float) -> int:
+    """Samples the lattice puts on a ray crossing `length_voxels` of grid (for tests and benchmarks)."""
+    return max(0, math.ceil(length_voxels / step_size - 0.5))
