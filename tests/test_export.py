@@ -8,6 +8,7 @@ import torch
 import trimesh
 
 from pipeline.errors import UserError
+from plenoxels.grid import SparseGrid
 from plenoxels.ndc import NDCMapping
 from stages import export
 from stages.export import FitFrame, Settings
@@ -15,27 +16,12 @@ from stages.export import FitFrame, Settings
 SH_K = 4  # SH degree 1: the export must read only the degree-0 term of each channel
 
 
-class DenseField:
-    """A grid with every vertex allocated, read as the renderer reads one: trilinear raw density and SH.
-    Has the attributes the export reads from a fitted grid (links, density, sh, bbox_min/max, sample)."""
-
-    def __init__(self, density: np.ndarray, sh: np.ndarray, bbox_min, bbox_max):
-        self.shape = density.shape
-        self.links = torch.arange(density.size, dtype=torch.int32).reshape(self.shape)
-        self.density = torch.as_tensor(density.reshape(-1, 1), dtype=torch.float32)
-        self.sh = torch.as_tensor(sh.reshape(density.size, 3 * SH_K), dtype=torch.float32)
-        self.bbox_min = torch.tensor(bbox_min, dtype=torch.float32)
-        self.bbox_max = torch.tensor(bbox_max, dtype=torch.float32)
-        self.sh_degree = 1
-        self._volume = torch.cat([self.density, self.sh], 1).T.reshape(1, 1 + 3 * SH_K, *self.shape)
-
-    def sample(self, points: torch.Tensor):
-        unit = (points - self.bbox_min) / (self.bbox_max - self.bbox_min) * 2 - 1
-        # grid_sample reads (x, y, z) against a volume laid out [D, H, W] = [Z, Y, X].
-        values = torch.nn.functional.grid_sample(self._volume.permute(0, 1, 4, 3, 2), unit.reshape(1, -1, 1, 1, 3),
-                                                 mode="bilinear", align_corners=True, padding_mode="border")
-        values = values.reshape(1 + 3 * SH_K, -1).T
-        return torch.relu(values[:, 0]), values[:, 1:].reshape(-1, 3, SH_K)
+def dense_grid(density: np.ndarray, sh: np.ndarray, bbox_min, bbox_max) -> SparseGrid:
+    """A fitted-grid stand-in with every vertex allocated: raw density [X,Y,Z], SH [X,Y,Z,3,K]."""
+    links = torch.arange(density.size, dtype=torch.int32).reshape(density.shape)
+    return SparseGrid.from_values(links, torch.as_tensor(density.reshape(-1), dtype=torch.float32),
+                                  torch.as_tensor(sh.reshape(density.size, 3 * SH_K), dtype=torch.float32),
+                                  bbox_min, bbox_max, sh_degree=1)
 
 
 def lattice_points(res: int, lo, hi) -> np.ndarray:
@@ -67,7 +53,7 @@ def sphere_field(res: int, points_to_world=lambda p: p, lo=(-1, -1, -1), hi=(1, 
     peak = 2 * math.log(2) / voxel
     dist = np.linalg.norm(p_world - SPHERE_CENTRE, axis=-1)
     density = peak / (1 + np.exp(-(SPHERE_RADIUS - dist) / 0.03))
-    return DenseField(density, colour_sh(p_world), lo, hi)
+    return dense_grid(density, colour_sh(p_world), lo, hi)
 
 
 def radial_error(vertices: np.ndarray) -> np.ndarray:
@@ -91,6 +77,14 @@ def test_sphere_surface_sits_where_the_auto_level_says_with_outward_normals_and_
     red = mesh.vertices[:, 0] > 0.1
     expected = np.where(red[:, None], [0.9, 0.1, 0.1], [0.1, 0.1, 0.9])
     assert np.abs(colours - expected)[away_from_seam].max() < 0.03
+
+    truth = trimesh.creation.icosphere(subdivisions=5, radius=SPHERE_RADIUS).apply_translation(SPHERE_CENTRE)
+    tolerance = 0.01 * 2 * SPHERE_RADIUS
+    scores = export.mesh_scores(mesh, truth, tolerance, samples=20_000)
+    assert scores["f_score"] > 0.99 and scores["max_vertex_distance"] < tolerance
+    # The same mesh three tolerances off scores badly: the measure can tell.
+    shifted = export.mesh_scores(mesh.copy().apply_translation([3 * tolerance, 0, 0]), truth, tolerance, samples=20_000)
+    assert shifted["f_score"] < 0.5
 
 
 def test_a_different_level_moves_the_surface_and_finer_resolution_follows_the_trilinear_field():
