@@ -34,9 +34,11 @@ VERSION = 1
 MIN_POINTS = 30
 MIN_POINTS_PER_IMAGE = 10
 # A point belongs to the foreground candidates when at least this share of the cameras has it in view.
-COVISIBLE_SHARE = 0.5
-# Robust box: these percentiles of the foreground points on each axis (drops stray points).
+COVISIBLE_SHARE = 0.7
+# Robust box of the foreground points: the bulk between these percentiles on each axis, widened to the
+# points within BOX_REACH times its size (see robust_box).
 BOX_PERCENTILES = (2.0, 98.0)
+BOX_REACH = 0.2
 # Near/far per image: these percentiles of the depths of the points seen there, widened by NEAR_FAR_MARGIN.
 NEAR_FAR_PERCENTILES = (1.0, 99.0)
 NEAR_FAR_MARGIN = 0.1
@@ -232,8 +234,14 @@ def covisible_counts(xyz: np.ndarray, cams: Cameras) -> np.ndarray:
 
 
 def robust_box(points_rot: np.ndarray) -> np.ndarray:
-    """[2,3] per-axis percentiles: the box holding the bulk of the points, ignoring strays."""
-    return np.percentile(points_rot, BOX_PERCENTILES, axis=0)
+    """[2,3] the box holding the points, ignoring strays: percentiles find the bulk, then the box grows
+    to the farthest points within BOX_REACH of the bulk's size, so sparse edges (corners of a table)
+    are kept while a few far-off points are not."""
+    bulk = np.percentile(points_rot, BOX_PERCENTILES, axis=0)
+    reach = BOX_REACH * (bulk[1] - bulk[0])
+    near_bulk = np.all((points_rot >= bulk[0] - reach) & (points_rot <= bulk[1] + reach), axis=1)
+    kept = points_rot[near_bulk]
+    return np.stack([kept.min(axis=0), kept.max(axis=0)])
 
 
 def frustum_box(c2w: np.ndarray, k: Intrinsics, near: float, far: float, rotation: np.ndarray) -> np.ndarray:
@@ -460,8 +468,7 @@ def normalize_scene(transforms: dict, points: Points, settings: Settings, poses_
         reference = world_from_input @ reference_input
         reference[:3, :3] /= scale
         scene["forward"] = {"reference_c2w": reference.tolist(),
-                            **_forward_depths(xyz_world[foreground] if foreground.sum() >= MIN_POINTS else None,
-                                              reference, cams, scale, foreground_box)}
+                            **_forward_depths(xyz_world if has_points else None, reference, cams, scale, foreground_box)}
     return scene
 
 
@@ -485,7 +492,9 @@ def _forward_depth_guess(cams: Cameras) -> tuple[float, float, str]:
 
 def _forward_depths(xyz_world: np.ndarray | None, reference: np.ndarray, cams: Cameras, scale: float,
                     box: np.ndarray) -> dict:
-    """NDC's near plane and the far depth, along the reference camera's axis (normalised units)."""
+    """NDC's near plane and the far depth, along the reference camera's axis (normalised units). All points
+    count, not only the foreground: the floor just in front of the cameras, seen by few of them, is what
+    sets the near plane."""
     if xyz_world is not None:
         depth = -((xyz_world - reference[:3, 3]) @ reference[:3, 2])
         depth = depth[depth > 0]

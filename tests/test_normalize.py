@@ -1,0 +1,278 @@
+"""The normalize stage on small synthetic scenes with true poses and sparse points sampled on the true surfaces."""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from pipeline import config
+from pipeline.cameras import Intrinsics, pixel_directions
+from pipeline.errors import UserError
+from pipeline.report import Reporter
+from pipeline.stage import StageContext
+from pipeline.synthetic import build_scene, trace, write_scene
+from stages import normalize
+from stages.normalize import Points, Settings, normalize_scene, read_points
+
+N_VIEWS = 16
+WIDTH, HEIGHT = 48, 36
+RAYS_PER_VIEW = 150
+
+
+def _rotation(axis, angle_deg: float) -> np.ndarray:
+    axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    a = math.radians(angle_deg)
+    return np.eye(3) + math.sin(a) * k + (1 - math.cos(a)) * k @ k
+
+
+def _sample_points(kind: str, transforms: dict, seed: int) -> dict:
+    """Sparse points the way SfM would see them: hits of random pixel rays on the true surfaces, each
+    observed by every camera that has it in its image with nothing in front of it."""
+    scene = build_scene(kind, seed)
+    rng = np.random.default_rng(seed)
+    k = Intrinsics(transforms["fl_x"], transforms["fl_y"], transforms["cx"], transforms["cy"], transforms["w"], transforms["h"])
+    dirs_cam = pixel_directions(k).numpy().reshape(-1, 3).astype(np.float64)
+    c2ws = [np.asarray(f["transform_matrix"]) for f in transforms["frames"]]
+    xyz = []
+    for c2w in c2ws:
+        dirs = dirs_cam[rng.choice(len(dirs_cam), RAYS_PER_VIEW, replace=False)] @ c2w[:3, :3].T
+        t, _ = trace(scene, c2w[:3, 3], dirs)
+        xyz.append(c2w[:3, 3] + t[np.isfinite(t), None] * dirs[np.isfinite(t)])
+    xyz = np.concatenate(xyz)
+    obs_frame, obs_point = [], []
+    for f, c2w in enumerate(c2ws):
+        to_point = xyz - c2w[:3, 3]
+        distance = np.linalg.norm(to_point, axis=1)
+        local = to_point @ c2w[:3, :3]
+        depth = -local[:, 2]
+        u = k.fl_x * local[:, 0] / depth + k.cx
+        v = -k.fl_y * local[:, 1] / depth + k.cy
+        t, _ = trace(scene, c2w[:3, 3], to_point / distance[:, None])
+        seen = (depth > 0) & (u >= 0) & (u <= k.w) & (v >= 0) & (v <= k.h) & (t > distance * (1 - 1e-6))
+        obs_frame += [f] * int(seen.sum())
+        obs_point += np.flatnonzero(seen).tolist()
+    return {"xyz": xyz, "obs_frame": np.asarray(obs_frame), "obs_point": np.asarray(obs_point)}
+
+
+def _poses_folder(root: Path, kind: str, seed: int = 0, alpha: bool = False, with_points: bool = True) -> Path:
+    """A poses/ folder in the poses stage's layout, from a synthetic scene's true cameras."""
+    synth = write_scene(kind, root / "synth", n_views=N_VIEWS, width=WIDTH, height=HEIGHT, seed=seed,
+                        alpha=alpha, supersample=1)
+    poses = root / "poses"
+    (poses / "images").mkdir(parents=True)
+    transforms = json.loads((synth / "transforms.json").read_text())
+    for frame in transforms["frames"]:
+        name = Path(frame["file_path"]).stem
+        frame["name"] = name
+        if alpha:
+            # As ingest does: RGB image plus the alpha channel as a separate mask.
+            (poses / "masks").mkdir(exist_ok=True)
+            with Image.open(synth / frame["file_path"]) as im:
+                im.convert("RGB").save(poses / "images" / f"{name}.png")
+                im.getchannel("A").save(poses / "masks" / f"{name}.png")
+            frame["mask_path"] = f"masks/{name}.png"
+        else:
+            shutil.copy(synth / frame["file_path"], poses / "images" / f"{name}.png")
+        frame["file_path"] = f"images/{name}.png"
+    transforms["source"] = "transforms"
+    (poses / "transforms.json").write_text(json.dumps(transforms))
+    if with_points:
+        np.savez(poses / "points.npz", **_sample_points(kind, transforms, seed))
+    else:
+        np.savez(poses / "points.npz", xyz=np.zeros((0, 3)), obs_frame=np.zeros(0, int), obs_point=np.zeros(0, int))
+    return poses
+
+
+def _run_stage(poses: Path, settings: Settings | None = None) -> tuple[dict, dict]:
+    out = poses.parent
+    work = out / ".work" / "normalize"
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True)
+    ctx = StageContext(scene=out, out=out, work=work, scratch=out / ".resume", settings=settings or Settings(),
+                       upstream={"poses": poses}, scene_type=None, report=Reporter(quiet=True))
+    summary = normalize.run(ctx)
+    return json.loads((work / "scene.json").read_text()), summary
+
+
+def _load(poses: Path) -> tuple[dict, Points]:
+    return json.loads((poses / "transforms.json").read_text()), read_points(poses / "points.npz")
+
+
+def _to_world(scene: dict, xyz: np.ndarray) -> np.ndarray:
+    m = np.asarray(scene["world_from_input"])
+    return xyz @ m[:3, :3].T + m[:3, 3]
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory) -> dict[str, Path]:
+    return {kind: _poses_folder(tmp_path_factory.mktemp(kind), kind) for kind in ("object", "forward", "unbounded")}
+
+
+@pytest.mark.parametrize("kind", ["object", "forward", "unbounded"])
+def test_synthetic_kinds_are_classified_from_true_poses(scenes, kind):
+    scene, summary = _run_stage(scenes[kind])
+    assert scene["type"] == kind, scene["reasons"]
+    assert scene["detected"] == kind and scene["overridden"] is False
+    assert summary["line"].startswith(f"{kind} scene (")
+    assert set(scene["thresholds"]) >= {"forward_max_cone_deg", "beyond_factor"}
+    truth = json.loads((scenes[kind].parent / "synth" / "ground_truth" / "scene.json").read_text())
+
+    # The true world is z-up: its up axis must come out as +z.
+    rotation = np.asarray(scene["world_from_input"])[:3, :3] / scene["scale"]
+    assert np.degrees(np.arccos(np.clip(rotation @ truth["world_up"] @ [0, 0, 1], -1, 1))) < 2.0
+
+    lo, hi = np.asarray(scene["foreground"]["min"]), np.asarray(scene["foreground"]["max"])
+    assert np.all(lo >= -1) and np.all(hi <= 1) and np.max(hi - lo) > 1.6
+    if kind != "forward":
+        # The true object is inside the unit cube and fills a fair part of it (less in the unbounded scene,
+        # where the ground most cameras see around the object is foreground too).
+        mesh = trimesh.load(scenes[kind].parent / "synth" / "ground_truth" / "mesh.ply")
+        vertices = _to_world(scene, np.asarray(mesh.vertices))
+        assert np.abs(vertices).max() <= 1.0 and np.ptp(vertices, axis=0).max() > (0.8 if kind == "object" else 0.5)
+        assert "forward" not in scene
+    else:
+        reference = np.asarray(scene["forward"]["reference_c2w"])
+        mean_view = np.mean([-np.asarray(f["transform_matrix"])[:3, 2] for f in scene["frames"]], axis=0)
+        assert np.degrees(np.arccos(-reference[:3, 2] @ mean_view / np.linalg.norm(mean_view))) < 1.0
+        # NDC's near plane lies in front of the nearest true surface.
+        true_near = min(v["near_depth"] for v in truth["views"]) * scene["scale"]
+        assert 0 < scene["forward"]["near"] <= true_near
+
+    for frame, view in zip(sorted(scene["frames"], key=lambda f: f["name"]), truth["views"]):
+        # Per-image near/far bracket what the sampled points show of the true depth range.
+        assert 0 < frame["near"] <= view["near_depth"] * scene["scale"] * 1.25
+        assert frame["far"] >= view["near_depth"] * scene["scale"]
+        assert frame["file_path"] == f"poses/images/{frame['name']}.png"
+
+
+def test_forward_scene_far_covers_back_wall(scenes):
+    scene, _ = _run_stage(scenes["forward"])
+    truth = json.loads((scenes["forward"].parent / "synth" / "ground_truth" / "scene.json").read_text())
+    for frame, view in zip(sorted(scene["frames"], key=lambda f: f["name"]), truth["views"]):
+        assert frame["far"] >= 0.8 * view["far_distance"] * scene["scale"]
+
+
+def test_transforms_round_trip(scenes):
+    transforms, points = _load(scenes["object"])
+    scene = normalize_scene(transforms, points, Settings())
+    forward, backward = np.asarray(scene["world_from_input"]), np.asarray(scene["input_from_world"])
+    assert np.allclose(forward @ backward, np.eye(4), atol=1e-9)
+    p = np.array([0.7, -2.0, 3.1, 1.0])
+    assert np.allclose(backward @ (forward @ p), p)
+    # The normalised cameras are the input ones carried through the transform (rotation kept orthonormal).
+    by_name = {f["name"]: np.asarray(f["transform_matrix"]) for f in scene["frames"]}
+    for frame in transforms["frames"]:
+        c2w_in = np.asarray(frame["transform_matrix"])
+        c2w = by_name[frame["name"]]
+        assert np.allclose(c2w[:3, :3].T @ c2w[:3, :3], np.eye(3), atol=1e-9)
+        assert np.allclose((forward @ c2w_in)[:3, 3], c2w[:3, 3])
+        assert np.allclose(backward[:3, :3] @ c2w[:3, :3] / np.linalg.norm(backward[:3, 0]), c2w_in[:3, :3], atol=1e-9)
+
+
+@pytest.mark.parametrize("kind", ["object", "forward", "unbounded"])
+def test_rotated_scaled_shifted_input_normalises_the_same(scenes, kind):
+    transforms, points = _load(scenes[kind])
+    rng = np.random.default_rng(3)
+    similarity = np.eye(4)
+    scale = 3.7
+    similarity[:3, :3] = scale * _rotation(rng.normal(size=3), 71.0)
+    similarity[:3, 3] = [5.0, -12.0, 40.0]
+    moved = json.loads(json.dumps(transforms))
+    for frame in moved["frames"]:
+        c2w = similarity @ np.asarray(frame["transform_matrix"])
+        c2w[:3, :3] /= scale
+        frame["transform_matrix"] = c2w.tolist()
+    moved_points = Points(points.xyz @ similarity[:3, :3].T + similarity[:3, 3], points.obs_frame, points.obs_point)
+
+    a = normalize_scene(transforms, points, Settings(), scenes[kind])
+    b = normalize_scene(moved, moved_points, Settings(), scenes[kind])
+    assert a["type"] == b["type"] == kind
+    assert math.isclose(b["scale"] * scale, a["scale"], rel_tol=1e-6)
+    for fa, fb in zip(a["frames"], b["frames"]):
+        assert np.allclose(fa["transform_matrix"], fb["transform_matrix"], atol=1e-6)
+        assert math.isclose(fa["near"], fb["near"], rel_tol=1e-6) and math.isclose(fa["far"], fb["far"], rel_tol=1e-6)
+    assert np.allclose(a["foreground"]["min"], b["foreground"]["min"], atol=1e-6)
+    # Both map the same physical point to the same normalised point.
+    assert np.allclose(np.asarray(b["world_from_input"]) @ similarity, a["world_from_input"], atol=1e-6)
+
+
+def test_up_survives_a_few_tilted_shots(scenes):
+    transforms, points = _load(scenes["object"])
+    for index, roll in ((2, 35.0), (9, -50.0)):
+        c2w = np.asarray(transforms["frames"][index]["transform_matrix"])
+        c2w[:3, :3] = c2w[:3, :3] @ _rotation([0, 0, 1], roll)  # a roll about the camera's own viewing axis
+        transforms["frames"][index]["transform_matrix"] = c2w.tolist()
+    scene = normalize_scene(transforms, points, Settings())
+    rotation = np.asarray(scene["world_from_input"])[:3, :3] / scene["scale"]
+    assert np.degrees(np.arccos(np.clip(rotation[2] @ [0, 0, 1], -1, 1))) < 2.0
+
+
+def test_split_holds_out_every_nth_by_sorted_name(scenes):
+    transforms, points = _load(scenes["object"])
+    transforms["frames"] = transforms["frames"][::-1]  # the split must not depend on the input order
+    names = sorted(f["name"] for f in transforms["frames"])
+    scene = normalize_scene(transforms, points, Settings(holdout_every=8))
+    assert [f["name"] for f in scene["frames"]] == names
+    assert [f["name"] for f in scene["frames"] if f["split"] == "test"] == names[::8]
+    scene = normalize_scene(transforms, points, Settings(holdout_every=5))
+    assert [f["name"] for f in scene["frames"] if f["split"] == "test"] == names[::5]
+    scene = normalize_scene(transforms, points, Settings(holdout_every=0))
+    assert all(f["split"] == "train" for f in scene["frames"])
+
+
+def test_without_points_masks_or_scenery_decide(tmp_path):
+    masked = _poses_folder(tmp_path / "masked", "object", alpha=True, with_points=False)
+    scene, _ = _run_stage(masked)
+    assert scene["type"] == "object", scene["reasons"]
+    assert scene["frames"][0]["mask_path"] == f"poses/masks/{scene['frames'][0]['name']}.png"
+    assert scene["measured"]["foreground_from"].startswith("cameras")
+    for frame in scene["frames"]:
+        # Near/far from the foreground box: every camera is outside it, and the box lies between near and far.
+        origin = np.asarray(frame["transform_matrix"])[:3, 3]
+        assert np.abs(origin).max() > 1 and 0 < frame["near"] < np.linalg.norm(origin) < frame["far"]
+
+    scenery = _poses_folder(tmp_path / "scenery", "unbounded", with_points=False)
+    scene, summary = _run_stage(scenery)
+    assert scene["type"] == "unbounded", scene["reasons"]
+    assert "no points" in summary["line"]
+
+
+def test_llff_bounds_give_near_far_without_points(scenes):
+    transforms, _ = _load(scenes["forward"])
+    for n, frame in enumerate(transforms["frames"]):
+        frame["near"], frame["far"] = 2.0 + 0.01 * n, 9.5
+    scene = normalize_scene(transforms, Points.empty(), Settings())
+    assert scene["type"] == "forward"
+    assert scene["measured"]["near_far_from"] == {"llff bounds": N_VIEWS}
+    assert scene["forward"]["from"] == "llff bounds"
+    assert math.isclose(scene["forward"]["near"], 2.0 * scene["scale"] * 0.9, rel_tol=1e-9)
+    near = {f["name"]: f["near"] for f in scene["frames"]}
+    assert math.isclose(near["0003"], 2.03 * scene["scale"] * 0.9, rel_tol=1e-9)
+
+
+def test_setting_overrides_the_scene_type(scenes):
+    scene, summary = _run_stage(scenes["object"], Settings(scene_type="unbounded"))
+    assert scene["type"] == "unbounded" and scene["detected"] == "object" and scene["overridden"] is True
+    assert "set by normalize.scene_type" in summary["line"]
+    scene, _ = _run_stage(scenes["object"], Settings(scene_type="forward"))
+    assert scene["type"] == "forward" and "reference_c2w" in scene["forward"]
+
+
+def test_bad_settings_and_missing_poses_are_user_errors(tmp_path):
+    with pytest.raises(UserError, match="holdout_every"):
+        config.build(Settings, "normalize", {"holdout_every": 1})
+    with pytest.raises(UserError, match="scene_type"):
+        config.build(Settings, "normalize", {"scene_type": "indoor"})
+    (tmp_path / "poses").mkdir()
+    with pytest.raises(UserError, match="run the poses stage"):
+        _run_stage(tmp_path / "poses")
+    (tmp_path / "poses" / "transforms.json").write_text(json.dumps({"frames": []}))
+    with pytest.raises(UserError, match="at least 2"):
+        _run_stage(tmp_path / "poses")
