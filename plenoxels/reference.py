@@ -17,8 +17,6 @@ Rendering one ray (all kernels agree on every step):
 """
 from __future__ import annotations
 
-import math
-
 import torch
 
 from plenoxels.grid import SparseGrid, sh_count
@@ -112,15 +110,16 @@ def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torc
     valid = i.long()[None, :] < lat["n"][:, None]
     ray, idx = torch.nonzero(valid, as_tuple=True)
     t = lat["t_start"][ray] + (idx.double() + 0.5) * lat["dt"][ray]
-    hi = torch.tensor(grid.resolution, dtype=torch.float32) - 1
-    g = (lat["og"][ray] + t[:, None] * lat["dg"][ray]).to(torch.float32)
+    dtype = density.dtype  # float32 like the kernels; float64 for gradcheck
+    hi = torch.tensor(grid.resolution, dtype=dtype) - 1
+    g = (lat["og"][ray] + t[:, None] * lat["dg"][ray]).to(dtype)
     g = torch.minimum(g.clamp_min(0), hi)
     rows, weights = corners(grid.links, g)
     raw = interpolate(grid.links, density[:, None], g, rows, weights)[:, 0]
     used = raw > opts.sigma_threshold
     sigma = torch.where(used, raw, torch.zeros_like(raw))
-    delta = lat["dt"].to(torch.float32)
-    tau = torch.zeros(B, M, dtype=torch.float32).index_put((ray, idx), sigma * delta[ray])
+    delta = lat["dt"].to(dtype)
+    tau = torch.zeros(B, M, dtype=dtype).index_put((ray, idx), sigma * delta[ray])
     used_pad = torch.zeros(B, M, dtype=torch.bool).index_put((ray, idx), used)
     t_before = torch.exp(-(torch.cumsum(tau, dim=1) - tau))
     alive = used_pad & (t_before >= opts.stop_transmittance)
@@ -129,10 +128,10 @@ def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torc
     t_final = torch.exp(-(tau * alive).sum(dim=1))
     K = sh_count(grid.sh_degree)
     coeffs = interpolate(grid.links, sh, g, rows, weights).reshape(-1, 3, K)
-    basis = sh_basis(grid.sh_degree, lat["unit"])[ray]
+    basis = sh_basis(grid.sh_degree, lat["unit"].to(dtype))[ray]
     colour = torch.relu((coeffs * basis[:, None, :]).sum(-1) + COLOUR_OFFSET)
-    colour_pad = torch.zeros(B, M, 3, dtype=torch.float32).index_put((ray, idx), colour)
-    t_pad = torch.zeros(B, M, dtype=torch.float32).index_put((ray, idx), t.to(torch.float32))
+    colour_pad = torch.zeros(B, M, 3, dtype=dtype).index_put((ray, idx), colour)
+    t_pad = torch.zeros(B, M, dtype=dtype).index_put((ray, idx), t.to(dtype))
     return {"weight": weight, "colour": colour_pad, "t": t_pad, "t_final": t_final, "alive": alive,
             "ray": ray, "idx": idx, "rows": rows, "corner_weights": weights}
 
@@ -204,7 +203,7 @@ def tv_loss(grid: SparseGrid, rows, weight_density, weight_sh, density=None, sh=
     nb = tv_neighbours(grid, rows)
     has = nb >= 0
     counted = has.any(dim=1)
-    total = torch.zeros((), dtype=torch.float32)
+    total = torch.zeros((), dtype=density.dtype)
     for weight, values in ((weight_density, density[:, None]), (weight_sh, sh)):
         if weight == 0:
             continue
@@ -243,7 +242,3 @@ def rmsprop_step(data, second_moment, grad, columns: int, lr_density, lr_sh, bet
     data[rows, :columns] -= lr * g / (torch.sqrt(v) + eps)
     grad.clear()
 
-
-def expected_samples(length_voxels: float, step_size: float) -> int:
-    """Samples the lattice puts on a ray crossing `length_voxels` of grid (for tests and benchmarks)."""
-    return max(0, math.ceil(length_voxels / step_size - 0.5))

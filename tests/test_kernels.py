@@ -1,0 +1,213 @@
+"""The native kernels against their PyTorch twin (values and gradients), and the twin against autograd."""
+import sys
+
+import pytest
+import torch
+
+from pipeline.errors import UserError
+import plenoxels
+import plenoxels.render as render_module
+from plenoxels import GridGrad, RenderOptions, SparseGrid, SparseRMSProp, reference
+from plenoxels.render import loss_and_grad, max_weights, render
+from plenoxels.regularizers import sample_rows, tv_loss_and_grad
+
+ATOL = 2e-5
+
+
+def random_grid(res=(9, 7, 11), sh_degree=2, holes=0.3, seed=0, box=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.5))):
+    """A grid with random values and a fraction of its vertices unallocated (an anisotropic box)."""
+    gen = torch.Generator().manual_seed(seed)
+    grid = SparseGrid.dense(res, box[0], box[1], sh_degree)
+    grid.density.copy_(torch.rand(grid.num_occupied, generator=gen) * 6 - 1)
+    grid.sh.copy_(torch.randn(grid.sh.shape, generator=gen) * 0.4)
+    if holes > 0:
+        grid, _ = grid.prune(torch.rand(grid.num_occupied, generator=gen) >= holes)
+    return grid
+
+
+def random_rays(n=96, seed=1, spread=3.0):
+    """Rays from a shell around the box towards points near its centre; some miss."""
+    gen = torch.Generator().manual_seed(seed)
+    origins = torch.randn(n, 3, generator=gen)
+    origins = origins / origins.norm(dim=1, keepdim=True) * spread
+    targets = torch.randn(n, 3, generator=gen) * 0.7
+    return origins, targets - origins
+
+
+@pytest.mark.parametrize("sh_degree", [0, 1, 2, 3])
+def test_render_native_matches_twin(sh_degree):
+    grid = random_grid(sh_degree=sh_degree, seed=sh_degree)
+    origins, dirs = random_rays(seed=10 + sh_degree)
+    background = torch.rand(origins.shape[0], 3, generator=torch.Generator().manual_seed(3))
+    opts = RenderOptions(step_size=0.4, sigma_threshold=0.05)
+    native = render(grid, origins, dirs, background, opts)
+    twin = render(grid, origins, dirs, background, opts, backend="torch")
+    assert 0.05 < float(native.opacity.mean()) < 0.999  # the comparison covers real compositing
+    torch.testing.assert_close(native.rgb, twin.rgb, atol=ATOL, rtol=1e-5)
+    torch.testing.assert_close(native.depth, twin.depth, atol=1e-4, rtol=1e-5)
+    torch.testing.assert_close(native.opacity, twin.opacity, atol=ATOL, rtol=1e-5)
+
+
+def test_render_without_background_is_black_behind():
+    grid = random_grid()
+    origins, dirs = random_rays()
+    black = render(grid, origins, dirs, None)
+    white = render(grid, origins, dirs, torch.ones(origins.shape[0], 3))
+    torch.testing.assert_close(white.rgb - black.rgb, (1 - black.opacity)[:, None].expand(-1, 3), atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("sh_degree", [0, 2, 3])
+def test_loss_and_grad_native_matches_twin(sh_degree):
+    grid = random_grid(sh_degree=sh_degree, seed=5 + sh_degree)
+    origins, dirs = random_rays(seed=20 + sh_degree)
+    gen = torch.Generator().manual_seed(4)
+    targets = torch.rand(origins.shape[0], 3, generator=gen)
+    background = torch.rand(origins.shape[0], 3, generator=gen)
+    opts = RenderOptions(step_size=0.6)
+    native, twin = GridGrad(grid), GridGrad(grid)
+    mse_n, gbg_n = loss_and_grad(grid, origins, dirs, targets, background, opts, native)
+    mse_t, gbg_t = loss_and_grad(grid, origins, dirs, targets, background, opts, twin, backend="torch")
+    assert mse_n == pytest.approx(mse_t, rel=1e-5)
+    torch.testing.assert_close(gbg_n, gbg_t, atol=1e-8, rtol=1e-4)
+    assert native.num_touched > 0
+    assert set(native.touched().tolist()) == set(twin.touched().tolist())
+    scale = float(twin.data.abs().max())
+    torch.testing.assert_close(native.data, twin.data, atol=1e-5 * scale, rtol=1e-4)
+    # Gradients accumulate across calls; the touched set is the union.
+    origins2, dirs2 = random_rays(n=32, seed=99)
+    for backend, grad in (("native", native), ("torch", twin)):
+        loss_and_grad(grid, origins2, dirs2, targets[:32], background[:32], opts, grad, backend=backend)
+    assert set(native.touched().tolist()) == set(twin.touched().tolist())
+    torch.testing.assert_close(native.data, twin.data, atol=1e-5 * scale, rtol=1e-4)
+    untouched = native.touched_mask == 0
+    assert bool((native.data[untouched] == 0).all())
+
+
+def test_twin_gradcheck_float64():
+    grid = random_grid(res=(2, 3, 3), sh_degree=1, holes=0.0, seed=7)
+    # Densities well above 0 and colours well inside the relu keep gradcheck away from kinks.
+    density = (grid.density.double().abs() + 0.5).requires_grad_(True)
+    sh = (grid.sh.double() * 0.2).requires_grad_(True)
+    origins, dirs = random_rays(n=4, seed=3, spread=2.5)
+    background = torch.rand(4, 3, dtype=torch.float64, requires_grad=True)
+    opts = RenderOptions(step_size=0.7, stop_transmittance=0.0)
+
+    def f(d, s, bg):
+        rgb, depth, opacity = reference.render(grid, origins, dirs, bg, opts, density=d, sh=s)
+        return rgb, depth, opacity
+
+    assert float(f(density, sh, background)[2].min()) > 0.05  # every ray crosses the grid
+    assert torch.autograd.gradcheck(f, (density, sh, background), eps=1e-6, atol=1e-6, fast_mode=True)
+
+
+def test_max_weights_native_matches_twin():
+    grid = random_grid(seed=11)
+    origins, dirs = random_rays(seed=12)
+    opts = RenderOptions(step_size=0.5)
+    native = max_weights(grid, origins, dirs, opts)
+    twin = max_weights(grid, origins, dirs, opts, backend="torch")
+    assert float(native.max()) > 0.1
+    assert bool((native == 0).any())  # some rows are never seen
+    torch.testing.assert_close(native, twin, atol=ATOL, rtol=1e-5)
+
+
+@pytest.mark.parametrize("fraction", [1.0, 0.3])
+def test_tv_native_matches_twin(fraction):
+    grid = random_grid(seed=13, holes=0.2)
+    native, twin = GridGrad(grid), GridGrad(grid)
+    loss_n = tv_loss_and_grad(grid, native, 0.7, 0.05, fraction, torch.Generator().manual_seed(1))
+    loss_t = tv_loss_and_grad(grid, twin, 0.7, 0.05, fraction, torch.Generator().manual_seed(1), backend="torch")
+    assert loss_n == pytest.approx(loss_t, rel=1e-5)
+    assert set(native.touched().tolist()) == set(twin.touched().tolist())
+    torch.testing.assert_close(native.data, twin.data, atol=1e-7, rtol=1e-4)
+
+
+def test_tv_twin_gradcheck_and_known_value():
+    grid = random_grid(res=(3, 4, 3), sh_degree=0, holes=0.25, seed=14)
+    rows = sample_rows(grid, 1.0)
+    density = grid.density.double().requires_grad_(True)
+    sh = grid.sh.double().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda d, s: reference.tv_loss(grid, rows, 0.3, 0.2, d, s), (density, sh))
+    # Two allocated vertices along x with values 0 and 3 and nothing else: TV = |3 - 0| at the first.
+    links = torch.full((2, 2, 2), -1, dtype=torch.int32)
+    links[0, 0, 0], links[1, 0, 0] = 0, 1
+    pair = SparseGrid.from_values(links, torch.tensor([0.0, 3.0]), torch.zeros(2, 3), (0, 0, 0), (1, 1, 1), 0)
+    grad = GridGrad(pair)
+    loss = tv_loss_and_grad(pair, grad, 1.0, 0.0, 1.0)
+    assert loss == pytest.approx(3.0 / 2, rel=1e-6)  # mean over the 2 sampled rows, one of them has no neighbour
+    torch.testing.assert_close(grad.density, torch.tensor([-0.5, 0.5]))
+
+
+def test_rmsprop_updates_only_touched_rows_and_matches_twin():
+    grid = random_grid(res=(12, 12, 12), sh_degree=1, holes=0.0, seed=15)
+    # A thin bundle of rays touches a small part of the grid.
+    origins = torch.tensor([[-3.0, 0.05, 0.1]]).repeat(4, 1)
+    dirs = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.01, 0.0], [1.0, 0.0, 0.01], [1.0, 0.01, 0.01]])
+    targets = torch.zeros(4, 3)
+    results = {}
+    for backend in ("native", "torch"):
+        g = SparseGrid(grid.links.clone(), grid.data.clone(), grid.bbox_min, grid.bbox_max, grid.sh_degree)
+        opt = SparseRMSProp(g, lr_density=0.5, lr_sh=0.1, backend=backend)
+        grad = GridGrad(g)
+        loss_and_grad(g, origins, dirs, targets, targets, RenderOptions(), grad, backend=backend)
+        touched = grad.touched().clone()
+        assert 0 < touched.shape[0] < grid.num_occupied // 10
+        opt.step(grad)
+        assert grad.num_touched == 0 and bool((grad.data == 0).all()) and bool((grad.touched_mask == 0).all())
+        changed = (g.data != grid.data).any(dim=1)
+        assert set(torch.nonzero(changed).squeeze(1).tolist()) <= set(touched.tolist())
+        assert bool(changed.any())
+        assert bool((opt.second_moment[~changed] == 0).all()) or set(
+            torch.nonzero((opt.second_moment != 0).any(dim=1)).squeeze(1).tolist()) <= set(touched.tolist())
+        results[backend] = (g.data, opt.second_moment)
+    torch.testing.assert_close(results["native"][0], results["torch"][0], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(results["native"][1], results["torch"][1], atol=1e-9, rtol=1e-4)
+
+
+@pytest.mark.parametrize("backend", ["native", "torch"])
+def test_rmsprop_step_formula(backend):
+    grid = SparseGrid.dense((2, 2, 2), (0, 0, 0), (1, 1, 1), 0, init_density=1.0, init_sh=0.0)
+    opt = SparseRMSProp(grid, lr_density=0.1, lr_sh=0.01, beta=0.9, eps=1e-8, backend=backend)
+    opt.second_moment[3, 0] = 4.0
+    grad = GridGrad(grid)
+    grad.accumulate(torch.tensor([3, 5]), torch.tensor([2.0, -1.0]), torch.tensor([[0.5, 0.0, 0.0], [0.0, 0.0, 0.0]]))
+    opt.step(grad)
+    v3 = 0.9 * 4.0 + 0.1 * 4.0
+    assert float(grid.density[3]) == pytest.approx(1.0 - 0.1 * 2.0 / (v3 ** 0.5 + 1e-8), rel=1e-6)
+    assert float(grid.density[5]) == pytest.approx(1.0 + 0.1 * 1.0 / (0.1 ** 0.5 + 1e-8), rel=1e-6)
+    assert float(grid.sh[3, 0]) == pytest.approx(-0.01 * 0.5 / ((0.1 * 0.25) ** 0.5 + 1e-8), rel=1e-6)
+    assert float(grid.sh[5, 0]) == 0.0 and float(opt.second_moment[5, 1]) == 0.0  # zero gradient, zero moment
+    assert bool((grid.density[[0, 1, 2, 4, 6, 7]] == 1.0).all())
+
+
+def test_native_path_fails_early_when_not_built(monkeypatch):
+    monkeypatch.setattr(render_module, "_native", None)
+    monkeypatch.setitem(sys.modules, "plenoxels._C", None)  # makes the import fail
+    monkeypatch.delattr(plenoxels, "_C", raising=False)
+    grid = random_grid(res=(3, 3, 3))
+    origins, dirs = random_rays(n=2)
+    with pytest.raises(UserError, match="native core not built: run `make install`"):
+        render(grid, origins, dirs)
+    # The twin is still there when asked for explicitly.
+    assert render(grid, origins, dirs, backend="torch").rgb.shape == (2, 3)
+
+
+def test_empty_space_skipping_is_exact():
+    """A small blob in a large, mostly unallocated grid: skipping must not change any value."""
+    grid = SparseGrid.dense((40, 40, 40), (-1, -1, -1), (1, 1, 1), 1)
+    coords = grid.coords().float()
+    blob = ((coords - torch.tensor([25.0, 14.0, 20.0])).norm(dim=1) < 5) | ((coords - 30).norm(dim=1) < 2)
+    gen = torch.Generator().manual_seed(2)
+    grid.density.copy_(torch.rand(grid.num_occupied, generator=gen) * 40)
+    grid.sh.copy_(torch.randn(grid.sh.shape, generator=gen) * 0.3)
+    grid, _ = grid.prune(blob)
+    cells, blocks = grid.occupancy()
+    assert float(blocks.float().mean()) < 0.5
+    origins, dirs = random_rays(n=200, seed=8, spread=2.5)
+    dirs = dirs + torch.tensor([0.25, -0.3, 0.0])  # aim at the blob
+    opts = RenderOptions(step_size=0.5)
+    native = render(grid, origins, dirs, None, opts)
+    twin = render(grid, origins, dirs, None, opts, backend="torch")
+    assert int((native.opacity > 0.01).sum()) > 10
+    torch.testing.assert_close(native.rgb, twin.rgb, atol=ATOL, rtol=1e-5)
+    torch.testing.assert_close(native.opacity, twin.opacity, atol=ATOL, rtol=1e-5)
