@@ -54,3 +54,66 @@ def resolve_device(choice: str) -> torch.device:
         )
     return torch.device("cpu")
 
+
+
+class CudaCore:
+    """The interface of plenoxels._C, served by the CUDA kernels, for grids whose tensors are on a GPU.
+
+    Arguments are those of the CPU functions. Read-only per-ray inputs (origins, dirs, targets,
+    background, TV sample rows) may come from the CPU and are moved to the grid's device; tensors
+    the kernels write (gradients, touched rows, outputs) must already be there. The CPU's per-thread
+    scratch argument is accepted and ignored: the GPU kernels accumulate with atomics.
+    """
+
+    # For each kernel: positions of the inputs that may be moved, and whether a trailing scratch
+    # argument is dropped.
+    _SIGNATURES = {
+        "render": ((8, 9, 10), False),
+        "loss_and_grad": ((8, 9, 10, 11), True),
+        "max_weights": ((8, 9), False),
+        "tv_loss_and_grad": ((2, 3), True),
+        "rmsprop_step": ((), False),
+        "build_occupancy": ((), False),
+        "row_coords": ((), False),
+    }
+    _SCRATCH_ARGS = {"loss_and_grad": 22, "tv_loss_and_grad": 12}
+
+    def __init__(self):
+        if not cuda_kernels_built():
+            raise UserError(CUDA_MISSING)
+        import plenoxels._C as cpu_core
+
+        self._cpu_core = cpu_core
+        self._ops = torch.ops.plenoxels_cuda
+
+    @staticmethod
+    def ThreadGrads(rows: int, stride: int) -> None:  # noqa: N802  (mirrors the CPU class name)
+        """No per-thread buffers on the GPU."""
+        return None
+
+    def __getattr__(self, name):
+        if name.startswith("_"):
+            raise AttributeError(name)
+        if name not in self._SIGNATURES:
+            return getattr(self._cpu_core, name)  # pure helpers such as padded_stride
+        movable, has_scratch = self._SIGNATURES[name]
+        op = getattr(self._ops, name)
+
+        def call(*args):
+            args = list(args)
+            if has_scratch and len(args) == self._SCRATCH_ARGS[name]:
+                args.pop()
+            device = args[0].device
+            for i in movable:
+                if isinstance(args[i], torch.Tensor) and args[i].device != device:
+                    args[i] = args[i].to(device, non_blocking=True)
+            return op(*args)
+
+        call.__name__ = name
+        return call
+
+
+@functools.lru_cache(maxsize=1)
+def cuda_core() -> CudaCore:
+    """The CUDA kernels behind plenoxels._C's interface; a UserError when they are not built."""
+    return CudaCore()

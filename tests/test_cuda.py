@@ -360,3 +360,52 @@ def test_special_rays_behave():
     rgb, _, opacity = (t.cpu() for t in gpu)
     assert opacity[0] == 0.0 and torch.equal(rgb[0], background[0])  # misses the box
     assert opacity[4] > 0.0 and opacity[5] > 0.0  # origins inside the box
+
+
+# ---- dispatch through the public API ------------------------------------------------------------
+def test_cuda_tensors_without_cuda_build_fail_with_one_line():
+    if cuda_ready():
+        pytest.skip("this machine has the CUDA core; the missing-build message cannot be provoked here")
+    from plenoxels.render import native_core
+
+    with pytest.raises(UserError) as info:
+        native_core(torch.device("cuda"))
+    assert str(info.value) == CUDA_MISSING
+
+
+@needs_gpu
+def test_training_steps_on_cuda_follow_cpu():
+    """render / loss_and_grad / TV / RMSProp / max_weights / prune through plenoxels' Python API, on a
+    grid moved to the GPU, track the same steps on the CPU."""
+    from plenoxels.grid import SparseGrid
+    from plenoxels.optim import GridGrad, SparseRMSProp
+    from plenoxels.regularizers import tv_loss_and_grad
+    from plenoxels.render import RenderOptions, loss_and_grad, max_weights, render
+
+    degree = 2
+    links, data = _grid(degree, density_scale=1.0)
+    opts = RenderOptions(step_size=0.5)
+    runs = {}
+    for device in ("cpu", "cuda"):
+        grid = SparseGrid(links, data.clone(), BMIN, BMAX, degree).to(device)
+        grad, optim = GridGrad(grid), SparseRMSProp(grid, lr_density=0.5, lr_sh=0.005)
+        generator = torch.Generator().manual_seed(0)
+        losses = []
+        for step in range(4):
+            origins, dirs = _rays(1500, seed=20 + step)
+            targets = torch.rand(origins.shape[0], 3, generator=generator)
+            mse, _ = loss_and_grad(grid, origins, dirs, targets, torch.ones(origins.shape[0], 3), opts, grad)
+            tv_loss_and_grad(grid, grad, 1e-3, 1e-3, 0.5, generator)
+            optim.step(grad)
+            losses.append(mse)
+        assert grid.data.device.type == device and grad.touched_mask.device.type == device
+        origins, dirs = _rays(800, seed=99)
+        result = render(grid, origins, dirs, torch.zeros(origins.shape[0], 3), opts)
+        weights = max_weights(grid, origins, dirs, opts)
+        pruned, _ = grid.prune(weights > 0.01)
+        runs[device] = (losses, result.rgb.cpu(), weights.cpu(), pruned.num_occupied)
+    assert runs["cuda"][0] == pytest.approx(runs["cpu"][0], rel=1e-3)
+    assert runs["cpu"][0][-1] < runs["cpu"][0][0], "the steps should lower the loss"
+    _close(runs["cuda"][1], runs["cpu"][1], rtol=1e-2, atol=2e-3)
+    _close(runs["cuda"][2], runs["cpu"][2], rtol=1e-2, atol=2e-3)
+    assert abs(runs["cuda"][3] - runs["cpu"][3]) <= 0.01 * runs["cpu"][3]
