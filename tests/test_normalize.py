@@ -15,6 +15,7 @@ from pipeline import config
 from pipeline.cameras import Intrinsics, pixel_directions
 from pipeline.errors import UserError
 from pipeline.report import Reporter
+from pipeline.runner import Pipeline
 from pipeline.stage import StageContext
 from pipeline.synthetic import build_scene, trace, write_scene
 from stages import normalize
@@ -276,3 +277,30 @@ def test_bad_settings_and_missing_poses_are_user_errors(tmp_path):
     (tmp_path / "poses" / "transforms.json").write_text(json.dumps({"frames": []}))
     with pytest.raises(UserError, match="at least 2"):
         _run_stage(tmp_path / "poses")
+
+
+# Sizes at which SfM poses most of each synthetic scene (the orbit needs views close enough to match).
+SFM_SCENES = {"object": (32, 192, 144), "forward": (20, 160, 120), "unbounded": (32, 192, 144)}
+
+
+@pytest.mark.parametrize("kind", list(SFM_SCENES))
+def test_synthetic_kinds_are_classified_from_sfm(tmp_path, kind):
+    """Through ingest and COLMAP SfM: the poses come in COLMAP's arbitrary frame, yet the type is right and
+    the up found is the true up (carried into COLMAP's frame by the rotation that best aligns its cameras
+    with the true ones)."""
+    n_views, width, height = SFM_SCENES[kind]
+    synth = write_scene(kind, tmp_path / "synth", n_views=n_views, width=width, height=height, seed=0, supersample=1)
+    pipeline = Pipeline(synth / "images", tmp_path / "out", overrides=["poses.source=sfm"], reporter=Reporter(quiet=True))
+    pipeline.run(["normalize"])
+    scene = json.loads((tmp_path / "out" / "normalize" / "scene.json").read_text())
+    assert scene["type"] == kind, scene["reasons"]
+    assert len(scene["frames"]) >= n_views // 2
+
+    truth = {Path(f["file_path"]).stem: np.asarray(f["transform_matrix"])[:3, :3]
+             for f in json.loads((synth / "transforms.json").read_text())["frames"]}
+    sfm = {f["name"]: np.asarray(f["transform_matrix"])[:3, :3]
+           for f in json.loads((tmp_path / "out" / "poses" / "transforms.json").read_text())["frames"]}
+    u, _, vt = np.linalg.svd(sum(truth[name] @ sfm[name].T for name in sfm))
+    true_from_sfm = u @ vt
+    up_in_sfm = np.asarray(scene["world_from_input"])[2, :3] / scene["scale"]
+    assert np.degrees(np.arccos(np.clip(true_from_sfm @ up_in_sfm @ [0, 0, 1], -1, 1))) < 1.5
