@@ -37,7 +37,7 @@ class MultiSphereBackground(torch.nn.Module):
     """Concentric textured spheres; forward(o, d) -> background colour [B, 3] per ray."""
 
     def __init__(self, centre: Sequence[float] = (0.0, 0.0, 0.0), r_min: float = math.sqrt(3) * 1.05,
-                 r_max: float = math.sqrt(3) * 1.05 * DEFAULT_FAR_RATIO, n_spheres: int = 32,
+                 r_max: float = math.sqrt(3) * 1.05 * DEFAULT_FAR_RATIO, n_spheres: int = 16,
                  height: int = 32, width: int = 64, far_colour: Sequence[float] = (0.0, 0.0, 0.0),
                  init_density: float = 0.1, tv_density: float = 1e-3, tv_colour: float = 1e-3):
         super().__init__()
