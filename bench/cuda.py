@@ -1,0 +1,291 @@
+"""Benchmark of the CUDA core against the C++ CPU core (issue 6). Needs an NVIDIA GPU and a CUDA build
+of plenoxels._C; elsewhere it says so in one line and exits 0.
+
+Two parts, results in bench/results/cuda.json:
+- throughput: samples per second of the fused forward+backward (loss_and_grad, the training step's
+  kernel) and of the forward render, SH degree 2, on dense 128^3 and 256^3 grids, CUDA against the
+  CPU core with --cpu-threads OpenMP threads (2: the CPU machines' cores). The grid's density is kept
+  low enough that no ray stops early and every vertex is allocated, so every lattice sample is
+  evaluated and "samples" counts exactly the samples the kernels shade.
+- lego: the fit stage (stages/fit.py, exactly as the pipeline runs it, fit.device=cuda) on the NeRF
+  synthetic lego train images at 800x800, then PSNR over the val images at 800x800 on a white
+  background; held-out PSNR against wall time comes from the fit's own history (val views).
+  The val images present on disk are used (a GPU machine may carry only some of them).
+
+    .venv/bin/python -m bench.cuda [--part throughput|lego|all] [--data ../shared/data]
+        [--cpu-threads 2] [--set fit_key=value ...]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+RESULTS = REPO / "bench" / "results" / "cuda.json"
+NEEDS_GPU = ("bench.cuda: skipped: needs an NVIDIA GPU and plenoxels._C built with its CUDA kernels "
+             "(`make install` on a machine with nvcc and a CUDA build of torch)")
+
+# Lego fit defaults: coarse to fine to 512^3 at full resolution. Any fit setting can be changed with --set.
+LEGO_FIT = {"device": "cuda", "image_scale": 1.0, "resolutions": [128, 256, 512], "steps": [1000, 2000, 5000],
+            "batch_size": 32768, "eval_every": 1000, "eval_views": 8, "eval_scale": 1.0, "checkpoint_every": 1e9}
+
+
+def parse_args(argv):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--part", choices=("throughput", "lego", "all"), default="all")
+    parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    parser.add_argument("--cpu-threads", type=int, default=2, help="OpenMP threads of the CPU baseline")
+    parser.add_argument("--resolutions", default="128,256", help="throughput grids (vertices per side)")
+    parser.add_argument("--val-limit", type=int, default=None, help="score at most this many val images")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a fit setting for the lego part, e.g. steps=[1000,2000,4000]")
+    # Internal: the CPU baseline runs in a child process so its thread count is set before OpenMP starts.
+    parser.add_argument("--cpu-baseline", type=int, default=None, help=argparse.SUPPRESS)
+    return parser.parse_args(argv)
+
+
+# ---- throughput -----------------------------------------------------------------------------------
+def _look_at(position, torch):
+    """Camera-to-world (OpenGL: looks down -z) at `position`, looking at the origin."""
+    z = position / position.norm()
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    if abs(float(z @ up)) > 0.99:
+        up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    x = torch.linalg.cross(up, z)
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, position
+    return c2w
+
+
+def camera_rays(torch, cameras=16, size=128):
+    """Rays of `cameras` views of size^2 pixels from a sphere of radius 3 around the [-1,1]^3 grid."""
+    from pipeline.cameras import Intrinsics, rays_from_camera
+
+    focal = 0.5 * size / math.tan(math.radians(20.0))
+    k = Intrinsics(focal, focal, size / 2, size / 2, size, size)
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    origins, dirs = [], []
+    for i in range(cameras):
+        z = 1.0 - 2.0 * (i + 0.5) / cameras
+        r = math.sqrt(1.0 - z * z)
+        position = 3.0 * torch.tensor([r * math.cos(golden * i), r * math.sin(golden * i), z], dtype=torch.float64)
+        o, d = rays_from_camera(_look_at(position, torch).numpy(), k)
+        origins.append(o.reshape(-1, 3))
+        dirs.append(d.reshape(-1, 3))
+    return torch.cat(origins), torch.cat(dirs)
+
+
+def benchmark_grid(torch, resolution: int, device):
+    """A dense SH-degree-2 grid over [-1,1]^3 with low random density and random SH."""
+    from plenoxels.grid import SparseGrid
+
+    grid = SparseGrid.dense((resolution,) * 3, (-1.0,) * 3, (1.0,) * 3, 2, init_density=0.0)
+    gen = torch.Generator().manual_seed(resolution)
+    grid.data[:, 0] = 0.05 + 0.3 * torch.rand(grid.num_occupied, generator=gen)
+    grid.data[:, 1:28] = 0.3 * torch.randn(grid.num_occupied, 27, generator=gen)
+    return grid.to(device)
+
+
+def measure(torch, resolution: int, device, ray_count: int | None, reps: int) -> dict:
+    """Seconds and samples of loss_and_grad and render for one batch of camera rays."""
+    from plenoxels import reference
+    from plenoxels.optim import GridGrad
+    from plenoxels.render import RenderOptions, loss_and_grad, render
+
+    opts = RenderOptions(step_size=0.5)
+    origins, dirs = camera_rays(torch)
+    if ray_count is not None and ray_count < origins.shape[0]:
+        pick = torch.randperm(origins.shape[0], generator=torch.Generator().manual_seed(1))[:ray_count]
+        origins, dirs = origins[pick].contiguous(), dirs[pick].contiguous()
+    grid = benchmark_grid(torch, resolution, device)
+    samples = int(reference.ray_lattice(grid, origins, dirs, opts)["n"].sum())
+    targets = torch.rand(origins.shape[0], 3, generator=torch.Generator().manual_seed(2))
+    background = torch.ones(origins.shape[0], 3)
+    o, d, t, bg = (x.to(device) for x in (origins, dirs, targets, background))
+    grad = GridGrad(grid)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+
+    def timed(fn):
+        fn()  # warm-up: first-touch allocations, CUDA module load
+        sync()
+        seconds = []
+        for _ in range(reps):
+            started = time.perf_counter()
+            fn()
+            sync()
+            seconds.append(time.perf_counter() - started)
+        return statistics.median(seconds)
+
+    fused = timed(lambda: loss_and_grad(grid, o, d, t, bg, opts, grad))
+    forward = timed(lambda: render(grid, o, d, bg, opts))
+    return {"device": str(device), "resolution": resolution, "rays": int(origins.shape[0]), "samples": samples,
+            "loss_and_grad_seconds": fused, "loss_and_grad_samples_per_s": samples / fused,
+            "render_seconds": forward, "render_samples_per_s": samples / forward}
+
+
+def cpu_baseline(resolution: int, cpu_threads: int) -> dict:
+    """The CPU measurement in a child process with OMP_NUM_THREADS set before torch starts."""
+    env = dict(os.environ, OMP_NUM_THREADS=str(cpu_threads))
+    out = subprocess.run([sys.executable, "-m", "bench.cuda", "--cpu-baseline", str(resolution)], cwd=REPO, env=env,
+                         capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def throughput(torch, args) -> list[dict]:
+    rows = []
+    for resolution in (int(r) for r in args.resolutions.split(",")):
+        gpu = measure(torch, resolution, torch.device("cuda"), None, reps=10)
+        cpu = cpu_baseline(resolution, args.cpu_threads)
+        speedup = gpu["loss_and_grad_samples_per_s"] / cpu["loss_and_grad_samples_per_s"]
+        rows.append({"resolution": resolution, "cuda": gpu, "cpu": cpu, "cpu_threads": args.cpu_threads,
+                     "speedup_loss_and_grad": speedup,
+                     "speedup_render": gpu["render_samples_per_s"] / cpu["render_samples_per_s"]})
+        print(f"{resolution}^3 SH2 forward+backward: CUDA {gpu['loss_and_grad_samples_per_s'] / 1e6:.1f} M samples/s, "
+              f"CPU ({args.cpu_threads} threads) {cpu['loss_and_grad_samples_per_s'] / 1e6:.2f} M samples/s: "
+              f"{speedup:.0f}x; forward only {rows[-1]['speedup_render']:.0f}x", flush=True)
+        torch.cuda.empty_cache()
+    return rows
+
+
+# ---- lego -----------------------------------------------------------------------------------------
+def _present(folder: Path, frames: list[dict]) -> list[dict]:
+    return [f for f in frames if (folder / f["file_path"]).is_file()]
+
+
+def lego_scene(folder: Path, val_limit: int | None = None):
+    """scene.json for lego as the normalize stage writes it (all train images train), plus the val
+    frames mapped into the same frame with split "test"."""
+    import numpy as np
+
+    from bench.normalize import lego as lego_transforms
+    from stages.normalize import Points, Settings, normalize_scene
+
+    transforms, _ = lego_transforms(folder)
+    transforms["frames"] = _present(folder, transforms["frames"])
+    if not transforms["frames"]:
+        raise SystemExit(f"bench.cuda: no lego train images under {folder}/train; pass --data")
+    scene = normalize_scene(transforms, Points.empty(), Settings(holdout_every=0), poses_dir=folder, path_prefix="")
+    world_from_input = np.asarray(scene["world_from_input"])
+    meta = json.loads((folder / "transforms_val.json").read_text())
+    w, h = transforms["w"], transforms["h"]
+    focal = 0.5 * w / math.tan(0.5 * meta["camera_angle_x"])
+    val = []
+    for f in meta["frames"]:
+        rel = f["file_path"].removeprefix("./") + ".png"
+        if not (folder / rel).is_file():
+            continue
+        c2w = world_from_input @ np.asarray(f["transform_matrix"], dtype=np.float64)
+        c2w[:3, :3] /= scene["scale"]
+        val.append({"name": "val_" + Path(rel).stem, "file_path": rel, "mask_path": rel, "transform_matrix": c2w.tolist(),
+                    "fl_x": focal, "fl_y": focal, "cx": w / 2, "cy": h / 2, "w": w, "h": h, "split": "test"})
+    val = val[:val_limit]
+    if not val:
+        raise SystemExit(f"bench.cuda: no lego val images under {folder}/val; pass --data")
+    scene["frames"] = scene["frames"] + val
+    return scene, val
+
+
+def fit_settings(overrides: list[str]):
+    import dataclasses
+
+    import yaml
+
+    from stages.fit import Settings
+
+    values = dict(LEGO_FIT)
+    names = {f.name for f in dataclasses.fields(Settings)}
+    for item in overrides:
+        key, sep, raw = item.partition("=")
+        if not sep or key not in names:
+            raise SystemExit(f"bench.cuda: --set needs KEY=VALUE with KEY a fit setting; got {item!r}")
+        values[key] = yaml.safe_load(raw)
+    settings = Settings(**values)
+    settings.check()
+    return settings
+
+
+def lego(torch, args) -> dict:
+    import dataclasses
+
+    from pipeline.report import Reporter
+    from pipeline.stage import StageContext
+    from plenoxels.device import resolve_device
+    from plenoxels.scene_model import SceneModel, psnr
+    from stages import fit
+    from stages.fit import load_frame
+
+    folder = args.data / "lego"
+    settings = fit_settings(args.set)
+    scene, val = lego_scene(folder, args.val_limit)
+    device = resolve_device(settings.device)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    with tempfile.TemporaryDirectory(prefix="bench-cuda-") as tmp:
+        tmp = Path(tmp)
+        for name in ("normalize", "work", "scratch"):
+            (tmp / name).mkdir()
+        (tmp / "normalize" / "scene.json").write_text(json.dumps(scene))
+        ctx = StageContext(scene=folder, out=folder, work=tmp / "work", scratch=tmp / "scratch", settings=settings,
+                           upstream={"normalize": tmp / "normalize"}, scene_type=scene["type"], report=Reporter())
+        started = time.time()
+        summary = fit.run(ctx)
+        total = time.time() - started
+        record = json.loads((ctx.work / "fit.json").read_text()) if (ctx.work / "fit.json").is_file() else {}
+        model = SceneModel.load(ctx.work).to(device)
+        scores, render_seconds = [], 0.0
+        for frame in val:
+            image, k = load_frame(folder, frame, 1.0, settings.background_color)
+            sync()
+            t0 = time.time()
+            rgb = model.render_camera(frame["transform_matrix"], k)["rgb"]
+            sync()
+            render_seconds += time.time() - t0
+            scores.append(psnr(float(((rgb.cpu() - torch.from_numpy(image)) ** 2).mean())))
+    result = {"val_images": len(scores), "val_psnr": statistics.mean(scores), "fit_seconds": record.get("seconds"),
+              "fit_and_load_seconds": total, "render_seconds_per_image": render_seconds / len(scores),
+              "settings": dataclasses.asdict(settings),
+              "history": record.get("history"), "levels": record.get("levels"), "summary": summary.get("line")}
+    print(f"lego 800x800 on {device}: {result['val_psnr']:.2f} dB over {len(scores)} val images after "
+          f"{result['fit_seconds']} s of fitting ({total:.0f} s with image loading); "
+          f"{1 / result['render_seconds_per_image']:.1f} val images/s rendered", flush=True)
+    return result
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    import torch
+
+    from plenoxels.device import cuda_ready
+
+    if args.cpu_baseline is not None:
+        print(json.dumps(measure(torch, args.cpu_baseline, torch.device("cpu"), 8192, reps=3)))
+        return 0
+    if not cuda_ready():
+        print(NEEDS_GPU)
+        return 0
+    results = {"gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "cuda": torch.version.cuda}
+    if RESULTS.is_file():
+        results = {**json.loads(RESULTS.read_text()), **results}
+    if args.part in ("throughput", "all"):
+        results["throughput"] = throughput(torch, args)
+    if args.part in ("lego", "all"):
+        results["lego"] = lego(torch, args)
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(results, indent=1) + "\n")
+    print(f"wrote {RESULTS.relative_to(REPO)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
