@@ -210,14 +210,14 @@ def rotation_to_z_up(up: np.ndarray, heading: np.ndarray) -> np.ndarray:
     return np.stack([np.cross(y, z), y, z])
 
 
-def horizontal_heading(dirs: np.ndarray, up: np.ndarray) -> np.ndarray:
+def horizontal_heading(dirs: np.ndarray, up: np.ndarray, first: int) -> np.ndarray:
     """The mean viewing direction's horizontal part when the cameras agree on one; otherwise (a full orbit,
-    where the mean is near zero and noisy) the first camera's, so the frame stays well defined."""
+    where the mean is near zero and noisy) camera `first`'s, so the frame stays well defined."""
     flat = dirs - (dirs @ up)[:, None] * up
     mean = flat.mean(axis=0)
     if np.linalg.norm(mean) >= 0.5 * np.linalg.norm(flat, axis=1).mean():
         return mean
-    return flat[0] if np.linalg.norm(flat[0]) > 1e-6 else dirs[0]
+    return flat[first] if np.linalg.norm(flat[first]) > 1e-6 else dirs[first]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -362,7 +362,8 @@ def normalize_scene(transforms: dict, points: Points, settings: Settings, poses_
 
     up, up_rule = camera_up(cams.c2w, inward=not looks_forward)
     axes_point, axes_conditioning = closest_point_of_axes(cams.origins, dirs)
-    rotation = rotation_to_z_up(up, horizontal_heading(dirs, up))
+    first_by_name = min(range(n), key=lambda i: cams.names[i])
+    rotation = rotation_to_z_up(up, horizontal_heading(dirs, up, first_by_name))
     measured.update({"up_in_input_frame": up.round(6).tolist(), "up_from": up_rule,
                      "axes_closest_point": axes_point.round(6).tolist(),
                      "axes_conditioning": round(axes_conditioning, 6)})
@@ -394,6 +395,8 @@ def normalize_scene(transforms: dict, points: Points, settings: Settings, poses_
         box_from = "cameras: the view of the narrowest camera where the optical axes meet"
     measured["foreground_from"] = box_from
 
+    # Centre on the box rather than on the axes' meeting point: the box was found around that point, and
+    # centring on it wastes none of the unit cube when the foreground sits off the axes (a table below them).
     centre = rotation.T @ box_rot.mean(axis=0)
     half_size = float(np.max(box_rot[1] - box_rot[0]) / 2)
     if half_size <= 0:
