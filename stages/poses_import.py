@@ -1,0 +1,298 @@
+"""Poses a user already has: a COLMAP sparse model, a NeRF / instant-ngp / nerfstudio / Blender
+transforms.json, or LLFF poses_bounds.npy, turned into the same distorted COLMAP model that SfM makes.
+
+Every importer returns an `Imported`: a `pycolmap.Reconstruction` whose image names are the ingested
+PNGs (`<name>.png`) and whose cameras are scaled to the ingested image size, so the poses stage can
+undistort and write it exactly as it writes an SfM result. Pose files describe images by their own
+names and sizes; images are matched to pose entries by path first, then by file stem (LLFF, which has
+no names, by sorted file order), and the ones without a pose are listed.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from pipeline.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff
+from pipeline.errors import UserError
+
+KINDS = ("colmap", "transforms", "llff")
+# How far an image's size may be from the pose file's size after scaling before we call it a different image.
+SIZE_TOLERANCE_PX = 1.5
+
+
+@dataclass
+class Imported:
+    reconstruction: pycolmap.Reconstruction
+    path: Path                                    # the file or folder the poses came from
+    missing: list[str]                            # ingested images the pose file has no entry for
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)  # name -> (near, far), LLFF only
+    path_matches: int = 0                         # images matched by their path rather than only their stem
+
+
+# ---- finding pose files -----------------------------------------------------------------------------------
+
+def photo_folder(scene: Path) -> Path:
+    return scene.parent if scene.is_file() else scene
+
+
+def _colmap_models(folder: Path) -> list[Path]:
+    """COLMAP model folders under `folder`: sparse/0, sparse/1, ... or sparse/ itself."""
+    sparse = folder / "sparse"
+    if not sparse.is_dir():
+        return []
+    found = [d for d in sorted(sparse.iterdir()) if d.is_dir() and _is_colmap_model(d)]
+    return found or ([sparse] if _is_colmap_model(sparse) else [])
+
+
+def _is_colmap_model(folder: Path) -> bool:
+    return all((folder / f"{part}.bin").is_file() or (folder / f"{part}.txt").is_file()
+               for part in ("cameras", "images"))
+
+
+def candidates(scene: Path) -> dict[str, list[Path]]:
+    """Pose files beside the photos (the photo folder first, then its parent), by kind."""
+    found: dict[str, list[Path]] = {kind: [] for kind in KINDS}
+    folder = photo_folder(scene)
+    for place in (folder, folder.parent) if not scene.is_file() else (folder,):
+        found["colmap"] += _colmap_models(place)
+        found["transforms"] += sorted(p for p in place.glob("transforms*.json") if p.is_file())
+        if (place / "poses_bounds.npy").is_file():
+            found["llff"].append(place / "poses_bounds.npy")
+    return found
+
+
+def pose_files(scene: Path) -> list[Path]:
+    """Every file the importers could read for this scene (for the stage's cache key)."""
+    files: list[Path] = []
+    for kind, paths in candidates(scene).items():
+        for path in paths:
+            files += sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
+    return files
+
+
+def kind_of(path: Path) -> str:
+    if path.is_dir():
+        if _is_colmap_model(path) or _colmap_models(path) or _colmap_models(path.parent):
+            return "colmap"
+    elif path.suffix == ".json":
+        return "transforms"
+    elif path.suffix == ".npy":
+        return "llff"
+    raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json or a poses_bounds.npy")
+
+
+def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
+    if kind == "colmap":
+        if not _is_colmap_model(path):
+            models = _colmap_models(path) or _colmap_models(path.parent)
+            path = max(models, key=lambda m: pycolmap.Reconstruction(m).num_reg_images())
+        return from_colmap(path, records)
+    if kind == "transforms":
+        return from_transforms(path, records, scene)
+    return from_llff(path, records)
+
+
+def choose(kind: str, paths: list[Path], records: list[dict], scene: Path) -> Imported:
+    """Of several pose files of one kind, the one that poses the most images (paths that match beat stems)."""
+    best, best_score = None, None
+    for path in paths:
+        imported = load(kind, path, records, scene)
+        score = (imported.path_matches, len(records) - len(imported.missing))
+        if best_score is None or score > best_score:
+            best, best_score = imported, score
+    return best
+
+
+# ---- shared helpers ---------------------------------------------------------------------------------------
+
+def _stem(name: str) -> str:
+    return Path(name.replace("\\", "/")).name.rsplit(".", 1)[0] if "." in Path(name).name else Path(name).name
+
+
+def _rigid_from_c2w(c2w: np.ndarray) -> pycolmap.Rigid3d:
+    """COLMAP's world-to-camera for our camera-to-world; the rotation is projected onto SO(3) first
+    because exported matrices carry float noise (and some tools fold a scale into them)."""
+    c2w = np.array(c2w, dtype=np.float64)
+    u, _, vt = np.linalg.svd(c2w[:3, :3])
+    c2w[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    rotation, translation = colmap_w2c_from_opengl_c2w(c2w)
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation)
+
+
+def _scale_factor(record: dict, pose_w: float, pose_h: float, what: str) -> float:
+    """The factor from the pose file's image size to the ingested one; both sides must agree."""
+    factor = record["width"] / pose_w
+    if abs(pose_h * factor - record["height"]) > SIZE_TOLERANCE_PX * max(1.0, factor):
+        raise UserError(f"{record['source']} is {record['original_width']}x{record['original_height']} but {what} "
+                        f"describes {pose_w:g}x{pose_h:g} images (a different aspect); use the matching photos "
+                        "or set poses.source=sfm")
+    return factor
+
+
+def _camera(camera_id: int, k: Intrinsics, distortion: tuple[float, float, float, float]) -> pycolmap.Camera:
+    if any(distortion):
+        return pycolmap.Camera(model="OPENCV", width=k.w, height=k.h, camera_id=camera_id,
+                               params=[k.fl_x, k.fl_y, k.cx, k.cy, *distortion])
+    return pycolmap.Camera(model="PINHOLE", width=k.w, height=k.h, camera_id=camera_id,
+                           params=[k.fl_x, k.fl_y, k.cx, k.cy])
+
+
+class _CameraTable:
+    """Adds one COLMAP camera per distinct (intrinsics, distortion), so a shared camera stays shared."""
+
+    def __init__(self, reconstruction: pycolmap.Reconstruction):
+        self.reconstruction = reconstruction
+        self.ids: dict[tuple, int] = {}
+
+    def id_for(self, k: Intrinsics, distortion: tuple[float, float, float, float]) -> int:
+        key = (round(k.fl_x, 6), round(k.fl_y, 6), round(k.cx, 6), round(k.cy, 6), k.w, k.h,
+               *(round(d, 9) for d in distortion))
+        if key not in self.ids:
+            self.ids[key] = len(self.ids) + 1
+            self.reconstruction.add_camera_with_trivial_rig(_camera(self.ids[key], k, distortion))
+        return self.ids[key]
+
+
+def _add_image(reconstruction: pycolmap.Reconstruction, image_id: int, record: dict, camera_id: int,
+               c2w: np.ndarray) -> None:
+    image = pycolmap.Image(name=f"{record['name']}.png", camera_id=camera_id, image_id=image_id)
+    reconstruction.add_image_with_trivial_frame(image, _rigid_from_c2w(c2w))
+
+
+# ---- COLMAP -----------------------------------------------------------------------------------------------
+
+def from_colmap(model_dir: Path, records: list[dict]) -> Imported:
+    try:
+        source = pycolmap.Reconstruction(model_dir)
+    except Exception as e:  # pycolmap raises plain RuntimeErrors for unreadable or truncated models
+        raise UserError(f"cannot read the COLMAP model in {model_dir} ({str(e).splitlines()[0][:80]}); "
+                        "fix it or set poses.source=sfm") from None
+    by_stem: dict[str, pycolmap.Image] = {}
+    for image in source.images.values():
+        if image.has_pose:
+            by_stem.setdefault(_stem(image.name), image)
+    out = pycolmap.Reconstruction()
+    camera_ids: dict[tuple[int, int, int], int] = {}   # (source camera, w, h) -> new camera
+    kept: dict[int, int] = {}                           # source image id -> new image id
+    missing = []
+    for record in records:
+        image = by_stem.get(_stem(record["source"])) or by_stem.get(record["name"])
+        if image is None:
+            missing.append(record["name"])
+            continue
+        cam = source.cameras[image.camera_id]
+        _scale_factor(record, cam.width, cam.height, f"the COLMAP model in {model_dir}")
+        key = (image.camera_id, record["width"], record["height"])
+        if key not in camera_ids:
+            scaled = pycolmap.Camera(model=cam.model_name, width=cam.width, height=cam.height,
+                                     params=list(cam.params), camera_id=len(camera_ids) + 1)
+            scaled.rescale(record["width"], record["height"])
+            camera_ids[key] = scaled.camera_id
+            out.add_camera_with_trivial_rig(scaled)
+        sx, sy = record["width"] / cam.width, record["height"] / cam.height
+        new_id = len(kept) + 1
+        keypoints = np.array([p.xy for p in image.points2D], dtype=np.float64).reshape(-1, 2) * [sx, sy]
+        new_image = pycolmap.Image(name=f"{record['name']}.png", keypoints=keypoints, camera_id=camera_ids[key],
+                                   image_id=new_id)
+        out.add_image_with_trivial_frame(new_image, image.cam_from_world())
+        kept[image.image_id] = new_id
+    for point in source.points3D.values():
+        elements = [pycolmap.TrackElement(kept[e.image_id], e.point2D_idx)
+                    for e in point.track.elements if e.image_id in kept]
+        if len(elements) >= 2:
+            out.add_point3D(point.xyz, pycolmap.Track(elements), point.color)
+    out.update_point_3d_errors()
+    return Imported(out, model_dir, missing)
+
+
+# ---- transforms.json (NeRF, instant-ngp, nerfstudio, Blender) --------------------------------------------
+
+def _intrinsics_from(meta: dict, fallback: dict, record: dict) -> tuple[Intrinsics, tuple[float, float, float, float]]:
+    """A frame's camera from its own keys, else the file's: fl_x/fl_y/cx/cy/w/h or camera_angle_x/y."""
+    def get(key):
+        return meta.get(key, fallback.get(key))
+
+    w = get("w") or record["original_width"]
+    h = get("h") or record["original_height"]
+    fl_x = get("fl_x")
+    if fl_x is None and get("camera_angle_x") is not None:
+        fl_x = 0.5 * w / math.tan(0.5 * float(get("camera_angle_x")))
+    if fl_x is None:
+        raise UserError("the transforms file gives no focal length (fl_x or camera_angle_x); add one or set poses.source=sfm")
+    fl_y = get("fl_y")
+    if fl_y is None:
+        fl_y = 0.5 * h / math.tan(0.5 * float(get("camera_angle_y"))) if get("camera_angle_y") is not None else fl_x
+    cx = get("cx") if get("cx") is not None else w / 2
+    cy = get("cy") if get("cy") is not None else h / 2
+    distortion = tuple(float(get(key) or 0.0) for key in ("k1", "k2", "p1", "p2"))
+    return Intrinsics(float(fl_x), float(fl_y), float(cx), float(cy), int(round(w)), int(round(h))), distortion
+
+
+def from_transforms(path: Path, records: list[dict], scene: Path) -> Imported:
+    try:
+        data = json.loads(path.read_text())
+        frames = data["frames"]
+    except (json.JSONDecodeError, KeyError, TypeError):
+        raise UserError(f"{path} is not a transforms.json with a 'frames' list; fix it or set poses.source=sfm") from None
+    folder = photo_folder(scene)
+    by_path: dict[Path, dict] = {}
+    by_stem: dict[str, dict] = {}
+    for frame in frames:
+        file_path = str(frame.get("file_path", ""))
+        resolved = (path.parent / file_path).resolve()
+        by_path[resolved] = frame
+        by_path.setdefault(resolved.with_suffix(""), frame)
+        by_stem.setdefault(_stem(file_path), frame)
+    reconstruction = pycolmap.Reconstruction()
+    cameras = _CameraTable(reconstruction)
+    missing, path_matches = [], 0
+    for record in records:
+        photo = (folder / record["source"]).resolve()
+        frame = by_path.get(photo) or by_path.get(photo.with_suffix(""))
+        path_matches += frame is not None
+        frame = frame or by_stem.get(_stem(record["source"]))
+        if frame is None:
+            missing.append(record["name"])
+            continue
+        k, distortion = _intrinsics_from(frame, data, record)
+        factor = _scale_factor(record, k.w, k.h, str(path))
+        scaled = k.scaled(factor)
+        scaled = Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
+        c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
+        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(scaled, distortion), c2w)
+    return Imported(reconstruction, path, missing, path_matches=path_matches)
+
+
+# ---- LLFF poses_bounds.npy --------------------------------------------------------------------------------
+
+def from_llff(path: Path, records: list[dict]) -> Imported:
+    """poses_bounds.npy rows follow the sorted photo file names; each is a 3x5 [down, right, back, centre, hwf]
+    plus near and far. The focal is for the full-size photos, so it is scaled by the width ratio."""
+    try:
+        table = np.load(path)
+    except (ValueError, OSError):
+        raise UserError(f"cannot read {path} as an LLFF poses_bounds.npy; fix it or set poses.source=sfm") from None
+    if table.ndim != 2 or table.shape[1] != 17:
+        raise UserError(f"{path} has shape {table.shape}; LLFF poses_bounds.npy is [N, 17]")
+    ordered = sorted(records, key=lambda r: r["source"])
+    if len(ordered) != len(table):
+        raise UserError(f"{path} has {len(table)} poses but the folder has {len(ordered)} photos; LLFF poses "
+                        "follow the photos' sorted order, so the counts must match (or set poses.source=sfm)")
+    reconstruction = pycolmap.Reconstruction()
+    cameras = _CameraTable(reconstruction)
+    bounds = {}
+    for row, record in zip(table, ordered):
+        pose = row[:15].reshape(3, 5)
+        h, w, focal = pose[:, 4]
+        factor = _scale_factor(record, w, h, str(path))
+        k = Intrinsics(focal, focal, w / 2, h / 2, int(round(w)), int(round(h))).scaled(factor)
+        k = Intrinsics(k.fl_x, k.fl_y, k.cx, k.cy, record["width"], record["height"])
+        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k, (0.0, 0.0, 0.0, 0.0)),
+                   opengl_c2w_from_llff(pose[:, :4]))
+        bounds[record["name"]] = (float(row[15]), float(row[16]))
+    return Imported(reconstruction, path, [], bounds)

@@ -1,0 +1,284 @@
+"""The poses stage: SfM accuracy on a synthetic scene, every import path, and its failures."""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pycolmap
+import pytest
+
+from pipeline.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, project
+from pipeline.errors import UserError
+from pipeline.io import read_json, read_rgb, write_png
+from pipeline.report import Reporter
+from pipeline.runner import Pipeline
+from pipeline.synthetic import write_scene
+from stages.poses_compare import compare_poses
+
+N_VIEWS, WIDTH, HEIGHT = 24, 480, 360
+IMPORT_VIEWS = 6
+
+
+def run_poses(scene: Path, out: Path, *overrides: str) -> dict:
+    return Pipeline(scene, out, overrides=list(overrides), reporter=Reporter(quiet=True)).run(["poses"])["poses"]
+
+
+def frames_by_name(transforms: dict) -> dict[str, dict]:
+    return {Path(f["file_path"]).stem: f for f in transforms["frames"]}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    # 24 views at 480x360 is about the least that pins every pose well enough for the tolerances below.
+    return write_scene("object", tmp_path_factory.mktemp("poses") / "object", n_views=N_VIEWS, width=WIDTH,
+                       height=HEIGHT, seed=0, supersample=1)
+
+
+@pytest.fixture(scope="module")
+def truth(scene) -> dict:
+    return read_json(scene / "transforms.json")
+
+
+def photos(scene: Path, folder: Path, count: int = IMPORT_VIEWS) -> list[str]:
+    """Copies the first `count` views into `folder`; returns their stems."""
+    folder.mkdir(parents=True)
+    stems = sorted(p.stem for p in (scene / "images").glob("*.png"))[:count]
+    for stem in stems:
+        shutil.copy(scene / "images" / f"{stem}.png", folder / f"{stem}.png")
+    return stems
+
+
+def assert_poses_equal(transforms: dict, truth: dict, stems: list[str]) -> None:
+    got, want = frames_by_name(transforms), frames_by_name(truth)
+    assert sorted(got) == sorted(stems)
+    for stem in stems:
+        np.testing.assert_allclose(got[stem]["transform_matrix"], want[stem]["transform_matrix"], atol=1e-6)
+
+
+def sample(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear colour at continuous pixel coordinates (centres at +0.5)."""
+    x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    im = image.astype(np.float64)
+    return ((1 - fx) * (1 - fy) * im[y0, x0] + fx * (1 - fy) * im[y0, x0 + 1]
+            + (1 - fx) * fy * im[y0 + 1, x0] + fx * fy * im[y0 + 1, x0 + 1])
+
+
+# ---- SfM --------------------------------------------------------------------------------------------------
+
+def test_sfm_registers_every_view_and_matches_the_true_poses(scene, truth, tmp_path):
+    manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm")
+    out = tmp_path / "out" / "poses"
+    transforms = read_json(out / "transforms.json")
+    assert transforms["source"] == "sfm" and manifest["summary"]["registered"] == N_VIEWS
+
+    got, want = frames_by_name(transforms), frames_by_name(truth)
+    assert sorted(got) == sorted(want)
+    stems = sorted(want)
+    errors = compare_poses(np.array([got[s]["transform_matrix"] for s in stems]),
+                           np.array([want[s]["transform_matrix"] for s in stems]))
+    assert errors["centre_error_share_max"] < 0.01
+    assert errors["rotation_error_deg_max"] < 0.5
+
+    # Undistortion may change the image size, but not the angle a pixel subtends near the centre.
+    assert transforms["fl_x"] == pytest.approx(truth["fl_x"], rel=0.02)
+    assert transforms["k1"] == 0.0 and transforms["original_camera"]["model"] == "SIMPLE_RADIAL"
+    k = Intrinsics(transforms["fl_x"], transforms["fl_y"], transforms["cx"], transforms["cy"], transforms["w"], transforms["h"])
+    for frame in transforms["frames"]:
+        assert read_rgb(out / frame["file_path"]).shape == (k.h, k.w, 3)
+
+    # Every sparse point lies in front of, and inside the view of, each frame that observed it.
+    points = np.load(out / "points.npz")
+    assert len(points["xyz"]) > 200 and points["rgb"].dtype == np.uint8
+    assert np.bincount(points["obs_point"], minlength=len(points["xyz"])).tolist() == points["track_length"].tolist()
+    for index, frame in enumerate(transforms["frames"]):
+        seen = points["obs_point"][points["obs_frame"] == index]
+        uv, depth = project(points["xyz"][seen], np.array(frame["transform_matrix"]), k)
+        assert len(seen) > 20 and (depth > 0).all()
+        assert ((uv > -1) & (uv < [k.w + 1, k.h + 1])).all()
+
+
+def test_noise_photos_fail_with_one_line_error(tmp_path):
+    rng = np.random.default_rng(0)
+    folder = tmp_path / "noise"
+    folder.mkdir()
+    for n in range(8):
+        write_png(folder / f"noise_{n}.png", rng.integers(0, 256, (120, 160, 3), dtype=np.uint8))
+    with pytest.raises(UserError) as caught:
+        run_poses(folder, tmp_path / "out", "poses.min_features=0")
+    message = str(caught.value)
+    assert "\n" not in message and ("no model" in message or "left out" in message)
+    assert not (tmp_path / "out" / "poses").exists()
+
+
+# ---- imports ----------------------------------------------------------------------------------------------
+
+def test_transforms_import_scales_intrinsics_and_undistorts(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "capture" / "images")
+    distortion = {"k1": -0.15, "k2": 0.03, "p1": 0.002, "p2": -0.001}
+    # The pose file describes the photos at twice the size, with an off-centre principal point.
+    fl, cx, cy = 2 * truth["fl_x"], 2 * truth["cx"] + 7.0, 2 * truth["cy"] - 5.0
+    frames = [f for f in truth["frames"] if Path(f["file_path"]).stem in stems[1:]]
+    (tmp_path / "capture" / "transforms.json").write_text(json.dumps({
+        "fl_x": fl, "fl_y": fl, "cx": cx, "cy": cy, "w": 2 * WIDTH, "h": 2 * HEIGHT, **distortion,
+        "frames": [{"file_path": f"images/{Path(f['file_path']).stem}.jpg", "transform_matrix": f["transform_matrix"]}
+                   for f in frames]}))
+    manifest = run_poses(tmp_path / "capture" / "images", tmp_path / "out")
+    out = tmp_path / "out" / "poses"
+    transforms = read_json(out / "transforms.json")
+    assert transforms["source"] == "transforms"
+    assert manifest["summary"]["left_out"] == [stems[0]]
+    assert_poses_equal(transforms, truth, stems[1:])
+    original = transforms["original_camera"]
+    assert original["model"] == "OPENCV" and (original["width"], original["height"]) == (WIDTH, HEIGHT)
+    np.testing.assert_allclose(original["params"], [fl / 2, fl / 2, cx / 2, cy / 2, *distortion.values()], rtol=1e-9)
+
+    # The undistorted image at pinhole pixel p shows what the photo showed where the distorted camera puts p's ray.
+    k = Intrinsics(transforms["fl_x"], transforms["fl_y"], transforms["cx"], transforms["cy"], transforms["w"], transforms["h"])
+    camera = pycolmap.Camera(model="OPENCV", width=WIDTH, height=HEIGHT, params=original["params"])
+    rng = np.random.default_rng(1)
+    uv = rng.uniform([0.1 * k.w, 0.1 * k.h], [0.9 * k.w, 0.9 * k.h], size=(400, 2))
+    rays = np.stack([(uv[:, 0] - k.cx) / k.fl_x, (uv[:, 1] - k.cy) / k.fl_y, np.ones(len(uv))], -1)  # OpenCV camera axes
+    distorted_uv = camera.img_from_cam(rays)
+    pinhole_uv = np.stack([rays[:, 0] * original["params"][0] + original["params"][2],
+                           rays[:, 1] * original["params"][1] + original["params"][3]], -1)
+    photo = read_rgb(scene / "images" / f"{stems[1]}.png")
+    undistorted = read_rgb(out / "images" / f"{stems[1]}.png")
+    aligned = np.abs(sample(undistorted, uv) - sample(photo, distorted_uv)).mean()
+    ignoring_distortion = np.abs(sample(undistorted, uv) - sample(photo, pinhole_uv)).mean()
+    assert aligned < 2.0 and aligned < 0.3 * ignoring_distortion
+
+
+def test_blender_import_uses_the_file_whose_paths_match_the_photos(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "lego" / "train")
+    alpha = np.zeros((HEIGHT, WIDTH), dtype=np.uint8)
+    alpha[:, : WIDTH // 2] = 255
+    for stem in stems:  # RGBA like the Blender renders: ingest keeps the alpha as a mask
+        path = tmp_path / "lego" / "train" / f"{stem}.png"
+        write_png(path, np.concatenate([read_rgb(path), alpha[..., None]], -1))
+    angle = 2 * math.atan(0.5 * WIDTH / truth["fl_x"])
+    want = frames_by_name(truth)
+    rotated = np.diag([1.0, -1.0, -1.0, 1.0])  # any other poses: the val file must not be picked
+    for split, transform in (("train", np.eye(4)), ("val", rotated)):
+        (tmp_path / "lego" / f"transforms_{split}.json").write_text(json.dumps({
+            "camera_angle_x": angle,
+            "frames": [{"file_path": f"./{split}/{s}", "transform_matrix": (transform @ np.array(want[s]["transform_matrix"])).tolist()}
+                       for s in stems]}))
+    run_poses(tmp_path / "lego" / "train", tmp_path / "out")
+    transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    assert transforms["source"] == "transforms" and transforms["source_path"].endswith("transforms_train.json")
+    assert_poses_equal(transforms, truth, stems)
+    assert transforms["fl_x"] == pytest.approx(truth["fl_x"], rel=1e-6)
+    assert transforms["cx"] == pytest.approx(WIDTH / 2) and transforms["w"] == WIDTH
+    for frame in transforms["frames"]:
+        mask = iio.imread(tmp_path / "out" / "poses" / frame["mask_path"])
+        assert mask.shape == alpha.shape and np.abs(mask.astype(int) - alpha).mean() < 2.0
+
+
+def test_colmap_import_keeps_poses_points_and_scales_the_camera(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "capture" / "images")
+    want = frames_by_name(truth)
+    k = Intrinsics(truth["fl_x"], truth["fl_y"], truth["cx"], truth["cy"], WIDTH, HEIGHT).scaled(2.0)
+    model = pycolmap.Reconstruction()
+    model.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=k.w, height=k.h, camera_id=1,
+                                                      params=[k.fl_x, k.fl_y, k.cx, k.cy]))
+    centre = np.array([0.3, -0.2, 0.5])
+    xyz = centre + np.random.default_rng(2).uniform(-0.5, 0.5, size=(30, 3))
+    for image_id, stem in enumerate(stems, start=1):
+        c2w = np.array(want[stem]["transform_matrix"])
+        uv, _ = project(xyz, c2w, k)
+        rotation, translation = colmap_w2c_from_opengl_c2w(c2w)
+        image = pycolmap.Image(name=f"{stem}.jpg", keypoints=uv, camera_id=1, image_id=image_id)
+        model.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation))
+    for n, point in enumerate(xyz):
+        track = pycolmap.Track([pycolmap.TrackElement(image_id, n) for image_id in range(1, len(stems) + 1)])
+        model.add_point3D(point, track, np.array([10, 20, 30], dtype=np.uint8))
+    (tmp_path / "capture" / "sparse" / "0").mkdir(parents=True)
+    model.write_binary(tmp_path / "capture" / "sparse" / "0")
+
+    manifest = run_poses(tmp_path / "capture" / "images", tmp_path / "out")
+    out = tmp_path / "out" / "poses"
+    transforms = read_json(out / "transforms.json")
+    assert transforms["source"] == "colmap"
+    assert_poses_equal(transforms, truth, stems)
+    assert (transforms["w"], transforms["h"]) == (WIDTH, HEIGHT)
+    assert transforms["fl_x"] == pytest.approx(truth["fl_x"], rel=1e-6) and transforms["cx"] == pytest.approx(truth["cx"])
+    points = np.load(out / "points.npz")
+    order = np.argsort(points["xyz"][:, 0])
+    np.testing.assert_allclose(points["xyz"][order], xyz[np.argsort(xyz[:, 0])], atol=1e-9)
+    assert (points["track_length"] == len(stems)).all() and len(points["obs_frame"]) == len(stems) * len(xyz)
+    assert manifest["summary"]["mean_reprojection_error"] < 1e-6
+    assert pycolmap.Reconstruction(out / "sparse").num_reg_images() == len(stems)
+
+
+def test_llff_import_scales_the_focal_and_keeps_bounds(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "fern" / "images_4")
+    want = frames_by_name(truth)
+    rows = []
+    for n, stem in enumerate(stems):
+        c2w = np.array(want[stem]["transform_matrix"])
+        # Our [right, up, back] columns as LLFF's [down, right, back]; hwf is for photos 4x larger.
+        llff = np.stack([-c2w[:3, 1], c2w[:3, 0], c2w[:3, 2], c2w[:3, 3]], 1)
+        np.testing.assert_allclose(opengl_c2w_from_llff(llff), c2w, atol=1e-12)
+        hwf = np.array([4 * HEIGHT, 4 * WIDTH, 4 * truth["fl_x"]])[:, None]
+        rows.append(np.concatenate([np.concatenate([llff, hwf], 1).ravel(), [1.0 + n, 10.0 + n]]))
+    np.save(tmp_path / "fern" / "poses_bounds.npy", np.array(rows))
+    run_poses(tmp_path / "fern" / "images_4", tmp_path / "out")
+    transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    assert transforms["source"] == "llff"
+    assert_poses_equal(transforms, truth, stems)
+    assert transforms["fl_x"] == pytest.approx(truth["fl_x"], rel=1e-6) and transforms["w"] == WIDTH
+    assert [(f["near"], f["far"]) for f in transforms["frames"]] == [(1.0 + n, 10.0 + n) for n in range(len(stems))]
+    points = np.load(tmp_path / "out" / "poses" / "points.npz")
+    assert points["xyz"].shape == (0, 3) and points["obs_frame"].shape == (0,)
+
+
+def test_import_posing_too_few_photos_names_the_rest(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "capture" / "images")
+    want = frames_by_name(truth)
+    (tmp_path / "capture" / "transforms.json").write_text(json.dumps({
+        "fl_x": truth["fl_x"], "w": WIDTH, "h": HEIGHT,
+        "frames": [{"file_path": f"images/{s}.png", "transform_matrix": want[s]["transform_matrix"]} for s in stems[:2]]}))
+    with pytest.raises(UserError) as caught:
+        run_poses(tmp_path / "capture" / "images", tmp_path / "out")
+    message = str(caught.value)
+    assert "2/6" in message and all(s in message for s in stems[2:]) and "\n" not in message
+
+
+def test_pose_file_changes_make_the_stage_stale(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "capture" / "images", count=3)
+    want = frames_by_name(truth)
+    pose_file = tmp_path / "capture" / "transforms.json"
+    content = {"fl_x": truth["fl_x"], "w": WIDTH, "h": HEIGHT,
+               "frames": [{"file_path": f"images/{s}.png", "transform_matrix": want[s]["transform_matrix"]} for s in stems]}
+    pose_file.write_text(json.dumps(content))
+    pipeline = Pipeline(tmp_path / "capture" / "images", tmp_path / "out", reporter=Reporter(quiet=True))
+    pipeline.run(["poses"])
+    assert pipeline.status("poses")[0] == "done"
+    content["fl_x"] *= 1.1
+    pose_file.write_text(json.dumps(content, indent=1))
+    assert pipeline.status("poses") == ("stale", "input photos changed")
+
+
+@pytest.mark.parametrize("overrides, expected", [
+    (["poses.path=does/not/exist.json"], "does not exist"),
+    (["poses.source=llff"], "no such pose file"),
+    (["poses.source=sfm", "poses.path=x.json"], "cannot be used"),
+    (["poses.min_registered_share=0"], "min_registered_share"),
+])
+def test_bad_pose_settings_are_one_line_errors(scene, tmp_path, overrides, expected):
+    photos(scene, tmp_path / "capture" / "images", count=3)
+    with pytest.raises(UserError, match=expected):
+        run_poses(tmp_path / "capture" / "images", tmp_path / "out", *overrides)
+
+
+def test_llff_count_mismatch_is_a_user_error(scene, tmp_path):
+    photos(scene, tmp_path / "fern" / "images", count=3)
+    np.save(tmp_path / "fern" / "poses_bounds.npy", np.zeros((5, 17)))
+    with pytest.raises(UserError, match="5 poses but the folder has 3 photos"):
+        run_poses(tmp_path / "fern" / "images", tmp_path / "out")
