@@ -102,6 +102,12 @@ def grid_box(grid) -> tuple[np.ndarray, np.ndarray]:
     return _numpy(grid.bbox_min).astype(np.float64).reshape(3), _numpy(grid.bbox_max).astype(np.float64).reshape(3)
 
 
+def grid_lattice_voxel(grid) -> float:
+    """The mean spacing of the grid's vertices, in fit-frame units."""
+    lo, hi = grid_box(grid)
+    return float(np.mean((hi - lo) / (np.array(_numpy(grid.links).shape) - 1)))
+
+
 def grid_lattice(grid) -> Lattice:
     """The grid's own vertices as a dense array of raw density."""
     links = _numpy(grid.links)
@@ -316,31 +322,37 @@ def mesh_to_world(vertices: np.ndarray, faces: np.ndarray, frame: FitFrame) -> t
 # The point cloud
 
 
-def surface_points(model, frames: list[dict], s: Settings, report) -> tuple[np.ndarray, np.ndarray]:
-    """Points (normalised world) [N,3] and colours [N,3] in [0,1] at the expected ray-termination
-    depth of the training views' pixels whose rays are at least `point_opacity` opaque."""
+def surface_points(grid, frame: FitFrame, frames: list[dict], s: Settings, report) -> np.ndarray:
+    """Points (normalised world) [N,3] at the expected ray-termination depth of the training views'
+    pixels whose rays are at least `point_opacity` opaque.
+
+    Only the fitted grid is rendered (never a background model), so unbounded and forward scenes
+    give foreground points only; forward scenes' rays go through NDC and their points come back."""
+    from plenoxels.render import native_available, render
+
+    backend = "native" if native_available() else "torch"
     train = [f for f in frames if f.get("split", "train") == "train"] or frames
     if s.point_views and len(train) > s.point_views:
         pick = np.linspace(0, len(train) - 1, s.point_views).round().astype(int)
         train = [train[i] for i in pick]
-    points, colours = [], []
-    for frame in report.track(train, desc="rendering depth for the point cloud"):
-        k = Intrinsics(float(frame["fl_x"]), float(frame["fl_y"]), float(frame["cx"]), float(frame["cy"]),
-                       int(frame["w"]), int(frame["h"])).scaled(s.point_scale)
-        c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
-        with torch.no_grad():
-            out = model.render_camera(c2w, k)
-        depth = _numpy(out["depth"]).reshape(-1)
-        opacity = _numpy(out["opacity"]).reshape(-1)
-        rgb = _numpy(out["rgb"]).reshape(-1, 3)
-        origins, directions = rays_from_camera(c2w, k, dtype=torch.float64)
-        origins, directions = origins.reshape(-1, 3).numpy(), directions.reshape(-1, 3).numpy()
-        # Depth is distance along the unit ray; a mostly transparent ray's depth is a blend of nothing.
-        good = (opacity >= s.point_opacity) & np.isfinite(depth)
-        points.append(origins[good] + depth[good, None] * directions[good])
-        colours.append(np.clip(rgb[good], 0.0, 1.0))
-    return (np.concatenate(points) if points else np.zeros((0, 3)),
-            np.concatenate(colours) if colours else np.zeros((0, 3)))
+    points = []
+    for record in report.track(train, desc="rendering depth for the point cloud"):
+        k = Intrinsics(float(record["fl_x"]), float(record["fl_y"]), float(record["cx"]), float(record["cy"]),
+                       int(record["w"]), int(record["h"])).scaled(s.point_scale)
+        origins, directions = rays_from_camera(np.asarray(record["transform_matrix"], dtype=np.float64), k,
+                                               dtype=torch.float64)
+        origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
+        if frame.ndc is not None:
+            origins, directions = frame.ndc.rays(origins, directions)
+        out = render(grid, origins.float(), directions.float(), backend=backend)
+        opacity = _numpy(out.opacity).astype(np.float64)
+        good = opacity >= s.point_opacity
+        # The renderer's depth is a sum of weights that total the opacity: divide it out.
+        depth = _numpy(out.depth)[good] / opacity[good]
+        unit = directions.numpy()[good]
+        unit = unit / np.linalg.norm(unit, axis=1, keepdims=True)
+        points.append(frame.to_world(origins.numpy()[good] + depth[:, None] * unit))
+    return np.concatenate(points) if points else np.zeros((0, 3))
 
 
 def point_normals(grid, frame: FitFrame, points_world: np.ndarray, voxel: float) -> np.ndarray:
@@ -525,14 +537,14 @@ def run(ctx) -> dict:
 
     points = colours = normals = np.zeros((0, 3))
     if s.points > 0:
-        points, colours = surface_points(model, scene["frames"], s, ctx.report)
+        points = surface_points(grid, frame, scene["frames"], s, ctx.report)
         size = box_max - box_min
-        inside = np.all((points >= box_min - s.crop_margin * size) & (points <= box_max + s.crop_margin * size), axis=1)
-        points, colours = points[inside], colours[inside]
+        points = points[np.all((points >= box_min - s.crop_margin * size) & (points <= box_max + s.crop_margin * size), axis=1)]
         if len(points) > s.points:
-            pick = np.sort(np.random.default_rng(s.seed).choice(len(points), s.points, replace=False))
-            points, colours = points[pick], colours[pick]
-        normals = point_normals(grid, frame, points, decisions["voxel"])
+            points = points[np.sort(np.random.default_rng(s.seed).choice(len(points), s.points, replace=False))]
+        voxel = grid_lattice_voxel(grid)
+        colours = surface_colours(grid, frame.from_world(points), voxel)
+        normals = point_normals(grid, frame, points, voxel)
 
     if s.frame == "input":
         to_output = np.asarray(scene["input_from_world"], dtype=np.float64)

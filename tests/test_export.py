@@ -149,6 +149,15 @@ def test_ndc_grid_maps_back_to_the_world_sphere():
     facing = mesh.vertex_normals @ -forward > 0.5
     assert (np.einsum("ij,ij->i", mesh.vertex_normals[facing], mesh.vertices[facing] - SPHERE_CENTRE) > 0).mean() > 0.95
 
+    # Points: the reference view's rays go through NDC and their termination points come back to the world.
+    view = {"transform_matrix": c2w.tolist(), "fl_x": 60.0, "fl_y": 60.0, "cx": 40.0, "cy": 30.0, "w": 80, "h": 60}
+    points = export.surface_points(field, frame, [view], Settings(point_scale=1.0), _Quiet())
+    assert len(points) > 300
+    assert np.median(radial_error(points)) < 0.02
+    normals = export.point_normals(field, frame, points, export.grid_lattice_voxel(field))
+    radial = (points - SPHERE_CENTRE) / np.linalg.norm(points - SPHERE_CENTRE, axis=1, keepdims=True)
+    assert np.median(np.einsum("ij,ij->i", normals, radial)) > 0.95
+
 
 def test_files_reload_with_the_same_counts_and_the_frame_round_trips(tmp_path):
     field = sphere_field(24)
@@ -184,6 +193,43 @@ def test_files_reload_with_the_same_counts_and_the_frame_round_trips(tmp_path):
     assert np.allclose(np.stack([raw["nx"], raw["ny"], raw["nz"]], 1), normals, atol=1e-5)
     moved = export.transform_normals(input_from_world, normals)
     assert np.allclose(export.transform_normals(world_from_input, moved), normals, atol=1e-9)
+
+
+def orbit_frames(n: int, radius: float = 2.6, size: int = 40) -> list[dict]:
+    """Training views (scene.json records, normalised frame) on a ring above the sphere, looking at it."""
+    frames = []
+    for i in range(n):
+        angle = 2 * math.pi * i / n
+        eye = SPHERE_CENTRE + radius * np.array([math.cos(angle), math.sin(angle), 0.35])
+        frames.append({"name": f"{i:03d}", "transform_matrix": look_at(eye, SPHERE_CENTRE).tolist(),
+                       "fl_x": size, "fl_y": size, "cx": size / 2, "cy": size / 2, "w": size, "h": size,
+                       "split": "train"})
+    return frames
+
+
+def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, [0, 0, 1.0])
+    right /= np.linalg.norm(right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(right, forward), -forward, eye
+    return c2w
+
+
+def test_points_lie_on_the_surface_with_its_colours_and_outward_normals():
+    field = sphere_field(40)
+    voxel = 2 / 39
+    points = export.surface_points(field, FitFrame(), orbit_frames(6), Settings(point_scale=1.0), _Quiet())
+    colours = export.surface_colours(field, points, voxel)
+    assert len(points) > 1000
+    # Expected termination sits a little inside the 50%-opacity iso-surface, within about one voxel.
+    assert np.median(radial_error(points)) < 0.5 * voxel and radial_error(points).max() < 1.5 * voxel
+    red = points[:, 0] > 0.1 + 2 * voxel
+    blue = points[:, 0] < 0.1 - 2 * voxel
+    assert np.abs(colours[red] - [0.9, 0.1, 0.1]).max() < 0.05 and np.abs(colours[blue] - [0.1, 0.1, 0.9]).max() < 0.05
+    normals = export.point_normals(field, FitFrame(), points, voxel)
+    radial = (points - SPHERE_CENTRE) / np.linalg.norm(points - SPHERE_CENTRE, axis=1, keepdims=True)
+    assert np.einsum("ij,ij->i", normals, radial).min() > 0.95
 
 
 class _Quiet:

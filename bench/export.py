@@ -1,0 +1,197 @@
+"""Benchmark of the export stage on the synthetic object scene, and a Blender import of its GLB.
+
+Runs the whole pipeline (ingest, imported poses, normalize, fit, export) on a synthetic object
+scene, then scores the exported mesh (input frame) against the generator's true mesh: F-score and
+Chamfer distance at a tolerance of 1% of the object's size, completeness counted on the part of the
+true surface some training camera sees, and the largest distance of any mesh vertex from the true
+surface (the goal: F-score >= 0.9, nothing farther than 5% of the object's size). Then, when
+Blender is installed, imports mesh.glb headless with its glTF importer and checks the vertex and
+face counts, the vertex colours and the frame. Writes bench/results/export.json.
+
+    .venv/bin/python -m bench.export [--views 48] [--size 320x240] [--preset default] [--set fit.steps=[...]]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from pipeline import synthetic
+from pipeline.cameras import Intrinsics, project
+from pipeline.io import read_json, write_json
+from pipeline.report import Reporter
+from pipeline.runner import Pipeline
+from stages.export import mesh_scores, surface_distance
+
+REPO = Path(__file__).resolve().parent.parent
+RESULTS = REPO / "bench" / "results" / "export.json"
+TOLERANCE_SHARE = 0.01
+GOAL_F_SCORE = 0.9
+GOAL_MAX_DISTANCE_SHARE = 0.05
+
+# Blender's script: import the GLB, write what it holds as JSON. Debian's Blender 3.4 glTF importer
+# still uses numpy's removed `np.bool` alias, so the script restores it before importing.
+BLENDER_SCRIPT = """
+import json, sys
+import numpy
+if not hasattr(numpy, "bool"):
+    numpy.bool = bool
+import bpy
+glb, out = sys.argv[sys.argv.index("--") + 1:]
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.import_scene.gltf(filepath=glb)
+meshes = [o for o in bpy.context.scene.objects if o.type == "MESH"]
+report = {"objects": len(meshes), "vertices": 0, "faces": 0, "colour_attributes": [], "colours": [], "positions": []}
+for o in meshes:
+    m = o.data
+    world = o.matrix_world
+    report["vertices"] += len(m.vertices)
+    report["faces"] += len(m.polygons)
+    report["colour_attributes"] += [(c.name, c.domain, c.data_type) for c in m.color_attributes]
+    if m.color_attributes:
+        colours = m.color_attributes[0]
+        per_vertex = {}
+        for loop in m.loops:
+            per_vertex[loop.vertex_index] = tuple(colours.data[loop.index].color)[:3] if colours.domain == "CORNER" else None
+        if colours.domain == "POINT":
+            per_vertex = {i: tuple(c.color)[:3] for i, c in enumerate(colours.data)}
+        for i in sorted(per_vertex)[:: max(1, len(per_vertex) // 2000)]:
+            report["colours"].append(per_vertex[i])
+            report["positions"].append(tuple(world @ m.vertices[i].co))
+json.dump(report, open(out, "w"))
+"""
+
+
+def visible_from(cameras: list[tuple[np.ndarray, Intrinsics]], spec: synthetic.SceneSpec, tolerance: float):
+    """A mask function: which points (generator frame) some camera sees, inside its image and not
+    hidden behind another surface by more than `tolerance`."""
+
+    def mask(points: np.ndarray) -> np.ndarray:
+        seen = np.zeros(len(points), dtype=bool)
+        for c2w, k in cameras:
+            uv, depth = project(points, c2w, k)
+            in_view = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < k.w) & (uv[:, 1] >= 0) & (uv[:, 1] < k.h)
+            candidates = np.flatnonzero(in_view & ~seen)
+            if len(candidates) == 0:
+                continue
+            centre = c2w[:3, 3]
+            offsets = points[candidates] - centre
+            t_hit, _ = synthetic.trace(spec, centre, offsets)
+            distance = np.linalg.norm(offsets, axis=1)
+            seen[candidates] = t_hit * distance >= distance - tolerance
+        return seen
+
+    return mask
+
+
+def blender_check(glb: Path, mesh_ply: Path) -> dict:
+    blender = shutil.which("blender")
+    if blender is None:
+        return {"ran": False, "why": "blender is not installed (apt-get install -y blender python3-numpy)"}
+    with tempfile.TemporaryDirectory() as tmp:
+        script, out = Path(tmp) / "check.py", Path(tmp) / "out.json"
+        script.write_text(BLENDER_SCRIPT)
+        started = time.time()
+        proc = subprocess.run([blender, "-b", "--factory-startup", "--python", str(script), "--", str(glb), str(out)],
+                              capture_output=True, text=True, timeout=600)
+        if not out.is_file():
+            return {"ran": False, "why": "blender did not write its report", "log_tail": (proc.stdout + proc.stderr)[-2000:]}
+        seen = json.loads(out.read_text())
+    reference = trimesh.load(mesh_ply, force="mesh", process=False)
+    colours = np.asarray(seen["colours"], dtype=np.float64)
+    positions = np.asarray(seen["positions"], dtype=np.float64)
+    # Blender converts glTF's y-up to its z-up, which undoes GLTF_FROM_ZUP: positions are the PLY's.
+    from scipy.spatial import cKDTree
+
+    gap, nearest = cKDTree(reference.vertices).query(positions)
+    expected = reference.visual.vertex_colors[nearest, :3] / 255.0
+    return {
+        "ran": True,
+        "seconds": round(time.time() - started, 1),
+        "objects": seen["objects"],
+        "vertices": seen["vertices"],
+        "faces": seen["faces"],
+        "ply_vertices": len(reference.vertices),
+        "ply_faces": len(reference.faces),
+        "colour_attributes": seen["colour_attributes"],
+        "colours_checked": len(colours),
+        "colour_max_error": float(np.abs(colours - expected).max()) if len(colours) else None,
+        "position_max_error": float(gap.max()) if len(gap) else None,
+        "ok": bool(seen["faces"] == len(reference.faces) and seen["colour_attributes"] and len(colours)
+                   and np.abs(colours - expected).max() < 2 / 255 and gap.max() < 1e-4),
+    }
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--views", type=int, default=48)
+    parser.add_argument("--size", default="320x240")
+    parser.add_argument("--preset", default="default")
+    parser.add_argument("--set", dest="overrides", action="append", default=[])
+    parser.add_argument("--out", type=Path, default=REPO / "bench" / "out" / "export")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    width, height = (int(v) for v in args.size.split("x"))
+
+    scene_dir = args.out / f"synthetic-object-{args.views}-{width}x{height}-{args.seed}"
+    if not (scene_dir / "images").is_dir():
+        synthetic.write_scene("object", scene_dir, n_views=args.views, width=width, height=height, seed=args.seed)
+    started = time.time()
+    pipeline = Pipeline(scene_dir / "images", args.out / "run", preset=args.preset, overrides=args.overrides,
+                        reporter=Reporter(quiet=True))
+    manifests = pipeline.run(["export"])
+    pipeline_seconds = time.time() - started
+    export_dir = args.out / "run" / "export"
+    record = read_json(export_dir / "export.json")
+
+    truth = trimesh.load(scene_dir / "ground_truth" / "mesh.ply", force="mesh", process=False)
+    size = float(np.max(truth.bounds[1] - truth.bounds[0]))
+    tolerance = TOLERANCE_SHARE * size
+    transforms = read_json(scene_dir / "transforms.json")
+    k = Intrinsics(transforms["fl_x"], transforms["fl_y"], transforms["cx"], transforms["cy"], transforms["w"], transforms["h"])
+    cameras = [(np.asarray(f["transform_matrix"]), k) for f in transforms["frames"]]
+    spec = synthetic.build_scene("object", args.seed)
+    mesh = trimesh.load(export_dir / "mesh.ply", force="mesh", process=False)
+    if record["frame"] != "input":
+        raise SystemExit("the benchmark scores the input frame; drop export.frame from --set")
+    scores = mesh_scores(mesh, truth, tolerance, reference_visible=visible_from(cameras, spec, tolerance))
+    points = np.asarray(trimesh.load(export_dir / "points.ply").vertices)
+    point_distance = surface_distance(truth, points, np.random.default_rng(0)) if len(points) else np.zeros(0)
+    result = {
+        "scene": {"kind": "object", "views": args.views, "size": [width, height], "seed": args.seed,
+                  "object_size": size, "tolerance": tolerance},
+        "preset": args.preset, "overrides": args.overrides,
+        "stage_summaries": {name: m["summary"]["line"] for name, m in manifests.items()},
+        "fit": read_json(args.out / "run" / "fit" / "fit.json").get("held_out_psnr"),
+        "pipeline_seconds": round(pipeline_seconds, 1),
+        "export_seconds": read_json(export_dir / "manifest.json")["seconds"],
+        "export": {k: record[k] for k in ("frame", "level", "level_source", "resolution", "lattice", "cleaning",
+                                           "mesh", "points", "file_bytes")},
+        "mesh_vs_truth": scores,
+        "max_vertex_distance_share": scores["max_vertex_distance"] / size,
+        "goal_met": bool(scores["f_score"] >= GOAL_F_SCORE and scores["max_vertex_distance"] / size <= GOAL_MAX_DISTANCE_SHARE),
+        "points_vs_truth": {"count": len(points),
+                            "within_tolerance": float((point_distance < tolerance).mean()) if len(points) else None,
+                            "median_distance": float(np.median(point_distance)) if len(points) else None},
+        "blender": blender_check(export_dir / "mesh.glb", export_dir / "mesh.ply"),
+    }
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    write_json(RESULTS, result)
+    print(f"[bench export] F-score@1% {scores['f_score']:.3f} (precision {scores['precision']:.3f}, recall "
+          f"{scores['recall']:.3f}), Chamfer {scores['chamfer']:.4f}, farthest vertex {result['max_vertex_distance_share']:.1%} "
+          f"of the object; goal {'met' if result['goal_met'] else 'not met'}; points within 1%: "
+          f"{result['points_vs_truth']['within_tolerance']}; blender: "
+          f"{'ok' if result['blender'].get('ok') else result['blender'].get('why', 'check failed')}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
