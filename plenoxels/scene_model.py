@@ -1,0 +1,261 @@
+"""The fitted scene: the voxel grid plus what decides how a world ray reaches it and what lies behind it.
+
+A SceneModel ties together
+- `grid`: the SparseGrid, in the *fit frame*: the normalised world (object and unbounded scenes) or
+  NDC (forward scenes);
+- `ndc`: the NDCMapping from the world to the fit frame, or None when the fit frame is the world;
+- `background`: the multi-sphere background model behind the grid (unbounded scenes), or None;
+- `background_color`: the constant colour rays see behind the grid when there is no background model
+  (white for masked object captures such as lego);
+- `render_options`: the sampling the fit used (step size, early termination), the default for renders.
+
+Everything the model is asked takes rays and cameras in the normalised world frame (scene.json's
+frame); the model maps them into the fit frame itself. Later stages load it with
+`SceneModel.load(fit_dir)` and then
+- render: `render_camera(c2w, intrinsics)` -> {"rgb" [h,w,3], "depth" [h,w], "opacity" [h,w]} with
+  depth the world distance along the unit ray to the expected termination point (weights
+  renormalised by opacity; 0 where nothing is hit), or `render_rays(o, d)` for any batch of rays;
+- query the field: `grid.sample(points_fit)` -> (raw density [M], SH [M, 3K]) at fit-frame points,
+  `to_fit_points(points_world)` / `to_world_points(points_fit)` to move points between the frames;
+  activated density is relu(raw), colour is relu(SH . basis(dir) + 0.5) (csrc/plenoxels_math.h).
+
+Files in a fit folder: `grid.pt` (SparseGrid.save), `model.json` (scene type, fit frame, NDC and
+background parameters, render options, the scene transforms) and `background.pt` (the background
+model's tensors) when there is one.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from pipeline.cameras import Intrinsics, rays_from_camera
+from pipeline.errors import UserError
+from pipeline.io import read_json, write_json
+from plenoxels.grid import SparseGrid
+from plenoxels.render import RenderOptions, RenderResult, render
+
+MODEL_FORMAT = "voxfield-scene-model"
+MODEL_VERSION = 1
+# Rays per render call when rendering whole images: bounds the memory of one call.
+RENDER_CHUNK = 1 << 16
+# Rays with less opacity than this have no meaningful termination depth.
+MIN_DEPTH_OPACITY = 1e-4
+
+
+def _uses(toggle: str, wanted: bool) -> bool:
+    return wanted if toggle == "auto" else toggle == "on"
+
+
+def grid_shape(extent: np.ndarray, resolution: int) -> tuple[int, int, int]:
+    """Vertices per axis for a box of `extent` whose longest side gets `resolution` vertices, so that
+    voxels are about cubic."""
+    longest = float(np.max(extent))
+    return tuple(max(2, int(round(resolution * float(e) / longest))) for e in extent)
+
+
+class SceneModel:
+    def __init__(self, grid: SparseGrid, scene_type: str, ndc=None, background: torch.nn.Module | None = None,
+                 background_color=(1.0, 1.0, 1.0), render_options: RenderOptions | None = None,
+                 transforms: dict | None = None, backend: str = "native"):
+        self.grid = grid
+        self.scene_type = scene_type
+        self.ndc = ndc
+        self.background = background
+        self.background_color = tuple(float(c) for c in background_color)
+        self.render_options = render_options or RenderOptions()
+        # world_from_input, input_from_world, scale: scene.json's, kept so exports need only the fit folder.
+        self.transforms = dict(transforms or {})
+        self.backend = backend
+
+    # ---- construction ---------------------------------------------------------------------------
+    @classmethod
+    def create(cls, scene: dict, settings, resolution: int, render_options: RenderOptions | None = None,
+               backend: str = "native") -> "SceneModel":
+        """An initial model for normalize/scene.json at `resolution` vertices along the grid's longest
+        axis, every vertex allocated. `settings` (the fit stage's Settings) supplies ndc and background
+        (auto|on|off; auto follows the scene type), sh_degree, init_density, box_padding,
+        background_color, background_spheres, background_width and tv_background."""
+        scene_type = scene.get("type", "object")
+        ndc = None
+        if _uses(settings.ndc, scene_type == "forward"):
+            from plenoxels.ndc import NDCMapping
+
+            ndc = NDCMapping.from_scene(scene)
+        lo, hi = foreground_box(scene, settings.box_padding)
+        background = None
+        if _uses(settings.background, scene_type == "unbounded"):
+            from plenoxels.background import MultiSphereBackground
+
+            width = settings.background_width
+            background = MultiSphereBackground.around_box(
+                lo, hi, n_spheres=settings.background_spheres, height=max(2, width // 2), width=width,
+                far_colour=tuple(settings.background_color), tv_density=settings.tv_background,
+                tv_colour=settings.tv_background)
+        model = cls(cls._initial_grid(ndc, lo, hi, resolution, settings), scene_type, ndc, background,
+                    settings.background_color, render_options,
+                    {k: scene[k] for k in ("world_from_input", "input_from_world", "scale") if k in scene}, backend)
+        return model
+
+    @staticmethod
+    def _initial_grid(ndc, lo, hi, resolution: int, settings) -> SparseGrid:
+        if ndc is not None:
+            lo, hi = ndc.grid_box()
+            shape = ndc.grid_resolution(resolution)
+        else:
+            shape = grid_shape(np.asarray(hi) - np.asarray(lo), resolution)
+        return SparseGrid.dense(shape, lo, hi, settings.sh_degree, init_density=settings.init_density)
+
+    def resolution_for(self, resolution: int) -> tuple[int, int, int]:
+        """The grid shape this model uses at `resolution` vertices along its longest axis."""
+        if self.ndc is not None:
+            return self.ndc.grid_resolution(resolution)
+        return grid_shape(np.subtract(self.grid.bbox_max, self.grid.bbox_min), resolution)
+
+    def to(self, device: torch.device) -> "SceneModel":
+        """Moves the grid and the background model to `device` (in place; returns self)."""
+        g = self.grid
+        if g.data.device != device:
+            self.grid = SparseGrid(g.links.to(device), g.data.to(device), g.bbox_min, g.bbox_max, g.sh_degree)
+        if self.background is not None:
+            self.background.to(device)
+        return self
+
+    # ---- frames ---------------------------------------------------------------------------------
+    def to_grid_frame(self, o_world: torch.Tensor, d_world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """World rays -> fit-frame rays (NDC or unchanged)."""
+        if self.ndc is None:
+            return o_world, d_world
+        return self.ndc.rays(o_world, d_world)
+
+    def to_fit_points(self, points_world: torch.Tensor) -> torch.Tensor:
+        return points_world if self.ndc is None else self.ndc.points_to_ndc(points_world)
+
+    def to_world_points(self, points_fit: torch.Tensor) -> torch.Tensor:
+        return points_fit if self.ndc is None else self.ndc.points_to_world(points_fit)
+
+    # ---- rendering ------------------------------------------------------------------------------
+    def background_rgb(self, o_world: torch.Tensor, d_world: torch.Tensor) -> torch.Tensor:
+        """What each ray sees behind the grid [B, 3]: the background model's colour (differentiable
+        with respect to its parameters) or the constant background colour."""
+        if self.background is not None:
+            return self.background(o_world.to(torch.float32), d_world.to(torch.float32))
+        return torch.tensor(self.background_color, dtype=torch.float32).expand(o_world.shape[0], 3)
+
+    def render_rays(self, o_world: torch.Tensor, d_world: torch.Tensor,
+                    opts: RenderOptions | None = None) -> RenderResult:
+        """Renders world rays [B, 3]; depth is the fit-frame expected depth (weights not renormalised)."""
+        o, d = self.to_grid_frame(o_world, d_world)
+        with torch.no_grad():
+            bg = self.background_rgb(o_world, d_world)
+        return render(self.grid, o, d, bg, opts or self.render_options, backend=self.backend)
+
+    def world_depth(self, o_world: torch.Tensor, d_world: torch.Tensor, result: RenderResult) -> torch.Tensor:
+        """World distance along each unit ray to its expected termination point (0 where nothing is hit)."""
+        hit = result.opacity > MIN_DEPTH_OPACITY
+        depth = torch.where(hit, result.depth / result.opacity.clamp_min(MIN_DEPTH_OPACITY), torch.zeros_like(result.depth))
+        if self.ndc is None:
+            return depth
+        o, d = self.to_grid_frame(o_world, d_world)
+        unit = d / d.norm(dim=-1, keepdim=True)
+        world = self.ndc.world_distance(o_world, d_world, o + depth[:, None] * unit)
+        return torch.where(hit, world, torch.zeros_like(world))
+
+    def render_camera(self, c2w, intrinsics: Intrinsics, opts: RenderOptions | None = None,
+                      chunk: int = RENDER_CHUNK) -> dict[str, torch.Tensor]:
+        """One pinhole view (world camera-to-world, OpenGL convention) -> {"rgb" [h,w,3] in [0,1],
+        "depth" [h,w] world distance (see world_depth), "opacity" [h,w]}."""
+        origins, dirs = rays_from_camera(c2w, intrinsics)
+        origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+        rgb, depth, opacity = [], [], []
+        for start in range(0, origins.shape[0], chunk):
+            o, d = origins[start:start + chunk], dirs[start:start + chunk]
+            result = self.render_rays(o, d, opts)
+            rgb.append(result.rgb.clamp(0.0, 1.0))
+            depth.append(self.world_depth(o, d, result))
+            opacity.append(result.opacity)
+        h, w = intrinsics.h, intrinsics.w
+        return {"rgb": torch.cat(rgb).reshape(h, w, 3), "depth": torch.cat(depth).reshape(h, w),
+                "opacity": torch.cat(opacity).reshape(h, w)}
+
+    # ---- facts ----------------------------------------------------------------------------------
+    def memory_bytes(self) -> dict[str, int]:
+        grid = self.grid.memory_bytes()
+        background = self.background.memory_bytes() if self.background is not None else 0
+        return {"grid": grid, "background": background, "total": grid + background}
+
+    def describe(self) -> dict[str, Any]:
+        return {"fit_frame": "ndc" if self.ndc is not None else "world", "resolution": list(self.grid.resolution),
+                "occupied": self.grid.num_occupied, "sh_degree": self.grid.sh_degree,
+                "background_model": self.background is not None, "memory_bytes": self.memory_bytes()}
+
+    # ---- persistence ----------------------------------------------------------------------------
+    def save(self, folder: Path, extra: dict | None = None) -> None:
+        """Writes grid.pt, model.json and (with a background model) background.pt into `folder`."""
+        folder = Path(folder)
+        self.grid.save(folder / "grid.pt")
+        background = None
+        if self.background is not None:
+            tmp = folder / "background.pt.tmp"
+            torch.save(self.background.state_dict(), tmp)
+            tmp.replace(folder / "background.pt")
+            background = {"kind": "multi_sphere", "config": self.background.config(), "file": "background.pt"}
+        record = {
+            "format": MODEL_FORMAT, "version": MODEL_VERSION, "scene_type": self.scene_type,
+            "fit_frame": "ndc" if self.ndc is not None else "world",
+            "ndc": self.ndc.to_dict() if self.ndc is not None else None,
+            "background": background, "background_color": list(self.background_color),
+            "render_options": asdict(self.render_options),
+            "grid": {"file": "grid.pt", "resolution": list(self.grid.resolution), "bbox_min": list(self.grid.bbox_min),
+                     "bbox_max": list(self.grid.bbox_max), "sh_degree": self.grid.sh_degree,
+                     "occupied": self.grid.num_occupied},
+            **self.transforms, **(extra or {}),
+        }
+        write_json(folder / "model.json", record)
+
+    @classmethod
+    def load(cls, folder: Path, backend: str = "native") -> "SceneModel":
+        folder = Path(folder)
+        path = folder / "model.json"
+        if not path.is_file():
+            raise UserError(f"{folder} holds no fitted model (model.json missing): run the fit stage")
+        record = read_json(path)
+        if record.get("format") != MODEL_FORMAT or record.get("version") != MODEL_VERSION:
+            raise UserError(f"{path} is not a voxfield scene model of version {MODEL_VERSION}: fit again")
+        grid, _ = SparseGrid.load(folder / record["grid"]["file"])
+        ndc = None
+        if record.get("ndc"):
+            from plenoxels.ndc import NDCMapping
+
+            ndc = NDCMapping.from_dict(record["ndc"])
+        background = None
+        if record.get("background"):
+            from plenoxels.background import MultiSphereBackground
+
+            background = MultiSphereBackground.from_config(record["background"]["config"])
+            state = torch.load(folder / record["background"]["file"], map_location="cpu", weights_only=True)
+            background.load_state_dict(state)
+        transforms = {k: record[k] for k in ("world_from_input", "input_from_world", "scale") if k in record}
+        return cls(grid, record.get("scene_type", "object"), ndc, background, record.get("background_color", (1, 1, 1)),
+                   RenderOptions(**record.get("render_options", {})), transforms, backend)
+
+
+def foreground_box(scene: dict, padding: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """scene.json's foreground box grown by `padding` of its size on each side ([-1, 1]^3 if absent)."""
+    fg = scene.get("foreground") or {}
+    lo = np.asarray(fg.get("min", (-1.0, -1.0, -1.0)), dtype=np.float64)
+    hi = np.asarray(fg.get("max", (1.0, 1.0, 1.0)), dtype=np.float64)
+    if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(lo)) or not np.all(np.isfinite(hi)) \
+            or not np.all(hi > lo):
+        raise UserError("scene.json's foreground box is missing or empty; re-run the normalize stage")
+    grow = (hi - lo) * padding
+    return tuple((lo - grow).tolist()), tuple((hi + grow).tolist())
+
+
+def psnr(mse: float) -> float:
+    """PSNR in dB of colours in [0, 1] from their mean squared error."""
+    return -10.0 * math.log10(max(mse, 1e-12))
