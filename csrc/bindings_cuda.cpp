@@ -164,6 +164,50 @@ Tensor max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ,
     return out;
 }
 
+std::tuple<int64_t, int64_t> sample_counts(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
+                                           c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree,
+                                           Tensor origins, Tensor dirs, double step, double stop_transmittance,
+                                           double near, double sigma_threshold, int64_t max_samples) {
+    const c10::cuda::CUDAGuard guard(data.device());
+    const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, bmin, bmax, degree);
+    const plx_cuda::Rays rays = make_rays(origins, dirs, data);
+    Tensor counts = at::zeros({2}, data.options().dtype(at::kLong));
+    check_launch(plx_cuda::sample_counts(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples),
+                                         rays, reinterpret_cast<unsigned long long*>(counts.data_ptr<int64_t>()),
+                                         stream()),
+                 "sample_counts");
+    const Tensor host = counts.cpu();
+    return {host[0].item<int64_t>(), host[1].item<int64_t>()};
+}
+
+// Live-block bookkeeping arguments; coords null when none are given.
+plx_cuda::LiveBlocks make_live(const Tensor& data, const std::optional<Tensor>& coords, int64_t block,
+                               const std::optional<Tensor>& counts, const std::optional<Tensor>& blocks) {
+    plx_cuda::LiveBlocks live{nullptr, 1, {0, 0, 0}, nullptr, nullptr};
+    if (!coords.has_value()) return live;
+    TORCH_CHECK(counts.has_value() && blocks.has_value() && block > 0, "live bookkeeping needs coords, block, counts and blocks");
+    check_cuda(*coords, at::kInt, "coords", data);
+    check_cuda(*counts, at::kInt, "counts", data);
+    check_cuda(*blocks, at::kByte, "blocks", data);
+    TORCH_CHECK(coords->dim() == 2 && coords->size(0) == data.size(0) && coords->size(1) == 3, "coords must be [N,3]");
+    TORCH_CHECK(counts->dim() == 3 && blocks->sizes() == counts->sizes(), "counts must be 3-D and blocks like counts");
+    live.coords = coords->data_ptr<int32_t>();
+    live.block = (int)block;
+    for (int a = 0; a < 3; ++a) live.nblocks[a] = (int)counts->size(a);
+    live.counts = counts->data_ptr<int32_t>();
+    live.blocks = blocks->data_ptr<uint8_t>();
+    return live;
+}
+
+void count_live_blocks(Tensor data, Tensor coords, int64_t block, Tensor counts, Tensor blocks) {
+    const c10::cuda::CUDAGuard guard(data.device());
+    check_cuda(data, at::kFloat, "data", data);
+    TORCH_CHECK(data.dim() == 2, "data must be [N, stride]");
+    const plx_cuda::LiveBlocks live = make_live(data, coords, block, counts, blocks);
+    check_launch(plx_cuda::count_live_blocks(data.data_ptr<float>(), (int)data.size(1), data.size(0), live, stream()),
+                 "count_live_blocks");
+}
+
 std::tuple<double, int64_t> tv_loss_and_grad(Tensor data, Tensor links, Tensor coords, Tensor sample_rows,
                                               double weight_density, double weight_sh, int64_t degree,
                                               Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
@@ -199,7 +243,9 @@ std::tuple<double, int64_t> tv_loss_and_grad(Tensor data, Tensor links, Tensor c
 }
 
 void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
-                  int64_t num_touched, int64_t columns, double lr_density, double lr_sh, double beta, double eps) {
+                  int64_t num_touched, int64_t columns, double lr_density, double lr_sh, double beta, double eps,
+                  std::optional<Tensor> live_coords, int64_t live_block, std::optional<Tensor> live_counts,
+                  std::optional<Tensor> live_blocks) {
     const c10::cuda::CUDAGuard guard(data.device());
     check_cuda(data, at::kFloat, "data", data);
     check_cuda(second_moment, at::kFloat, "second moment", data);
@@ -219,7 +265,8 @@ void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor gr
                             (float)lr_sh,
                             (float)beta,
                             (float)eps};
-    check_launch(plx_cuda::rmsprop_step(a, stream()), "rmsprop_step");
+    const plx_cuda::LiveBlocks live = make_live(data, live_coords, live_block, live_counts, live_blocks);
+    check_launch(plx_cuda::rmsprop_step(a, live, stream()), "rmsprop_step");
 }
 
 std::vector<Tensor> build_occupancy(Tensor links, int64_t block) {
@@ -255,6 +302,8 @@ TORCH_LIBRARY(plenoxels_cuda, m) {
     m.def("render", &render);
     m.def("loss_and_grad", &loss_and_grad);
     m.def("max_weights", &max_weights);
+    m.def("sample_counts", &sample_counts);
+    m.def("count_live_blocks", &count_live_blocks);
     m.def("tv_loss_and_grad", &tv_loss_and_grad);
     m.def("rmsprop_step", &rmsprop_step);
     m.def("build_occupancy", &build_occupancy);

@@ -55,6 +55,25 @@ cudaError_t loss_and_grad(const Grid& grid, const March& march, int degree, cons
 // out[row] = max(out[row], largest compositing weight of any sample that interpolates the row).
 cudaError_t max_weights(const Grid& grid, const March& march, const Rays& rays, float* out, cudaStream_t stream);
 
+// Over all rays: samples on the rays' lattices inside the box, and samples that contributed (passed
+// the occupancy test and the density threshold before the ray stopped); added into counts[0..1].
+cudaError_t sample_counts(const Grid& grid, const March& march, const Rays& rays, unsigned long long* counts,
+                          cudaStream_t stream);
+
+// Live-vertex bookkeeping for empty-space skipping: a vertex is live when its raw density is > 0;
+// counts[b] is the number of live vertices that are a cell corner in occupancy block b, and
+// blocks[b] = counts[b] > 0. A block with no live vertex holds no sample with density > 0.
+struct LiveBlocks {
+    const int32_t* coords;  // [N, 3] grid coordinates of each row; null: no bookkeeping
+    int block;
+    int nblocks[3];
+    int32_t* counts;
+    uint8_t* blocks;
+};
+// Recounts from scratch (counts and blocks are overwritten).
+cudaError_t count_live_blocks(const float* data, int stride, int64_t rows, const LiveBlocks& live,
+                              cudaStream_t stream);
+
 // Total variation at the rows sample_rows[0..count): loss_per_sample[m] gets the sample's term,
 // gradients are added into grad_data. Columns [column_begin, column_end) take part; column 0 is
 // scaled by scale_density, the others by scale_sh.
@@ -72,7 +91,9 @@ struct TVArgs {
 cudaError_t tv_loss_and_grad(const TVArgs& args, double* loss_per_sample, float* grad_data, uint8_t* grad_mask,
                              cudaStream_t stream);
 
-// RMSProp on rows[0..count) and columns [0, columns); clears their gradient and mask.
+// RMSProp on rows[0..count) and columns [0, columns); clears their gradient and mask. With live
+// bookkeeping (live.coords not null), a row whose density changes sign updates the counts, and the
+// block flags are then rewritten from the counts.
 struct RMSPropArgs {
     float* data;
     float* second_moment;
@@ -83,7 +104,7 @@ struct RMSPropArgs {
     int stride, columns;
     float lr_density, lr_sh, beta, eps;
 };
-cudaError_t rmsprop_step(const RMSPropArgs& args, cudaStream_t stream);
+cudaError_t rmsprop_step(const RMSPropArgs& args, const LiveBlocks& live, cudaStream_t stream);
 
 // Cell occupancy (any corner allocated) and block occupancy (any cell occupied).
 cudaError_t build_occupancy(const int32_t* links, const int res[3], int block, uint8_t* cells, uint8_t* blocks,

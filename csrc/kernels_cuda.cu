@@ -243,6 +243,47 @@ __global__ void max_weights_kernel(Grid g, March opt, Rays rays, unsigned int* _
     });
 }
 
+__global__ void sample_counts_kernel(Grid g, March opt, Rays rays, unsigned long long* __restrict__ counts) {
+    const int64_t b = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    if (b >= rays.count) return;
+    RayState r;
+    setup_ray(g, rays.origins + 3 * b, rays.dirs + 3 * b, opt, &r);
+    unsigned long long used = 0;
+    march<1>(g, r, opt, [&](const Sample& s, float, const float*) {
+        ++used;
+        return s.t_before * s.transmittance_factor;
+    });
+    if (r.n > 0) atomicAdd(counts, (unsigned long long)r.n);
+    if (used > 0) atomicAdd(counts + 1, used);
+}
+
+// Adds `delta` to the live count of every occupancy block that has vertex `xyz` as a cell corner:
+// blocks b with b*block <= x <= (b+1)*block on every axis.
+__device__ void add_live_vertex(const int32_t* xyz, const LiveBlocks& live, int delta) {
+    int lo[3], hi[3];
+    for (int a = 0; a < 3; ++a) {
+        const int first = (xyz[a] + live.block - 1) / live.block - 1;
+        const int last = xyz[a] / live.block;
+        lo[a] = first > 0 ? first : 0;
+        hi[a] = last < live.nblocks[a] - 1 ? last : live.nblocks[a] - 1;
+    }
+    for (int x = lo[0]; x <= hi[0]; ++x)
+        for (int y = lo[1]; y <= hi[1]; ++y)
+            for (int z = lo[2]; z <= hi[2]; ++z)
+                atomicAdd(live.counts + ((int64_t)x * live.nblocks[1] + y) * live.nblocks[2] + z, delta);
+}
+
+__global__ void live_count_kernel(const float* __restrict__ data, int stride, int64_t rows, LiveBlocks live) {
+    const int64_t r = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    if (r >= rows || !(data[r * stride] > 0.0f)) return;
+    add_live_vertex(live.coords + 3 * r, live, 1);
+}
+
+__global__ void live_flags_kernel(LiveBlocks live, int64_t count) {
+    const int64_t b = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    if (b < count) live.blocks[b] = live.counts[b] > 0;
+}
+
 __global__ void tv_kernel(TVArgs a, double* __restrict__ loss_out, float* __restrict__ grad,
                           uint8_t* __restrict__ mask) {
     const int64_t m = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
@@ -281,18 +322,24 @@ __global__ void tv_kernel(TVArgs a, double* __restrict__ loss_out, float* __rest
     loss_out[m] = loss;
 }
 
-__global__ void rmsprop_kernel(RMSPropArgs a) {
+__global__ void rmsprop_kernel(RMSPropArgs a, LiveBlocks live) {
     const int64_t i = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
     if (i >= a.count * a.columns) return;
     const int64_t j = i / a.columns;
     const int k = (int)(i - j * a.columns);
-    const int64_t at = (int64_t)a.rows[j] * a.stride + k;
+    const int64_t row = a.rows[j];
+    const int64_t at = row * a.stride + k;
+    const float before = a.data[at];
     const float gk = a.grad_data[at];
     const float vk = a.beta * a.second_moment[at] + (1.0f - a.beta) * gk * gk;
     a.second_moment[at] = vk;
-    a.data[at] -= (k == 0 ? a.lr_density : a.lr_sh) * gk / (sqrtf(vk) + a.eps);
+    const float after = before - (k == 0 ? a.lr_density : a.lr_sh) * gk / (sqrtf(vk) + a.eps);
+    a.data[at] = after;
     a.grad_data[at] = 0.0f;
-    if (k == 0) a.grad_mask[a.rows[j]] = 0;
+    if (k != 0) return;
+    a.grad_mask[row] = 0;
+    const bool was_live = before > 0.0f, is_live = after > 0.0f;
+    if (live.coords && was_live != is_live) add_live_vertex(live.coords + 3 * row, live, is_live ? 1 : -1);
 }
 
 __global__ void cell_occupancy_kernel(const int32_t* __restrict__ links, int rx, int ry, int rz,
@@ -367,6 +414,31 @@ cudaError_t max_weights(const Grid& grid, const March& march, const Rays& rays, 
     return cudaGetLastError();
 }
 
+cudaError_t sample_counts(const Grid& grid, const March& march, const Rays& rays, unsigned long long* counts,
+                          cudaStream_t stream) {
+    if (rays.count == 0) return cudaSuccess;
+    sample_counts_kernel<<<blocks_for(rays.count), kThreads, 0, stream>>>(grid, march, rays, counts);
+    return cudaGetLastError();
+}
+
+// Flags from counts over every block: exact whatever order the count updates ran in.
+static cudaError_t write_live_flags(const LiveBlocks& live, cudaStream_t stream) {
+    const int64_t count = (int64_t)live.nblocks[0] * live.nblocks[1] * live.nblocks[2];
+    if (count == 0) return cudaSuccess;
+    live_flags_kernel<<<blocks_for(count), kThreads, 0, stream>>>(live, count);
+    return cudaGetLastError();
+}
+
+cudaError_t count_live_blocks(const float* data, int stride, int64_t rows, const LiveBlocks& live,
+                              cudaStream_t stream) {
+    const int64_t count = (int64_t)live.nblocks[0] * live.nblocks[1] * live.nblocks[2];
+    cudaError_t err = cudaMemsetAsync(live.counts, 0, count * sizeof(int32_t), stream);
+    if (err != cudaSuccess) return err;
+    if (rows > 0) live_count_kernel<<<blocks_for(rows), kThreads, 0, stream>>>(data, stride, rows, live);
+    err = cudaGetLastError();
+    return err != cudaSuccess ? err : write_live_flags(live, stream);
+}
+
 cudaError_t tv_loss_and_grad(const TVArgs& args, double* loss_per_sample, float* grad_data, uint8_t* grad_mask,
                              cudaStream_t stream) {
     if (args.count == 0) return cudaSuccess;
@@ -374,11 +446,12 @@ cudaError_t tv_loss_and_grad(const TVArgs& args, double* loss_per_sample, float*
     return cudaGetLastError();
 }
 
-cudaError_t rmsprop_step(const RMSPropArgs& args, cudaStream_t stream) {
+cudaError_t rmsprop_step(const RMSPropArgs& args, const LiveBlocks& live, cudaStream_t stream) {
     const int64_t n = args.count * args.columns;
     if (n == 0) return cudaSuccess;
-    rmsprop_kernel<<<blocks_for(n), kThreads, 0, stream>>>(args);
-    return cudaGetLastError();
+    rmsprop_kernel<<<blocks_for(n), kThreads, 0, stream>>>(args, live);
+    const cudaError_t err = cudaGetLastError();
+    return err != cudaSuccess || !live.coords ? err : write_live_flags(live, stream);
 }
 
 cudaError_t build_occupancy(const int32_t* links, const int res[3], int block, uint8_t* cells, uint8_t* blocks,

@@ -71,9 +71,10 @@ class CudaCore:
         "render": ((8, 9, 10), False),
         "loss_and_grad": ((8, 9, 10, 11), True),
         "max_weights": ((8, 9), False),
+        "sample_counts": ((8, 9), False),
         "tv_loss_and_grad": ((2, 3), True),
-        "rmsprop_step": ((), False),
         "build_occupancy": ((), False),
+        "count_live_blocks": ((), False),
         "row_coords": ((), False),
     }
     _SCRATCH_ARGS = {"loss_and_grad": 22, "tv_loss_and_grad": 12}
@@ -90,6 +91,13 @@ class CudaCore:
     def ThreadGrads(rows: int, stride: int) -> None:  # noqa: N802  (mirrors the CPU class name)
         """No per-thread buffers on the GPU."""
         return None
+
+    def rmsprop_step(self, *args, live=None):
+        """As the CPU's: `live` = (coords, block, counts, blocks) keeps the live-block counts in step."""
+        if len(args) == 12:
+            *args, live = args
+        coords, block, counts, blocks = live if live is not None else (None, 0, None, None)
+        return self._ops.rmsprop_step(*args, coords, block, counts, blocks)
 
     def __getattr__(self, name):
         if name.startswith("_"):

@@ -298,6 +298,63 @@ def test_rmsprop_matches_cpu():
     assert int(results["cuda"][3].sum()) == 0 and float(results["cuda"][2].abs().sum()) == 0.0
 
 
+@needs_gpu
+def test_sample_counts_match_cpu():
+    C, G = _native()
+    links, data = _grid(1)
+    origins, dirs = _all_rays()
+    cells, blocks = C.build_occupancy(links, BLOCK)
+    args = [data, links, cells, blocks, BLOCK, BMIN, BMAX, 1, origins, dirs, *_march_args(MARCH)]
+    cpu = C.sample_counts(*args)
+    gpu = G.sample_counts(*_cuda(args))
+    assert cpu[0] > cpu[1] > 0
+    assert gpu[0] == cpu[0]
+    assert gpu[1] == pytest.approx(cpu[1], rel=1e-4)
+
+
+def _live_state(links, data, block):
+    import plenoxels._C as C
+
+    coords = C.row_coords(links, data.shape[0])
+    shape = [-(-(r - 1) // block) for r in links.shape]
+    return coords, torch.zeros(shape, dtype=torch.int32), torch.zeros(shape, dtype=torch.uint8)
+
+
+@needs_gpu
+def test_live_blocks_match_cpu_and_follow_rmsprop():
+    C, G = _native()
+    links, data = _grid(1, fill=0.3, res=(21, 17, 19))
+    coords, counts, flags = _live_state(links, data, BLOCK)
+    C.count_live_blocks(data, coords, BLOCK, counts, flags)
+    gpu_args = _cuda([data, coords, BLOCK, counts.clone(), flags.clone()])
+    G.count_live_blocks(*gpu_args)
+    assert torch.equal(gpu_args[3].cpu(), counts) and torch.equal(gpu_args[4].cpu(), flags)
+    assert 0 < int(flags.sum()) < flags.numel()
+    # A step that flips the sign of many densities keeps counts and flags in step on both devices.
+    n, stride = data.shape
+    gen = torch.Generator().manual_seed(3)
+    grad = torch.zeros(n, stride)
+    grad[:, 0] = torch.randn(n, generator=gen) * 10
+    rows = torch.randperm(n, generator=gen).to(torch.int32)
+    mask = torch.ones(n, dtype=torch.uint8)
+    state = {}
+    for name in ("cpu", "cuda"):
+        tensors = [data.clone(), torch.zeros(n, stride), grad.clone(), mask.clone(), rows.clone()]
+        live = [coords, counts.clone(), flags.clone()]
+        if name == "cpu":
+            C.rmsprop_step(*tensors, n, 4, 2.0, 0.01, 0.9, 1e-8, live=(live[0], BLOCK, live[1], live[2]))
+        else:
+            tensors, live = _cuda(tensors), _cuda(live)
+            G.rmsprop_step(*tensors, n, 4, 2.0, 0.01, 0.9, 1e-8, live[0], BLOCK, live[1], live[2])
+        state[name] = [t.cpu() for t in (tensors[0], live[1], live[2])]
+    _close(state["cuda"][0], state["cpu"][0], rtol=1e-5, atol=1e-6)
+    assert not torch.equal(state["cpu"][1], counts), "the step should change some counts"
+    assert torch.equal(state["cuda"][1], state["cpu"][1]) and torch.equal(state["cuda"][2], state["cpu"][2])
+    recount = _live_state(links, state["cpu"][0], BLOCK)
+    C.count_live_blocks(state["cpu"][0], *recount[:1], BLOCK, *recount[1:])
+    assert torch.equal(state["cuda"][1], recount[1]) and torch.equal(state["cuda"][2], recount[2])
+
+
 # ---- numerical extremes on CUDA -----------------------------------------------------------------
 def _all_rays():
     origins, dirs = _rays(500, seed=11)
