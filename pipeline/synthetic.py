@@ -25,6 +25,7 @@ Written to disk by `write_scene`:
 from __future__ import annotations
 
 import colorsys
+import functools
 import math
 import os
 import shutil
@@ -57,17 +58,32 @@ class Texture:
     base: tuple[float, float, float]      # the two colours of the hard-edged patches
     patch: tuple[float, float, float]
     spot: tuple[float, float, float]      # the colour of the small round spots
+    # When set, the pattern grows with the square root of the distance from this point beyond
+    # zoom_radius, so an endless ground keeps features that are not much smaller than a pixel
+    # instead of turning into aliased noise towards the horizon.
+    zoom_centre: tuple[float, float, float] | None = None
+    zoom_radius: float = 1.0
 
     def albedo(self, points: np.ndarray) -> np.ndarray:
         """Reflectance [N,3] in [0,1] at world points [N,3]."""
-        p = points * self.frequency
-        patches = _smoothstep(0.46, 0.54, _value_noise(p * 0.8, self.seed)[:, 0])[:, None]
-        colour = (1 - patches) * np.asarray(self.base) + patches * np.asarray(self.patch)
-        for octave, weight in enumerate((0.45, 0.35, 0.28, 0.22)):
-            colour = colour + weight * (_value_noise(p * 2.0 ** octave, self.seed + 1 + octave) - 0.5)
-        spots = _smoothstep(0.74, 0.8, _value_noise(p * 3.0, self.seed + 9)[:, 0])[:, None]
-        colour = (1 - spots) * colour + spots * np.asarray(self.spot)
-        return np.clip(colour, 0.03, 0.97)
+        if self.zoom_centre is not None:
+            offset = points - np.asarray(self.zoom_centre)
+            distance = np.linalg.norm(offset, axis=1, keepdims=True)
+            points = offset * np.sqrt(self.zoom_radius / (self.zoom_radius + distance))
+        p = (points * self.frequency).astype(np.float32)
+        table = _noise_table(self.seed)
+        # Octaves 2.1x apart (not 2x) so their periods never line up and the sum does not repeat.
+        octaves = [_value_noise(p * np.float32(2.1 ** n) + np.float32(17.3 * n), table) for n in range(4)]
+        patches = _smoothstep(0.46, 0.54, octaves[0][:, 3:])
+        colour = (1 - patches) * np.asarray(self.base, np.float32) + patches * np.asarray(self.patch, np.float32)
+        for noise, weight in zip(octaves, (0.45, 0.35, 0.28, 0.22)):
+            colour += np.float32(weight) * (noise[:, :3] - np.float32(0.5))
+        # Grey detail in the finer octaves: SIFT sees only brightness, which colour noise barely changes.
+        for noise in octaves[1::2]:
+            colour += np.float32(0.4) * (noise[:, 3:] - np.float32(0.5))
+        spots = _smoothstep(0.7, 0.76, octaves[2][:, 3:])
+        colour = (1 - spots) * colour + spots * np.asarray(self.spot, np.float32)
+        return np.clip(colour, 0.03, 0.97).astype(np.float64)
 
 
 @dataclass(frozen=True)
@@ -115,14 +131,22 @@ class Box:
 
     def intersect(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         rot, h = self.rotation(), np.asarray(self.half_extents)
+        t = np.full(len(dirs), np.inf)
+        # Only rays that pass through the bounding sphere can hit; a box covers few pixels.
+        candidates = np.flatnonzero(np.isfinite(Sphere(self.centre, float(np.linalg.norm(h)), self.texture)
+                                                .intersect(origin, dirs)))
         o = rot.T @ (origin - np.asarray(self.centre))
-        d = dirs @ rot
+        d = dirs[candidates] @ rot
+        t_enter = np.full(len(candidates), -np.inf)
+        t_exit = np.full(len(candidates), np.inf)
         with np.errstate(divide="ignore", invalid="ignore"):
-            t1, t2 = (-h - o) / d, (h - o) / d
-        t_enter = np.minimum(t1, t2).max(axis=1)
-        t_exit = np.maximum(t1, t2).min(axis=1)
-        t = np.where(t_enter > MIN_HIT_DISTANCE, t_enter, t_exit)
-        return np.where((t_exit >= t_enter) & (t > MIN_HIT_DISTANCE), t, np.inf)
+            for axis in range(3):
+                t1, t2 = (-h[axis] - o[axis]) / d[:, axis], (h[axis] - o[axis]) / d[:, axis]
+                t_enter = np.maximum(t_enter, np.minimum(t1, t2))
+                t_exit = np.minimum(t_exit, np.maximum(t1, t2))
+        t_hit = np.where(t_enter > MIN_HIT_DISTANCE, t_enter, t_exit)
+        t[candidates] = np.where((t_exit >= t_enter) & (t_hit > MIN_HIT_DISTANCE), t_hit, np.inf)
+        return t
 
     def normals(self, points: np.ndarray) -> np.ndarray:
         rot, h = self.rotation(), np.asarray(self.half_extents)
@@ -225,28 +249,30 @@ def _render_float(scene: SceneSpec, c2w: np.ndarray, k: Intrinsics, supersample:
     c2w = np.asarray(c2w, dtype=np.float64)
     origin, rot = c2w[:3, 3], c2w[:3, :3]
     # Camera-space directions have z = -1, so the ray parameter t is the depth along the viewing axis.
-    centre_dirs = pixel_directions(k, torch.float64).numpy().reshape(-1, 3) @ rot.T
-    depth, _ = trace(scene, origin, centre_dirs)
+    centre = _camera_directions(k)
+    depth, _ = trace(scene, origin, centre @ rot.T)
 
-    colour = np.zeros((k.h * k.w, 3))
-    coverage = np.zeros(k.h * k.w)
+    # Sub-pixel offsets (dx, dy) in pixels shift the camera-space direction by (dx / fl_x, -dy / fl_y, 0).
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
-    foreground = np.array([s.foreground for s in scene.shapes])
-    for dy in offsets:
-        for dx in offsets:
-            # A principal point moved by -offset puts the rays through (i + 0.5 + dx, j + 0.5 + dy).
-            shifted = Intrinsics(k.fl_x, k.fl_y, k.cx - dx, k.cy - dy, k.w, k.h)
-            dirs = pixel_directions(shifted, torch.float64).numpy().reshape(-1, 3) @ rot.T
-            t, index = trace(scene, origin, dirs)
-            sample = np.broadcast_to(np.asarray(scene.background), colour.shape).copy()
-            for s, shape in enumerate(scene.shapes):
-                hit = index == s
-                if hit.any():
-                    sample[hit] = surface_colour(scene, shape, origin + t[hit, None] * dirs[hit])
-            colour += sample
-            coverage += (index >= 0) & foreground[np.maximum(index, 0)]
-    n = supersample * supersample
-    return (colour / n).reshape(k.h, k.w, 3), depth.reshape(k.h, k.w), (coverage / n).reshape(k.h, k.w)
+    shifts = np.array([(dx / k.fl_x, -dy / k.fl_y, 0.0) for dy in offsets for dx in offsets])
+    dirs = ((centre[None] + shifts[:, None]) @ rot.T).reshape(-1, 3)
+    t, index = trace(scene, origin, dirs)
+    colour = np.broadcast_to(np.asarray(scene.background), dirs.shape).copy()
+    for s, shape in enumerate(scene.shapes):
+        hit = index == s
+        if hit.any():
+            colour[hit] = surface_colour(scene, shape, origin + t[hit, None] * dirs[hit])
+    # The trailing False is what a miss (index -1) picks.
+    foreground = np.array([s.foreground for s in scene.shapes] + [False])
+    rgb = colour.reshape(len(shifts), k.h, k.w, 3).mean(axis=0)
+    alpha = foreground[index].reshape(len(shifts), k.h, k.w).mean(axis=0)
+    return rgb, depth.reshape(k.h, k.w), alpha
+
+
+@functools.lru_cache(maxsize=8)
+def _camera_directions(k: Intrinsics) -> np.ndarray:
+    """[h*w,3] camera-space directions through the pixel centres, z = -1."""
+    return pixel_directions(k, torch.float64).numpy().reshape(-1, 3)
 
 
 def _to_uint8(values: np.ndarray) -> np.ndarray:
@@ -270,7 +296,8 @@ def build_scene(kind: str, seed: int = 0) -> SceneSpec:
         if kind == "unbounded":
             ground_z = float(OBJECT_CENTRE[2] - 0.5)
             shapes += [
-                Plane((0.0, 0.0, ground_z), (0.0, 0.0, 1.0), _texture(rng, 1.5)),
+                Plane((0.0, 0.0, ground_z), (0.0, 0.0, 1.0),
+                      _texture(rng, 4.0, zoom_centre=tuple(OBJECT_CENTRE), zoom_radius=2.0)),
                 Sphere(tuple(OBJECT_CENTRE), ENVIRONMENT_RADIUS, _texture(rng, 0.4),
                        foreground=False, inward=True, shaded=False),
             ]
@@ -287,7 +314,7 @@ def _still_life(rng: np.random.Generator, with_slab: bool) -> list[Shape]:
     c, s = math.cos(spin), math.sin(spin)
     shapes: list[Shape] = []
     if with_slab:
-        shapes.append(Box((cx, cy, floor - 0.06), (1.05, 0.9, 0.06), spin, _texture(rng, 2.0)))
+        shapes.append(Box((cx, cy, floor - 0.06), (1.05, 0.9, 0.06), spin, _texture(rng, 3.0)))
     # The corners of a 0.84-unit square on the slab, in order around it; every piece fits within
     # 0.4 of its corner, so neighbours (0.84 apart) keep a gap.
     corners = [(0.42, 0.42), (-0.42, 0.42), (-0.42, -0.42), (0.42, -0.42)]
@@ -297,10 +324,10 @@ def _still_life(rng: np.random.Generator, with_slab: bool) -> list[Shape]:
     box_a = (rng.uniform(0.22, 0.28), rng.uniform(0.2, 0.24), rng.uniform(0.4, 0.55))
     box_b = (rng.uniform(0.16, 0.2), rng.uniform(0.16, 0.2), rng.uniform(0.15, 0.22))
     shapes += [
-        Sphere((x0, y0, floor + big_r), big_r, _texture(rng, 2.5)),
-        Box((x1, y1, floor + box_a[2]), box_a, rng.uniform(0, math.pi), _texture(rng, 2.5)),
-        Sphere((x2, y2, floor + small_r), small_r, _texture(rng, 3.0)),
-        Box((x3, y3, floor + box_b[2]), box_b, rng.uniform(0, math.pi), _texture(rng, 3.0)),
+        Sphere((x0, y0, floor + big_r), big_r, _texture(rng, 4.0)),
+        Box((x1, y1, floor + box_a[2]), box_a, rng.uniform(0, math.pi), _texture(rng, 4.0)),
+        Sphere((x2, y2, floor + small_r), small_r, _texture(rng, 4.5)),
+        Box((x3, y3, floor + box_b[2]), box_b, rng.uniform(0, math.pi), _texture(rng, 4.5)),
     ]
     return shapes
 
@@ -334,13 +361,13 @@ def _forward_shapes(rng: np.random.Generator) -> list[Shape]:
     return shapes
 
 
-def _texture(rng: np.random.Generator, frequency: float) -> Texture:
+def _texture(rng: np.random.Generator, frequency: float, **zoom) -> Texture:
     """Random, contrasting colours: a light base, a darker patch colour of another hue, and bright or dark spots."""
     hue = rng.uniform()
     base = colorsys.hsv_to_rgb(hue, rng.uniform(0.35, 0.8), rng.uniform(0.65, 0.9))
     patch = colorsys.hsv_to_rgb((hue + rng.uniform(0.3, 0.7)) % 1.0, rng.uniform(0.4, 0.9), rng.uniform(0.2, 0.45))
     spot = colorsys.hsv_to_rgb(rng.uniform(), rng.uniform(0.0, 0.6), rng.choice([0.08, 0.97]))
-    return Texture(int(rng.integers(0, 2 ** 31)), frequency, base, patch, spot)
+    return Texture(int(rng.integers(0, 2 ** 31)), frequency, base, patch, spot, **zoom)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -356,7 +383,7 @@ def camera_poses(scene: SceneSpec, n_views: int) -> np.ndarray:
     # A two-turn spiral up the upper hemisphere: neighbours are 720/n degrees apart, and each
     # azimuth is seen from two elevations.
     s = (np.arange(n_views) + 0.5) / n_views
-    low, high, radius = (12.0, 65.0, 4.2) if scene.kind == "object" else (6.0, 40.0, 4.0)
+    low, high, radius = (12.0, 65.0, 3.6) if scene.kind == "object" else (6.0, 40.0, 3.5)
     azimuth = rng.uniform(0, 2 * math.pi) + 4 * math.pi * s
     elevation = np.radians(low + (high - low) * s)
     offsets = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], -1)
@@ -469,7 +496,7 @@ def _depth_range(depth: np.ndarray, k: Intrinsics) -> dict:
     hit = np.isfinite(depth)
     if not hit.any():
         return {"near_depth": None, "far_depth": None, "near_distance": None, "far_distance": None}
-    ray_length = np.linalg.norm(pixel_directions(k, torch.float64).numpy(), axis=-1)
+    ray_length = np.linalg.norm(_camera_directions(k), axis=-1).reshape(depth.shape)
     distance = depth[hit] * ray_length[hit]
     return {"near_depth": float(depth[hit].min()), "far_depth": float(depth[hit].max()),
             "near_distance": float(distance.min()), "far_distance": float(distance.max())}
@@ -507,33 +534,33 @@ def _smoothstep(lo: float, hi: float, x: np.ndarray) -> np.ndarray:
     return x * x * (3 - 2 * x)
 
 
-def _hash(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, seed: int) -> np.ndarray:
-    """A well-mixed uint32 per integer lattice point: no table, so the noise never repeats."""
-    mask = 0xFFFFFFFF
-    h = (ix * 0x8DA6B343 ^ iy * 0xD8163841 ^ iz * 0xCB1AB31F ^ (seed & mask)) & mask
-    h = h.astype(np.uint32)
-    h ^= h >> np.uint32(16)
-    h *= np.uint32(0x7FEB352D)
-    h ^= h >> np.uint32(15)
-    h *= np.uint32(0x846CA68B)
-    h ^= h >> np.uint32(16)
-    return h
+NOISE_PERIOD = 64   # lattice cells per axis of a noise table (a power of two, for the wrap-around mask)
 
 
-def _value_noise(p: np.ndarray, seed: int) -> np.ndarray:
-    """Three independent channels [N,3] in [0,1] of smooth value noise with one cell per unit of p."""
+@functools.lru_cache(maxsize=64)
+def _noise_table(seed: int) -> np.ndarray:
+    """Random bytes at the lattice points of a NOISE_PERIOD^3 cube, four channels each, flattened."""
+    return np.random.default_rng(seed).integers(0, 256, (NOISE_PERIOD ** 3, 4), dtype=np.uint8)
+
+
+def _value_noise(p: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """Four channels [N,4] in [0,1] of smooth value noise at float32 points [N,3], one cell per unit."""
     cell = np.floor(p)
     f = p - cell
     w = f * f * (3 - 2 * f)
-    ix, iy, iz = cell.astype(np.int64).T
-    out = np.zeros_like(p)
-    for dx in (0, 1):
-        wx = w[:, 0] if dx else 1 - w[:, 0]
-        for dy in (0, 1):
-            wy = wx * (w[:, 1] if dy else 1 - w[:, 1])
-            for dz in (0, 1):
-                weight = wy * (w[:, 2] if dz else 1 - w[:, 2])
-                h = _hash(ix + dx, iy + dy, iz + dz, seed)
-                rgb = np.stack([h & 0xFF, (h >> 8) & 0xFF, (h >> 16) & 0xFF], axis=-1)
-                out += weight[:, None] * rgb
-    return out / 255.0
+    ic = cell.astype(np.int64)
+    wrap = NOISE_PERIOD - 1
+    xs = [((ic[:, 0] + d) & wrap) * NOISE_PERIOD ** 2 for d in (0, 1)]
+    ys = [((ic[:, 1] + d) & wrap) * NOISE_PERIOD for d in (0, 1)]
+    zs = [(ic[:, 2] + d) & wrap for d in (0, 1)]
+
+    def corner(dx: int, dy: int, dz: int) -> np.ndarray:
+        return np.take(table, xs[dx] + ys[dy] + zs[dz], axis=0).astype(np.float32)
+
+    def lerp(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return a + (b - a) * t
+
+    wx, wy, wz = w[:, 0:1], w[:, 1:2], w[:, 2:3]
+    near = lerp(lerp(corner(0, 0, 0), corner(1, 0, 0), wx), lerp(corner(0, 1, 0), corner(1, 1, 0), wx), wy)
+    far = lerp(lerp(corner(0, 0, 1), corner(1, 0, 1), wx), lerp(corner(0, 1, 1), corner(1, 1, 1), wx), wy)
+    return lerp(near, far, wz) * np.float32(1 / 255)
