@@ -411,6 +411,30 @@ void max_weights_impl(const GridView& g, const MarchOptions& opt, const float* o
     }
 }
 
+template <int D>
+void sample_counts_impl(const GridView& g, const MarchOptions& opt, const float* origins, const float* dirs, int64_t B,
+                        int64_t* lattice, int64_t* used) {
+    constexpr int K = (D + 1) * (D + 1);
+    constexpr int S = padded_stride(1 + 3 * K);
+    int64_t lattice_total = 0, used_total = 0;
+#pragma omp parallel reduction(+ : lattice_total, used_total)
+    {
+        alignas(64) float interp[S];
+#pragma omp for schedule(dynamic, 16)
+        for (int64_t b = 0; b < B; ++b) {
+            Ray r;
+            setup_ray(g, origins + 3 * b, dirs + 3 * b, opt, &r);
+            lattice_total += r.n;
+            march<S>(g, r, opt, interp, [&](Sample& s, const float*) {
+                ++used_total;
+                return s.t_before * s.transmittance_factor;
+            });
+        }
+    }
+    *lattice = lattice_total;
+    *used = used_total;
+}
+
 using torch::Tensor;
 
 MarchOptions make_options(double step, double stop_transmittance, double near, double sigma_threshold,
@@ -508,6 +532,63 @@ Tensor max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ,
     PLX_DISPATCH_DEGREE(degree, max_weights_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
                                                     origins.size(0), out.data_ptr<float>()));
     return out;
+}
+
+// (samples on the rays' lattices inside the box, samples that contributed): for benchmarks and reports.
+std::tuple<int64_t, int64_t> sample_counts(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
+                                           std::vector<double> bmin, std::vector<double> bmax, int64_t degree,
+                                           Tensor origins, Tensor dirs, double step, double stop_transmittance,
+                                           double near, double sigma_threshold, int64_t max_samples) {
+    check_grid(data, links, cell_occ, block_occ, (int)degree);
+    check_rays(origins, dirs);
+    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
+    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples);
+    int64_t lattice = 0, used = 0;
+    PLX_DISPATCH_DEGREE(degree, sample_counts_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
+                                                      origins.size(0), &lattice, &used));
+    return {lattice, used};
+}
+
+// Range of occupancy blocks whose cells have vertex coordinate x as a corner: b*block <= x <= (b+1)*block.
+inline void blocks_of_vertex(int x, int block, int nblocks, int* first, int* last) {
+    *first = std::max((x + block - 1) / block - 1, 0);
+    *last = std::min(x / block, nblocks - 1);
+}
+
+// Adds `delta` to the live-vertex count of every block that has vertex `xyz` as a cell corner, and
+// keeps `blocks` (count > 0) in step. Counts change atomically; the flag is rewritten from the count.
+inline void add_live_vertex(const int32_t* xyz, int block, const int nb[3], int32_t* counts, uint8_t* blocks,
+                            int delta) {
+    int lo[3], hi[3];
+    for (int a = 0; a < 3; ++a) blocks_of_vertex(xyz[a], block, nb[a], &lo[a], &hi[a]);
+    for (int x = lo[0]; x <= hi[0]; ++x)
+        for (int y = lo[1]; y <= hi[1]; ++y)
+            for (int z = lo[2]; z <= hi[2]; ++z) {
+                const int64_t b = ((int64_t)x * nb[1] + y) * nb[2] + z;
+                const int32_t now = __atomic_add_fetch(counts + b, delta, __ATOMIC_RELAXED);
+                __atomic_store_n(blocks + b, (uint8_t)(now > 0), __ATOMIC_RELAXED);
+            }
+}
+
+// Live-vertex counts per block from scratch: a vertex is live when its raw density is > 0. A block
+// with no live vertex can hold no sample with density > 0 (interpolation is a convex combination
+// and empty corners count as 0), so the march skips it whatever sigma_threshold (>= 0) is.
+void count_live_blocks(Tensor data, Tensor coords, int64_t block, Tensor counts, Tensor blocks) {
+    check_float_rows(data, "data");
+    TORCH_CHECK(coords.scalar_type() == torch::kInt32 && coords.is_contiguous(), "coords must be int32 [N,3]");
+    TORCH_CHECK(counts.scalar_type() == torch::kInt32 && counts.is_contiguous() && counts.dim() == 3, "counts must be int32 3-D");
+    TORCH_CHECK(blocks.scalar_type() == torch::kUInt8 && blocks.is_contiguous() && blocks.sizes() == counts.sizes(), "blocks must be uint8 like counts");
+    counts.zero_();
+    blocks.zero_();
+    const int64_t n = data.size(0), S = data.size(1);
+    const int nb[3] = {(int)counts.size(0), (int)counts.size(1), (int)counts.size(2)};
+    const float* d = data.data_ptr<float>();
+    const int32_t* xyz = coords.data_ptr<int32_t>();
+    int32_t* c = counts.data_ptr<int32_t>();
+    uint8_t* bl = blocks.data_ptr<uint8_t>();
+#pragma omp parallel for schedule(static)
+    for (int64_t r = 0; r < n; ++r)
+        if (d[r * S] > 0.0f) add_live_vertex(xyz + 3 * r, (int)block, nb, c, bl, 1);
 }
 
 // Occupancy for empty-space skipping: a cell is occupied when any of its corners is allocated, a
@@ -617,8 +698,11 @@ std::tuple<double, int64_t> tv_loss_and_grad(Tensor data, Tensor links, Tensor c
 
 // RMSProp on the touched rows only: v = beta v + (1 - beta) g^2; p -= lr g / (sqrt(v) + eps).
 // Clears the gradient of those rows afterwards. A zero gradient with zero v moves nothing.
+// When `live` = (coords, block, counts, blocks) is given, a row whose density changes sign updates the
+// live-block counts so that empty-space skipping stays exact without a rebuild.
 void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
-                  int64_t num_touched, int64_t columns, double lr_density, double lr_sh, double beta, double eps) {
+                  int64_t num_touched, int64_t columns, double lr_density, double lr_sh, double beta, double eps,
+                  c10::optional<std::tuple<Tensor, int64_t, Tensor, Tensor>> live) {
     check_float_rows(data, "data");
     check_float_rows(second_moment, "second moment");
     check_float_rows(grad_data, "grad data");
@@ -630,10 +714,28 @@ void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor gr
     const int32_t* rows = grad_rows.data_ptr<int32_t>();
     const float b = (float)beta, one_minus_b = (float)(1.0 - beta), e = (float)eps;
     const float lr_d = (float)lr_density, lr_s = (float)lr_sh;
+    const int32_t* xyz = nullptr;
+    int32_t* counts = nullptr;
+    uint8_t* blocks = nullptr;
+    int block = 1, nb[3] = {0, 0, 0};
+    if (live.has_value()) {
+        const Tensor& c = std::get<0>(*live);
+        const Tensor& n = std::get<2>(*live);
+        const Tensor& b = std::get<3>(*live);
+        TORCH_CHECK(c.scalar_type() == torch::kInt32 && c.is_contiguous() && c.size(0) == data.size(0), "coords must be int32 [N,3]");
+        TORCH_CHECK(n.scalar_type() == torch::kInt32 && n.is_contiguous() && n.dim() == 3, "counts must be int32 3-D");
+        TORCH_CHECK(b.scalar_type() == torch::kUInt8 && b.is_contiguous() && b.sizes() == n.sizes(), "blocks must be uint8 like counts");
+        xyz = c.data_ptr<int32_t>();
+        block = (int)std::get<1>(*live);
+        counts = n.data_ptr<int32_t>();
+        blocks = b.data_ptr<uint8_t>();
+        for (int a = 0; a < 3; ++a) nb[a] = (int)n.size(a);
+    }
 #pragma omp parallel for schedule(static)
     for (int64_t j = 0; j < num_touched; ++j) {
         const int64_t row = rows[j];
         float* pr = p + row * S;
+        const bool was_live = pr[0] > 0.0f;
         float* vr = v + row * S;
         float* gr = g + row * S;
         for (int64_t k = 0; k < columns; ++k) {
@@ -644,6 +746,8 @@ void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor gr
             gr[k] = 0.0f;
         }
         mask[row] = 0;
+        const bool is_live = pr[0] > 0.0f;
+        if (counts && is_live != was_live) add_live_vertex(xyz + 3 * row, block, nb, counts, blocks, is_live ? 1 : -1);
     }
 }
 
@@ -676,10 +780,15 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("padded_stride", [](int columns) { return padded_stride(columns); });
     m.def("num_threads", []() { return omp_get_max_threads(); });
     m.def("build_occupancy", &build_occupancy);
+    m.def("count_live_blocks", &count_live_blocks);
     m.def("row_coords", &row_coords);
     m.def("render", &render);
     m.def("loss_and_grad", &loss_and_grad);
     m.def("max_weights", &max_weights);
+    m.def("sample_counts", &sample_counts);
     m.def("tv_loss_and_grad", &tv_loss_and_grad);
-    m.def("rmsprop_step", &rmsprop_step);
+    m.def("rmsprop_step", &rmsprop_step, pybind11::arg("data"), pybind11::arg("second_moment"),
+          pybind11::arg("grad_data"), pybind11::arg("grad_mask"), pybind11::arg("grad_rows"),
+          pybind11::arg("num_touched"), pybind11::arg("columns"), pybind11::arg("lr_density"),
+          pybind11::arg("lr_sh"), pybind11::arg("beta"), pybind11::arg("eps"), pybind11::arg("live") = pybind11::none());
 }

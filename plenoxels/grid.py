@@ -20,7 +20,7 @@ from pipeline.errors import UserError
 
 FORMAT = "voxfield-plenoxels-grid"
 FORMAT_VERSION = 1
-OCCUPANCY_BLOCK = 8  # cells per side of the coarse blocks used to skip empty space
+OCCUPANCY_BLOCK = 4  # cells per side of the coarse blocks used to skip empty space
 
 
 def sh_count(sh_degree: int) -> int:
@@ -60,7 +60,8 @@ class SparseGrid:
             raise ValueError(f"packed data must be [N, {stride}] for SH degree {sh_degree}, got {tuple(data.shape)}")
         self._links = links.to(torch.int32).contiguous()
         self.data = data.to(torch.float32).contiguous()
-        self._occupancy = None
+        self._cells = None
+        self._live = None  # (counts, blocks, (data pointer, data version) they were computed for)
         self._coords = None
 
     # ---- construction -------------------------------------------------------------------------
@@ -114,8 +115,12 @@ class SparseGrid:
     def memory_bytes(self) -> int:
         """Parameters plus the index volume (and the occupancy structure once built)."""
         total = self.data.numel() * 4 + self._links.numel() * 4
-        if self._occupancy is not None:
-            total += sum(t.numel() for t in self._occupancy)
+        if self._cells is not None:
+            total += self._cells.numel()
+        if self._live is not None:
+            total += self._live[0].numel() * 5
+        if self._coords is not None:
+            total += self._coords.numel() * 4
         return total
 
     def world_to_grid(self, points: torch.Tensor) -> torch.Tensor:
@@ -125,13 +130,32 @@ class SparseGrid:
 
     # ---- cached helpers for the kernels -------------------------------------------------------
     def occupancy(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(cells, blocks) uint8: cell occupied if any corner is allocated; block of OCCUPANCY_BLOCK^3
-        cells occupied if any cell is. Built once per grid (links never change in place)."""
-        if self._occupancy is None:
+        """(cells, blocks) uint8 for empty-space skipping. A cell is occupied if any corner is
+        allocated (built once: links never change in place). A block of OCCUPANCY_BLOCK^3 cells is
+        live if any of its corner vertices has density > 0; the native optimiser step keeps the
+        counts behind this current, and any other in-place change of `data` (seen through the
+        tensor's version counter) makes the next call recount."""
+        from plenoxels.render import native_core
+
+        if self._cells is None:
+            self._cells = native_core(self._links.device).build_occupancy(self._links, OCCUPANCY_BLOCK)[0]
+        return self._cells, self.live_blocks()[1]
+
+    def live_blocks(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(counts int32, blocks uint8) of live vertices per occupancy block, recounted if stale."""
+        if not self.live_blocks_current():
             from plenoxels.render import native_core
 
-            self._occupancy = tuple(native_core().build_occupancy(self._links, OCCUPANCY_BLOCK))
-        return self._occupancy
+            shape = tuple(-(-(r - 1) // OCCUPANCY_BLOCK) for r in self.resolution)
+            counts = torch.zeros(shape, dtype=torch.int32, device=self.data.device)
+            blocks = torch.zeros(shape, dtype=torch.uint8, device=self.data.device)
+            native_core(self.data.device).count_live_blocks(self.data, self.coords(), OCCUPANCY_BLOCK, counts, blocks)
+            self._live = (counts, blocks, (self.data.data_ptr(), self.data._version))
+        return self._live[0], self._live[1]
+
+    def live_blocks_current(self) -> bool:
+        """True when live-block counts exist and match `data` (the optimiser then keeps them current)."""
+        return self._live is not None and self._live[2] == (self.data.data_ptr(), self.data._version)
 
     def coords(self) -> torch.Tensor:
         """int32 [N, 3]: the vertex (x, y, z) of each row."""
@@ -140,7 +164,7 @@ class SparseGrid:
             rows = self._links.reshape(-1)[occupied].long()
             ry, rz = self.resolution[1], self.resolution[2]
             xyz = torch.stack([occupied // (ry * rz), (occupied // rz) % ry, occupied % rz], dim=1)
-            coords = torch.full((self.num_occupied, 3), -1, dtype=torch.int32)
+            coords = torch.full((self.num_occupied, 3), -1, dtype=torch.int32, device=self._links.device)
             coords[rows] = xyz.to(torch.int32)
             self._coords = coords
         return self._coords
@@ -159,14 +183,21 @@ class SparseGrid:
         return values[:, 0], values[:, 1 : 1 + 3 * sh_count(self.sh_degree)]
 
     # ---- structure changes (each returns a new grid) ------------------------------------------
+    def to(self, device) -> "SparseGrid":
+        """The same grid with its tensors on `device` (CUDA hook: see plenoxels/device.py)."""
+        device = torch.device(device)
+        if self.data.device == device:
+            return self
+        return SparseGrid(self._links.to(device), self.data.to(device), self.bbox_min, self.bbox_max, self.sh_degree)
+
     def prune(self, keep: torch.Tensor) -> tuple["SparseGrid", torch.Tensor]:
         """Keeps rows where `keep` is true; returns the new grid and, for each new row, its old row."""
-        keep = keep.to(torch.bool).reshape(-1)
+        keep = keep.to(device=self._links.device, dtype=torch.bool).reshape(-1)
         if keep.shape[0] != self.num_occupied:
             raise ValueError(f"keep must have one entry per occupied vertex ({self.num_occupied}), got {keep.shape[0]}")
         old_rows = torch.nonzero(keep).squeeze(1)
-        new_index = torch.full((self.num_occupied,), -1, dtype=torch.int32)
-        new_index[old_rows] = torch.arange(old_rows.shape[0], dtype=torch.int32)
+        new_index = torch.full((self.num_occupied,), -1, dtype=torch.int32, device=self._links.device)
+        new_index[old_rows] = torch.arange(old_rows.shape[0], dtype=torch.int32, device=self._links.device)
         flat = self._links.reshape(-1)
         occupied = flat >= 0
         links = torch.full_like(flat, -1)
@@ -176,10 +207,10 @@ class SparseGrid:
 
     def dilate(self, keep: torch.Tensor, radius: int = 1) -> torch.Tensor:
         """Grows a per-row keep mask to every allocated vertex within `radius` voxels (Chebyshev)."""
-        keep = keep.to(torch.bool).reshape(-1)
+        keep = keep.to(device=self._links.device, dtype=torch.bool).reshape(-1)
         if radius <= 0:
             return keep.clone()
-        volume = torch.zeros(self.resolution, dtype=torch.float32)
+        volume = torch.zeros(self.resolution, dtype=torch.float32, device=self._links.device)
         xyz = self.coords().long()
         kept = xyz[keep]
         volume[kept[:, 0], kept[:, 1], kept[:, 2]] = 1.0
@@ -196,6 +227,9 @@ class SparseGrid:
         from there.
         """
         res = _check_resolution(resolution)
+        if self.data.device.type != "cpu":  # CUDA hook: resampled on the CPU, returned on the grid's device
+            grid, old_rows = self.to("cpu").upsample(res, chunk_points)
+            return grid.to(self.data.device), old_rows.to(self.data.device)
         old = torch.tensor(self.resolution, dtype=torch.float64)
         ratio = (old - 1) / (torch.tensor(res, dtype=torch.float64) - 1)
         alive = (self._links >= 0).to(torch.float32)[None, None]

@@ -18,8 +18,8 @@ class GridGrad:
         n = grid.num_occupied
         self.sh_degree = grid.sh_degree
         self.data = torch.zeros_like(grid.data)
-        self.touched_mask = torch.zeros(n, dtype=torch.uint8)
-        self.touched_rows = torch.zeros(n, dtype=torch.int32)
+        self.touched_mask = torch.zeros(n, dtype=torch.uint8, device=grid.data.device)
+        self.touched_rows = torch.zeros(n, dtype=torch.int32, device=grid.data.device)
         self.num_touched = 0
         self._thread_buffers = None
 
@@ -40,7 +40,7 @@ class GridGrad:
         if self._thread_buffers is None:
             from plenoxels.render import native_core
 
-            self._thread_buffers = native_core().ThreadGrads(self.data.shape[0], self.data.shape[1])
+            self._thread_buffers = native_core(self.data.device).ThreadGrads(self.data.shape[0], self.data.shape[1])
         return self._thread_buffers
 
     def accumulate(self, rows: torch.Tensor, density: torch.Tensor, sh: torch.Tensor) -> None:
@@ -95,10 +95,16 @@ class SparseRMSProp:
             reference.rmsprop_step(self.grid.data, self.second_moment, grad, columns, self.lr_density, self.lr_sh,
                                    self.beta, self.eps)
             return
+        from plenoxels.grid import OCCUPANCY_BLOCK
         from plenoxels.render import native_core
 
-        native_core().rmsprop_step(self.grid.data, self.second_moment, grad.data, grad.touched_mask, grad.touched_rows,
-                                   grad.num_touched, columns, self.lr_density, self.lr_sh, self.beta, self.eps)
+        live = None
+        if self.grid.live_blocks_current():
+            counts, blocks = self.grid.live_blocks()
+            live = (self.grid.coords(), OCCUPANCY_BLOCK, counts, blocks)
+        native_core(self.grid.data.device).rmsprop_step(
+            self.grid.data, self.second_moment, grad.data, grad.touched_mask, grad.touched_rows, grad.num_touched,
+            columns, self.lr_density, self.lr_sh, self.beta, self.eps, live)
         grad.num_touched = 0
 
     def remap(self, new_grid: SparseGrid, old_rows: torch.Tensor) -> None:

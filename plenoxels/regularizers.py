@@ -30,7 +30,7 @@ def tv_loss_and_grad(grid: SparseGrid, grad: GridGrad, weight_density: float, we
         return reference.tv_loss_and_grad(grid, grad, rows, weight_density, weight_sh)
     from plenoxels.render import native_core
 
-    loss, grad.num_touched = native_core().tv_loss_and_grad(
+    loss, grad.num_touched = native_core(grid.data.device).tv_loss_and_grad(
         grid.data, grid.links, grid.coords(), rows, float(weight_density), float(weight_sh), grid.sh_degree,
         grad.data, grad.touched_mask, grad.touched_rows, grad.num_touched, grad.thread_buffers())
     return float(loss)

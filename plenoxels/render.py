@@ -21,9 +21,14 @@ from plenoxels.optim import GridGrad
 _native = None
 
 
-def native_core():
-    """The compiled kernels, or a UserError saying how to build them."""
+def native_core(device: torch.device | None = None):
+    """The compiled kernels, or a UserError saying how to build them. For a CUDA device: the CUDA
+    kernels behind the same interface (plenoxels/device.py)."""
     global _native
+    if device is not None and device.type == "cuda":  # CUDA hook (owner: CUDA core, plenoxels/device.py)
+        from plenoxels.device import cuda_core
+
+        return cuda_core()
     if _native is None:
         try:
             from plenoxels import _C
@@ -120,7 +125,7 @@ def render(grid: SparseGrid, origins, dirs, background=None, opts: RenderOptions
         with torch.no_grad():
             rgb, depth, opacity = reference.render(grid, origins, dirs, background, opts)
         return RenderResult(rgb, depth, opacity)
-    rgb, depth, opacity = native_core().render(*_native_args(grid), origins, dirs, background, *_march_args(opts))
+    rgb, depth, opacity = native_core(grid.data.device).render(*_native_args(grid), origins, dirs, background, *_march_args(opts))
     return RenderResult(rgb, depth, opacity)
 
 
@@ -145,7 +150,7 @@ def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts: Re
         from plenoxels import reference
 
         return reference.loss_and_grad(grid, origins, dirs, targets, background, opts, grad)
-    sse, grad_background, grad.num_touched = native_core().loss_and_grad(
+    sse, grad_background, grad.num_touched = native_core(grid.data.device).loss_and_grad(
         *_native_args(grid), origins, dirs, targets, background, *_march_args(opts), grad.data, grad.touched_mask,
         grad.touched_rows, grad.num_touched, grad.thread_buffers())
     return (sse / (3 * b) if b else 0.0), grad_background
@@ -161,5 +166,13 @@ def max_weights(grid: SparseGrid, origins, dirs, opts: RenderOptions | None = No
         from plenoxels import reference
 
         return reference.max_weights(grid, origins, dirs, opts)
-    out = torch.zeros(grid.num_occupied, dtype=torch.float32)
-    return native_core().max_weights(*_native_args(grid), origins, dirs, *_march_args(opts), out)
+    out = torch.zeros(grid.num_occupied, dtype=torch.float32, device=grid.data.device)
+    return native_core(grid.data.device).max_weights(*_native_args(grid), origins, dirs, *_march_args(opts), out)
+
+
+def sample_counts(grid: SparseGrid, origins, dirs, opts: RenderOptions | None = None) -> tuple[int, int]:
+    """(lattice samples inside the box, samples that contribute) over these rays, from the native core."""
+    opts = (opts or RenderOptions()).check()
+    origins, dirs = _rays(origins, dirs)
+    lattice, used = native_core(grid.data.device).sample_counts(*_native_args(grid), origins, dirs, *_march_args(opts))
+    return int(lattice), int(used)

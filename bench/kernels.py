@@ -1,0 +1,190 @@
+"""Kernel benchmark: forward+backward samples per second, native C++ core vs its PyTorch twin.
+
+SH degree 2 at 128^3 (dense, as the coarse stage starts) and 256^3 (the occupied region only, as
+after pruning), on a synthetic density field, with random-ray batches (random pixels of random
+cameras) and tile batches (32x32-pixel tiles). Samples/s counts the samples that contribute
+(density above threshold, before early termination); marching empty space is part of the time.
+Both backends run in the same process on the same batches; medians of repeats.
+
+    python bench/kernels.py [--repeats 5] [--rays 8192] [--twin-rays 256] [--sizes 128 256]
+
+Writes bench/results/kernels.json and prints a table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from plenoxels import GridGrad, RenderOptions, SparseGrid  # noqa: E402
+from plenoxels.render import loss_and_grad, native_core, sample_counts  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results" / "kernels.json"
+TILE = 32
+IMAGE = 512
+FOCAL = 600.0
+
+
+def synthetic_field(points: torch.Tensor) -> torch.Tensor:
+    """Density of a lumpy object inside [-1, 1]^3: a thick shell plus a few solid blobs."""
+    r = points.norm(dim=-1)
+    shell = torch.exp(-((r - 0.6) / 0.08) ** 2)
+    blobs = torch.zeros_like(r)
+    for centre in ((0.3, 0.2, -0.1), (-0.35, -0.2, 0.25), (0.05, -0.4, -0.3)):
+        blobs = blobs + torch.exp(-((points - torch.tensor(centre)).norm(dim=-1) / 0.15) ** 2)
+    return 60.0 * (shell + blobs) - 3.0
+
+
+def make_grid(resolution: int, sparse: bool, sh_degree: int = 2, seed: int = 0) -> SparseGrid:
+    gen = torch.Generator().manual_seed(seed)
+    grid = SparseGrid.dense((resolution,) * 3, (-1, -1, -1), (1, 1, 1), sh_degree, init_density=0.0)
+    coords = grid.coords().float() / (resolution - 1) * 2 - 1
+    for chunk in torch.split(torch.arange(grid.num_occupied), 1 << 21):
+        grid.density[chunk] = synthetic_field(coords[chunk])
+    grid.sh.copy_(torch.randn(grid.sh.shape, generator=gen) * 0.3)
+    if sparse:
+        grid, _ = grid.prune(grid.dilate(grid.density > 0, radius=2))
+    return grid
+
+
+def camera(gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """A random camera on a sphere of radius 3 looking at the origin: (centre, 3x3 rotation)."""
+    v = torch.randn(3, generator=gen)
+    centre = v / v.norm() * 3.0
+    back = centre / centre.norm()
+    right = torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0]), back)
+    right = right / right.norm()
+    up = torch.linalg.cross(back, right)
+    return centre, torch.stack([right, up, back], dim=1)
+
+
+def pixel_rays(centre, rot, u, v) -> tuple[torch.Tensor, torch.Tensor]:
+    d_cam = torch.stack([(u + 0.5 - IMAGE / 2) / FOCAL, -(v + 0.5 - IMAGE / 2) / FOCAL, -torch.ones_like(u)], dim=1)
+    dirs = d_cam @ rot.T
+    return centre.expand_as(dirs).contiguous(), dirs.contiguous()
+
+
+def random_batch(n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each ray from its own random camera through a random pixel."""
+    origins, dirs = [], []
+    for _ in range(n // 64):  # 64 cameras' worth per call keeps set-up cheap, rays are still shuffled
+        centre, rot = camera(gen)
+        u = torch.randint(0, IMAGE, (64,), generator=gen).float()
+        v = torch.randint(0, IMAGE, (64,), generator=gen).float()
+        o, d = pixel_rays(centre, rot, u, v)
+        origins.append(o)
+        dirs.append(d)
+    origins, dirs = torch.cat(origins), torch.cat(dirs)
+    perm = torch.randperm(origins.shape[0], generator=gen)
+    return origins[perm].contiguous(), dirs[perm].contiguous()
+
+
+def tile_batch(n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """32x32-pixel tiles of random cameras, tiles kept contiguous; tiles overlap the object."""
+    origins, dirs = [], []
+    jj, ii = torch.meshgrid(torch.arange(TILE), torch.arange(TILE), indexing="ij")
+    for _ in range(max(1, n // (TILE * TILE))):
+        centre, rot = camera(gen)
+        u0, v0 = torch.randint(IMAGE // 4, 3 * IMAGE // 4 - TILE, (2,), generator=gen).tolist()
+        o, d = pixel_rays(centre, rot, (ii.reshape(-1) + u0).float(), (jj.reshape(-1) + v0).float())
+        origins.append(o)
+        dirs.append(d)
+    return torch.cat(origins).contiguous(), torch.cat(dirs).contiguous()
+
+
+def time_backend(grid, batches, backend: str, opts: RenderOptions) -> list[float]:
+    grad = GridGrad(grid)
+    times = []
+    for origins, dirs, targets, background in batches:
+        start = time.perf_counter()
+        loss_and_grad(grid, origins, dirs, targets, background, opts, grad, backend=backend)
+        times.append(time.perf_counter() - start)
+        grad.clear()
+    return times
+
+
+def run(sizes, repeats: int, rays: int, twin_rays: int) -> dict:
+    opts = RenderOptions(step_size=0.5)
+    rows = []
+    for size in sizes:
+        sparse = size > 128
+        t0 = time.perf_counter()
+        grid = make_grid(size, sparse)
+        grid.occupancy()
+        build_s = time.perf_counter() - t0
+        for kind, make in (("random", random_batch), ("tiles", tile_batch)):
+            gen = torch.Generator().manual_seed(size)
+            result = {"resolution": size, "grid": "occupied region" if sparse else "dense", "batch": kind,
+                      "occupied_vertices": grid.num_occupied, "grid_mb": round(grid.memory_bytes() / 2**20, 1),
+                      "grid_build_s": round(build_s, 2)}
+            for backend, n in (("native", rays), ("torch", twin_rays)):
+                batches = []
+                for _ in range(repeats + 1):  # the first is a warm-up
+                    origins, dirs = make(n, gen)
+                    targets = torch.rand(origins.shape[0], 3, generator=gen)
+                    batches.append((origins, dirs, targets, torch.ones(origins.shape[0], 3)))
+                times = time_backend(grid, batches, backend, opts)[1:]
+                counts = [sample_counts(grid, b[0], b[1], opts) for b in batches[1:]]
+                rates = [c[1] / t for c, t in zip(counts, times)]
+                result[backend] = {
+                    "rays_per_batch": batches[1][0].shape[0],
+                    "samples_per_batch": int(statistics.median(c[1] for c in counts)),
+                    "lattice_samples_per_batch": int(statistics.median(c[0] for c in counts)),
+                    "seconds_per_batch": statistics.median(times),
+                    "samples_per_s": statistics.median(rates),
+                }
+            result["speedup"] = result["native"]["samples_per_s"] / result["torch"]["samples_per_s"]
+            rows.append(result)
+            print_row(result)
+        del grid
+    return {
+        "what": "forward+backward (fused MSE loss and gradient), SH degree 2, step 0.5 voxel; samples/s counts "
+                "contributing samples; median over repeats",
+        "machine": {"cpu": platform.processor() or platform.machine(), "threads": native_core().num_threads(),
+                    "torch": torch.__version__},
+        "repeats": repeats,
+        "results": rows,
+    }
+
+
+def print_row(r: dict) -> None:
+    if print_row.first:
+        print(f"{'grid':>18} {'batch':>7} {'native M/s':>11} {'twin M/s':>9} {'ratio':>6} {'samples/ray':>11}")
+        print_row.first = False
+    spr = r["native"]["samples_per_batch"] / r["native"]["rays_per_batch"]
+    print(f"{r['resolution']:>4}^3 {r['grid']:>13} {r['batch']:>7} {r['native']['samples_per_s'] / 1e6:>11.2f} "
+          f"{r['torch']['samples_per_s'] / 1e6:>9.3f} {r['speedup']:>6.0f} {spr:>11.1f}", flush=True)
+
+
+print_row.first = True
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--rays", type=int, default=8192, help="rays per native batch")
+    parser.add_argument("--twin-rays", type=int, default=256, help="rays per PyTorch-twin batch")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    if math.prod(args.sizes) <= 0 or args.repeats < 1:
+        parser.error("sizes and repeats must be positive")
+    os.environ.setdefault("OMP_NUM_THREADS", str(os.cpu_count()))
+    report = run(args.sizes, args.repeats, args.rays, args.twin_rays)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=2))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
