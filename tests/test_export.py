@@ -7,9 +7,15 @@ import pytest
 import torch
 import trimesh
 
+from pathlib import Path
+
 from pipeline.errors import UserError
+from pipeline.io import read_json, write_json
+from pipeline.report import Reporter
+from pipeline.stage import StageContext
 from plenoxels.grid import SparseGrid
 from plenoxels.ndc import NDCMapping
+from plenoxels.scene_model import SceneModel
 from stages import export
 from stages.export import FitFrame, Settings
 
@@ -230,6 +236,54 @@ def test_points_lie_on_the_surface_with_its_colours_and_outward_normals():
     normals = export.point_normals(field, FitFrame(), points, voxel)
     radial = (points - SPHERE_CENTRE) / np.linalg.norm(points - SPHERE_CENTRE, axis=1, keepdims=True)
     assert np.einsum("ij,ij->i", normals, radial).min() > 0.95
+
+
+def run_stage(tmp_path, grid, scene: dict, settings: Settings, name: str) -> tuple[dict, Path]:
+    """The export stage as the runner calls it, on a fit folder written by SceneModel.save."""
+    fit, normalize, work = tmp_path / name / "fit", tmp_path / name / "normalize", tmp_path / name / "export"
+    for folder in (fit, normalize, work):
+        folder.mkdir(parents=True)
+    SceneModel(grid, scene["type"], transforms={k: scene[k] for k in ("world_from_input", "input_from_world")}).save(fit)
+    write_json(normalize / "scene.json", scene)
+    ctx = StageContext(scene=tmp_path, out=tmp_path / name, work=work, scratch=tmp_path / name / "scratch",
+                       settings=settings, upstream={"normalize": normalize, "fit": fit}, scene_type=scene["type"],
+                       report=Reporter(quiet=True))
+    return export.run(ctx), work
+
+
+def test_stage_writes_every_file_in_the_input_frame_or_the_normalized_one(tmp_path):
+    field = sphere_field(32)
+    input_from_world = trimesh.transformations.rotation_matrix(2.0, [0.2, 0.9, -0.4]) * 1.7
+    input_from_world[3] = [0, 0, 0, 1]
+    input_from_world[:3, 3] = [3.0, -2.0, 0.5]
+    scene = {"type": "object", "input_from_world": input_from_world.tolist(),
+             "world_from_input": np.linalg.inv(input_from_world).tolist(),
+             "foreground": {"min": [-0.8] * 3, "max": [0.8] * 3}, "frames": orbit_frames(4, size=32)}
+    summaries, folders = {}, {}
+    for frame in ("input", "normalized"):
+        summaries[frame], folders[frame] = run_stage(tmp_path, field, scene, Settings(frame=frame, points=500, point_scale=1.0), frame)
+    for frame, folder in folders.items():
+        record = read_json(folder / "export.json")
+        assert record["frame"] == frame and f"{frame} frame" in summaries[frame]["line"]
+        to_normalized = np.linalg.inv(input_from_world) if frame == "input" else np.eye(4)
+        mesh = trimesh.load(folder / "mesh.ply", force="mesh", process=False)
+        assert (len(mesh.vertices), len(mesh.faces)) == (record["mesh"]["vertices"], record["mesh"]["faces"])
+        assert np.allclose(mesh.bounds, [record["mesh"]["bounds"]["min"], record["mesh"]["bounds"]["max"]], atol=1e-5)
+        assert radial_error(export.transform_points(to_normalized, mesh.vertices)).max() < 0.01
+        assert mesh.volume > 0
+        for name in ("mesh.obj", "mesh.glb"):
+            other = trimesh.load(folder / name, force="mesh", process=False)
+            assert (len(other.vertices), len(other.faces)) == (len(mesh.vertices), len(mesh.faces))
+        cloud = trimesh.load(folder / "points.ply")
+        assert len(cloud.vertices) == record["points"]["count"] == 500
+        assert np.median(radial_error(export.transform_points(to_normalized, cloud.vertices))) < 0.02
+        for kind, size in record["file_bytes"].items():
+            assert (folder / record["files"][kind]).stat().st_size == size
+    # The two outputs are the same mesh: the input-frame one maps back onto the normalised one.
+    mesh_in = trimesh.load(folders["input"] / "mesh.ply", force="mesh", process=False)
+    mesh_norm = trimesh.load(folders["normalized"] / "mesh.ply", force="mesh", process=False)
+    assert np.allclose(export.transform_points(np.linalg.inv(input_from_world), mesh_in.vertices), mesh_norm.vertices,
+                       atol=1e-5)
 
 
 class _Quiet:
