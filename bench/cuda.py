@@ -3,10 +3,10 @@ of plenoxels._C; elsewhere it says so in one line and exits 0.
 
 Two parts, results in bench/results/cuda.json:
 - throughput: samples per second of the fused forward+backward (loss_and_grad, the training step's
-  kernel) and of the forward render, SH degree 2, on dense 128^3 and 256^3 grids, CUDA against the
-  CPU core with --cpu-threads OpenMP threads (2: the CPU machines' cores). The grid's density is kept
-  low enough that no ray stops early and every vertex is allocated, so every lattice sample is
-  evaluated and "samples" counts exactly the samples the kernels shade.
+  kernel) and of the forward render, SH degree 2, on bench/kernels.py's synthetic grids (128^3 dense,
+  256^3 occupied region) and batches (32x32 tiles, random pixels), CUDA against the CPU core run with
+  --cpu-threads OpenMP threads (2: the CPU machines' cores). Samples counts the samples that
+  contribute (sample_counts), as bench/kernels.py does; marching empty space is part of the time.
 - lego: the fit stage (stages/fit.py, exactly as the pipeline runs it, fit.device=cuda) on the NeRF
   synthetic lego train images at 800x800, then PSNR over the val images at 800x800 on a white
   background; held-out PSNR against wall time comes from the fit's own history (val views).
@@ -46,116 +46,79 @@ def parse_args(argv):
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     parser.add_argument("--cpu-threads", type=int, default=2, help="OpenMP threads of the CPU baseline")
     parser.add_argument("--resolutions", default="128,256", help="throughput grids (vertices per side)")
+    parser.add_argument("--gpu-rays", type=int, default=1 << 18, help="rays per CUDA batch")
+    parser.add_argument("--cpu-rays", type=int, default=8192, help="rays per CPU batch")
     parser.add_argument("--val-limit", type=int, default=None, help="score at most this many val images")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a fit setting for the lego part, e.g. steps=[1000,2000,4000]")
     # Internal: the CPU baseline runs in a child process so its thread count is set before OpenMP starts.
-    parser.add_argument("--cpu-baseline", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--cpu-baseline", default=None, help=argparse.SUPPRESS)
     return parser.parse_args(argv)
 
 
 # ---- throughput -----------------------------------------------------------------------------------
-def _look_at(position, torch):
-    """Camera-to-world (OpenGL: looks down -z) at `position`, looking at the origin."""
-    z = position / position.norm()
-    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-    if abs(float(z @ up)) > 0.99:
-        up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
-    x = torch.linalg.cross(up, z)
-    x = x / x.norm()
-    y = torch.linalg.cross(z, x)
-    c2w = torch.eye(4, dtype=torch.float64)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x, y, z, position
-    return c2w
-
-
-def camera_rays(torch, cameras=16, size=128):
-    """Rays of `cameras` views of size^2 pixels from a sphere of radius 3 around the [-1,1]^3 grid."""
-    from pipeline.cameras import Intrinsics, rays_from_camera
-
-    focal = 0.5 * size / math.tan(math.radians(20.0))
-    k = Intrinsics(focal, focal, size / 2, size / 2, size, size)
-    golden = math.pi * (3.0 - math.sqrt(5.0))
-    origins, dirs = [], []
-    for i in range(cameras):
-        z = 1.0 - 2.0 * (i + 0.5) / cameras
-        r = math.sqrt(1.0 - z * z)
-        position = 3.0 * torch.tensor([r * math.cos(golden * i), r * math.sin(golden * i), z], dtype=torch.float64)
-        o, d = rays_from_camera(_look_at(position, torch).numpy(), k)
-        origins.append(o.reshape(-1, 3))
-        dirs.append(d.reshape(-1, 3))
-    return torch.cat(origins), torch.cat(dirs)
-
-
-def benchmark_grid(torch, resolution: int, device):
-    """A dense SH-degree-2 grid over [-1,1]^3 with low random density and random SH."""
-    from plenoxels.grid import SparseGrid
-
-    grid = SparseGrid.dense((resolution,) * 3, (-1.0,) * 3, (1.0,) * 3, 2, init_density=0.0)
-    gen = torch.Generator().manual_seed(resolution)
-    grid.data[:, 0] = 0.05 + 0.3 * torch.rand(grid.num_occupied, generator=gen)
-    grid.data[:, 1:28] = 0.3 * torch.randn(grid.num_occupied, 27, generator=gen)
-    return grid.to(device)
-
-
-def measure(torch, resolution: int, device, ray_count: int | None, reps: int) -> dict:
-    """Seconds and samples of loss_and_grad and render for one batch of camera rays."""
-    from plenoxels import reference
+def measure(torch, resolution: int, device, rays: int, reps: int, kind: str) -> dict:
+    """Median samples/s of loss_and_grad and of render over `reps` batches (after a warm-up batch), on
+    bench/kernels.py's grid and batches, so the CPU figures compare with that benchmark's."""
+    from bench.kernels import make_grid, random_batch, tile_batch
     from plenoxels.optim import GridGrad
-    from plenoxels.render import RenderOptions, loss_and_grad, render
+    from plenoxels.render import RenderOptions, loss_and_grad, render, sample_counts
 
     opts = RenderOptions(step_size=0.5)
-    origins, dirs = camera_rays(torch)
-    if ray_count is not None and ray_count < origins.shape[0]:
-        pick = torch.randperm(origins.shape[0], generator=torch.Generator().manual_seed(1))[:ray_count]
-        origins, dirs = origins[pick].contiguous(), dirs[pick].contiguous()
-    grid = benchmark_grid(torch, resolution, device)
-    samples = int(reference.ray_lattice(grid, origins, dirs, opts)["n"].sum())
-    targets = torch.rand(origins.shape[0], 3, generator=torch.Generator().manual_seed(2))
-    background = torch.ones(origins.shape[0], 3)
-    o, d, t, bg = (x.to(device) for x in (origins, dirs, targets, background))
-    grad = GridGrad(grid)
+    grid = make_grid(resolution, sparse=resolution > 128).to(device)
+    gen = torch.Generator().manual_seed(resolution)
+    make = tile_batch if kind == "tiles" else random_batch
+    batches = []
+    for _ in range(reps + 1):
+        origins, dirs = make(rays, gen)
+        targets = torch.rand(origins.shape[0], 3, generator=gen)
+        batches.append(tuple(x.to(device) for x in (origins, dirs, targets, torch.ones(origins.shape[0], 3))))
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    grad = GridGrad(grid)
 
-    def timed(fn):
-        fn()  # warm-up: first-touch allocations, CUDA module load
-        sync()
-        seconds = []
-        for _ in range(reps):
-            started = time.perf_counter()
-            fn()
+    def seconds(run) -> list[float]:
+        times = []
+        for batch in batches:
             sync()
-            seconds.append(time.perf_counter() - started)
-        return statistics.median(seconds)
+            started = time.perf_counter()
+            run(batch)
+            sync()
+            times.append(time.perf_counter() - started)
+            grad.clear()
+        return times[1:]
 
-    fused = timed(lambda: loss_and_grad(grid, o, d, t, bg, opts, grad))
-    forward = timed(lambda: render(grid, o, d, bg, opts))
-    return {"device": str(device), "resolution": resolution, "rays": int(origins.shape[0]), "samples": samples,
-            "loss_and_grad_seconds": fused, "loss_and_grad_samples_per_s": samples / fused,
-            "render_seconds": forward, "render_samples_per_s": samples / forward}
+    fused = seconds(lambda b: loss_and_grad(grid, *b, opts, grad))
+    forward = seconds(lambda b: render(grid, b[0], b[1], b[3], opts))
+    samples = [sample_counts(grid, b[0], b[1], opts)[1] for b in batches[1:]]
+    return {"device": str(device), "resolution": resolution, "batch": kind, "occupied": grid.num_occupied,
+            "rays_per_batch": int(batches[1][0].shape[0]), "samples_per_batch": int(statistics.median(samples)),
+            "loss_and_grad_samples_per_s": statistics.median(n / t for n, t in zip(samples, fused)),
+            "render_samples_per_s": statistics.median(n / t for n, t in zip(samples, forward))}
 
 
-def cpu_baseline(resolution: int, cpu_threads: int) -> dict:
+def cpu_baseline(resolution: int, kind: str, args) -> dict:
     """The CPU measurement in a child process with OMP_NUM_THREADS set before torch starts."""
-    env = dict(os.environ, OMP_NUM_THREADS=str(cpu_threads))
-    out = subprocess.run([sys.executable, "-m", "bench.cuda", "--cpu-baseline", str(resolution)], cwd=REPO, env=env,
-                         capture_output=True, text=True, check=True)
+    env = dict(os.environ, OMP_NUM_THREADS=str(args.cpu_threads))
+    cmd = [sys.executable, "-m", "bench.cuda", "--cpu-baseline", f"{resolution},{kind}", "--cpu-rays", str(args.cpu_rays)]
+    out = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def throughput(torch, args) -> list[dict]:
     rows = []
     for resolution in (int(r) for r in args.resolutions.split(",")):
-        gpu = measure(torch, resolution, torch.device("cuda"), None, reps=10)
-        cpu = cpu_baseline(resolution, args.cpu_threads)
-        speedup = gpu["loss_and_grad_samples_per_s"] / cpu["loss_and_grad_samples_per_s"]
-        rows.append({"resolution": resolution, "cuda": gpu, "cpu": cpu, "cpu_threads": args.cpu_threads,
-                     "speedup_loss_and_grad": speedup,
-                     "speedup_render": gpu["render_samples_per_s"] / cpu["render_samples_per_s"]})
-        print(f"{resolution}^3 SH2 forward+backward: CUDA {gpu['loss_and_grad_samples_per_s'] / 1e6:.1f} M samples/s, "
-              f"CPU ({args.cpu_threads} threads) {cpu['loss_and_grad_samples_per_s'] / 1e6:.2f} M samples/s: "
-              f"{speedup:.0f}x; forward only {rows[-1]['speedup_render']:.0f}x", flush=True)
-        torch.cuda.empty_cache()
+        for kind in ("tiles", "random"):
+            gpu = measure(torch, resolution, torch.device("cuda"), args.gpu_rays, 10, kind)
+            torch.cuda.empty_cache()
+            cpu = cpu_baseline(resolution, kind, args)
+            row = {"resolution": resolution, "batch": kind, "cuda": gpu, "cpu": cpu, "cpu_threads": args.cpu_threads,
+                   "speedup_loss_and_grad": gpu["loss_and_grad_samples_per_s"] / cpu["loss_and_grad_samples_per_s"],
+                   "speedup_render": gpu["render_samples_per_s"] / cpu["render_samples_per_s"]}
+            rows.append(row)
+            print(f"{resolution}^3 SH2 {kind:>6} batches, forward+backward: CUDA "
+                  f"{gpu['loss_and_grad_samples_per_s'] / 1e6:.1f} M samples/s, CPU ({args.cpu_threads} threads) "
+                  f"{cpu['loss_and_grad_samples_per_s'] / 1e6:.2f} M samples/s: {row['speedup_loss_and_grad']:.0f}x; "
+                  f"forward only {row['speedup_render']:.0f}x", flush=True)
     return rows
 
 
@@ -269,7 +232,8 @@ def main(argv=None) -> int:
     from plenoxels.device import cuda_ready
 
     if args.cpu_baseline is not None:
-        print(json.dumps(measure(torch, args.cpu_baseline, torch.device("cpu"), 8192, reps=3)))
+        resolution, kind = args.cpu_baseline.split(",")
+        print(json.dumps(measure(torch, int(resolution), torch.device("cpu"), args.cpu_rays, 3, kind)))
         return 0
     if not cuda_ready():
         print(NEEDS_GPU)
