@@ -260,8 +260,12 @@ def _sfm(ctx, records: list[dict], image_dir: Path) -> tuple[pycolmap.Reconstruc
         report.info(f"{before}/{len(names)} registered; mapping again with looser registration thresholds")
         relaxed = _largest(_incremental(db, image_dir, ctx.scratch / "models_relaxed", s, relaxed=True))
         if relaxed is not None and relaxed.num_reg_images() > before:
+            strict = {im.name for im in best.images.values() if im.has_pose} if best else set()
+            info["relaxed_only"] = sorted(Path(im.name).stem for im in relaxed.images.values()
+                                          if im.has_pose and im.name not in strict)
             best = relaxed
-            info["relaxed_mapping"] = True
+            report.warn(f"{len(info['relaxed_only'])} image(s) registered only with looser thresholds, so their poses "
+                        f"are less certain: {_names(info['relaxed_only'])}")
     seconds["map"] = time.perf_counter() - started
     info["seconds"] = seconds
     if len(models) > 1:
@@ -290,8 +294,9 @@ def _camera_dict(camera: pycolmap.Camera) -> dict:
 
 
 def _pinhole(camera: pycolmap.Camera) -> dict:
-    fx, fy, cx, cy = (float(v) for v in camera.params)
-    return {"fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": camera.width, "h": camera.height}
+    return {"fl_x": float(camera.focal_length_x), "fl_y": float(camera.focal_length_y),
+            "cx": float(camera.principal_point_x), "cy": float(camera.principal_point_y),
+            "w": camera.width, "h": camera.height}
 
 
 def _undistort_mask(mask: np.ndarray, camera: pycolmap.Camera) -> np.ndarray:

@@ -1,0 +1,170 @@
+"""Benchmark of the poses stage: SfM through pycolmap against the poses each scene comes with, side by
+side with Debian's `colmap automatic_reconstructor` (COLMAP 3.8 CLI) on the same photos in the same run.
+
+Scenes: fox (against its transforms.json), cup (against sparse/0), fern (against poses_bounds.npy) and
+synthetic object and forward scenes (against their true poses). For each: images registered, camera
+centre error as a share of the camera spread and rotation error after a similarity alignment, time per
+step and peak memory; the stage's poses are also compared with the CLI's. Every run is a child process,
+measured by GNU time. Writes bench/results/poses.json.
+
+    .venv/bin/python -m bench.poses [--data ../shared/data] [--scenes fox,cup] [--no-cli]
+
+The CLI runs with its defaults except `--use_gpu 0`: this build of COLMAP has no CUDA, and its default
+OpenGL SIFT needs a display, so it aborts on a headless machine.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from pipeline.cameras import opengl_c2w_from_colmap_w2c
+from pipeline.io import write_json
+from pipeline.synthetic import write_scene
+from stages.poses_compare import compare_poses
+
+REPO = Path(__file__).resolve().parent.parent
+CHILD_TIMEOUT_S = 1800
+# Stage settings measured on fox; the first is the default preset.
+FOX_VARIANTS = {"default": [], "sequential": ["poses.matching=sequential"]}
+
+
+def timed_child(command: list[str], log: Path, env: dict | None = None) -> dict:
+    """Runs a command; wall seconds, exit code and its peak resident memory. GNU time measures the memory,
+    because a child forked from this (large) Python process would otherwise report this process's peak."""
+    peak_file = log.with_suffix(".peak_kb")
+    started = time.perf_counter()
+    with open(log, "w") as out:
+        try:
+            code = subprocess.call(["/usr/bin/time", "-f", "%M", "-o", str(peak_file), *command], stdout=out,
+                                   stderr=subprocess.STDOUT, cwd=REPO, env={**os.environ, **(env or {})},
+                                   timeout=CHILD_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            code = None
+    peak_kb = peak_file.read_text().strip().splitlines()[-1] if peak_file.is_file() else ""
+    return {"seconds": round(time.perf_counter() - started, 1), "exit_code": code,
+            "peak_rss_mb": round(int(peak_kb) / 1024, 1) if peak_kb.isdigit() else None}
+
+
+def poses_from_transforms(path: Path) -> dict[str, np.ndarray]:
+    data = json.loads(path.read_text())
+    return {f["name"]: np.asarray(f["transform_matrix"]) for f in data["frames"]}
+
+
+def poses_from_colmap_workspace(sparse: Path) -> tuple[dict[str, np.ndarray], int]:
+    """The largest of the CLI's models, as our camera-to-world by image stem; and how many models it made."""
+    models = [pycolmap.Reconstruction(d) for d in sorted(sparse.iterdir()) if d.is_dir()] if sparse.is_dir() else []
+    if not models:
+        return {}, 0
+    best = max(models, key=lambda m: m.num_reg_images())
+    poses = {}
+    for image in best.images.values():
+        if image.has_pose:
+            pose = image.cam_from_world()
+            poses[Path(image.name).stem] = opengl_c2w_from_colmap_w2c(pose.rotation.matrix(), pose.translation)
+    return poses, len(models)
+
+
+def compare(estimate: dict[str, np.ndarray], reference: dict[str, np.ndarray]) -> dict:
+    common = sorted(set(estimate) & set(reference))
+    if len(common) < 3:
+        return {"compared": len(common)}
+    errors = compare_poses(np.stack([estimate[n] for n in common]), np.stack([reference[n] for n in common]))
+    return {"compared": len(common), **{k: round(v, 5) for k, v in errors.items() if isinstance(v, float)}}
+
+
+def run_stage(images: Path, out: Path, overrides: list[str], log: Path) -> dict:
+    command = [sys.executable, "-m", "pipeline", "poses", str(images), "--out", str(out)]
+    for override in overrides:
+        command += ["--set", override]
+    child = timed_child(command, log, env={"OMP_NUM_THREADS": "2"})
+    manifest_path = out / "poses" / "manifest.json"
+    if child["exit_code"] != 0 or not manifest_path.is_file():
+        return {**child, "error": log.read_text().strip().splitlines()[-1:] if log.is_file() else None}
+    manifest = json.loads(manifest_path.read_text())
+    ingest = json.loads((out / "ingest" / "manifest.json").read_text())
+    summary = manifest["summary"]
+    return {**child, "stage_seconds": manifest["seconds"], "ingest_seconds": ingest["seconds"],
+            "steps": summary.get("seconds", {}), "registered": summary["registered"], "images": summary["images"],
+            "points": summary["points"], "mean_reprojection_error": summary["mean_reprojection_error"],
+            "matching": summary.get("matching"), "pairs_verified": summary.get("pairs_verified"),
+            "models": summary.get("models"), "line": summary["line"]}
+
+
+def run_cli(images: Path, workspace: Path, log: Path) -> dict:
+    shutil.rmtree(workspace, ignore_errors=True)
+    workspace.mkdir(parents=True)
+    child = timed_child(["colmap", "automatic_reconstructor", "--workspace_path", str(workspace),
+                         "--image_path", str(images), "--use_gpu", "0"], log)
+    poses, models = poses_from_colmap_workspace(workspace / "sparse")
+    return {**child, "registered": len(poses), "models": models, "poses": poses}
+
+
+def scenes(data: Path, work: Path, wanted: list[str]) -> dict[str, Path]:
+    """Photo folder per scene; each scene's own pose file sits beside it (or in its parent)."""
+    found = {"fox": data / "fox" / "images", "cup": data / "cup" / "images", "fern": data / "fern" / "images_4"}
+    for kind, views in (("object", 40), ("forward", 30)):
+        name = f"synthetic_{kind}"
+        if name in wanted:
+            if not (work / name / "transforms.json").is_file():
+                write_scene(kind, work / name, n_views=views, width=640, height=480, seed=0, supersample=1)
+            found[name] = work / name / "images"
+    return {k: v for k, v in found.items() if k in wanted}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    parser.add_argument("--work", type=Path, default=REPO / "bench" / "out" / "poses")
+    parser.add_argument("--scenes", default="fox,cup,fern,synthetic_object,synthetic_forward")
+    parser.add_argument("--no-cli", action="store_true")
+    args = parser.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    use_cli = not args.no_cli and shutil.which("colmap") is not None
+    results = {"machine": {"cpus": os.cpu_count(), "pycolmap": pycolmap.__version__, "has_cuda": pycolmap.has_cuda,
+                           "colmap_cli": "COLMAP 3.8 (Debian), automatic_reconstructor defaults + --use_gpu 0" if use_cli else None},
+               "scenes": {}}
+    for name, images in scenes(args.data, args.work, args.scenes.split(",")).items():
+        print(f"[poses bench] {name}: {images}", flush=True)
+        folder = args.work / name
+        folder.mkdir(exist_ok=True)
+        entry: dict = {"photos": str(images)}
+        reference = run_stage(images, folder / "reference", [], folder / "reference.log")
+        ref_poses = poses_from_transforms(folder / "reference" / "poses" / "transforms.json") if "line" in reference else {}
+        entry["reference"] = {"line": reference.get("line"), "error": reference.get("error")}
+        variants = FOX_VARIANTS if name == "fox" else {"default": []}
+        entry["stage"] = {}
+        for variant, overrides in variants.items():
+            result = run_stage(images, folder / f"stage_{variant}", ["poses.source=sfm", *overrides], folder / f"stage_{variant}.log")
+            if "line" in result:
+                poses = poses_from_transforms(folder / f"stage_{variant}" / "poses" / "transforms.json")
+                result["vs_reference"] = compare(poses, ref_poses)
+                result["settings"] = overrides
+            entry["stage"][variant] = result
+            print(f"  stage {variant}: {json.dumps({k: result.get(k) for k in ('registered', 'stage_seconds', 'peak_rss_mb', 'vs_reference')})}", flush=True)
+        if use_cli:
+            cli = run_cli(images, folder / "cli", folder / "cli.log")
+            cli_poses = cli.pop("poses")
+            cli["vs_reference"] = compare(cli_poses, ref_poses)
+            entry["cli"] = cli
+            for variant, result in entry["stage"].items():
+                if "line" in result:
+                    poses = poses_from_transforms(folder / f"stage_{variant}" / "poses" / "transforms.json")
+                    result["vs_cli"] = compare(poses, cli_poses)
+                    result["time_vs_cli"] = round(result["stage_seconds"] / cli["seconds"], 3) if cli["seconds"] else None
+            print(f"  cli: {json.dumps({k: cli.get(k) for k in ('registered', 'seconds', 'peak_rss_mb', 'vs_reference')})}", flush=True)
+        results["scenes"][name] = entry
+        write_json(REPO / "bench" / "results" / "poses.json", results)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
