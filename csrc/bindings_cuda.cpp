@@ -264,6 +264,7 @@ void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor gr
                             (float)lr_density,
                             (float)lr_sh,
                             (float)beta,
+                            (float)(1.0 - beta),
                             (float)eps};
     const plx_cuda::LiveBlocks live = make_live(data, live_coords, live_block, live_counts, live_blocks);
     check_launch(plx_cuda::rmsprop_step(a, live, stream()), "rmsprop_step");

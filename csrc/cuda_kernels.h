@@ -102,7 +102,7 @@ struct RMSPropArgs {
     const int32_t* rows;
     int64_t count;
     int stride, columns;
-    float lr_density, lr_sh, beta, eps;
+    float lr_density, lr_sh, beta, one_minus_beta, eps;  // 1 - beta rounded from double, as on the CPU
 };
 cudaError_t rmsprop_step(const RMSPropArgs& args, const LiveBlocks& live, cudaStream_t stream);
 

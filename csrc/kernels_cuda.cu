@@ -331,7 +331,7 @@ __global__ void rmsprop_kernel(RMSPropArgs a, LiveBlocks live) {
     const int64_t at = row * a.stride + k;
     const float before = a.data[at];
     const float gk = a.grad_data[at];
-    const float vk = a.beta * a.second_moment[at] + (1.0f - a.beta) * gk * gk;
+    const float vk = a.beta * a.second_moment[at] + a.one_minus_beta * gk * gk;
     a.second_moment[at] = vk;
     const float after = before - (k == 0 ? a.lr_density : a.lr_sh) * gk / (sqrtf(vk) + a.eps);
     a.data[at] = after;
