@@ -55,7 +55,6 @@ def resolve_device(choice: str) -> torch.device:
     return torch.device("cpu")
 
 
-
 class CudaCore:
     """The interface of plenoxels._C, served by the CUDA kernels, for grids whose tensors are on a GPU.
 
@@ -65,19 +64,21 @@ class CudaCore:
     scratch argument is accepted and ignored: the GPU kernels accumulate with atomics.
     """
 
-    # For each kernel: positions of the inputs that may be moved, and whether a trailing scratch
-    # argument is dropped.
-    _SIGNATURES = {
-        "render": ((8, 9, 10), False),
-        "loss_and_grad": ((8, 9, 10, 11), True),
-        "max_weights": ((8, 9), False),
-        "sample_counts": ((8, 9), False),
-        "tv_loss_and_grad": ((2, 3), True),
-        "build_occupancy": ((), False),
-        "count_live_blocks": ((), False),
-        "row_coords": ((), False),
+    # Per kernel: positions of the inputs that may be moved, and the position of the CPU's scratch
+    # argument (None: it has none).
+    KERNELS = {
+        "render": ((8, 9, 10), None),
+        "loss_and_grad": ((8, 9, 10, 11), 21),
+        "max_weights": ((8, 9), None),
+        "sample_counts": ((8, 9), None),
+        "tv_loss_and_grad": ((2, 3), 11),
+        "build_occupancy": ((), None),
+        "count_live_blocks": ((), None),
+        "row_coords": ((), None),
+        "rmsprop_step": ((), None),  # a method below: its `live` argument is unpacked
     }
-    _SCRATCH_ARGS = {"loss_and_grad": 22, "tv_loss_and_grad": 12}
+    # Device-free helpers of plenoxels._C, served by it.
+    CPU_HELPERS = ("padded_stride", "num_threads")
 
     def __init__(self):
         if not cuda_kernels_built():
@@ -102,15 +103,15 @@ class CudaCore:
     def __getattr__(self, name):
         if name.startswith("_"):
             raise AttributeError(name)
-        if name not in self._SIGNATURES:
-            return getattr(self._cpu_core, name)  # pure helpers such as padded_stride
-        movable, has_scratch = self._SIGNATURES[name]
+        if name in self.CPU_HELPERS:
+            return getattr(self._cpu_core, name)
+        if name not in self.KERNELS:
+            raise AttributeError(f"the CUDA core has no kernel {name!r}: add it to csrc/kernels_cuda.cu and CudaCore")
+        movable, scratch = self.KERNELS[name]
         op = getattr(self._ops, name)
 
         def call(*args):
-            args = list(args)
-            if has_scratch and len(args) == self._SCRATCH_ARGS[name]:
-                args.pop()
+            args = list(args[:scratch] if scratch is not None else args)
             device = args[0].device
             for i in movable:
                 if isinstance(args[i], torch.Tensor) and args[i].device != device:

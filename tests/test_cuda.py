@@ -83,6 +83,45 @@ def test_cuda_glue_syntax(tmp_path):
     assert result.returncode == 0, result.stderr[-4000:]
 
 
+def _pybind_parameter_types(fn) -> list[str]:
+    """Parameter types from a pybind11 function's signature line (commas inside brackets kept)."""
+    line = fn.__doc__.strip().splitlines()[0]
+    inside = line[line.index("(") + 1 : line.rindex(") ->")]
+    params, depth, current = [], 0, ""
+    for ch in inside:
+        if ch in "[(":
+            depth += 1
+        elif ch in "])":
+            depth -= 1
+        if ch == "," and depth == 0:
+            params.append(current)
+            current = ""
+        else:
+            current += ch
+    params.append(current)
+    return [p.split(":", 1)[1].split("=")[0].strip() for p in params]
+
+
+def test_every_cpu_kernel_has_a_cuda_twin():
+    """Each kernel of plenoxels._C is served on CUDA (CudaCore, registered in the glue), and CudaCore's
+    argument positions still match the CPU signatures."""
+    import plenoxels._C as C
+    from plenoxels.device import CudaCore
+
+    glue = (CSRC / "bindings_cuda.cpp").read_text()
+    kernels = {n for n in dir(C) if not n.startswith("_")} - set(CudaCore.CPU_HELPERS) - {"ThreadGrads"}
+    assert kernels == set(CudaCore.KERNELS)
+    for name in sorted(kernels):
+        assert f'm.def("{name}"' in glue, f"{name} is not registered in bindings_cuda.cpp"
+        types = _pybind_parameter_types(getattr(C, name))
+        movable, scratch = CudaCore.KERNELS[name]
+        assert all("torch.Tensor" in types[i] for i in movable), f"{name}: a moved argument is not a tensor"
+        if scratch is None:
+            assert not any("ThreadGrads" in t for t in types), f"{name}: CPU scratch argument not dropped"
+        else:
+            assert scratch == len(types) - 1 and "ThreadGrads" in types[scratch], f"{name}: scratch position"
+
+
 # ---- device choice ------------------------------------------------------------------------------
 def test_resolve_device_cpu_and_auto():
     assert resolve_device("cpu") == torch.device("cpu")
