@@ -1,12 +1,13 @@
 """Benchmark of the export stage on the synthetic object scene, and a Blender import of its GLB.
 
-Runs the whole pipeline (ingest, imported poses, normalize, fit, export) on a synthetic object
-scene, then scores the exported mesh (input frame) against the generator's true mesh: F-score and
-Chamfer distance at a tolerance of 1% of the object's size, completeness counted on the part of the
-true surface some training camera sees, and the largest distance of any mesh vertex from the true
-surface (the goal: F-score >= 0.9, nothing farther than 5% of the object's size). Then, when
-Blender is installed, imports mesh.glb headless with its glTF importer and checks the vertex and
-face counts, the vertex colours and the frame. Writes bench/results/export.json.
+Runs the whole pipeline (ingest, imported poses, normalize, fit, export) on a synthetic object scene
+(RGBA photos, so the object is masked as lego's is), then scores the exported mesh (input frame)
+against the generator's true mesh: F-score and Chamfer distance at a tolerance of 1% of the object's
+size, completeness counted on the part of the true surface some training camera sees, the largest
+distance of any mesh vertex from the true surface (the goal: F-score >= 0.9, nothing farther than 5%
+of the object's size), and the vertex colours against the true surface colour. Then, when Blender is
+installed, imports mesh.glb headless with its glTF importer and checks the vertex and face counts,
+the vertex colours and the frame. Writes bench/results/export.json.
 
     .venv/bin/python -m bench.export [--views 48] [--size 320x240] [--preset default] [--set fit.steps=[...]]
 """
@@ -92,6 +93,22 @@ def visible_from(cameras: list[tuple[np.ndarray, Intrinsics]], spec: synthetic.S
     return mask
 
 
+def colour_error(mesh: trimesh.Trimesh, spec: synthetic.SceneSpec) -> dict:
+    """Mean absolute RGB error of the mesh's vertex colours against the true (view-independent, shaded)
+    colour of the nearest foreground shape at each vertex, with two baselines for scale."""
+    shapes = spec.foreground()
+    vertices = np.asarray(mesh.vertices)
+    rng = np.random.default_rng(0)
+    nearest = np.stack([surface_distance(shape.mesh(), vertices, rng) for shape in shapes], axis=1).argmin(axis=1)
+    truth = np.zeros((len(vertices), 3))
+    for index, shape in enumerate(shapes):
+        truth[nearest == index] = synthetic.surface_colour(spec, shape, vertices[nearest == index])
+    got = mesh.visual.vertex_colors[:, :3] / 255.0
+    return {"median_abs_error": float(np.median(np.abs(got - truth).mean(axis=1))),
+            "baseline_mid_grey": float(np.median(np.abs(0.5 - truth).mean(axis=1))),
+            "baseline_mean_colour": float(np.median(np.abs(truth.mean(axis=0) - truth).mean(axis=1)))}
+
+
 def blender_check(glb: Path, mesh_ply: Path) -> dict:
     blender = shutil.which("blender")
     if blender is None:
@@ -141,9 +158,10 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.size.split("x"))
 
-    scene_dir = args.out / f"synthetic-object-{args.views}-{width}x{height}-{args.seed}"
+    scene_dir = args.out / f"synthetic-object-{args.views}-{width}x{height}-{args.seed}-alpha"
     if not (scene_dir / "images").is_dir():
-        synthetic.write_scene("object", scene_dir, n_views=args.views, width=width, height=height, seed=args.seed)
+        synthetic.write_scene("object", scene_dir, n_views=args.views, width=width, height=height, seed=args.seed,
+                              alpha=True)
     started = time.time()
     pipeline = Pipeline(scene_dir / "images", args.out / "run", preset=args.preset, overrides=args.overrides,
                         reporter=Reporter(quiet=True))
@@ -177,6 +195,7 @@ def main(argv: list[str]) -> int:
                                            "mesh", "points", "file_bytes")},
         "mesh_vs_truth": scores,
         "max_vertex_distance_share": scores["max_vertex_distance"] / size,
+        "vertex_colours": colour_error(mesh, spec),
         "goal_met": bool(scores["f_score"] >= GOAL_F_SCORE and scores["max_vertex_distance"] / size <= GOAL_MAX_DISTANCE_SHARE),
         "points_vs_truth": {"count": len(points),
                             "within_tolerance": float((point_distance < tolerance).mean()) if len(points) else None,
@@ -187,7 +206,7 @@ def main(argv: list[str]) -> int:
     write_json(RESULTS, result)
     print(f"[bench export] F-score@1% {scores['f_score']:.3f} (precision {scores['precision']:.3f}, recall "
           f"{scores['recall']:.3f}), Chamfer {scores['chamfer']:.4f}, farthest vertex {result['max_vertex_distance_share']:.1%} "
-          f"of the object; goal {'met' if result['goal_met'] else 'not met'}; points within 1%: "
+          f"of the object, colour error {result['vertex_colours']['median_abs_error']:.3f}; goal {'met' if result['goal_met'] else 'not met'}; points within 1%: "
           f"{result['points_vs_truth']['within_tolerance']}; blender: "
           f"{'ok' if result['blender'].get('ok') else result['blender'].get('why', 'check failed')}")
     return 0
