@@ -118,9 +118,7 @@ class SceneModel:
 
     def to(self, device: torch.device) -> "SceneModel":
         """Moves the grid and the background model to `device` (in place; returns self)."""
-        g = self.grid
-        if g.data.device != device:
-            self.grid = SparseGrid(g.links.to(device), g.data.to(device), g.bbox_min, g.bbox_max, g.sh_degree)
+        self.grid = self.grid.to(device)
         if self.background is not None:
             self.background.to(device)
         return self

@@ -72,7 +72,7 @@ class Settings:
     init_density: float = 0.1          # raw density of every vertex at the start
     lr_density: float = 30.0           # RMSProp rate of the density, decayed exponentially to lr_density_final
     lr_density_final: float = 0.05
-    lr_density_delay: float = 0.0      # share of the steps over which the density rate ramps up from 1% (0: none)
+    lr_density_delay: float = 0.1      # share of the steps over which the density rate ramps up from 1% (0: none)
     lr_sh: float = 0.01                # RMSProp rate of the SH coefficients, decayed to lr_sh_final
     lr_sh_final: float = 5e-6
     rmsprop_beta: float = 0.95
@@ -420,7 +420,7 @@ class Fitter:
         grid, old_rows = self.model.grid.upsample(new_shape)
         if grid.num_occupied > self.s.voxel_budget:
             # The estimate of the growth was short: drop the emptiest new vertices.
-            keep = torch.zeros(grid.num_occupied, dtype=torch.bool)
+            keep = torch.zeros(grid.num_occupied, dtype=torch.bool, device=grid.data.device)
             keep[torch.topk(grid.density, self.s.voxel_budget).indices] = True
             grid, rows = grid.prune(keep)
             old_rows = old_rows[rows]
@@ -483,7 +483,7 @@ class HeldOut:
         errors = []
         for c2w, k, image in self.views:
             rgb = model.render_camera(c2w, k, chunk=RAY_CHUNK)["rgb"]
-            errors.append(float(((rgb - image) ** 2).mean()))
+            errors.append(float(((rgb.cpu() - image) ** 2).mean()))
         return float(np.mean([psnr(e) for e in errors]))
 
 
