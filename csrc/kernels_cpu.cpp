@@ -110,6 +110,16 @@ inline int skip_block(const GridView& g, const Ray& r, const int cell[3], int i)
 
 inline int cell_of(float p, int res) { return std::min(std::max((int)std::floor(p), 0), res - 2); }
 
+template <int S>
+inline void prefetch_row(const float* row, bool for_write) {
+    for (int k = 0; k < S; k += 16) {
+        if (for_write)
+            __builtin_prefetch(row + k, 1, 3);
+        else
+            __builtin_prefetch(row + k, 0, 3);
+    }
+}
+
 // A sample that passed empty-space skipping and has density above the threshold.
 struct Sample {
     int32_t rows[8];
@@ -141,6 +151,20 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
         if (!g.cell_occ[cell_index]) {
             ++i;
             continue;
+        }
+        // Start loading the rows of the cell two samples ahead, so that its cache misses overlap the
+        // work on this sample (memory latency, not arithmetic, bounds this loop).
+        if (i + 2 < r.n) {
+            float q[3];
+            grid_point(g, r, t + 2.0 * r.dt, q);
+            const int next[3] = {cell_of(q[0], g.res[0]), cell_of(q[1], g.res[1]), cell_of(q[2], g.res[2])};
+            if (next[0] != cell[0] || next[1] != cell[1] || next[2] != cell[2]) {
+                for (int c = 0; c < 8; ++c) {
+                    const int32_t row = g.links[plx::corner_index(next, g.res, c)];
+                    if (row < 0) continue;
+                    prefetch_row<S>(g.data + (int64_t)row * S, false);
+                }
+            }
         }
         Sample s;
         plx::trilinear(p, g.res, cell, s.w);
@@ -337,6 +361,9 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
                     s.colour[ch] = plx::sh_colour(row + 1 + ch * K, basis, K, &s.raw[ch]);
                     acc[ch] += w * s.colour[ch];
                 }
+                // The backward pass writes these gradient rows once the ray is done: fetch them now.
+                for (int c = 0; c < 8; ++c)
+                    if (s.rows[c] >= 0) prefetch_row<S>(sink.buf + (int64_t)s.rows[c] * S, true);
                 samples.push_back(s);
                 return s.t_before * s.transmittance_factor;
             });

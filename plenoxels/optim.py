@@ -55,8 +55,8 @@ class GridGrad:
 
     def clear(self) -> None:
         rows = self.touched()
-        self.data[rows] = 0
-        self.touched_mask[rows] = 0
+        self.data.index_fill_(0, rows, 0.0)
+        self.touched_mask.index_fill_(0, rows, 0)
         self.num_touched = 0
 
 
@@ -128,4 +128,4 @@ class SparseRMSProp:
             raise ValueError("optimiser state does not match the grid it is loaded for")
         self.lr_density, self.lr_sh = state["lr_density"], state["lr_sh"]
         self.beta, self.eps = state["beta"], state["eps"]
-        self.second_moment = state["second_moment"].clone()
+        self.second_moment = state["second_moment"].to(self.grid.data.device).clone()
