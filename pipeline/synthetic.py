@@ -5,8 +5,9 @@ Three kinds, matching the scene types the pipeline handles:
   scene, so rays that miss it see a plain background colour (or are transparent, with `alpha=True`).
 - `forward`: objects at several depths in front of a textured floor and back wall, seen by cameras
   on a small grid in one plane that all look the same way (like LLFF's fern).
-- `unbounded`: the `object` still life on an endless textured ground, inside a textured environment
-  sphere about 20 times the object's size, seen by an inward orbit: a bounded grid cannot hold it.
+- `unbounded`: the `object` still life (without its slab) on an endless textured ground, inside a
+  textured environment sphere of radius 24 (12 times the object's width), seen by an inward orbit:
+  a bounded grid around the object cannot hold it.
 
 The world frame is deliberately not normalised (z up, the object about 2 units wide, centred at
 OBJECT_CENTRE, off the origin) so the normalize stage has real work to do.
@@ -98,8 +99,8 @@ class Sphere:
     def intersect(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """Ray parameter t of the first hit (inf for a miss) for rays origin + t * dirs."""
         oc = origin - np.asarray(self.centre)
-        a = np.einsum("ij,ij->i", dirs, dirs)
-        b = dirs @ oc
+        a = _dot(dirs, dirs)
+        b = _dot(dirs, oc)
         c = oc @ oc - self.radius ** 2
         disc = b * b - a * c
         root = np.sqrt(np.maximum(disc, 0.0))
@@ -136,7 +137,7 @@ class Box:
         candidates = np.flatnonzero(np.isfinite(Sphere(self.centre, float(np.linalg.norm(h)), self.texture)
                                                 .intersect(origin, dirs)))
         o = rot.T @ (origin - np.asarray(self.centre))
-        d = dirs[candidates] @ rot
+        d = _rotate(dirs[candidates], rot.T)
         t_enter = np.full(len(candidates), -np.inf)
         t_exit = np.full(len(candidates), np.inf)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -150,12 +151,12 @@ class Box:
 
     def normals(self, points: np.ndarray) -> np.ndarray:
         rot, h = self.rotation(), np.asarray(self.half_extents)
-        local = (points - np.asarray(self.centre)) @ rot
+        local = _rotate(points - np.asarray(self.centre), rot.T)
         axis = np.argmax(np.abs(local) / h, axis=1)
         n_local = np.zeros_like(local)
         rows = np.arange(len(local))
         n_local[rows, axis] = np.sign(local[rows, axis])
-        return n_local @ rot.T
+        return _rotate(n_local, rot)
 
     def mesh(self) -> trimesh.Trimesh:
         transform = np.eye(4)
@@ -175,7 +176,7 @@ class Plane:
     def intersect(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         n = np.asarray(self.normal)
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = ((np.asarray(self.point) - origin) @ n) / (dirs @ n)
+            t = ((np.asarray(self.point) - origin) @ n) / _dot(dirs, n)
         return np.where(t > MIN_HIT_DISTANCE, t, np.inf)
 
     def normals(self, points: np.ndarray) -> np.ndarray:
@@ -183,7 +184,6 @@ class Plane:
 
 
 Shape = Sphere | Box | Plane
-SHAPE_TYPES = {"sphere": Sphere, "box": Box, "plane": Plane}
 
 
 @dataclass(frozen=True)
@@ -218,7 +218,7 @@ def surface_colour(scene: SceneSpec, shape: Shape, points: np.ndarray) -> np.nda
     albedo = shape.texture.albedo(points)
     if not shape.shaded:
         return albedo
-    lambert = np.clip(shape.normals(points) @ np.asarray(scene.light), 0.0, None)
+    lambert = np.clip(_dot(shape.normals(points), np.asarray(scene.light)), 0.0, None)
     return albedo * (scene.ambient + (1 - scene.ambient) * lambert)[:, None]
 
 
@@ -250,12 +250,12 @@ def _render_float(scene: SceneSpec, c2w: np.ndarray, k: Intrinsics, supersample:
     origin, rot = c2w[:3, 3], c2w[:3, :3]
     # Camera-space directions have z = -1, so the ray parameter t is the depth along the viewing axis.
     centre = _camera_directions(k)
-    depth, _ = trace(scene, origin, centre @ rot.T)
+    depth, _ = trace(scene, origin, _rotate(centre, rot))
 
     # Sub-pixel offsets (dx, dy) in pixels shift the camera-space direction by (dx / fl_x, -dy / fl_y, 0).
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
     shifts = np.array([(dx / k.fl_x, -dy / k.fl_y, 0.0) for dy in offsets for dx in offsets])
-    dirs = ((centre[None] + shifts[:, None]) @ rot.T).reshape(-1, 3)
+    dirs = _rotate((centre[None] + shifts[:, None]).reshape(-1, 3), rot)
     t, index = trace(scene, origin, dirs)
     colour = np.broadcast_to(np.asarray(scene.background), dirs.shape).copy()
     for s, shape in enumerate(scene.shapes):
@@ -267,6 +267,18 @@ def _render_float(scene: SceneSpec, c2w: np.ndarray, k: Intrinsics, supersample:
     rgb = colour.reshape(len(shifts), k.h, k.w, 3).mean(axis=0)
     alpha = foreground[index].reshape(len(shifts), k.h, k.w).mean(axis=0)
     return rgb, depth.reshape(k.h, k.w), alpha
+
+
+# Products with a 3-vector or 3x3 matrix over many rows, written out: BLAS spends far longer
+# starting and syncing its threads than on the arithmetic, badly so when the cores are busy.
+def _dot(vectors: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """[N,3] . [3] or row by row with another [N,3] -> [N]."""
+    return vectors[:, 0] * v[..., 0] + vectors[:, 1] * v[..., 1] + vectors[:, 2] * v[..., 2]
+
+
+def _rotate(vectors: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """rotation @ v for every row v of vectors [N,3]."""
+    return vectors[:, :1] * rotation[:, 0] + vectors[:, 1:2] * rotation[:, 1] + vectors[:, 2:3] * rotation[:, 2]
 
 
 @functools.lru_cache(maxsize=8)
