@@ -221,46 +221,47 @@ class SparseGrid:
     def upsample(self, resolution, chunk_points: int = 1 << 19) -> tuple["SparseGrid", torch.Tensor]:
         """Trilinear resample to a new resolution over the same box.
 
-        New vertices are allocated where they fall in an old cell with an allocated corner after a
-        one-voxel dilation of the old allocation. Returns the new grid and, for each new row, the old
-        row of the nearest old vertex (-1 where that vertex is empty): the optimiser copies its state
-        from there.
+        A new vertex is allocated where it lies in an old cell with an allocated corner, and then
+        the allocation grows by one new voxel in every direction (so the surface can move). Values
+        are the old grid's trilinear interpolation there. Returns the new grid and, for each new row,
+        the old row of the nearest old vertex (-1 where that vertex is empty): the optimiser copies
+        its state from there.
         """
         res = _check_resolution(resolution)
         if self.data.device.type != "cpu":  # CUDA hook: resampled on the CPU, returned on the grid's device
             grid, old_rows = self.to("cpu").upsample(res, chunk_points)
             return grid.to(self.data.device), old_rows.to(self.data.device)
-        old = torch.tensor(self.resolution, dtype=torch.float64)
-        ratio = (old - 1) / (torch.tensor(res, dtype=torch.float64) - 1)
-        alive = (self._links >= 0).to(torch.float32)[None, None]
-        dilated = F.max_pool3d(alive, kernel_size=3, stride=1, padding=1)[0, 0] > 0
-        ry, rz = res[1], res[2]
-        yz = torch.stack(torch.meshgrid(torch.arange(ry), torch.arange(rz), indexing="ij"), dim=-1).reshape(-1, 2)
-        slab = max(1, chunk_points // (ry * rz))
-        links = torch.full(res, -1, dtype=torch.int32)
-        values, nearest, next_row = [], [], 0
         from plenoxels import reference
 
+        old = torch.tensor(self.resolution, dtype=torch.float64)
+        ratio = (old - 1) / (torch.tensor(res, dtype=torch.float64) - 1)
+        alive = self._links >= 0
+        ry, rz = res[1], res[2]
+        slab = max(1, chunk_points // (ry * rz))
+        grid_x = [torch.arange(n, dtype=torch.float64) * ratio[a] for a, n in enumerate(res)]
+        cells = [torch.minimum(g.floor().long(), old.long()[a] - 2).clamp_min(0) for a, g in enumerate(grid_x)]
+        allocated = torch.zeros(res, dtype=torch.bool)
         for x0 in range(0, res[0], slab):
-            xs = torch.arange(x0, min(x0 + slab, res[0]))
-            vert = torch.cat([xs.repeat_interleave(yz.shape[0])[:, None], yz.repeat(xs.shape[0], 1)], dim=1)
-            g = vert.double() * ratio
-            cell = torch.minimum(g.floor().long(), old.long() - 2).clamp_min(0)
-            keep = torch.zeros(vert.shape[0], dtype=torch.bool)
+            cx = cells[0][x0 : x0 + slab]
             for corner in range(8):
-                offset = torch.tensor([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1])
-                c = cell + offset
-                keep |= dilated[c[:, 0], c[:, 1], c[:, 2]]
-            vert, g = vert[keep], g[keep]
-            if vert.shape[0] == 0:
-                continue
+                dx, dy, dz = (corner >> 2) & 1, (corner >> 1) & 1, corner & 1
+                allocated[x0 : x0 + slab] |= alive[cx + dx][:, cells[1] + dy][:, :, cells[2] + dz]
+        grown = allocated.clone()
+        for axis in range(3):  # one-voxel dilation, axis by axis (a 3x3x3 cube in the end)
+            src = grown.clone()
+            n = res[axis]
+            grown.narrow(axis, 1, n - 1).logical_or_(src.narrow(axis, 0, n - 1))
+            grown.narrow(axis, 0, n - 1).logical_or_(src.narrow(axis, 1, n - 1))
+        vertices = torch.nonzero(grown)
+        links = torch.full(res, -1, dtype=torch.int32)
+        links[grown] = torch.arange(vertices.shape[0], dtype=torch.int32)
+        values, nearest = [], []
+        for chunk in torch.split(vertices, chunk_points):
+            g = chunk.double() * ratio
             values.append(reference.interpolate(self._links, self.data, g.to(torch.float32)))
             near = torch.minimum(g.round().long(), old.long() - 1)
             nearest.append(self._links[near[:, 0], near[:, 1], near[:, 2]].long())
-            links[vert[:, 0], vert[:, 1], vert[:, 2]] = torch.arange(next_row, next_row + vert.shape[0], dtype=torch.int32)
-            next_row += vert.shape[0]
-        stride = row_stride(self.sh_degree)
-        data = torch.cat(values) if values else torch.zeros(0, stride)
+        data = torch.cat(values) if values else torch.zeros(0, row_stride(self.sh_degree))
         old_rows = torch.cat(nearest) if nearest else torch.zeros(0, dtype=torch.int64)
         return SparseGrid(links, data, self.bbox_min, self.bbox_max, self.sh_degree), old_rows
 
