@@ -1,0 +1,245 @@
+"""Numerical extremes of the core, each with its expected result, on the native and the PyTorch paths.
+
+Most grids here span [0, R-1]^3 so that grid and fit-frame coordinates coincide and path lengths are
+easy to state.
+"""
+import math
+
+import pytest
+import torch
+
+from plenoxels import GridGrad, RenderOptions, SparseGrid, SparseRMSProp
+from plenoxels.reference import SH_C0
+from plenoxels.render import loss_and_grad, render
+
+BACKENDS = ["native", "torch"]
+
+
+def unit_grid(res=(5, 5, 5), density=0.0, colour=(0.2, 0.6, 0.9), sh_degree=0) -> SparseGrid:
+    """Uniform density and view-independent colour on the box [0, R-1]."""
+    grid = SparseGrid.dense(res, (0, 0, 0), tuple(r - 1 for r in res), sh_degree, init_density=density)
+    k = grid.sh.shape[1] // 3
+    for ch, c in enumerate(colour):
+        grid.sh[:, ch * k] = (c - 0.5) / SH_C0
+    return grid
+
+
+def rays(origins, dirs):
+    return torch.tensor(origins, dtype=torch.float32), torch.tensor(dirs, dtype=torch.float32)
+
+
+def assert_finite(*tensors):
+    for t in tensors:
+        assert bool(torch.isfinite(torch.as_tensor(t)).all())
+
+
+def check_loss_grad_finite(grid, origins, dirs, backend, opts=None):
+    grad = GridGrad(grid)
+    b = origins.shape[0]
+    mse, gbg = loss_and_grad(grid, origins, dirs, torch.rand(b, 3), torch.rand(b, 3), opts, grad, backend=backend)
+    assert_finite(mse, gbg, grad.data)
+    return grad
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_zero_density_renders_the_background_exactly(backend):
+    grid = unit_grid(density=0.0)
+    grid.sh.normal_(0, 1)
+    gen = torch.Generator().manual_seed(0)
+    origins = torch.randn(40, 3, generator=gen) * 6 + 2
+    dirs = torch.rand(40, 3, generator=gen) * 4 - origins
+    background = torch.rand(40, 3, generator=gen)
+    out = render(grid, origins, dirs, background, backend=backend)
+    assert torch.equal(out.rgb, background)
+    assert bool((out.opacity == 0).all()) and bool((out.depth == 0).all())
+    targets = torch.rand(40, 3, generator=gen)
+    grad = GridGrad(grid)
+    mse, gbg = loss_and_grad(grid, origins, dirs, targets, background, None, grad, backend=backend)
+    assert mse == pytest.approx(float(((background - targets) ** 2).mean()), rel=1e-5)
+    torch.testing.assert_close(gbg, 2 * (background - targets) / (3 * 40))
+    assert grad.num_touched == 0 and bool((grad.data == 0).all())
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("step, first_x", [(2.0, 1.0), (1e-4, 0.0)])
+def test_huge_density_shows_the_colour_at_the_first_sample(backend, step, first_x):
+    grid = unit_grid(density=1e6)
+    x = grid.coords()[:, 0].float()
+    grid.sh[:, 0] = (0.1 + 0.2 * x - 0.5) / SH_C0  # red grows with x: 0.1 at x=0, 0.3 at x=1, ...
+    origins, dirs = rays([[-1.0, 1.0, 2.0], [-3.0, 3.0, 0.0]], [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    opts = RenderOptions(step_size=step)
+    out = render(grid, origins, dirs, torch.ones(2, 3), opts, backend=backend)
+    assert bool((out.opacity == 1).all())
+    # step 2: first sample 1 voxel in; step 1e-4 is capped at max_samples_per_ray -> 4/4096/2 voxel in.
+    expected_x = first_x if step > 1 else 4.0 / opts.max_samples_per_ray / 2
+    torch.testing.assert_close(out.rgb[:, 0], torch.full((2,), 0.1 + 0.2 * expected_x), atol=1e-5, rtol=0)
+    torch.testing.assert_close(out.rgb[:, 1:], torch.tensor([[0.6, 0.9]]).expand(2, 2), atol=1e-5, rtol=0)
+    torch.testing.assert_close(out.depth, torch.tensor([1.0 + expected_x, 3.0 + expected_x]), atol=1e-4, rtol=0)
+    check_loss_grad_finite(grid, origins, dirs, backend, opts)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("step", [1e-4, 0.5, 2.0])
+@pytest.mark.parametrize("sh_degree", [0, 3])
+def test_uniform_medium_matches_beer_lambert(backend, step, sh_degree):
+    sigma, colour, bg = 0.5, torch.tensor([0.2, 0.6, 0.9]), torch.tensor([1.0, 0.5, 0.0])
+    grid = unit_grid(density=sigma, sh_degree=sh_degree)
+    # Along x through cell centres, and along the y axis through a line of vertices: 4 units of medium.
+    origins, dirs = rays([[-2.0, 1.5, 2.5], [3.0, 9.0, 1.0]], [[3.0, 0.0, 0.0], [0.0, -0.5, 0.0]])
+    out = render(grid, origins, dirs, bg.expand(2, 3), RenderOptions(step_size=step), backend=backend)
+    t = math.exp(-sigma * 4)
+    torch.testing.assert_close(out.opacity, torch.full((2,), 1 - t), atol=2e-5, rtol=0)
+    torch.testing.assert_close(out.rgb, (colour * (1 - t) + bg * t).expand(2, 3), atol=2e-5, rtol=0)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_rays_that_miss_or_only_touch_the_grid(backend):
+    grid = unit_grid(density=5.0)
+    origins, dirs = rays(
+        [[-1.0, 5.0, 2.0],   # parallel to x, above the box
+         [6.0, 2.0, 2.0],    # points away from the box
+         [-1.0, 1.0, 0.0],   # in the face z=0, touches only the corner (0,0,0)
+         [-1.0, 1.0, 2.0],   # touches only the edge x=0, y=0 (at z=2)
+         [-1.0, -1e-3, 2.0]],  # parallel to x, just below the face y=0
+        [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
+    background = torch.rand(5, 3)
+    out = render(grid, origins, dirs, background, backend=backend)
+    assert torch.equal(out.rgb, background) and bool((out.opacity == 0).all())
+    grad = check_loss_grad_finite(grid, origins, dirs, backend)
+    assert grad.num_touched == 0
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_rays_along_a_face_and_an_edge_see_the_medium(backend):
+    sigma = 0.25
+    grid = unit_grid(density=sigma)
+    origins, dirs = rays([[-1.0, 0.0, 2.0], [-1.0, 0.0, 0.0], [2.0, 4.0, -3.0]],
+                         [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # face y=0, edge y=z=0, face y=4
+    out = render(grid, origins, dirs, None, backend=backend)
+    torch.testing.assert_close(out.opacity, torch.full((3,), 1 - math.exp(-sigma * 4)), atol=2e-5, rtol=0)
+    check_loss_grad_finite(grid, origins, dirs, backend)
+
+
+def test_axis_and_plane_aligned_rays_native_matches_twin():
+    gen = torch.Generator().manual_seed(3)
+    grid = unit_grid(res=(6, 5, 7), sh_degree=2)
+    grid.density.copy_(torch.rand(grid.num_occupied, generator=gen) * 2)
+    grid.sh.copy_(torch.randn(grid.sh.shape, generator=gen) * 0.3)
+    o, d = [], []
+    for y in range(5):  # along x through vertex lines, in grid planes, and between them
+        for z in (0.0, 1.0, 2.5, 6.0):
+            o.append([-1.0, float(y), z])
+            d.append([1.0, 0.0, 0.0])
+    o += [[2.0, -1.0, 3.0], [2.5, 1.0, -1.0], [5.0, 4.0, 10.0], [1.0, 1.0, 1.0]]
+    d += [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1.0, 1.0, 1.0]]  # last: the main diagonal
+    origins, dirs = rays(o, d)
+    opts = RenderOptions(step_size=0.5)
+    native = render(grid, origins, dirs, None, opts)
+    twin = render(grid, origins, dirs, None, opts, backend="torch")
+    assert float(native.opacity.min()) > 0.3
+    torch.testing.assert_close(native.rgb, twin.rgb, atol=2e-5, rtol=1e-5)
+    torch.testing.assert_close(native.opacity, twin.opacity, atol=2e-5, rtol=1e-5)
+    targets = torch.rand(origins.shape[0], 3, generator=gen)
+    gn, gt = GridGrad(grid), GridGrad(grid)
+    loss_and_grad(grid, origins, dirs, targets, targets, opts, gn)
+    loss_and_grad(grid, origins, dirs, targets, targets, opts, gt, backend="torch")
+    torch.testing.assert_close(gn.data, gt.data, atol=1e-6, rtol=1e-4)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_origins_inside_the_grid_and_near_plane(backend):
+    sigma = 0.3
+    grid = unit_grid(density=sigma)
+    origins, dirs = rays([[2.0, 1.5, 2.5], [2.0, 1.5, 2.5]], [[1.0, 0.0, 0.0], [-2.0, 0.0, 0.0]])
+    out = render(grid, origins, dirs, None, backend=backend)
+    torch.testing.assert_close(out.opacity, torch.full((2,), 1 - math.exp(-sigma * 2)), atol=2e-5, rtol=0)
+    near = render(grid, origins, dirs, None, RenderOptions(near=1.0), backend=backend)
+    torch.testing.assert_close(near.opacity, torch.full((2,), 1 - math.exp(-sigma * 1)), atol=2e-5, rtol=0)
+    behind = render(grid, origins, dirs, None, RenderOptions(near=20.0), backend=backend)
+    assert bool((behind.opacity == 0).all())
+    check_loss_grad_finite(grid, origins, dirs, backend)
+    # Along the main diagonal from (1,1,1): 3*sqrt(3) of medium, a whole number of steps.
+    diag_o, diag_d = rays([[1.0, 1.0, 1.0]], [[1.0, 1.0, 1.0]])
+    diag = render(grid, diag_o, diag_d, None, RenderOptions(step_size=math.sqrt(3) / 4), backend=backend)
+    assert float(diag.opacity) == pytest.approx(1 - math.exp(-sigma * 3 * math.sqrt(3)), abs=2e-5)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_single_cell_grid(backend):
+    sigma = 2.0
+    grid = unit_grid(res=(2, 2, 2), density=sigma)
+    origins, dirs = rays([[-1.0, 0.5, 0.5], [0.5, 0.5, 3.0]], [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    out = render(grid, origins, dirs, None, RenderOptions(step_size=0.1), backend=backend)
+    torch.testing.assert_close(out.opacity, torch.full((2,), 1 - math.exp(-sigma)), atol=2e-5, rtol=0)
+    check_loss_grad_finite(grid, origins, dirs, backend)
+
+
+def test_single_cell_grid_native_matches_twin():
+    grid = unit_grid(res=(2, 2, 2), sh_degree=3)
+    gen = torch.Generator().manual_seed(4)
+    grid.data.copy_(torch.rand(grid.data.shape, generator=gen) * 3)
+    origins = torch.randn(32, 3, generator=gen) * 3
+    dirs = torch.rand(32, 3, generator=gen) - origins
+    a = render(grid, origins, dirs, None, RenderOptions(step_size=0.05))
+    b = render(grid, origins, dirs, None, RenderOptions(step_size=0.05), backend="torch")
+    assert float(a.opacity.max()) > 0.5
+    torch.testing.assert_close(a.rgb, b.rgb, atol=2e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("target", [0.0, 1.0])
+def test_black_and_white_targets_pull_colour_the_right_way(backend, target):
+    grid = unit_grid(density=0.6, colour=(0.5, 0.5, 0.5), sh_degree=1)
+    gen = torch.Generator().manual_seed(5)
+    origins = torch.cat([torch.full((64, 1), -1.0), torch.rand(64, 2, generator=gen) * 4], dim=1)
+    dirs = torch.tensor([[1.0, 0.0, 0.0]]).expand(64, 3) + torch.randn(64, 3, generator=gen) * 0.05
+    targets = torch.full((64, 3), target)
+    background = torch.full((64, 3), target)
+    opt = SparseRMSProp(grid, lr_density=0.05, lr_sh=0.05, backend=backend)
+    grad = GridGrad(grid)
+    first, _ = loss_and_grad(grid, origins, dirs, targets, background, None, grad, backend=backend)
+    rows = grad.touched()
+    dc0 = grad.sh[rows][:, [0, 4, 8]]  # the constant coefficient of R, G and B
+    sign = 1.0 if target == 0.0 else -1.0
+    assert bool((sign * dc0 >= 0).all()) and bool((sign * dc0 > 0).any())
+    opt.step(grad)
+    for _ in range(15):
+        mse, _ = loss_and_grad(grid, origins, dirs, targets, background, None, grad, backend=backend)
+        opt.step(grad)
+    assert_finite(grid.data, opt.second_moment)
+    assert mse < 0.5 * first
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("density", [1e6, 1e30])
+def test_underflowing_transmittance_stays_finite(backend, density):
+    grid = unit_grid(res=(6, 6, 6), density=density, sh_degree=2)
+    grid.sh.normal_(0, 0.5)
+    gen = torch.Generator().manual_seed(6)
+    origins = torch.randn(16, 3, generator=gen) * 8
+    dirs = torch.rand(16, 3, generator=gen) * 5 - origins
+    opts = RenderOptions(step_size=0.05, stop_transmittance=0.0)  # no early stop: T runs down to 0
+    out = render(grid, origins, dirs, torch.ones(16, 3), opts, backend=backend)
+    assert_finite(out.rgb, out.depth, out.opacity)
+    hit = out.opacity > 0
+    assert bool(hit.any()) and bool((out.opacity[hit] == 1).all())
+    check_loss_grad_finite(grid, origins, dirs, backend, opts)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_rmsprop_with_zero_second_moment_and_zero_gradient(backend):
+    grid = unit_grid(density=0.5, sh_degree=1)
+    before = grid.data.clone()
+    opt = SparseRMSProp(grid, lr_density=10.0, lr_sh=10.0, eps=1e-8, backend=backend)
+    grad = GridGrad(grid)
+    rows = torch.tensor([0, 7, 63])
+    grad.accumulate(rows, torch.zeros(3), torch.zeros(3, grid.sh.shape[1]))
+    opt.step(grad)
+    assert torch.equal(grid.data, before)
+    assert bool((opt.second_moment == 0).all())
+    tiny = torch.full((3,), 1e-30)
+    grad.accumulate(rows, tiny, torch.zeros(3, grid.sh.shape[1]))
+    opt.step(grad)
+    assert_finite(grid.data, opt.second_moment)
+    changed = torch.nonzero((grid.data != before).any(dim=1)).squeeze(1)
+    assert set(changed.tolist()) <= set(rows.tolist())
