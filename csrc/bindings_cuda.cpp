@@ -11,8 +11,12 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 #include <torch/library.h>
-#include <ATen/ATen.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/full.h>
+#include <ATen/ops/zeros.h>
 
+#include <cstdint>
 #include <optional>
 #include <tuple>
 #include <vector>
@@ -28,6 +32,12 @@ constexpr int padded_stride(int columns) { return columns <= 4 ? 4 : (columns + 
 void check_cuda(const Tensor& t, at::ScalarType type, const char* name, const Tensor& like) {
     TORCH_CHECK(t.is_cuda() && t.device() == like.device(), name, " must be on ", like.device());
     TORCH_CHECK(t.scalar_type() == type && t.is_contiguous(), name, " must be contiguous ", at::toString(type));
+}
+
+// The kernels read and write rows as float4.
+void check_aligned(const Tensor& t, const char* name) {
+    TORCH_CHECK(reinterpret_cast<uintptr_t>(t.data_ptr()) % 16 == 0, name,
+                " must start on a 16-byte boundary (a fresh contiguous tensor, not an offset view)");
 }
 
 void check_launch(cudaError_t err, const char* what) {
@@ -49,6 +59,7 @@ plx_cuda::Grid make_grid(const Tensor& data, const Tensor& links, const Tensor& 
                 "links must be [Rx,Ry,Rz] with every size >= 2");
     TORCH_CHECK(block_occ.dim() == 3 && block > 0, "block_occ must be 3-D and block > 0");
     TORCH_CHECK(bmin.size() == 3 && bmax.size() == 3, "bbox bounds must have 3 values each");
+    check_aligned(data, "data");
     plx_cuda::Grid g;
     g.data = data.data_ptr<float>();
     g.links = links.data_ptr<int32_t>();
@@ -83,6 +94,7 @@ void check_grad_storage(const Tensor& data, const Tensor& grad_data, const Tenso
     check_cuda(grad_mask, at::kByte, "grad mask", data);
     check_cuda(grad_rows, at::kInt, "grad rows", data);
     TORCH_CHECK(grad_data.sizes() == data.sizes(), "gradient storage does not match the grid");
+    check_aligned(grad_data, "grad data");
     TORCH_CHECK(grad_mask.numel() == data.size(0) && grad_rows.numel() >= data.size(0),
                 "grad mask and grad rows need one entry per row");
 }

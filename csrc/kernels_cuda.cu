@@ -14,6 +14,11 @@ namespace {
 
 constexpr int kThreads = 128;
 
+// Rows are read and their gradients written as float4 (the padded row stride is a multiple of 4
+// floats and the tables are 16-byte aligned: bindings_cuda.cpp checks), so C columns take
+// float4s(C) vector accesses instead of C scalar ones.
+__host__ __device__ constexpr int float4s(int columns) { return (columns + 3) / 4; }
+
 inline unsigned blocks_for(int64_t n) { return (unsigned)((n + kThreads - 1) / kThreads); }
 
 struct RayState {
@@ -80,7 +85,7 @@ struct Sample {
 
 // Marches one ray front to back and calls visit(sample, interp) for each sample that passes the
 // occupancy test and the density threshold; `interp` holds the first C interpolated columns of the
-// sample's row. visit returns the transmittance after the sample; the march stops below the
+// sample's row (rounded up to whole float4s; C = 1 needs only the density, already at hand). visit returns the transmittance after the sample; the march stops below the
 // threshold. Returns the final transmittance.
 template <int C, typename Visit>
 __device__ float march(const Grid& g, const RayState& r, const March& opt, Visit visit) {
@@ -114,16 +119,26 @@ __device__ float march(const Grid& g, const RayState& r, const March& opt, Visit
         }
         ++i;
         if (!(raw_density > opt.sigma_threshold)) continue;
-        float interp[C];
+        float interp[4 * float4s(C)];
+        if constexpr (C == 1) {
+            interp[0] = raw_density;
+        } else {
 #pragma unroll
-        for (int k = 0; k < C; ++k) interp[k] = 0.0f;
+            for (int k = 0; k < 4 * float4s(C); ++k) interp[k] = 0.0f;
 #pragma unroll
-        for (int c = 0; c < 8; ++c) {
-            if (s.rows[c] < 0) continue;
-            const float* row = g.data + (int64_t)s.rows[c] * S;
-            const float w = s.w[c];
+            for (int c = 0; c < 8; ++c) {
+                if (s.rows[c] < 0) continue;
+                const float4* row = reinterpret_cast<const float4*>(g.data + (int64_t)s.rows[c] * S);
+                const float w = s.w[c];
 #pragma unroll
-            for (int k = 0; k < C; ++k) interp[k] += w * row[k];
+                for (int q = 0; q < float4s(C); ++q) {
+                    const float4 v = __ldg(row + q);
+                    interp[4 * q] += w * v.x;
+                    interp[4 * q + 1] += w * v.y;
+                    interp[4 * q + 2] += w * v.z;
+                    interp[4 * q + 3] += w * v.w;
+                }
+            }
         }
         s.alpha = plx::sample_alpha(raw_density, delta, &s.transmittance_factor);
         s.t_before = transmittance;
@@ -198,7 +213,9 @@ __global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __re
     march<C>(g, r, opt, [&](const Sample& s, float, const float* row) {
         const float w = s.t_before * s.alpha;
         const float t_after = s.t_before * s.transmittance_factor;
-        float grow[C];
+        float grow[4 * float4s(C)];
+#pragma unroll
+        for (int k = C; k < 4 * float4s(C); ++k) grow[k] = 0.0f;
         float dsigma = 0.0f;
         for (int ch = 0; ch < 3; ++ch) {
             float raw;
@@ -217,9 +234,18 @@ __global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __re
             float* dst = grad + (int64_t)row_index * S;
             const float wc = s.w[c];
 #pragma unroll
-            for (int k = 0; k < C; ++k) {
-                const float v = wc * grow[k];
-                if (v != 0.0f) atomicAdd(dst + k, v);
+            for (int q = 0; q < float4s(C); ++q) {
+                const float4 v = make_float4(wc * grow[4 * q], wc * grow[4 * q + 1], wc * grow[4 * q + 2],
+                                             wc * grow[4 * q + 3]);
+                if (v.x == 0.0f && v.y == 0.0f && v.z == 0.0f && v.w == 0.0f) continue;
+#if __CUDA_ARCH__ >= 900
+                atomicAdd(reinterpret_cast<float4*>(dst) + q, v);  // one vector atomic per 4 columns
+#else
+                atomicAdd(dst + 4 * q, v.x);
+                atomicAdd(dst + 4 * q + 1, v.y);
+                atomicAdd(dst + 4 * q + 2, v.z);
+                atomicAdd(dst + 4 * q + 3, v.w);
+#endif
             }
         }
         return t_after;
