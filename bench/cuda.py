@@ -99,7 +99,8 @@ def measure(torch, resolution: int, device, rays: int, reps: int, kind: str) -> 
 def cpu_baseline(resolution: int, kind: str, args) -> dict:
     """The CPU measurement in a child process with OMP_NUM_THREADS set before torch starts."""
     env = dict(os.environ, OMP_NUM_THREADS=str(args.cpu_threads))
-    cmd = [sys.executable, "-m", "bench.cuda", "--cpu-baseline", f"{resolution},{kind}", "--cpu-rays", str(args.cpu_rays)]
+    cmd = [sys.executable, "-m", "bench.cuda", "--cpu-baseline", f"{resolution},{kind}",
+           "--cpu-rays", str(args.cpu_rays)]
     out = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -151,7 +152,8 @@ def lego_scene(folder: Path, val_limit: int | None = None):
             continue
         c2w = world_from_input @ np.asarray(f["transform_matrix"], dtype=np.float64)
         c2w[:3, :3] /= scene["scale"]
-        val.append({"name": "val_" + Path(rel).stem, "file_path": rel, "mask_path": rel, "transform_matrix": c2w.tolist(),
+        val.append({"name": "val_" + Path(rel).stem, "file_path": rel, "mask_path": rel,
+                    "transform_matrix": c2w.tolist(),
                     "fl_x": focal, "fl_y": focal, "cx": w / 2, "cy": h / 2, "w": w, "h": h, "split": "test"})
     val = val[:val_limit]
     if not val:

@@ -197,7 +197,8 @@ plx_cuda::LiveBlocks make_live(const Tensor& data, const std::optional<Tensor>& 
                                const std::optional<Tensor>& counts, const std::optional<Tensor>& blocks) {
     plx_cuda::LiveBlocks live{nullptr, 1, {0, 0, 0}, nullptr, nullptr};
     if (!coords.has_value()) return live;
-    TORCH_CHECK(counts.has_value() && blocks.has_value() && block > 0, "live bookkeeping needs coords, block, counts and blocks");
+    TORCH_CHECK(counts.has_value() && blocks.has_value() && block > 0,
+                "live bookkeeping needs coords, block, counts and blocks");
     check_cuda(*coords, at::kInt, "coords", data);
     check_cuda(*counts, at::kInt, "counts", data);
     check_cuda(*blocks, at::kByte, "blocks", data);

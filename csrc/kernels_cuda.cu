@@ -83,10 +83,11 @@ struct Sample {
     float alpha, transmittance_factor, t_before, t;
 };
 
-// Marches one ray front to back and calls visit(sample, interp) for each sample that passes the
-// occupancy test and the density threshold; `interp` holds the first C interpolated columns of the
-// sample's row (rounded up to whole float4s; C = 1 needs only the density, already at hand). visit returns the transmittance after the sample; the march stops below the
-// threshold. Returns the final transmittance.
+// Marches one ray front to back and calls visit(sample, density, interp) for each sample that
+// passes the occupancy test and the density threshold; `interp` holds the first C interpolated
+// columns of the sample's row (rounded up to whole float4s; C = 1 needs only the density, already
+// at hand). visit returns the transmittance after the sample; the march stops below the threshold.
+// Returns the final transmittance.
 template <int C, typename Visit>
 __device__ float march(const Grid& g, const RayState& r, const March& opt, Visit visit) {
     float transmittance = 1.0f;
