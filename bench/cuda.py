@@ -12,8 +12,12 @@ Two parts, results in bench/results/cuda.json:
   background; held-out PSNR against wall time comes from the fit's own history (val views).
   The val images present on disk are used (a GPU machine may carry only some of them).
 
-    .venv/bin/python -m bench.cuda [--part throughput|lego|all] [--data ../shared/data]
-        [--cpu-threads 2] [--set fit_key=value ...]
+    python -m bench.cuda [--part throughput|lego|all] [--data ../shared/data] [--cpu-threads 2]
+        [--gpu-rays 262144] [--cpu-rays 8192] [--val-limit N] [--set fit_key=value ...]
+
+The throughput part needs only torch; the lego part also the fit stage's packages (numpy, PIL,
+OpenCV, imageio, PyYAML, tqdm). A GPU machine without ../shared/data can take lego/train, the
+transforms JSONs and part of lego/val (under 64 MiB) and point --data at their parent.
 """
 from __future__ import annotations
 
@@ -124,40 +128,42 @@ def throughput(torch, args) -> list[dict]:
 
 
 # ---- lego -----------------------------------------------------------------------------------------
-def _present(folder: Path, frames: list[dict]) -> list[dict]:
-    return [f for f in frames if (folder / f["file_path"]).is_file()]
+LEGO_SIZE = 800  # every NeRF-synthetic render is 800x800
+
+
+def blender_frames(folder: Path, split: str) -> list[dict]:
+    """The frames of transforms_<split>.json whose image is on disk, in the poses stage's layout
+    (OpenGL camera-to-world, pinhole intrinsics, the RGBA image as its own mask). Read here rather
+    than through bench/normalize.py, which needs pycolmap (not on every GPU machine)."""
+    meta = json.loads((folder / f"transforms_{split}.json").read_text())
+    focal = 0.5 * LEGO_SIZE / math.tan(0.5 * meta["camera_angle_x"])
+    frames = []
+    for f in meta["frames"]:
+        rel = f["file_path"].removeprefix("./") + ".png"
+        if (folder / rel).is_file():
+            frames.append({"name": f"{split}_{Path(rel).stem}", "file_path": rel, "mask_path": rel,
+                           "transform_matrix": f["transform_matrix"], "fl_x": focal, "fl_y": focal,
+                           "cx": LEGO_SIZE / 2, "cy": LEGO_SIZE / 2, "w": LEGO_SIZE, "h": LEGO_SIZE})
+    if not frames:
+        raise SystemExit(f"bench.cuda: no lego {split} images under {folder / split}; pass --data")
+    return frames
 
 
 def lego_scene(folder: Path, val_limit: int | None = None):
-    """scene.json for lego as the normalize stage writes it (all train images train), plus the val
-    frames mapped into the same frame with split "test"."""
+    """scene.json for lego as the normalize stage writes it (every train image for training), plus
+    the val frames mapped into the same frame with split "test"."""
     import numpy as np
 
-    from bench.normalize import lego as lego_transforms
     from stages.normalize import Points, Settings, normalize_scene
 
-    transforms, _ = lego_transforms(folder)
-    transforms["frames"] = _present(folder, transforms["frames"])
-    if not transforms["frames"]:
-        raise SystemExit(f"bench.cuda: no lego train images under {folder}/train; pass --data")
+    transforms = {"frames": blender_frames(folder, "train")}  # intrinsics are per frame
     scene = normalize_scene(transforms, Points.empty(), Settings(holdout_every=0), poses_dir=folder, path_prefix="")
     world_from_input = np.asarray(scene["world_from_input"])
-    meta = json.loads((folder / "transforms_val.json").read_text())
-    w, h = transforms["w"], transforms["h"]
-    focal = 0.5 * w / math.tan(0.5 * meta["camera_angle_x"])
-    val = []
-    for f in meta["frames"]:
-        rel = f["file_path"].removeprefix("./") + ".png"
-        if not (folder / rel).is_file():
-            continue
-        c2w = world_from_input @ np.asarray(f["transform_matrix"], dtype=np.float64)
-        c2w[:3, :3] /= scene["scale"]
-        val.append({"name": "val_" + Path(rel).stem, "file_path": rel, "mask_path": rel,
-                    "transform_matrix": c2w.tolist(),
-                    "fl_x": focal, "fl_y": focal, "cx": w / 2, "cy": h / 2, "w": w, "h": h, "split": "test"})
-    val = val[:val_limit]
-    if not val:
-        raise SystemExit(f"bench.cuda: no lego val images under {folder}/val; pass --data")
+    val = blender_frames(folder, "val")[:val_limit]
+    for frame in val:
+        c2w = world_from_input @ np.asarray(frame["transform_matrix"], dtype=np.float64)
+        c2w[:3, :3] /= scene["scale"]  # as normalize does: rotation and translation, no scale
+        frame.update(transform_matrix=c2w.tolist(), split="test")
     scene["frames"] = scene["frames"] + val
     return scene, val
 
