@@ -27,6 +27,8 @@ from pipeline.cameras import Intrinsics, rays_from_camera
 from pipeline.config import require
 from pipeline.errors import UserError
 from pipeline.io import read_json, write_json
+from plenoxels.render import native_available, render
+from plenoxels.scene_model import SceneModel
 
 NAME = "export"
 DEPENDS: tuple[str, ...] = ("normalize", "fit")
@@ -328,8 +330,6 @@ def surface_points(grid, frame: FitFrame, frames: list[dict], s: Settings, repor
 
     Only the fitted grid is rendered (never a background model), so unbounded and forward scenes
     give foreground points only; forward scenes' rays go through NDC and their points come back."""
-    from plenoxels.render import native_available, render
-
     backend = "native" if native_available() else "torch"
     train = [f for f in frames if f.get("split", "train") == "train"] or frames
     if s.point_views and len(train) > s.point_views:
@@ -518,18 +518,12 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
     return mesh, decisions
 
 
-def load_model(fit_dir: Path):
-    from plenoxels.scene_model import SceneModel
-
-    return SceneModel.load(fit_dir)
-
-
 def run(ctx) -> dict:
     s: Settings = ctx.settings
     scene = read_json(ctx.upstream["normalize"] / "scene.json")
-    model = load_model(ctx.upstream["fit"])
+    model = SceneModel.load(ctx.upstream["fit"])
     grid = model.grid
-    frame = FitFrame(getattr(model, "ndc", None))
+    frame = FitFrame(model.ndc)
     box_min = np.asarray(scene["foreground"]["min"], dtype=np.float64)
     box_max = np.asarray(scene["foreground"]["max"], dtype=np.float64)
 
@@ -545,6 +539,9 @@ def run(ctx) -> dict:
         voxel = grid_lattice_voxel(grid)
         colours = surface_colours(grid, frame.from_world(points), voxel)
         normals = point_normals(grid, frame, points, voxel)
+        if len(points) == 0:
+            ctx.report.warn(f"no training-view pixel is {s.point_opacity:.0%} opaque inside the foreground box, so "
+                            "points.ply is empty; lower export.point_opacity")
 
     if s.frame == "input":
         to_output = np.asarray(scene["input_from_world"], dtype=np.float64)
