@@ -38,7 +38,7 @@ install: $(STAMP)
 # torch is installed on its own first, pinned, so that no other package can pull a newer (CUDA) build.
 $(STAMP): pyproject.toml setup.py $(wildcard csrc/*)
 	@test -x $(PY) || python3 -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip setuptools wheel ninja
+	$(PY) -m pip install -q --upgrade pip setuptools wheel ninja "numpy>=1.26,<3"
 	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q --no-build-isolation -e '.[test]'
 	$(PY) setup.py -q build_ext --inplace
