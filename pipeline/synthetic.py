@@ -46,7 +46,7 @@ KINDS = ("object", "forward", "unbounded")
 WORLD_UP = (0.0, 0.0, 1.0)
 OBJECT_CENTRE = np.array([0.3, -0.2, 0.5])
 ENVIRONMENT_RADIUS = 24.0
-HORIZONTAL_FOV_DEG = {"object": 50.0, "forward": 60.0, "unbounded": 60.0}
+HORIZONTAL_FOV_DEG = {"object": 55.0, "forward": 60.0, "unbounded": 60.0}
 # Hits closer than this along a ray are ignored, so a ray never hits the surface it starts on.
 MIN_HIT_DISTANCE = 1e-6
 
@@ -73,15 +73,17 @@ class Texture:
             points = offset * np.sqrt(self.zoom_radius / (self.zoom_radius + distance))
         p = (points * self.frequency).astype(np.float32)
         table = _noise_table(self.seed)
-        # Octaves 2.1x apart (not 2x) so their periods never line up and the sum does not repeat.
-        octaves = [_value_noise(p * np.float32(2.1 ** n) + np.float32(17.3 * n), table) for n in range(4)]
+        # Octaves 2.1x apart (not 2x) and each turned its own way, so their periods never line up, the sum
+        # does not repeat, and the noise lattice leaves no axis-aligned grain.
+        octaves = [_value_noise(_rotate(p, rotation) * np.float32(2.1 ** n) + np.float32(17.3 * n), table)
+                   for n, rotation in enumerate(_octave_rotations(self.seed))]
         patches = _smoothstep(0.46, 0.54, octaves[0][:, 3:])
         colour = (1 - patches) * np.asarray(self.base, np.float32) + patches * np.asarray(self.patch, np.float32)
         for noise, weight in zip(octaves, (0.45, 0.35, 0.28, 0.22)):
             colour += np.float32(weight) * (noise[:, :3] - np.float32(0.5))
         # Grey detail in the finer octaves: SIFT sees only brightness, which colour noise barely changes.
         for noise in octaves[1::2]:
-            colour += np.float32(0.4) * (noise[:, 3:] - np.float32(0.5))
+            colour += np.float32(0.7) * (noise[:, 3:] - np.float32(0.5))
         spots = _smoothstep(0.7, 0.76, octaves[2][:, 3:])
         colour = (1 - spots) * colour + spots * np.asarray(self.spot, np.float32)
         return np.clip(colour, 0.03, 0.97).astype(np.float64)
@@ -314,7 +316,7 @@ def build_scene(kind: str, seed: int = 0) -> SceneSpec:
                        foreground=False, inward=True, shaded=False),
             ]
     return SceneSpec(kind=kind, seed=seed, shapes=tuple(shapes), background=(1.0, 1.0, 1.0),
-                     light=tuple(light / np.linalg.norm(light)), ambient=0.35, look_at=tuple(OBJECT_CENTRE))
+                     light=tuple(light / np.linalg.norm(light)), ambient=0.5, look_at=tuple(OBJECT_CENTRE))
 
 
 def _still_life(rng: np.random.Generator, with_slab: bool) -> list[Shape]:
@@ -326,7 +328,7 @@ def _still_life(rng: np.random.Generator, with_slab: bool) -> list[Shape]:
     c, s = math.cos(spin), math.sin(spin)
     shapes: list[Shape] = []
     if with_slab:
-        shapes.append(Box((cx, cy, floor - 0.06), (1.05, 0.9, 0.06), spin, _texture(rng, 3.0)))
+        shapes.append(Box((cx, cy, floor - 0.06), (0.9, 0.9, 0.06), spin, _texture(rng, 3.0)))
     # The corners of a 0.84-unit square on the slab, in order around it; every piece fits within
     # 0.4 of its corner, so neighbours (0.84 apart) keep a gap.
     corners = [(0.42, 0.42), (-0.42, 0.42), (-0.42, -0.42), (0.42, -0.42)]
@@ -395,7 +397,7 @@ def camera_poses(scene: SceneSpec, n_views: int) -> np.ndarray:
     # A two-turn spiral up the upper hemisphere: neighbours are 720/n degrees apart, and each
     # azimuth is seen from two elevations.
     s = (np.arange(n_views) + 0.5) / n_views
-    low, high, radius = (12.0, 65.0, 3.6) if scene.kind == "object" else (6.0, 40.0, 3.5)
+    low, high, radius = (12.0, 65.0, 4.0) if scene.kind == "object" else (6.0, 40.0, 3.5)
     azimuth = rng.uniform(0, 2 * math.pi) + 4 * math.pi * s
     elevation = np.radians(low + (high - low) * s)
     offsets = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], -1)
@@ -553,6 +555,15 @@ NOISE_PERIOD = 64   # lattice cells per axis of a noise table (a power of two, f
 def _noise_table(seed: int) -> np.ndarray:
     """Random bytes at the lattice points of a NOISE_PERIOD^3 cube, four channels each, flattened."""
     return np.random.default_rng(seed).integers(0, 256, (NOISE_PERIOD ** 3, 4), dtype=np.uint8)
+
+
+@functools.lru_cache(maxsize=64)
+def _octave_rotations(seed: int) -> np.ndarray:
+    """Four random float32 rotations, one per noise octave."""
+    q, r = np.linalg.qr(np.random.default_rng(seed + 1).normal(size=(4, 3, 3)))
+    q *= np.sign(np.diagonal(r, axis1=1, axis2=2))[:, None, :]
+    q[np.linalg.det(q) < 0, :, 0] *= -1
+    return q.astype(np.float32)
 
 
 def _value_noise(p: np.ndarray, table: np.ndarray) -> np.ndarray:

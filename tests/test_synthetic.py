@@ -115,7 +115,7 @@ def _points_seen_by_both(scene, views, k, index, n_points=4000):
 @pytest.mark.parametrize("kind", KINDS)
 def test_a_known_surface_point_has_its_depth_and_colour_in_two_views(kind):
     scene = build_scene(kind, seed=1)
-    k = intrinsics_for(kind, 160, 120)
+    k = intrinsics_for(kind, 320, 240)
     views = camera_poses(scene, 40)[[10, 11]]
     renders = [render_view(scene, c2w, k, supersample=1) for c2w in views]
     # Whichever foreground sphere the two views see most of.
