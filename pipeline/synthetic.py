@@ -320,8 +320,9 @@ def build_scene(kind: str, seed: int = 0) -> SceneSpec:
 
 
 def _still_life(rng: np.random.Generator, with_slab: bool) -> list[Shape]:
-    """Two spheres and two boxes standing on the plane z = OBJECT_CENTRE.z - 0.5, inside about
-    OBJECT_CENTRE +- (1, 1, 0.6), with gaps between them so their meshes do not intersect."""
+    """Two spheres and two boxes standing on the plane z = OBJECT_CENTRE.z - 0.5 (on a 1.8-unit square
+    slab when with_slab), up to 1 unit from OBJECT_CENTRE sideways and 0.6 up, with gaps between them
+    so their meshes do not intersect."""
     cx, cy, cz = OBJECT_CENTRE
     floor = cz - 0.5
     spin = rng.uniform(0, 2 * math.pi)

@@ -171,6 +171,16 @@ def test_orbit_cameras_look_at_the_centre_from_above(kind):
     assert np.ptp(np.unwrap(azimuths)) > 2 * np.pi
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_object_kind_keeps_the_whole_object_inside_every_frame(seed):
+    scene = build_scene("object", seed)
+    k = intrinsics_for("object", 80, 60)
+    for c2w in camera_poses(scene, 40):
+        _, depth, alpha = render_view(scene, c2w, k, supersample=1)
+        border = np.concatenate([alpha[0], alpha[-1], alpha[:, 0], alpha[:, -1]])
+        assert border.max() == 0 and np.isinf(depth[alpha == 0]).all() and 0.1 < alpha.mean() < 0.5
+
+
 def test_forward_cameras_lie_on_a_plane_and_look_one_way():
     scene = build_scene("forward", seed=2)
     poses = camera_poses(scene, 20)
