@@ -88,7 +88,11 @@ def _coerce(value: Any, tp: Any) -> Any:
     """Returns value as type tp, or raises ValueError. Only safe widenings (int -> float, list -> tuple)."""
     origin = typing.get_origin(tp)
     if origin is Literal:
-        if value in typing.get_args(tp):
+        allowed = typing.get_args(tp)
+        # YAML 1.1 reads on/off as booleans; where a setting spells them as words, give the words back.
+        if isinstance(value, bool) and ("on" if value else "off") in allowed:
+            return "on" if value else "off"
+        if value in allowed:
             return value
         raise ValueError
     if origin in (typing.Union, types.UnionType):
