@@ -2,11 +2,11 @@
 import json
 
 import cv2
+import imageio.v3 as iio
 import numpy as np
 import pytest
 import torch
 import trimesh
-from PIL import Image
 
 from pipeline.cameras import Intrinsics, pixel_directions, project, rays_from_camera
 from pipeline.errors import UserError
@@ -37,7 +37,7 @@ def test_written_scene_has_the_poses_stage_layout(tmp_path):
     assert (transforms["fl_x"], transforms["fl_y"], transforms["cx"], transforms["cy"]) == (k.fl_x, k.fl_y, k.cx, k.cy)
     poses = camera_poses(build_scene("object", 2), 4)
     for frame, c2w in zip(transforms["frames"], poses):
-        assert np.array(Image.open(out / frame["file_path"])).shape == (30, 40, 3)
+        assert np.array(iio.imread(out / frame["file_path"])).shape == (30, 40, 3)
         assert np.allclose(frame["transform_matrix"], c2w)
     truth = json.loads((out / "ground_truth" / "scene.json").read_text())
     mesh = trimesh.load(out / "ground_truth" / "mesh.ply")
@@ -52,8 +52,8 @@ def test_alpha_images_composite_back_to_the_rgb_images(tmp_path):
     rgba_dir = write_scene("object", tmp_path / "rgba", n_views=2, width=48, height=36, seed=3, alpha=True)
     background = np.asarray(build_scene("object", 3).background)
     for name in ("0000.png", "0001.png"):
-        rgb = np.array(Image.open(rgb_dir / "images" / name)).astype(np.float64) / 255
-        rgba = np.array(Image.open(rgba_dir / "images" / name)).astype(np.float64) / 255
+        rgb = np.array(iio.imread(rgb_dir / "images" / name)).astype(np.float64) / 255
+        rgba = np.array(iio.imread(rgba_dir / "images" / name)).astype(np.float64) / 255
         alpha = rgba[..., 3:]
         assert rgba.shape[-1] == 4 and alpha.min() == 0 and alpha.max() == 1 and 0 < alpha.mean() < 1
         assert np.abs(alpha * rgba[..., :3] + (1 - alpha) * background - rgb).max() < 2.5 / 255
