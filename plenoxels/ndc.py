@@ -39,8 +39,10 @@ from pipeline.errors import UserError
 PARALLEL_EPS = 1e-5
 # Largest NDC depth mapped back to the world: z_ndc = 1 is infinitely far.
 MAX_Z_NDC = 1.0 - 1e-5
-# Plenoxels' LLFF grid is 1408 x 1156 x 128: one depth cell per 11 cells across.
-DEPTH_FRACTION = 128 / 1408
+# Plenoxels' LLFF grids keep 128 depth cells at every level (256x256x128 up to 1408x1156x128): depth
+# needs half the cells across at coarse levels, and no more than 128 at fine ones.
+DEPTH_FRACTION = 0.5
+MAX_DEPTH_CELLS = 128
 
 
 @dataclass(frozen=True)
@@ -106,13 +108,14 @@ class NDCMapping:
 
     def grid_resolution(self, max_side: int, min_depth: int = 16) -> tuple[int, int, int]:
         """Anisotropic (Rx, Ry, Rz): `max_side` cells along the image's longer side, the other side in
-        proportion to the image, and depth at Plenoxels' LLFF ratio (128 cells for 1408 across)."""
+        proportion to the image, and depth as Plenoxels' LLFF grids have it: half the cells across,
+        at most 128 (at least `min_depth`)."""
         if max_side < 2:
             raise UserError(f"the NDC grid needs at least 2 cells across, got {max_side}")
         longer = max(self.w, self.h)
         rx = max(2, round(max_side * self.w / longer))
         ry = max(2, round(max_side * self.h / longer))
-        rz = max(min_depth, round(max_side * DEPTH_FRACTION))
+        rz = max(min_depth, min(MAX_DEPTH_CELLS, round(max_side * DEPTH_FRACTION)))
         return rx, ry, rz
 
     # ---- the map ------------------------------------------------------------------------------

@@ -174,6 +174,9 @@ def test_from_scene_and_dict_round_trip_and_resolution():
     assert NDCMapping.from_dict(built.to_dict()) == m
     rx, ry, rz = m.grid_resolution(256)
     assert (rx, ry) == (256, 192) and rz < ry
+    # Depth stays at most 128 cells at fine levels (Plenoxels' 1408 x 1156 x 128 for LLFF).
+    wide = NDCMapping.from_dict({**m.to_dict(), "w": 1008, "h": 756})
+    assert wide.grid_resolution(1408) == (1408, 1056, 128)
     with pytest.raises(UserError):
         NDCMapping.from_scene({"type": "object", "frames": frames})
     with pytest.raises(UserError):
