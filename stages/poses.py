@@ -57,7 +57,8 @@ class Settings:
     feature_max_side: int = 0           # extract features on images downscaled to this side (0: the ingested size)
     min_features: int = 1000            # median features per image below this: extract again with a lower threshold
     matching: Literal["auto", "exhaustive", "sequential"] = "auto"
-    exhaustive_max_images: int = 60     # auto matching: exhaustive up to this many images, sequential above (and for video)
+    exhaustive_max_images: int = 40     # auto matching: exhaustive up to this many images; above (and for video) sequential,
+                                        # completed by exhaustive when that leaves a photo set partly registered
     sequential_overlap: int = 10        # neighbours each image is matched with in sequential matching
     mapper: Literal["incremental", "global"] = "incremental"
     refine_principal_point: bool = False
@@ -174,7 +175,24 @@ def _matching_summary(db: Path) -> dict:
             "inlier_matches": int(sum(c for c in inliers if c >= MIN_VERIFIED_INLIERS))}
 
 
-def _incremental(db: Path, image_dir: Path, out: Path, s: Settings, relaxed: bool) -> list[pycolmap.Reconstruction]:
+def _match_and_summarise(db: Path, mode: str, s: Settings, n_images: int, report, seconds: dict) -> dict:
+    started = time.perf_counter()
+    report.info(f"matching features ({mode})")
+    _match(db, "exhaustive" if mode.startswith("exhaustive") else mode, s)
+    seconds["match"] += time.perf_counter() - started
+    matching = _matching_summary(db)
+    report.info(f"matching: {matching['pairs_verified']} of {matching['pairs_matched']} image pairs verified, "
+                f"{matching['inlier_matches']} inlier matches")
+    poorly = matching.pop("poorly_matched")
+    if poorly:
+        report.warn(f"{len(poorly)} image(s) verified with fewer than 2 others, so they may not register: {_names(poorly)}")
+    if matching["pairs_verified"] < n_images - 1:
+        report.warn(f"only {matching['pairs_verified']} image pairs verified for {n_images} images; the photos "
+                    "may overlap too little (take more, closer together)")
+    return matching
+
+
+def _incremental(db: Path, image_dir: Path, out: Path, s: Settings, relaxed: bool = False) -> list[pycolmap.Reconstruction]:
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = s.seed
     options.mapper.random_seed = s.seed
@@ -231,31 +249,26 @@ def _sfm(ctx, records: list[dict], image_dir: Path) -> tuple[pycolmap.Reconstruc
     mode = s.matching
     if mode == "auto":
         mode = "sequential" if from_video or len(names) > s.exhaustive_max_images else "exhaustive"
-    info["matching"] = mode
-    started = time.perf_counter()
-    report.info(f"matching features ({mode})")
-    _match(db, mode, s)
-    seconds["match"] = time.perf_counter() - started
-    matching = _matching_summary(db)
-    info.update({k: v for k, v in matching.items() if k != "poorly_matched"})
-    report.info(f"matching: {matching['pairs_verified']} of {matching['pairs_matched']} image pairs verified, "
-                f"{matching['inlier_matches']} inlier matches")
-    if matching["poorly_matched"]:
-        report.warn(f"{len(matching['poorly_matched'])} image(s) verified with fewer than 2 others, so they may not "
-                    f"register: {_names(matching['poorly_matched'])}")
-    if matching["pairs_verified"] < len(names) - 1:
-        report.warn(f"only {matching['pairs_verified']} image pairs verified for {len(names)} images; the photos "
-                    "may overlap too little (take more, closer together)")
-
-    started = time.perf_counter()
-    report.info(f"{s.mapper} mapping")
-    if s.mapper == "global":
-        models = _global(db, image_dir, ctx.scratch / "models", s)
-    else:
-        models = _incremental(db, image_dir, ctx.scratch / "models", s, relaxed=False)
-    best = _largest(models)
-    info["models"] = len(models)
-    if s.mapper == "incremental" and (best is None or best.num_reg_images() < len(names)):
+    seconds["match"], seconds["map"] = 0.0, 0.0
+    while True:
+        matching = _match_and_summarise(db, mode, s, len(names), report, seconds)
+        started = time.perf_counter()
+        report.info(f"{s.mapper} mapping")
+        mapper = _global if s.mapper == "global" else _incremental
+        models = mapper(db, image_dir, ctx.scratch / "models", s)
+        best = _largest(models)
+        seconds["map"] += time.perf_counter() - started
+        complete = best is not None and best.num_reg_images() == len(names)
+        # Photos that are not an ordered sequence lose pairs under sequential matching: when auto chose it for a
+        # photo set and it leaves images out, match the remaining pairs too (matched pairs are not redone) and map again.
+        if complete or mode != "sequential" or s.matching != "auto" or from_video:
+            break
+        report.info(f"{best.num_reg_images() if best else 0}/{len(names)} registered after sequential matching; "
+                    "matching all remaining pairs")
+        mode = "exhaustive after sequential"
+    info.update(matching, matching=mode, models=len(models))
+    if s.mapper == "incremental" and not complete:
+        started = time.perf_counter()
         before = best.num_reg_images() if best else 0
         report.info(f"{before}/{len(names)} registered; mapping again with looser registration thresholds")
         relaxed = _largest(_incremental(db, image_dir, ctx.scratch / "models_relaxed", s, relaxed=True))
@@ -266,7 +279,7 @@ def _sfm(ctx, records: list[dict], image_dir: Path) -> tuple[pycolmap.Reconstruc
             best = relaxed
             report.warn(f"{len(info['relaxed_only'])} image(s) registered only with looser thresholds, so their poses "
                         f"are less certain: {_names(info['relaxed_only'])}")
-    seconds["map"] = time.perf_counter() - started
+        seconds["map"] += time.perf_counter() - started
     info["seconds"] = seconds
     if len(models) > 1:
         sizes = sorted((m.num_reg_images() for m in models), reverse=True)
