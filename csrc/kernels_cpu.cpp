@@ -9,6 +9,7 @@
 #include <torch/extension.h>
 
 #include <omp.h>
+#include <sys/mman.h>
 
 #include <algorithm>
 #include <cstdlib>
@@ -193,6 +194,17 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
     return transmittance;
 }
 
+// Asks the kernel to back [ptr, ptr + bytes) with 2 MiB pages where the system allows it
+// (transparent huge pages in `madvise` mode). Random row access over hundreds of MiB otherwise
+// misses the TLB on nearly every load. Only whole 2 MiB pages inside the range are advised.
+bool advise_huge_pages(void* ptr, size_t bytes) {
+    constexpr uintptr_t kHuge = 2u << 20;
+    const uintptr_t begin = ((uintptr_t)ptr + kHuge - 1) & ~(kHuge - 1);
+    const uintptr_t end = ((uintptr_t)ptr + bytes) & ~(kHuge - 1);
+    if (end <= begin) return false;
+    return madvise((void*)begin, end - begin, MADV_HUGEPAGE) == 0;
+}
+
 // Per-thread gradient accumulation into the packed [N, S] layout, with touched-row bookkeeping.
 class ThreadGrads {
    public:
@@ -220,6 +232,7 @@ class ThreadGrads {
             buffers_[t] = (float*)std::calloc((size_t)rows_ * stride_, sizeof(float));
             masks_[t] = (uint8_t*)std::calloc((size_t)rows_, 1);
             TORCH_CHECK(buffers_[t] && masks_[t], "out of memory for per-thread gradient buffers");
+            advise_huge_pages(buffers_[t], (size_t)rows_ * stride_ * sizeof(float));
         }
     }
     float* buffer(int thread) { return buffers_[thread]; }
@@ -806,6 +819,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         .def_property_readonly("stride", &ThreadGrads::stride);
     m.def("padded_stride", [](int columns) { return padded_stride(columns); });
     m.def("num_threads", []() { return omp_get_max_threads(); });
+    m.def("advise_huge_pages", [](const Tensor& t) {
+        TORCH_CHECK(t.device().is_cpu() && t.is_contiguous(), "advise_huge_pages needs a contiguous CPU tensor");
+        return advise_huge_pages(t.data_ptr(), (size_t)t.nbytes());
+    });
     m.def("build_occupancy", &build_occupancy);
     m.def("count_live_blocks", &count_live_blocks);
     m.def("row_coords", &row_coords);

@@ -48,6 +48,37 @@ def _check_resolution(resolution) -> tuple[int, int, int]:
     return res
 
 
+HUGE_PAGE_MIN_BYTES = 8 << 20
+
+
+def large_table(t: torch.Tensor) -> torch.Tensor:
+    """A contiguous CPU tensor of 8 MiB or more, moved into memory advised for huge pages: the
+    kernels read and write its rows at random, and 4 KiB pages would miss the TLB on almost every
+    access. Smaller tensors, other devices, or no native core: returned as they are (contiguous)."""
+    t = t.contiguous()
+    if t.device.type != "cpu" or t.numel() * t.element_size() < HUGE_PAGE_MIN_BYTES:
+        return t
+    from plenoxels.render import native_available, native_core
+
+    if not native_available():
+        return t
+    fresh = torch.empty(t.shape, dtype=t.dtype)  # not yet touched: pages are faulted in after the advice
+    native_core().advise_huge_pages(fresh)
+    return fresh.copy_(t)
+
+
+def large_zeros(like: torch.Tensor) -> torch.Tensor:
+    """zeros_like for tables the kernels access at random (see large_table), without a second copy."""
+    if like.device.type != "cpu" or like.numel() * like.element_size() < HUGE_PAGE_MIN_BYTES:
+        return torch.zeros_like(like)
+    from plenoxels.render import native_available, native_core
+
+    fresh = torch.empty(like.shape, dtype=like.dtype)
+    if native_available():
+        native_core().advise_huge_pages(fresh)
+    return fresh.zero_()
+
+
 class SparseGrid:
     def __init__(self, links: torch.Tensor, data: torch.Tensor, bbox_min, bbox_max, sh_degree: int):
         if not 0 <= int(sh_degree) <= 3:
@@ -58,8 +89,8 @@ class SparseGrid:
         stride = row_stride(self.sh_degree)
         if data.dim() != 2 or data.shape[1] != stride:
             raise ValueError(f"packed data must be [N, {stride}] for SH degree {sh_degree}, got {tuple(data.shape)}")
-        self._links = links.to(torch.int32).contiguous()
-        self.data = data.to(torch.float32).contiguous()
+        self._links = large_table(links.to(torch.int32))
+        self.data = large_table(data.to(torch.float32))
         self._cells = None
         self._live = None  # (counts, blocks, (data pointer, data version) they were computed for)
         self._coords = None

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from plenoxels.grid import SparseGrid, sh_count
+from plenoxels.grid import SparseGrid, large_zeros, sh_count
 
 
 class GridGrad:
@@ -17,7 +17,7 @@ class GridGrad:
     def __init__(self, grid: SparseGrid):
         n = grid.num_occupied
         self.sh_degree = grid.sh_degree
-        self.data = torch.zeros_like(grid.data)
+        self.data = large_zeros(grid.data)
         self.touched_mask = torch.zeros(n, dtype=torch.uint8, device=grid.data.device)
         self.touched_rows = torch.zeros(n, dtype=torch.int32, device=grid.data.device)
         self.num_touched = 0
@@ -76,7 +76,7 @@ class SparseRMSProp:
         self.lr_density, self.lr_sh = float(lr_density), float(lr_sh)
         self.beta, self.eps = float(beta), float(eps)
         self.backend = backend
-        self.second_moment = torch.zeros_like(grid.data)
+        self.second_moment = large_zeros(grid.data)
 
     def set_lr(self, lr_density: float | None = None, lr_sh: float | None = None) -> None:
         if lr_density is not None:
@@ -113,7 +113,7 @@ class SparseRMSProp:
         old_rows = old_rows.long()
         if old_rows.shape[0] != new_grid.num_occupied:
             raise ValueError("old_rows must have one entry per row of the new grid")
-        state = torch.zeros_like(new_grid.data)
+        state = large_zeros(new_grid.data)
         has = old_rows >= 0
         state[has] = self.second_moment[old_rows[has]]
         self.second_moment = state
