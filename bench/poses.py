@@ -7,7 +7,7 @@ centre error as a share of the camera spread and rotation error after a similari
 step and peak memory; the stage's poses are also compared with the CLI's. Every run is a child process,
 measured by GNU time. Writes bench/results/poses.json.
 
-    .venv/bin/python -m bench.poses [--data ../shared/data] [--scenes fox,cup] [--no-cli]
+    .venv/bin/python -m bench.poses [--data ../shared/data] [--scenes fox,cup] [--no-cli | --cli-scenes fox]
 
 The CLI runs with its defaults except `--use_gpu 0`: this build of COLMAP has no CUDA, and its default
 OpenGL SIFT needs a display, so it aborts on a headless machine.
@@ -33,8 +33,8 @@ from stages.poses_compare import compare_poses
 
 REPO = Path(__file__).resolve().parent.parent
 CHILD_TIMEOUT_S = 1800
-# Stage settings measured on fox; the first is the default preset.
-FOX_VARIANTS = {"default": [], "sequential": ["poses.matching=sequential"]}
+# Matching measured both ways on fox (50 photos: the default, auto, picks sequential above 40).
+FOX_VARIANTS = {"exhaustive": ["poses.matching=exhaustive"], "sequential": ["poses.matching=sequential"]}
 
 
 def timed_child(command: list[str], log: Path, env: dict | None = None) -> dict:
@@ -126,12 +126,17 @@ def main() -> int:
     parser.add_argument("--work", type=Path, default=REPO / "bench" / "out" / "poses")
     parser.add_argument("--scenes", default="fox,cup,fern,synthetic_object,synthetic_forward")
     parser.add_argument("--no-cli", action="store_true")
+    parser.add_argument("--cli-scenes", default=None, help="scenes to run the CLI on (default: all of --scenes)")
     args = parser.parse_args()
+    cli_scenes = set((args.cli_scenes if args.cli_scenes is not None else args.scenes).split(","))
     args.work.mkdir(parents=True, exist_ok=True)
     use_cli = not args.no_cli and shutil.which("colmap") is not None
+    results_path = REPO / "bench" / "results" / "poses.json"
+    # Scenes run separately accumulate: each run replaces the entries of the scenes it ran.
+    earlier = json.loads(results_path.read_text()).get("scenes", {}) if results_path.is_file() else {}
     results = {"machine": {"cpus": os.cpu_count(), "pycolmap": pycolmap.__version__, "has_cuda": pycolmap.has_cuda,
                            "colmap_cli": "COLMAP 3.8 (Debian), automatic_reconstructor defaults + --use_gpu 0" if use_cli else None},
-               "scenes": {}}
+               "scenes": earlier}
     for name, images in scenes(args.data, args.work, args.scenes.split(",")).items():
         print(f"[poses bench] {name}: {images}", flush=True)
         folder = args.work / name
@@ -150,7 +155,7 @@ def main() -> int:
                 result["settings"] = overrides
             entry["stage"][variant] = result
             print(f"  stage {variant}: {json.dumps({k: result.get(k) for k in ('registered', 'stage_seconds', 'peak_rss_mb', 'vs_reference')})}", flush=True)
-        if use_cli:
+        if use_cli and name in cli_scenes:
             cli = run_cli(images, folder / "cli", folder / "cli.log")
             cli_poses = cli.pop("poses")
             cli["vs_reference"] = compare(cli_poses, ref_poses)
@@ -161,8 +166,9 @@ def main() -> int:
                     result["vs_cli"] = compare(poses, cli_poses)
                     result["time_vs_cli"] = round(result["stage_seconds"] / cli["seconds"], 3) if cli["seconds"] else None
             print(f"  cli: {json.dumps({k: cli.get(k) for k in ('registered', 'seconds', 'peak_rss_mb', 'vs_reference')})}", flush=True)
+        entry["load_average"] = os.getloadavg()
         results["scenes"][name] = entry
-        write_json(REPO / "bench" / "results" / "poses.json", results)
+        write_json(results_path, results)
     return 0
 
 

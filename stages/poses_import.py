@@ -89,7 +89,10 @@ def kind_of(path: Path) -> str:
 def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
     if kind == "colmap":
         if not _is_colmap_model(path):
-            models = _colmap_models(path) or _colmap_models(path.parent)
+            models = (_colmap_models(path) or _colmap_models(path.parent)) if path.is_dir() else []
+            if not models:
+                raise UserError(f"{path} holds no COLMAP model (cameras and images .bin/.txt, or sparse/0 with them); "
+                                "point poses.path at the model folder")
             path = max(models, key=lambda m: pycolmap.Reconstruction(m).num_reg_images())
         return from_colmap(path, records)
     if kind == "transforms":
