@@ -70,11 +70,11 @@ class Settings:
     image_scale: float = 0.5           # training images are resized by this factor
     sh_degree: int = 2                 # spherical-harmonic degree of the colour, 0-3
     init_density: float = 0.1          # raw density of every vertex at the start
-    lr_density: float = 30.0           # RMSProp rate of the density, decayed exponentially to lr_density_final
+    lr_density: float = 3.0            # RMSProp rate of the density, decayed exponentially to lr_density_final
     lr_density_final: float = 0.05
     lr_density_delay: float = 0.1      # share of the steps over which the density rate ramps up from 1% (0: none)
-    lr_sh: float = 0.01                # RMSProp rate of the SH coefficients, decayed to lr_sh_final
-    lr_sh_final: float = 5e-6
+    lr_sh: float = 0.05                # RMSProp rate of the SH coefficients, decayed to lr_sh_final
+    lr_sh_final: float = 5e-5
     rmsprop_beta: float = 0.95
     tv_density: float = 1e-5           # TV weight per sampled vertex of the density (svox2's lambda_tv)
     tv_sh: float = 1e-3                # TV weight per sampled vertex of the SH coefficients
@@ -593,6 +593,7 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
     grid = model.grid
     record = {
         "complete": not stopped_early,
+        "resolutions": s.resolutions, "steps_per_level": s.steps,
         "steps": fitter.step, "total_steps": s.total_steps, "resumed_from_step": resumed_from,
         "seconds": round(fitter.elapsed, 1), "device": str(device),
         "train_images": len(fitter.train), "train_pixels": fitter.train.num_pixels,

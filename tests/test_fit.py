@@ -25,7 +25,7 @@ from stages.normalize import normalize_scene
 
 # Small enough to fit in seconds on two cores, large enough that a working fit is far from a broken one.
 QUICK = {"resolutions": [16, 32], "steps": [120, 120], "batch_size": 2048, "tile_size": 16, "image_scale": 1.0,
-         "eval_every": 0, "eval_scale": 0.5, "lr_density_delay": 0.2, "lr_sh": 0.05, "prune_ray_scale": 1.0}
+         "eval_every": 0, "eval_scale": 0.5, "lr_density_delay": 0.2, "prune_ray_scale": 1.0}
 
 
 def make_scene(root: Path, views: int = 20, width: int = 48, alpha: bool = True) -> Path:
@@ -203,8 +203,19 @@ def test_bad_settings_are_one_line_errors():
         config.build(fit.Settings, "fit", {"device": "tpu"})
 
 
+def test_cuda_without_a_gpu_is_a_user_error(fresh):
+    from plenoxels.device import cuda_ready
+
+    if cuda_ready():
+        summary = run_stage(fresh, fit, {**QUICK, "device": "cuda", "resolutions": [16], "steps": [5]})
+        assert summary["steps"] == 5
+    else:
+        with pytest.raises(UserError, match="fit.device=cpu"):
+            run_stage(fresh, fit, {**QUICK, "device": "cuda"})
+
+
 def test_learning_rate_schedule():
-    assert math.isclose(fit.decayed_lr(30.0, 0.05, 0.0), 30.0)
+    assert math.isclose(fit.decayed_lr(30.0, 0.05, 0.0), 30.0)  # svox2's density rates, as plain numbers
     assert math.isclose(fit.decayed_lr(30.0, 0.05, 1.0), 0.05)
     assert math.isclose(fit.decayed_lr(30.0, 0.05, 0.5), math.sqrt(30.0 * 0.05))
     assert fit.decayed_lr(30.0, 0.05, 0.0, delay=0.2) == pytest.approx(0.3)
