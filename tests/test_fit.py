@@ -220,3 +220,40 @@ def test_learning_rate_schedule():
     assert math.isclose(fit.decayed_lr(30.0, 0.05, 0.5), math.sqrt(30.0 * 0.05))
     assert fit.decayed_lr(30.0, 0.05, 0.0, delay=0.2) == pytest.approx(0.3)
     assert fit.decayed_lr(30.0, 0.05, 0.2, delay=0.2) == pytest.approx(fit.decayed_lr(30.0, 0.05, 0.2))
+
+
+@pytest.mark.parametrize("scene_type", ["object", "forward", "unbounded"])
+def test_scene_model_follows_the_scene_type_and_survives_save_and_load(scene_type, tmp_path):
+    from plenoxels.scene_model import SceneModel
+
+    frame = {"fl_x": 40.0, "fl_y": 40.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48, "split": "train",
+             "transform_matrix": np.eye(4).tolist(), "near": 1.0, "far": 20.0}
+    scene = {"type": scene_type, "foreground": {"min": [-1, -1, -1], "max": [1, 1, 1]}, "frames": [frame],
+             "world_from_input": (2 * np.eye(4)).tolist(), "input_from_world": (0.5 * np.eye(4)).tolist()}
+    if scene_type == "forward":
+        scene["forward"] = {"reference_c2w": np.eye(4).tolist(), "near": 1.0}
+    settings = config.build(fit.Settings, "fit", {"sh_degree": 1})
+    model = SceneModel.create(scene, settings, 24)
+    assert (model.ndc is not None) == (scene_type == "forward")
+    assert (model.background is not None) == (scene_type == "unbounded")
+    if scene_type == "forward":
+        assert model.grid.resolution == model.ndc.grid_resolution(24) and model.grid.resolution[2] < 24
+    else:
+        assert model.grid.resolution == (24, 24, 24)
+    generator = torch.Generator().manual_seed(0)
+    model.grid.data.copy_(torch.randn(model.grid.data.shape, generator=generator).abs())
+    if model.background is not None:
+        with torch.no_grad():
+            for p in model.background.parameters():
+                p.copy_(torch.randn(p.shape, generator=generator))
+    model.save(tmp_path)
+    loaded = SceneModel.load(tmp_path)
+    assert loaded.scene_type == scene_type and loaded.transforms["world_from_input"] == scene["world_from_input"]
+    o = torch.zeros(64, 3)
+    o[:, 2] = 3.0
+    d = torch.randn(64, 3, generator=generator) * 0.3
+    d[:, 2] = -1.0
+    d = d / d.norm(dim=1, keepdim=True)
+    a, b = model.render_rays(o, d), loaded.render_rays(o, d)
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth)
+    assert float(a.opacity.max()) > 0.1  # the rays do cross the (random, dense) grid
