@@ -46,14 +46,17 @@ GLTF_FROM_ZUP = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0,
 COLOUR_PROBE_VOXELS = np.arange(-1.0, 3.01, 0.5)
 # Points sampled per chunk when asking the grid for values, to bound memory.
 CHUNK = 1 << 18
+# Fewer ray-termination points than this do not decide the auto level.
+MIN_LEVEL_POINTS = 100
 
 
 @dataclass
 class Settings:
     frame: Literal["input", "normalized"] = "input"   # input: the poses' (COLMAP) frame; normalized: the fit's world
     resolution: int | Literal["auto"] = "auto"         # marching-cubes cells along the grid's longest axis; auto: the fit's own
-    level: float | Literal["auto"] = "auto"            # density iso-level; auto: see level_opacity
-    level_opacity: float = 0.5        # auto level: the density at which crossing one voxel gives this opacity
+    level: float | Literal["auto"] = "auto"            # density iso-level; auto: see level_percentile
+    level_percentile: float = 25.0    # auto level: this percentile of the density where the training views' rays terminate
+    level_opacity: float = 0.5        # auto level without such points: the density at which one voxel is this opaque
     crop_margin: float = 0.05         # the foreground box is grown by this share of its size before cropping
     min_piece_fraction: float = 0.01  # pieces with fewer faces than this share of the largest piece are dropped
     max_gap: float = 0.05             # pieces farther than this share of the foreground diagonal from the largest are dropped
@@ -68,6 +71,7 @@ class Settings:
         require(self.resolution == "auto" or 8 <= self.resolution <= 2048,
                 "export.resolution must be auto or between 8 and 2048 cells")
         require(self.level == "auto" or self.level > 0, "export.level must be auto or a positive density")
+        require(0.0 < self.level_percentile < 100.0, "export.level_percentile must be in (0, 100)")
         require(0.0 < self.level_opacity < 1.0, "export.level_opacity must be in (0, 1)")
         require(self.crop_margin >= 0.0, "export.crop_margin must be 0 or more")
         require(0.0 <= self.min_piece_fraction <= 1.0, "export.min_piece_fraction must be in [0, 1]")
@@ -141,10 +145,23 @@ def refine(lattice: Lattice, resolution: int, level: float) -> Lattice:
     return Lattice(fine, lattice.origin + lo * lattice.spacing, spacing)
 
 
-def auto_level(lattice: Lattice, opacity: float) -> float:
-    """The density at which one voxel of travel has `opacity`: sigma = -ln(1 - opacity) / voxel.
-    Density is per fit-frame unit, so this level means the same on coarse and fine grids."""
-    return -math.log(1.0 - opacity) / lattice.voxel
+def auto_level(grid, lattice: Lattice, termination_fit: np.ndarray, s: Settings) -> tuple[float, str]:
+    """The iso-level the fit itself suggests, and how it was chosen.
+
+    With enough ray-termination points (fit frame) from the training views: the `level_percentile`
+    percentile of the density there, so that the mesh passes where the views see the surface and
+    encloses most of those points; soft and sharp fits alike get a level their surface reaches.
+    Without them: the density at which one voxel of travel has `level_opacity` opacity,
+    sigma = -ln(1 - opacity) / voxel (density is per fit-frame unit)."""
+    if len(termination_fit) >= MIN_LEVEL_POINTS:
+        density, _ = _sample(grid, termination_fit)
+        density = density[density > 0]
+        if len(density) >= MIN_LEVEL_POINTS:
+            level = float(np.percentile(density, s.level_percentile))
+            return level, (f"auto: the {s.level_percentile:g}th percentile of the density at {len(density)} "
+                           "ray-termination points of the training views")
+    level = -math.log(1.0 - s.level_opacity) / lattice.voxel
+    return level, f"auto: one voxel ({lattice.voxel:.4g} fit units) at this density is {s.level_opacity:.0%} opaque"
 
 
 def extract_surface(lattice: Lattice, level: float) -> tuple[np.ndarray, np.ndarray]:
@@ -153,7 +170,7 @@ def extract_surface(lattice: Lattice, level: float) -> tuple[np.ndarray, np.ndar
     if not (lattice.values > level).any():
         peak = float(lattice.values.max(initial=0.0))
         raise UserError(f"no fitted density reaches the export level {level:.3g} (the highest is {peak:.3g}); "
-                        f"set export.level lower or export.level_opacity lower")
+                        f"set export.level lower")
     padded = np.pad(lattice.values, 1, constant_values=min(0.0, float(lattice.values.min())))
     vertices, faces, _, _ = marching_cubes(padded, level=level, spacing=tuple(lattice.spacing))
     vertices = vertices - lattice.spacing + lattice.origin
@@ -479,11 +496,16 @@ def _area_samples(mesh: trimesh.Trimesh, count: int, rng: np.random.Generator) -
 # The stage
 
 
-def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, s: Settings,
-               report) -> tuple[trimesh.Trimesh, dict]:
-    """The cleaned, coloured mesh in the normalised world, and what was decided on the way."""
+def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, s: Settings, report,
+               termination: np.ndarray | None = None) -> tuple[trimesh.Trimesh, dict]:
+    """The cleaned, coloured mesh in the normalised world, and what was decided on the way.
+    `termination`: the training views' ray-termination points (normalised world), for the auto level."""
     lattice = grid_lattice(grid)
-    level = auto_level(lattice, s.level_opacity) if s.level == "auto" else float(s.level)
+    if s.level == "auto":
+        fit_points = frame.from_world(termination) if termination is not None else np.zeros((0, 3))
+        level, level_source = auto_level(grid, lattice, fit_points, s)
+    else:
+        level, level_source = float(s.level), "set"
     native = int(np.max(lattice.values.shape) - 1)
     resolution = native if s.resolution == "auto" else int(s.resolution)
     fine = refine(lattice, resolution, level)
@@ -505,8 +527,7 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
     mesh.visual.vertex_colors = _rgba8(colours)
     decisions = {
         "level": level,
-        "level_source": f"auto: one voxel ({lattice.voxel:.4g} fit units) at this density is "
-                        f"{s.level_opacity:.0%} opaque" if s.level == "auto" else "set",
+        "level_source": level_source,
         "resolution": resolution,
         "fit_resolution": list(lattice.values.shape),
         "lattice": list(fine.values.shape),
@@ -527,21 +548,21 @@ def run(ctx) -> dict:
     box_min = np.asarray(scene["foreground"]["min"], dtype=np.float64)
     box_max = np.asarray(scene["foreground"]["max"], dtype=np.float64)
 
-    mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report)
+    size = box_max - box_min
+    termination = surface_points(grid, frame, scene["frames"], s, ctx.report)
+    termination = termination[np.all((termination >= box_min - s.crop_margin * size)
+                                      & (termination <= box_max + s.crop_margin * size), axis=1)]
+    mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, termination)
 
-    points = colours = normals = np.zeros((0, 3))
-    if s.points > 0:
-        points = surface_points(grid, frame, scene["frames"], s, ctx.report)
-        size = box_max - box_min
-        points = points[np.all((points >= box_min - s.crop_margin * size) & (points <= box_max + s.crop_margin * size), axis=1)]
-        if len(points) > s.points:
-            points = points[np.sort(np.random.default_rng(s.seed).choice(len(points), s.points, replace=False))]
-        voxel = grid_lattice_voxel(grid)
-        colours = surface_colours(grid, frame.from_world(points), voxel)
-        normals = point_normals(grid, frame, points, voxel)
-        if len(points) == 0:
-            ctx.report.warn(f"no training-view pixel is {s.point_opacity:.0%} opaque inside the foreground box, so "
-                            "points.ply is empty; lower export.point_opacity")
+    points = termination
+    if len(points) > s.points:
+        points = points[np.sort(np.random.default_rng(s.seed).choice(len(points), s.points, replace=False))]
+    voxel = grid_lattice_voxel(grid)
+    colours = surface_colours(grid, frame.from_world(points), voxel)
+    normals = point_normals(grid, frame, points, voxel)
+    if len(termination) == 0:
+        ctx.report.warn(f"no training-view pixel is {s.point_opacity:.0%} opaque inside the foreground box: the "
+                        "level comes from export.level_opacity and points.ply is empty; lower export.point_opacity")
 
     if s.frame == "input":
         to_output = np.asarray(scene["input_from_world"], dtype=np.float64)
