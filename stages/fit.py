@@ -460,6 +460,7 @@ class Fitter:
         self.generator.set_state(state["generator"])
         self._new_optimiser()
         self.optim.load_state_dict(state["optim"])
+        self.optim.second_moment = self.optim.second_moment.to(self.device)
         if self.model.background is not None:
             self.model.background.load_state_dict(state["background"])
             self.bg_optim.load_state_dict(state["bg_optim"])
@@ -482,7 +483,7 @@ class HeldOut:
     def psnr(self, model: SceneModel) -> float:
         errors = []
         for c2w, k, image in self.views:
-            rgb = model.render_camera(c2w, k, chunk=RAY_CHUNK)["rgb"]
+            rgb = model.render_camera(c2w, k, chunk=RAY_CHUNK)["rgb"].cpu()
             errors.append(float(((rgb.cpu() - image) ** 2).mean()))
         return float(np.mean([psnr(e) for e in errors]))
 
