@@ -8,11 +8,11 @@ STAGES := ingest poses normalize fit evaluate export
 
 scene ?=
 out ?=
-preset ?= default
+preset ?=
 set ?=
 export OMP_NUM_THREADS ?= $(shell nproc)
 
-RUN_ARGS = $(if $(out),--out $(out)) --preset $(preset) $(foreach s,$(set),--set $(s))
+RUN_ARGS = $(if $(out),--out $(out)) $(if $(preset),--preset $(preset)) $(foreach s,$(set),--set $(s))
 
 .PHONY: all install test bench status clean $(STAGES)
 

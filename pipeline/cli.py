@@ -24,11 +24,11 @@ def scene_name(scene: Path) -> str:
     return name or "scene"
 
 
-def _common(p: argparse.ArgumentParser, needs_scene: bool = True) -> None:
+def _common(p: argparse.ArgumentParser, needs_scene: bool = True, preset: str = "default") -> None:
     if needs_scene:
         p.add_argument("scene", type=Path, help="folder of photos, or a video file")
     p.add_argument("--out", type=Path, help="output folder (default: out/<scene-name>)")
-    p.add_argument("--preset", default="default", help=f"settings preset: {', '.join(preset_names())}")
+    p.add_argument("--preset", default=preset, help=f"settings preset: {', '.join(preset_names())} (default: {preset})")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override one setting, e.g. --set fit.sh_degree=1 (repeatable)")
     p.add_argument("--quiet", action="store_true", help="no progress output; summaries and warnings only")
@@ -42,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--until", choices=STAGE_ORDER, help="stop after this stage")
     run.add_argument("--force", action="append", default=[], choices=STAGE_ORDER, help="re-run this stage even if cached")
     demo = sub.add_parser("demo", help="make the built-in synthetic scene and run every stage on it")
-    _common(demo, needs_scene=False)
+    _common(demo, needs_scene=False, preset="fast")  # the demo is a quick tour, not a benchmark
     demo.add_argument("--until", choices=STAGE_ORDER)
     demo.add_argument("--force", action="append", default=[], choices=STAGE_ORDER)
     status = sub.add_parser("status", help="which stages are done, stale or missing, and why")
