@@ -31,7 +31,11 @@ else
 endif
 
 status: $(STAMP)
-	$(PY) -m pipeline status "$(if $(scene),$(scene),out/demo/demo-photos/images)" $(RUN_ARGS)
+ifeq ($(scene),)
+	$(PY) -m pipeline status out/demo/demo-photos/images --out out/demo --preset $(or $(preset),fast) $(foreach s,$(set),--set $(s))
+else
+	$(PY) -m pipeline status "$(scene)" $(RUN_ARGS)
+endif
 
 install: $(STAMP)
 
