@@ -111,6 +111,9 @@ inline int skip_block(const GridView& g, const Ray& r, const int cell[3], int i)
 
 inline int cell_of(float p, int res) { return std::min(std::max((int)std::floor(p), 0), res - 2); }
 
+// How many samples ahead the march prefetches rows (about two cells at the default step of 0.5).
+constexpr int kLookahead = 4;
+
 template <int S>
 inline void prefetch_row(const float* row, bool for_write) {
     for (int k = 0; k < S; k += 16) {
@@ -153,11 +156,11 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
             ++i;
             continue;
         }
-        // Start loading the rows of the cell two samples ahead, so that its cache misses overlap the
+        // Start loading the rows of the cell kLookahead samples ahead, so that its cache misses overlap the
         // work on this sample (memory latency, not arithmetic, bounds this loop).
-        if (i + 2 < r.n) {
+        if (i + kLookahead < r.n) {
             float q[3];
-            grid_point(g, r, t + 2.0 * r.dt, q);
+            grid_point(g, r, t + kLookahead * r.dt, q);
             const int next[3] = {cell_of(q[0], g.res[0]), cell_of(q[1], g.res[1]), cell_of(q[2], g.res[2])};
             if (next[0] != cell[0] || next[1] != cell[1] || next[2] != cell[2]) {
                 for (int c = 0; c < 8; ++c) {
