@@ -1,0 +1,201 @@
+"""Benchmark of the scene models: NDC for forward scenes, the background model for unbounded ones.
+
+For each scene the fit runs with the scene-appropriate model (fit.ndc=auto, fit.background=auto) and
+with the alternative forced (NDC off for a forward scene, the background off for an unbounded one, the
+background on for an object scene). Each run is the fit stage as the pipeline runs it (preset, the
+scene-type overlay from configs/scene_types/, then this benchmark's overrides), scored on every
+held-out view with stages/evaluate.py's PSNR and SSIM. For the unbounded scenes the first held-out
+view is rendered by both models side by side with the truth (bench/results/scene_models/<scene>.png),
+which shows the floaters a bounded grid makes without a background.
+
+Scenes: fern (LLFF, forward, every 8th image held out), cup and fox (inward with a room behind) from
+../shared/data, and the synthetic forward, unbounded and object scenes (pipeline/synthetic.py).
+Results are written to bench/results/scene_models.json after every run, so a partial benchmark keeps
+what it measured.
+
+    .venv/bin/python -m bench.scene_models                               # every scene
+    .venv/bin/python -m bench.scene_models --scenes fern cup             # some
+    .venv/bin/python -m bench.scene_models --set steps=[300,600]         # override fit settings in every run
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+RESULTS = REPO / "bench" / "results" / "scene_models.json"
+RENDERS = REPO / "bench" / "results" / "scene_models"
+CACHE = REPO / "bench" / "out"
+REAL = ("fern", "cup", "fox")
+SYNTHETIC = ("synthetic_forward", "synthetic_unbounded", "synthetic_object")
+# Training images are resized to about this many pixels on their longer side (the CPU budget).
+TRAIN_SIDE = 256
+# The fit settings of every run, on top of the `fast` preset and the scene-type overlay: a CPU-sized
+# fit of a few minutes. The density rate ramps up over the first 30% of the steps and the colour rate
+# decays only 10x, because with few steps the preset's schedule leaves the grid opaque at its front and
+# the colours barely moved; TV is 100x weaker than the forward overlay's, which held fern at its mean
+# colour (train PSNR 15.3 dB; 20.5 dB with these weights, same steps).
+BENCH_FIT = {"resolutions": [64, 128], "steps": [300, 500], "batch_size": 4096, "eval_every": 0,
+             "lr_density_delay": 0.3, "lr_density_final": 1.0, "lr_sh": 0.05, "lr_sh_final": 0.005,
+             "tv_density": 5e-6, "tv_sh": 5e-5}
+ALTERNATIVE = {"forward": {"ndc": "off"}, "unbounded": {"background": "off"}, "object": {"background": "on"}}
+
+
+def machine() -> dict:
+    from bench.fit import machine as fit_machine
+
+    return fit_machine()
+
+
+# ---- scenes ---------------------------------------------------------------------------------------
+def real_scene(name: str, data: Path) -> tuple[dict, Path]:
+    """A real scene normalised from the poses it comes with (bench/normalize.py's readers)."""
+    from bench.normalize import LOADERS
+    from stages.normalize import Settings, normalize_scene
+
+    folder = data / name
+    transforms, points = LOADERS[name](folder)
+    scene = normalize_scene(transforms, points, Settings(holdout_every=8), poses_dir=folder, path_prefix="")
+    return scene, folder
+
+
+def synthetic_scene(name: str) -> tuple[dict, Path]:
+    """A synthetic scene of 40 views at 160x120 (made once under bench/out), normalised as its kind, with
+    each view's true near/far depths standing in for the sparse points SfM would give."""
+    from pipeline.io import read_json
+    from pipeline.synthetic import write_scene
+    from stages.normalize import Points, Settings, normalize_scene
+
+    kind = name.removeprefix("synthetic_")
+    root = CACHE / name
+    if not (root / "transforms.json").is_file():
+        write_scene(kind, root, n_views=40, width=160, height=120)
+    transforms = read_json(root / "transforms.json")
+    views = read_json(root / "ground_truth" / "scene.json")["views"]
+    for frame, view in zip(transforms["frames"], views):
+        if view["near_depth"] is not None:
+            frame["near"], frame["far"] = view["near_depth"], view["far_depth"]
+    scene = normalize_scene(transforms, Points.empty(), Settings(scene_type=kind, holdout_every=8),
+                            poses_dir=root, path_prefix="")
+    return scene, root
+
+
+# ---- one run --------------------------------------------------------------------------------------
+def one_run(name: str, scene: dict, root: Path, label: str, overrides: dict, preset: str) -> tuple[dict, list]:
+    """Fits `scene` with the preset, its type's overlay and `overrides`; scores every held-out view.
+    Returns the record and the renders of the held-out views (float RGB)."""
+    import numpy as np
+    import torch
+
+    from pipeline import config
+    from pipeline.report import Reporter
+    from pipeline.stage import StageContext
+    from plenoxels.scene_model import SceneModel
+    from stages import fit
+    from stages.evaluate import image_psnr, image_ssim
+
+    values = config.merge(config.load_preset(preset), config.load_scene_type_overlay(scene["type"]),
+                          {"fit": overrides})["fit"]
+    frames = scene["frames"]
+    longest = max(max(int(f["w"]), int(f["h"])) for f in frames)
+    values["image_scale"] = min(1.0, TRAIN_SIDE / longest)
+    settings = config.build(fit.Settings, "fit", values)
+    with tempfile.TemporaryDirectory(prefix="bench-scene-models-") as tmp:
+        tmp = Path(tmp)
+        for sub in ("normalize", "work", "scratch"):
+            (tmp / sub).mkdir()
+        (tmp / "normalize" / "scene.json").write_text(json.dumps(scene))
+        ctx = StageContext(scene=root, out=root, work=tmp / "work", scratch=tmp / "scratch", settings=settings,
+                           upstream={"normalize": tmp / "normalize"}, scene_type=scene["type"],
+                           report=Reporter(quiet=True))
+        started = time.time()
+        summary = fit.run(ctx)
+        wall = time.time() - started
+        record = json.loads((ctx.work / "fit.json").read_text())
+        model = SceneModel.load(ctx.work)
+        psnrs, ssims, renders = [], [], []
+        render_started = time.time()
+        for frame in [f for f in frames if f.get("split") == "test"]:
+            truth, k = fit.load_frame(root, frame, settings.image_scale, settings.background_color)
+            with torch.no_grad():
+                render = model.render_camera(frame["transform_matrix"], k)["rgb"].numpy()
+            psnrs.append(image_psnr(render, truth))
+            ssims.append(image_ssim(render, truth))
+            renders.append((truth, render))
+        render_seconds = time.time() - render_started
+    described = record["model"]
+    return {
+        "scene": name, "type": scene["type"], "label": label, "preset": preset, "overrides": overrides,
+        "fit_frame": described["fit_frame"], "background_model": described["background_model"],
+        "psnr": round(float(np.mean(psnrs)), 3), "ssim": round(float(np.mean(ssims)), 4),
+        "psnr_per_view": [round(p, 3) for p in psnrs], "held_out_views": len(psnrs),
+        "train_images": record["train_images"], "image_size": [k.w, k.h],
+        "fit_seconds": record["seconds"], "wall_seconds": round(wall, 1),
+        "render_seconds_per_view": round(render_seconds / max(1, len(psnrs)), 3),
+        "resolution": described["resolution"], "occupied": described["occupied"],
+        "memory_bytes": record["memory_bytes"], "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "summary": summary["line"],
+    }, renders
+
+
+def side_by_side(path: Path, truth, appropriate, alternative) -> None:
+    """truth | appropriate model | alternative, with a 4-pixel white gap."""
+    import numpy as np
+
+    from pipeline.io import write_png
+    from stages.evaluate import to_uint8
+
+    gap = np.ones((truth.shape[0], 4, 3), dtype=np.float32)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_png(path, to_uint8(np.concatenate([truth, gap, appropriate, gap, alternative], axis=1)))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    parser.add_argument("--scenes", nargs="*", default=list(REAL + SYNTHETIC), choices=REAL + SYNTHETIC)
+    parser.add_argument("--preset", default="fast")
+    parser.add_argument("--only", choices=("appropriate", "alternative"), help="run one of the two models")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="a fit setting for every run (as --set fit.KEY=VALUE in the CLI)")
+    args = parser.parse_args(argv)
+    from pipeline import config
+    from pipeline.io import write_json
+
+    extra = config.parse_overrides([f"fit.{kv}" for kv in args.overrides]).get("fit", {})
+    results = {"machine": machine(), "bench_fit": {**BENCH_FIT, **extra}, "train_side": TRAIN_SIDE,
+               "preset": args.preset, "runs": []}
+    if RESULTS.is_file():
+        # Keep earlier runs of scenes not run this time, so the benchmark can be run a scene at a time.
+        previous = json.loads(RESULTS.read_text())
+        results["runs"] = [r for r in previous.get("runs", []) if r["scene"] not in args.scenes]
+    for name in args.scenes:
+        scene, root = real_scene(name, args.data) if name in REAL else synthetic_scene(name)
+        runs = {}
+        for label, toggles in (("appropriate", {}), ("alternative", ALTERNATIVE[scene["type"]])):
+            if args.only and label != args.only:
+                continue
+            record, renders = one_run(name, scene, root, label, {**BENCH_FIT, **extra, **toggles}, args.preset)
+            runs[label] = (record, renders)
+            results["runs"].append(record)
+            write_json(RESULTS, results)
+            print(f"{name} ({scene['type']}) {label} {toggles or ''}: {record['psnr']:.2f} dB, SSIM {record['ssim']:.3f} "
+                  f"on {record['held_out_views']} held-out views, fit {record['fit_seconds']:.0f} s, "
+                  f"{record['memory_bytes']['total'] / 1e6:.1f} MB", flush=True)
+        if scene["type"] == "unbounded" and len(runs) == 2:
+            truth, with_model = runs["appropriate"][1][0]
+            side_by_side(RENDERS / f"{name}.png", truth, with_model, runs["alternative"][1][0][1])
+    print(f"wrote {RESULTS.relative_to(REPO)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
