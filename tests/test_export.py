@@ -310,11 +310,13 @@ def test_stage_writes_every_file_in_the_input_frame_or_the_normalized_one(tmp_pa
 
 # The whole pipeline on a tiny synthetic object scene: imported poses, a two-level fit that takes
 # seconds. Its 48^3 grid has voxels of about 2.6% of the object, so scores at 1% are modest; the
-# thresholds sit below what a working export measures here (F 0.40 at 1%, 0.88 at 5%, Chamfer 2.2%,
-# farthest vertex 12% of the object) and far above what a wrong frame, level or crop gives (about 0).
+# thresholds sit below what a working export measures here (F 0.43 at 1%, 0.97 at 5%, Chamfer 1.6%,
+# farthest vertex 8% of the object) and far above what a wrong frame, level or crop gives (about 0).
+# The fit's rates are pinned: they suit this short fit, whatever the defaults become.
 E2E_FIT = ["fit.resolutions=[24,48]", "fit.steps=[150,150]", "fit.batch_size=2048", "fit.tile_size=16",
-           "fit.image_scale=1.0", "fit.eval_every=0", "fit.lr_density_delay=0.2", "fit.prune_ray_scale=1.0",
-           "export.points=3000", "export.point_scale=1.0"]
+           "fit.image_scale=1.0", "fit.eval_every=0", "fit.lr_density=30", "fit.lr_density_final=0.05",
+           "fit.lr_density_delay=0.2", "fit.lr_sh=0.01", "fit.lr_sh_final=0.000005", "fit.sh_degree=1",
+           "fit.prune_ray_scale=1.0", "export.points=3000", "export.point_scale=1.0"]
 
 
 @pytest.fixture(scope="module")
@@ -338,13 +340,14 @@ def test_full_pipeline_mesh_and_points_match_the_true_object_in_the_input_frame(
     mesh = trimesh.load(out / "export" / "mesh.ply", force="mesh", process=False)
     strict = export.mesh_scores(mesh, truth, 0.01 * size, samples=20_000, reference_visible=seen)
     loose = export.mesh_scores(mesh, truth, 0.05 * size, samples=20_000, reference_visible=seen)
-    assert strict["f_score"] > 0.3 and loose["f_score"] > 0.75, (strict, loose)
-    assert strict["chamfer"] < 0.035 * size and strict["max_vertex_distance"] < 0.2 * size, strict
+    assert strict["f_score"] > 0.3 and loose["f_score"] > 0.85, (strict, loose)
+    assert strict["chamfer"] < 0.03 * size and strict["max_vertex_distance"] < 0.15 * size, strict
 
     points = np.asarray(trimesh.load(out / "export" / "points.ply").vertices)
     distance = export.surface_distance(truth, points, np.random.default_rng(0))
-    assert len(points) == record["points"]["count"] > 1000
-    assert np.median(distance) < 0.02 * size and (distance < 0.05 * size).mean() > 0.8
+    assert len(points) == record["points"]["count"] > 200
+    assert np.median(distance) < 0.02 * size and (distance < 0.05 * size).mean() > 0.8, (
+        np.median(distance) / size, (distance < 0.05 * size).mean())
 
     # The same mesh left in the normalised frame is nowhere near the object: the thresholds can tell.
     scene = read_json(out / "normalize" / "scene.json")
