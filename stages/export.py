@@ -48,6 +48,10 @@ COLOUR_PROBE_VOXELS = np.arange(-1.0, 3.01, 0.5)
 CHUNK = 1 << 18
 # Fewer ray-termination points than this do not decide the auto level.
 MIN_LEVEL_POINTS = 100
+# How far (voxels) along its ray a point may move onto the mesh's level.
+SNAP_VOXELS = 6.0
+# Rays at least this opaque decide the auto level.
+LEVEL_RAY_OPACITY = 0.95
 
 
 @dataclass
@@ -64,7 +68,7 @@ class Settings:
     points: int = 200_000             # points kept in points.ply (a random, seeded subset)
     point_scale: float = 0.25         # training views are rendered at this share of their size for the points
     point_views: int = 0              # training views rendered for the points; 0: all
-    point_opacity: float = 0.95       # a pixel gives a point only where its ray is at least this opaque
+    point_opacity: float = 0.5        # a pixel gives a point only where its ray is at least this opaque
     seed: int = 0
 
     def check(self) -> None:
@@ -341,18 +345,37 @@ def mesh_to_world(vertices: np.ndarray, faces: np.ndarray, frame: FitFrame) -> t
 # The point cloud
 
 
-def surface_points(grid, frame: FitFrame, frames: list[dict], s: Settings, report) -> np.ndarray:
-    """Points (normalised world) [N,3] at the expected ray-termination depth of the training views'
-    pixels whose rays are at least `point_opacity` opaque.
+@dataclass
+class Terminations:
+    """Where training-view rays end: fit-frame origins [N,3], unit directions [N,3], distances [N] and
+    the rays' opacity [N]."""
+    origins: np.ndarray
+    directions: np.ndarray
+    t: np.ndarray
+    opacity: np.ndarray
+
+    def fit_points(self) -> np.ndarray:
+        return self.origins + self.t[:, None] * self.directions
+
+    def world(self, frame: "FitFrame") -> np.ndarray:
+        return frame.to_world(self.fit_points())
+
+    def subset(self, keep: np.ndarray) -> "Terminations":
+        return Terminations(self.origins[keep], self.directions[keep], self.t[keep], self.opacity[keep])
+
+
+def ray_terminations(grid, frame: FitFrame, frames: list[dict], s: Settings, report) -> Terminations:
+    """The expected ray-termination points of the training views' pixels whose rays are at least
+    `point_opacity` opaque.
 
     Only the fitted grid is rendered (never a background model), so unbounded and forward scenes
-    give foreground points only; forward scenes' rays go through NDC and their points come back."""
+    give foreground points only; forward scenes' rays go through NDC."""
     backend = "native" if native_available() else "torch"
     train = [f for f in frames if f.get("split", "train") == "train"] or frames
     if s.point_views and len(train) > s.point_views:
         pick = np.linspace(0, len(train) - 1, s.point_views).round().astype(int)
         train = [train[i] for i in pick]
-    points = []
+    origins_all, directions_all, t_all, opacity_all = [np.zeros((0, 3))], [np.zeros((0, 3))], [np.zeros(0)], [np.zeros(0)]
     for record in report.track(train, desc="rendering depth for the point cloud"):
         k = Intrinsics(float(record["fl_x"]), float(record["fl_y"]), float(record["cx"]), float(record["cy"]),
                        int(record["w"]), int(record["h"])).scaled(s.point_scale)
@@ -364,12 +387,42 @@ def surface_points(grid, frame: FitFrame, frames: list[dict], s: Settings, repor
         out = render(grid, origins.float(), directions.float(), backend=backend)
         opacity = _numpy(out.opacity).astype(np.float64)
         good = opacity >= s.point_opacity
-        # The renderer's depth is a sum of weights that total the opacity: divide it out.
-        depth = _numpy(out.depth)[good] / opacity[good]
         unit = directions.numpy()[good]
-        unit = unit / np.linalg.norm(unit, axis=1, keepdims=True)
-        points.append(frame.to_world(origins.numpy()[good] + depth[:, None] * unit))
-    return np.concatenate(points) if points else np.zeros((0, 3))
+        # The renderer's depth is a sum of weights that total the opacity: divide it out.
+        origins_all.append(origins.numpy()[good])
+        directions_all.append(unit / np.linalg.norm(unit, axis=1, keepdims=True))
+        t_all.append(_numpy(out.depth)[good] / opacity[good])
+        opacity_all.append(opacity[good])
+    return Terminations(np.concatenate(origins_all), np.concatenate(directions_all), np.concatenate(t_all),
+                        np.concatenate(opacity_all))
+
+
+def surface_points(grid, frame: FitFrame, frames: list[dict], s: Settings, report) -> np.ndarray:
+    """The expected ray-termination points (normalised world) [N,3]; see ray_terminations."""
+    return ray_terminations(grid, frame, frames, s, report).world(frame)
+
+
+def snap_to_level(grid, terminations: Terminations, level: float, voxel: float) -> Terminations:
+    """Moves each termination point along its ray to where the density first rises through `level`
+    within SNAP_VOXELS voxels of it (linear between samples half a voxel apart), so points lie on the
+    mesh's surface: a soft fit's expected depth sits inside the object. Rays with no such crossing
+    there are dropped."""
+    if len(terminations.t) == 0:
+        return terminations
+    offsets = np.arange(-SNAP_VOXELS, SNAP_VOXELS + 0.25, 0.5) * voxel
+    t = terminations.t[:, None] + offsets[None]                                   # [N, S]
+    samples = terminations.origins[:, None] + t[..., None] * terminations.directions[:, None]
+    density, _ = _sample(grid, samples.reshape(-1, 3))
+    density = density.reshape(t.shape)
+    above = density >= level
+    rises = above[:, 1:] & ~above[:, :-1]
+    has = rises.any(axis=1)
+    first = np.argmax(rises, axis=1)
+    rows = np.arange(len(first))
+    d0, d1 = density[rows, first], density[rows, first + 1]
+    share = np.clip((level - d0) / np.maximum(d1 - d0, 1e-12), 0.0, 1.0)
+    snapped = t[rows, first] + share * (offsets[1] - offsets[0])
+    return Terminations(terminations.origins[has], terminations.directions[has], snapped[has], terminations.opacity[has])
 
 
 def point_normals(grid, frame: FitFrame, points_world: np.ndarray, voxel: float) -> np.ndarray:
@@ -549,18 +602,24 @@ def run(ctx) -> dict:
     box_max = np.asarray(scene["foreground"]["max"], dtype=np.float64)
 
     size = box_max - box_min
-    termination = surface_points(grid, frame, scene["frames"], s, ctx.report)
-    termination = termination[np.all((termination >= box_min - s.crop_margin * size)
-                                      & (termination <= box_max + s.crop_margin * size), axis=1)]
-    mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, termination)
+    terminations = ray_terminations(grid, frame, scene["frames"], s, ctx.report)
+    ends = terminations.world(frame)
+    inside = np.all((ends >= box_min - s.crop_margin * size) & (ends <= box_max + s.crop_margin * size), axis=1)
+    terminations = terminations.subset(inside)
+    # The level comes from nearly opaque rays only: a fainter ray's expected depth blends several depths.
+    opaque = terminations.opacity >= LEVEL_RAY_OPACITY
+    mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, ends[inside][opaque])
 
-    points = termination
+    voxel = grid_lattice_voxel(grid)
+    if len(terminations.t) > 2 * s.points:  # the snap drops some rays: keep a margin, subsample after
+        terminations = terminations.subset(np.random.default_rng(s.seed).choice(len(terminations.t), 2 * s.points,
+                                                                                  replace=False))
+    points = snap_to_level(grid, terminations, decisions["level"], voxel).world(frame)
     if len(points) > s.points:
         points = points[np.sort(np.random.default_rng(s.seed).choice(len(points), s.points, replace=False))]
-    voxel = grid_lattice_voxel(grid)
     colours = surface_colours(grid, frame.from_world(points), voxel)
     normals = point_normals(grid, frame, points, voxel)
-    if len(termination) == 0:
+    if len(terminations.t) == 0:
         ctx.report.warn(f"no training-view pixel is {s.point_opacity:.0%} opaque inside the foreground box: the "
                         "level comes from export.level_opacity and points.ply is empty; lower export.point_opacity")
 

@@ -258,6 +258,11 @@ def test_points_lie_on_the_surface_with_its_colours_and_normals_and_set_the_auto
     mesh_radius = np.median(np.linalg.norm(mesh.vertices - SPHERE_CENTRE, axis=1))
     inside = np.linalg.norm(points - SPHERE_CENTRE, axis=1) < mesh_radius
     assert 0.6 < inside.mean() < 0.9
+    # Snapped along their rays to that level, the points lie on the mesh.
+    terminations = export.ray_terminations(field, FitFrame(), orbit_frames(6), Settings(point_scale=1.0), _Quiet())
+    snapped = export.snap_to_level(field, terminations, decisions["level"], voxel).world(FitFrame())
+    assert len(snapped) > 0.75 * len(points)  # grazing rays at the rim may never reach the level
+    assert np.median(export.surface_distance(mesh, snapped, np.random.default_rng(0))) < 0.1 * voxel
 
 
 def run_stage(tmp_path, grid, scene: dict, settings: Settings, name: str) -> tuple[dict, Path]:
