@@ -103,6 +103,17 @@ def test_sfm_registers_every_view_and_matches_the_true_poses(scene, truth, tmp_p
         assert ((uv > -1) & (uv < [k.w + 1, k.h + 1])).all()
 
 
+def test_global_mapper_registers_every_view_accurately(scene, truth, tmp_path):
+    manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.mapper=global")
+    summary = manifest["summary"]
+    assert summary["matching"] == "exhaustive" and summary["registered"] == N_VIEWS
+    got, want = frames_by_name(read_json(tmp_path / "out" / "poses" / "transforms.json")), frames_by_name(truth)
+    stems = sorted(want)
+    errors = compare_poses(np.array([got[s]["transform_matrix"] for s in stems]),
+                           np.array([want[s]["transform_matrix"] for s in stems]))
+    assert errors["centre_error_share_max"] < 0.01 and errors["rotation_error_deg_max"] < 0.5
+
+
 def test_noise_photos_fail_with_one_line_error(tmp_path):
     rng = np.random.default_rng(0)
     folder = tmp_path / "noise"
@@ -270,11 +281,13 @@ def test_pose_file_changes_make_the_stage_stale(scene, truth, tmp_path):
     (["poses.source=llff"], "no such pose file"),
     (["poses.source=sfm", "poses.path=x.json"], "cannot be used"),
     (["poses.min_registered_share=0"], "min_registered_share"),
+    (["poses.source=colmap", "poses.path={photos}"], "holds no COLMAP model"),
 ])
 def test_bad_pose_settings_are_one_line_errors(scene, tmp_path, overrides, expected):
-    photos(scene, tmp_path / "capture" / "images", count=3)
+    folder = tmp_path / "capture" / "images"
+    photos(scene, folder, count=3)
     with pytest.raises(UserError, match=expected):
-        run_poses(tmp_path / "capture" / "images", tmp_path / "out", *overrides)
+        run_poses(folder, tmp_path / "out", *(o.format(photos=folder) for o in overrides))
 
 
 def test_llff_count_mismatch_is_a_user_error(scene, tmp_path):
