@@ -65,7 +65,8 @@ class Settings:
     resolutions: list[int] = field(default_factory=lambda: [128, 256])  # vertices along the longest axis, per level
     steps: list[int] = field(default_factory=lambda: [1500, 3000])     # optimiser steps per level
     batch_size: int = 16384            # rays per step
-    batch_mode: Literal["tiles", "rays"] = "tiles"  # tiles: square pixel tiles (faster kernel); rays: random pixels
+    batch_mode: Literal["tiles", "rays"] = "rays"  # rays: random pixels; tiles: square pixel tiles (faster kernel,
+    #                                                but 2-3 dB worse per step on lego at equal steps)
     tile_size: int = 32                # tile side in pixels (batch_mode tiles)
     image_scale: float = 0.5           # training images are resized by this factor
     sh_degree: int = 2                 # spherical-harmonic degree of the colour, 0-3
@@ -76,8 +77,8 @@ class Settings:
     lr_sh: float = 0.05                # RMSProp rate of the SH coefficients, decayed to lr_sh_final
     lr_sh_final: float = 5e-5
     rmsprop_beta: float = 0.95
-    tv_density: float = 1e-5           # TV weight per sampled vertex of the density (svox2's lambda_tv)
-    tv_sh: float = 1e-3                # TV weight per sampled vertex of the SH coefficients
+    tv_density: float = 1e-6           # TV weight per sampled vertex of the density (svox2's lambda_tv is 1e-5)
+    tv_sh: float = 1e-4                # TV weight per sampled vertex of the SH coefficients (svox2: 1e-3)
     tv_sample_fraction: float = 0.01   # share of the occupied vertices the TV term looks at each step
     step_size: float = 0.5             # ray sample spacing in voxels
     stop_transmittance: float = 1e-4   # a ray stops once this little light gets through
