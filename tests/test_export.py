@@ -1,13 +1,13 @@
 """Export: marching cubes level and frame on analytic density fields, colours, cleaning, decimation,
-NDC mapping back to the world, files that reload with the same counts, the frame round trip."""
+NDC mapping back to the world, points and the auto level, files that reload with the same counts, the
+frame round trip, and the whole pipeline on a tiny synthetic object against its true mesh."""
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import trimesh
-
-from pathlib import Path
 
 from bench.export import visible_from
 from pipeline import config
