@@ -58,8 +58,8 @@ class Settings:
     min_features: int = 1000            # median features per image below this: extract again with a lower threshold
     matching: Literal["auto", "exhaustive", "sequential"] = "auto"
     # auto matching: exhaustive up to this many images; above (and for video) sequential, completed by exhaustive when
-    # that leaves a photo set partly registered. Sequential cannot close a loop around an object (cup, 77 photos on a
-    # 336-degree orbit: 2 degrees median rotation error against its model), so photo sets stay exhaustive while affordable.
+    # that leaves a photo set partly registered. Sequential cannot close a loop around an object; on cup (77 photos, a
+    # 336-degree orbit) the median rotation error against its model was 1.97 degrees sequential, 1.26 exhaustive.
     exhaustive_max_images: int = 100
     sequential_overlap: int = 10        # neighbours each image is matched with in sequential matching
     mapper: Literal["incremental", "global"] = "incremental"
