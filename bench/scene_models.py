@@ -158,6 +158,22 @@ def side_by_side(path: Path, truth, appropriate, alternative) -> None:
     write_png(path, to_uint8(np.concatenate([truth, gap, appropriate, gap, alternative], axis=1)))
 
 
+def compare(runs: list[dict]) -> dict:
+    """Per scene with both runs: what the scene-appropriate model gains over the alternative."""
+    out = {}
+    for name in dict.fromkeys(r["scene"] for r in runs):
+        by_label = {r["label"]: r for r in runs if r["scene"] == name}
+        if {"appropriate", "alternative"} <= by_label.keys():
+            a, b = by_label["appropriate"], by_label["alternative"]
+            out[name] = {"type": a["type"], "alternative": b["overrides"].get("ndc") and f"ndc={b['overrides']['ndc']}"
+                         or f"background={b['overrides'].get('background')}",
+                         "psnr_gain_db": round(a["psnr"] - b["psnr"], 3), "ssim_gain": round(a["ssim"] - b["ssim"], 4),
+                         "fit_seconds": [a["fit_seconds"], b["fit_seconds"]],
+                         "memory_mb": [round(a["memory_bytes"]["total"] / 1e6, 1), round(b["memory_bytes"]["total"] / 1e6, 1)],
+                         "background_mb": round(a["memory_bytes"].get("background", 0) / 1e6, 2)}
+    return out
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
@@ -186,6 +202,7 @@ def main(argv=None) -> int:
             record, renders = one_run(name, scene, root, label, {**BENCH_FIT, **extra, **toggles}, args.preset)
             runs[label] = (record, renders)
             results["runs"].append(record)
+            results["comparison"] = compare(results["runs"])
             write_json(RESULTS, results)
             print(f"{name} ({scene['type']}) {label} {toggles or ''}: {record['psnr']:.2f} dB, SSIM {record['ssim']:.3f} "
                   f"on {record['held_out_views']} held-out views, fit {record['fit_seconds']:.0f} s, "
