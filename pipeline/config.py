@@ -8,6 +8,7 @@ then `--set section.key=value` overrides. A stage's section in the YAML is its n
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from pathlib import Path
@@ -123,6 +124,10 @@ def _coerce(value: Any, tp: Any) -> Any:
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             return float(value)
+        if isinstance(value, str):  # YAML 1.1 reads 5e-6 (no dot) as a string
+            number = float(value)  # ValueError for words
+            if math.isfinite(number):
+                return number
         raise ValueError
     if tp is str:
         if isinstance(value, str):

@@ -209,6 +209,10 @@ def test_settings_validation_names_the_key_and_what_is_allowed(fake_graph, tmp_p
     with pytest.raises(UserError, match="drop_blurry_fraction must be in"):
         config.build(Settings, "ingest", {"drop_blurry_fraction": 1.5})
     assert config.build(Settings, "ingest", {"drop_blurry_fraction": 0}).drop_blurry_fraction == 0.0
+    parsed = config.parse_overrides(["ingest.drop_blurry_fraction=5e-2"])["ingest"]
+    assert config.build(Settings, "ingest", parsed).drop_blurry_fraction == 0.05
+    with pytest.raises(UserError, match="bad value 'nan'"):
+        config.build(Settings, "ingest", {"drop_blurry_fraction": "nan"})
     with pytest.raises(UserError, match="unknown settings section 'fitt'"):
         make(fake_graph, tmp_path, ["fitt.x=1"])
 
