@@ -77,8 +77,8 @@ class CudaCore:
         "row_coords": ((), None),
         "rmsprop_step": ((), None),  # a method below: its `live` argument is unpacked
     }
-    # Device-free helpers of plenoxels._C, served by it.
-    CPU_HELPERS = ("padded_stride", "num_threads")
+    # Device-free helpers of plenoxels._C, served by it (advise_huge_pages acts on host memory only).
+    CPU_HELPERS = ("padded_stride", "num_threads", "advise_huge_pages")
 
     def __init__(self):
         if not cuda_kernels_built():
