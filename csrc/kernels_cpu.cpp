@@ -43,12 +43,7 @@ struct MarchOptions {
     int max_samples;
 };
 
-struct Ray {
-    double og[3], dg[3];  // grid-space origin and direction (per unit of fit-frame distance)
-    float dir[3];         // unit fit-frame direction
-    double t_start, dt;
-    int n;
-};
+using Ray = plx::RayMarch;
 
 GridView make_view(const torch::Tensor& data, const torch::Tensor& links, const torch::Tensor& cell_occ,
                    const torch::Tensor& block_occ, int block, const std::vector<double>& bmin,
@@ -69,47 +64,16 @@ GridView make_view(const torch::Tensor& data, const torch::Tensor& links, const 
 }
 
 void setup_ray(const GridView& g, const float* o, const float* d, const MarchOptions& opt, Ray* r) {
-    const double norm = std::sqrt((double)d[0] * d[0] + (double)d[1] * d[1] + (double)d[2] * d[2]);
-    double dg2 = 0.0, hi[3];
-    for (int a = 0; a < 3; ++a) {
-        const double u = d[a] / norm;
-        r->dir[a] = (float)u;
-        r->og[a] = ((double)o[a] - g.bmin[a]) * g.scale[a];
-        r->dg[a] = u * g.scale[a];
-        dg2 += r->dg[a] * r->dg[a];
-        hi[a] = g.res[a] - 1;
-    }
-    double t_enter, t_exit;
-    r->n = 0;
-    r->dt = 1.0;
-    r->t_start = 0.0;
-    if (!plx::ray_box(r->og, r->dg, hi, &t_enter, &t_exit)) return;
-    r->t_start = std::max(t_enter, opt.near);
-    r->n = plx::sample_lattice(r->t_start, t_exit, opt.step / std::sqrt(dg2), opt.max_samples, &r->dt);
+    plx::setup_ray(g.res, g.bmin, g.scale, o, d, opt.near, opt.step, opt.max_samples, r);
 }
 
-inline void grid_point(const GridView& g, const Ray& r, double t, float p[3]) {
-    for (int a = 0; a < 3; ++a) {
-        const float v = (float)(r.og[a] + t * r.dg[a]);
-        p[a] = std::min(std::max(v, 0.0f), (float)(g.res[a] - 1));
-    }
-}
+inline void grid_point(const GridView& g, const Ray& r, double t, float p[3]) { plx::grid_point(g.res, r, t, p); }
 
-// Index of the first sample at or after the point where the ray leaves the occupancy block that
-// holds `cell`; always > i so the march advances.
 inline int skip_block(const GridView& g, const Ray& r, const int cell[3], int i) {
-    double t_out = 1e300;
-    for (int a = 0; a < 3; ++a) {
-        if (r.dg[a] == 0.0) continue;
-        const int b = cell[a] / g.block;
-        const double face = r.dg[a] > 0.0 ? (double)std::min((b + 1) * g.block, g.res[a] - 1) : (double)(b * g.block);
-        t_out = std::min(t_out, (face - r.og[a]) / r.dg[a]);
-    }
-    const double next = std::ceil((t_out - r.t_start) / r.dt - 0.5);
-    return next > (double)i ? (int)std::min(next, (double)r.n) : i + 1;
+    return plx::skip_block(g.res, g.block, r, cell, i);
 }
 
-inline int cell_of(float p, int res) { return std::min(std::max((int)std::floor(p), 0), res - 2); }
+using plx::cell_of;
 
 // How many samples ahead the march prefetches rows (about two cells at the default step of 0.5).
 constexpr int kLookahead = 4;

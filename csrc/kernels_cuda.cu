@@ -21,60 +21,15 @@ __host__ __device__ constexpr int float4s(int columns) { return (columns + 3) / 
 
 inline unsigned blocks_for(int64_t n) { return (unsigned)((n + kThreads - 1) / kThreads); }
 
-struct RayState {
-    double og[3], dg[3];  // grid-space origin and direction (per unit of fit-frame distance)
-    float dir[3];         // unit fit-frame direction
-    double t_start, dt;
-    int n;
-};
+using RayState = plx::RayMarch;
+using plx::cell_of;
 
-// Ternaries rather than fmin/fmax so NaN behaves as std::min/std::max do on the CPU.
-__device__ __forceinline__ float clampf(float v, float lo, float hi) {
-    const float a = v < lo ? lo : v;
-    return hi < a ? hi : a;
+__device__ __forceinline__ void setup_ray(const Grid& g, const float* o, const float* d, const March& opt, RayState* r) {
+    plx::setup_ray(g.res, g.bmin, g.scale, o, d, opt.near, opt.step, opt.max_samples, r);
 }
 
-__device__ void setup_ray(const Grid& g, const float* o, const float* d, const March& opt, RayState* r) {
-    const double norm = sqrt((double)d[0] * d[0] + (double)d[1] * d[1] + (double)d[2] * d[2]);
-    double dg2 = 0.0, hi[3];
-    for (int a = 0; a < 3; ++a) {
-        const double u = d[a] / norm;
-        r->dir[a] = (float)u;
-        r->og[a] = ((double)o[a] - g.bmin[a]) * g.scale[a];
-        r->dg[a] = u * g.scale[a];
-        dg2 += r->dg[a] * r->dg[a];
-        hi[a] = g.res[a] - 1;
-    }
-    double t_enter, t_exit;
-    r->n = 0;
-    r->dt = 1.0;
-    r->t_start = 0.0;
-    if (!plx::ray_box(r->og, r->dg, hi, &t_enter, &t_exit)) return;
-    r->t_start = t_enter < opt.near ? opt.near : t_enter;
-    r->n = plx::sample_lattice(r->t_start, t_exit, opt.step / sqrt(dg2), opt.max_samples, &r->dt);
-}
-
-__device__ __forceinline__ int cell_of(float p, int res) {
-    int i = (int)floorf(p);
-    i = i < 0 ? 0 : i;
-    return i < res - 2 ? i : res - 2;
-}
-
-// Index of the first sample at or after the point where the ray leaves the occupancy block that
-// holds `cell`; always > i so the march advances.
-__device__ int skip_block(const Grid& g, const RayState& r, const int cell[3], int i) {
-    double t_out = 1e300;
-    for (int a = 0; a < 3; ++a) {
-        if (r.dg[a] == 0.0) continue;
-        const int b = cell[a] / g.block;
-        const int upper = (b + 1) * g.block < g.res[a] - 1 ? (b + 1) * g.block : g.res[a] - 1;
-        const double face = r.dg[a] > 0.0 ? (double)upper : (double)(b * g.block);
-        const double t_face = (face - r.og[a]) / r.dg[a];
-        t_out = t_face < t_out ? t_face : t_out;
-    }
-    const double next = ceil((t_out - r.t_start) / r.dt - 0.5);
-    if (!(next > (double)i)) return i + 1;
-    return next < (double)r.n ? (int)next : r.n;
+__device__ __forceinline__ int skip_block(const Grid& g, const RayState& r, const int cell[3], int i) {
+    return plx::skip_block(g.res, g.block, r, cell, i);
 }
 
 struct Sample {
@@ -97,7 +52,7 @@ __device__ float march(const Grid& g, const RayState& r, const March& opt, Visit
     while (i < r.n) {
         const double t = r.t_start + (i + 0.5) * r.dt;
         float p[3];
-        for (int a = 0; a < 3; ++a) p[a] = clampf((float)(r.og[a] + t * r.dg[a]), 0.0f, (float)(g.res[a] - 1));
+        plx::grid_point(g.res, r, t, p);
         int cell[3] = {cell_of(p[0], g.res[0]), cell_of(p[1], g.res[1]), cell_of(p[2], g.res[2])};
         const int64_t block_index =
             ((int64_t)(cell[0] / g.block) * g.bres[1] + cell[1] / g.block) * g.bres[2] + cell[2] / g.block;

@@ -127,6 +127,72 @@ PLX_HD int sample_lattice(double t_start, double t_end, double step_t, int max_s
     return (int)n;
 }
 
+// One ray prepared for marching, identically on every backend.
+struct RayMarch {
+    double og[3], dg[3];  // grid-space origin and direction (per unit of fit-frame distance)
+    float dir[3];         // unit fit-frame direction
+    double t_start, dt;   // sample i sits at t_start + (i + 0.5) * dt
+    int n;                // samples on the ray (0: it misses the grid)
+};
+
+// Maps a fit-frame ray into grid coordinates (g = (p - bmin) * scale), clips it to the grid box and
+// to t >= near, and lays out its samples `step` grid units apart.
+PLX_HD void setup_ray(const int res[3], const double bmin[3], const double scale[3], const float* o, const float* d,
+                      double near, double step, int max_samples, RayMarch* r) {
+    const double norm = sqrt((double)d[0] * d[0] + (double)d[1] * d[1] + (double)d[2] * d[2]);
+    double dg2 = 0.0, hi[3];
+    for (int a = 0; a < 3; ++a) {
+        const double u = d[a] / norm;
+        r->dir[a] = (float)u;
+        r->og[a] = ((double)o[a] - bmin[a]) * scale[a];
+        r->dg[a] = u * scale[a];
+        dg2 += r->dg[a] * r->dg[a];
+        hi[a] = res[a] - 1;
+    }
+    double t_enter, t_exit;
+    r->n = 0;
+    r->dt = 1.0;
+    r->t_start = 0.0;
+    if (!ray_box(r->og, r->dg, hi, &t_enter, &t_exit)) return;
+    r->t_start = t_enter < near ? near : t_enter;
+    r->n = sample_lattice(r->t_start, t_exit, step / sqrt(dg2), max_samples, &r->dt);
+}
+
+// Clamps to [lo, hi] with comparisons only, so NaN passes through the same way on host and device.
+PLX_HD float clamp_to(float v, float lo, float hi) {
+    const float a = v < lo ? lo : v;
+    return hi < a ? hi : a;
+}
+
+// The grid point at distance t along the ray, clamped into the grid.
+PLX_HD void grid_point(const int res[3], const RayMarch& r, double t, float p[3]) {
+    for (int a = 0; a < 3; ++a) p[a] = clamp_to((float)(r.og[a] + t * r.dg[a]), 0.0f, (float)(res[a] - 1));
+}
+
+// The cell holding grid coordinate p on an axis of res vertices (the last cell holds p = res - 1).
+PLX_HD int cell_of(float p, int res) {
+    const int i = (int)floorf(p);
+    const int lo = i < 0 ? 0 : i;
+    return lo < res - 2 ? lo : res - 2;
+}
+
+// Index of the first sample at or after the point where the ray leaves the occupancy block (cubes of
+// `block` cells) that holds `cell`; always > i so the march advances.
+PLX_HD int skip_block(const int res[3], int block, const RayMarch& r, const int cell[3], int i) {
+    double t_out = 1e300;
+    for (int a = 0; a < 3; ++a) {
+        if (r.dg[a] == 0.0) continue;
+        const int b = cell[a] / block;
+        const int upper = (b + 1) * block < res[a] - 1 ? (b + 1) * block : res[a] - 1;
+        const double face = r.dg[a] > 0.0 ? (double)upper : (double)(b * block);
+        const double t_face = (face - r.og[a]) / r.dg[a];
+        t_out = t_face < t_out ? t_face : t_out;
+    }
+    const double next = ceil((t_out - r.t_start) / r.dt - 0.5);
+    if (!(next > (double)i)) return i + 1;
+    return next < (double)r.n ? (int)next : r.n;
+}
+
 // Cell and trilinear weights of grid point g (already clamped to [0, res-1]); res >= 2 per axis.
 // Corner c = 4*dx + 2*dy + dz, with (dx, dy, dz) in {0,1}^3, gets weight w[c].
 PLX_HD void trilinear(const float g[3], const int res[3], int cell[3], float w[8]) {
