@@ -614,7 +614,8 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
     line = (f"{shape} grid, {_voxels(grid.num_occupied)} voxels ({_megabytes(memory['total'])}), "
             f"train PSNR {record['train_psnr']:.1f} dB")
     if final_psnr is not None:
-        line += f", held-out {final_psnr:.1f} dB"
+        # A quick estimate (a few views, downscaled); the evaluate stage gives the full figure.
+        line += f", held-out ~{final_psnr:.1f} dB ({len(held_out.views)} views at {s.eval_scale:g}x)"
     line += f", {_duration(fitter.elapsed)}"
     if model.background is not None:
         line += f", background model {_megabytes(memory['background'])}"
