@@ -69,10 +69,6 @@ void setup_ray(const GridView& g, const float* o, const float* d, const MarchOpt
 
 inline void grid_point(const GridView& g, const Ray& r, double t, float p[3]) { plx::grid_point(g.res, r, t, p); }
 
-inline int skip_block(const GridView& g, const Ray& r, const int cell[3], int i) {
-    return plx::skip_block(g.res, g.block, r, cell, i);
-}
-
 using plx::cell_of;
 
 // How many samples ahead the march prefetches rows (about two cells at the default step of 0.5).
@@ -108,16 +104,10 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
         const double t = r.t_start + (i + 0.5) * r.dt;
         float p[3];
         grid_point(g, r, t, p);
-        int cell[3] = {cell_of(p[0], g.res[0]), cell_of(p[1], g.res[1]), cell_of(p[2], g.res[2])};
-        const int64_t block_index =
-            ((int64_t)(cell[0] / g.block) * g.bres[1] + cell[1] / g.block) * g.bres[2] + cell[2] / g.block;
-        if (!g.block_occ[block_index]) {
-            i = skip_block(g, r, cell, i);
-            continue;
-        }
-        const int64_t cell_index = ((int64_t)cell[0] * (g.res[1] - 1) + cell[1]) * (g.res[2] - 1) + cell[2];
-        if (!g.cell_occ[cell_index]) {
-            ++i;
+        int cell[3];
+        const int next = plx::occupied_or_next(g.res, g.bres, g.block, g.block_occ, g.cell_occ, r, p, i, cell);
+        if (next != i) {
+            i = next;
             continue;
         }
         // Start loading the rows of the cell kLookahead samples ahead, so that its cache misses overlap the

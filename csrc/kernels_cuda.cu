@@ -22,14 +22,9 @@ __host__ __device__ constexpr int float4s(int columns) { return (columns + 3) / 
 inline unsigned blocks_for(int64_t n) { return (unsigned)((n + kThreads - 1) / kThreads); }
 
 using RayState = plx::RayMarch;
-using plx::cell_of;
 
 __device__ __forceinline__ void setup_ray(const Grid& g, const float* o, const float* d, const March& opt, RayState* r) {
     plx::setup_ray(g.res, g.bmin, g.scale, o, d, opt.near, opt.step, opt.max_samples, r);
-}
-
-__device__ __forceinline__ int skip_block(const Grid& g, const RayState& r, const int cell[3], int i) {
-    return plx::skip_block(g.res, g.block, r, cell, i);
 }
 
 struct Sample {
@@ -53,16 +48,10 @@ __device__ float march(const Grid& g, const RayState& r, const March& opt, Visit
         const double t = r.t_start + (i + 0.5) * r.dt;
         float p[3];
         plx::grid_point(g.res, r, t, p);
-        int cell[3] = {cell_of(p[0], g.res[0]), cell_of(p[1], g.res[1]), cell_of(p[2], g.res[2])};
-        const int64_t block_index =
-            ((int64_t)(cell[0] / g.block) * g.bres[1] + cell[1] / g.block) * g.bres[2] + cell[2] / g.block;
-        if (!g.block_occ[block_index]) {
-            i = skip_block(g, r, cell, i);
-            continue;
-        }
-        const int64_t cell_index = ((int64_t)cell[0] * (g.res[1] - 1) + cell[1]) * (g.res[2] - 1) + cell[2];
-        if (!g.cell_occ[cell_index]) {
-            ++i;
+        int cell[3];
+        const int next = plx::occupied_or_next(g.res, g.bres, g.block, g.block_occ, g.cell_occ, r, p, i, cell);
+        if (next != i) {
+            i = next;
             continue;
         }
         Sample s;

@@ -193,6 +193,20 @@ PLX_HD int skip_block(const int res[3], int block, const RayMarch& r, const int 
     return next < (double)r.n ? (int)next : r.n;
 }
 
+// Empty-space skipping for sample i at grid point p (already clamped): fills `cell` and returns i when the
+// sample's cell may hold density, otherwise the index of the next sample worth visiting (always > i).
+// block_occ flags cubes of `block` cells ([bres]) with any live vertex; cell_occ flags cells with any
+// allocated corner ([res - 1]).
+PLX_HD int occupied_or_next(const int res[3], const int bres[3], int block, const uint8_t* block_occ,
+                            const uint8_t* cell_occ, const RayMarch& r, const float p[3], int i, int cell[3]) {
+    for (int a = 0; a < 3; ++a) cell[a] = cell_of(p[a], res[a]);
+    const int64_t block_index =
+        ((int64_t)(cell[0] / block) * bres[1] + cell[1] / block) * bres[2] + cell[2] / block;
+    if (!block_occ[block_index]) return skip_block(res, block, r, cell, i);
+    const int64_t cell_index = ((int64_t)cell[0] * (res[1] - 1) + cell[1]) * (res[2] - 1) + cell[2];
+    return cell_occ[cell_index] ? i : i + 1;
+}
+
 // Cell and trilinear weights of grid point g (already clamped to [0, res-1]); res >= 2 per axis.
 // Corner c = 4*dx + 2*dy + dz, with (dx, dy, dz) in {0,1}^3, gets weight w[c].
 PLX_HD void trilinear(const float g[3], const int res[3], int cell[3], float w[8]) {
