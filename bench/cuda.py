@@ -28,7 +28,6 @@ import os
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -191,7 +190,7 @@ def lego(torch, args) -> dict:
     import dataclasses
 
     from pipeline.report import Reporter
-    from pipeline.stage import StageContext
+    from bench.common import fit_context
     from plenoxels.device import resolve_device
     from plenoxels.scene_model import SceneModel, psnr
     from stages import fit
@@ -202,13 +201,7 @@ def lego(torch, args) -> dict:
     scene, val = lego_scene(folder, args.val_limit)
     device = resolve_device(settings.device)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    with tempfile.TemporaryDirectory(prefix="bench-cuda-") as tmp:
-        tmp = Path(tmp)
-        for name in ("normalize", "work", "scratch"):
-            (tmp / name).mkdir()
-        (tmp / "normalize" / "scene.json").write_text(json.dumps(scene))
-        ctx = StageContext(scene=folder, out=folder, work=tmp / "work", scratch=tmp / "scratch", settings=settings,
-                           upstream={"normalize": tmp / "normalize"}, scene_type=scene["type"], report=Reporter())
+    with fit_context(scene, folder, settings, Reporter()) as ctx:
         started = time.time()
         summary = fit.run(ctx)
         total = time.time() - started

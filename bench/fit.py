@@ -21,7 +21,6 @@ import platform
 import resource
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -84,7 +83,7 @@ def one_run(spec: dict) -> dict:
 
     from pipeline import config
     from pipeline.report import Reporter
-    from pipeline.stage import StageContext
+    from bench.common import fit_context
     from plenoxels.scene_model import SceneModel
     from stages import fit
     from stages.evaluate import image_psnr, image_ssim
@@ -92,14 +91,7 @@ def one_run(spec: dict) -> dict:
     scene, root = lego(Path(spec["data"]), spec.get("val_limit")) if spec["scene"] == "lego" else synthetic()
     values = config.merge(config.load_preset(spec["preset"]), {"fit": spec["overrides"]})["fit"]
     settings = config.build(fit.Settings, "fit", values)
-    with tempfile.TemporaryDirectory(prefix="bench-fit-") as tmp:
-        tmp = Path(tmp)
-        for name in ("normalize", "work", "scratch"):
-            (tmp / name).mkdir()
-        (tmp / "normalize" / "scene.json").write_text(json.dumps(scene))
-        ctx = StageContext(scene=root, out=root, work=tmp / "work", scratch=tmp / "scratch", settings=settings,
-                           upstream={"normalize": tmp / "normalize"}, scene_type=scene["type"],
-                           report=Reporter(quiet=not spec.get("verbose")))
+    with fit_context(scene, root, settings, Reporter(quiet=not spec.get("verbose"))) as ctx:
         started = time.time()
         summary = fit.run(ctx)
         wall = time.time() - started

@@ -24,7 +24,6 @@ import json
 import os
 import resource
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -97,7 +96,7 @@ def one_run(name: str, scene: dict, root: Path, label: str, overrides: dict, pre
 
     from pipeline import config
     from pipeline.report import Reporter
-    from pipeline.stage import StageContext
+    from bench.common import fit_context
     from plenoxels.scene_model import SceneModel
     from stages import fit
     from stages.evaluate import image_psnr, image_ssim
@@ -108,14 +107,7 @@ def one_run(name: str, scene: dict, root: Path, label: str, overrides: dict, pre
     longest = max(max(int(f["w"]), int(f["h"])) for f in frames)
     values["image_scale"] = min(1.0, TRAIN_SIDE / longest)
     settings = config.build(fit.Settings, "fit", values)
-    with tempfile.TemporaryDirectory(prefix="bench-scene-models-") as tmp:
-        tmp = Path(tmp)
-        for sub in ("normalize", "work", "scratch"):
-            (tmp / sub).mkdir()
-        (tmp / "normalize" / "scene.json").write_text(json.dumps(scene))
-        ctx = StageContext(scene=root, out=root, work=tmp / "work", scratch=tmp / "scratch", settings=settings,
-                           upstream={"normalize": tmp / "normalize"}, scene_type=scene["type"],
-                           report=Reporter(quiet=True))
+    with fit_context(scene, root, settings, Reporter(quiet=True)) as ctx:
         started = time.time()
         summary = fit.run(ctx)
         wall = time.time() - started

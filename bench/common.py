@@ -1,0 +1,25 @@
+"""What several benchmark parts share."""
+from __future__ import annotations
+
+import json
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from pipeline.report import Reporter
+from pipeline.stage import StageContext
+
+
+@contextmanager
+def fit_context(scene: dict, root: Path, settings, report: Reporter) -> Iterator[StageContext]:
+    """The fit stage's context for a scene.json built in memory (a benchmark's own split or scene), without a
+    pipeline run: the frames' image paths resolve against `root`, and the fit writes into a temporary folder
+    that lives as long as the `with` block."""
+    with tempfile.TemporaryDirectory(prefix="bench-fit-") as tmp:
+        tmp = Path(tmp)
+        for name in ("normalize", "work", "scratch"):
+            (tmp / name).mkdir()
+        (tmp / "normalize" / "scene.json").write_text(json.dumps(scene))
+        yield StageContext(scene=root, out=root, work=tmp / "work", scratch=tmp / "scratch", settings=settings,
+                           upstream={"normalize": tmp / "normalize"}, scene_type=scene["type"], report=report)
