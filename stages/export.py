@@ -461,6 +461,10 @@ def write_points(path: Path, points: np.ndarray, colours: np.ndarray, normals: n
     path.write_bytes(export_ply(cloud, encoding="binary", vertex_normal=True))
 
 
+def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    return np.all((points >= lo) & (points <= hi), axis=1)
+
+
 def _rgba8(colours: np.ndarray) -> np.ndarray:
     rgb = np.round(np.clip(colours, 0.0, 1.0) * 255).astype(np.uint8)
     return np.concatenate([rgb, np.full((len(rgb), 1), 255, dtype=np.uint8)], axis=1)
@@ -601,10 +605,10 @@ def run(ctx) -> dict:
     box_min = np.asarray(scene["foreground"]["min"], dtype=np.float64)
     box_max = np.asarray(scene["foreground"]["max"], dtype=np.float64)
 
-    size = box_max - box_min
+    crop_min, crop_max = box_min - s.crop_margin * (box_max - box_min), box_max + s.crop_margin * (box_max - box_min)
     terminations = ray_terminations(grid, frame, scene["frames"], s, ctx.report)
     ends = terminations.world(frame)
-    inside = np.all((ends >= box_min - s.crop_margin * size) & (ends <= box_max + s.crop_margin * size), axis=1)
+    inside = _in_box(ends, crop_min, crop_max)
     terminations = terminations.subset(inside)
     # The level comes from nearly opaque rays only: a fainter ray's expected depth blends several depths.
     opaque = terminations.opacity >= LEVEL_RAY_OPACITY
@@ -615,6 +619,8 @@ def run(ctx) -> dict:
         terminations = terminations.subset(np.random.default_rng(s.seed).choice(len(terminations.t), 2 * s.points,
                                                                                   replace=False))
     points = snap_to_level(grid, terminations, decisions["level"], voxel).world(frame)
+    # A ray that grazes the foreground can snap onto matter beyond it (the ground of an unbounded scene).
+    points = points[_in_box(points, crop_min, crop_max)]
     if len(points) > s.points:
         points = points[np.sort(np.random.default_rng(s.seed).choice(len(points), s.points, replace=False))]
     colours = surface_colours(grid, frame.from_world(points), voxel)

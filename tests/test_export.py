@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from scipy.special import expit
 
 from bench.export import visible_from
 from pipeline import config
@@ -149,8 +150,9 @@ def test_decimation_reaches_the_target_and_keeps_the_shape():
     assert len(mesh.visual.vertex_colors) == len(mesh.vertices)
 
 
-def test_ndc_grid_maps_back_to_the_world_sphere():
-    # A reference camera 3 units in front of the sphere, looking at it; the grid lives in NDC.
+def forward_rig() -> tuple[np.ndarray, NDCMapping, dict]:
+    """A reference camera 3 units in front of the sphere, looking at it: its c2w, the NDC mapping it
+    defines, and its scene.json record."""
     eye = SPHERE_CENTRE + np.array([0.0, -3.0, 0.4])
     forward = (SPHERE_CENTRE - eye) / np.linalg.norm(SPHERE_CENTRE - eye)
     right = np.cross(forward, [0, 0, 1.0])
@@ -158,6 +160,13 @@ def test_ndc_grid_maps_back_to_the_world_sphere():
     c2w = np.eye(4)
     c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(right, forward), -forward, eye
     ndc = NDCMapping(reference_c2w=tuple(map(tuple, c2w)), near=1.5, fl_x=60.0, fl_y=60.0, cx=40.0, cy=30.0, w=80, h=60)
+    view = {"transform_matrix": c2w.tolist(), "fl_x": 60.0, "fl_y": 60.0, "cx": 40.0, "cy": 30.0, "w": 80, "h": 60}
+    return c2w, ndc, view
+
+
+def test_ndc_grid_maps_back_to_the_world_sphere():
+    c2w, ndc, view = forward_rig()
+    forward = -c2w[:3, 2]
     frame = FitFrame(ndc)
     lo, hi = (-1.0, -1.0, -1.0), (1.0, 1.0, 0.5)
     field = sphere_field(56, frame.to_world, lo, hi)
@@ -170,7 +179,6 @@ def test_ndc_grid_maps_back_to_the_world_sphere():
     assert (np.einsum("ij,ij->i", mesh.vertex_normals[facing], mesh.vertices[facing] - SPHERE_CENTRE) > 0).mean() > 0.95
 
     # Points: the reference view's rays go through NDC and their termination points come back to the world.
-    view = {"transform_matrix": c2w.tolist(), "fl_x": 60.0, "fl_y": 60.0, "cx": 40.0, "cy": 30.0, "w": 80, "h": 60}
     points = export.surface_points(field, frame, [view], Settings(point_scale=1.0), _Quiet())
     assert len(points) > 300
     assert np.median(radial_error(points)) < 0.02
@@ -265,12 +273,13 @@ def test_points_lie_on_the_surface_with_its_colours_and_normals_and_set_the_auto
     assert np.median(export.surface_distance(mesh, snapped, np.random.default_rng(0))) < 0.1 * voxel
 
 
-def run_stage(tmp_path, grid, scene: dict, settings: Settings, name: str) -> tuple[dict, Path]:
+def run_stage(tmp_path, grid, scene: dict, settings: Settings, name: str, ndc=None, background=None) -> tuple[dict, Path]:
     """The export stage as the runner calls it, on a fit folder written by SceneModel.save."""
     fit, normalize, work = tmp_path / name / "fit", tmp_path / name / "normalize", tmp_path / name / "export"
     for folder in (fit, normalize, work):
         folder.mkdir(parents=True)
-    SceneModel(grid, scene["type"], transforms={k: scene[k] for k in ("world_from_input", "input_from_world")}).save(fit)
+    SceneModel(grid, scene["type"], ndc=ndc, background=background,
+               transforms={k: scene[k] for k in ("world_from_input", "input_from_world")}).save(fit)
     write_json(normalize / "scene.json", scene)
     ctx = StageContext(scene=tmp_path, out=tmp_path / name, work=work, scratch=tmp_path / name / "scratch",
                        settings=settings, upstream={"normalize": normalize, "fit": fit}, scene_type=scene["type"],
@@ -311,6 +320,75 @@ def test_stage_writes_every_file_in_the_input_frame_or_the_normalized_one(tmp_pa
     mesh_norm = trimesh.load(folders["normalized"] / "mesh.ply", force="mesh", process=False)
     assert np.allclose(export.transform_points(np.linalg.inv(input_from_world), mesh_in.vertices), mesh_norm.vertices,
                        atol=1e-5)
+
+
+def cluttered_sphere_field(res: int, clutter, points_to_world=lambda p: p, lo=(-1, -1, -1), hi=(1, 1, 1)):
+    """sphere_field's sphere plus dense matter (at twice the sphere's peak) wherever clutter(world points) holds."""
+    p_fit = lattice_points(res, lo, hi)
+    p_world = points_to_world(p_fit.reshape(-1, 3)).reshape(p_fit.shape)
+    voxel = float(np.mean((np.asarray(hi) - np.asarray(lo)) / (res - 1)))
+    peak = 2 * math.log(2) / voxel
+    dist = np.linalg.norm(p_world - SPHERE_CENTRE, axis=-1)
+    density = peak * expit((SPHERE_RADIUS - dist) / 0.03)
+    density = np.where(clutter(p_world), 2 * peak, density)
+    return dense_grid(density, colour_sh(p_world), lo, hi)
+
+
+def identity_scene(scene_type: str, frames: list[dict]) -> dict:
+    return {"type": scene_type, "input_from_world": np.eye(4).tolist(), "world_from_input": np.eye(4).tolist(),
+            "foreground": {"min": [-0.8] * 3, "max": [0.8] * 3}, "frames": frames}
+
+
+def exported_foreground(folder: Path, crop_margin: float) -> tuple[trimesh.Trimesh, np.ndarray]:
+    """The written mesh and points, checked to lie in the foreground box grown by the crop margin, and
+    checked that cropping removed something (the clutter was in the grid)."""
+    record = read_json(folder / "export.json")
+    reach = 0.8 * (1 + 2 * crop_margin)
+    mesh = trimesh.load(folder / "mesh.ply", force="mesh", process=False)
+    points = np.asarray(trimesh.load(folder / "points.ply").vertices)
+    assert np.abs(mesh.vertices).max() <= reach and len(points) > 100 and np.abs(points).max() <= reach
+    assert record["cleaning"]["cropped_faces"] > 0
+    return mesh, points
+
+
+def test_unbounded_scene_exports_the_foreground_only_not_the_ground_or_the_background_model(tmp_path):
+    # The grid reaches past the foreground box into a ground slab and a wall, as an unbounded fit's grid
+    # can; the background model behind it is opaque. Neither may reach the mesh or the points.
+    from plenoxels.background import MultiSphereBackground
+
+    lo, hi = (-1.5, -1.5, -1.5), (1.5, 1.5, 1.5)
+    field = cluttered_sphere_field(48, lambda p: (p[..., 2] < -1.1) | (p[..., 0] > 1.3), lo=lo, hi=hi)
+    background = MultiSphereBackground.around_box([-0.8] * 3, [0.8] * 3, n_spheres=2, height=4, width=8)
+    with torch.no_grad():
+        background.density.fill_(50.0)
+        background.colour.fill_(1.0)
+    settings = Settings(frame="normalized", points=2000, point_scale=1.0)
+    run_stage(tmp_path, field, identity_scene("unbounded", orbit_frames(6, size=32)), settings, "unbounded",
+              background=background)
+    folder = tmp_path / "unbounded" / "export"
+    assert read_json(folder / "export.json")["scene_type"] == "unbounded"
+    mesh, points = exported_foreground(folder, settings.crop_margin)
+    truth = trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS).apply_translation(SPHERE_CENTRE)
+    scores = export.mesh_scores(mesh, truth, 0.05 * SPHERE_RADIUS, samples=20_000)
+    assert scores["f_score"] > 0.95, scores
+    assert np.median(radial_error(points)) < 0.03
+
+
+def test_forward_scene_exports_the_foreground_only_not_the_far_wall(tmp_path):
+    # The NDC grid reaches to infinity; a thick wall far behind the sphere fills part of it.
+    c2w, ndc, view = forward_rig()
+    forward = -c2w[:3, 2]
+    frame = FitFrame(ndc)
+    behind = lambda p: ((p - c2w[:3, 3]) @ forward > 9.0) & ((p - c2w[:3, 3]) @ forward < 15.0)
+    field = cluttered_sphere_field(56, behind, frame.to_world, (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    settings = Settings(frame="normalized", points=2000, point_scale=1.0)
+    run_stage(tmp_path, field, identity_scene("forward", [{**view, "split": "train"}]), settings, "forward", ndc=ndc)
+    folder = tmp_path / "forward" / "export"
+    assert read_json(folder / "export.json")["fit_frame"] == "ndc"
+    mesh, points = exported_foreground(folder, settings.crop_margin)
+    facing = mesh.vertices[(mesh.vertices - SPHERE_CENTRE) @ -forward > 0.3 * SPHERE_RADIUS]
+    assert len(facing) > 100 and np.median(radial_error(facing)) < 0.02
+    assert np.median(radial_error(points)) < 0.02
 
 
 # The whole pipeline on a tiny synthetic object scene: imported poses, a two-level fit that takes
