@@ -1,16 +1,27 @@
-"""Benchmark of the fit: held-out quality against wall time and peak memory, per preset and per knob.
+"""Benchmark of the fit: held-out quality against wall time and peak memory, per preset and per single knob.
 
-Scenes: lego from ../shared/data (train images fitted at --lego-scale of 800x800, i.e. 400x400 by
-default; its val images are the held-out views, scored at the same size on white) and a synthetic
-object scene (pipeline/synthetic.py, every 8th view held out). Each run is the fit stage exactly as
-the pipeline runs it, in its own process so its peak memory (max RSS) is its own; PSNR and SSIM come
-from stages/evaluate.py's functions. Writes bench/results/fit.json and bench/results/fit.png (PSNR
-and SSIM against time and against peak memory, the Pareto front of each scene marked).
+Scenes: lego from ../shared/data (all 100 train images fitted, the first --val-limit val images held out)
+and a synthetic object scene (pipeline/synthetic.py, 48 views at 400x300, every 8th held out). Each run
+is the fit stage as the pipeline runs it (preset, scene-type overlay, overrides), in its own process so
+its peak memory (max RSS) is its own. Every run is scored at one size per scene, --eval-scale of the
+photos (lego 400x400, the synthetic scene 200x150), whatever size it trained at, so runs of different
+image scales compare; PSNR and SSIM are stages/evaluate.py's.
 
-    .venv/bin/python -m bench.fit                                  # presets fast/default/quality on both scenes
-    .venv/bin/python -m bench.fit --scenes lego --presets fast     # one run
-    .venv/bin/python -m bench.fit --sweep                          # also the single knobs on the synthetic scene
-    .venv/bin/python -m bench.fit ... --set fit_key=value          # override fit settings in every run
+Runs: the presets on both scenes, and each single knob varied alone from a base preset: lego from
+`fast` (so its sweep stays affordable), the synthetic scene from `default`. The knobs: final grid
+resolution (0.5x, 0.75x, 1.5x the base's, same total steps), SH degree (0-3), image scale (0.5x, 2x),
+steps (0.5x, 2x, every level).
+
+bench/results/fit.json holds one record per run, keyed by scene, preset, overrides and scoring: a new
+run replaces the earlier one with its key, and records whose settings differ from what their preset
+and overrides resolve to now (a preset or a default changed) are dropped. bench/results/fit.png plots
+them with each scene's Pareto fronts; `--table` prints the README's table.
+
+    .venv/bin/python -m bench.fit                                   # everything: ~13 runs per scene
+    .venv/bin/python -m bench.fit --scenes synthetic --knobs none   # the presets on one scene
+    .venv/bin/python -m bench.fit --list                            # the runs it would do, and exit
+    .venv/bin/python -m bench.fit --table                           # the results as a Markdown table (and replot)
+    .venv/bin/python -m bench.fit ... --set key=value               # a fit setting for every run (and the base)
 """
 from __future__ import annotations
 
@@ -27,107 +38,212 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
-RESULTS = REPO / "bench" / "results" / "fit.json"
-PLOT = REPO / "bench" / "results" / "fit.png"
-CACHE = REPO / "bench" / "out"
 
-# The single knobs of the sweep, each varied alone from the default preset.
-SWEEP = {
-    "final resolution": [{"resolutions": [64, 128], "steps": [1000, 2000]}, {"resolutions": [128, 192]}],
-    "sh degree": [{"sh_degree": d} for d in (0, 1, 3)],
-    "image scale": [{"image_scale": 0.25}, {"image_scale": 1.0}],
-    "steps": [{"steps": [750, 1500]}, {"steps": [3000, 6000]}],
-}
+from pipeline.errors import UserError  # noqa: E402
+
+RESULTS = REPO / "bench" / "results" / "fit.json"
+CACHE = REPO / "bench" / "out"
+SCENES = ("lego", "synthetic")
+PRESETS = ("fast", "default", "quality")
+SWEEP_BASE = {"lego": "fast", "synthetic": "default"}
+KNOBS = ("resolution", "sh", "image_scale", "steps")
+SYNTHETIC = {"kind": "object", "n_views": 48, "width": 400, "height": 300, "holdout_every": 8}
 
 
 def machine() -> dict:
-    cpu = platform.processor()
+    """The CPU (model name, and family/model numbers where the name is as vague as "AMD EPYC"), cores, memory."""
+    info = {}
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
+            key, _, value = line.partition(":")
+            info.setdefault(key.strip(), value.strip())
     except OSError:
         pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "omp_threads": os.environ.get("OMP_NUM_THREADS"),
-            "load_average_at_start": os.getloadavg()}
+    memory_gb = round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1)
+    return {"cpu": info.get("model name", platform.processor()), "cpu_family": info.get("cpu family"),
+            "cpu_model": info.get("model"), "virtual_machine": "hypervisor" in info.get("flags", "").split(),
+            "cores": os.cpu_count(), "memory_gb": memory_gb, "python": platform.python_version()}
 
 
 # ---- scenes ---------------------------------------------------------------------------------------
-def lego(data: Path, val_limit: int | None) -> tuple[dict, Path]:
-    from bench.cuda import lego_scene
+def load_scene(name: str, data: Path, val_limit: int | None) -> tuple[dict, Path]:
+    """A scene.json (frames split "train"/"test") and the folder its image paths resolve against."""
+    if name == "lego":
+        from bench.cuda import lego_scene
 
-    scene, _ = lego_scene(data / "lego", val_limit)
-    return scene, data / "lego"
+        if not (data / "lego" / "transforms_train.json").is_file():
+            raise UserError(f"no lego scene under {data / 'lego'}; pass --data (the folder that holds lego/)")
+        scene, _ = lego_scene(data / "lego", val_limit)
+        return scene, data / "lego"
+    return synthetic_scene()
 
 
-def synthetic() -> tuple[dict, Path]:
-    """An object scene of 48 views at 200x150, made once and kept under bench/out."""
+def synthetic_scene() -> tuple[dict, Path]:
+    """The synthetic object scene, rendered once and kept under bench/out."""
     from pipeline.io import read_json
     from pipeline.synthetic import write_scene
     from stages.normalize import Points, Settings, normalize_scene
 
-    root = CACHE / "synthetic_object"
+    s = SYNTHETIC
+    root = CACHE / f"synthetic_{s['kind']}_{s['n_views']}_{s['width']}x{s['height']}"
     if not (root / "transforms.json").is_file():
-        write_scene("object", root, n_views=48, width=200, height=150)
+        write_scene(s["kind"], root, n_views=s["n_views"], width=s["width"], height=s["height"])
     scene = normalize_scene(read_json(root / "transforms.json"), Points.empty(),
-                            Settings(scene_type="object", holdout_every=8), poses_dir=root, path_prefix="")
+                            Settings(scene_type=s["kind"], holdout_every=s["holdout_every"]), poses_dir=root,
+                            path_prefix="")
     return scene, root
+
+
+# ---- what runs ------------------------------------------------------------------------------------
+def resolve(preset: str, scene_type: str, overrides: dict):
+    """The fit Settings of a run: preset, then the scene type's overlay, then the run's overrides."""
+    from pipeline import config
+    from stages import fit
+
+    values = config.merge(config.load_preset(preset), config.load_scene_type_overlay(scene_type),
+                          {"fit": overrides}).get("fit", {})
+    return config.build(fit.Settings, "fit", values)
+
+
+def knob_variants(base) -> list[tuple[str, str, dict]]:
+    """(knob, short label, overrides) for each single knob varied alone from the `base` Settings."""
+    variants = []
+    final, total = base.resolutions[-1], base.total_steps
+    for factor in (0.5, 0.75, 1.5):
+        res = max(8, round(final * factor))
+        kept = [i for i in range(len(base.resolutions) - 1) if base.resolutions[i] < res]
+        steps = [base.steps[i] for i in kept]
+        variants.append(("resolution", f"res {res}", {"resolutions": [base.resolutions[i] for i in kept] + [res],
+                                                      "steps": steps + [total - sum(steps)]}))
+    for degree in range(4):
+        if degree != base.sh_degree:
+            variants.append(("sh", f"SH {degree}", {"sh_degree": degree}))
+    for factor in (0.5, 2.0):
+        scale = round(base.image_scale * factor, 4)
+        if scale <= 1:
+            variants.append(("image_scale", f"image scale {scale:g}", {"image_scale": scale}))
+    for factor in (0.5, 2.0):
+        steps = [max(1, round(n * factor)) for n in base.steps]
+        variants.append(("steps", f"{sum(steps)} steps", {"steps": steps}))
+    return variants
+
+
+def run_key(scene: str, preset: str, overrides: dict, scoring: dict) -> str:
+    return json.dumps([scene, preset, overrides, scoring], sort_keys=True)
+
+
+def plan(args, common: dict) -> list[dict]:
+    """The runs asked for, each a spec for one_run."""
+    from pipeline import config
+
+    scene_type = {"lego": "object", "synthetic": SYNTHETIC["kind"]}
+    specs = []
+
+    def add(scene, preset, knob, label, overrides):
+        settings = resolve(preset, scene_type[scene], overrides)
+        scoring = {"eval_scale": args.eval_scale, "val_limit": args.val_limit if scene == "lego" else None}
+        specs.append({"scene": scene, "scene_type": scene_type[scene], "preset": preset, "knob": knob,
+                      "label": label, "common": common, "overrides": overrides, "scoring": scoring,
+                      "settings": json.loads(json.dumps(config.to_dict(settings))),
+                      "key": run_key(scene, preset, overrides, scoring)})
+        return settings
+
+    for scene in args.scenes:
+        for preset in args.presets:
+            add(scene, preset, None, preset, dict(common))
+        if args.knobs:
+            base_preset = SWEEP_BASE[scene]
+            base = resolve(base_preset, scene_type[scene], common)
+            for knob, label, variant in knob_variants(base):
+                if knob in args.knobs:
+                    add(scene, base_preset, knob, f"{base_preset}, {label}", {**common, **variant})
+    return specs
 
 
 # ---- one run, in its own process ------------------------------------------------------------------
 def one_run(spec: dict) -> dict:
-    """Fits `spec['scene']` with the preset plus overrides and scores every held-out view."""
+    """Fits the spec's scene with its settings and scores every held-out view at the scoring size."""
     import numpy as np
     import torch
 
-    from pipeline import config
-    from pipeline.report import Reporter
     from bench.common import fit_context
+    from pipeline.report import Reporter
     from plenoxels.scene_model import SceneModel
     from stages import fit
     from stages.evaluate import image_psnr, image_ssim
 
-    scene, root = lego(Path(spec["data"]), spec.get("val_limit")) if spec["scene"] == "lego" else synthetic()
-    values = config.merge(config.load_preset(spec["preset"]), {"fit": spec["overrides"]})["fit"]
-    settings = config.build(fit.Settings, "fit", values)
+    scene, root = load_scene(spec["scene"], Path(spec["data"]), spec["scoring"]["val_limit"])
+    settings = resolve(spec["preset"], spec["scene_type"], spec["overrides"])
     with fit_context(scene, root, settings, Reporter(quiet=not spec.get("verbose"))) as ctx:
         started = time.time()
         summary = fit.run(ctx)
         wall = time.time() - started
         record = json.loads((ctx.work / "fit.json").read_text())
         model = SceneModel.load(ctx.work)
-        psnrs, ssims = [], []
-        render_started = time.time()
-        for frame in [f for f in scene["frames"] if f.get("split") == "test"]:
-            truth, k = fit.load_frame(root, frame, settings.image_scale, settings.background_color)
-            with torch.no_grad():
-                render = model.render_camera(frame["transform_matrix"], k)["rgb"].numpy()
-            psnrs.append(image_psnr(render, truth))
-            ssims.append(image_ssim(render, truth))
-        render_seconds = time.time() - render_started
+    psnrs, ssims = [], []
+    render_started = time.time()
+    for frame in [f for f in scene["frames"] if f.get("split") == "test"]:
+        truth, k = fit.load_frame(root, frame, spec["scoring"]["eval_scale"], settings.background_color)
+        with torch.no_grad():
+            render = model.render_camera(frame["transform_matrix"], k)["rgb"].numpy()
+        psnrs.append(image_psnr(render, truth))
+        ssims.append(image_ssim(render, truth))
+    render_seconds = time.time() - render_started
     return {
-        "scene": spec["scene"], "preset": spec["preset"], "overrides": spec["overrides"], "label": spec["label"],
         "psnr": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)), "held_out_views": len(psnrs),
-        "image_size": [k.w, k.h], "fit_seconds": record["seconds"], "wall_seconds": round(wall, 1),
+        "eval_size": [k.w, k.h], "train_images": record["train_images"], "train_pixels": record["train_pixels"],
+        "fit_seconds": record["seconds"], "wall_seconds": round(wall, 1),
         "render_seconds_per_view": round(render_seconds / max(1, len(psnrs)), 3),
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-        "occupied": record["model"]["occupied"], "model_bytes": record["memory_bytes"]["total"],
-        "history": record["history"], "levels": record["levels"], "summary": summary["line"],
-        "settings": config.to_dict(settings),
+        "resolution": record["model"]["resolution"], "occupied": record["model"]["occupied"],
+        "model_bytes": record["memory_bytes"]["total"], "history": record["history"], "levels": record["levels"],
+        "summary": summary["line"],
     }
 
 
 def spawn(spec: dict) -> dict | None:
-    proc = subprocess.run([sys.executable, "-m", "bench.fit", "--one", json.dumps(spec)], cwd=REPO,
+    """Runs one_run in a child process; None (after saying so) if it failed."""
+    load_before = os.getloadavg()
+    started = time.time()
+    proc = subprocess.run([sys.executable, "-m", "bench.fit", "--one"], input=json.dumps(spec), cwd=REPO,
                           stdout=subprocess.PIPE, text=True)
     if proc.returncode != 0:
         print(f"  {spec['scene']} {spec['label']}: failed (exit {proc.returncode})", flush=True)
         return None
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    keep = ("key", "scene", "scene_type", "preset", "knob", "label", "common", "overrides", "scoring", "settings")
+    return {**{k: spec[k] for k in keep}, **result, "process_seconds": round(time.time() - started, 1),
+            "threads": os.environ.get("OMP_NUM_THREADS"),
+            "load_average": {"before": [round(x, 2) for x in load_before],
+                             "after": [round(x, 2) for x in os.getloadavg()]},
+            "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
 
 
-# ---- plot -----------------------------------------------------------------------------------------
+# ---- results --------------------------------------------------------------------------------------
+def still_valid(run: dict) -> bool:
+    """Whether a stored run's settings are what its preset and overrides give today."""
+    from pipeline import config
+
+    if not all(k in run for k in ("key", "scene_type", "settings")):
+        return False
+    try:
+        settings = resolve(run["preset"], run["scene_type"], run["overrides"])
+    except UserError:
+        return False
+    return json.loads(json.dumps(config.to_dict(settings))) == run["settings"]
+
+
+def load_results(path: Path, fresh: bool) -> dict:
+    results = json.loads(path.read_text()) if path.is_file() and not fresh else {}
+    runs = results.get("runs", [])
+    valid = [r for r in runs if still_valid(r)]
+    if len(valid) < len(runs):
+        print(f"  dropped {len(runs) - len(valid)} earlier run(s) of {path.name} whose settings or format are "
+              "out of date", flush=True)
+    results["runs"] = valid
+    return results
+
+
 def pareto(points: list[tuple[float, float]]) -> list[int]:
     """Indices of the points no other point beats on both cost (lower) and quality (higher), by cost."""
     order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
@@ -139,84 +255,206 @@ def pareto(points: list[tuple[float, float]]) -> list[int]:
     return front
 
 
-def plot(runs: list[dict], path: Path) -> None:
+COSTS = (("wall_seconds", "fit wall time (s)"), ("peak_rss_mb", "peak memory, max RSS (MiB)"))
+METRICS = ("psnr", "ssim")
+
+
+def fronts(runs: list[dict]) -> dict[tuple[str, str, str], set[str]]:
+    """(scene, metric, cost) -> keys of the runs on that Pareto front."""
+    out = {}
+    for scene in {r["scene"] for r in runs}:
+        mine = [r for r in runs if r["scene"] == scene]
+        for metric in METRICS:
+            for cost, _ in COSTS:
+                front = pareto([(r[cost], r[metric]) for r in mine])
+                out[scene, metric, cost] = {mine[i]["key"] for i in front}
+    return out
+
+
+def short_label(run: dict) -> str:
+    """The plot's label: the knob's variant alone (its base preset is the scene's sweep base)."""
+    return run["label"].split(", ", 1)[1] if run["knob"] else run["label"]
+
+
+def plot(runs: list[dict], path: Path, machine_line: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
-    fig, axes = plt.subplots(2, 2, figsize=(12, 9))
-    for row, metric in enumerate(("psnr", "ssim")):
-        for col, (cost, label) in enumerate((("fit_seconds", "fit time (s)"), ("peak_rss_mb", "peak memory (MB)"))):
+    on_front = fronts(runs)
+    fig, axes = plt.subplots(2, 2, figsize=(13, 10))
+    for row, metric in enumerate(METRICS):
+        for col, (cost, cost_label) in enumerate(COSTS):
             ax = axes[row, col]
             for scene in sorted({r["scene"] for r in runs}):
-                mine = [r for r in runs if r["scene"] == scene]
-                xy = [(r[cost], r[metric]) for r in mine]
-                dots = ax.scatter(*zip(*xy), label=scene)
-                front = pareto(xy)
-                ax.plot([xy[i][0] for i in front], [xy[i][1] for i in front], "--", color=dots.get_facecolor()[0])
-                for r, (x, y) in zip(mine, xy):
-                    ax.annotate(r["label"], (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
-            ax.set_xlabel(label)
-            ax.set_ylabel("held-out " + metric.upper() + (" (dB)" if metric == "psnr" else ""))
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=8)
-    fig.suptitle("fit: held-out quality against cost (dashed: Pareto front)")
+                mine = sorted((r for r in runs if r["scene"] == scene), key=lambda r: r[cost])
+                presets = [r for r in mine if not r["knob"]]
+                knobs = [r for r in mine if r["knob"]]
+                dots = ax.scatter([r[cost] for r in presets], [r[metric] for r in presets], marker="s", s=50,
+                                  label=f"{scene}: presets")
+                colour = dots.get_facecolor()[0]
+                if knobs:
+                    ax.scatter([r[cost] for r in knobs], [r[metric] for r in knobs], marker="o", s=22,
+                               color=colour, alpha=0.6, label=f"{scene}: one knob from {SWEEP_BASE[scene]}")
+                front = [r for r in mine if r["key"] in on_front[scene, metric, cost]]
+                ax.plot([r[cost] for r in front], [r[metric] for r in front], "--", color=colour, linewidth=1)
+                ax.scatter([r[cost] for r in front], [r[metric] for r in front], s=140, facecolors="none",
+                           edgecolors=colour, linewidths=1.2)
+                for r in mine:
+                    ax.annotate(short_label(r), (r[cost], r[metric]), fontsize=7, xytext=(4, 3),
+                                textcoords="offset points")
+            if cost == "wall_seconds":
+                ax.set_xscale("log")
+                plain = matplotlib.ticker.FuncFormatter(lambda x, _: f"{x:g}")
+                ax.xaxis.set_major_formatter(plain)
+                ax.xaxis.set_minor_formatter(plain)
+                cost_label += ", log scale"
+            ax.set_xlabel(cost_label)
+            ax.set_ylabel("held-out " + ("PSNR (dB)" if metric == "psnr" else "SSIM"))
+            ax.grid(alpha=0.3, which="both")
+            ax.legend(fontsize=7)
+    fig.suptitle("fit: held-out quality against cost, one point per run (circled and dashed: Pareto front)\n"
+                 + machine_line, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def cpu_name(m: dict) -> str:
+    family = f" (family {m['cpu_family']} model {m['cpu_model']})" if m.get("cpu_family") else ""
+    return f"{m.get('cpu', '?')}{family}{', virtual machine' if m.get('virtual_machine') else ''}"
+
+
+def machine_line(results: dict) -> str:
+    m = results.get("machine", {})
+    runs = results.get("runs", [])
+    loads = [x for r in runs for x in (r["load_average"]["before"][0], r["load_average"]["after"][0])]
+    threads = sorted({str(r.get("threads")) for r in runs})
+    line = f"{cpu_name(m)}, {m.get('cores', '?')} cores, OMP_NUM_THREADS {'/'.join(threads)}"
+    if loads:
+        line += f", 1-min load average {min(loads):.1f}-{max(loads):.1f} around the runs"
+    common = sorted({json.dumps(r.get("common") or {}) for r in runs} - {"{}"})
+    if common:
+        line += "; every run also set " + " or ".join(common)
+    return line
+
+
+def table(results: dict) -> str:
+    """The runs as a Markdown table, scene by scene, presets first."""
+    runs = results.get("runs", [])
+    on_front = fronts(runs)
+    lines = [f"Machine: {machine_line(results)}.", "",
+             "| scene | run | held-out PSNR | SSIM | fit wall time | peak memory | model | final grid | "
+             "Pareto (PSNR vs time / memory) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    order = {name: i for i, name in enumerate(SCENES)}
+    for r in sorted(runs, key=lambda r: (order.get(r["scene"], 9), r["knob"] is not None, r["knob"] or "",
+                                         r["wall_seconds"])):
+        marks = ["yes" if r["key"] in on_front[r["scene"], "psnr", cost] else "-" for cost, _ in COSTS]
+        w, h = r["eval_size"]
+        lines.append(f"| {r['scene']} ({w}x{h}, {r['held_out_views']} views) | {r['label']} | {r['psnr']:.2f} dB | "
+                     f"{r['ssim']:.3f} | {r['wall_seconds']:.{0 if r['wall_seconds'] >= 10 else 1}f} s | {r['peak_rss_mb']:.0f} MiB | "
+                     f"{r['model_bytes'] / 2**20:.0f} MiB | {max(r['resolution'])}³, {r['occupied'] / 1e6:.2f}M voxels | "
+                     f"{' / '.join(marks)} |")
+    return "\n".join(lines)
 
 
 # ---- main -----------------------------------------------------------------------------------------
+def parse_list(text: str, allowed: tuple[str, ...], what: str) -> list[str]:
+    if text in ("", "none"):
+        return []
+    if text == "all":
+        return list(allowed)
+    items = [t.strip() for t in text.split(",") if t.strip()]
+    for item in items:
+        if item not in allowed:
+            raise UserError(f"unknown {what} '{item}'; choose from {', '.join(allowed)} (comma-separated), all or none")
+    return items
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--one", help=argparse.SUPPRESS)
+    parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
-    parser.add_argument("--scenes", default="lego,synthetic")
-    parser.add_argument("--presets", default="fast,default,quality")
-    parser.add_argument("--sweep", action="store_true", help="also vary single knobs from the default preset")
-    parser.add_argument("--sweep-scene", default="synthetic")
-    parser.add_argument("--lego-scale", type=float, default=0.5, help="fit and score lego at this share of 800x800")
-    parser.add_argument("--val-limit", type=int, default=None, help="score only the first N lego val views")
-    parser.add_argument("--set", action="append", default=[], help="fit_key=value for every run")
-    parser.add_argument("--verbose", action="store_true")
+    parser.add_argument("--scenes", default="lego,synthetic", help=f"comma-separated: {', '.join(SCENES)}")
+    parser.add_argument("--presets", default="fast,default,quality", help="comma-separated presets, or none")
+    parser.add_argument("--knobs", default="all", help=f"knobs to sweep: {', '.join(KNOBS)}, all or none")
+    parser.add_argument("--eval-scale", type=float, default=0.5, help="score held-out views at this share of the photos")
+    parser.add_argument("--val-limit", type=int, default=25, help="score the first N lego val views")
+    parser.add_argument("--set", action="append", default=[], help="key=value (a fit setting) for every run")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="the JSON to update (the PNG goes beside it)")
+    parser.add_argument("--fresh", action="store_true", help="drop the earlier runs in --results")
+    parser.add_argument("--list", action="store_true", help="print the runs and exit")
+    parser.add_argument("--table", action="store_true", help="print --results as a Markdown table, redraw its plot, and exit")
+    parser.add_argument("--verbose", action="store_true", help="show each fit's progress")
     args = parser.parse_args(argv)
-    if args.one:
-        print(json.dumps(one_run(json.loads(args.one))))
-        return 0
+    try:
+        if args.one:
+            print(json.dumps(one_run(json.loads(sys.stdin.read()))))
+            return 0
+        return sweep(args)
+    except UserError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
 
+
+def sweep(args) -> int:
     import yaml
 
-    common = {k: yaml.safe_load(v) for k, v in (item.partition("=")[::2] for item in args.set)}
-    specs = []
-    for scene in args.scenes.split(","):
-        extra = {"image_scale": args.lego_scale} if scene == "lego" else {}
-        for preset in args.presets.split(","):
-            specs.append({"scene": scene, "preset": preset, "label": preset, "overrides": {**extra, **common}})
-    if args.sweep:
-        extra = {"image_scale": args.lego_scale} if args.sweep_scene == "lego" else {}
-        for knob, variants in SWEEP.items():
-            for variant in variants:
-                label = knob + ": " + ", ".join(f"{k}={v}" for k, v in variant.items())
-                specs.append({"scene": args.sweep_scene, "preset": "default", "label": label,
-                              "overrides": {**extra, **variant, **common}})
-    results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
+    from pipeline import config
+
+    if args.table:
+        if not args.results.is_file():
+            raise UserError(f"no results at {args.results}; run the benchmark first")
+        results = json.loads(args.results.read_text())
+        print(table(results))
+        if results.get("runs"):
+            plot(results["runs"], args.results.with_suffix(".png"), machine_line(results))
+        return 0
+    if not 0 < args.eval_scale <= 1:
+        raise UserError("--eval-scale must be in (0, 1]")
+    args.scenes = parse_list(args.scenes, SCENES, "scene")
+    args.presets = parse_list(args.presets, tuple(config.preset_names()), "preset")
+    args.knobs = parse_list(args.knobs, KNOBS, "knob")
+    common = {}
+    for item in args.set:
+        key, sep, raw = item.partition("=")
+        if not sep:
+            raise UserError(f"--set '{item}' must look like key=value (a fit setting, for example sh_degree=1)")
+        common[key.strip().removeprefix("fit.")] = yaml.safe_load(raw)
+    specs = plan(args, common)
+    if args.list:
+        for spec in specs:
+            print(f"  {spec['scene']:<9} {spec['label']:<40} {json.dumps(spec['overrides'])}")
+        print(f"{len(specs)} runs")
+        return 0
+    if "lego" in args.scenes:
+        load_scene("lego", args.data, args.val_limit)  # a missing folder stops here, not in every child
+    if "synthetic" in args.scenes:
+        synthetic_scene()  # rendered once, before the children need it
+
+    results = load_results(args.results, args.fresh)
     results["machine"] = machine()
-    runs = results.get("runs", [])
-    for spec in specs:
-        spec.update(data=str(args.data), val_limit=args.val_limit, verbose=args.verbose)
-        result = spawn(spec)
+    plot_path = args.results.with_suffix(".png")
+    failed = 0
+    for n, spec in enumerate(specs, 1):
+        print(f"[{n}/{len(specs)}] {spec['scene']} {spec['label']}", flush=True)
+        result = spawn({**spec, "data": str(args.data), "verbose": args.verbose})
         if result is None:
+            failed += 1
             continue
-        print(f"  {result['scene']:<9} {result['label']:<40} {result['psnr']:6.2f} dB  SSIM {result['ssim']:.3f}  "
-              f"fit {result['fit_seconds']:7.1f} s  peak {result['peak_rss_mb']:7.0f} MB  ({result['summary']})", flush=True)
-        runs = [r for r in runs if (r["scene"], r["label"]) != (result["scene"], result["label"])] + [result]
-        results["runs"] = runs
-        RESULTS.parent.mkdir(parents=True, exist_ok=True)
-        RESULTS.write_text(json.dumps(results, indent=1) + "\n")
-    if runs:
-        plot(runs, PLOT)
-        print(f"wrote {RESULTS.relative_to(REPO)} and {PLOT.relative_to(REPO)}")
-    return 0
+        print(f"  {result['psnr']:6.2f} dB  SSIM {result['ssim']:.3f}  wall {result['wall_seconds']:7.1f} s  "
+              f"peak {result['peak_rss_mb']:6.0f} MiB  ({result['summary']})", flush=True)
+        results["runs"] = [r for r in results["runs"] if r["key"] != result["key"]] + [result]
+        args.results.parent.mkdir(parents=True, exist_ok=True)
+        args.results.write_text(json.dumps(results, indent=1) + "\n")
+        plot(results["runs"], plot_path, machine_line(results))
+    if results["runs"]:
+        print(table(results))
+        print(f"wrote {args.results} and {plot_path}")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -1,0 +1,91 @@
+"""The fit and scaling benchmarks' bookkeeping: Pareto fronts, the single-knob sweep, stale results, image picks."""
+import dataclasses
+import json
+
+import pytest
+
+from bench.fit import fronts, knob_variants, load_results, pareto, resolve, run_key, table
+from bench.scaling import training_frames
+from pipeline import config
+from pipeline.errors import UserError
+from stages import fit
+
+
+def test_pareto_keeps_only_undominated_points_in_cost_order():
+    points = [(1.0, 10.0), (2.0, 9.0), (2.0, 12.0), (3.0, 11.0), (4.0, 13.0), (0.5, 5.0), (4.0, 13.0)]
+    assert pareto(points) == [5, 0, 2, 4]
+
+
+def _changed(base, variant_overrides: dict) -> set[str]:
+    values = {**config.to_dict(base), **variant_overrides}
+    changed = config.build(fit.Settings, "fit", values)  # every variant must be a valid setting
+    return {f.name for f in dataclasses.fields(fit.Settings) if getattr(changed, f.name) != getattr(base, f.name)}
+
+
+@pytest.mark.parametrize("preset", ["fast", "default"])
+def test_each_knob_variant_changes_only_its_knob(preset):
+    base = resolve(preset, "object", {})
+    variants = knob_variants(base)
+    expected = {"resolution": {"resolutions", "steps"}, "sh": {"sh_degree"}, "image_scale": {"image_scale"},
+                "steps": {"steps"}}
+    for knob, label, overrides in variants:
+        changed = _changed(base, overrides)
+        assert changed and changed <= expected[knob], (label, changed)
+        if knob == "resolution":
+            assert overrides["resolutions"][-1] != base.resolutions[-1]
+            assert sum(overrides["steps"]) == base.total_steps
+    assert {o["sh_degree"] for k, _, o in variants if k == "sh"} | {base.sh_degree} == {0, 1, 2, 3}
+    totals = sorted(sum(o["steps"]) for k, _, o in variants if k == "steps")
+    assert totals[0] < base.total_steps < totals[1]
+
+
+def test_a_smaller_final_resolution_merges_the_levels_it_passes():
+    base = fit.Settings(resolutions=[32, 64, 128], steps=[10, 20, 30])
+    by_final = {o["resolutions"][-1]: o for k, _, o in knob_variants(base) if k == "resolution"}
+    assert by_final[64] == {"resolutions": [32, 64], "steps": [10, 50]}
+    assert by_final[96] == {"resolutions": [32, 64, 96], "steps": [10, 20, 30]}
+    assert by_final[192] == {"resolutions": [32, 64, 192], "steps": [10, 20, 30]}
+
+
+def _record(preset: str, overrides: dict, settings_overrides: dict | None = None) -> dict:
+    settings = resolve(preset, "object", {**overrides, **(settings_overrides or {})})
+    scoring = {"eval_scale": 0.5, "val_limit": None}
+    return {"key": run_key("synthetic", preset, overrides, scoring), "scene": "synthetic", "scene_type": "object",
+            "preset": preset, "overrides": overrides, "scoring": scoring,
+            "settings": json.loads(json.dumps(config.to_dict(settings)))}
+
+
+def test_stored_runs_whose_settings_changed_since_are_dropped(tmp_path):
+    current = _record("fast", {"sh_degree": 0})
+    stale = _record("fast", {}, settings_overrides={"batch_size": 123})  # as if the preset had changed since
+    old_format = {"scene": "lego", "preset": "fast", "label": "fast", "overrides": {}}
+    path = tmp_path / "fit.json"
+    path.write_text(json.dumps({"runs": [current, stale, old_format]}))
+    assert [r["key"] for r in load_results(path, fresh=False)["runs"]] == [current["key"]]
+    assert load_results(path, fresh=True)["runs"] == []
+
+
+def test_table_marks_the_runs_on_each_front():
+    def run(label, seconds, rss, psnr):
+        return {"key": label, "scene": "synthetic", "knob": None, "label": label, "psnr": psnr, "ssim": psnr / 40,
+                "wall_seconds": seconds, "peak_rss_mb": rss, "eval_size": [200, 150], "held_out_views": 6,
+                "model_bytes": 2**20, "resolution": [64, 64, 64], "occupied": 1000, "threads": "1",
+                "load_average": {"before": [1.0, 1, 1], "after": [2.0, 1, 1]}}
+
+    runs = [run("cheap", 10, 900, 20.0), run("slow-but-lean", 100, 500, 25.0), run("worse", 50, 950, 19.0)]
+    on_front = fronts(runs)
+    assert on_front["synthetic", "psnr", "wall_seconds"] == {"cheap", "slow-but-lean"}
+    assert on_front["synthetic", "psnr", "peak_rss_mb"] == {"slow-but-lean"}
+    rows = {line.split(" | ")[1]: line for line in table({"runs": runs}).splitlines() if line.startswith("| synth")}
+    assert rows["cheap"].endswith("| yes / - |")
+    assert rows["slow-but-lean"].endswith("| yes / yes |")
+    assert rows["worse"].endswith("| - / - |")
+
+
+def test_image_counts_are_spread_over_the_training_frames():
+    scene = {"frames": [{"name": f"t{i}", "split": "train"} for i in range(10)] + [{"name": "v", "split": "test"}]}
+    assert [f["name"] for f in training_frames(scene, 4)] == ["t0", "t3", "t6", "t9"]
+    assert len(training_frames(scene, None)) == 10
+    assert [f["name"] for f in training_frames(scene, 1)] == ["t0"]
+    with pytest.raises(UserError, match="10 training images"):
+        training_frames(scene, 11)
