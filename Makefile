@@ -9,6 +9,7 @@ STAGES := ingest poses normalize fit evaluate export
 scene ?=
 out ?=
 preset ?=
+parts ?=
 set ?=
 export OMP_NUM_THREADS ?= $(shell nproc)
 
@@ -51,8 +52,9 @@ $(STAMP): pyproject.toml setup.py $(wildcard csrc/*)
 test: $(STAMP)
 	$(PY) -m pytest -q tests
 
+# make bench [parts="fit scaling"]: every benchmark part, or the ones named (bench/__main__.py lists them).
 bench: $(STAMP)
-	$(PY) -m bench
+	$(PY) -m bench $(parts)
 
 clean:
 	rm -rf build out bench/out plenoxels/*.so

@@ -1,11 +1,35 @@
 """`python -m bench [PART ...]`: runs benchmark parts in turn, each in its own process so one failure or
-crash does not stop the others, and says which ones ran. Results: bench/results/<part>.json."""
+crash does not stop the others, and says which ones ran. Each part writes bench/results/<part>.json;
+afterwards bench/results.json gathers every part's results file that exists into one document, with
+when each part last ran here and how it ended (parts not run this time keep their earlier entry; a part
+that ran without writing a file, such as cuda on a machine without a GPU, has "file": null)."""
+import json
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-PARTS = ("kernels", "poses", "normalize", "fit", "scene_models", "export", "cuda")
+REPO = Path(__file__).resolve().parent.parent
+PARTS = ("kernels", "poses", "normalize", "fit", "scaling", "scene_models", "export", "cuda")
+COMBINED = REPO / "bench" / "results.json"
+
+
+def combine(outcomes: list[tuple[str, int, float]]) -> None:
+    """Rewrites bench/results.json from the parts' files, recording this invocation's outcomes."""
+    sys.path.insert(0, str(REPO))
+    from bench.fit import machine
+
+    earlier = json.loads(COMBINED.read_text()).get("parts", {}) if COMBINED.is_file() else {}
+    ran = {part: {"exit_code": code, "seconds": round(seconds, 1), "finished": finished}
+           for part, code, seconds, finished in outcomes}
+    parts = {}
+    for part in PARTS:
+        path = REPO / "bench" / "results" / f"{part}.json"
+        last_run = ran.get(part, earlier.get(part, {}).get("last_run"))
+        if path.is_file() or last_run:
+            parts[part] = {"file": str(path.relative_to(REPO)) if path.is_file() else None, "last_run": last_run,
+                           "results": json.loads(path.read_text()) if path.is_file() else None}
+    COMBINED.write_text(json.dumps({"machine": machine(), "parts": parts}, indent=1) + "\n")
 
 
 def main(argv: list[str]) -> int:
@@ -17,11 +41,13 @@ def main(argv: list[str]) -> int:
     outcomes = []
     for part in parts:
         started = time.time()
-        code = subprocess.call([sys.executable, "-m", f"bench.{part}"], cwd=Path(__file__).resolve().parent.parent)
-        outcomes.append((part, code, time.time() - started))
-    for part, code, seconds in outcomes:
+        code = subprocess.call([sys.executable, "-m", f"bench.{part}"], cwd=REPO)
+        outcomes.append((part, code, time.time() - started, time.strftime("%Y-%m-%dT%H:%M:%S%z")))
+    for part, code, seconds, _ in outcomes:
         print(f"[bench] {part:<13} {'ok' if code == 0 else f'exit {code}':<8} {seconds:7.1f} s")
-    return 0 if all(code == 0 for _, code, _ in outcomes) else 1
+    combine(outcomes)
+    print(f"[bench] wrote {COMBINED.relative_to(REPO)}")
+    return 0 if all(code == 0 for _, code, _, _ in outcomes) else 1
 
 
 if __name__ == "__main__":
