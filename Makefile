@@ -10,6 +10,7 @@ scene ?=
 out ?=
 preset ?=
 parts ?=
+args ?=
 set ?=
 export OMP_NUM_THREADS ?= $(shell nproc)
 
@@ -52,9 +53,10 @@ $(STAMP): pyproject.toml setup.py $(wildcard csrc/*)
 test: $(STAMP)
 	$(PY) -m pytest -q tests
 
-# make bench [parts="fit scaling"]: every benchmark part, or the ones named (bench/__main__.py lists them).
+# make bench [parts="fit scaling"] [args="..."]: every benchmark part, or the ones named (bench/__main__.py
+# lists them); args go to a single named part (make bench parts=fit args="--presets fast,default").
 bench: $(STAMP)
-	$(PY) -m bench $(parts)
+	$(PY) -m bench $(parts) $(if $(args),-- $(args))
 
 clean:
 	rm -rf build out bench/out plenoxels/*.so

@@ -1,8 +1,9 @@
-"""`python -m bench [PART ...]`: runs benchmark parts in turn, each in its own process so one failure or
+"""`python -m bench [PART ...] [-- ARGS]`: runs benchmark parts in turn, each in its own process so one failure or
 crash does not stop the others, and says which ones ran. Each part writes bench/results/<part>.json;
 afterwards bench/results.json gathers every part's results file that exists into one document, with
 when each part last ran here and how it ended (parts not run this time keep their earlier entry; a part
-that ran without writing a file, such as cuda on a machine without a GPU, has "file": null)."""
+that ran without writing a file, such as cuda on a machine without a GPU, has "file": null).
+ARGS after `--` go to the one part named (`python -m bench fit -- --presets fast`)."""
 import json
 import subprocess
 import sys
@@ -33,15 +34,20 @@ def combine(outcomes: list[tuple[str, int, float]]) -> None:
 
 
 def main(argv: list[str]) -> int:
-    parts = argv or list(PARTS)
+    part_args = argv[argv.index("--") + 1:] if "--" in argv else []
+    parts = (argv[:argv.index("--")] if "--" in argv else argv) or list(PARTS)
     unknown = [p for p in parts if p not in PARTS]
     if unknown:
         print(f"error: unknown benchmark part {unknown[0]}; parts are: {', '.join(PARTS)}", file=sys.stderr)
         return 2
+    if part_args and len(parts) != 1:
+        print("error: arguments after -- go to one part; name exactly one (for example: fit -- --presets fast)",
+              file=sys.stderr)
+        return 2
     outcomes = []
     for part in parts:
         started = time.time()
-        code = subprocess.call([sys.executable, "-m", f"bench.{part}"], cwd=REPO)
+        code = subprocess.call([sys.executable, "-m", f"bench.{part}", *part_args], cwd=REPO)
         outcomes.append((part, code, time.time() - started, time.strftime("%Y-%m-%dT%H:%M:%S%z")))
     for part, code, seconds, _ in outcomes:
         print(f"[bench] {part:<13} {'ok' if code == 0 else f'exit {code}':<8} {seconds:7.1f} s")

@@ -10,7 +10,7 @@ image scales compare; PSNR and SSIM are stages/evaluate.py's.
 Runs: the presets on both scenes, and each single knob varied alone from a base preset: lego from
 `fast` (so its sweep stays affordable), the synthetic scene from `default`. The knobs: final grid
 resolution (0.5x, 0.75x, 1.5x the base's, same total steps), SH degree (0-3), image scale (0.5x, 2x),
-steps (0.5x, 2x, every level).
+steps (0.5x, 2x, every level). --base picks other base presets.
 
 bench/results/fit.json holds one record per run, keyed by scene, preset, overrides and scoring: a new
 run replaces the earlier one with its key, and records whose settings differ from what their preset
@@ -152,7 +152,7 @@ def plan(args, common: dict) -> list[dict]:
         for preset in args.presets:
             add(scene, preset, None, preset, dict(common))
         if args.knobs:
-            base_preset = SWEEP_BASE[scene]
+            base_preset = args.base[scene]
             base = resolve(base_preset, scene_type[scene], common)
             for knob, label, variant in knob_variants(base):
                 if knob in args.knobs:
@@ -296,8 +296,9 @@ def plot(runs: list[dict], path: Path, machine_line: str) -> None:
                                   label=f"{scene}: presets")
                 colour = dots.get_facecolor()[0]
                 if knobs:
+                    bases = "/".join(sorted({r["preset"] for r in knobs}))
                     ax.scatter([r[cost] for r in knobs], [r[metric] for r in knobs], marker="o", s=22,
-                               color=colour, alpha=0.6, label=f"{scene}: one knob from {SWEEP_BASE[scene]}")
+                               color=colour, alpha=0.6, label=f"{scene}: one knob from {bases}")
                 front = [r for r in mine if r["key"] in on_front[scene, metric, cost]]
                 ax.plot([r[cost] for r in front], [r[metric] for r in front], "--", color=colour, linewidth=1)
                 ax.scatter([r[cost] for r in front], [r[metric] for r in front], s=140, facecolors="none",
@@ -354,10 +355,10 @@ def table(results: dict) -> str:
                                          r["wall_seconds"])):
         marks = ["yes" if r["key"] in on_front[r["scene"], "psnr", cost] else "-" for cost, _ in COSTS]
         w, h = r["eval_size"]
+        seconds = f"{r['wall_seconds']:.{0 if r['wall_seconds'] >= 10 else 1}f}"
         lines.append(f"| {r['scene']} ({w}x{h}, {r['held_out_views']} views) | {r['label']} | {r['psnr']:.2f} dB | "
-                     f"{r['ssim']:.3f} | {r['wall_seconds']:.{0 if r['wall_seconds'] >= 10 else 1}f} s | {r['peak_rss_mb']:.0f} MiB | "
-                     f"{r['model_bytes'] / 2**20:.0f} MiB | {max(r['resolution'])}³, {r['occupied'] / 1e6:.2f}M voxels | "
-                     f"{' / '.join(marks)} |")
+                     f"{r['ssim']:.3f} | {seconds} s | {r['peak_rss_mb']:.0f} MiB | {r['model_bytes'] / 2**20:.0f} MiB | "
+                     f"{max(r['resolution'])}³, {r['occupied'] / 1e6:.2f}M voxels | {' / '.join(marks)} |")
     return "\n".join(lines)
 
 
@@ -381,13 +382,16 @@ def main(argv=None) -> int:
     parser.add_argument("--scenes", default="lego,synthetic", help=f"comma-separated: {', '.join(SCENES)}")
     parser.add_argument("--presets", default="fast,default,quality", help="comma-separated presets, or none")
     parser.add_argument("--knobs", default="all", help=f"knobs to sweep: {', '.join(KNOBS)}, all or none")
+    parser.add_argument("--base", default=",".join(f"{k}={v}" for k, v in SWEEP_BASE.items()),
+                        help="the preset each scene's knobs are varied from, as scene=preset,...")
     parser.add_argument("--eval-scale", type=float, default=0.5, help="score held-out views at this share of the photos")
     parser.add_argument("--val-limit", type=int, default=25, help="score the first N lego val views")
     parser.add_argument("--set", action="append", default=[], help="key=value (a fit setting) for every run")
     parser.add_argument("--results", type=Path, default=RESULTS, help="the JSON to update (the PNG goes beside it)")
     parser.add_argument("--fresh", action="store_true", help="drop the earlier runs in --results")
     parser.add_argument("--list", action="store_true", help="print the runs and exit")
-    parser.add_argument("--table", action="store_true", help="print --results as a Markdown table, redraw its plot, and exit")
+    parser.add_argument("--table", action="store_true",
+                        help="print --results as a Markdown table, redraw its plot, and exit")
     parser.add_argument("--verbose", action="store_true", help="show each fit's progress")
     args = parser.parse_args(argv)
     try:
@@ -418,6 +422,14 @@ def sweep(args) -> int:
     args.scenes = parse_list(args.scenes, SCENES, "scene")
     args.presets = parse_list(args.presets, tuple(config.preset_names()), "preset")
     args.knobs = parse_list(args.knobs, KNOBS, "knob")
+    bases = dict(SWEEP_BASE)
+    for item in args.base.split(","):
+        scene, _, preset = item.partition("=")
+        if scene not in SCENES or preset not in config.preset_names():
+            raise UserError(f"--base '{item}' must be scene=preset with a scene of {', '.join(SCENES)} "
+                            f"and a preset of {', '.join(config.preset_names())}")
+        bases[scene] = preset
+    args.base = bases
     common = {}
     for item in args.set:
         key, sep, raw = item.partition("=")

@@ -220,6 +220,7 @@ def measure(args) -> int:
     scene, _ = load_scene(args.scene, args.data, 0) if args.scene == "lego" else synthetic_scene()
     counts = int_list(args.images)
     training_frames(scene, max(counts, default=1))  # too many asked for stops here, before any run
+    every_image = len(training_frames(scene, None))
     setup = {"scene": args.scene, "preset": args.preset, "overrides": overrides, "batch_size": settings.batch_size,
              "sh_degree": settings.sh_degree, "image_scale": settings.image_scale, "coarse_steps": args.coarse_steps,
              "warmup": args.warmup, "steps": args.steps, "fixed_resolution": args.fixed_resolution,
@@ -227,10 +228,18 @@ def measure(args) -> int:
     base = {"scene": args.scene, "data": str(args.data), "preset": args.preset, "overrides": overrides,
             "coarse_steps": args.coarse_steps, "warmup": args.warmup, "steps": args.steps}
     plan = [("resolution", {**base, "resolution": r, "images": None}) for r in int_list(args.resolutions)]
-    plan += [("images", {**base, "resolution": args.fixed_resolution, "images": n}) for n in counts]
+    # every training image is None in both sweeps, so that point is measured once and appears in both
+    plan += [("images", {**base, "resolution": args.fixed_resolution, "images": None if n == every_image else n})
+             for n in counts]
     results = {"machine": machine(), "setup": setup, "resolution": [], "images": []}
+    measured = {}
     failed = 0
     for n, (sweep, spec) in enumerate(plan, 1):
+        key = json.dumps(spec, sort_keys=True)
+        if key in measured:
+            results[sweep].append(measured[key])
+            args.results.write_text(json.dumps(results, indent=1) + "\n")
+            continue
         print(f"[{n}/{len(plan)}] resolution {spec['resolution']}, {spec['images'] or 'all'} images", flush=True)
         point = spawn(spec)
         if point is None:
@@ -240,6 +249,7 @@ def measure(args) -> int:
               f"model {point['model_bytes'] / 2**20:.0f} MiB, peak RSS {point['peak_rss_mb']:.0f} MiB, "
               f"level change {point['level_change_seconds']:.1f} s", flush=True)
         results[sweep].append(point)
+        measured[key] = point
         args.results.parent.mkdir(parents=True, exist_ok=True)
         args.results.write_text(json.dumps(results, indent=1) + "\n")
     if results["resolution"] or results["images"]:
