@@ -1,8 +1,9 @@
 """`python -m bench [PART ...] [-- ARGS]`: runs benchmark parts in turn, each in its own process so one failure or
 crash does not stop the others, and says which ones ran. Each part writes bench/results/<part>.json;
 afterwards bench/results.json gathers every part's results file that exists into one document, with
-when each part last ran here and how it ended (parts not run this time keep their earlier entry; a part
-that ran without writing a file, such as cuda on a machine without a GPU, has "file": null).
+when each part last ran here, with which arguments and how it ended (parts not run this time keep
+their earlier entry; a part that ran without writing a file, such as cuda on a machine without a GPU,
+has "file": null).
 ARGS after `--` go to the one part named (`python -m bench fit -- --presets fast`)."""
 import json
 import subprocess
@@ -15,14 +16,14 @@ PARTS = ("kernels", "poses", "normalize", "fit", "scaling", "scene_models", "exp
 COMBINED = REPO / "bench" / "results.json"
 
 
-def combine(outcomes: list[tuple[str, int, float]]) -> None:
+def combine(outcomes: list[tuple[str, int, float, str, list[str]]]) -> None:
     """Rewrites bench/results.json from the parts' files, recording this invocation's outcomes."""
     sys.path.insert(0, str(REPO))
     from bench.fit import machine
 
     earlier = json.loads(COMBINED.read_text()).get("parts", {}) if COMBINED.is_file() else {}
-    ran = {part: {"exit_code": code, "seconds": round(seconds, 1), "finished": finished}
-           for part, code, seconds, finished in outcomes}
+    ran = {part: {"exit_code": code, "seconds": round(seconds, 1), "finished": finished, "args": args}
+           for part, code, seconds, finished, args in outcomes}
     parts = {}
     for part in PARTS:
         path = REPO / "bench" / "results" / f"{part}.json"
@@ -48,12 +49,12 @@ def main(argv: list[str]) -> int:
     for part in parts:
         started = time.time()
         code = subprocess.call([sys.executable, "-m", f"bench.{part}", *part_args], cwd=REPO)
-        outcomes.append((part, code, time.time() - started, time.strftime("%Y-%m-%dT%H:%M:%S%z")))
-    for part, code, seconds, _ in outcomes:
+        outcomes.append((part, code, time.time() - started, time.strftime("%Y-%m-%dT%H:%M:%S%z"), part_args))
+    for part, code, seconds, _, _ in outcomes:
         print(f"[bench] {part:<13} {'ok' if code == 0 else f'exit {code}':<8} {seconds:7.1f} s")
     combine(outcomes)
     print(f"[bench] wrote {COMBINED.relative_to(REPO)}")
-    return 0 if all(code == 0 for _, code, _, _ in outcomes) else 1
+    return 0 if all(code == 0 for _, code, _, _, _ in outcomes) else 1
 
 
 if __name__ == "__main__":
