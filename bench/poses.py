@@ -8,6 +8,9 @@ step and peak memory; the stage's poses are also compared with the CLI's. Every 
 measured by GNU time. Writes bench/results/poses.json.
 
     .venv/bin/python -m bench.poses [--data ../shared/data] [--scenes fox,cup] [--no-cli | --cli-scenes fox]
+                                    [--variants exhaustive,global] [--max-side 480]
+
+With --max-side the CLI still gets the full-size photos, so compare times with it only without that option.
 
 The CLI runs with its defaults except `--use_gpu 0`: this build of COLMAP has no CUDA, and its default
 OpenGL SIFT needs a display, so it aborts on a headless machine.
@@ -35,8 +38,14 @@ from stages.poses_compare import compare_poses
 REPO = Path(__file__).resolve().parent.parent
 # The CLI's exhaustive matching of fox at full size ran past 30 minutes on the loaded 2-core machine.
 CHILD_TIMEOUT_S = 3600
-# Matching measured both ways on fox (50 photos: the default, auto, picks sequential above 40).
-FOX_VARIANTS = {"exhaustive": ["poses.matching=exhaustive"], "sequential": ["poses.matching=sequential"]}
+# Settings measured per scene (--variants picks some). fox: matching both ways, the global mapper (which falls back to
+# incremental when its model misplaces images), and a refined principal point, to test whether the rotation offset
+# against fox's own COLMAP model comes from the principal point.
+VARIANTS = {
+    "fox": {"exhaustive": ["poses.matching=exhaustive"], "sequential": ["poses.matching=sequential"],
+            "global": ["poses.mapper=global"], "principal_point": ["poses.refine_principal_point=true"]},
+    "fern": {"default": [], "principal_point": ["poses.refine_principal_point=true"]},
+}
 
 
 def timed_child(command: list[str], log: Path, env: dict | None = None) -> dict:
@@ -103,7 +112,8 @@ def run_stage(images: Path, out: Path, overrides: list[str], log: Path) -> dict:
             "steps": summary.get("seconds", {}), "registered": summary["registered"], "images": summary["images"],
             "points": summary["points"], "mean_reprojection_error": summary["mean_reprojection_error"],
             "matching": summary.get("matching"), "pairs_verified": summary.get("pairs_verified"),
-            "models": summary.get("models"), "line": summary["line"]}
+            "models": summary.get("models"), "mapper": summary.get("mapper"),
+            "mapper_fallback": summary.get("mapper_fallback"), "line": summary["line"]}
 
 
 def run_cli(images: Path, workspace: Path, log: Path) -> dict:
@@ -134,29 +144,38 @@ def main() -> int:
     parser.add_argument("--scenes", default="fox,cup,fern,synthetic_object,synthetic_forward")
     parser.add_argument("--no-cli", action="store_true")
     parser.add_argument("--cli-scenes", default=None, help="scenes to run the CLI on (default: all of --scenes)")
+    parser.add_argument("--variants", default=None, help="variants to run (default: all of each scene's)")
+    parser.add_argument("--max-side", type=int, default=0,
+                        help="ingest photos at this longest side (0: ingest's default); results go under <scene>_<side>px")
     parser.add_argument("--results", type=Path, default=REPO / "bench" / "results" / "poses.json")
     args = parser.parse_args()
+    size = [f"ingest.max_side={args.max_side}"] if args.max_side else []
     cli_scenes = set((args.cli_scenes if args.cli_scenes is not None else args.scenes).split(","))
     args.work.mkdir(parents=True, exist_ok=True)
     use_cli = not args.no_cli and shutil.which("colmap") is not None
     results_path = args.results
     # Scenes run separately accumulate: each run replaces the entries of the scenes it ran.
-    earlier = json.loads(results_path.read_text()).get("scenes", {}) if results_path.is_file() else {}
-    results = {"machine": {"cpus": os.cpu_count(), "pycolmap": pycolmap.__version__, "has_cuda": pycolmap.has_cuda,
-                           "colmap_cli": "COLMAP 3.8 (Debian), automatic_reconstructor defaults + --use_gpu 0" if use_cli else None},
-               "scenes": earlier}
+    earlier = json.loads(results_path.read_text()) if results_path.is_file() else {}
+    machine = {"cpus": os.cpu_count(), "pycolmap": pycolmap.__version__, "has_cuda": pycolmap.has_cuda}
+    if use_cli:
+        machine["colmap_cli"] = "COLMAP 3.8 (Debian), automatic_reconstructor defaults + --use_gpu 0"
+    results = {**earlier, "machine": {**earlier.get("machine", {}), **machine}, "scenes": earlier.get("scenes", {})}
     for name, images in scenes(args.data, args.work, args.scenes.split(",")).items():
         print(f"[poses bench] {name}: {images}", flush=True)
-        folder = args.work / name
+        key = f"{name}_{args.max_side}px" if args.max_side else name
+        folder = args.work / key
         folder.mkdir(exist_ok=True)
-        entry: dict = {"photos": str(images)}
-        reference = run_stage(images, folder / "reference", [], folder / "reference.log")
+        entry: dict = {"photos": str(images), "settings": size}
+        reference = run_stage(images, folder / "reference", size, folder / "reference.log")
         ref_poses = poses_from_transforms(folder / "reference" / "poses" / "transforms.json") if "line" in reference else {}
         entry["reference"] = {"line": reference.get("line"), "error": reference.get("error")}
-        variants = FOX_VARIANTS if name == "fox" else {"default": []}
+        variants = VARIANTS.get(name, {"default": []})
+        if args.variants:
+            variants = {k: v for k, v in variants.items() if k in args.variants.split(",")}
         entry["stage"] = {}
         for variant, overrides in variants.items():
-            result = run_stage(images, folder / f"stage_{variant}", ["poses.source=sfm", *overrides], folder / f"stage_{variant}.log")
+            result = run_stage(images, folder / f"stage_{variant}", ["poses.source=sfm", *size, *overrides],
+                               folder / f"stage_{variant}.log")
             if "line" in result:
                 poses = poses_from_transforms(folder / f"stage_{variant}" / "poses" / "transforms.json")
                 result["vs_reference"] = compare(poses, ref_poses)
@@ -175,7 +194,7 @@ def main() -> int:
                     result["time_vs_cli"] = round(result["stage_seconds"] / cli["seconds"], 3) if cli["seconds"] else None
             print(f"  cli: {json.dumps({k: cli.get(k) for k in ('registered', 'seconds', 'peak_rss_mb', 'vs_reference')})}", flush=True)
         entry["load_average"] = os.getloadavg()
-        results["scenes"][name] = entry
+        results["scenes"][key] = entry
         write_json(results_path, results)
     return 0
 

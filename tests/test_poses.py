@@ -19,7 +19,7 @@ from pipeline.io import read_json, read_rgb, write_png
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from pipeline.synthetic import write_scene
-from stages.poses import FULL_FRAME_DIAGONAL_MM, _exif_focal
+from stages.poses import FULL_FRAME_DIAGONAL_MM, MAX_CONTRADICTED_SHARE, _contradicted, _detached, _exif_focal
 from stages.poses_compare import compare_poses
 
 N_VIEWS, WIDTH, HEIGHT = 24, 480, 360
@@ -165,6 +165,64 @@ def test_auto_matching_completes_sequential_with_exhaustive_when_photos_are_left
     assert summary["pairs_matched"] > N_VIEWS
     errors = pose_errors(tmp_path / "out", truth, names)
     assert errors["centre_error_share_max"] < 0.01 and errors["rotation_error_deg_max"] < 0.5
+
+
+def model_seeing(truth: dict, seen: dict[str, np.ndarray], xyz: np.ndarray) -> pycolmap.Reconstruction:
+    """A COLMAP model of the true poses of the views named in `seen`, each observing the points it lists (exactly)."""
+    k = Intrinsics(truth["fl_x"], truth["fl_y"], truth["cx"], truth["cy"], WIDTH, HEIGHT)
+    want = frames_by_name(truth)
+    model = pycolmap.Reconstruction()
+    model.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=WIDTH, height=HEIGHT, camera_id=1,
+                                                      params=[k.fl_x, k.fl_y, k.cx, k.cy]))
+    tracks: dict[int, list] = {}
+    for image_id, (stem, points) in enumerate(seen.items(), start=1):
+        c2w = np.array(want[stem]["transform_matrix"])
+        uv, _ = project(xyz[points], c2w, k)
+        rotation, translation = colmap_w2c_from_opengl_c2w(c2w)
+        model.add_image_with_trivial_frame(pycolmap.Image(name=f"{stem}.png", keypoints=uv, camera_id=1, image_id=image_id),
+                                           pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation))
+        for index, point in enumerate(points):
+            tracks.setdefault(int(point), []).append(pycolmap.TrackElement(image_id, index))
+    for point, elements in tracks.items():
+        if len(elements) > 1:
+            model.add_point3D(xyz[point], pycolmap.Track(elements), np.zeros(3, dtype=np.uint8))
+    return model
+
+
+@pytest.mark.parametrize("bridging, detached", [(5, ["0004", "0005"]), (20, [])])
+def test_images_sharing_too_few_points_with_the_model_are_detached(truth, bridging, detached):
+    # Views 0-3 share 40 points; views 4 and 5 share 20 of their own, and view 4 `bridging` more with view 3.
+    xyz = np.array([0.3, -0.2, 0.5]) + np.random.default_rng(4).uniform(-0.4, 0.4, size=(40 + 20 + bridging, 3))
+    block, island, bridge = np.arange(40), np.arange(40, 60), np.arange(60, 60 + bridging)
+    model = model_seeing(truth, {"0000": block, "0001": block, "0002": block, "0003": np.r_[block, bridge],
+                                 "0004": np.r_[island, bridge], "0005": island}, xyz)
+    assert _detached(model) == detached
+
+
+def test_poses_that_contradict_their_verified_matches_are_named(truth, tmp_path):
+    stems = [f"{n:04d}" for n in range(8)]
+    xyz = np.array([0.3, -0.2, 0.5]) + np.random.default_rng(5).uniform(-0.4, 0.4, size=(60, 3))
+    model = model_seeing(truth, {stem: np.arange(len(xyz)) for stem in stems}, xyz)
+    db = tmp_path / "database.db"
+    with pycolmap.Database.open(db) as database:
+        camera_id = database.write_camera(model.cameras[1])
+        ids = {}
+        for image in model.images.values():
+            ids[image.image_id] = database.write_image(pycolmap.Image(name=image.name, camera_id=camera_id))
+            database.write_keypoints(ids[image.image_id], np.asarray([p.xy for p in image.points2D], dtype=np.float32))
+        every_point = np.repeat(np.arange(len(xyz), dtype=np.uint32)[:, None], 2, axis=1)
+        for a in ids:
+            for b in ids:
+                if a < b:
+                    database.write_two_view_geometry(ids[a], ids[b], pycolmap.TwoViewGeometry(inlier_matches=every_point))
+    assert _contradicted(db, model, MAX_CONTRADICTED_SHARE) == {}
+
+    # Tilt view 0002 down by 5 degrees: its points move about 40 px across the (roughly horizontal) epipolar lines.
+    image = next(im for im in model.images.values() if im.name == "0002.png")
+    turned = pycolmap.Rigid3d(pycolmap.Rotation3d(np.radians([5.0, 0.0, 0.0])), np.zeros(3)) * image.cam_from_world()
+    model.frames[image.frame_id].set_cam_from_world(image.camera_id, turned)
+    found = _contradicted(db, model, MAX_CONTRADICTED_SHARE)
+    assert list(found) == ["0002"] and found["0002"] > 0.9
 
 
 def write_jpeg_with_exif(path: Path, rgb: np.ndarray, tags: dict[int, float]) -> None:
