@@ -342,7 +342,10 @@ def _contradicted(db: Path, model: pycolmap.Reconstruction, above: float) -> dic
         image_a, image_b = posed[names[a]], posed[names[b]]
         camera_a, camera_b = model.cameras[image_a.camera_id], model.cameras[image_b.camera_id]
         b_from_a = image_b.cam_from_world() * image_a.cam_from_world().inverse()
-        essential = _skew(b_from_a.translation / np.linalg.norm(b_from_a.translation)) @ b_from_a.rotation.matrix()
+        baseline = np.linalg.norm(b_from_a.translation)
+        if baseline == 0:  # two views from one centre have no epipolar geometry to contradict
+            continue
+        essential = _skew(b_from_a.translation / baseline) @ b_from_a.rotation.matrix()
         rays_a = np.c_[camera_a.cam_from_img(keypoints[a][inliers[:, 0]]), np.ones(len(inliers))]
         rays_b = np.c_[camera_b.cam_from_img(keypoints[b][inliers[:, 1]]), np.ones(len(inliers))]
         line_b, line_a = rays_a @ essential.T, rays_b @ essential
