@@ -7,7 +7,7 @@ import torch
 
 from pipeline.cameras import Intrinsics, project, rays_from_camera
 from pipeline.errors import UserError
-from plenoxels.ndc import MAX_Z_NDC, NDCMapping
+from plenoxels.ndc import MAX_BOX_REACH, MAX_Z_NDC, NDCMapping
 
 
 def _rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
@@ -181,3 +181,65 @@ def test_from_scene_and_dict_round_trip_and_resolution():
         NDCMapping.from_scene({"type": "object", "frames": frames})
     with pytest.raises(UserError):
         NDCMapping.from_dict({**m.to_dict(), "near": 0.0})
+    with pytest.raises(UserError):
+        NDCMapping.from_dict({**m.to_dict(), "box_min": [0.5, -1.0], "box_max": [0.2, 1.0]})
+
+
+def _forward_rig(m: NDCMapping, n: int, spread: float, turn: float, rng) -> list[dict]:
+    """Training frames around the reference camera: shifted up to `spread` across its view and along it,
+    turned up to `turn` radians, with its intrinsics."""
+    ref = np.asarray(m.reference_c2w)
+    frames = []
+    for _ in range(n):
+        c2w = ref.copy()
+        c2w[:3, :3] = ref[:3, :3] @ _rotation(*rng.uniform(-turn, turn, 3))
+        c2w[:3, 3] = ref[:3, 3] + ref[:3, :3] @ (rng.uniform(-spread, spread, 3) * [1.0, 1.0, 0.2])
+        frames.append({"transform_matrix": c2w.tolist(), "fl_x": m.fl_x, "fl_y": m.fl_y, "cx": m.cx, "cy": m.cy,
+                       "w": m.w, "h": m.h, "split": "train"})
+    return frames
+
+
+def test_grid_box_holds_what_every_training_camera_sees():
+    """Every pixel's ray of every training camera lies inside the grid box from the near plane to infinity,
+    the box is no wider than that needs (plus its margin), and cells keep their size in reference pixels."""
+    rng = np.random.default_rng(5)
+    m = _mapping(centred=False)
+    frames = _forward_rig(m, 6, spread=0.25, turn=0.06, rng=rng)
+    scene = {"type": "forward", "frames": frames,
+             "forward": {"reference_c2w": [list(r) for r in m.reference_c2w], "near": m.near}}
+    built = NDCMapping.from_scene(scene)
+    lo, hi = (torch.tensor(v, dtype=torch.float64) for v in built.grid_box())
+    assert bool((lo[:2] < -1).any() or (hi[:2] > 1).any()), "shifted cameras see beyond the reference image"
+    reach_lo, reach_hi = torch.full((2,), 9.0, dtype=torch.float64), torch.full((2,), -9.0, dtype=torch.float64)
+    for frame in frames:
+        k = Intrinsics(m.fl_x, m.fl_y, m.cx, m.cy, m.w, m.h)
+        o, d = rays_from_camera(np.asarray(frame["transform_matrix"]), k, torch.float64)
+        o_ndc, d_ndc = built.rays(o.reshape(-1, 3), d.reshape(-1, 3))
+        t = torch.linspace(0, 1, 33, dtype=torch.float64)
+        pts = o_ndc[:, None] + t[None, :, None] * d_ndc[:, None]
+        assert bool(((pts >= lo) & (pts <= hi)).all())
+        reach_lo = torch.minimum(reach_lo, pts[..., :2].reshape(-1, 2).min(dim=0).values)
+        reach_hi = torch.maximum(reach_hi, pts[..., :2].reshape(-1, 2).max(dim=0).values)
+    # Pixel centres stop half a pixel short of the corners the box is built from; the margin is 2% a side.
+    slack = 0.05 * (hi[:2] - lo[:2])
+    assert bool((lo[:2] > torch.minimum(reach_lo, torch.tensor(-1.0)) - slack).all())
+    assert bool((hi[:2] < torch.maximum(reach_hi, torch.tensor(1.0)) + slack).all())
+    assert NDCMapping.from_dict(built.to_dict()) == built
+    # Cells stay square in the reference image's pixels: 80 cells across its longer side (its width).
+    rx, ry, _ = built.grid_resolution(80)
+    cell_x = (hi[0] - lo[0]) / 2 * m.w / rx
+    cell_y = (hi[1] - lo[1]) / 2 * m.h / ry
+    assert float(cell_x) == pytest.approx(m.w / 80, rel=0.02) and float(cell_y) == pytest.approx(m.w / 80, rel=0.03)
+
+
+def test_grid_box_of_the_reference_camera_alone_is_its_image_and_far_off_cameras_are_capped():
+    m = _mapping(centred=False)
+    alone = {"transform_matrix": [list(r) for r in m.reference_c2w], "fl_x": m.fl_x, "fl_y": m.fl_y, "cx": m.cx,
+             "cy": m.cy, "w": m.w, "h": m.h}
+    (x0, y0), (x1, y1) = m.covering_box([alone])
+    np.testing.assert_allclose([x0, y0, x1, y1], np.array([-1, -1, 1, 1]) * 1.04, atol=1e-9)
+    # A camera turned half-way to the side sees far beyond any useful box: the box stops at the cap.
+    turned = np.asarray(m.reference_c2w).copy()
+    turned[:3, :3] = turned[:3, :3] @ _rotation(0.0, 0.0, 0.8)
+    lo, hi = m.covering_box([alone, {**alone, "transform_matrix": turned.tolist()}])
+    assert max(abs(v) for v in (*lo, *hi)) == pytest.approx(MAX_BOX_REACH)
