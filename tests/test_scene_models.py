@@ -3,19 +3,20 @@
 the background model, the forward scene in NDC."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
 from pipeline.io import read_json
 from pipeline.report import Reporter
-from pipeline.synthetic import build_scene, render_view
-from pipeline.synthetic import write_scene
+from pipeline.synthetic import build_scene, render_view, write_scene
 from plenoxels.scene_model import psnr
 from stages import fit
 from stages.normalize import Points, Settings as NormalizeSettings, normalize_scene
 
-# A small fit that runs in well under a minute: 36x48x64-pixel views, a 48^3 grid, 400 steps. The
+# A small fit that runs in well under a minute: 30 training views of 64x48 pixels, 48 cells across, 400 steps. The
 # schedule suits so few steps (the density rate ramps up, the colour rate decays only 10x) and TV is
 # off: with few views of a textured scene it only slows the fit down.
 FIT = dict(resolutions=[48], steps=[400], batch_size=2048, batch_mode="rays", image_scale=1.0, sh_degree=0,
@@ -24,7 +25,7 @@ FIT = dict(resolutions=[48], steps=[400], batch_size=2048, batch_mode="rays", im
            lr_background=0.05)
 
 
-def _synthetic(kind: str, folder) -> tuple[dict, object, dict]:
+def _synthetic(kind: str, folder: Path) -> tuple[dict, Path, dict]:
     """A 40-view 64x48 synthetic scene normalised as its kind, with each view's true near/far depths
     standing in for the sparse points SfM would give. Returns scene.json, its folder and the input
     transforms (cameras in the synthetic scene's own frame)."""
