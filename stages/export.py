@@ -388,14 +388,27 @@ class Terminations:
 @dataclass
 class ViewRender:
     """One training view rendered from the fitted grid alone: its camera (normalised world, at the
-    rendered size) and, per pixel [h*w], the fit-frame ray, the distance t along it to the expected
-    termination point (opacity-normalised) and the ray's opacity."""
+    rendered size) and, per pixel [h*w], the distance t along its fit-frame ray (`rays`) to the
+    expected termination point (opacity-normalised) and the ray's opacity. The rays themselves are
+    recomputed when needed, so a hundred large views stay small in memory."""
     c2w: np.ndarray
     k: Intrinsics
-    origins: np.ndarray
-    directions: np.ndarray
-    t: np.ndarray
-    opacity: np.ndarray
+    t: np.ndarray         # float32
+    opacity: np.ndarray   # float32
+
+    def rays(self, frame: FitFrame) -> tuple[np.ndarray, np.ndarray]:
+        """Fit-frame origins and unit directions [h*w, 3]."""
+        origins, directions = _fit_rays(self.c2w, self.k, frame)
+        directions = directions.numpy()
+        return origins.numpy(), directions / np.linalg.norm(directions, axis=1, keepdims=True)
+
+
+def _fit_rays(c2w: np.ndarray, k: Intrinsics, frame: FitFrame) -> tuple[torch.Tensor, torch.Tensor]:
+    origins, directions = rays_from_camera(c2w, k, dtype=torch.float64)
+    origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
+    if frame.ndc is not None:
+        origins, directions = frame.ndc.rays(origins, directions)
+    return origins, directions
 
 
 def render_views(grid, frame: FitFrame, frames: list[dict], s: Settings, report) -> list[ViewRender]:
@@ -413,17 +426,12 @@ def render_views(grid, frame: FitFrame, frames: list[dict], s: Settings, report)
         k = Intrinsics(float(record["fl_x"]), float(record["fl_y"]), float(record["cx"]), float(record["cy"]),
                        int(record["w"]), int(record["h"])).scaled(s.point_scale)
         c2w = np.asarray(record["transform_matrix"], dtype=np.float64)
-        origins, directions = rays_from_camera(c2w, k, dtype=torch.float64)
-        origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
-        if frame.ndc is not None:
-            origins, directions = frame.ndc.rays(origins, directions)
+        origins, directions = _fit_rays(c2w, k, frame)
         out = render(grid, origins.float(), directions.float(), backend=backend)
         opacity = _numpy(out.opacity).astype(np.float64)
-        directions = directions.numpy()
-        length = np.linalg.norm(directions, axis=1)
-        # The renderer's depth is a sum of weights that total the opacity: divide it out.
+        # The renderer's depth (along the unit direction) is a sum of weights that total the opacity: divide it out.
         t = _numpy(out.depth).astype(np.float64) / np.maximum(opacity, 1e-12)
-        views.append(ViewRender(c2w, k, origins.numpy(), directions / length[:, None], t, opacity))
+        views.append(ViewRender(c2w, k, t.astype(np.float32), opacity.astype(np.float32)))
     return views
 
 
@@ -435,7 +443,9 @@ def ray_terminations(grid, frame: FitFrame, frames: list[dict], s: Settings, rep
     parts = [Terminations(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))]
     for view in views:
         good = view.opacity >= s.point_opacity
-        parts.append(Terminations(view.origins[good], view.directions[good], view.t[good], view.opacity[good]))
+        origins, directions = view.rays(frame)
+        parts.append(Terminations(origins[good], directions[good], view.t[good].astype(np.float64),
+                                  view.opacity[good].astype(np.float64)))
     return Terminations(*(np.concatenate([getattr(p, name) for p in parts]) for name in ("origins", "directions", "t", "opacity")))
 
 
@@ -451,7 +461,8 @@ def seen_vertices(mesh: trimesh.Trimesh, views: list[ViewRender], frame: FitFram
     seen = np.zeros(len(vertices), dtype=bool)
     for view in views:
         centre = view.c2w[:3, 3]
-        ends = frame.to_world(view.origins + view.t[:, None] * view.directions)
+        origins, directions = view.rays(frame)
+        ends = frame.to_world(origins + view.t[:, None].astype(np.float64) * directions)
         opaque = (view.opacity >= opacity).reshape(view.k.h, view.k.w)
         reach = np.where(opaque, np.linalg.norm(ends - centre, axis=1).reshape(opaque.shape), -np.inf)
         reach = np.where(opaque, maximum_filter(reach, size=3, mode="nearest"), np.inf)
