@@ -64,7 +64,7 @@ class Settings:
     device: Literal["auto", "cpu", "cuda"] = "auto"
     resolutions: list[int] = field(default_factory=lambda: [128, 256])  # vertices along the longest axis, per level
     steps: list[int] = field(default_factory=lambda: [1000, 1500])     # optimiser steps per level
-    batch_size: int = 8192             # rays per step (lego 400 px, 2 cores: 27.9 dB held-out in 6.7 min; 16384
+    batch_size: int = 8192             # rays per step (lego 400 px, 2 cores: 31.2 dB held-out in 3.7 min; 16384
     #                                    rays and [1500, 3000] steps ran at 5 steps/s on the first level alone)
     batch_mode: Literal["tiles", "rays"] = "rays"  # rays: random pixels; tiles: square pixel tiles (faster kernel,
     #                                                but 2-3 dB worse per step on lego at equal steps)
@@ -79,8 +79,12 @@ class Settings:
     lr_sh_final: float = 5e-3          # both rates fall 10x over the whole fit: lego 200 px held-out 29.2 dB,
     #                                    against 27.8 falling 100x/1000x (the finer level barely trained), 27.6 flat
     rmsprop_beta: float = 0.95
-    tv_density: float = 1e-8           # TV weight per sampled vertex of the density; with the MSE a mean over the
-    tv_sh: float = 1e-6                # batch, 100x these cost lego 200 px 3.7 dB held-out (train PSNR as low)
+    tv_density: float = 1e-10          # TV weight per sampled vertex of the density; with the MSE a mean over the
+    tv_sh: float = 1e-8                # batch. A vertex's TV gradient does not shrink with the cell size while its
+    #                                    MSE gradient does, so TV bites harder on finer grids: at 1e-8 / 1e-6 lego's
+    #                                    256^3 level stalled at train PSNR 28.3 (held-out 27.9 dB); at these, 31.2 dB
+    #                                    in 224 s of fitting (no TV at all: 31.0 on 10 views). Forward scenes pin
+    #                                    their own (configs/scene_types/forward.yaml).
     tv_sample_fraction: float = 0.01   # share of the occupied vertices the TV term looks at each step
     step_size: float = 0.5             # ray sample spacing in voxels
     stop_transmittance: float = 1e-4   # a ray stops once this little light gets through
