@@ -259,15 +259,21 @@ COSTS = (("wall_seconds", "fit wall time (s)"), ("peak_rss_mb", "peak memory, ma
 METRICS = ("psnr", "ssim")
 
 
+def series(run: dict) -> str:
+    """The runs that can share a front: one scene scored at one size (PSNR at 200 px and at 400 px don't compare)."""
+    w, h = run["eval_size"]
+    return f"{run['scene']} {w}x{h}"
+
+
 def fronts(runs: list[dict]) -> dict[tuple[str, str, str], set[str]]:
-    """(scene, metric, cost) -> keys of the runs on that Pareto front."""
+    """(series, metric, cost) -> keys of the runs on that Pareto front."""
     out = {}
-    for scene in {r["scene"] for r in runs}:
-        mine = [r for r in runs if r["scene"] == scene]
+    for name in {series(r) for r in runs}:
+        mine = [r for r in runs if series(r) == name]
         for metric in METRICS:
             for cost, _ in COSTS:
                 front = pareto([(r[cost], r[metric]) for r in mine])
-                out[scene, metric, cost] = {mine[i]["key"] for i in front}
+                out[name, metric, cost] = {mine[i]["key"] for i in front}
     return out
 
 
@@ -288,8 +294,8 @@ def plot(runs: list[dict], path: Path, machine_line: str) -> None:
     for row, metric in enumerate(METRICS):
         for col, (cost, cost_label) in enumerate(COSTS):
             ax = axes[row, col]
-            for scene in sorted({r["scene"] for r in runs}):
-                mine = sorted((r for r in runs if r["scene"] == scene), key=lambda r: r[cost])
+            for scene in sorted({series(r) for r in runs}):
+                mine = sorted((r for r in runs if series(r) == scene), key=lambda r: r[cost])
                 presets = [r for r in mine if not r["knob"]]
                 knobs = [r for r in mine if r["knob"]]
                 dots = ax.scatter([r[cost] for r in presets], [r[metric] for r in presets], marker="s", s=50,
@@ -336,9 +342,10 @@ def machine_line(results: dict) -> str:
     line = f"{cpu_name(m)}, {m.get('cores', '?')} cores, OMP_NUM_THREADS {'/'.join(threads)}"
     if loads:
         line += f", 1-min load average {min(loads):.1f}-{max(loads):.1f} around the runs"
-    common = sorted({json.dumps(r.get("common") or {}) for r in runs} - {"{}"})
+    settings = {json.dumps(r.get("common") or {}) for r in runs}
+    common = sorted(settings - {"{}"})
     if common:
-        line += "; every run also set " + " or ".join(common)
+        line += ("; some runs also set " if "{}" in settings else "; every run also set ") + " or ".join(common)
     return line
 
 
@@ -353,7 +360,7 @@ def table(results: dict) -> str:
     order = {name: i for i, name in enumerate(SCENES)}
     for r in sorted(runs, key=lambda r: (order.get(r["scene"], 9), r["knob"] is not None, r["knob"] or "",
                                          r["wall_seconds"])):
-        marks = ["yes" if r["key"] in on_front[r["scene"], "psnr", cost] else "-" for cost, _ in COSTS]
+        marks = ["yes" if r["key"] in on_front[series(r), "psnr", cost] else "-" for cost, _ in COSTS]
         w, h = r["eval_size"]
         seconds = f"{r['wall_seconds']:.{0 if r['wall_seconds'] >= 10 else 1}f}"
         lines.append(f"| {r['scene']} ({w}x{h}, {r['held_out_views']} views) | {r['label']} | {r['psnr']:.2f} dB | "

@@ -65,21 +65,30 @@ def test_stored_runs_whose_settings_changed_since_are_dropped(tmp_path):
     assert load_results(path, fresh=True)["runs"] == []
 
 
-def test_table_marks_the_runs_on_each_front():
-    def run(label, seconds, rss, psnr):
-        return {"key": label, "scene": "synthetic", "knob": None, "label": label, "psnr": psnr, "ssim": psnr / 40,
-                "wall_seconds": seconds, "peak_rss_mb": rss, "eval_size": [200, 150], "held_out_views": 6,
-                "model_bytes": 2**20, "resolution": [64, 64, 64], "occupied": 1000, "threads": "1",
-                "load_average": {"before": [1.0, 1, 1], "after": [2.0, 1, 1]}}
+def run(label, seconds, rss, psnr, eval_size=(200, 150)):
+    return {"key": label, "scene": "synthetic", "knob": None, "label": label, "psnr": psnr, "ssim": psnr / 40,
+            "wall_seconds": seconds, "peak_rss_mb": rss, "eval_size": list(eval_size), "held_out_views": 6,
+            "model_bytes": 2**20, "resolution": [64, 64, 64], "occupied": 1000, "threads": "1",
+            "load_average": {"before": [1.0, 1, 1], "after": [2.0, 1, 1]}}
 
+
+def test_table_marks_the_runs_on_each_front():
     runs = [run("cheap", 10, 900, 20.0), run("slow-but-lean", 100, 500, 25.0), run("worse", 50, 950, 19.0)]
     on_front = fronts(runs)
-    assert on_front["synthetic", "psnr", "wall_seconds"] == {"cheap", "slow-but-lean"}
-    assert on_front["synthetic", "psnr", "peak_rss_mb"] == {"slow-but-lean"}
+    assert on_front["synthetic 200x150", "psnr", "wall_seconds"] == {"cheap", "slow-but-lean"}
+    assert on_front["synthetic 200x150", "psnr", "peak_rss_mb"] == {"slow-but-lean"}
     rows = {line.split(" | ")[1]: line for line in table({"runs": runs}).splitlines() if line.startswith("| synth")}
     assert rows["cheap"].endswith("| yes / - |")
     assert rows["slow-but-lean"].endswith("| yes / yes |")
     assert rows["worse"].endswith("| - / - |")
+
+
+def test_runs_scored_at_other_sizes_have_their_own_front():
+    # PSNR scored on smaller images is higher; it must not push the full-size runs off their front.
+    runs = [run("full", 100, 900, 25.0), run("small-scored", 100, 900, 30.0, eval_size=(100, 75))]
+    on_front = fronts(runs)
+    assert on_front["synthetic 200x150", "psnr", "wall_seconds"] == {"full"}
+    assert on_front["synthetic 100x75", "psnr", "wall_seconds"] == {"small-scored"}
 
 
 def test_image_counts_are_spread_over_the_training_frames():
