@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import sys
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -23,3 +24,19 @@ def fit_context(scene: dict, root: Path, settings, report: Reporter) -> Iterator
         (tmp / "normalize" / "scene.json").write_text(json.dumps(scene))
         yield StageContext(scene=root, out=root, work=tmp / "work", scratch=tmp / "scratch", settings=settings,
                            upstream={"normalize": tmp / "normalize"}, scene_type=scene["type"], report=report)
+
+
+def run_part(args, one_run, whole_run) -> int:
+    """A benchmark part's entry: with --one, one measurement whose spec arrives as JSON on stdin (so each run has
+    a process, and a peak memory, of its own) and whose result leaves as JSON on stdout; else the whole part.
+    A bad argument or input is a one-line error."""
+    from pipeline.errors import UserError
+
+    try:
+        if args.one:
+            print(json.dumps(one_run(json.loads(sys.stdin.read()))))
+            return 0
+        return whole_run(args)
+    except UserError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2

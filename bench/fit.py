@@ -401,14 +401,9 @@ def main(argv=None) -> int:
                         help="print --results as a Markdown table, redraw its plot, and exit")
     parser.add_argument("--verbose", action="store_true", help="show each fit's progress")
     args = parser.parse_args(argv)
-    try:
-        if args.one:
-            print(json.dumps(one_run(json.loads(sys.stdin.read()))))
-            return 0
-        return sweep(args)
-    except UserError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    from bench.common import run_part
+
+    return run_part(args, one_run, sweep)
 
 
 def sweep(args) -> int:

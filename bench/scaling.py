@@ -195,14 +195,9 @@ def main(argv=None) -> int:
     parser.add_argument("--set", action="append", default=[], help="key=value (a fit setting) for every point")
     parser.add_argument("--results", type=Path, default=RESULTS, help="the JSON to write (the PNG goes beside it)")
     args = parser.parse_args(argv)
-    try:
-        if args.one:
-            print(json.dumps(one_point(json.loads(sys.stdin.read()))))
-            return 0
-        return measure(args)
-    except UserError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    from bench.common import run_part
+
+    return run_part(args, one_point, measure)
 
 
 def measure(args) -> int:
