@@ -40,3 +40,18 @@ def run_part(args, one_run, whole_run) -> int:
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+
+
+def fit_overrides(items: list[str]) -> dict:
+    """`--set key=value` items (fit settings, `fit.` prefix optional) as a dict of YAML-parsed values."""
+    import yaml
+
+    from pipeline.errors import UserError
+
+    overrides = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep:
+            raise UserError(f"--set '{item}' must look like key=value (a fit setting, for example sh_degree=1)")
+        overrides[key.strip().removeprefix("fit.")] = yaml.safe_load(raw)
+    return overrides

@@ -407,8 +407,6 @@ def main(argv=None) -> int:
 
 
 def sweep(args) -> int:
-    import yaml
-
     from pipeline import config
 
     if args.table:
@@ -432,12 +430,9 @@ def sweep(args) -> int:
                             f"and a preset of {', '.join(config.preset_names())}")
         bases[scene] = preset
     args.base = bases
-    common = {}
-    for item in args.set:
-        key, sep, raw = item.partition("=")
-        if not sep:
-            raise UserError(f"--set '{item}' must look like key=value (a fit setting, for example sh_degree=1)")
-        common[key.strip().removeprefix("fit.")] = yaml.safe_load(raw)
+    from bench.common import fit_overrides
+
+    common = fit_overrides(args.set)
     specs = plan(args, common)
     if args.list:
         for spec in specs:

@@ -201,16 +201,11 @@ def main(argv=None) -> int:
 
 
 def measure(args) -> int:
-    import yaml
-
     if args.steps < 1 or args.warmup < 0 or args.coarse_steps < 0:
         raise UserError("--steps must be at least 1, --warmup and --coarse-steps at least 0")
-    overrides = {}
-    for item in args.set:
-        key, sep, raw = item.partition("=")
-        if not sep:
-            raise UserError(f"--set '{item}' must look like key=value (a fit setting, for example sh_degree=1)")
-        overrides[key.strip().removeprefix("fit.")] = yaml.safe_load(raw)
+    from bench.common import fit_overrides
+
+    overrides = fit_overrides(args.set)
     settings = resolve(args.preset, "object", overrides)
     scene, _ = load_scene(args.scene, args.data, 0) if args.scene == "lego" else synthetic_scene()
     counts = int_list(args.images)
