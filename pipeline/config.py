@@ -90,9 +90,11 @@ def _coerce(value: Any, tp: Any) -> Any:
     origin = typing.get_origin(tp)
     if origin is Literal:
         allowed = typing.get_args(tp)
-        # YAML 1.1 reads on/off as booleans; where a setting spells them as words, give the words back.
-        if isinstance(value, bool) and ("on" if value else "off") in allowed:
-            return "on" if value else "off"
+        # YAML 1.1 reads on/off and yes/no as booleans; where a setting spells them as words, give the words back.
+        if isinstance(value, bool):
+            for word in (("on", "yes", "true") if value else ("off", "no", "false")):
+                if word in allowed:
+                    return word
         if value in allowed:
             return value
         raise ValueError

@@ -199,6 +199,20 @@ def test_overrides_parse_types():
         config.parse_overrides(["fit_sh_degree=1"])
 
 
+def test_word_settings_survive_yaml_reading_them_as_booleans():
+    # YAML 1.1 reads no/off/yes/on as booleans: `--set poses.shared_camera=no` once failed with "bad value False".
+    from stages.fit import Settings as FitSettings
+    from stages.poses import Settings as PosesSettings
+
+    for word in ("no", "yes", "auto"):
+        parsed = config.parse_overrides([f"poses.shared_camera={word}"])["poses"]
+        assert config.build(PosesSettings, "poses", parsed).shared_camera == word
+    for word in ("off", "on"):
+        assert config.build(FitSettings, "fit", config.parse_overrides([f"fit.ndc={word}"])["fit"]).ndc == word
+    with pytest.raises(UserError, match="bad value False for 'poses.matching'"):
+        config.build(PosesSettings, "poses", config.parse_overrides(["poses.matching=no"])["poses"])
+
+
 def test_settings_validation_names_the_key_and_what_is_allowed(fake_graph, tmp_path):
     from stages.ingest import Settings
 
