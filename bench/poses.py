@@ -8,12 +8,14 @@ step and peak memory; the stage's poses are also compared with the CLI's. Every 
 measured by GNU time. Writes bench/results/poses.json.
 
     .venv/bin/python -m bench.poses [--data ../shared/data] [--scenes fox,cup] [--no-cli | --cli-scenes fox]
-                                    [--variants exhaustive,global] [--max-side 480]
+                                    [--variants exhaustive,global | none] [--max-side 480]
+                                    [--cli-variants cli,cli_single_camera] [--reuse-cli]
 
 The CLI gets the photos the stage works on (ingest's output, at its longest side), so both solve the same
 problem; the stage's time is compared without ingest (resizing), which the CLI is spared.
 
-The CLI runs with its defaults except `--use_gpu 0`: this build of COLMAP has no CUDA, and its default
+The CLI runs with its defaults except `--use_gpu 0` (and, as `cli_single_camera`, with one shared camera
+as the stage has for photos from one camera): this build of COLMAP has no CUDA, and its default
 OpenGL SIFT needs a display, so it aborts on a headless machine.
 """
 from __future__ import annotations
@@ -120,11 +122,16 @@ def run_stage(images: Path, out: Path, overrides: list[str], log: Path) -> dict:
             "mapper_fallback": summary.get("mapper_fallback"), "line": summary["line"]}
 
 
-def run_cli(images: Path, workspace: Path, log: Path) -> dict:
+# The CLI runs: its defaults, and one shared camera as the stage uses for photos from one camera (the CLI's
+# default gives every photo its own), so that both solve the same problem.
+CLI_VARIANTS = {"cli": [], "cli_single_camera": ["--single_camera", "1"]}
+
+
+def run_cli(images: Path, workspace: Path, log: Path, options: list[str]) -> dict:
     shutil.rmtree(workspace, ignore_errors=True)
     workspace.mkdir(parents=True)
     child = timed_child(["colmap", "automatic_reconstructor", "--workspace_path", str(workspace),
-                         "--image_path", str(images), "--use_gpu", "0"], log)
+                         "--image_path", str(images), "--use_gpu", "0", *options], log)
     poses, models = poses_from_colmap_workspace(workspace / "sparse")
     return {**child, "registered": len(poses), "models": models, "poses": poses}
 
@@ -148,8 +155,9 @@ def main() -> int:
     parser.add_argument("--scenes", default="fox,cup,fern,synthetic_object,synthetic_forward")
     parser.add_argument("--no-cli", action="store_true")
     parser.add_argument("--cli-scenes", default=None, help="scenes to run the CLI on (default: all of --scenes)")
+    parser.add_argument("--cli-variants", default="cli", help=f"CLI runs: {', '.join(CLI_VARIANTS)}")
     parser.add_argument("--reuse-cli", action="store_true",
-                        help="compare with the CLI model and time of the scene's last run instead of running it again")
+                        help="compare with the CLI models and times of the scene's last runs instead of running them again")
     parser.add_argument("--variants", default=None, help="variants to run (default: all of each scene's)")
     parser.add_argument("--max-side", type=int, default=0,
                         help="ingest photos at this longest side (0: ingest's default); results go under <scene>_<side>px")
@@ -189,24 +197,29 @@ def main() -> int:
                 result["settings"] = overrides
             entry["stage"][variant] = result
             print(f"  stage {variant}: {json.dumps({k: result.get(k) for k in ('registered', 'stage_seconds', 'peak_rss_mb', 'vs_reference')})}", flush=True)
-        earlier_cli = earlier.get("scenes", {}).get(key, {}).get("cli")
-        if args.reuse_cli and earlier_cli and earlier_cli.get("exit_code") == 0:
-            cli = {**earlier_cli, "reused": True, "poses": poses_from_colmap_workspace(folder / "cli" / "sparse")[0]}
-        elif use_cli and name in cli_scenes:
-            # The ingested photos: the same pixels the stage matched, whatever --max-side says.
-            cli = run_cli(folder / "reference" / "ingest" / "images", folder / "cli", folder / "cli.log")
-        else:
-            cli = None
-        if cli is not None:
+        earlier_entry = earlier.get("scenes", {}).get(key, {})
+        for cli_name, options in CLI_VARIANTS.items():
+            workspace = folder / cli_name
+            earlier_cli = earlier_entry.get(cli_name)
+            wanted = use_cli and name in cli_scenes and cli_name in args.cli_variants.split(",")
+            if earlier_cli and earlier_cli.get("exit_code") == 0 and (args.reuse_cli or not wanted):
+                # An earlier run's model and time, compared again with whatever the stage gave this time.
+                cli = {**earlier_cli, "reused": True, "poses": poses_from_colmap_workspace(workspace / "sparse")[0]}
+            elif wanted:
+                # The ingested photos: the same pixels the stage matched, whatever --max-side says.
+                cli = run_cli(folder / "reference" / "ingest" / "images", workspace, folder / f"{cli_name}.log", options)
+            else:
+                continue
             cli_poses = cli.pop("poses")
+            cli["options"] = options
             cli["vs_reference"] = compare(cli_poses, ref_poses)
-            entry["cli"] = cli
+            entry[cli_name] = cli
             for variant, result in entry["stage"].items():
                 if "line" in result:
                     poses = poses_from_transforms(folder / f"stage_{variant}" / "poses" / "transforms.json")
-                    result["vs_cli"] = compare(poses, cli_poses)
-                    result["time_vs_cli"] = round(result["stage_seconds"] / cli["seconds"], 3) if cli["seconds"] else None
-            print(f"  cli: {json.dumps({k: cli.get(k) for k in ('registered', 'seconds', 'peak_rss_mb', 'vs_reference')})}", flush=True)
+                    result[f"vs_{cli_name}"] = compare(poses, cli_poses)
+                    result[f"time_vs_{cli_name}"] = round(result["stage_seconds"] / cli["seconds"], 3) if cli["seconds"] else None
+            print(f"  {cli_name}: {json.dumps({k: cli.get(k) for k in ('registered', 'seconds', 'peak_rss_mb', 'vs_reference')})}", flush=True)
         entry["load_average"] = os.getloadavg()
         results["scenes"][key] = entry
         write_json(results_path, results)
