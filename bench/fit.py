@@ -7,8 +7,8 @@ its peak memory (max RSS) is its own. Every run is scored at one size per scene,
 photos (lego 400x400, the synthetic scene 200x150), whatever size it trained at, so runs of different
 image scales compare; PSNR and SSIM are stages/evaluate.py's.
 
-Runs: the presets on both scenes, and each single knob varied alone from a base preset: lego from
-`fast` (so its sweep stays affordable), the synthetic scene from `default`. The knobs: final grid
+Runs: the presets on both scenes, and each single knob varied alone from a base preset, `fast` on both
+(so the sweep stays affordable on a laptop CPU). The knobs: final grid
 resolution (0.5x, 0.75x, 1.5x the base's, same total steps), SH degree (0-3), image scale (0.5x, 2x),
 steps (0.5x, 2x, every level). --base picks other base presets.
 
@@ -17,7 +17,7 @@ run replaces the earlier one with its key, and records whose settings differ fro
 and overrides resolve to now (a preset or a default changed) are dropped. bench/results/fit.png plots
 them with each scene's Pareto fronts; `--table` prints the README's table.
 
-    .venv/bin/python -m bench.fit                                   # everything: ~13 runs per scene
+    .venv/bin/python -m bench.fit                                   # everything: 14 runs per scene
     .venv/bin/python -m bench.fit --scenes synthetic --knobs none   # the presets on one scene
     .venv/bin/python -m bench.fit --list                            # the runs it would do, and exit
     .venv/bin/python -m bench.fit --table                           # the results as a Markdown table (and replot)
@@ -44,8 +44,8 @@ from pipeline.errors import UserError  # noqa: E402
 RESULTS = REPO / "bench" / "results" / "fit.json"
 CACHE = REPO / "bench" / "out"
 SCENES = ("lego", "synthetic")
-PRESETS = ("fast", "default", "quality")
-SWEEP_BASE = {"lego": "fast", "synthetic": "default"}
+PRESETS = ("fast", "balanced", "default", "quality")
+SWEEP_BASE = {"lego": "fast", "synthetic": "fast"}
 KNOBS = ("resolution", "sh", "image_scale", "steps")
 SYNTHETIC = {"kind": "object", "n_views": 48, "width": 400, "height": 300, "holdout_every": 8}
 
@@ -387,7 +387,7 @@ def main(argv=None) -> int:
     parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     parser.add_argument("--scenes", default="lego,synthetic", help=f"comma-separated: {', '.join(SCENES)}")
-    parser.add_argument("--presets", default="fast,default,quality", help="comma-separated presets, or none")
+    parser.add_argument("--presets", default="fast,balanced,default,quality", help="comma-separated presets, or none")
     parser.add_argument("--knobs", default="all", help=f"knobs to sweep: {', '.join(KNOBS)}, all or none")
     parser.add_argument("--base", default=",".join(f"{k}={v}" for k, v in SWEEP_BASE.items()),
                         help="the preset each scene's knobs are varied from, as scene=preset,...")

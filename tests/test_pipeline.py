@@ -235,7 +235,8 @@ def test_every_preset_resolves_for_every_stage():
     from pipeline.stage import STAGE_ORDER, StageGraph
 
     graph = StageGraph()
-    for preset in ("default", "fast", "quality"):
+    assert {"fast", "balanced", "default", "quality"} <= set(config.preset_names())
+    for preset in config.preset_names():
         layers = config.load_preset(preset)
         for name in STAGE_ORDER:
             config.build(graph.load(name).Settings, name, layers.get(name, {}))
