@@ -51,6 +51,8 @@ VARIANTS = {
             # the CLI's default camera set-up (a camera per photo), to see how much of the gap to it that explains
             "per_image_camera": ["poses.shared_camera=no"]},
     "fern": {"default": [], "principal_point": ["poses.refine_principal_point=true"]},
+    # cup's own model gives each photo its own focal length (529-632 px, no distortion)
+    "cup": {"default": [], "per_image_camera": ["poses.shared_camera=no"]},
 }
 
 
