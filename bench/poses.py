@@ -11,6 +11,9 @@ measured by GNU time. Writes bench/results/poses.json.
                                     [--variants exhaustive,global | none] [--max-side 480]
                                     [--cli-variants cli,cli_single_camera] [--reuse-cli]
 
+A CLI variant that is not run this time (not in --cli-variants, or --no-cli) but whose model an earlier run
+left in the scene's folder is compared again from that model, with its recorded time, and marked "reused".
+
 The CLI gets the photos the stage works on (ingest's output, at its longest side), so both solve the same
 problem; the stage's time is compared without ingest (resizing), which the CLI is spared.
 
