@@ -57,6 +57,11 @@ CHUNK = 1 << 18
 MIN_LEVEL_POINTS = 100
 # How far (voxels) along its ray a point may move onto the mesh's level.
 SNAP_VOXELS = 6.0
+# The mesh's own z-buffer (seen_vertices): pixels this many voxels wide, at most this many pixels on a side, and
+# at most this much (voxels) of a slanted surface's spread in depth over one pixel forgiven.
+ZBUFFER_PIXEL_VOXELS = 2.0
+MAX_ZBUFFER_PIXELS = 4096
+GRAZING_VOXELS = 3.0
 # Rays at least this opaque decide the auto level.
 LEVEL_RAY_OPACITY = 0.95
 
@@ -449,13 +454,38 @@ def ray_terminations(grid, frame: FitFrame, frames: list[dict], s: Settings, rep
     return Terminations(*(np.concatenate([getattr(p, name) for p in parts]) for name in ("origins", "directions", "t", "opacity")))
 
 
-def seen_vertices(mesh: trimesh.Trimesh, views: list[ViewRender], frame: FitFrame, tolerance: float,
+def _nearest_vertex_distance(vertices: np.ndarray, distance: np.ndarray, view: ViewRender, pixel: float
+                             ) -> tuple[np.ndarray, np.ndarray, float]:
+    """A z-buffer of the vertices themselves for `view`, its pixels about `pixel` wide (world units) at the vertices'
+    median distance: per vertex [V], the distance of the nearest vertex in its pixel (inf outside the image), whether
+    it is in the image, and the pixel's width per unit of distance. Marching-cubes vertices lie less than a voxel
+    apart, so at two voxels a pixel a surface facing the view leaves no pixel empty for what lies behind to show
+    through."""
+    scale = min(float(np.median(distance)) / (pixel * view.k.fl_x), MAX_ZBUFFER_PIXELS / max(view.k.w, view.k.h))
+    k = view.k.scaled(scale)
+    uv, depth = project(vertices, view.c2w, k)
+    col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+    inside = (depth > 0) & (col >= 0) & (col < k.w) & (row >= 0) & (row < k.h)
+    pixel_of = np.where(inside, row * k.w + col, 0)
+    nearest = np.full(k.w * k.h, np.inf)
+    np.minimum.at(nearest, pixel_of[inside], distance[inside])
+    return np.where(inside, nearest[pixel_of], np.inf), inside, 1.0 / k.fl_x
+
+
+def seen_vertices(mesh: trimesh.Trimesh, views: list[ViewRender], frame: FitFrame, voxel: float, tolerance: float,
                   opacity: float) -> np.ndarray:
     """Which vertices [V] (normalised world) some training view sees: in its image, on the side of the
-    surface facing the camera, and not behind what the view's pixel sees by more than `tolerance`
-    (world units). A pixel less than `opacity` opaque hides nothing. Elsewhere the pixel's termination
+    surface facing the camera, not behind what the view's pixel sees by more than `tolerance` (world
+    units), and not behind a nearer layer of the mesh itself.
+
+    The rendered view: a pixel less than `opacity` opaque hides nothing. Elsewhere the pixel's termination
     distance is the largest of the opaque ones in its 3x3 neighbourhood, so a vertex on a silhouette is
-    not hidden by the far side of its own edge."""
+    not hidden by the far side of its own edge.
+    The mesh's own layers: a fit's solids can come out as soft shells over an empty foam whose walls the
+    rendered depth, averaged over the shell and the foam, does not hide (on the synthetic object scene half
+    the mesh was such walls, 1-5% of the object inside its true surface). Against a z-buffer of the mesh's
+    vertices (`voxel`: world units) a vertex is hidden when a nearer one in its pixel is more than the
+    tolerance nearer, plus what the surface's slant spreads over one pixel, up to GRAZING_VOXELS."""
     vertices = np.asarray(mesh.vertices)
     normals = np.asarray(mesh.vertex_normals)
     seen = np.zeros(len(vertices), dtype=bool)
@@ -466,13 +496,20 @@ def seen_vertices(mesh: trimesh.Trimesh, views: list[ViewRender], frame: FitFram
         opaque = (view.opacity >= opacity).reshape(view.k.h, view.k.w)
         reach = np.where(opaque, np.linalg.norm(ends - centre, axis=1).reshape(opaque.shape), -np.inf)
         reach = np.where(opaque, maximum_filter(reach, size=3, mode="nearest"), np.inf)
+
+        offset = centre - vertices
+        distance = np.linalg.norm(offset, axis=1)
+        nearest, in_image, pixel_per_distance = _nearest_vertex_distance(vertices, distance, view,
+                                                                          ZBUFFER_PIXEL_VOXELS * voxel)
+        cosine = np.einsum("ij,ij->i", normals, offset) / np.maximum(distance, 1e-12)
+        slant = distance * pixel_per_distance * np.sqrt(np.clip(1.0 - cosine ** 2, 0.0, 1.0)) / np.maximum(cosine, 1e-3)
+        unhidden_by_mesh = distance <= nearest + np.minimum(tolerance + slant, GRAZING_VOXELS * voxel)
+
         uv, depth = project(vertices, view.c2w, view.k)
         col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-        candidates = np.flatnonzero((depth > 0) & (col >= 0) & (col < view.k.w) & (row >= 0) & (row < view.k.h) & ~seen)
-        offset = centre - vertices[candidates]
-        distance = np.linalg.norm(offset, axis=1)
-        facing = np.einsum("ij,ij->i", normals[candidates], offset) > 0
-        visible = facing & (distance <= reach[row[candidates], col[candidates]] + tolerance)
+        candidates = np.flatnonzero((depth > 0) & (col >= 0) & (col < view.k.w) & (row >= 0) & (row < view.k.h)
+                                    & (cosine > 0) & in_image & unhidden_by_mesh & ~seen)
+        visible = distance[candidates] <= reach[row[candidates], col[candidates]] + tolerance
         seen[candidates[visible]] = True
     return seen
 
@@ -661,8 +698,8 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
                         "or raise export.crop_margin")
     unseen_faces = 0
     if s.unseen == "drop" and views:
-        seen = seen_vertices(mesh, views, frame, s.seen_tolerance * grid_lattice_voxel_world(grid, frame, mesh),
-                             s.point_opacity)
+        voxel_world = grid_lattice_voxel_world(grid, frame, mesh)
+        seen = seen_vertices(mesh, views, frame, voxel_world, s.seen_tolerance * voxel_world, s.point_opacity)
         keep = seen[mesh.faces].any(axis=1)
         unseen_faces = int((~keep).sum())
         mesh, _ = clean_mesh(_submesh(mesh, keep), box_min - margin, box_max + margin, s.min_piece_fraction,

@@ -12,6 +12,7 @@ from scipy.special import expit
 
 from bench.export import training_cameras, visible_from
 from pipeline import config
+from pipeline.cameras import Intrinsics
 from pipeline.errors import UserError
 from pipeline.io import read_json, write_json
 from pipeline.report import Reporter
@@ -132,6 +133,27 @@ def test_faces_no_training_view_sees_are_dropped_such_as_the_inner_wall_of_a_hol
     upper = lambda q: q[:, 2] > SPHERE_CENTRE[2] - 0.5 * SPHERE_RADIUS
     assert export.mesh_scores(dropped, truth, 0.02, samples=20_000, reference_visible=upper)["f_score"] > 0.95
     assert len(dropped.visual.vertex_colors) == len(dropped.vertices)
+
+
+def test_a_mesh_layer_behind_a_nearer_one_is_unseen_even_where_the_render_hides_nothing():
+    # A fit's solid can come out as a faint shell over a foam of inner walls: its rendered depth, blended over both,
+    # hides neither. Here the views render nothing opaque at all, so only the mesh's own nearer layer can hide the
+    # inner sphere (its faces turned outwards, as a foam wall facing the camera would be).
+    outer = trimesh.creation.icosphere(subdivisions=5, radius=SPHERE_RADIUS)
+    inner = trimesh.creation.icosphere(subdivisions=5, radius=SPHERE_RADIUS - 0.1)
+    mesh = trimesh.util.concatenate([outer, inner]).apply_translation(SPHERE_CENTRE)
+    voxel = 2 / 63
+    views = []
+    for record in orbit_frames(8, size=64):
+        k = Intrinsics(record["fl_x"], record["fl_y"], record["cx"], record["cy"], record["w"], record["h"])
+        views.append(export.ViewRender(np.asarray(record["transform_matrix"]), k, np.zeros(k.w * k.h, np.float32),
+                                       np.zeros(k.w * k.h, np.float32)))
+    seen = export.seen_vertices(mesh, views, FitFrame(), voxel, voxel, opacity=0.5)
+    is_inner = np.arange(len(mesh.vertices)) >= len(outer.vertices)
+    assert seen[is_inner].mean() < 0.01
+    # The outer sphere is seen wherever a camera on the ring above looks at its front: all but its underside.
+    upper = mesh.vertices[:, 2] > SPHERE_CENTRE[2] - 0.3 * SPHERE_RADIUS
+    assert seen[~is_inner & upper].mean() > 0.98
 
 
 def test_level_above_all_density_is_a_user_error():
