@@ -455,10 +455,10 @@ def ray_terminations(grid, frame: FitFrame, frames: list[dict], s: Settings, rep
 
 
 def _nearest_vertex_distance(vertices: np.ndarray, distance: np.ndarray, view: ViewRender, pixel: float
-                             ) -> tuple[np.ndarray, np.ndarray, float]:
+                             ) -> tuple[np.ndarray, float]:
     """A z-buffer of the vertices themselves for `view`, its pixels about `pixel` wide (world units) at the vertices'
-    median distance: per vertex [V], the distance of the nearest vertex in its pixel (inf outside the image), whether
-    it is in the image, and the pixel's width per unit of distance. Marching-cubes vertices lie less than a voxel
+    median distance: per vertex [V], the distance of the nearest vertex in its pixel (inf outside the image, where
+    nothing is hidden), and the pixel's width per unit of distance. Marching-cubes vertices lie less than a voxel
     apart, so at two voxels a pixel a surface facing the view leaves no pixel empty for what lies behind to show
     through."""
     scale = min(float(np.median(distance)) / (pixel * view.k.fl_x), MAX_ZBUFFER_PIXELS / max(view.k.w, view.k.h))
@@ -469,7 +469,7 @@ def _nearest_vertex_distance(vertices: np.ndarray, distance: np.ndarray, view: V
     pixel_of = np.where(inside, row * k.w + col, 0)
     nearest = np.full(k.w * k.h, np.inf)
     np.minimum.at(nearest, pixel_of[inside], distance[inside])
-    return np.where(inside, nearest[pixel_of], np.inf), inside, 1.0 / k.fl_x
+    return np.where(inside, nearest[pixel_of], np.inf), 1.0 / k.fl_x
 
 
 def seen_vertices(mesh: trimesh.Trimesh, views: list[ViewRender], frame: FitFrame, voxel: float, tolerance: float,
@@ -499,8 +499,7 @@ def seen_vertices(mesh: trimesh.Trimesh, views: list[ViewRender], frame: FitFram
 
         offset = centre - vertices
         distance = np.linalg.norm(offset, axis=1)
-        nearest, in_image, pixel_per_distance = _nearest_vertex_distance(vertices, distance, view,
-                                                                          ZBUFFER_PIXEL_VOXELS * voxel)
+        nearest, pixel_per_distance = _nearest_vertex_distance(vertices, distance, view, ZBUFFER_PIXEL_VOXELS * voxel)
         cosine = np.einsum("ij,ij->i", normals, offset) / np.maximum(distance, 1e-12)
         slant = distance * pixel_per_distance * np.sqrt(np.clip(1.0 - cosine ** 2, 0.0, 1.0)) / np.maximum(cosine, 1e-3)
         unhidden_by_mesh = distance <= nearest + np.minimum(tolerance + slant, GRAZING_VOXELS * voxel)
@@ -508,7 +507,7 @@ def seen_vertices(mesh: trimesh.Trimesh, views: list[ViewRender], frame: FitFram
         uv, depth = project(vertices, view.c2w, view.k)
         col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
         candidates = np.flatnonzero((depth > 0) & (col >= 0) & (col < view.k.w) & (row >= 0) & (row < view.k.h)
-                                    & (cosine > 0) & in_image & unhidden_by_mesh & ~seen)
+                                    & (cosine > 0) & unhidden_by_mesh & ~seen)
         visible = distance[candidates] <= reach[row[candidates], col[candidates]] + tolerance
         seen[candidates[visible]] = True
     return seen
