@@ -62,18 +62,20 @@ SNAP_VOXELS = 6.0
 ZBUFFER_PIXEL_VOXELS = 2.0
 MAX_ZBUFFER_PIXELS = 4096
 GRAZING_VOXELS = 3.0
-# Rays at least this opaque decide the auto level.
+# The auto level: rays at least this opaque decide it, at most LEVEL_RAYS of them (a seeded subset), each marched
+# in steps of MARCH_STEP_VOXELS until its optical depth reaches PEAK_OPTICAL_DEPTH (95% opaque).
 LEVEL_RAY_OPACITY = 0.95
+LEVEL_RAYS = 20_000
+MARCH_STEP_VOXELS = 0.5
+PEAK_OPTICAL_DEPTH = -math.log(0.05)
 
 
 @dataclass
 class Settings:
     frame: Literal["input", "normalized"] = "input"   # input: the poses' (COLMAP) frame; normalized: the fit's world
     resolution: int | Literal["auto"] = "auto"         # marching-cubes cells along the grid's longest axis; auto: the fit's own
-    level: float | Literal["auto"] = "auto"            # density iso-level; auto: see level_percentile
-    level_percentile: float = 25.0    # auto level: this percentile of the density where the training views' rays terminate
-    #                                   (synthetic object, seen faces only, visible-surface F at 1%: 25 -> 0.81, 10 -> 0.88,
-    #                                   5 -> 0.91; but 5 swells the tests' sharp analytic shells: a robust rule is open)
+    level: float | Literal["auto"] = "auto"            # density iso-level; auto: see level_share
+    level_share: float = 0.5          # auto level: this share of the peak density the opaque training rays meet (auto_level)
     level_opacity: float = 0.5        # auto level without such points: the density at which one voxel is this opaque
     crop_margin: float = 0.05         # the foreground box is grown by this share of its size before cropping
     min_piece_fraction: float = 0.01  # pieces with fewer faces than this share of the largest piece are dropped
@@ -91,7 +93,7 @@ class Settings:
         require(self.resolution == "auto" or 8 <= self.resolution <= 2048,
                 "export.resolution must be auto or between 8 and 2048 cells")
         require(self.level == "auto" or self.level > 0, "export.level must be auto or a positive density")
-        require(0.0 < self.level_percentile < 100.0, "export.level_percentile must be in (0, 100)")
+        require(0.0 < self.level_share < 1.0, "export.level_share must be in (0, 1)")
         require(0.0 < self.level_opacity < 1.0, "export.level_opacity must be in (0, 1)")
         require(self.crop_margin >= 0.0, "export.crop_margin must be 0 or more")
         require(0.0 <= self.min_piece_fraction <= 1.0, "export.min_piece_fraction must be in [0, 1]")
@@ -175,21 +177,54 @@ def refine(lattice: Lattice, resolution: int, level: float) -> Lattice:
     return Lattice(fine, lattice.origin + lo * lattice.spacing, spacing)
 
 
-def auto_level(grid, lattice: Lattice, termination_fit: np.ndarray, s: Settings) -> tuple[float, str]:
+def ray_peaks(grid, rays: "Terminations", voxel: float) -> np.ndarray:
+    """Per ray [N] (fit frame, unit directions): the highest density it meets from where it enters the grid box until
+    it is all but opaque (optical depth PEAK_OPTICAL_DEPTH, marched at MARCH_STEP_VOXELS); NaN for a ray that leaves the
+    box before it has let half its light through."""
+    lo, hi = grid_box(grid)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        to_lo, to_hi = (lo - rays.origins) / rays.directions, (hi - rays.origins) / rays.directions
+    enter = np.maximum(np.nanmax(np.minimum(to_lo, to_hi), axis=1), 0.0)
+    leave = np.nanmin(np.maximum(to_lo, to_hi), axis=1)
+    step = MARCH_STEP_VOXELS * voxel
+    steps = np.arange(16) * step                        # a chunk of samples per ray per pass
+    optical_depth, peak = np.zeros(len(enter)), np.zeros(len(enter))
+    start = enter.copy()
+    marching = np.flatnonzero(start <= leave)
+    while len(marching):
+        t = start[marching, None] + steps[None]                                       # [M, S]
+        density, _ = _sample(grid, (rays.origins[marching, None] + t[..., None] * rays.directions[marching, None]
+                                    ).reshape(-1, 3))
+        density = np.where(t <= leave[marching, None], density.reshape(t.shape), 0.0)
+        depth = optical_depth[marching, None] + np.cumsum(density * step, axis=1)
+        # Samples up to and including the one that makes the ray all but opaque.
+        upto = np.concatenate([np.ones((len(marching), 1), dtype=bool), depth[:, :-1] < PEAK_OPTICAL_DEPTH], axis=1)
+        peak[marching] = np.maximum(peak[marching], np.where(upto, density, 0.0).max(axis=1))
+        optical_depth[marching] = depth[:, -1]
+        start[marching] += len(steps) * step
+        marching = marching[(depth[:, -1] < PEAK_OPTICAL_DEPTH) & (start[marching] <= leave[marching])]
+    return np.where(optical_depth >= math.log(2.0), peak, np.nan)
+
+
+def auto_level(grid, lattice: Lattice, opaque_rays: "Terminations | None", s: Settings) -> tuple[float, str]:
     """The iso-level the fit itself suggests, and how it was chosen.
 
-    With enough ray-termination points (fit frame) from the training views: the `level_percentile`
-    percentile of the density there, so that the mesh passes where the views see the surface and
-    encloses most of those points; soft and sharp fits alike get a level their surface reaches.
-    Without them: the density at which one voxel of travel has `level_opacity` opacity,
-    sigma = -ln(1 - opacity) / voxel (density is per fit-frame unit)."""
-    if len(termination_fit) >= MIN_LEVEL_POINTS:
-        density, _ = _sample(grid, termination_fit)
-        density = density[density > 0]
-        if len(density) >= MIN_LEVEL_POINTS:
-            level = float(np.percentile(density, s.level_percentile))
-            return level, (f"auto: the {s.level_percentile:g}th percentile of the density at {len(density)} "
-                           "ray-termination points of the training views")
+    With enough opaque training rays (fit frame): `level_share` of the median of the peak density each meets before it
+    is all but opaque (ray_peaks). A fit blurs each surface into a ramp of density over a few
+    voxels; the ramp's middle, half its height, is where a blurred step's edge lies, for soft and sharp fits alike. (On
+    the synthetic object scene the fit's solids are soft shells over an empty foam, so the density at the rays' expected
+    depth, inside the foam, does not say where the surface is.) Without such rays: the density at which one voxel of
+    travel has `level_opacity` opacity, sigma = -ln(1 - opacity) / voxel (density is per fit-frame unit)."""
+    if opaque_rays is not None and len(opaque_rays.t) >= MIN_LEVEL_POINTS:
+        if len(opaque_rays.t) > LEVEL_RAYS:
+            pick = np.random.default_rng(s.seed).choice(len(opaque_rays.t), LEVEL_RAYS, replace=False)
+            opaque_rays = opaque_rays.subset(np.sort(pick))
+        peaks = ray_peaks(grid, opaque_rays, lattice.voxel)
+        peaks = peaks[peaks > 0]
+        if len(peaks) >= MIN_LEVEL_POINTS:
+            median = float(np.median(peaks))
+            return s.level_share * median, (f"auto: {s.level_share:g} x the median peak density ({median:.4g}) that "
+                                            f"{len(peaks)} opaque training rays meet before they are 95% opaque")
     level = -math.log(1.0 - s.level_opacity) / lattice.voxel
     return level, f"auto: one voxel ({lattice.voxel:.4g} fit units) at this density is {s.level_opacity:.0%} opaque"
 
@@ -670,14 +705,13 @@ def _area_samples(mesh: trimesh.Trimesh, count: int, rng: np.random.Generator) -
 
 
 def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, s: Settings, report,
-               termination: np.ndarray | None = None, views: list[ViewRender] | None = None) -> tuple[trimesh.Trimesh, dict]:
+               level_rays: Terminations | None = None, views: list[ViewRender] | None = None) -> tuple[trimesh.Trimesh, dict]:
     """The cleaned, coloured mesh in the normalised world, and what was decided on the way.
-    `termination`: the training views' ray-termination points (normalised world), for the auto level;
+    `level_rays`: the training views' opaque rays (fit frame), for the auto level;
     `views`: the training views rendered, to drop the faces none of them sees (with unseen: drop)."""
     lattice = grid_lattice(grid)
     if s.level == "auto":
-        fit_points = frame.from_world(termination) if termination is not None else np.zeros((0, 3))
-        level, level_source = auto_level(grid, lattice, fit_points, s)
+        level, level_source = auto_level(grid, lattice, level_rays, s)
     else:
         level, level_source = float(s.level), "set"
     native = int(np.max(lattice.values.shape) - 1)
@@ -739,9 +773,9 @@ def run(ctx) -> dict:
     ends = terminations.world(frame)
     inside = _in_box(ends, crop_min, crop_max)
     terminations = terminations.subset(inside)
-    # The level comes from nearly opaque rays only: a fainter ray's expected depth blends several depths.
+    # The level comes from nearly opaque rays only: a fainter one grazes an edge or crosses a thin part, whose peak is low.
     opaque = terminations.opacity >= LEVEL_RAY_OPACITY
-    mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, ends[inside][opaque], views)
+    mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, terminations.subset(opaque), views)
 
     voxel = grid_lattice_voxel(grid)
     if len(terminations.t) > 2 * s.points:  # the snap drops some rays: keep a margin, subsample after
