@@ -53,8 +53,8 @@ GLTF_FROM_ZUP = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0,
 COLOUR_PROBE_VOXELS = np.arange(-1.0, 3.01, 0.5)
 # Points sampled per chunk when asking the grid for values, to bound memory.
 CHUNK = 1 << 18
-# Fewer ray-termination points than this do not decide the auto level.
-MIN_LEVEL_POINTS = 100
+# Fewer opaque training rays than this do not decide the auto level.
+MIN_LEVEL_RAYS = 100
 # How far (voxels) along its ray a point may move onto the mesh's level.
 SNAP_VOXELS = 6.0
 # The mesh's own z-buffer (seen_vertices): pixels this many voxels wide, at most this many pixels on a side, and
@@ -210,18 +210,18 @@ def auto_level(grid, lattice: Lattice, opaque_rays: "Terminations | None", s: Se
     """The iso-level the fit itself suggests, and how it was chosen.
 
     With enough opaque training rays (fit frame): `level_share` of the median of the peak density each meets before it
-    is all but opaque (ray_peaks). A fit blurs each surface into a ramp of density over a few
-    voxels; the ramp's middle, half its height, is where a blurred step's edge lies, for soft and sharp fits alike. (On
+    is all but opaque (ray_peaks). A fit blurs each surface into a ramp of density over a few voxels; a blurred step's
+    edge lies at half its height, and a ray sees the ramp's top before it is opaque, for soft and sharp fits alike. (On
     the synthetic object scene the fit's solids are soft shells over an empty foam, so the density at the rays' expected
     depth, inside the foam, does not say where the surface is.) Without such rays: the density at which one voxel of
     travel has `level_opacity` opacity, sigma = -ln(1 - opacity) / voxel (density is per fit-frame unit)."""
-    if opaque_rays is not None and len(opaque_rays.t) >= MIN_LEVEL_POINTS:
+    if opaque_rays is not None and len(opaque_rays.t) >= MIN_LEVEL_RAYS:
         if len(opaque_rays.t) > LEVEL_RAYS:
             pick = np.random.default_rng(s.seed).choice(len(opaque_rays.t), LEVEL_RAYS, replace=False)
             opaque_rays = opaque_rays.subset(np.sort(pick))
         peaks = ray_peaks(grid, opaque_rays, lattice.voxel)
         peaks = peaks[peaks > 0]
-        if len(peaks) >= MIN_LEVEL_POINTS:
+        if len(peaks) >= MIN_LEVEL_RAYS:
             median = float(np.median(peaks))
             return s.level_share * median, (f"auto: {s.level_share:g} x the median peak density ({median:.4g}) that "
                                             f"{len(peaks)} opaque training rays meet before they are 95% opaque")
