@@ -34,7 +34,8 @@ from pipeline.cameras import Intrinsics, project, rays_from_camera
 from pipeline.config import require
 from pipeline.errors import UserError
 from pipeline.io import read_json, write_json
-from plenoxels.render import native_available, render
+from plenoxels.reference import ray_lattice
+from plenoxels.render import RenderOptions, native_available, render
 from plenoxels.scene_model import SceneModel
 
 NAME = "export"
@@ -62,8 +63,8 @@ SNAP_VOXELS = 6.0
 ZBUFFER_PIXEL_VOXELS = 2.0
 MAX_ZBUFFER_PIXELS = 4096
 GRAZING_VOXELS = 3.0
-# The auto level: rays at least this opaque decide it, at most LEVEL_RAYS of them (a seeded subset), each marched
-# in steps of MARCH_STEP_VOXELS until its optical depth reaches PEAK_OPTICAL_DEPTH (95% opaque).
+# The auto level: rays at least this opaque decide it, at most LEVEL_RAYS of them (a seeded subset), each sampled
+# MARCH_STEP_VOXELS apart until its optical depth reaches PEAK_OPTICAL_DEPTH (95% opaque).
 LEVEL_RAY_OPACITY = 0.95
 LEVEL_RAYS = 20_000
 MARCH_STEP_VOXELS = 0.5
@@ -177,32 +178,30 @@ def refine(lattice: Lattice, resolution: int, level: float) -> Lattice:
     return Lattice(fine, lattice.origin + lo * lattice.spacing, spacing)
 
 
-def ray_peaks(grid, rays: "Terminations", voxel: float) -> np.ndarray:
-    """Per ray [N] (fit frame, unit directions): the highest density it meets from where it enters the grid box until
-    it is all but opaque (optical depth PEAK_OPTICAL_DEPTH, marched at MARCH_STEP_VOXELS); NaN for a ray that leaves the
-    box before it has let half its light through."""
-    lo, hi = grid_box(grid)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        to_lo, to_hi = (lo - rays.origins) / rays.directions, (hi - rays.origins) / rays.directions
-    enter = np.maximum(np.nanmax(np.minimum(to_lo, to_hi), axis=1), 0.0)
-    leave = np.nanmin(np.maximum(to_lo, to_hi), axis=1)
-    step = MARCH_STEP_VOXELS * voxel
-    steps = np.arange(16) * step                        # a chunk of samples per ray per pass
-    optical_depth, peak = np.zeros(len(enter)), np.zeros(len(enter))
-    start = enter.copy()
-    marching = np.flatnonzero(start <= leave)
+def ray_peaks(grid, rays: "Terminations") -> np.ndarray:
+    """Per ray [N] (fit frame): the highest density it meets, sampled as the renderer samples it (clipped to the grid
+    box, MARCH_STEP_VOXELS apart), until it is all but opaque (optical depth PEAK_OPTICAL_DEPTH); NaN for a ray that
+    leaves the box before it has let half its light through."""
+    lattice = ray_lattice(grid, torch.as_tensor(rays.origins), torch.as_tensor(rays.directions),
+                          RenderOptions(step_size=MARCH_STEP_VOXELS).check())
+    t_start, dt, n = (lattice[key].numpy() for key in ("t_start", "dt", "n"))
+    steps = np.arange(16)                               # a chunk of samples per ray per pass
+    optical_depth, peak = np.zeros(len(n)), np.zeros(len(n))
+    done_samples = np.zeros(len(n), dtype=np.int64)
+    marching = np.flatnonzero(n > 0)
     while len(marching):
-        t = start[marching, None] + steps[None]                                       # [M, S]
+        index = done_samples[marching, None] + steps[None]                            # [M, S]
+        t = t_start[marching, None] + (index + 0.5) * dt[marching, None]
         density, _ = _sample(grid, (rays.origins[marching, None] + t[..., None] * rays.directions[marching, None]
                                     ).reshape(-1, 3))
-        density = np.where(t <= leave[marching, None], density.reshape(t.shape), 0.0)
-        depth = optical_depth[marching, None] + np.cumsum(density * step, axis=1)
+        density = np.where(index < n[marching, None], density.reshape(t.shape), 0.0)
+        depth = optical_depth[marching, None] + np.cumsum(density * dt[marching, None], axis=1)
         # Samples up to and including the one that makes the ray all but opaque.
         upto = np.concatenate([np.ones((len(marching), 1), dtype=bool), depth[:, :-1] < PEAK_OPTICAL_DEPTH], axis=1)
         peak[marching] = np.maximum(peak[marching], np.where(upto, density, 0.0).max(axis=1))
         optical_depth[marching] = depth[:, -1]
-        start[marching] += len(steps) * step
-        marching = marching[(depth[:, -1] < PEAK_OPTICAL_DEPTH) & (start[marching] <= leave[marching])]
+        done_samples[marching] += len(steps)
+        marching = marching[(depth[:, -1] < PEAK_OPTICAL_DEPTH) & (done_samples[marching] < n[marching])]
     return np.where(optical_depth >= math.log(2.0), peak, np.nan)
 
 
@@ -219,7 +218,7 @@ def auto_level(grid, lattice: Lattice, opaque_rays: "Terminations | None", s: Se
         if len(opaque_rays.t) > LEVEL_RAYS:
             pick = np.random.default_rng(s.seed).choice(len(opaque_rays.t), LEVEL_RAYS, replace=False)
             opaque_rays = opaque_rays.subset(np.sort(pick))
-        peaks = ray_peaks(grid, opaque_rays, lattice.voxel)
+        peaks = ray_peaks(grid, opaque_rays)
         peaks = peaks[peaks > 0]
         if len(peaks) >= MIN_LEVEL_RAYS:
             median = float(np.median(peaks))

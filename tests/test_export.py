@@ -334,13 +334,13 @@ def test_ray_peaks_and_the_auto_level_follow_a_ramp_of_density():
     rays = export.Terminations(origins, directions, np.zeros(n), np.ones(n))
     c = directions[:, 0]
     expected = np.sqrt(2 * a * c * export.PEAK_OPTICAL_DEPTH)
-    peaks = export.ray_peaks(field, rays, voxel)
+    peaks = export.ray_peaks(field, rays)
     assert np.abs(peaks - expected).max() < a * export.MARCH_STEP_VOXELS * voxel
     level, source = export.auto_level(field, export.grid_lattice(field), rays, Settings(level_share=0.4))
-    assert level == pytest.approx(0.4 * np.median(export.ray_peaks(field, rays, voxel)))
+    assert level == pytest.approx(0.4 * np.median(peaks))
     # Rays that miss the density never get that opaque; too few rays fall back to the per-voxel opacity rule.
     missing = export.Terminations(origins, -directions, np.zeros(n), np.ones(n))
-    assert np.isnan(export.ray_peaks(field, missing, voxel)).all()
+    assert np.isnan(export.ray_peaks(field, missing)).all()
     level, source = export.auto_level(field, export.grid_lattice(field), missing, Settings())
     assert level == pytest.approx(math.log(2) / voxel, rel=1e-6) and "one voxel" in source
 
