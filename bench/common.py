@@ -30,7 +30,7 @@ def run_part(args, one_run, whole_run) -> int:
     """A benchmark part's entry: with --one, one measurement whose spec arrives as JSON on stdin (so each run has
     a process, and a peak memory, of its own) and whose result leaves as JSON on stdout; else the whole part.
     A bad argument or input is a one-line error."""
-    from pipeline.errors import UserError
+    from plenoxels.errors import UserError
 
     try:
         if args.one:
@@ -46,7 +46,7 @@ def fit_overrides(items: list[str]) -> dict:
     """`--set key=value` items (fit settings, `fit.` prefix optional) as a dict of YAML-parsed values."""
     import yaml
 
-    from pipeline.errors import UserError
+    from plenoxels.errors import UserError
 
     overrides = {}
     for item in items:

@@ -34,7 +34,7 @@ import numpy as np
 import trimesh
 
 from pipeline import synthetic
-from pipeline.cameras import Intrinsics, project
+from plenoxels.cameras import Intrinsics, project
 from pipeline.io import read_json, write_json
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline

@@ -39,7 +39,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from pipeline.errors import UserError  # noqa: E402
+from plenoxels.errors import UserError  # noqa: E402
 
 RESULTS = REPO / "bench" / "results" / "fit.json"
 CACHE = REPO / "bench" / "out"

@@ -18,7 +18,7 @@ import numpy as np
 import pycolmap
 from PIL import Image
 
-from pipeline.cameras import opengl_c2w_from_colmap_w2c, opengl_c2w_from_llff
+from plenoxels.cameras import opengl_c2w_from_colmap_w2c, opengl_c2w_from_llff
 from pipeline.io import write_json
 from stages.normalize import Points, Settings, normalize_scene
 

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from pipeline.cameras import opengl_c2w_from_colmap_w2c
+from plenoxels.cameras import opengl_c2w_from_colmap_w2c
 from pipeline.io import write_json
 from pipeline.synthetic import write_scene
 from stages.poses_compare import compare_poses

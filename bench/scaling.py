@@ -31,7 +31,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from bench.fit import cpu_name, load_scene, machine, resolve, synthetic_scene  # noqa: E402
-from pipeline.errors import UserError  # noqa: E402
+from plenoxels.errors import UserError  # noqa: E402
 
 RESULTS = REPO / "bench" / "results" / "scaling.json"
 

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from pipeline.config import preset_names
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from pipeline.stage import STAGE_ORDER

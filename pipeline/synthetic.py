@@ -37,8 +37,8 @@ import numpy as np
 import torch
 import trimesh
 
-from pipeline.cameras import Intrinsics, pixel_directions
-from pipeline.errors import UserError
+from plenoxels.cameras import Intrinsics, look_at, pixel_directions
+from plenoxels.errors import UserError
 from pipeline.io import read_json, write_json, write_png
 from pipeline.report import Reporter
 
@@ -422,17 +422,6 @@ def _forward_grid(rng: np.random.Generator, n_views: int) -> np.ndarray:
         eye = FORWARD_EYE + x * right + z * np.asarray(WORLD_UP)
         poses.append(look_at(eye, target))
     return np.stack(poses)
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up=WORLD_UP) -> np.ndarray:
-    """OpenGL camera-to-world for a camera at `eye` looking at `target`, with image-up towards `up`."""
-    forward = np.asarray(target, dtype=np.float64) - eye
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, up)
-    right /= np.linalg.norm(right)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(right, forward), -forward, eye
-    return c2w
 
 
 def intrinsics_for(kind: str, width: int, height: int) -> Intrinsics:

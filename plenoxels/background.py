@@ -27,7 +27,7 @@ from typing import Any, Sequence
 import torch
 import torch.nn.functional as F
 
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 
 # Far spheres are placed at most this far (in foreground-box half-diagonals); beyond it parallax is nil.
 DEFAULT_FAR_RATIO = 1000.0

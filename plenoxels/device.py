@@ -11,7 +11,7 @@ import warnings
 
 import torch
 
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 
 CHOICES = ("auto", "cpu", "cuda")
 CUDA_MISSING = "fit.device=cuda but no CUDA GPU/CUDA build is available; use fit.device=cpu or auto"

@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 
 FORMAT = "voxfield-plenoxels-grid"
 FORMAT_VERSION = 1

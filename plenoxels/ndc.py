@@ -42,8 +42,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.cameras import Intrinsics, pixel_directions
-from pipeline.errors import UserError
+from plenoxels.cameras import Intrinsics, pixel_directions
+from plenoxels.errors import UserError
 
 # Smallest |d_z| / |d| a ray keeps in the reference frame; below it the ray counts as parallel.
 PARALLEL_EPS = 1e-5
@@ -131,8 +131,7 @@ class NDCMapping:
         lo, hi = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
         for frame in frames:
             c2w = torch.tensor(np.asarray(frame["transform_matrix"], dtype=np.float64)[:3])
-            k = Intrinsics(float(frame["fl_x"]), float(frame["fl_y"]), float(frame["cx"]), float(frame["cy"]),
-                           int(frame["w"]), int(frame["h"]))
+            k = Intrinsics.from_frame(frame)
             # Directions through the pixel corners: pixel_directions gives centres, shifted by half a pixel.
             centres = pixel_directions(Intrinsics(k.fl_x, k.fl_y, k.cx + 0.5, k.cy + 0.5, k.w + 1, k.h + 1),
                                        torch.float64)

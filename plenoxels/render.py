@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 from plenoxels.grid import OCCUPANCY_BLOCK, SparseGrid
 from plenoxels.optim import GridGrad
 

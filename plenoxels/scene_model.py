@@ -33,8 +33,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from pipeline.cameras import Intrinsics, rays_from_camera
-from pipeline.errors import UserError
+from plenoxels.cameras import Intrinsics, rays_from_camera
+from plenoxels.errors import UserError
 from pipeline.io import read_json, write_json
 from plenoxels.grid import SparseGrid
 from plenoxels.render import RenderOptions, RenderResult, render

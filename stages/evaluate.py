@@ -24,12 +24,11 @@ import torch
 from matplotlib import colormaps
 from skimage.metrics import structural_similarity
 
-from pipeline.cameras import Intrinsics
+from plenoxels.cameras import Intrinsics, look_at
 from pipeline.config import require
 from pipeline.io import read_json, write_json, write_png
-from pipeline.synthetic import look_at
 from plenoxels.scene_model import SceneModel, psnr
-from stages.fit import frame_intrinsics, load_frame
+from stages.fit import load_frame
 
 NAME = "evaluate"
 DEPENDS: tuple[str, ...] = ("normalize", "fit")
@@ -128,7 +127,7 @@ def contact_sheet(rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]], side: i
 
 
 def _median_intrinsics(frames: list[dict], side: int) -> Intrinsics:
-    k = frame_intrinsics(sorted(frames, key=lambda f: f["fl_x"])[len(frames) // 2])
+    k = Intrinsics.from_frame(sorted(frames, key=lambda f: f["fl_x"])[len(frames) // 2])
     return k.scaled(side / max(k.w, k.h))
 
 

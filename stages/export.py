@@ -30,9 +30,9 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 from trimesh.exchange.ply import export_ply
 
-from pipeline.cameras import Intrinsics, project, rays_from_camera
+from plenoxels.cameras import Intrinsics, project, rays_from_camera
 from pipeline.config import require
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 from pipeline.io import read_json, write_json
 from plenoxels.reference import ray_lattice
 from plenoxels.render import RenderOptions, native_available, render
@@ -462,8 +462,7 @@ def render_views(grid, frame: FitFrame, frames: list[dict], s: Settings, report)
         train = [train[i] for i in pick]
     views = []
     for record in report.track(train, desc="rendering the training views' depth"):
-        k = Intrinsics(float(record["fl_x"]), float(record["fl_y"]), float(record["cx"]), float(record["cy"]),
-                       int(record["w"]), int(record["h"])).scaled(s.point_scale)
+        k = Intrinsics.from_frame(record).scaled(s.point_scale)
         c2w = np.asarray(record["transform_matrix"], dtype=np.float64)
         origins, directions = _fit_rays(c2w, k, frame)
         out = render(grid, origins.float(), directions.float(), backend=backend)

@@ -34,9 +34,9 @@ import cv2
 import numpy as np
 import torch
 
-from pipeline.cameras import Intrinsics
+from plenoxels.cameras import Intrinsics
 from pipeline.config import require
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 from pipeline.io import read_json, read_rgb, write_json
 from plenoxels.device import resolve_device
 from plenoxels.grid import SparseGrid, sh_count
@@ -149,11 +149,6 @@ class Settings:
 # Images and rays
 
 
-def frame_intrinsics(frame: dict) -> Intrinsics:
-    return Intrinsics(float(frame["fl_x"]), float(frame["fl_y"]), float(frame["cx"]), float(frame["cy"]),
-                      int(frame["w"]), int(frame["h"]))
-
-
 def load_frame(root: Path, frame: dict, scale: float, background_color) -> tuple[np.ndarray, Intrinsics]:
     """A frame's image as float32 RGB [h,w,3] in [0,1], resized by `scale`, its mask (if any) composited
     onto `background_color`; and the intrinsics of the resized image."""
@@ -161,7 +156,7 @@ def load_frame(root: Path, frame: dict, scale: float, background_color) -> tuple
     if not path.is_file():
         raise UserError(f"image {path} listed in scene.json is missing; re-run the stages before fit")
     rgb = read_rgb(path).astype(np.float32) / 255.0
-    k = frame_intrinsics(frame)
+    k = Intrinsics.from_frame(frame)
     if (rgb.shape[1], rgb.shape[0]) != (k.w, k.h):
         raise UserError(f"{path} is {rgb.shape[1]}x{rgb.shape[0]} but scene.json says {k.w}x{k.h}; re-run normalize")
     if frame.get("mask_path"):
@@ -209,7 +204,7 @@ class RaySet:
         return self.sizes.shape[0]
 
     def rays(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """World origins and unit directions [B, 3] through pixel centres (pipeline.cameras convention)."""
+        """World origins and unit directions [B, 3] through pixel centres (plenoxels.cameras convention)."""
         k = self.k[image]
         d_cam = torch.stack([(col.float() + 0.5 - k[:, 2]) / k[:, 0], -(row.float() + 0.5 - k[:, 3]) / k[:, 1],
                              -torch.ones_like(k[:, 0])], dim=-1)

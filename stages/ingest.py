@@ -13,7 +13,7 @@ import numpy as np
 from PIL import Image, ImageOps
 
 from pipeline.config import require
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 from pipeline.io import write_json, write_png
 
 NAME = "ingest"

@@ -21,9 +21,9 @@ from typing import Literal
 import numpy as np
 from PIL import Image
 
-from pipeline.cameras import Intrinsics, project
+from plenoxels.cameras import Intrinsics, project
 from pipeline.config import require
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 from pipeline.io import read_json, write_json
 
 NAME = "normalize"
@@ -112,9 +112,7 @@ def read_cameras(transforms: dict) -> Cameras:
     for frame in frames:
         names.append(frame.get("name") or Path(frame["file_path"]).stem)
         c2w.append(np.asarray(frame["transform_matrix"], dtype=np.float64))
-        get = lambda key: frame.get(key, transforms.get(key))  # noqa: E731 (per-frame values override shared ones)
-        intrinsics.append(Intrinsics(float(get("fl_x")), float(get("fl_y")), float(get("cx")), float(get("cy")),
-                                     int(get("w")), int(get("h"))))
+        intrinsics.append(Intrinsics.from_frame({**transforms, **frame}))  # per-frame values override shared ones
     bounds = None
     if all("near" in f and "far" in f for f in frames):
         bounds = np.array([[f["near"], f["far"]] for f in frames], dtype=np.float64)

@@ -22,9 +22,9 @@ import numpy as np
 import pycolmap
 from PIL import Image
 
-from pipeline.cameras import opengl_c2w_from_colmap_w2c
+from plenoxels.cameras import opengl_c2w_from_colmap_w2c
 from pipeline.config import require
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 from pipeline.io import read_json, write_json, write_png
 from stages import poses_import
 from stages.ingest import VIDEO_SUFFIXES

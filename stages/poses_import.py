@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from pipeline.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff
-from pipeline.errors import UserError
+from plenoxels.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff
+from plenoxels.errors import UserError
 
 KINDS = ("colmap", "transforms", "llff")
 # How far an image's size may be from the pose file's size after scaling before we call it a different image.

@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 from plenoxels.background import MultiSphereBackground
 
 

@@ -7,7 +7,7 @@ import pytest
 from bench.fit import fronts, knob_variants, load_results, pareto, resolve, run_key, table
 from bench.scaling import training_frames
 from pipeline import config
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 from stages import fit
 
 

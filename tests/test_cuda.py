@@ -18,7 +18,7 @@ import pytest
 import torch
 import torch.utils.cpp_extension
 
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 from plenoxels.device import CUDA_MISSING, cuda_ready, resolve_device
 
 REPO = Path(__file__).resolve().parent.parent

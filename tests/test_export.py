@@ -12,8 +12,8 @@ from scipy.special import expit
 
 from bench.export import training_cameras, visible_from
 from pipeline import config
-from pipeline.cameras import Intrinsics
-from pipeline.errors import UserError
+from plenoxels.cameras import Intrinsics
+from plenoxels.errors import UserError
 from pipeline.io import read_json, write_json
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from pipeline import config
-from pipeline.cameras import rays_from_camera
-from pipeline.errors import UserError
+from plenoxels.cameras import rays_from_camera
+from plenoxels.errors import UserError
 from pipeline.io import read_json, write_json
 from pipeline.report import Reporter
 from pipeline.stage import StageContext

@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 from plenoxels import GridGrad, RenderOptions, SparseGrid, SparseRMSProp
 from plenoxels.render import loss_and_grad, render
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 from pipeline.io import read_rgb
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline

@@ -4,7 +4,7 @@ import sys
 import pytest
 import torch
 
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 import plenoxels
 import plenoxels.render as render_module
 from plenoxels import GridGrad, RenderOptions, SparseGrid, SparseRMSProp, reference

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.cameras import Intrinsics, project, rays_from_camera
-from pipeline.errors import UserError
+from plenoxels.cameras import Intrinsics, project, rays_from_camera
+from plenoxels.errors import UserError
 from plenoxels.ndc import MAX_BOX_REACH, MAX_Z_NDC, NDCMapping
 
 

@@ -12,8 +12,8 @@ import trimesh
 from PIL import Image
 
 from pipeline import config
-from pipeline.cameras import Intrinsics, pixel_directions
-from pipeline.errors import UserError
+from plenoxels.cameras import Intrinsics, pixel_directions
+from plenoxels.errors import UserError
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from pipeline.stage import StageContext
@@ -38,7 +38,7 @@ def _sample_points(kind: str, transforms: dict, seed: int) -> dict:
     observed by every camera that has it in its image with nothing in front of it."""
     scene = build_scene(kind, seed)
     rng = np.random.default_rng(seed)
-    k = Intrinsics(transforms["fl_x"], transforms["fl_y"], transforms["cx"], transforms["cy"], transforms["w"], transforms["h"])
+    k = Intrinsics.from_frame(transforms)
     dirs_cam = pixel_directions(k).numpy().reshape(-1, 3).astype(np.float64)
     c2ws = [np.asarray(f["transform_matrix"]) for f in transforms["frames"]]
     xyz = []

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from pipeline import config
-from pipeline.errors import UserError
+from plenoxels.errors import UserError
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from pipeline.stage import StageGraph

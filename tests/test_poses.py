@@ -13,8 +13,8 @@ import pytest
 
 from PIL import Image
 
-from pipeline.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, project
-from pipeline.errors import UserError
+from plenoxels.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, project
+from plenoxels.errors import UserError
 from pipeline.io import read_json, read_rgb, write_png
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
@@ -92,7 +92,7 @@ def test_sfm_registers_every_view_and_matches_the_true_poses(scene, truth, tmp_p
     # Undistortion may change the image size, but not the angle a pixel subtends near the centre.
     assert transforms["fl_x"] == pytest.approx(truth["fl_x"], rel=0.02)
     assert transforms["k1"] == 0.0 and transforms["original_camera"]["model"] == "SIMPLE_RADIAL"
-    k = Intrinsics(transforms["fl_x"], transforms["fl_y"], transforms["cx"], transforms["cy"], transforms["w"], transforms["h"])
+    k = Intrinsics.from_frame(transforms)
     for frame in transforms["frames"]:
         assert read_rgb(out / frame["file_path"]).shape == (k.h, k.w, 3)
 
@@ -320,7 +320,7 @@ def test_transforms_import_scales_intrinsics_and_undistorts(scene, truth, tmp_pa
     np.testing.assert_allclose(original["params"], [fl / 2, fl / 2, cx / 2, cy / 2, *distortion.values()], rtol=1e-9)
 
     # The undistorted image at pinhole pixel p shows what the photo showed where the distorted camera puts p's ray.
-    k = Intrinsics(transforms["fl_x"], transforms["fl_y"], transforms["cx"], transforms["cy"], transforms["w"], transforms["h"])
+    k = Intrinsics.from_frame(transforms)
     camera = pycolmap.Camera(model="OPENCV", width=WIDTH, height=HEIGHT, params=original["params"])
     rng = np.random.default_rng(1)
     uv = rng.uniform([0.1 * k.w, 0.1 * k.h], [0.9 * k.w, 0.9 * k.h], size=(400, 2))

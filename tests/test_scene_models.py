@@ -11,6 +11,7 @@ import torch
 
 from pipeline.io import read_json
 from pipeline.report import Reporter
+from plenoxels.cameras import Intrinsics
 from pipeline.synthetic import build_scene, render_view, write_scene
 from plenoxels.scene_model import psnr
 from stages import fit
@@ -113,7 +114,7 @@ def test_forward_scene_needs_ndc(forward_scene):
         assert (fitter.model.ndc is not None) == (ndc == "auto")
         whole, objects = [], []
         for frame, error in _held_out_errors(scene, root, fitter):
-            _, _, coverage = render_view(spec, cameras[frame["file_path"]], fit.frame_intrinsics(frame), supersample=1)
+            _, _, coverage = render_view(spec, cameras[frame["file_path"]], Intrinsics.from_frame(frame), supersample=1)
             whole.append(psnr(float(error.mean())))
             objects.append(psnr(float(error[coverage > 0.99].mean())))
         results[ndc] = (float(np.mean(whole)), float(np.mean(objects)))

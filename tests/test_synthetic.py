@@ -8,8 +8,8 @@ import pytest
 import torch
 import trimesh
 
-from pipeline.cameras import Intrinsics, pixel_directions, project, rays_from_camera
-from pipeline.errors import UserError
+from plenoxels.cameras import Intrinsics, pixel_directions, project, rays_from_camera
+from plenoxels.errors import UserError
 from pipeline.synthetic import (KINDS, Sphere, build_scene, camera_poses, intrinsics_for, render_view,
                                 surface_colour, trace, write_scene)
 
@@ -218,7 +218,7 @@ def test_true_mesh_matches_the_rendered_depth(tmp_path, kind):
     out = write_scene(kind, tmp_path / kind, n_views=2, width=64, height=48, seed=4)
     mesh = trimesh.load(out / "ground_truth" / "mesh.ply")
     transforms = json.loads((out / "transforms.json").read_text())
-    k = Intrinsics(transforms["fl_x"], transforms["fl_y"], transforms["cx"], transforms["cy"], transforms["w"], transforms["h"])
+    k = Intrinsics.from_frame(transforms)
     scene = build_scene(kind, 4)
     rng = np.random.default_rng(1)
     for frame in transforms["frames"]:

@@ -28,6 +28,12 @@ class Intrinsics:
     w: int
     h: int
 
+    @classmethod
+    def from_frame(cls, frame: dict) -> "Intrinsics":
+        """From a frame record's (or a transforms.json's shared) fl_x, fl_y, cx, cy, w, h."""
+        return cls(float(frame["fl_x"]), float(frame["fl_y"]), float(frame["cx"]), float(frame["cy"]),
+                   int(frame["w"]), int(frame["h"]))
+
     def matrix(self) -> np.ndarray:
         return np.array([[self.fl_x, 0, self.cx], [0, self.fl_y, self.cy], [0, 0, 1]], dtype=np.float64)
 
@@ -56,6 +62,18 @@ def opengl_c2w_from_llff(pose_3x4: np.ndarray) -> np.ndarray:
     down, right, back, centre = pose_3x4[:, 0], pose_3x4[:, 1], pose_3x4[:, 2], pose_3x4[:, 3]
     c2w = np.eye(4)
     c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, -down, back, centre
+    return c2w
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world for a camera at `eye` looking at `target`, with image-up towards `up`."""
+    eye = np.asarray(eye, dtype=np.float64)
+    forward = np.asarray(target, dtype=np.float64) - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(right, forward), -forward, eye
     return c2w
 
 
