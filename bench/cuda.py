@@ -153,10 +153,10 @@ def lego_scene(folder: Path, val_limit: int | None = None):
     the val frames mapped into the same frame with split "test"."""
     import numpy as np
 
-    from stages.normalize import Points, Settings, normalize_scene
+    from pipeline.scene_frame import Points, SceneOptions, normalize_scene
 
     transforms = {"frames": blender_frames(folder, "train")}  # intrinsics are per frame
-    scene = normalize_scene(transforms, Points.empty(), Settings(holdout_every=0), poses_dir=folder, path_prefix="")
+    scene = normalize_scene(transforms, Points.empty(), SceneOptions(holdout_every=0), poses_dir=folder, path_prefix="")
     world_from_input = np.asarray(scene["world_from_input"])
     val = blender_frames(folder, "val")[:val_limit]
     for frame in val:
@@ -191,10 +191,10 @@ def lego(torch, args) -> dict:
 
     from pipeline.report import Reporter
     from bench.common import fit_context
-    from plenoxels.device import resolve_device
+    from plenoxels.native import resolve_device
     from plenoxels.scene_model import SceneModel, psnr
     from stages import fit
-    from stages.fit import load_frame
+    from pipeline.images import load_frame
 
     folder = args.data / "lego"
     settings = fit_settings(args.set)
@@ -230,7 +230,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     import torch
 
-    from plenoxels.device import cuda_ready
+    from plenoxels.native import cuda_ready
 
     if args.cpu_baseline is not None:
         resolution, kind = args.cpu_baseline.split(",")

@@ -26,8 +26,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from plenoxels import GridGrad, RenderOptions, SparseGrid  # noqa: E402
-from plenoxels.render import loss_and_grad, native_core, sample_counts  # noqa: E402
+from plenoxels import native, reference  # noqa: E402
+from plenoxels.grid import SparseGrid  # noqa: E402
+from plenoxels.optim import GridGrad  # noqa: E402
+from plenoxels.render import RenderOptions  # noqa: E402
+from plenoxels.render import loss_and_grad, sample_counts  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "kernels.json"
 TILE = 32
@@ -115,12 +118,13 @@ def tile_batch(n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor
 
 
 def time_backend(grid, batches, backend: str, opts: RenderOptions) -> tuple[list[float], list[float]]:
-    """Wall-clock and process CPU seconds of each batch's loss_and_grad."""
+    """Wall-clock and process CPU seconds of each batch's loss_and_grad: the product's native core or the twin's."""
+    step = loss_and_grad if backend == "native" else reference.loss_and_grad
     grad = GridGrad(grid)
     wall, cpu = [], []
     for origins, dirs, targets, background in batches:
         start, start_cpu = time.perf_counter(), time.process_time()
-        loss_and_grad(grid, origins, dirs, targets, background, opts, grad, backend=backend)
+        step(grid, origins, dirs, targets, background, opts, grad)
         wall.append(time.perf_counter() - start)
         cpu.append(time.process_time() - start_cpu)
         grad.clear()
@@ -150,7 +154,7 @@ def run(sizes, repeats: int, rays: int, twin_rays: int) -> dict:
                 wall, cpu = time_backend(grid, batches, backend, opts)
                 wall, cpu = wall[1:], cpu[1:]
                 counts = [sample_counts(grid, b[0], b[1], opts) for b in batches[1:]]
-                threads = native_core().num_threads() if backend == "native" else torch.get_num_threads()
+                threads = native.num_threads() if backend == "native" else torch.get_num_threads()
                 result[backend] = {
                     "rays_per_batch": batches[1][0].shape[0],
                     "samples_per_batch": int(statistics.median(c[1] for c in counts)),
@@ -168,7 +172,7 @@ def run(sizes, repeats: int, rays: int, twin_rays: int) -> dict:
     return {
         "what": "forward+backward (fused MSE loss and gradient), SH degree 2, step 0.5 voxel; samples/s counts "
                 "contributing samples; median over repeats",
-        "machine": {"cpu": cpu_name(), "threads": native_core().num_threads(), "torch": torch.__version__,
+        "machine": {"cpu": cpu_name(), "threads": native.num_threads(), "torch": torch.__version__,
                     "load_average_at_end": os.getloadavg()[0]},
         "repeats": repeats,
         "results": rows,

@@ -2,10 +2,11 @@
 // plain launchers of kernels_cuda.cu. Compiled only in the CUDA build (setup.py defines
 // PLX_WITH_CUDA there); a CPU-only build sees an empty file.
 //
-// The functions are registered as torch operators, torch.ops.plenoxels_cuda.<name>, with the same
-// arguments as the CPU functions of plenoxels._C minus the CPU's per-thread scratch. Touched rows
-// are tracked in grad_mask by the kernels and compacted into grad_rows here, so callers see the
-// CPU's (grad_rows, num_touched) contract: rows listed exactly when their mask byte is set.
+// These are the CUDA implementations of the operators declared in ops.cpp (torch.ops.voxfield.*).
+// The CPU's per-thread scratch arguments are accepted and ignored: the kernels accumulate with
+// atomics. Touched rows are tracked in grad_mask by the kernels and compacted into grad_rows here,
+// so callers see the CPU's (grad_rows, num_touched) contract: rows listed exactly when their mask
+// byte is set.
 #ifdef PLX_WITH_CUDA
 
 #include <c10/cuda/CUDAGuard.h>
@@ -22,12 +23,13 @@
 #include <vector>
 
 #include "cuda_kernels.h"
+#include "plenoxels_math.h"
 
 namespace {
 
 using at::Tensor;
 
-constexpr int padded_stride(int columns) { return columns <= 4 ? 4 : (columns + 15) / 16 * 16; }
+using plx::row_stride;
 
 void check_cuda(const Tensor& t, at::ScalarType type, const char* name, const Tensor& like) {
     TORCH_CHECK(t.is_cuda() && t.device() == like.device(), name, " must be on ", like.device());
@@ -53,7 +55,7 @@ plx_cuda::Grid make_grid(const Tensor& data, const Tensor& links, const Tensor& 
     check_cuda(cell_occ, at::kByte, "cell_occ", data);
     check_cuda(block_occ, at::kByte, "block_occ", data);
     TORCH_CHECK(degree >= 0 && degree <= 3, "sh_degree must be 0..3, got ", degree);
-    TORCH_CHECK(data.dim() == 2 && data.size(1) == padded_stride(1 + 3 * (int)((degree + 1) * (degree + 1))),
+    TORCH_CHECK(data.dim() == 2 && data.size(1) == row_stride((int)degree),
                 "data must be [N, padded row] for this SH degree");
     TORCH_CHECK(links.dim() == 3 && links.size(0) >= 2 && links.size(1) >= 2 && links.size(2) >= 2,
                 "links must be [Rx,Ry,Rz] with every size >= 2");
@@ -136,7 +138,7 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
                                                   Tensor dirs, Tensor targets, Tensor background, double step,
                                                   double stop_transmittance, double near, double sigma_threshold,
                                                   int64_t max_samples, Tensor grad_data, Tensor grad_mask,
-                                                  Tensor grad_rows, int64_t num_touched) {
+                                                  Tensor grad_rows, int64_t num_touched, Tensor, Tensor) {
     const c10::cuda::CUDAGuard guard(data.device());
     const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, bmin, bmax, degree);
     const plx_cuda::Rays rays = make_rays(origins, dirs, data);
@@ -161,7 +163,7 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
     return {total, grad_background, compact_touched(grad_mask, grad_rows)};
 }
 
-Tensor max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
+void max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
                    c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree, Tensor origins,
                    Tensor dirs, double step, double stop_transmittance, double near, double sigma_threshold,
                    int64_t max_samples, Tensor out) {
@@ -173,7 +175,6 @@ Tensor max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ,
     check_launch(plx_cuda::max_weights(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples),
                                        rays, out.data_ptr<float>(), stream()),
                  "max_weights");
-    return out;
 }
 
 std::tuple<int64_t, int64_t> sample_counts(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
@@ -224,7 +225,7 @@ void count_live_blocks(Tensor data, Tensor coords, int64_t block, Tensor counts,
 std::tuple<double, int64_t> tv_loss_and_grad(Tensor data, Tensor links, Tensor coords, Tensor sample_rows,
                                               double weight_density, double weight_sh, int64_t degree,
                                               Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
-                                              int64_t num_touched) {
+                                              int64_t num_touched, Tensor, Tensor) {
     const c10::cuda::CUDAGuard guard(data.device());
     check_cuda(data, at::kFloat, "data", data);
     check_cuda(links, at::kInt, "links", data);
@@ -299,6 +300,29 @@ std::vector<Tensor> build_occupancy(Tensor links, int64_t block) {
     return {cells, blocks};
 }
 
+// No per-thread buffers on the GPU: empty scratch on the gradient's device.
+std::vector<Tensor> grad_scratch(Tensor grad_data) {
+    return {at::empty({0, grad_data.size(0), grad_data.size(1)}, grad_data.options()),
+            at::empty({0, grad_data.size(0)}, grad_data.options().dtype(at::kByte))};
+}
+
+Tensor sample(Tensor data, Tensor links, Tensor points) {
+    const c10::cuda::CUDAGuard guard(data.device());
+    check_cuda(data, at::kFloat, "data", data);
+    check_cuda(links, at::kInt, "links", data);
+    check_cuda(points, at::kFloat, "points", data);
+    TORCH_CHECK(data.dim() == 2, "data must be [N, S]");
+    TORCH_CHECK(links.dim() == 3 && links.size(0) >= 2 && links.size(1) >= 2 && links.size(2) >= 2,
+                "links must be [Rx,Ry,Rz] with every size >= 2");
+    TORCH_CHECK(points.dim() == 2 && points.size(1) == 3, "points must be [P,3]");
+    const int res[3] = {(int)links.size(0), (int)links.size(1), (int)links.size(2)};
+    Tensor out = at::empty({points.size(0), data.size(1)}, data.options());
+    check_launch(plx_cuda::sample(data.data_ptr<float>(), (int)data.size(1), links.data_ptr<int32_t>(), res,
+                                  points.data_ptr<float>(), points.size(0), out.data_ptr<float>(), stream()),
+                 "sample");
+    return out;
+}
+
 Tensor row_coords(Tensor links, int64_t rows) {
     const c10::cuda::CUDAGuard guard(links.device());
     check_cuda(links, at::kInt, "links", links);
@@ -312,16 +336,18 @@ Tensor row_coords(Tensor links, int64_t rows) {
 
 }  // namespace
 
-TORCH_LIBRARY(plenoxels_cuda, m) {
-    m.def("render", &render);
-    m.def("loss_and_grad", &loss_and_grad);
-    m.def("max_weights", &max_weights);
-    m.def("sample_counts", &sample_counts);
-    m.def("count_live_blocks", &count_live_blocks);
-    m.def("tv_loss_and_grad", &tv_loss_and_grad);
-    m.def("rmsprop_step", &rmsprop_step);
-    m.def("build_occupancy", &build_occupancy);
-    m.def("row_coords", &row_coords);
+TORCH_LIBRARY_IMPL(voxfield, CUDA, m) {
+    m.impl("grad_scratch", &grad_scratch);
+    m.impl("build_occupancy", &build_occupancy);
+    m.impl("count_live_blocks", &count_live_blocks);
+    m.impl("row_coords", &row_coords);
+    m.impl("sample", &sample);
+    m.impl("render", &render);
+    m.impl("loss_and_grad", &loss_and_grad);
+    m.impl("max_weights", &max_weights);
+    m.impl("sample_counts", &sample_counts);
+    m.impl("tv_loss_and_grad", &tv_loss_and_grad);
+    m.impl("rmsprop_step", &rmsprop_step);
 }
 
 #endif  // PLX_WITH_CUDA

@@ -110,6 +110,10 @@ cudaError_t rmsprop_step(const RMSPropArgs& args, const LiveBlocks& live, cudaSt
 cudaError_t build_occupancy(const int32_t* links, const int res[3], int block, uint8_t* cells, uint8_t* blocks,
                             cudaStream_t stream);
 
+// out[p] = trilinear interpolation of the stride columns at grid point points[p] (zeros outside the box).
+cudaError_t sample(const float* data, int stride, const int32_t* links, const int res[3], const float* points,
+                   int64_t count, float* out, cudaStream_t stream);
+
 // out[row] = (x, y, z) of every allocated row below `rows`; out must be prefilled with -1.
 cudaError_t row_coords(const int32_t* links, const int res[3], int64_t rows, int32_t* out, cudaStream_t stream);
 

@@ -3,25 +3,31 @@
 //
 // Parameters live in one packed table `data` [N, S]: column 0 is raw density, columns 1..3K the SH
 // coefficients (K per channel, R then G then B), the rest padding so that rows are whole vectors.
-// Gradients use the same layout. Each thread accumulates into its own lazily allocated buffer (the
-// first thread writes straight into the caller's), and a thread records which rows it touched, so
-// no step ever zeroes or scans the whole grid.
-#include <torch/extension.h>
+// Gradients use the same layout. Each thread accumulates into its own buffer of the caller's
+// scratch (grad_scratch: zero pages mapped on first touch; the first thread writes straight into the
+// caller's gradient), and a thread records which rows it touched, so no step ever zeroes or scans
+// the whole grid. The operator schema is declared once in ops.cpp; this file registers the CPU
+// implementations.
+#include <ATen/ATen.h>
+#include <torch/library.h>
 
 #include <omp.h>
 #include <sys/mman.h>
 
 #include <algorithm>
+#include <cmath>
 #include <cstdlib>
 #include <cstring>
 #include <memory>
+#include <optional>
+#include <tuple>
 #include <vector>
 
 #include "plenoxels_math.h"
 
 namespace {
 
-constexpr int padded_stride(int columns) { return columns <= 4 ? 4 : (columns + 15) / 16 * 16; }
+using plx::row_stride;
 
 struct GridView {
     const float* data;
@@ -45,9 +51,8 @@ struct MarchOptions {
 
 using Ray = plx::RayMarch;
 
-GridView make_view(const torch::Tensor& data, const torch::Tensor& links, const torch::Tensor& cell_occ,
-                   const torch::Tensor& block_occ, int block, const std::vector<double>& bmin,
-                   const std::vector<double>& bmax) {
+GridView make_view(const at::Tensor& data, const at::Tensor& links, const at::Tensor& cell_occ,
+                   const at::Tensor& block_occ, int block, c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax) {
     GridView g;
     g.data = data.data_ptr<float>();
     g.links = links.data_ptr<int32_t>();
@@ -162,47 +167,58 @@ bool advise_huge_pages(void* ptr, size_t bytes) {
     return madvise((void*)begin, end - begin, MADV_HUGEPAGE) == 0;
 }
 
-// Per-thread gradient accumulation into the packed [N, S] layout, with touched-row bookkeeping.
+// Per-thread gradient accumulation into the packed [N, S] layout, with touched-row bookkeeping:
+// a view of the caller's scratch tensors (grad_scratch), whose slot t-1 belongs to thread t. Every
+// call leaves them all zero again (merge clears what it adds).
 class ThreadGrads {
    public:
-    ThreadGrads(int64_t rows, int stride) : rows_(rows), stride_(stride) {}
-    ~ThreadGrads() {
-        for (float* b : buffers_) std::free(b);
-        for (uint8_t* m : masks_) std::free(m);
+    ThreadGrads(const at::Tensor& grad_data, const at::Tensor& scratch_grad, const at::Tensor& scratch_mask)
+        : rows_(grad_data.size(0)), stride_((int)grad_data.size(1)) {
+        TORCH_CHECK(scratch_grad.device().is_cpu() && scratch_grad.scalar_type() == at::kFloat &&
+                        scratch_grad.is_contiguous() && scratch_grad.dim() == 3 && scratch_grad.size(1) == rows_ &&
+                        scratch_grad.size(2) == stride_,
+                    "scratch gradient must be float32 [threads-1, N, S] for this grid (grad_scratch)");
+        TORCH_CHECK(scratch_mask.device().is_cpu() && scratch_mask.scalar_type() == at::kByte &&
+                        scratch_mask.is_contiguous() && scratch_mask.dim() == 2 &&
+                        scratch_mask.size(0) == scratch_grad.size(0) && scratch_mask.size(1) == rows_,
+                    "scratch mask must be uint8 [threads-1, N] (grad_scratch)");
+        threads_ = std::min<int>(omp_get_max_threads(), (int)scratch_grad.size(0) + 1);
+        buffers_ = scratch_grad.data_ptr<float>();
+        masks_ = scratch_mask.data_ptr<uint8_t>();
+        lists_.resize(threads_);
     }
-    ThreadGrads(const ThreadGrads&) = delete;
-    ThreadGrads& operator=(const ThreadGrads&) = delete;
 
-    int64_t rows() const { return rows_; }
     int stride() const { return stride_; }
-
-    // Allocates the slots of threads 1..threads-1 (thread 0 writes into the caller's tensors); call
-    // outside parallel regions. calloc of a large block maps zero pages lazily, so a thread's buffer
-    // costs memory only for the rows it ever touches.
-    void reserve(int threads) {
-        if ((int)buffers_.size() >= threads) return;
-        const int first = (int)buffers_.size();
-        buffers_.resize(threads, nullptr);
-        masks_.resize(threads, nullptr);
-        lists_.resize(threads);
-        for (int t = std::max(first, 1); t < threads; ++t) {
-            buffers_[t] = (float*)std::calloc((size_t)rows_ * stride_, sizeof(float));
-            masks_[t] = (uint8_t*)std::calloc((size_t)rows_, 1);
-            TORCH_CHECK(buffers_[t] && masks_[t], "out of memory for per-thread gradient buffers");
-            advise_huge_pages(buffers_[t], (size_t)rows_ * stride_ * sizeof(float));
-        }
-    }
-    float* buffer(int thread) { return buffers_[thread]; }
-    uint8_t* mask(int thread) { return masks_[thread]; }
+    // Threads a parallel region may use: one per scratch slot plus the caller's.
+    int threads() const { return threads_; }
+    float* buffer(int thread) { return buffers_ + (int64_t)(thread - 1) * rows_ * stride_; }
+    uint8_t* mask(int thread) { return masks_ + (int64_t)(thread - 1) * rows_; }
     std::vector<int32_t>& list(int thread) { return lists_[thread]; }
 
    private:
     int64_t rows_;
     int stride_;
-    std::vector<float*> buffers_;
-    std::vector<uint8_t*> masks_;
+    int threads_;
+    float* buffers_;
+    uint8_t* masks_;
     std::vector<std::vector<int32_t>> lists_;
 };
+
+// Zeroed per-thread scratch for a gradient table: slots for threads 1..T-1 of T = omp_get_max_threads().
+// calloc maps zero pages lazily, so a thread's slot costs memory only for the rows it ever touches.
+std::vector<at::Tensor> grad_scratch(const at::Tensor& grad_data) {
+    TORCH_CHECK(grad_data.device().is_cpu() && grad_data.dim() == 2, "grad data must be a CPU [N, S] table");
+    const int64_t slots = std::max(omp_get_max_threads() - 1, 0), rows = grad_data.size(0), stride = grad_data.size(1);
+    const auto zeroed = [](int64_t count, size_t size, at::IntArrayRef shape, at::ScalarType type, bool huge) {
+        if (count == 0) return at::zeros(shape, at::TensorOptions().dtype(type));
+        void* p = std::calloc((size_t)count, size);
+        TORCH_CHECK(p, "out of memory for per-thread gradient buffers");
+        if (huge) advise_huge_pages(p, (size_t)count * size);
+        return at::from_blob(p, shape, [](void* q) { std::free(q); }, at::TensorOptions().dtype(type));
+    };
+    return {zeroed(slots * rows * stride, sizeof(float), {slots, rows, stride}, at::kFloat, true),
+            zeroed(slots * rows, 1, {slots, rows}, at::kByte, false)};
+}
 
 // Where one thread writes gradients: thread 0 writes into the caller's tensors.
 struct GradSink {
@@ -265,8 +281,8 @@ void merge(GradTarget* target, ThreadGrads* scratch, int threads) {
     }
 }
 
-void check_float_rows(const torch::Tensor& t, const char* name) {
-    TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == torch::kFloat32 && t.is_contiguous(), name,
+void check_float_rows(const at::Tensor& t, const char* name) {
+    TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == at::kFloat && t.is_contiguous(), name,
                 " must be a contiguous float32 CPU tensor");
 }
 
@@ -274,7 +290,7 @@ template <int D>
 void render_impl(const GridView& g, const MarchOptions& opt, const float* origins, const float* dirs,
                  const float* background, int64_t B, float* rgb, float* depth, float* opacity) {
     constexpr int K = (D + 1) * (D + 1);
-    constexpr int S = padded_stride(1 + 3 * K);
+    constexpr int S = row_stride(D);
 #pragma omp parallel
     {
         alignas(64) float interp[S];
@@ -306,11 +322,10 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
                       const float* targets, const float* background, int64_t B, float loss_scale,
                       float* grad_background, GradTarget* target, ThreadGrads* scratch) {
     constexpr int K = (D + 1) * (D + 1);
-    constexpr int S = padded_stride(1 + 3 * K);
-    const int threads = omp_get_max_threads();
-    scratch->reserve(threads);
+    constexpr int S = row_stride(D);
+    const int threads = scratch->threads();
     double sse = 0.0;
-#pragma omp parallel reduction(+ : sse)
+#pragma omp parallel num_threads(threads) reduction(+ : sse)
     {
         GradSink sink = sink_for(omp_get_thread_num(), target, scratch);
         std::vector<Sample> samples;
@@ -380,8 +395,7 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
 template <int D>
 void max_weights_impl(const GridView& g, const MarchOptions& opt, const float* origins, const float* dirs,
                       int64_t B, float* out) {
-    constexpr int K = (D + 1) * (D + 1);
-    constexpr int S = padded_stride(1 + 3 * K);
+    constexpr int S = row_stride(D);
     uint32_t* bits = reinterpret_cast<uint32_t*>(out);  // non-negative floats order like their bits
 #pragma omp parallel
     {
@@ -411,8 +425,7 @@ void max_weights_impl(const GridView& g, const MarchOptions& opt, const float* o
 template <int D>
 void sample_counts_impl(const GridView& g, const MarchOptions& opt, const float* origins, const float* dirs, int64_t B,
                         int64_t* lattice, int64_t* used) {
-    constexpr int K = (D + 1) * (D + 1);
-    constexpr int S = padded_stride(1 + 3 * K);
+    constexpr int S = row_stride(D);
     int64_t lattice_total = 0, used_total = 0;
 #pragma omp parallel reduction(+ : lattice_total, used_total)
     {
@@ -432,7 +445,7 @@ void sample_counts_impl(const GridView& g, const MarchOptions& opt, const float*
     *used = used_total;
 }
 
-using torch::Tensor;
+using at::Tensor;
 
 MarchOptions make_options(double step, double stop_transmittance, double near, double sigma_threshold,
                           int64_t max_samples) {
@@ -451,12 +464,12 @@ MarchOptions make_options(double step, double stop_transmittance, double near, d
 void check_grid(const Tensor& data, const Tensor& links, const Tensor& cell_occ, const Tensor& block_occ, int degree) {
     check_float_rows(data, "data");
     TORCH_CHECK(degree >= 0 && degree <= 3, "sh_degree must be 0..3");
-    TORCH_CHECK(data.dim() == 2 && data.size(1) == padded_stride(1 + 3 * (degree + 1) * (degree + 1)),
+    TORCH_CHECK(data.dim() == 2 && data.size(1) == row_stride(degree),
                 "data must be [N, padded row] for this SH degree");
-    TORCH_CHECK(links.scalar_type() == torch::kInt32 && links.is_contiguous() && links.dim() == 3, "links must be int32 [Rx,Ry,Rz]");
+    TORCH_CHECK(links.scalar_type() == at::kInt && links.is_contiguous() && links.dim() == 3, "links must be int32 [Rx,Ry,Rz]");
     TORCH_CHECK(links.size(0) >= 2 && links.size(1) >= 2 && links.size(2) >= 2, "grid resolution must be >= 2 per axis");
-    TORCH_CHECK(cell_occ.scalar_type() == torch::kUInt8 && cell_occ.is_contiguous(), "cell_occ must be uint8");
-    TORCH_CHECK(block_occ.scalar_type() == torch::kUInt8 && block_occ.is_contiguous() && block_occ.dim() == 3, "block_occ must be uint8 3-D");
+    TORCH_CHECK(cell_occ.scalar_type() == at::kByte && cell_occ.is_contiguous(), "cell_occ must be uint8");
+    TORCH_CHECK(block_occ.scalar_type() == at::kByte && block_occ.is_contiguous() && block_occ.dim() == 3, "block_occ must be uint8 3-D");
 }
 
 void check_rays(const Tensor& origins, const Tensor& dirs) {
@@ -466,8 +479,8 @@ void check_rays(const Tensor& origins, const Tensor& dirs) {
 }
 
 std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
-                           std::vector<double> bmin, std::vector<double> bmax, int64_t degree, Tensor origins,
-                           Tensor dirs, c10::optional<Tensor> background, double step, double stop_transmittance,
+                           c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree, Tensor origins,
+                           Tensor dirs, std::optional<Tensor> background, double step, double stop_transmittance,
                            double near, double sigma_threshold, int64_t max_samples) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
     check_rays(origins, dirs);
@@ -480,21 +493,21 @@ std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor bl
     }
     const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
     const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples);
-    Tensor rgb = torch::empty({B, 3}, data.options());
-    Tensor depth = torch::empty({B}, data.options());
-    Tensor opacity = torch::empty({B}, data.options());
+    Tensor rgb = at::empty({B, 3}, data.options());
+    Tensor depth = at::empty({B}, data.options());
+    Tensor opacity = at::empty({B}, data.options());
     PLX_DISPATCH_DEGREE(degree, render_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(), bg, B,
                                                rgb.data_ptr<float>(), depth.data_ptr<float>(), opacity.data_ptr<float>()));
     return {rgb, depth, opacity};
 }
 
 std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ,
-                                                  int64_t block, std::vector<double> bmin, std::vector<double> bmax,
+                                                  int64_t block, c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax,
                                                   int64_t degree, Tensor origins, Tensor dirs, Tensor targets,
                                                   Tensor background, double step, double stop_transmittance,
                                                   double near, double sigma_threshold, int64_t max_samples,
                                                   Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
-                                                  int64_t num_touched, ThreadGrads& scratch) {
+                                                  int64_t num_touched, Tensor scratch_grad, Tensor scratch_mask) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
     check_rays(origins, dirs);
     check_float_rows(targets, "targets");
@@ -502,11 +515,11 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
     check_float_rows(grad_data, "grad data");
     TORCH_CHECK(targets.sizes() == origins.sizes() && background.sizes() == origins.sizes(), "targets and background must be [B,3]");
     TORCH_CHECK(grad_data.sizes() == data.sizes(), "gradient storage does not match the grid");
-    TORCH_CHECK(scratch.rows() == data.size(0) && scratch.stride() == data.size(1), "scratch does not match the grid");
+    ThreadGrads scratch(grad_data, scratch_grad, scratch_mask);
     const int64_t B = origins.size(0);
     const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
     const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples);
-    Tensor grad_background = torch::empty({B, 3}, data.options());
+    Tensor grad_background = at::empty({B, 3}, data.options());
     GradTarget target{grad_data.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), grad_rows.data_ptr<int32_t>(), num_touched};
     const float loss_scale = B > 0 ? 1.0f / (3.0f * (float)B) : 0.0f;
     double sse = 0.0;
@@ -516,8 +529,8 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
     return {sse, grad_background, target.count};
 }
 
-Tensor max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
-                   std::vector<double> bmin, std::vector<double> bmax, int64_t degree, Tensor origins, Tensor dirs,
+void max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
+                   c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree, Tensor origins, Tensor dirs,
                    double step, double stop_transmittance, double near, double sigma_threshold, int64_t max_samples,
                    Tensor out) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
@@ -528,12 +541,11 @@ Tensor max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ,
     const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples);
     PLX_DISPATCH_DEGREE(degree, max_weights_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
                                                     origins.size(0), out.data_ptr<float>()));
-    return out;
 }
 
 // (samples on the rays' lattices inside the box, samples that contributed): for benchmarks and reports.
 std::tuple<int64_t, int64_t> sample_counts(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
-                                           std::vector<double> bmin, std::vector<double> bmax, int64_t degree,
+                                           c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree,
                                            Tensor origins, Tensor dirs, double step, double stop_transmittance,
                                            double near, double sigma_threshold, int64_t max_samples) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
@@ -576,9 +588,9 @@ inline void add_live_vertex(const int32_t* xyz, int block, const int nb[3], int3
 // and empty corners count as 0), so the march skips it whatever sigma_threshold (>= 0) is.
 void count_live_blocks(Tensor data, Tensor coords, int64_t block, Tensor counts, Tensor blocks) {
     check_float_rows(data, "data");
-    TORCH_CHECK(coords.scalar_type() == torch::kInt32 && coords.is_contiguous(), "coords must be int32 [N,3]");
-    TORCH_CHECK(counts.scalar_type() == torch::kInt32 && counts.is_contiguous() && counts.dim() == 3, "counts must be int32 3-D");
-    TORCH_CHECK(blocks.scalar_type() == torch::kUInt8 && blocks.is_contiguous() && blocks.sizes() == counts.sizes(), "blocks must be uint8 like counts");
+    TORCH_CHECK(coords.scalar_type() == at::kInt && coords.is_contiguous(), "coords must be int32 [N,3]");
+    TORCH_CHECK(counts.scalar_type() == at::kInt && counts.is_contiguous() && counts.dim() == 3, "counts must be int32 3-D");
+    TORCH_CHECK(blocks.scalar_type() == at::kByte && blocks.is_contiguous() && blocks.sizes() == counts.sizes(), "blocks must be uint8 like counts");
     counts.zero_();
     const int64_t n = data.size(0), S = data.size(1), nblocks = counts.numel();
     const int nb[3] = {(int)counts.size(0), (int)counts.size(1), (int)counts.size(2)};
@@ -599,13 +611,13 @@ void count_live_blocks(Tensor data, Tensor coords, int64_t block, Tensor counts,
 // Occupancy for empty-space skipping: a cell is occupied when any of its corners is allocated, a
 // block when any of its cells is.
 std::vector<Tensor> build_occupancy(Tensor links, int64_t block) {
-    TORCH_CHECK(links.scalar_type() == torch::kInt32 && links.is_contiguous() && links.dim() == 3, "links must be int32 [Rx,Ry,Rz]");
+    TORCH_CHECK(links.scalar_type() == at::kInt && links.is_contiguous() && links.dim() == 3, "links must be int32 [Rx,Ry,Rz]");
     const int64_t rx = links.size(0), ry = links.size(1), rz = links.size(2);
     TORCH_CHECK(rx >= 2 && ry >= 2 && rz >= 2, "grid resolution must be >= 2 per axis");
     const int64_t cx = rx - 1, cy = ry - 1, cz = rz - 1;
     const int64_t bx = (cx + block - 1) / block, by = (cy + block - 1) / block, bz = (cz + block - 1) / block;
-    Tensor cells = torch::zeros({cx, cy, cz}, torch::kUInt8);
-    Tensor blocks = torch::zeros({bx, by, bz}, torch::kUInt8);
+    Tensor cells = at::zeros({cx, cy, cz}, at::kByte);
+    Tensor blocks = at::zeros({bx, by, bz}, at::kByte);
     const int32_t* l = links.data_ptr<int32_t>();
     uint8_t* c = cells.data_ptr<uint8_t>();
     uint8_t* bl = blocks.data_ptr<uint8_t>();
@@ -645,11 +657,11 @@ std::vector<Tensor> build_occupancy(Tensor links, int64_t block) {
 std::tuple<double, int64_t> tv_loss_and_grad(Tensor data, Tensor links, Tensor coords, Tensor sample_rows,
                                               double weight_density, double weight_sh, int64_t degree,
                                               Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
-                                              int64_t num_touched, ThreadGrads& scratch) {
+                                              int64_t num_touched, Tensor scratch_grad, Tensor scratch_mask) {
     check_float_rows(data, "data");
     check_float_rows(grad_data, "grad data");
-    TORCH_CHECK(coords.scalar_type() == torch::kInt32 && coords.is_contiguous(), "coords must be int32 [N,3]");
-    TORCH_CHECK(sample_rows.scalar_type() == torch::kInt64 && sample_rows.is_contiguous(), "sample rows must be int64");
+    TORCH_CHECK(coords.scalar_type() == at::kInt && coords.is_contiguous(), "coords must be int32 [N,3]");
+    TORCH_CHECK(sample_rows.scalar_type() == at::kLong && sample_rows.is_contiguous(), "sample rows must be int64");
     const int S = (int)data.size(1);
     const int C = 1 + 3 * (int)((degree + 1) * (degree + 1));
     const int res[3] = {(int)links.size(0), (int)links.size(1), (int)links.size(2)};
@@ -660,12 +672,12 @@ std::tuple<double, int64_t> tv_loss_and_grad(Tensor data, Tensor links, Tensor c
     const int32_t* xyz = coords.data_ptr<int32_t>();
     const int64_t* rows = sample_rows.data_ptr<int64_t>();
     GradTarget target{grad_data.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), grad_rows.data_ptr<int32_t>(), num_touched};
-    const int threads = omp_get_max_threads();
-    scratch.reserve(threads);
+    ThreadGrads scratch(grad_data, scratch_grad, scratch_mask);
+    const int threads = scratch.threads();
     const int c_begin = weight_density != 0.0 ? 0 : 1;
     const int c_end = weight_sh != 0.0 ? C : 1;
     double loss = 0.0;
-#pragma omp parallel reduction(+ : loss)
+#pragma omp parallel num_threads(threads) reduction(+ : loss)
     {
         GradSink sink = sink_for(omp_get_thread_num(), &target, &scratch);
 #pragma omp for schedule(static)
@@ -706,11 +718,12 @@ std::tuple<double, int64_t> tv_loss_and_grad(Tensor data, Tensor links, Tensor c
 
 // RMSProp on the touched rows only: v = beta v + (1 - beta) g^2; p -= lr g / (sqrt(v) + eps).
 // Clears the gradient of those rows afterwards. A zero gradient with zero v moves nothing.
-// When `live` = (coords, block, counts, blocks) is given, a row whose density changes sign updates the
+// When live coords, block, counts and blocks are given, a row whose density changes sign updates the
 // live-block counts so that empty-space skipping stays exact without a rebuild.
 void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
                   int64_t num_touched, int64_t columns, double lr_density, double lr_sh, double beta, double eps,
-                  c10::optional<std::tuple<Tensor, int64_t, Tensor, Tensor>> live) {
+                  std::optional<Tensor> live_coords, int64_t live_block, std::optional<Tensor> live_counts,
+                  std::optional<Tensor> live_blocks) {
     check_float_rows(data, "data");
     check_float_rows(second_moment, "second moment");
     check_float_rows(grad_data, "grad data");
@@ -726,15 +739,17 @@ void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor gr
     int32_t* counts = nullptr;
     uint8_t* blocks = nullptr;
     int block = 1, nb[3] = {0, 0, 0};
-    if (live.has_value()) {
-        const Tensor& c = std::get<0>(*live);
-        const Tensor& n = std::get<2>(*live);
-        const Tensor& b = std::get<3>(*live);
-        TORCH_CHECK(c.scalar_type() == torch::kInt32 && c.is_contiguous() && c.size(0) == data.size(0), "coords must be int32 [N,3]");
-        TORCH_CHECK(n.scalar_type() == torch::kInt32 && n.is_contiguous() && n.dim() == 3, "counts must be int32 3-D");
-        TORCH_CHECK(b.scalar_type() == torch::kUInt8 && b.is_contiguous() && b.sizes() == n.sizes(), "blocks must be uint8 like counts");
+    if (live_coords.has_value()) {
+        TORCH_CHECK(live_counts.has_value() && live_blocks.has_value() && live_block > 0,
+                    "live bookkeeping needs coords, block, counts and blocks");
+        const Tensor& c = *live_coords;
+        const Tensor& n = *live_counts;
+        const Tensor& b = *live_blocks;
+        TORCH_CHECK(c.scalar_type() == at::kInt && c.is_contiguous() && c.size(0) == data.size(0), "coords must be int32 [N,3]");
+        TORCH_CHECK(n.scalar_type() == at::kInt && n.is_contiguous() && n.dim() == 3, "counts must be int32 3-D");
+        TORCH_CHECK(b.scalar_type() == at::kByte && b.is_contiguous() && b.sizes() == n.sizes(), "blocks must be uint8 like counts");
         xyz = c.data_ptr<int32_t>();
-        block = (int)std::get<1>(*live);
+        block = (int)live_block;
         counts = n.data_ptr<int32_t>();
         blocks = b.data_ptr<uint8_t>();
         for (int a = 0; a < 3; ++a) nb[a] = (int)n.size(a);
@@ -767,10 +782,31 @@ void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor gr
     }
 }
 
+// Trilinear interpolation of every packed column at grid-frame points [P, 3]: [P, S], zeros outside the box.
+Tensor sample(Tensor data, Tensor links, Tensor points) {
+    check_float_rows(data, "data");
+    check_float_rows(points, "points");
+    TORCH_CHECK(data.dim() == 2, "data must be [N, S]");
+    TORCH_CHECK(links.scalar_type() == at::kInt && links.is_contiguous() && links.dim() == 3, "links must be int32 [Rx,Ry,Rz]");
+    TORCH_CHECK(links.size(0) >= 2 && links.size(1) >= 2 && links.size(2) >= 2, "grid resolution must be >= 2 per axis");
+    TORCH_CHECK(points.dim() == 2 && points.size(1) == 3, "points must be [P,3]");
+    const int64_t P = points.size(0);
+    const int S = (int)data.size(1);
+    const int res[3] = {(int)links.size(0), (int)links.size(1), (int)links.size(2)};
+    Tensor out = at::empty({P, S}, data.options());
+    const float* d = data.data_ptr<float>();
+    const int32_t* l = links.data_ptr<int32_t>();
+    const float* g = points.data_ptr<float>();
+    float* o = out.data_ptr<float>();
+#pragma omp parallel for schedule(static)
+    for (int64_t p = 0; p < P; ++p) plx::interpolate_point(d, S, l, res, g + 3 * p, o + p * S);
+    return out;
+}
+
 // Grid coordinates (x, y, z) of every allocated row.
 Tensor row_coords(Tensor links, int64_t rows) {
-    TORCH_CHECK(links.scalar_type() == torch::kInt32 && links.is_contiguous() && links.dim() == 3, "links must be int32 [Rx,Ry,Rz]");
-    Tensor out = torch::full({rows, 3}, -1, torch::kInt32);
+    TORCH_CHECK(links.scalar_type() == at::kInt && links.is_contiguous() && links.dim() == 3, "links must be int32 [Rx,Ry,Rz]");
+    Tensor out = at::full({rows, 3}, -1, at::kInt);
     const int64_t ry = links.size(1), rz = links.size(2), total = links.numel();
     const int32_t* l = links.data_ptr<int32_t>();
     int32_t* o = out.data_ptr<int32_t>();
@@ -787,28 +823,20 @@ Tensor row_coords(Tensor links, int64_t rows) {
 
 }  // namespace
 
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-    m.doc() = "Plenoxels CPU kernels (C++/OpenMP)";
-    pybind11::class_<ThreadGrads>(m, "ThreadGrads")
-        .def(pybind11::init<int64_t, int>())
-        .def_property_readonly("rows", &ThreadGrads::rows)
-        .def_property_readonly("stride", &ThreadGrads::stride);
-    m.def("padded_stride", [](int columns) { return padded_stride(columns); });
-    m.def("num_threads", []() { return omp_get_max_threads(); });
-    m.def("advise_huge_pages", [](const Tensor& t) {
-        TORCH_CHECK(t.device().is_cpu() && t.is_contiguous(), "advise_huge_pages needs a contiguous CPU tensor");
+TORCH_LIBRARY_IMPL(voxfield, CPU, m) {
+    m.impl("advise_huge_pages", [](const Tensor& t) {
+        TORCH_CHECK(t.is_contiguous(), "advise_huge_pages needs a contiguous CPU tensor");
         return advise_huge_pages(t.data_ptr(), (size_t)t.nbytes());
     });
-    m.def("build_occupancy", &build_occupancy);
-    m.def("count_live_blocks", &count_live_blocks);
-    m.def("row_coords", &row_coords);
-    m.def("render", &render);
-    m.def("loss_and_grad", &loss_and_grad);
-    m.def("max_weights", &max_weights);
-    m.def("sample_counts", &sample_counts);
-    m.def("tv_loss_and_grad", &tv_loss_and_grad);
-    m.def("rmsprop_step", &rmsprop_step, pybind11::arg("data"), pybind11::arg("second_moment"),
-          pybind11::arg("grad_data"), pybind11::arg("grad_mask"), pybind11::arg("grad_rows"),
-          pybind11::arg("num_touched"), pybind11::arg("columns"), pybind11::arg("lr_density"),
-          pybind11::arg("lr_sh"), pybind11::arg("beta"), pybind11::arg("eps"), pybind11::arg("live") = pybind11::none());
+    m.impl("grad_scratch", &grad_scratch);
+    m.impl("build_occupancy", &build_occupancy);
+    m.impl("count_live_blocks", &count_live_blocks);
+    m.impl("row_coords", &row_coords);
+    m.impl("sample", &sample);
+    m.impl("render", &render);
+    m.impl("loss_and_grad", &loss_and_grad);
+    m.impl("max_weights", &max_weights);
+    m.impl("sample_counts", &sample_counts);
+    m.impl("tv_loss_and_grad", &tv_loss_and_grad);
+    m.impl("rmsprop_step", &rmsprop_step);
 }

@@ -349,6 +349,15 @@ __global__ void row_coords_kernel(const int32_t* __restrict__ links, int ry, int
     out[3 * (int64_t)r + 2] = (int32_t)(i % rz);
 }
 
+__global__ void sample_kernel(const float* __restrict__ data, int stride, const int32_t* __restrict__ links,
+                              int rx, int ry, int rz, const float* __restrict__ points, int64_t count,
+                              float* __restrict__ out) {
+    const int64_t p = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    if (p >= count) return;
+    const int res[3] = {rx, ry, rz};
+    plx::interpolate_point(data, stride, links, res, points + 3 * p, out + p * stride);
+}
+
 }  // namespace
 
 #define PLX_CUDA_DEGREE(degree, ...)                   \
@@ -441,6 +450,14 @@ cudaError_t row_coords(const int32_t* links, const int res[3], int64_t rows, int
     const int64_t total = (int64_t)res[0] * res[1] * res[2];
     if (total == 0) return cudaSuccess;
     row_coords_kernel<<<blocks_for(total), kThreads, 0, stream>>>(links, res[1], res[2], total, rows, out);
+    return cudaGetLastError();
+}
+
+cudaError_t sample(const float* data, int stride, const int32_t* links, const int res[3], const float* points,
+                   int64_t count, float* out, cudaStream_t stream) {
+    if (count == 0) return cudaSuccess;
+    sample_kernel<<<blocks_for(count), kThreads, 0, stream>>>(data, stride, links, res[0], res[1], res[2], points, count,
+                                                              out);
     return cudaGetLastError();
 }
 

@@ -42,7 +42,15 @@ constexpr float kSH_C3_6 = -0.5900435899266435f;
 constexpr float kColourOffset = 0.5f;
 
 // Number of SH coefficients per colour channel for a degree.
-PLX_HD int sh_count(int degree) { return (degree + 1) * (degree + 1); }
+PLX_HD constexpr int sh_count(int degree) { return (degree + 1) * (degree + 1); }
+
+// Floats per packed parameter row of `columns` values (raw density, then 3K SH coefficients):
+// rounded up to whole 16-float (64-byte) vectors, or 4 floats for a row that fits in one float4, so
+// a row is one or a few aligned loads on either device. The one definition of the row layout.
+PLX_HD constexpr int padded_stride(int columns) { return columns <= 4 ? 4 : (columns + 15) / 16 * 16; }
+
+// Floats per packed row for an SH degree.
+PLX_HD constexpr int row_stride(int degree) { return padded_stride(1 + 3 * sh_count(degree)); }
 
 // Evaluates the first (degree+1)^2 basis functions at unit direction (x, y, z) into `out`.
 PLX_HD void sh_basis(int degree, float x, float y, float z, float* out) {
@@ -233,6 +241,25 @@ PLX_HD void trilinear(const float g[3], const int res[3], int cell[3], float w[8
 PLX_HD int64_t corner_index(const int cell[3], const int res[3], int c) {
     const int x = cell[0] + ((c >> 2) & 1), y = cell[1] + ((c >> 1) & 1), z = cell[2] + (c & 1);
     return ((int64_t)x * res[1] + y) * res[2] + z;
+}
+
+// Trilinear interpolation of the packed rows at grid point g (float32, not clamped: a point outside
+// [0, res-1] on any axis, or NaN, gives zeros): out[0..stride) = sum_c w_c * row_c, an unallocated
+// corner counting as zeros. Corners are summed in order c = 0..7, as the PyTorch twin does.
+PLX_HD void interpolate_point(const float* data, int stride, const int32_t* links, const int res[3], const float g[3],
+                              float* out) {
+    for (int k = 0; k < stride; ++k) out[k] = 0.0f;
+    for (int a = 0; a < 3; ++a)
+        if (!(g[a] >= 0.0f && g[a] <= (float)(res[a] - 1))) return;
+    int cell[3];
+    float w[8];
+    trilinear(g, res, cell, w);
+    for (int c = 0; c < 8; ++c) {
+        const int32_t row = links[corner_index(cell, res, c)];
+        if (row < 0) continue;
+        const float* v = data + (int64_t)row * stride;
+        for (int k = 0; k < stride; ++k) out[k] += w[c] * v[k];
+    }
 }
 
 // One compositing step: alpha of a sample and the transmittance after it.

@@ -1,13 +1,8 @@
-"""The Plenoxels model: sparse voxel grid, volume rendering, sparse RMSProp and TV.
+"""The Plenoxels model: sparse voxel grid, volume rendering, sparse RMSProp and TV, and what is built on it.
 
-The native C++/OpenMP kernels (plenoxels._C, built by `make install`) do the work; reference.py is
-their PyTorch twin.
+The layers, each importing only those below it: native.py loads the compiled core (plenoxels._C, built by
+`make install` from csrc/); grid.py, optim.py, render.py and regularizers.py are the model; ndc.py, background.py,
+fit_frame.py and scene_model.py make a fitted scene of it; train.py, mesh.py and surface.py are the machinery
+built on that. reference.py is the core's PyTorch twin, for tests and benchmarks only. Nothing here imports
+pipeline/ or stages/.
 """
-from plenoxels.grid import SparseGrid
-from plenoxels.optim import GridGrad, SparseRMSProp
-from plenoxels.regularizers import tv_loss_and_grad
-from plenoxels.render import RenderOptions, RenderResult, loss_and_grad, max_weights, native_available
-
-# `render` stays in plenoxels.render only: re-exporting it here would shadow the submodule.
-__all__ = ["SparseGrid", "GridGrad", "SparseRMSProp", "RenderOptions", "RenderResult", "loss_and_grad",
-           "max_weights", "tv_loss_and_grad", "native_available"]

@@ -6,8 +6,10 @@ coordinates in [0, R-1]; a point is interpolated trilinearly from the 8 vertices
 unallocated vertex counts as all zeros.
 
 Parameters are stored packed, one padded row per vertex (`data` [N, S]: raw density, then the SH
-coefficients of R, G and B), so the kernels read a whole vertex in one or two cache lines.
-`density` and `sh` are views into that table; write through them (in place), never rebind them.
+coefficients of R, G and B), so the kernels read a whole vertex in one or two cache lines; the row
+stride is defined once, in csrc/plenoxels_math.h. `density` and `sh` are views into that table; write
+through them (in place), never rebind them. Every operation runs the native core on the device of
+the grid's tensors.
 """
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from plenoxels import native
 from plenoxels.errors import UserError
 
 FORMAT = "voxfield-plenoxels-grid"
@@ -29,9 +32,8 @@ def sh_count(sh_degree: int) -> int:
 
 
 def row_stride(sh_degree: int) -> int:
-    """Floats per packed row: 1 + 3K rounded up to whole 16-float (64-byte) vectors."""
-    columns = 1 + 3 * sh_count(sh_degree)
-    return 4 if columns <= 4 else (columns + 15) // 16 * 16
+    """Floats per packed row: 1 + 3K rounded up to whole 16-float (64-byte) vectors (4 when it fits in 4)."""
+    return native.row_stride(sh_degree)
 
 
 def _check_box(bbox_min, bbox_max) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -54,16 +56,12 @@ HUGE_PAGE_MIN_BYTES = 8 << 20
 def large_table(t: torch.Tensor) -> torch.Tensor:
     """A contiguous CPU tensor of 8 MiB or more, moved into memory advised for huge pages: the
     kernels read and write its rows at random, and 4 KiB pages would miss the TLB on almost every
-    access. Smaller tensors, other devices, or no native core: returned as they are (contiguous)."""
+    access. Smaller tensors and other devices: returned as they are (contiguous)."""
     t = t.contiguous()
     if t.device.type != "cpu" or t.numel() * t.element_size() < HUGE_PAGE_MIN_BYTES:
         return t
-    from plenoxels.render import native_available, native_core
-
-    if not native_available():
-        return t
     fresh = torch.empty(t.shape, dtype=t.dtype)  # not yet touched: pages are faulted in after the advice
-    native_core().advise_huge_pages(fresh)
+    native.ops.advise_huge_pages(fresh)
     return fresh.copy_(t)
 
 
@@ -71,11 +69,8 @@ def large_zeros(like: torch.Tensor) -> torch.Tensor:
     """zeros_like for tables the kernels access at random (see large_table), without a second copy."""
     if like.device.type != "cpu" or like.numel() * like.element_size() < HUGE_PAGE_MIN_BYTES:
         return torch.zeros_like(like)
-    from plenoxels.render import native_available, native_core
-
     fresh = torch.empty(like.shape, dtype=like.dtype)
-    if native_available():
-        native_core().advise_huge_pages(fresh)
+    native.ops.advise_huge_pages(fresh)
     return fresh.zero_()
 
 
@@ -155,8 +150,8 @@ class SparseGrid:
         return total
 
     def world_to_grid(self, points: torch.Tensor) -> torch.Tensor:
-        lo = torch.tensor(self.bbox_min, dtype=points.dtype)
-        scale = torch.tensor(self.scale, dtype=points.dtype)
+        lo = torch.tensor(self.bbox_min, dtype=points.dtype, device=points.device)
+        scale = torch.tensor(self.scale, dtype=points.dtype, device=points.device)
         return (points - lo) * scale
 
     # ---- cached helpers for the kernels -------------------------------------------------------
@@ -166,21 +161,17 @@ class SparseGrid:
         live if any of its corner vertices has density > 0; the native optimiser step keeps the
         counts behind this current, and any other in-place change of `data` (seen through the
         tensor's version counter) makes the next call recount."""
-        from plenoxels.render import native_core
-
         if self._cells is None:
-            self._cells = native_core(self._links.device).build_occupancy(self._links, OCCUPANCY_BLOCK)[0]
+            self._cells = native.ops.build_occupancy(self._links, OCCUPANCY_BLOCK)[0]
         return self._cells, self.live_blocks()[1]
 
     def live_blocks(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(counts int32, blocks uint8) of live vertices per occupancy block, recounted if stale."""
         if not self.live_blocks_current():
-            from plenoxels.render import native_core
-
             shape = tuple(-(-(r - 1) // OCCUPANCY_BLOCK) for r in self.resolution)
             counts = torch.zeros(shape, dtype=torch.int32, device=self.data.device)
             blocks = torch.zeros(shape, dtype=torch.uint8, device=self.data.device)
-            native_core(self.data.device).count_live_blocks(self.data, self.coords(), OCCUPANCY_BLOCK, counts, blocks)
+            native.ops.count_live_blocks(self.data, self.coords(), OCCUPANCY_BLOCK, counts, blocks)
             self._live = (counts, blocks, (self.data.data_ptr(), self.data._version))
         return self._live[0], self._live[1]
 
@@ -203,20 +194,20 @@ class SparseGrid:
     # ---- queries ------------------------------------------------------------------------------
     def sample(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Trilinear raw density [M] and SH [M, 3K] at fit-frame points; outside the box -> 0."""
-        from plenoxels import reference
-
         points = points.to(torch.float32).reshape(-1, 3)
         g64 = self.world_to_grid(points.double())
-        hi = torch.tensor(self.resolution, dtype=torch.float64) - 1
+        hi = torch.tensor(self.resolution, dtype=torch.float64, device=g64.device) - 1
         inside = ((g64 >= 0) & (g64 <= hi)).all(dim=1)
-        values = reference.interpolate(self._links, self.data, g64.to(torch.float32))
-        values = values * inside.unsqueeze(1)
+        # Rounding to float32 could move a point just outside the box onto its face: mark it outside first.
+        g = torch.where(inside.unsqueeze(1), g64, torch.full_like(g64, -1.0)).to(torch.float32)
+        values = native.ops.sample(self.data, self._links, g.to(self.data.device).contiguous())
         return values[:, 0], values[:, 1 : 1 + 3 * sh_count(self.sh_degree)]
 
     # ---- structure changes (each returns a new grid) ------------------------------------------
     def to(self, device) -> "SparseGrid":
-        """The same grid with its tensors on `device` (CUDA hook: see plenoxels/device.py)."""
+        """The same grid with its tensors on `device`."""
         device = torch.device(device)
+        native.check_device(device)
         if self.data.device == device:
             return self
         return SparseGrid(self._links.to(device), self.data.to(device), self.bbox_min, self.bbox_max, self.sh_degree)
@@ -262,8 +253,6 @@ class SparseGrid:
         if self.data.device.type != "cpu":  # CUDA hook: resampled on the CPU, returned on the grid's device
             grid, old_rows = self.to("cpu").upsample(res, chunk_points)
             return grid.to(self.data.device), old_rows.to(self.data.device)
-        from plenoxels import reference
-
         old = torch.tensor(self.resolution, dtype=torch.float64)
         ratio = (old - 1) / (torch.tensor(res, dtype=torch.float64) - 1)
         alive = self._links >= 0
@@ -289,7 +278,8 @@ class SparseGrid:
         values, nearest = [], []
         for chunk in torch.split(vertices, chunk_points):
             g = chunk.double() * ratio
-            values.append(reference.interpolate(self._links, self.data, g.to(torch.float32)))
+            clamped = torch.minimum(g.clamp_min(0), old - 1)  # the last new vertex lands on the old box's face
+            values.append(native.ops.sample(self.data, self._links, clamped.to(torch.float32).contiguous()))
             near = torch.minimum(g.round().long(), old.long() - 1)
             nearest.append(self._links[near[:, 0], near[:, 1], near[:, 2]].long())
         data = torch.cat(values) if values else torch.zeros(0, row_stride(self.sh_degree))

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import torch
 
-from plenoxels.grid import SparseGrid, large_zeros, sh_count
+from plenoxels import native
+from plenoxels.grid import OCCUPANCY_BLOCK, SparseGrid, large_zeros, sh_count
 
 
 class GridGrad:
@@ -21,7 +22,7 @@ class GridGrad:
         self.touched_mask = torch.zeros(n, dtype=torch.uint8, device=grid.data.device)
         self.touched_rows = torch.zeros(n, dtype=torch.int32, device=grid.data.device)
         self.num_touched = 0
-        self._thread_buffers = None
+        self._scratch = None
 
     @property
     def density(self) -> torch.Tensor:
@@ -35,13 +36,12 @@ class GridGrad:
         """int64 rows touched since the last clear, in first-touch order."""
         return self.touched_rows[: self.num_touched].long()
 
-    def thread_buffers(self):
-        """The native kernels' per-thread gradient buffers (lazily allocated, pages on first touch)."""
-        if self._thread_buffers is None:
-            from plenoxels.render import native_core
-
-            self._thread_buffers = native_core(self.data.device).ThreadGrads(self.data.shape[0], self.data.shape[1])
-        return self._thread_buffers
+    def scratch(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The CPU kernels' per-thread gradient buffers and touched masks, zero between calls (allocated
+        once, pages mapped on first touch); empty on a GPU."""
+        if self._scratch is None:
+            self._scratch = tuple(native.ops.grad_scratch(self.data))
+        return self._scratch
 
     def accumulate(self, rows: torch.Tensor, density: torch.Tensor, sh: torch.Tensor) -> None:
         """Adds gradients for distinct rows (the PyTorch path) and records them as touched."""
@@ -66,8 +66,7 @@ class SparseRMSProp:
     A row's second moment decays only when the row is touched. Density and SH have their own rates.
     """
 
-    def __init__(self, grid: SparseGrid, lr_density: float, lr_sh: float, beta: float = 0.95, eps: float = 1e-8,
-                 backend: str = "native"):
+    def __init__(self, grid: SparseGrid, lr_density: float, lr_sh: float, beta: float = 0.95, eps: float = 1e-8):
         if not 0.0 <= beta < 1.0:
             raise ValueError(f"beta must be in [0, 1), got {beta}")
         if eps <= 0.0:
@@ -75,7 +74,6 @@ class SparseRMSProp:
         self.grid = grid
         self.lr_density, self.lr_sh = float(lr_density), float(lr_sh)
         self.beta, self.eps = float(beta), float(eps)
-        self.backend = backend
         self.second_moment = large_zeros(grid.data)
 
     def set_lr(self, lr_density: float | None = None, lr_sh: float | None = None) -> None:
@@ -89,22 +87,13 @@ class SparseRMSProp:
         if grad.data.shape != self.grid.data.shape:
             raise ValueError("gradient storage belongs to another grid: make a new GridGrad after prune/upsample")
         columns = 1 + 3 * sh_count(self.grid.sh_degree)
-        if self.backend == "torch":
-            from plenoxels import reference
-
-            reference.rmsprop_step(self.grid.data, self.second_moment, grad, columns, self.lr_density, self.lr_sh,
-                                   self.beta, self.eps)
-            return
-        from plenoxels.grid import OCCUPANCY_BLOCK
-        from plenoxels.render import native_core
-
-        live = None
+        live = (None, OCCUPANCY_BLOCK, None, None)
         if self.grid.live_blocks_current():
             counts, blocks = self.grid.live_blocks()
             live = (self.grid.coords(), OCCUPANCY_BLOCK, counts, blocks)
-        native_core(self.grid.data.device).rmsprop_step(
+        native.ops.rmsprop_step(
             self.grid.data, self.second_moment, grad.data, grad.touched_mask, grad.touched_rows, grad.num_touched,
-            columns, self.lr_density, self.lr_sh, self.beta, self.eps, live)
+            columns, self.lr_density, self.lr_sh, self.beta, self.eps, *live)
         grad.num_touched = 0
 
     def remap(self, new_grid: SparseGrid, old_rows: torch.Tensor) -> None:

@@ -7,7 +7,8 @@ Rendering one ray (all kernels agree on every step):
 2. Clip to the grid box [0, R-1]^3 and to t >= near: [t_start, t_exit).
 3. Samples at t_i = t_start + (i + 0.5) * dt, dt = step_size / |dg| (step_size voxels in grid units),
    keeping t_i < t_exit; a ray that would need more than max_samples_per_ray gets exactly that many.
-   This lattice is computed in float64 so that every backend takes the same samples.
+   This lattice is computed in float64 so that every backend takes the same samples; the twin uses
+   the product's own lattice, render.ray_samples (tests check it against the kernels' sample counts).
 4. At each sample: raw density and SH coefficients interpolated trilinearly from the 8 corners of its
    cell (an empty corner counts as zeros). sigma = raw density; samples with sigma <= sigma_threshold
    (>= 0) are skipped. colour = relu(sum_k sh_k Y_k(u) + 0.5) per channel.
@@ -20,13 +21,8 @@ from __future__ import annotations
 import torch
 
 from plenoxels.grid import SparseGrid, sh_count
+from plenoxels.render import COLOUR_OFFSET, SH_C0, SH_C1, SH_C2, SH_C3, ray_samples
 
-SH_C0 = 0.28209479177387814
-SH_C1 = 0.4886025119029199
-SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
-         1.445305721320277, -0.5900435899266435)
-COLOUR_OFFSET = 0.5
 TV_EPS = 1e-9
 
 
@@ -74,37 +70,9 @@ def interpolate(links: torch.Tensor, values: torch.Tensor, g: torch.Tensor, rows
     return out
 
 
-def ray_lattice(grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opts) -> dict:
-    """Step 1-3 of the module docstring, in float64: per ray t_start, dt, n, and grid-space og, dg."""
-    o, d = origins.double(), dirs.double()
-    unit = d / d.norm(dim=1, keepdim=True)
-    lo = torch.tensor(grid.bbox_min, dtype=torch.float64)
-    scale = torch.tensor(grid.scale, dtype=torch.float64)
-    hi = torch.tensor(grid.resolution, dtype=torch.float64) - 1
-    og, dg = (o - lo) * scale, unit * scale
-    zero = dg == 0
-    safe = torch.where(zero, torch.ones_like(dg), dg)
-    ta, tb = (0 - og) / safe, (hi - og) / safe
-    inside = (og >= 0) & (og <= hi)
-    big = torch.full_like(ta, 1e300)
-    t_lo = torch.where(zero, torch.where(inside, -big, big), torch.minimum(ta, tb))
-    t_hi = torch.where(zero, torch.where(inside, big, -big), torch.maximum(ta, tb))
-    t_enter, t_exit = t_lo.max(dim=1).values, t_hi.min(dim=1).values
-    hit = t_exit > t_enter
-    t_start = torch.clamp_min(t_enter, opts.near)
-    length = t_exit - t_start
-    step_t = opts.step_size / dg.norm(dim=1)
-    n = torch.ceil(length / step_t - 0.5).clamp_min(0)
-    n = torch.where(hit & (length > 0), n, torch.zeros_like(n))
-    capped = n > opts.max_samples_per_ray
-    dt = torch.where(capped, length / opts.max_samples_per_ray, step_t)
-    n = torch.where(capped, torch.full_like(n, opts.max_samples_per_ray), n).long()
-    return {"t_start": t_start, "dt": dt, "n": n, "og": og, "dg": dg, "unit": unit.to(torch.float32)}
-
-
 def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torch.Tensor) -> dict:
     """All samples of a batch with their weights and colours (steps 1-5), differentiable in density and sh."""
-    lat = ray_lattice(grid, origins, dirs, opts)
+    lat = ray_samples(grid, origins, dirs, opts)
     B, M = origins.shape[0], int(lat["n"].max()) if origins.shape[0] else 0
     i = torch.arange(M, dtype=torch.float64)
     valid = i.long()[None, :] < lat["n"][:, None]

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import torch
 
+from plenoxels import native
 from plenoxels.grid import SparseGrid
 from plenoxels.optim import GridGrad
 
@@ -19,18 +20,12 @@ def sample_rows(grid: SparseGrid, sample_fraction: float, generator: torch.Gener
 
 
 def tv_loss_and_grad(grid: SparseGrid, grad: GridGrad, weight_density: float, weight_sh: float,
-                     sample_fraction: float, generator: torch.Generator | None = None, backend: str = "native") -> float:
+                     sample_fraction: float, generator: torch.Generator | None = None) -> float:
     """TV loss of density and SH over sampled rows; its gradient is added into `grad`."""
     rows = sample_rows(grid, sample_fraction, generator)
     if rows.shape[0] == 0 or (weight_density == 0 and weight_sh == 0):
         return 0.0
-    if backend == "torch":
-        from plenoxels import reference
-
-        return reference.tv_loss_and_grad(grid, grad, rows, weight_density, weight_sh)
-    from plenoxels.render import native_core
-
-    loss, grad.num_touched = native_core(grid.data.device).tv_loss_and_grad(
-        grid.data, grid.links, grid.coords(), rows, float(weight_density), float(weight_sh), grid.sh_degree,
-        grad.data, grad.touched_mask, grad.touched_rows, grad.num_touched, grad.thread_buffers())
+    loss, grad.num_touched = native.ops.tv_loss_and_grad(
+        grid.data, grid.links, grid.coords(), rows.to(grid.data.device), float(weight_density), float(weight_sh),
+        grid.sh_degree, grad.data, grad.touched_mask, grad.touched_rows, grad.num_touched, *grad.scratch())
     return float(loss)

@@ -1,8 +1,7 @@
 """Volume rendering of a SparseGrid: forward, fused loss+gradient, and max weights for pruning.
 
-`backend="native"` (the product) runs the C++/OpenMP kernels in plenoxels._C and fails at once with
-a one-line message when they are not built; `backend="torch"` runs the PyTorch twin in
-plenoxels/reference.py (tests and benchmarks only). The math is stated in reference.py.
+Every function runs the native core (plenoxels/native.py) on the device of the grid's tensors; the
+math is stated in reference.py, the PyTorch twin the tests hold the kernels to.
 
 Rays arrive in the fit frame. Directions need not be unit length: t, `near` and depth are fit-frame
 distances along the normalised direction. Density is integrated per fit-frame unit of distance while
@@ -14,36 +13,19 @@ from dataclasses import dataclass
 
 import torch
 
+from plenoxels import native
 from plenoxels.errors import UserError
 from plenoxels.grid import OCCUPANCY_BLOCK, SparseGrid
 from plenoxels.optim import GridGrad
 
-_native = None
-
-
-def native_core(device: torch.device | None = None):
-    """The compiled kernels, or a UserError saying how to build them. For a CUDA device: the CUDA
-    kernels behind the same interface (plenoxels/device.py)."""
-    global _native
-    if device is not None and device.type == "cuda":  # CUDA hook (owner: CUDA core, plenoxels/device.py)
-        from plenoxels.device import cuda_core
-
-        return cuda_core()
-    if _native is None:
-        try:
-            from plenoxels import _C
-        except ImportError as exc:
-            raise UserError(f"native core not built: run `make install` ({exc})") from exc
-        _native = _C
-    return _native
-
-
-def native_available() -> bool:
-    try:
-        native_core()
-    except UserError:
-        return False
-    return True
+# Real spherical-harmonic basis constants up to degree 3 and the offset added before the colour's relu,
+# as csrc/plenoxels_math.h has them (tests compare the two through the kernels' output).
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+         1.445305721320277, -0.5900435899266435)
+COLOUR_OFFSET = 0.5
 
 
 @dataclass
@@ -75,9 +57,40 @@ class RenderResult:
     opacity: torch.Tensor  # [B] 1 - final transmittance
 
 
-def _rays(origins: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    origins = origins.detach().to(torch.float32).reshape(-1, 3).contiguous()
-    dirs = dirs.detach().to(torch.float32).reshape(-1, 3).contiguous()
+def ray_samples(grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opts: RenderOptions) -> dict:
+    """The sample lattice every kernel marches (steps 1-3 of reference.py's docstring), in float64 so
+    that it matches theirs exactly: per ray t_start, dt and n (sample i at t_start + (i + 0.5) dt,
+    fit-frame distance), the grid-space origin og and direction dg (per unit t), and the unit
+    fit-frame direction `unit` (float32)."""
+    o, d = origins.double(), dirs.double()
+    unit = d / d.norm(dim=1, keepdim=True)
+    lo = torch.tensor(grid.bbox_min, dtype=torch.float64, device=o.device)
+    scale = torch.tensor(grid.scale, dtype=torch.float64, device=o.device)
+    hi = torch.tensor(grid.resolution, dtype=torch.float64, device=o.device) - 1
+    og, dg = (o - lo) * scale, unit * scale
+    zero = dg == 0
+    safe = torch.where(zero, torch.ones_like(dg), dg)
+    ta, tb = (0 - og) / safe, (hi - og) / safe
+    inside = (og >= 0) & (og <= hi)
+    big = torch.full_like(ta, 1e300)
+    t_lo = torch.where(zero, torch.where(inside, -big, big), torch.minimum(ta, tb))
+    t_hi = torch.where(zero, torch.where(inside, big, -big), torch.maximum(ta, tb))
+    t_enter, t_exit = t_lo.max(dim=1).values, t_hi.min(dim=1).values
+    hit = t_exit > t_enter
+    t_start = torch.clamp_min(t_enter, opts.near)
+    length = t_exit - t_start
+    step_t = opts.step_size / dg.norm(dim=1)
+    n = torch.ceil(length / step_t - 0.5).clamp_min(0)
+    n = torch.where(hit & (length > 0), n, torch.zeros_like(n))
+    capped = n > opts.max_samples_per_ray
+    dt = torch.where(capped, length / opts.max_samples_per_ray, step_t)
+    n = torch.where(capped, torch.full_like(n, opts.max_samples_per_ray), n).long()
+    return {"t_start": t_start, "dt": dt, "n": n, "og": og, "dg": dg, "unit": unit.to(torch.float32)}
+
+
+def _rays(origins: torch.Tensor, dirs: torch.Tensor, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    origins = origins.detach().to(device=device, dtype=torch.float32).reshape(-1, 3).contiguous()
+    dirs = dirs.detach().to(device=device, dtype=torch.float32).reshape(-1, 3).contiguous()
     if origins.shape != dirs.shape:
         raise ValueError(f"origins {tuple(origins.shape)} and dirs {tuple(dirs.shape)} must both be [B, 3]")
     if dirs.shape[0] and not bool((dirs.abs().amax(dim=1) > 0).all()):
@@ -85,16 +98,17 @@ def _rays(origins: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torc
     return origins, dirs
 
 
-def _colours(x: torch.Tensor | None, b: int, name: str) -> torch.Tensor | None:
+def _colours(x: torch.Tensor | None, b: int, name: str, device: torch.device) -> torch.Tensor | None:
     if x is None:
         return None
-    x = x.detach().to(torch.float32).reshape(-1, 3).contiguous()
+    x = x.detach().to(device=device, dtype=torch.float32).reshape(-1, 3).contiguous()
     if x.shape[0] != b:
         raise ValueError(f"{name} must be [B, 3] with B = {b}, got {tuple(x.shape)}")
     return x
 
 
-def _native_args(grid: SparseGrid) -> tuple:
+def _grid_args(grid: SparseGrid) -> tuple:
+    native.check_device(grid.data.device)
     cells, blocks = grid.occupancy()
     return (grid.data, grid.links, cells, blocks, OCCUPANCY_BLOCK, list(grid.bbox_min), list(grid.bbox_max),
             grid.sh_degree)
@@ -105,74 +119,51 @@ def _march_args(opts: RenderOptions) -> tuple:
             int(opts.max_samples_per_ray))
 
 
-def _check_backend(backend: str) -> None:
-    if backend not in ("native", "torch"):
-        raise ValueError(f"backend must be 'native' or 'torch', got {backend!r}")
-    if backend == "native":
-        native_core()
-
-
-def render(grid: SparseGrid, origins, dirs, background=None, opts: RenderOptions | None = None,
-           backend: str = "native") -> RenderResult:
+def render(grid: SparseGrid, origins, dirs, background=None, opts: RenderOptions | None = None) -> RenderResult:
     """rgb = sum_i T_i a_i c_i + T_final * background (None: black)."""
     opts = (opts or RenderOptions()).check()
-    _check_backend(backend)
-    origins, dirs = _rays(origins, dirs)
-    background = _colours(background, origins.shape[0], "background")
-    if backend == "torch":
-        from plenoxels import reference
-
-        with torch.no_grad():
-            rgb, depth, opacity = reference.render(grid, origins, dirs, background, opts)
-        return RenderResult(rgb, depth, opacity)
-    rgb, depth, opacity = native_core(grid.data.device).render(*_native_args(grid), origins, dirs, background, *_march_args(opts))
+    device = grid.data.device
+    origins, dirs = _rays(origins, dirs, device)
+    background = _colours(background, origins.shape[0], "background", device)
+    rgb, depth, opacity = native.ops.render(*_grid_args(grid), origins, dirs, background, *_march_args(opts))
     return RenderResult(rgb, depth, opacity)
 
 
 def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts: RenderOptions | None,
-                  grad: GridGrad, backend: str = "native") -> tuple[float, torch.Tensor]:
+                  grad: GridGrad) -> tuple[float, torch.Tensor]:
     """Mean squared error over the B*3 colour values, forward and backward in one pass.
 
     Adds d(mse)/d(density) and d(mse)/d(sh) into `grad` for the rows the batch touched, and returns
     (mse, d(mse)/d(background) [B, 3]).
     """
     opts = (opts or RenderOptions()).check()
-    _check_backend(backend)
-    origins, dirs = _rays(origins, dirs)
+    device = grid.data.device
+    origins, dirs = _rays(origins, dirs, device)
     b = origins.shape[0]
-    targets = _colours(targets, b, "targets")
-    background = _colours(background, b, "background")
+    targets = _colours(targets, b, "targets", device)
+    background = _colours(background, b, "background", device)
     if background is None:
-        background = torch.zeros(b, 3)
+        background = torch.zeros(b, 3, device=device)
     if grad.data.shape != grid.data.shape:
         raise ValueError("gradient storage belongs to another grid: make a new GridGrad after prune/upsample")
-    if backend == "torch":
-        from plenoxels import reference
-
-        return reference.loss_and_grad(grid, origins, dirs, targets, background, opts, grad)
-    sse, grad_background, grad.num_touched = native_core(grid.data.device).loss_and_grad(
-        *_native_args(grid), origins, dirs, targets, background, *_march_args(opts), grad.data, grad.touched_mask,
-        grad.touched_rows, grad.num_touched, grad.thread_buffers())
+    sse, grad_background, grad.num_touched = native.ops.loss_and_grad(
+        *_grid_args(grid), origins, dirs, targets, background, *_march_args(opts), grad.data, grad.touched_mask,
+        grad.touched_rows, grad.num_touched, *grad.scratch())
     return (sse / (3 * b) if b else 0.0), grad_background
 
 
-def max_weights(grid: SparseGrid, origins, dirs, opts: RenderOptions | None = None,
-                backend: str = "native") -> torch.Tensor:
+def max_weights(grid: SparseGrid, origins, dirs, opts: RenderOptions | None = None) -> torch.Tensor:
     """Per occupied row, the largest rendering weight of a sample that reads it over these rays."""
     opts = (opts or RenderOptions()).check()
-    _check_backend(backend)
-    origins, dirs = _rays(origins, dirs)
-    if backend == "torch":
-        from plenoxels import reference
-
-        return reference.max_weights(grid, origins, dirs, opts)
+    origins, dirs = _rays(origins, dirs, grid.data.device)
     out = torch.zeros(grid.num_occupied, dtype=torch.float32, device=grid.data.device)
-    return native_core(grid.data.device).max_weights(*_native_args(grid), origins, dirs, *_march_args(opts), out)
+    native.ops.max_weights(*_grid_args(grid), origins, dirs, *_march_args(opts), out)
+    return out
 
 
 def sample_counts(grid: SparseGrid, origins, dirs, opts: RenderOptions | None = None) -> tuple[int, int]:
-    """(lattice samples inside the box, samples that contribute) over these rays, from the native core."""
+    """(lattice samples inside the box, samples that contribute) over these rays."""
     opts = (opts or RenderOptions()).check()
-    origins, dirs = _rays(origins, dirs)
-    lattice, used = native_core(grid.data.device).sample_counts(*_native_args(grid), origins, dirs, *_march_args(opts))
+    origins, dirs = _rays(origins, dirs, grid.data.device)
+    lattice, used = native.ops.sample_counts(*_grid_args(grid), origins, dirs, *_march_args(opts))
     return int(lattice), int(used)

@@ -4,8 +4,8 @@ import math
 import pytest
 import torch
 
-from plenoxels.errors import UserError
 from plenoxels.background import MultiSphereBackground
+from plenoxels.errors import UserError
 
 
 def _random_rays(n: int, seed: int, spread: float = 0.9, dtype=torch.float64):

@@ -4,12 +4,14 @@ Three kinds of test:
 - compile-only (any machine with nvcc, CI included): every csrc/*.cu builds for sm_90 with warnings
   as errors, and the torch glue of the CUDA build passes a syntax check against this torch's headers;
 - device choice (everywhere): fit.device=cuda without a GPU and CUDA build is a one-line UserError;
-- parity (a machine with an NVIDIA GPU and a CUDA build of plenoxels._C): each CUDA kernel gives the
-  CPU kernel's values and gradients on the same inputs, including the numerical extremes.
+- parity (a machine with an NVIDIA GPU and a CUDA build of plenoxels._C): each operator of
+  torch.ops.voxfield gives on CUDA tensors the values and gradients it gives on CPU tensors, including
+  the numerical extremes.
 """
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -18,8 +20,13 @@ import pytest
 import torch
 import torch.utils.cpp_extension
 
+from plenoxels import native
 from plenoxels.errors import UserError
-from plenoxels.device import CUDA_MISSING, cuda_ready, resolve_device
+from plenoxels.grid import SparseGrid
+from plenoxels.native import CUDA_MISSING, cuda_ready, resolve_device
+from plenoxels.optim import GridGrad, SparseRMSProp
+from plenoxels.regularizers import tv_loss_and_grad
+from plenoxels.render import RenderOptions, loss_and_grad, max_weights, render
 
 REPO = Path(__file__).resolve().parent.parent
 CSRC = REPO / "csrc"
@@ -83,43 +90,28 @@ def test_cuda_glue_syntax(tmp_path):
     assert result.returncode == 0, result.stderr[-4000:]
 
 
-def _pybind_parameter_types(fn) -> list[str]:
-    """Parameter types from a pybind11 function's signature line (commas inside brackets kept)."""
-    line = fn.__doc__.strip().splitlines()[0]
-    inside = line[line.index("(") + 1 : line.rindex(") ->")]
-    params, depth, current = [], 0, ""
-    for ch in inside:
-        if ch in "[(":
-            depth += 1
-        elif ch in "])":
-            depth -= 1
-        if ch == "," and depth == 0:
-            params.append(current)
-            current = ""
-        else:
-            current += ch
-    params.append(current)
-    return [p.split(":", 1)[1].split("=")[0].strip() for p in params]
+# Operators with one kernel for every device, and the CPU-only one (it advises host memory).
+DEVICE_FREE_OPS = {"padded_stride", "num_threads"}
+CPU_ONLY_OPS = {"advise_huge_pages"}
 
 
-def test_every_cpu_kernel_has_a_cuda_twin():
-    """Each kernel of plenoxels._C is served on CUDA (CudaCore, registered in the glue), and CudaCore's
-    argument positions still match the CPU signatures."""
-    import plenoxels._C as C
-    from plenoxels.device import CudaCore
+def _declared_ops() -> set[str]:
+    return set(re.findall(r'm\.def\("(\w+)\(', (CSRC / "ops.cpp").read_text()))
 
-    glue = (CSRC / "bindings_cuda.cpp").read_text()
-    kernels = {n for n in dir(C) if not n.startswith("_")} - set(CudaCore.CPU_HELPERS) - {"ThreadGrads"}
-    assert kernels == set(CudaCore.KERNELS)
-    for name in sorted(kernels):
-        assert f'm.def("{name}"' in glue, f"{name} is not registered in bindings_cuda.cpp"
-        types = _pybind_parameter_types(getattr(C, name))
-        movable, scratch = CudaCore.KERNELS[name]
-        assert all("torch.Tensor" in types[i] for i in movable), f"{name}: a moved argument is not a tensor"
-        if scratch is None:
-            assert not any("ThreadGrads" in t for t in types), f"{name}: CPU scratch argument not dropped"
-        else:
-            assert scratch == len(types) - 1 and "ThreadGrads" in types[scratch], f"{name}: scratch position"
+
+def test_every_op_has_a_cpu_and_a_cuda_implementation():
+    """One schema (csrc/ops.cpp) for every operator; the CPU build registers each device-bound one and the
+    CUDA glue registers the same set (checked in its source, as this build may be CPU-only)."""
+    declared = _declared_ops()
+    assert {"render", "loss_and_grad", "sample", "rmsprop_step", "tv_loss_and_grad"} <= declared
+    device_bound = declared - DEVICE_FREE_OPS
+    for name in sorted(device_bound):
+        assert torch._C._dispatch_has_kernel_for_dispatch_key(f"voxfield::{name}", "CPU"), f"{name}: no CPU kernel"
+    glue = set(re.findall(r'm\.impl\("(\w+)"', (CSRC / "bindings_cuda.cpp").read_text()))
+    assert glue == device_bound - CPU_ONLY_OPS
+    for name in sorted(DEVICE_FREE_OPS):
+        getattr(native.ops, name)  # resolvable with no tensor to dispatch on
+    assert [native.row_stride(d) for d in range(4)] == [4, 16, 32, 64]
 
 
 # ---- device choice ------------------------------------------------------------------------------
@@ -152,9 +144,8 @@ MARCH = dict(step=0.5, stop_transmittance=1e-4, near=0.0, sigma_threshold=0.0, m
 
 
 def _native():
-    import plenoxels._C as C
-
-    return C, torch.ops.plenoxels_cuda
+    """The operators twice, for readability at the call sites: the device comes from the tensors."""
+    return native.ops, native.ops
 
 
 def _grid(degree, res=(13, 11, 12), fill=0.6, seed=0, density_scale=4.0):
@@ -165,7 +156,7 @@ def _grid(degree, res=(13, 11, 12), fill=0.6, seed=0, density_scale=4.0):
     n = int(alive.sum())
     links[alive] = torch.randperm(n, generator=gen).to(torch.int32)
     columns = 1 + 3 * (degree + 1) ** 2
-    stride = 4 if columns <= 4 else (columns + 15) // 16 * 16
+    stride = native.row_stride(degree)
     data = torch.zeros(n, stride)
     data[:, 0] = (torch.rand(n, generator=gen) - 0.3) * density_scale
     data[:, 1:columns] = torch.randn(n, columns - 1, generator=gen) * 0.4
@@ -220,8 +211,8 @@ def _loss_grad_both(links, data, degree, origins, dirs, targets, background, mar
         rows = torch.zeros(n, dtype=torch.int32)
         args = [data, links, cells, blocks, BLOCK, BMIN, BMAX, degree, origins, dirs, targets, background,
                 *_march_args(march), grad, mask, rows, 0]
-        moved = move(args) + ([C.ThreadGrads(n, stride)] if name == "cpu" else [])
-        sse, grad_background, count = core.loss_and_grad(*moved)
+        moved = move(args)
+        sse, grad_background, count = core.loss_and_grad(*moved, *native.ops.grad_scratch(moved[17]))
         grad_out, mask_out, rows_out = moved[17], moved[18], moved[19]
         grads[name] = (sse, grad_background.cpu(), grad_out.cpu(), mask_out.cpu(),
                        set(rows_out[:count].cpu().tolist()))
@@ -274,8 +265,9 @@ def test_max_weights_match_cpu():
     origins, dirs = _rays(3000)
     cells, blocks = C.build_occupancy(links, BLOCK)
     args = [data, links, cells, blocks, BLOCK, BMIN, BMAX, 2, origins, dirs, *_march_args(MARCH)]
-    cpu = C.max_weights(*args, torch.zeros(data.shape[0]))
-    gpu = G.max_weights(*_cuda(args), torch.zeros(data.shape[0], device="cuda"))
+    cpu, gpu = torch.zeros(data.shape[0]), torch.zeros(data.shape[0], device="cuda")
+    C.max_weights(*args, cpu)
+    G.max_weights(*_cuda(args), gpu)
     assert cpu.max() > 0.1
     _close(gpu, cpu)
 
@@ -296,10 +288,10 @@ def test_tv_matches_cpu(weights):
         rows = torch.zeros(n, dtype=torch.int32)
         args = [data, links, coords, sample_rows, *weights, degree, grad, mask, rows, 0]
         if name == "cpu":
-            loss, count = C.tv_loss_and_grad(*args, C.ThreadGrads(n, stride))
+            loss, count = C.tv_loss_and_grad(*args, *native.ops.grad_scratch(grad))
         else:
             args = _cuda(args)
-            loss, count = G.tv_loss_and_grad(*args)
+            loss, count = G.tv_loss_and_grad(*args, *native.ops.grad_scratch(args[7]))
             grad, mask, rows = args[7], args[8], args[9]
         out[name] = (loss, grad.cpu(), mask.cpu(), set(rows[:count].cpu().tolist()))
     assert out["cpu"][0] > 0
@@ -329,12 +321,27 @@ def test_rmsprop_matches_cpu():
         tensors = [t.clone() for t in (data, second, grad, mask, rows)]
         if name == "cuda":
             tensors = _cuda(tensors)
-        core.rmsprop_step(*tensors, 200, columns, 0.5, 0.01, 0.9, 1e-8)
+        core.rmsprop_step(*tensors, 200, columns, 0.5, 0.01, 0.9, 1e-8, None, BLOCK, None, None)
         results[name] = [t.cpu() for t in tensors]
     for got, want in zip(results["cuda"][:4], results["cpu"][:4]):
         _close(got, want, rtol=1e-5, atol=1e-6)
     assert not torch.equal(results["cpu"][0], data), "the step should move the touched rows"
     assert int(results["cuda"][3].sum()) == 0 and float(results["cuda"][2].abs().sum()) == 0.0
+
+
+@needs_gpu
+def test_sample_matches_cpu():
+    links, data = _grid(3)
+    points = (torch.rand(5000, 3, generator=torch.Generator().manual_seed(2)) * 1.2 - 0.1) * torch.tensor(
+        [s - 1.0 for s in links.shape])  # a tenth outside the box on each side
+    cpu = native.ops.sample(data, links, points)
+    gpu = native.ops.sample(data.cuda(), links.cuda(), points.cuda())
+    assert bool((cpu == 0).all(dim=1).any()) and bool((cpu != 0).any(dim=1).any())
+    _close(gpu, cpu, rtol=1e-6, atol=1e-6)
+    grid = SparseGrid(links, data, BMIN, BMAX, 3)
+    world = torch.rand(3000, 3, generator=torch.Generator().manual_seed(3)) * 3 - 1.5
+    for got, want in zip(grid.to("cuda").sample(world.cuda()), grid.sample(world)):
+        _close(got, want, rtol=1e-6, atol=1e-6)
 
 
 @needs_gpu
@@ -352,9 +359,7 @@ def test_sample_counts_match_cpu():
 
 
 def _live_state(links, data, block):
-    import plenoxels._C as C
-
-    coords = C.row_coords(links, data.shape[0])
+    coords = native.ops.row_coords(links, data.shape[0])
     shape = [-(-(r - 1) // block) for r in links.shape]
     return coords, torch.zeros(shape, dtype=torch.int32), torch.zeros(shape, dtype=torch.uint8)
 
@@ -381,11 +386,9 @@ def test_live_blocks_match_cpu_and_follow_rmsprop():
     for name in ("cpu", "cuda"):
         tensors = [data.clone(), torch.zeros(n, stride), grad.clone(), mask.clone(), rows.clone()]
         live = [coords, counts.clone(), flags.clone()]
-        if name == "cpu":
-            C.rmsprop_step(*tensors, n, 4, 2.0, 0.01, 0.9, 1e-8, live=(live[0], BLOCK, live[1], live[2]))
-        else:
+        if name == "cuda":
             tensors, live = _cuda(tensors), _cuda(live)
-            G.rmsprop_step(*tensors, n, 4, 2.0, 0.01, 0.9, 1e-8, live[0], BLOCK, live[1], live[2])
+        native.ops.rmsprop_step(*tensors, n, 4, 2.0, 0.01, 0.9, 1e-8, live[0], BLOCK, live[1], live[2])
         state[name] = [t.cpu() for t in (tensors[0], live[1], live[2])]
     _close(state["cuda"][0], state["cpu"][0], rtol=1e-5, atol=1e-6)
     assert not torch.equal(state["cpu"][1], counts), "the step should change some counts"
@@ -462,10 +465,9 @@ def test_special_rays_behave():
 # ---- dispatch through the public API ------------------------------------------------------------
 @pytest.mark.skipif(cuda_ready(), reason="this machine has the CUDA core; the missing-build message cannot be provoked here")
 def test_cuda_tensors_without_cuda_build_fail_with_one_line():
-    from plenoxels.render import native_core
-
+    grid = SparseGrid.dense((3, 3, 3), (0, 0, 0), (1, 1, 1), 0)
     with pytest.raises(UserError) as info:
-        native_core(torch.device("cuda"))
+        grid.to("cuda")
     assert str(info.value) == CUDA_MISSING
 
 
@@ -473,11 +475,6 @@ def test_cuda_tensors_without_cuda_build_fail_with_one_line():
 def test_training_steps_on_cuda_follow_cpu():
     """render / loss_and_grad / TV / RMSProp / max_weights / prune through plenoxels' Python API, on a
     grid moved to the GPU, track the same steps on the CPU."""
-    from plenoxels.grid import SparseGrid
-    from plenoxels.optim import GridGrad, SparseRMSProp
-    from plenoxels.regularizers import tv_loss_and_grad
-    from plenoxels.render import RenderOptions, loss_and_grad, max_weights, render
-
     degree = 2
     links, data = _grid(degree, density_scale=1.0)
     opts = RenderOptions(step_size=0.5)

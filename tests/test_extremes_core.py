@@ -8,11 +8,34 @@ import math
 import pytest
 import torch
 
-from plenoxels import GridGrad, RenderOptions, SparseGrid, SparseRMSProp
-from plenoxels.reference import SH_C0
-from plenoxels.render import loss_and_grad, render
+from plenoxels import reference
+from plenoxels.grid import SparseGrid
+from plenoxels.optim import GridGrad, SparseRMSProp
+from plenoxels.render import RenderOptions
+from plenoxels.render import SH_C0, RenderResult, loss_and_grad, render
 
-BACKENDS = ["native", "torch"]
+BACKENDS = ["native", "torch"]  # the product's native core, and the PyTorch twin it is held to
+
+
+def render_with(backend, grid, origins, dirs, background=None, opts=None) -> RenderResult:
+    if backend == "native":
+        return render(grid, origins, dirs, background, opts)
+    with torch.no_grad():
+        return RenderResult(*reference.render(grid, origins, dirs, background, opts or RenderOptions()))
+
+
+def loss_and_grad_with(backend, grid, origins, dirs, targets, background, opts, grad):
+    if backend == "native":
+        return loss_and_grad(grid, origins, dirs, targets, background, opts, grad)
+    return reference.loss_and_grad(grid, origins, dirs, targets, background, opts or RenderOptions(), grad)
+
+
+def step_with(backend, opt: SparseRMSProp, grad: GridGrad) -> None:
+    if backend == "native":
+        opt.step(grad)
+    else:
+        reference.rmsprop_step(opt.grid.data, opt.second_moment, grad, 1 + 3 * (opt.grid.sh_degree + 1) ** 2,
+                               opt.lr_density, opt.lr_sh, opt.beta, opt.eps)
 
 
 def unit_grid(res=(5, 5, 5), density=0.0, colour=(0.2, 0.6, 0.9), sh_degree=0) -> SparseGrid:
@@ -36,7 +59,7 @@ def assert_finite(*tensors):
 def check_loss_grad_finite(grid, origins, dirs, backend, opts=None):
     grad = GridGrad(grid)
     b = origins.shape[0]
-    mse, gbg = loss_and_grad(grid, origins, dirs, torch.rand(b, 3), torch.rand(b, 3), opts, grad, backend=backend)
+    mse, gbg = loss_and_grad_with(backend, grid, origins, dirs, torch.rand(b, 3), torch.rand(b, 3), opts, grad)
     assert_finite(mse, gbg, grad.data)
     return grad
 
@@ -49,12 +72,12 @@ def test_zero_density_renders_the_background_exactly(backend):
     origins = torch.randn(40, 3, generator=gen) * 6 + 2
     dirs = torch.rand(40, 3, generator=gen) * 4 - origins
     background = torch.rand(40, 3, generator=gen)
-    out = render(grid, origins, dirs, background, backend=backend)
+    out = render_with(backend, grid, origins, dirs, background)
     assert torch.equal(out.rgb, background)
     assert bool((out.opacity == 0).all()) and bool((out.depth == 0).all())
     targets = torch.rand(40, 3, generator=gen)
     grad = GridGrad(grid)
-    mse, gbg = loss_and_grad(grid, origins, dirs, targets, background, None, grad, backend=backend)
+    mse, gbg = loss_and_grad_with(backend, grid, origins, dirs, targets, background, None, grad)
     assert mse == pytest.approx(float(((background - targets) ** 2).mean()), rel=1e-5)
     torch.testing.assert_close(gbg, 2 * (background - targets) / (3 * 40))
     assert grad.num_touched == 0 and bool((grad.data == 0).all())
@@ -68,7 +91,7 @@ def test_huge_density_shows_the_colour_at_the_first_sample(backend, step, first_
     grid.sh[:, 0] = (0.1 + 0.2 * x - 0.5) / SH_C0  # red grows with x: 0.1 at x=0, 0.3 at x=1, ...
     origins, dirs = rays([[-1.0, 1.0, 2.0], [-3.0, 3.0, 0.0]], [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     opts = RenderOptions(step_size=step)
-    out = render(grid, origins, dirs, torch.ones(2, 3), opts, backend=backend)
+    out = render_with(backend, grid, origins, dirs, torch.ones(2, 3), opts)
     assert bool((out.opacity == 1).all())
     # step 2: first sample 1 voxel in; step 1e-4 is capped at max_samples_per_ray -> 4/4096/2 voxel in.
     expected_x = first_x if step > 1 else 4.0 / opts.max_samples_per_ray / 2
@@ -86,7 +109,7 @@ def test_uniform_medium_matches_beer_lambert(backend, step, sh_degree):
     grid = unit_grid(density=sigma, sh_degree=sh_degree)
     # Along x through cell centres, and along the y axis through a line of vertices: 4 units of medium.
     origins, dirs = rays([[-2.0, 1.5, 2.5], [3.0, 9.0, 1.0]], [[3.0, 0.0, 0.0], [0.0, -0.5, 0.0]])
-    out = render(grid, origins, dirs, bg.expand(2, 3), RenderOptions(step_size=step), backend=backend)
+    out = render_with(backend, grid, origins, dirs, bg.expand(2, 3), RenderOptions(step_size=step))
     t = math.exp(-sigma * 4)
     torch.testing.assert_close(out.opacity, torch.full((2,), 1 - t), atol=2e-5, rtol=0)
     torch.testing.assert_close(out.rgb, (colour * (1 - t) + bg * t).expand(2, 3), atol=2e-5, rtol=0)
@@ -103,7 +126,7 @@ def test_rays_that_miss_or_only_touch_the_grid(backend):
          [-1.0, -1e-3, 2.0]],  # parallel to x, just below the face y=0
         [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
     background = torch.rand(5, 3)
-    out = render(grid, origins, dirs, background, backend=backend)
+    out = render_with(backend, grid, origins, dirs, background)
     assert torch.equal(out.rgb, background) and bool((out.opacity == 0).all())
     grad = check_loss_grad_finite(grid, origins, dirs, backend)
     assert grad.num_touched == 0
@@ -115,7 +138,7 @@ def test_rays_along_a_face_and_an_edge_see_the_medium(backend):
     grid = unit_grid(density=sigma)
     origins, dirs = rays([[-1.0, 0.0, 2.0], [-1.0, 0.0, 0.0], [2.0, 4.0, -3.0]],
                          [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # face y=0, edge y=z=0, face y=4
-    out = render(grid, origins, dirs, None, backend=backend)
+    out = render_with(backend, grid, origins, dirs, None)
     torch.testing.assert_close(out.opacity, torch.full((3,), 1 - math.exp(-sigma * 4)), atol=2e-5, rtol=0)
     check_loss_grad_finite(grid, origins, dirs, backend)
 
@@ -135,14 +158,14 @@ def test_axis_and_plane_aligned_rays_native_matches_twin():
     origins, dirs = rays(o, d)
     opts = RenderOptions(step_size=0.5)
     native = render(grid, origins, dirs, None, opts)
-    twin = render(grid, origins, dirs, None, opts, backend="torch")
+    twin = render_with("torch", grid, origins, dirs, None, opts)
     assert float(native.opacity.min()) > 0.3
     torch.testing.assert_close(native.rgb, twin.rgb, atol=2e-5, rtol=1e-5)
     torch.testing.assert_close(native.opacity, twin.opacity, atol=2e-5, rtol=1e-5)
     targets = torch.rand(origins.shape[0], 3, generator=gen)
     gn, gt = GridGrad(grid), GridGrad(grid)
     loss_and_grad(grid, origins, dirs, targets, targets, opts, gn)
-    loss_and_grad(grid, origins, dirs, targets, targets, opts, gt, backend="torch")
+    loss_and_grad_with("torch", grid, origins, dirs, targets, targets, opts, gt)
     torch.testing.assert_close(gn.data, gt.data, atol=1e-6, rtol=1e-4)
 
 
@@ -151,16 +174,16 @@ def test_origins_inside_the_grid_and_near_plane(backend):
     sigma = 0.3
     grid = unit_grid(density=sigma)
     origins, dirs = rays([[2.0, 1.5, 2.5], [2.0, 1.5, 2.5]], [[1.0, 0.0, 0.0], [-2.0, 0.0, 0.0]])
-    out = render(grid, origins, dirs, None, backend=backend)
+    out = render_with(backend, grid, origins, dirs, None)
     torch.testing.assert_close(out.opacity, torch.full((2,), 1 - math.exp(-sigma * 2)), atol=2e-5, rtol=0)
-    near = render(grid, origins, dirs, None, RenderOptions(near=1.0), backend=backend)
+    near = render_with(backend, grid, origins, dirs, None, RenderOptions(near=1.0))
     torch.testing.assert_close(near.opacity, torch.full((2,), 1 - math.exp(-sigma * 1)), atol=2e-5, rtol=0)
-    behind = render(grid, origins, dirs, None, RenderOptions(near=20.0), backend=backend)
+    behind = render_with(backend, grid, origins, dirs, None, RenderOptions(near=20.0))
     assert bool((behind.opacity == 0).all())
     check_loss_grad_finite(grid, origins, dirs, backend)
     # Along the main diagonal from (1,1,1): 3*sqrt(3) of medium, a whole number of steps.
     diag_o, diag_d = rays([[1.0, 1.0, 1.0]], [[1.0, 1.0, 1.0]])
-    diag = render(grid, diag_o, diag_d, None, RenderOptions(step_size=math.sqrt(3) / 4), backend=backend)
+    diag = render_with(backend, grid, diag_o, diag_d, None, RenderOptions(step_size=math.sqrt(3) / 4))
     assert float(diag.opacity) == pytest.approx(1 - math.exp(-sigma * 3 * math.sqrt(3)), abs=2e-5)
 
 
@@ -169,7 +192,7 @@ def test_single_cell_grid(backend):
     sigma = 2.0
     grid = unit_grid(res=(2, 2, 2), density=sigma)
     origins, dirs = rays([[-1.0, 0.5, 0.5], [0.5, 0.5, 3.0]], [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-    out = render(grid, origins, dirs, None, RenderOptions(step_size=0.1), backend=backend)
+    out = render_with(backend, grid, origins, dirs, None, RenderOptions(step_size=0.1))
     torch.testing.assert_close(out.opacity, torch.full((2,), 1 - math.exp(-sigma)), atol=2e-5, rtol=0)
     check_loss_grad_finite(grid, origins, dirs, backend)
 
@@ -181,7 +204,7 @@ def test_single_cell_grid_native_matches_twin():
     origins = torch.randn(32, 3, generator=gen) * 3
     dirs = torch.rand(32, 3, generator=gen) - origins
     a = render(grid, origins, dirs, None, RenderOptions(step_size=0.05))
-    b = render(grid, origins, dirs, None, RenderOptions(step_size=0.05), backend="torch")
+    b = render_with("torch", grid, origins, dirs, None, RenderOptions(step_size=0.05))
     assert float(a.opacity.max()) > 0.5
     torch.testing.assert_close(a.rgb, b.rgb, atol=2e-5, rtol=1e-5)
 
@@ -195,17 +218,17 @@ def test_black_and_white_targets_pull_colour_the_right_way(backend, target):
     dirs = torch.tensor([[1.0, 0.0, 0.0]]).expand(64, 3) + torch.randn(64, 3, generator=gen) * 0.05
     targets = torch.full((64, 3), target)
     background = torch.full((64, 3), target)
-    opt = SparseRMSProp(grid, lr_density=0.05, lr_sh=0.05, backend=backend)
+    opt = SparseRMSProp(grid, lr_density=0.05, lr_sh=0.05)
     grad = GridGrad(grid)
-    first, _ = loss_and_grad(grid, origins, dirs, targets, background, None, grad, backend=backend)
+    first, _ = loss_and_grad_with(backend, grid, origins, dirs, targets, background, None, grad)
     rows = grad.touched()
     dc0 = grad.sh[rows][:, [0, 4, 8]]  # the constant coefficient of R, G and B
     sign = 1.0 if target == 0.0 else -1.0
     assert bool((sign * dc0 >= 0).all()) and bool((sign * dc0 > 0).any())
-    opt.step(grad)
+    step_with(backend, opt, grad)
     for _ in range(15):
-        mse, _ = loss_and_grad(grid, origins, dirs, targets, background, None, grad, backend=backend)
-        opt.step(grad)
+        mse, _ = loss_and_grad_with(backend, grid, origins, dirs, targets, background, None, grad)
+        step_with(backend, opt, grad)
     assert_finite(grid.data, opt.second_moment)
     assert mse < 0.5 * first
 
@@ -219,7 +242,7 @@ def test_underflowing_transmittance_stays_finite(backend, density):
     origins = torch.randn(16, 3, generator=gen) * 8
     dirs = torch.rand(16, 3, generator=gen) * 5 - origins
     opts = RenderOptions(step_size=0.05, stop_transmittance=0.0)  # no early stop: T runs down to 0
-    out = render(grid, origins, dirs, torch.ones(16, 3), opts, backend=backend)
+    out = render_with(backend, grid, origins, dirs, torch.ones(16, 3), opts)
     assert_finite(out.rgb, out.depth, out.opacity)
     hit = out.opacity > 0
     assert bool(hit.any()) and bool((out.opacity[hit] == 1).all())
@@ -230,16 +253,16 @@ def test_underflowing_transmittance_stays_finite(backend, density):
 def test_rmsprop_with_zero_second_moment_and_zero_gradient(backend):
     grid = unit_grid(density=0.5, sh_degree=1)
     before = grid.data.clone()
-    opt = SparseRMSProp(grid, lr_density=10.0, lr_sh=10.0, eps=1e-8, backend=backend)
+    opt = SparseRMSProp(grid, lr_density=10.0, lr_sh=10.0, eps=1e-8)
     grad = GridGrad(grid)
     rows = torch.tensor([0, 7, 63])
     grad.accumulate(rows, torch.zeros(3), torch.zeros(3, grid.sh.shape[1]))
-    opt.step(grad)
+    step_with(backend, opt, grad)
     assert torch.equal(grid.data, before)
     assert bool((opt.second_moment == 0).all())
     tiny = torch.full((3,), 1e-30)
     grad.accumulate(rows, tiny, torch.zeros(3, grid.sh.shape[1]))
-    opt.step(grad)
+    step_with(backend, opt, grad)
     assert_finite(grid.data, opt.second_moment)
     changed = torch.nonzero((grid.data != before).any(dim=1)).squeeze(1)
     assert set(changed.tolist()) <= set(rows.tolist())
@@ -279,7 +302,7 @@ def test_512_cubed_budget_with_a_thin_slab():
     tau = torch.tensor([9 * sigma, 128 * sigma, 0.0, 0.0])
     opts = RenderOptions(step_size=0.5)
     for backend in BACKENDS:
-        out = render(grid, origins, dirs, bg.expand(4, 3), opts, backend=backend)
+        out = render_with(backend, grid, origins, dirs, bg.expand(4, 3), opts)
         torch.testing.assert_close(out.opacity, 1 - torch.exp(-tau), atol=2e-5, rtol=0)
         # The colour coefficients ramp to 0 with the density, so only the empty rays have a closed form.
         assert torch.equal(out.rgb[2:], bg.expand(2, 3))
@@ -293,14 +316,14 @@ def test_512_cubed_budget_with_a_thin_slab():
     origins = torch.cat([torch.tensor([[-1.0, -1.0, -1.0]]), centre + far / far.norm(dim=1, keepdim=True) * 400])
     dirs = centre + torch.randn(7, 3, generator=gen) * 20 - origins
     native = render(grid, origins, dirs, None, opts)
-    twin = render(grid, origins, dirs, None, opts, backend="torch")
+    twin = render_with("torch", grid, origins, dirs, None, opts)
     assert float(native.opacity.min()) > 0.05
     torch.testing.assert_close(native.rgb, twin.rgb, atol=2e-5, rtol=1e-5)
     torch.testing.assert_close(native.opacity, twin.opacity, atol=2e-5, rtol=1e-5)
     targets = torch.rand(7, 3, generator=gen)
     gn, gt = GridGrad(grid), GridGrad(grid)
     loss_and_grad(grid, origins, dirs, targets, targets, opts, gn)
-    loss_and_grad(grid, origins, dirs, targets, targets, opts, gt, backend="torch")
+    loss_and_grad_with("torch", grid, origins, dirs, targets, targets, opts, gt)
     assert gn.num_touched > 0 and sorted(gn.touched().tolist()) == sorted(gt.touched().tolist())
     assert_finite(gn.data)
     torch.testing.assert_close(gn.data, gt.data, atol=1e-6, rtol=1e-4)

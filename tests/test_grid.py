@@ -3,7 +3,9 @@ import pytest
 import torch
 
 from plenoxels.errors import UserError
-from plenoxels import GridGrad, RenderOptions, SparseGrid, SparseRMSProp
+from plenoxels.grid import SparseGrid
+from plenoxels.optim import GridGrad, SparseRMSProp
+from plenoxels.render import RenderOptions
 from plenoxels.render import loss_and_grad, render
 
 

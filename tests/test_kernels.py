@@ -1,15 +1,17 @@
 """The native kernels against their PyTorch twin (values and gradients), and the twin against autograd."""
+import subprocess
 import sys
 
 import pytest
 import torch
 
-from plenoxels.errors import UserError
-import plenoxels
-import plenoxels.render as render_module
-from plenoxels import GridGrad, RenderOptions, SparseGrid, SparseRMSProp, reference
-from plenoxels.render import loss_and_grad, max_weights, render
+from plenoxels import native, reference
+from plenoxels.grid import SparseGrid
+from plenoxels.grid import OCCUPANCY_BLOCK
+from plenoxels.optim import GridGrad, SparseRMSProp
 from plenoxels.regularizers import sample_rows, tv_loss_and_grad
+from plenoxels.render import RenderOptions
+from plenoxels.render import COLOUR_OFFSET, SH_C0, loss_and_grad, max_weights, ray_samples, render, sample_counts
 
 ATOL = 2e-5
 
@@ -34,6 +36,12 @@ def random_rays(n=96, seed=1, spread=3.0):
     return origins, targets - origins
 
 
+def twin_render(grid, origins, dirs, background=None, opts=None):
+    """The PyTorch twin's (rgb, depth, opacity), without autograd."""
+    with torch.no_grad():
+        return reference.render(grid, origins, dirs, background, opts or RenderOptions())
+
+
 @pytest.mark.parametrize("sh_degree", [0, 1, 2, 3])
 def test_render_native_matches_twin(sh_degree):
     grid = random_grid(sh_degree=sh_degree, seed=sh_degree)
@@ -41,11 +49,11 @@ def test_render_native_matches_twin(sh_degree):
     background = torch.rand(origins.shape[0], 3, generator=torch.Generator().manual_seed(3))
     opts = RenderOptions(step_size=0.4, sigma_threshold=0.05)
     native = render(grid, origins, dirs, background, opts)
-    twin = render(grid, origins, dirs, background, opts, backend="torch")
+    rgb, depth, opacity = twin_render(grid, origins, dirs, background, opts)
     assert 0.05 < float(native.opacity.mean()) < 0.999  # the comparison covers real compositing
-    torch.testing.assert_close(native.rgb, twin.rgb, atol=ATOL, rtol=1e-5)
-    torch.testing.assert_close(native.depth, twin.depth, atol=1e-4, rtol=1e-5)
-    torch.testing.assert_close(native.opacity, twin.opacity, atol=ATOL, rtol=1e-5)
+    torch.testing.assert_close(native.rgb, rgb, atol=ATOL, rtol=1e-5)
+    torch.testing.assert_close(native.depth, depth, atol=1e-4, rtol=1e-5)
+    torch.testing.assert_close(native.opacity, opacity, atol=ATOL, rtol=1e-5)
 
 
 def test_render_without_background_is_black_behind():
@@ -66,7 +74,7 @@ def test_loss_and_grad_native_matches_twin(sh_degree):
     opts = RenderOptions(step_size=0.6)
     native, twin = GridGrad(grid), GridGrad(grid)
     mse_n, gbg_n = loss_and_grad(grid, origins, dirs, targets, background, opts, native)
-    mse_t, gbg_t = loss_and_grad(grid, origins, dirs, targets, background, opts, twin, backend="torch")
+    mse_t, gbg_t = reference.loss_and_grad(grid, origins, dirs, targets, background, opts, twin)
     assert mse_n == pytest.approx(mse_t, rel=1e-5)
     torch.testing.assert_close(gbg_n, gbg_t, atol=1e-8, rtol=1e-4)
     assert native.num_touched > 0
@@ -75,8 +83,8 @@ def test_loss_and_grad_native_matches_twin(sh_degree):
     torch.testing.assert_close(native.data, twin.data, atol=1e-5 * scale, rtol=1e-4)
     # Gradients accumulate across calls; the touched set is the union.
     origins2, dirs2 = random_rays(n=32, seed=99)
-    for backend, grad in (("native", native), ("torch", twin)):
-        loss_and_grad(grid, origins2, dirs2, targets[:32], background[:32], opts, grad, backend=backend)
+    loss_and_grad(grid, origins2, dirs2, targets[:32], background[:32], opts, native)
+    reference.loss_and_grad(grid, origins2, dirs2, targets[:32], background[:32], opts, twin)
     assert set(native.touched().tolist()) == set(twin.touched().tolist())
     torch.testing.assert_close(native.data, twin.data, atol=1e-5 * scale, rtol=1e-4)
     untouched = native.touched_mask == 0
@@ -105,7 +113,7 @@ def test_max_weights_native_matches_twin():
     origins, dirs = random_rays(seed=12)
     opts = RenderOptions(step_size=0.5)
     native = max_weights(grid, origins, dirs, opts)
-    twin = max_weights(grid, origins, dirs, opts, backend="torch")
+    twin = reference.max_weights(grid, origins, dirs, opts)
     assert float(native.max()) > 0.1
     assert bool((native == 0).any())  # some rows are never seen
     torch.testing.assert_close(native, twin, atol=ATOL, rtol=1e-5)
@@ -116,7 +124,8 @@ def test_tv_native_matches_twin(fraction):
     grid = random_grid(seed=13, holes=0.2)
     native, twin = GridGrad(grid), GridGrad(grid)
     loss_n = tv_loss_and_grad(grid, native, 0.7, 0.05, fraction, torch.Generator().manual_seed(1))
-    loss_t = tv_loss_and_grad(grid, twin, 0.7, 0.05, fraction, torch.Generator().manual_seed(1), backend="torch")
+    rows = sample_rows(grid, fraction, torch.Generator().manual_seed(1))
+    loss_t = reference.tv_loss_and_grad(grid, twin, rows, 0.7, 0.05)
     assert loss_n == pytest.approx(loss_t, rel=1e-5)
     assert set(native.touched().tolist()) == set(twin.touched().tolist())
     torch.testing.assert_close(native.data, twin.data, atol=1e-7, rtol=1e-4)
@@ -147,12 +156,18 @@ def test_rmsprop_updates_only_touched_rows_and_matches_twin():
     results = {}
     for backend in ("native", "torch"):
         g = SparseGrid(grid.links.clone(), grid.data.clone(), grid.bbox_min, grid.bbox_max, grid.sh_degree)
-        opt = SparseRMSProp(g, lr_density=0.5, lr_sh=0.1, backend=backend)
+        opt = SparseRMSProp(g, lr_density=0.5, lr_sh=0.1)
         grad = GridGrad(g)
-        loss_and_grad(g, origins, dirs, targets, targets, RenderOptions(), grad, backend=backend)
+        if backend == "native":
+            loss_and_grad(g, origins, dirs, targets, targets, RenderOptions(), grad)
+        else:
+            reference.loss_and_grad(g, origins, dirs, targets, targets, RenderOptions(), grad)
         touched = grad.touched().clone()
         assert 0 < touched.shape[0] < grid.num_occupied // 10
-        opt.step(grad)
+        if backend == "native":
+            opt.step(grad)
+        else:
+            twin_step(opt, grad)
         assert grad.num_touched == 0 and bool((grad.data == 0).all()) and bool((grad.touched_mask == 0).all())
         changed = (g.data != grid.data).any(dim=1)
         assert set(torch.nonzero(changed).squeeze(1).tolist()) <= set(touched.tolist())
@@ -164,14 +179,20 @@ def test_rmsprop_updates_only_touched_rows_and_matches_twin():
     torch.testing.assert_close(results["native"][1], results["torch"][1], atol=1e-9, rtol=1e-4)
 
 
+def twin_step(opt: SparseRMSProp, grad: GridGrad) -> None:
+    """The twin's RMSProp step on an optimiser's grid and state."""
+    reference.rmsprop_step(opt.grid.data, opt.second_moment, grad, 1 + 3 * (opt.grid.sh_degree + 1) ** 2,
+                           opt.lr_density, opt.lr_sh, opt.beta, opt.eps)
+
+
 @pytest.mark.parametrize("backend", ["native", "torch"])
 def test_rmsprop_step_formula(backend):
     grid = SparseGrid.dense((2, 2, 2), (0, 0, 0), (1, 1, 1), 0, init_density=1.0, init_sh=0.0)
-    opt = SparseRMSProp(grid, lr_density=0.1, lr_sh=0.01, beta=0.9, eps=1e-8, backend=backend)
+    opt = SparseRMSProp(grid, lr_density=0.1, lr_sh=0.01, beta=0.9, eps=1e-8)
     opt.second_moment[3, 0] = 4.0
     grad = GridGrad(grid)
     grad.accumulate(torch.tensor([3, 5]), torch.tensor([2.0, -1.0]), torch.tensor([[0.5, 0.0, 0.0], [0.0, 0.0, 0.0]]))
-    opt.step(grad)
+    opt.step(grad) if backend == "native" else twin_step(opt, grad)
     v3 = 0.9 * 4.0 + 0.1 * 4.0
     assert float(grid.density[3]) == pytest.approx(1.0 - 0.1 * 2.0 / (v3 ** 0.5 + 1e-8), rel=1e-6)
     assert float(grid.density[5]) == pytest.approx(1.0 + 0.1 * 1.0 / (0.1 ** 0.5 + 1e-8), rel=1e-6)
@@ -180,16 +201,60 @@ def test_rmsprop_step_formula(backend):
     assert bool((grid.density[[0, 1, 2, 4, 6, 7]] == 1.0).all())
 
 
-def test_native_path_fails_early_when_not_built(monkeypatch):
-    monkeypatch.setattr(render_module, "_native", None)
-    monkeypatch.setitem(sys.modules, "plenoxels._C", None)  # makes the import fail
-    monkeypatch.delattr(plenoxels, "_C", raising=False)
-    grid = random_grid(res=(3, 3, 3))
-    origins, dirs = random_rays(n=2)
-    with pytest.raises(UserError, match="native core not built: run `make install`"):
-        render(grid, origins, dirs)
-    # The twin is still there when asked for explicitly.
-    assert render(grid, origins, dirs, backend="torch").rgb.shape == (2, 3)
+def test_native_path_fails_early_when_not_built():
+    """Without plenoxels._C, importing the model works and the first kernel call says how to build it."""
+    script = (
+        "import sys, torch\n"
+        "sys.modules['plenoxels._C'] = None\n"  # makes the import fail
+        "from plenoxels.grid import SparseGrid\n"
+        "from plenoxels.errors import UserError\n"
+        "try:\n"
+        "    SparseGrid.dense((3, 3, 3), (0, 0, 0), (1, 1, 1), 0)\n"
+        "except UserError as exc:\n"
+        "    print(exc)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout
+    assert "native core not built: run `make install`" in out
+
+
+def test_ray_samples_are_the_kernels_lattice():
+    """render.ray_samples (what export samples along rays, and the twin marches) lays out exactly the
+    samples the kernels count."""
+    grid = random_grid(seed=3)
+    origins, dirs = random_rays(n=200, seed=4)
+    for opts in (RenderOptions(step_size=0.37), RenderOptions(step_size=0.05, max_samples_per_ray=30, near=2.5)):
+        lattice = ray_samples(grid, origins, dirs, opts)
+        assert int(lattice["n"].sum()) == sample_counts(grid, origins, dirs, opts)[0]
+        assert int((lattice["n"] == 0).sum()) > 0 and int(lattice["n"].max()) > 0
+
+
+def test_sample_matches_twin_interpolation():
+    grid = random_grid(sh_degree=3, seed=9)
+    gen = torch.Generator().manual_seed(9)
+    points = torch.rand(2000, 3, generator=gen) * 2.6 - 1.3  # about a third outside the box
+    density, sh = grid.sample(points)
+    g = grid.world_to_grid(points.double())
+    inside = ((g >= 0) & (g <= torch.tensor(grid.resolution, dtype=torch.float64) - 1)).all(dim=1)
+    assert 0 < int(inside.sum()) < points.shape[0]
+    twin = reference.interpolate(grid.links, grid.data, g.to(torch.float32)) * inside[:, None]
+    torch.testing.assert_close(density, twin[:, 0], atol=1e-6, rtol=1e-6)
+    torch.testing.assert_close(sh, twin[:, 1 : 1 + sh.shape[1]], atol=1e-6, rtol=1e-6)
+    # Vertices read back their own values exactly; padding columns stay zero.
+    corners = torch.tensor([[0.0, 0.0, 0.0], [8.0, 6.0, 10.0], [3.0, 2.0, 5.0]])
+    values = native.ops.sample(grid.data, grid.links, corners)
+    rows = grid.links[corners[:, 0].long(), corners[:, 1].long(), corners[:, 2].long()].long()
+    expected = torch.where((rows >= 0)[:, None], grid.data[rows.clamp_min(0)], torch.zeros_like(grid.data[:3]))
+    torch.testing.assert_close(values, expected, atol=0, rtol=0)
+
+
+def test_sh_constants_are_the_kernels():
+    """The Python SH constants (used by export and the twin) give the kernels' colour: a grid whose
+    degree-0 coefficient is (c - offset) / SH_C0 renders colour c where opaque."""
+    grid = SparseGrid.dense((4, 4, 4), (0, 0, 0), (1, 1, 1), 0, init_density=1e4)
+    colour = torch.tensor([0.2, 0.45, 0.9])
+    grid.sh.copy_(((colour - COLOUR_OFFSET) / SH_C0).expand_as(grid.sh))
+    out = render(grid, torch.tensor([[0.5, 0.5, -1.0]]), torch.tensor([[0.0, 0.0, 1.0]]), None)
+    torch.testing.assert_close(out.rgb[0], colour, atol=1e-6, rtol=0)
 
 
 def test_empty_space_skipping_is_exact():
@@ -207,10 +272,10 @@ def test_empty_space_skipping_is_exact():
     dirs = dirs + torch.tensor([0.25, -0.3, 0.0])  # aim at the blob
     opts = RenderOptions(step_size=0.5)
     native = render(grid, origins, dirs, None, opts)
-    twin = render(grid, origins, dirs, None, opts, backend="torch")
+    rgb, _, opacity = twin_render(grid, origins, dirs, None, opts)
     assert int((native.opacity > 0.01).sum()) > 10
-    torch.testing.assert_close(native.rgb, twin.rgb, atol=ATOL, rtol=1e-5)
-    torch.testing.assert_close(native.opacity, twin.opacity, atol=ATOL, rtol=1e-5)
+    torch.testing.assert_close(native.rgb, rgb, atol=ATOL, rtol=1e-5)
+    torch.testing.assert_close(native.opacity, opacity, atol=ATOL, rtol=1e-5)
 
 
 def test_live_blocks_stay_exact_through_optimizer_steps():
@@ -233,8 +298,7 @@ def test_live_blocks_stay_exact_through_optimizer_steps():
     fresh = SparseGrid(grid.links, grid.data.clone(), grid.bbox_min, grid.bbox_max, grid.sh_degree)
     assert torch.equal(counts, fresh.live_blocks()[0])
     native = render(grid, origins, dirs, None, opts)
-    twin = render(grid, origins, dirs, None, opts, backend="torch")
-    torch.testing.assert_close(native.rgb, twin.rgb, atol=ATOL, rtol=1e-5)
+    torch.testing.assert_close(native.rgb, twin_render(grid, origins, dirs, None, opts)[0], atol=ATOL, rtol=1e-5)
 
 
 def test_live_block_flags_stay_exact_when_threads_share_blocks():
@@ -244,9 +308,6 @@ def test_live_block_flags_stay_exact_when_threads_share_blocks():
     count stays 1 throughout, so after every step every flag must still say live; a flag written from a
     thread's own momentary count could leave a block marked empty (found in 631 of 2000 such steps
     before the flags were rewritten from the final counts)."""
-    from plenoxels.grid import OCCUPANCY_BLOCK
-    from plenoxels.render import native_core
-
     grid = SparseGrid.dense((65, 65, 65), (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 0)
     coords = grid.coords().long()
     interior = torch.nonzero((coords % OCCUPANCY_BLOCK != 0).all(dim=1)).squeeze(1)
@@ -272,12 +333,12 @@ def test_live_block_flags_stay_exact_when_threads_share_blocks():
         g[rows_a, 0], g[rows_b, 0] = -sign, sign
         grads.append(g)
     grad, mask, second_moment = torch.zeros_like(grid.data), torch.zeros(grid.num_occupied, dtype=torch.uint8), torch.zeros_like(grid.data)
-    core = native_core()
     live = (grid.coords(), OCCUPANCY_BLOCK, counts, blocks)
     stale_steps = 0
     for step in range(100):
         grad.copy_(grads[step % 2])
-        core.rmsprop_step(grid.data, second_moment, grad, mask, touched, touched.numel(), 1, 1.0, 0.0, 0.0, 0.0, live)
+        native.ops.rmsprop_step(grid.data, second_moment, grad, mask, touched, touched.numel(), 1, 1.0, 0.0, 0.0, 0.0,
+                                *live)
         stale_steps += int(not bool(blocks.all()))
     assert bool((grid.density[rows_a] > 0).all()) == (step % 2 == 0)
     assert int(counts.min()) == 1 and int(counts.max()) == 1

@@ -1,0 +1,62 @@
+// The operator schema of the Plenoxels core, declared once: torch.ops.voxfield.<name>. The CPU
+// kernels (kernels_cpu.cpp) and the CUDA kernels (bindings_cuda.cpp, CUDA build only) register
+// implementations of these same operators, and torch's dispatcher picks one from the tensors' device.
+// plenoxels/native.py is the Python side.
+//
+// Shared conventions: `data` [N, S] packed rows (S = padded_stride(1 + 3K)), `links` [Rx, Ry, Rz]
+// int32 (row or -1), occupancy as uint8; gradients in the layout of `data` with a touched mask [N]
+// and touched-row list [N] of which the first `num_touched` entries are valid (every kernel that
+// adds gradient returns the new count). `scratch_grad` / `scratch_mask` come from grad_scratch: the
+// CPU's per-thread buffers, empty on a GPU (whose kernels accumulate with atomics).
+#include <omp.h>
+#include <torch/extension.h>
+#include <torch/library.h>
+
+#include "plenoxels_math.h"
+
+namespace {
+
+#define PLX_GRID "Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int block, float[] bbox_min, " \
+                 "float[] bbox_max, int sh_degree"
+#define PLX_MARCH "float step, float stop_transmittance, float near, float sigma_threshold, int max_samples"
+#define PLX_GRAD "Tensor(a!) grad_data, Tensor(b!) grad_mask, Tensor(c!) grad_rows, int num_touched, " \
+                 "Tensor(d!) scratch_grad, Tensor(e!) scratch_mask"
+
+}  // namespace
+
+TORCH_LIBRARY(voxfield, m) {
+    // Device-free facts, one kernel for every device.
+    m.def("padded_stride(int columns) -> int", [](int64_t columns) -> int64_t { return plx::padded_stride((int)columns); });
+    m.def("num_threads() -> int", []() -> int64_t { return omp_get_max_threads(); });
+    // Asks for 2 MiB pages behind a contiguous CPU tensor; true when advised.
+    m.def("advise_huge_pages(Tensor t) -> bool");
+    // Per-thread gradient scratch for a gradient table: (float [T-1, N, S], uint8 [T-1, N]), zero.
+    m.def("grad_scratch(Tensor grad_data) -> Tensor[]");
+    // (cells [Rx-1, Ry-1, Rz-1], blocks) uint8: any corner allocated / any cell of the block occupied.
+    m.def("build_occupancy(Tensor links, int block) -> Tensor[]");
+    // Live-vertex counts and flags per occupancy block, recounted from scratch.
+    m.def("count_live_blocks(Tensor data, Tensor coords, int block, Tensor(a!) counts, Tensor(b!) blocks) -> ()");
+    // int32 [rows, 3]: the vertex of every allocated row.
+    m.def("row_coords(Tensor links, int rows) -> Tensor");
+    // Trilinear interpolation of every column at grid-frame points [P, 3] -> [P, S]; zeros outside the box.
+    m.def("sample(Tensor data, Tensor links, Tensor points) -> Tensor");
+    // [rgb [B, 3], depth [B], opacity [B]].
+    m.def("render(" PLX_GRID ", Tensor origins, Tensor dirs, Tensor? background, " PLX_MARCH ") -> Tensor[]");
+    // (sum of squared errors, d loss / d background [B, 3], touched count); adds d(mse)/d(data).
+    m.def("loss_and_grad(" PLX_GRID ", Tensor origins, Tensor dirs, Tensor targets, Tensor background, " PLX_MARCH
+          ", " PLX_GRAD ") -> (float, Tensor, int)");
+    // out[row] = max(out[row], largest weight of a sample that reads the row).
+    m.def("max_weights(" PLX_GRID ", Tensor origins, Tensor dirs, " PLX_MARCH ", Tensor(a!) out) -> ()");
+    // (samples on the rays' lattices inside the box, samples that contributed).
+    m.def("sample_counts(" PLX_GRID ", Tensor origins, Tensor dirs, " PLX_MARCH ") -> (int, int)");
+    // (TV loss at the sampled rows, touched count); adds its gradient.
+    m.def("tv_loss_and_grad(Tensor data, Tensor links, Tensor coords, Tensor sample_rows, float weight_density, "
+          "float weight_sh, int sh_degree, " PLX_GRAD ") -> (float, int)");
+    // RMSProp on the touched rows; clears their gradient. With live coords/counts/blocks, keeps them current.
+    m.def("rmsprop_step(Tensor(a!) data, Tensor(b!) second_moment, Tensor(c!) grad_data, Tensor(d!) grad_mask, "
+          "Tensor grad_rows, int num_touched, int columns, float lr_density, float lr_sh, float beta, float eps, "
+          "Tensor? live_coords, int live_block, Tensor(e!)? live_counts, Tensor(f!)? live_blocks) -> ()");
+}
+
+// `import plenoxels._C` loads this library, which registers the operators above; the module itself is empty.
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {}
