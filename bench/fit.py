@@ -82,14 +82,14 @@ def synthetic_scene() -> tuple[dict, Path]:
     """The synthetic object scene, rendered once and kept under bench/out."""
     from pipeline.io import read_json
     from pipeline.synthetic import write_scene
-    from stages.normalize import Points, Settings, normalize_scene
+    from pipeline.scene_frame import Points, SceneOptions, normalize_scene
 
     s = SYNTHETIC
     root = CACHE / f"synthetic_{s['kind']}_{s['n_views']}_{s['width']}x{s['height']}"
     if not (root / "transforms.json").is_file():
         write_scene(s["kind"], root, n_views=s["n_views"], width=s["width"], height=s["height"])
     scene = normalize_scene(read_json(root / "transforms.json"), Points.empty(),
-                            Settings(scene_type=s["kind"], holdout_every=s["holdout_every"]), poses_dir=root,
+                            SceneOptions(scene_type=s["kind"], holdout_every=s["holdout_every"]), poses_dir=root,
                             path_prefix="")
     return scene, root
 
@@ -167,10 +167,11 @@ def one_run(spec: dict) -> dict:
     import torch
 
     from bench.common import fit_context
+    from pipeline.images import load_frame
     from pipeline.report import Reporter
     from plenoxels.scene_model import SceneModel
     from stages import fit
-    from stages.evaluate import image_psnr, image_ssim
+    from pipeline.metrics import image_psnr, image_ssim
 
     scene, root = load_scene(spec["scene"], Path(spec["data"]), spec["scoring"]["val_limit"])
     settings = resolve(spec["preset"], spec["scene_type"], spec["overrides"])
@@ -183,7 +184,7 @@ def one_run(spec: dict) -> dict:
     psnrs, ssims = [], []
     render_started = time.time()
     for frame in [f for f in scene["frames"] if f.get("split") == "test"]:
-        truth, k = fit.load_frame(root, frame, spec["scoring"]["eval_scale"], settings.background_color)
+        truth, k = load_frame(root, frame, spec["scoring"]["eval_scale"], settings.background_color)
         with torch.no_grad():
             render = model.render_camera(frame["transform_matrix"], k)["rgb"].numpy()
         psnrs.append(image_psnr(render, truth))

@@ -50,8 +50,9 @@ def training_frames(scene: dict, count: int | None) -> list[dict]:
 def one_point(spec: dict) -> dict:
     import numpy as np
 
-    from pipeline.report import Reporter
-    from stages import fit
+    from pipeline.images import load_frame
+    from plenoxels.scene_model import SceneModel
+    from plenoxels.train import Fitter, RaySet
 
     scene, root = load_scene(spec["scene"], Path(spec["data"]), 0)
     resolution, coarse = spec["resolution"], spec["coarse_steps"]
@@ -63,15 +64,15 @@ def one_point(spec: dict) -> dict:
     loading = time.perf_counter()
     images, c2ws, ks = [], [], []
     for frame in frames:
-        image, k = fit.load_frame(root, frame, s.image_scale, s.background_color)
+        image, k = load_frame(root, frame, s.image_scale, s.background_color)
         images.append(image)
         c2ws.append(np.asarray(frame["transform_matrix"], dtype=np.float64))
         ks.append(k)
-    train = fit.RaySet(images, c2ws, ks)
+    train = RaySet(images, c2ws, ks)
     del images
     loading = time.perf_counter() - loading
 
-    fitter = fit.Fitter(scene, s, train, Reporter(quiet=True))
+    fitter = Fitter(SceneModel.create(scene, s, s.resolutions[0]), s, train)
     started = time.perf_counter()
     for _ in range(coarse):
         fitter.train_step()

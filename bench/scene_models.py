@@ -63,11 +63,11 @@ def machine() -> dict:
 def real_scene(name: str, data: Path) -> tuple[dict, Path]:
     """A real scene normalised from the poses it comes with (bench/normalize.py's readers)."""
     from bench.normalize import LOADERS
-    from stages.normalize import Settings, normalize_scene
+    from pipeline.scene_frame import SceneOptions, normalize_scene
 
     folder = data / name
     transforms, points = LOADERS[name](folder)
-    scene = normalize_scene(transforms, points, Settings(holdout_every=8), poses_dir=folder, path_prefix="")
+    scene = normalize_scene(transforms, points, SceneOptions(holdout_every=8), poses_dir=folder, path_prefix="")
     return scene, folder
 
 
@@ -76,7 +76,7 @@ def synthetic_scene(name: str) -> tuple[dict, Path]:
     each view's true near/far depths standing in for the sparse points SfM would give."""
     from pipeline.io import read_json
     from pipeline.synthetic import write_scene
-    from stages.normalize import Points, Settings, normalize_scene
+    from pipeline.scene_frame import Points, SceneOptions, normalize_scene
 
     kind = name.removeprefix("synthetic_")
     root = CACHE / name
@@ -87,7 +87,7 @@ def synthetic_scene(name: str) -> tuple[dict, Path]:
     for frame, view in zip(transforms["frames"], views):
         if view["near_depth"] is not None:
             frame["near"], frame["far"] = view["near_depth"], view["far_depth"]
-    scene = normalize_scene(transforms, Points.empty(), Settings(scene_type=kind, holdout_every=8),
+    scene = normalize_scene(transforms, Points.empty(), SceneOptions(scene_type=kind, holdout_every=8),
                             poses_dir=root, path_prefix="")
     return scene, root
 
@@ -102,9 +102,10 @@ def one_run(name: str, scene: dict, root: Path, label: str, overrides: dict, pre
     from pipeline import config
     from pipeline.report import Reporter
     from bench.common import fit_context
+    from pipeline.images import load_frame
     from plenoxels.scene_model import SceneModel
     from stages import fit
-    from stages.evaluate import image_psnr, image_ssim
+    from pipeline.metrics import image_psnr, image_ssim
 
     values = config.merge(config.load_preset(preset), config.load_scene_type_overlay(scene["type"]),
                           {"fit": overrides})["fit"]
@@ -122,7 +123,7 @@ def one_run(name: str, scene: dict, root: Path, label: str, overrides: dict, pre
         psnrs, ssims, renders = [], [], []
         render_started = time.time()
         for frame in [f for f in frames if f.get("split") == "test"]:
-            truth, k = fit.load_frame(root, frame, settings.image_scale, settings.background_color)
+            truth, k = load_frame(root, frame, settings.image_scale, settings.background_color)
             with torch.no_grad():
                 render = model.render_camera(frame["transform_matrix"], k)["rgb"].numpy()
             psnrs.append(image_psnr(render, truth))
@@ -150,7 +151,7 @@ def side_by_side(path: Path, truth, appropriate, alternative) -> None:
     import numpy as np
 
     from pipeline.io import write_png
-    from stages.evaluate import to_uint8
+    from pipeline.metrics import to_uint8
 
     gap = np.ones((truth.shape[0], 4, 3), dtype=np.float32)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -3,21 +3,21 @@
 A SceneModel ties together
 - `grid`: the SparseGrid, in the *fit frame*: the normalised world (object and unbounded scenes) or
   NDC (forward scenes);
-- `ndc`: the NDCMapping from the world to the fit frame, or None when the fit frame is the world;
+- `fit_frame`: the FitFrame that maps world rays and points into the grid's frame and back;
 - `background`: the multi-sphere background model behind the grid (unbounded scenes), or None;
 - `background_color`: the constant colour rays see behind the grid when there is no background model
   (white for masked object captures such as lego);
 - `render_options`: the sampling the fit used (step size, early termination), the default for renders.
 
-Everything the model is asked takes rays and cameras in the normalised world frame (scene.json's
-frame); the model maps them into the fit frame itself. Later stages load it with
-`SceneModel.load(fit_dir)` and then
+A new model comes from `SceneModel.create(scene, ModelOptions(...), resolution)`. Everything the model
+is asked takes rays and cameras in the normalised world frame (scene.json's frame); the model maps them
+into the fit frame itself. Later stages load it with `SceneModel.load(fit_dir)` and then
 - render: `render_camera(c2w, intrinsics)` -> {"rgb" [h,w,3], "depth" [h,w], "opacity" [h,w]} with
   depth the world distance along the unit ray to the expected termination point (weights
   renormalised by opacity; 0 where nothing is hit), or `render_rays(o, d)` for any batch of rays;
 - query the field: `grid.sample(points_fit)` -> (raw density [M], SH [M, 3K]) at fit-frame points,
-  `to_fit_points(points_world)` / `to_world_points(points_fit)` to move points between the frames;
-  activated density is relu(raw), colour is relu(SH . basis(dir) + 0.5) (csrc/plenoxels_math.h).
+  with `fit_frame` moving points between the frames; activated density is relu(raw), colour is
+  relu(SH . basis(dir) + 0.5) (csrc/plenoxels_math.h).
 
 Files in a fit folder: `grid.pt` (SparseGrid.save), `model.json` (scene type, fit frame, NDC and
 background parameters, render options, the scene transforms) and `background.pt` (the background
@@ -25,18 +25,21 @@ model's tensors) when there is one.
 """
 from __future__ import annotations
 
+import json
 import math
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
 
+from plenoxels.background import MultiSphereBackground
 from plenoxels.cameras import Intrinsics, rays_from_camera
 from plenoxels.errors import UserError
-from pipeline.io import read_json, write_json
+from plenoxels.fit_frame import FitFrame
 from plenoxels.grid import SparseGrid
+from plenoxels.ndc import NDCMapping
 from plenoxels.render import RenderOptions, RenderResult, render
 
 MODEL_FORMAT = "voxfield-scene-model"
@@ -45,6 +48,36 @@ MODEL_VERSION = 1
 RENDER_CHUNK = 1 << 16
 # Rays with less opacity than this have no meaningful termination depth.
 MIN_DEPTH_OPACITY = 1e-4
+# scene.json's transforms between the normalised world and the input frame, kept with the model.
+TRANSFORM_KEYS = ("world_from_input", "input_from_world", "scale")
+
+
+@dataclass
+class ModelOptions:
+    """What a new SceneModel is made of beyond the scene: its fit frame, colour model, background and sampling."""
+
+    ndc: Literal["auto", "on", "off"] = "auto"
+    """Fit in NDC of the average camera: auto (forward scenes), on or off."""
+    background: Literal["auto", "on", "off"] = "auto"
+    """Multi-sphere background model behind the grid: auto (unbounded scenes), on or off."""
+    background_color: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])
+    """RGB in [0, 1] behind the grid and under image masks."""
+    sh_degree: int = 2
+    """Spherical-harmonic degree of the colour, 0-3."""
+    init_density: float = 0.1
+    """Raw density of every vertex at the start."""
+    box_padding: float = 0.05
+    """The grid box is the foreground box grown by this share of its size on each side."""
+    step_size: float = 0.5
+    """Ray sample spacing in voxels."""
+    stop_transmittance: float = 1e-4
+    """A ray stops once this little light gets through."""
+    background_spheres: int = 32
+    """Background model: number of spheres."""
+    background_width: int = 128
+    """Background model: texture width in pixels (the height is half)."""
+    tv_background: float = 1e-3
+    """Background model: TV weight of its density and colour."""
 
 
 def _uses(toggle: str, wanted: bool) -> bool:
@@ -59,61 +92,48 @@ def grid_shape(extent: np.ndarray, resolution: int) -> tuple[int, int, int]:
 
 
 class SceneModel:
-    def __init__(self, grid: SparseGrid, scene_type: str, ndc=None, background: torch.nn.Module | None = None,
-                 background_color=(1.0, 1.0, 1.0), render_options: RenderOptions | None = None,
-                 transforms: dict | None = None, backend: str = "native"):
+    def __init__(self, grid: SparseGrid, scene_type: str, fit_frame: FitFrame | None = None,
+                 background: MultiSphereBackground | None = None, background_color=(1.0, 1.0, 1.0),
+                 render_options: RenderOptions | None = None, transforms: dict | None = None):
         self.grid = grid
         self.scene_type = scene_type
-        self.ndc = ndc
+        self.fit_frame = fit_frame or FitFrame()
         self.background = background
         self.background_color = tuple(float(c) for c in background_color)
         self.render_options = render_options or RenderOptions()
         # world_from_input, input_from_world, scale: scene.json's, kept so exports need only the fit folder.
         self.transforms = dict(transforms or {})
-        self.backend = backend
 
     # ---- construction ---------------------------------------------------------------------------
     @classmethod
-    def create(cls, scene: dict, settings, resolution: int, render_options: RenderOptions | None = None,
-               backend: str = "native") -> "SceneModel":
+    def create(cls, scene: dict, options: ModelOptions, resolution: int) -> "SceneModel":
         """An initial model for normalize/scene.json at `resolution` vertices along the grid's longest
-        axis, every vertex allocated. `settings` (the fit stage's Settings) supplies ndc and background
-        (auto|on|off; auto follows the scene type), sh_degree, init_density, box_padding,
-        background_color, background_spheres, background_width and tv_background."""
+        axis, every vertex allocated; NDC and the background model follow the scene type where the
+        options say auto."""
         scene_type = scene.get("type", "object")
-        ndc = None
-        if _uses(settings.ndc, scene_type == "forward"):
-            from plenoxels.ndc import NDCMapping
-
-            ndc = NDCMapping.from_scene(scene)
-        lo, hi = foreground_box(scene, settings.box_padding)
+        ndc = NDCMapping.from_scene(scene) if _uses(options.ndc, scene_type == "forward") else None
+        lo, hi = foreground_box(scene, options.box_padding)
         background = None
-        if _uses(settings.background, scene_type == "unbounded"):
-            from plenoxels.background import MultiSphereBackground
-
-            width = settings.background_width
+        if _uses(options.background, scene_type == "unbounded"):
+            width = options.background_width
             background = MultiSphereBackground.around_box(
-                lo, hi, n_spheres=settings.background_spheres, height=max(2, width // 2), width=width,
-                far_colour=tuple(settings.background_color), tv_density=settings.tv_background,
-                tv_colour=settings.tv_background)
-        model = cls(cls._initial_grid(ndc, lo, hi, resolution, settings), scene_type, ndc, background,
-                    settings.background_color, render_options,
-                    {k: scene[k] for k in ("world_from_input", "input_from_world", "scale") if k in scene}, backend)
-        return model
-
-    @staticmethod
-    def _initial_grid(ndc, lo, hi, resolution: int, settings) -> SparseGrid:
+                lo, hi, n_spheres=options.background_spheres, height=max(2, width // 2), width=width,
+                far_colour=tuple(options.background_color), tv_density=options.tv_background,
+                tv_colour=options.tv_background)
         if ndc is not None:
             lo, hi = ndc.grid_box()
             shape = ndc.grid_resolution(resolution)
         else:
             shape = grid_shape(np.asarray(hi) - np.asarray(lo), resolution)
-        return SparseGrid.dense(shape, lo, hi, settings.sh_degree, init_density=settings.init_density)
+        grid = SparseGrid.dense(shape, lo, hi, options.sh_degree, init_density=options.init_density)
+        render_options = RenderOptions(step_size=options.step_size, stop_transmittance=options.stop_transmittance)
+        return cls(grid, scene_type, FitFrame(ndc), background, options.background_color, render_options,
+                   {k: scene[k] for k in TRANSFORM_KEYS if k in scene})
 
     def resolution_for(self, resolution: int) -> tuple[int, int, int]:
         """The grid shape this model uses at `resolution` vertices along its longest axis."""
-        if self.ndc is not None:
-            return self.ndc.grid_resolution(resolution)
+        if self.fit_frame.ndc is not None:
+            return self.fit_frame.ndc.grid_resolution(resolution)
         return grid_shape(np.subtract(self.grid.bbox_max, self.grid.bbox_min), resolution)
 
     def to(self, device: torch.device) -> "SceneModel":
@@ -122,19 +142,6 @@ class SceneModel:
         if self.background is not None:
             self.background.to(device)
         return self
-
-    # ---- frames ---------------------------------------------------------------------------------
-    def to_grid_frame(self, o_world: torch.Tensor, d_world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """World rays -> fit-frame rays (NDC or unchanged)."""
-        if self.ndc is None:
-            return o_world, d_world
-        return self.ndc.rays(o_world, d_world)
-
-    def to_fit_points(self, points_world: torch.Tensor) -> torch.Tensor:
-        return points_world if self.ndc is None else self.ndc.points_to_ndc(points_world)
-
-    def to_world_points(self, points_fit: torch.Tensor) -> torch.Tensor:
-        return points_fit if self.ndc is None else self.ndc.points_to_world(points_fit)
 
     # ---- rendering ------------------------------------------------------------------------------
     def background_rgb(self, o_world: torch.Tensor, d_world: torch.Tensor) -> torch.Tensor:
@@ -147,20 +154,20 @@ class SceneModel:
     def render_rays(self, o_world: torch.Tensor, d_world: torch.Tensor,
                     opts: RenderOptions | None = None) -> RenderResult:
         """Renders world rays [B, 3]; depth is the fit-frame expected depth (weights not renormalised)."""
-        o, d = self.to_grid_frame(o_world, d_world)
+        o, d = self.fit_frame.rays(o_world, d_world)
         with torch.no_grad():
             bg = self.background_rgb(o_world, d_world)
-        return render(self.grid, o, d, bg, opts or self.render_options, backend=self.backend)
+        return render(self.grid, o, d, bg, opts or self.render_options)
 
     def world_depth(self, o_world: torch.Tensor, d_world: torch.Tensor, result: RenderResult) -> torch.Tensor:
         """World distance along each unit ray to its expected termination point (0 where nothing is hit)."""
         hit = result.opacity > MIN_DEPTH_OPACITY
         depth = torch.where(hit, result.depth / result.opacity.clamp_min(MIN_DEPTH_OPACITY), torch.zeros_like(result.depth))
-        if self.ndc is None:
+        if self.fit_frame.ndc is None:
             return depth
-        o, d = self.to_grid_frame(o_world, d_world)
+        o, d = self.fit_frame.rays(o_world, d_world)
         unit = d / d.norm(dim=-1, keepdim=True)
-        world = self.ndc.world_distance(o_world, d_world, o + depth[:, None] * unit)
+        world = self.fit_frame.ndc.world_distance(o_world, d_world, o + depth[:, None] * unit)
         return torch.where(hit, world, torch.zeros_like(world))
 
     def render_camera(self, c2w, intrinsics: Intrinsics, opts: RenderOptions | None = None,
@@ -187,8 +194,8 @@ class SceneModel:
         return {"grid": grid, "background": background, "total": grid + background}
 
     def describe(self) -> dict[str, Any]:
-        return {"fit_frame": "ndc" if self.ndc is not None else "world", "resolution": list(self.grid.resolution),
-                "occupied": self.grid.num_occupied, "sh_degree": self.grid.sh_degree,
+        return {"fit_frame": "ndc" if self.fit_frame.ndc is not None else "world",
+                "resolution": list(self.grid.resolution), "occupied": self.grid.num_occupied, "sh_degree": self.grid.sh_degree,
                 "background_model": self.background is not None, "memory_bytes": self.memory_bytes()}
 
     # ---- persistence ----------------------------------------------------------------------------
@@ -204,8 +211,8 @@ class SceneModel:
             background = {"kind": "multi_sphere", "config": self.background.config(), "file": "background.pt"}
         record = {
             "format": MODEL_FORMAT, "version": MODEL_VERSION, "scene_type": self.scene_type,
-            "fit_frame": "ndc" if self.ndc is not None else "world",
-            "ndc": self.ndc.to_dict() if self.ndc is not None else None,
+            "fit_frame": "ndc" if self.fit_frame.ndc is not None else "world",
+            "ndc": self.fit_frame.ndc.to_dict() if self.fit_frame.ndc is not None else None,
             "background": background, "background_color": list(self.background_color),
             "render_options": asdict(self.render_options),
             "grid": {"file": "grid.pt", "resolution": list(self.grid.resolution), "bbox_min": list(self.grid.bbox_min),
@@ -213,33 +220,28 @@ class SceneModel:
                      "occupied": self.grid.num_occupied},
             **self.transforms, **(extra or {}),
         }
-        write_json(folder / "model.json", record)
+        (folder / "model.json").write_text(json.dumps(record, indent=2))
 
     @classmethod
-    def load(cls, folder: Path, backend: str = "native") -> "SceneModel":
+    def load(cls, folder: Path) -> "SceneModel":
         folder = Path(folder)
         path = folder / "model.json"
         if not path.is_file():
             raise UserError(f"{folder} holds no fitted model (model.json missing): run the fit stage")
-        record = read_json(path)
+        record = json.loads(path.read_text())
         if record.get("format") != MODEL_FORMAT or record.get("version") != MODEL_VERSION:
             raise UserError(f"{path} is not a voxfield scene model of version {MODEL_VERSION}: fit again")
         grid, _ = SparseGrid.load(folder / record["grid"]["file"])
-        ndc = None
-        if record.get("ndc"):
-            from plenoxels.ndc import NDCMapping
-
-            ndc = NDCMapping.from_dict(record["ndc"])
+        ndc = NDCMapping.from_dict(record["ndc"]) if record.get("ndc") else None
         background = None
         if record.get("background"):
-            from plenoxels.background import MultiSphereBackground
-
             background = MultiSphereBackground.from_config(record["background"]["config"])
             state = torch.load(folder / record["background"]["file"], map_location="cpu", weights_only=True)
             background.load_state_dict(state)
-        transforms = {k: record[k] for k in ("world_from_input", "input_from_world", "scale") if k in record}
-        return cls(grid, record.get("scene_type", "object"), ndc, background, record.get("background_color", (1, 1, 1)),
-                   RenderOptions(**record.get("render_options", {})), transforms, backend)
+        transforms = {k: record[k] for k in TRANSFORM_KEYS if k in record}
+        return cls(grid, record.get("scene_type", "object"), FitFrame(ndc), background,
+                   record.get("background_color", (1, 1, 1)), RenderOptions(**record.get("render_options", {})),
+                   transforms)
 
 
 def foreground_box(scene: dict, padding: float) -> tuple[tuple[float, ...], tuple[float, ...]]:

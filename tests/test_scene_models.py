@@ -1,29 +1,30 @@
-"""Scene level: the synthetic scenes fit better on held-out views with their scene model than without it
-(the fit stage's Fitter with SceneModel's fit.background and fit.ndc toggles): the unbounded scene with
-the background model, the forward scene in NDC."""
+"""The scene model: made to suit the scene type, saved and loaded unchanged; and the synthetic scenes fit
+better on held-out views with their scene model than without it (plenoxels.train.Fitter with the
+ModelOptions background and ndc toggles): the unbounded scene with the background model, the forward
+scene in NDC."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from pipeline.images import load_frame
 from pipeline.io import read_json
-from pipeline.report import Reporter
-from plenoxels.cameras import Intrinsics
+from pipeline.scene_frame import Points, SceneOptions, normalize_scene
 from pipeline.synthetic import build_scene, render_view, write_scene
-from plenoxels.scene_model import psnr
-from stages import fit
-from stages.normalize import Points, Settings as NormalizeSettings, normalize_scene
+from plenoxels.cameras import Intrinsics
+from plenoxels.scene_model import ModelOptions, SceneModel, psnr
+from plenoxels.train import Fitter, RaySet, TrainOptions
 
 # A small fit that runs in well under a minute: 30 training views of 64x48 pixels, 48 cells across, 400 steps. The
 # schedule suits so few steps (the density rate ramps up, the colour rate decays only 10x) and TV is
 # off: with few views of a textured scene it only slows the fit down.
-FIT = dict(resolutions=[48], steps=[400], batch_size=2048, batch_mode="rays", image_scale=1.0, sh_degree=0,
-           eval_every=0, prune_final=False, lr_density=5.0, lr_density_final=0.5, lr_density_delay=0.3,
-           lr_sh=0.05, lr_sh_final=0.005, tv_density=0.0, tv_sh=0.0, background_spheres=8, background_width=32,
-           lr_background=0.05)
+FIT = dict(resolutions=[48], steps=[400], batch_size=2048, batch_mode="rays", sh_degree=0, prune_final=False,
+           lr_density=5.0, lr_density_final=0.5, lr_density_delay=0.3, lr_sh=0.05, lr_sh_final=0.005, tv_density=0.0,
+           tv_sh=0.0, background_spheres=8, background_width=32, lr_background=0.05)
 
 
 def _synthetic(kind: str, folder: Path) -> tuple[dict, Path, dict]:
@@ -34,9 +35,43 @@ def _synthetic(kind: str, folder: Path) -> tuple[dict, Path, dict]:
     transforms = read_json(root / "transforms.json")
     for frame, view in zip(transforms["frames"], read_json(root / "ground_truth" / "scene.json")["views"]):
         frame["near"], frame["far"] = view["near_depth"], view["far_depth"]
-    scene = normalize_scene(transforms, Points.empty(), NormalizeSettings(scene_type=kind, holdout_every=4),
+    scene = normalize_scene(transforms, Points.empty(), SceneOptions(scene_type=kind, holdout_every=4),
                             poses_dir=root, path_prefix="")
     return scene, root, transforms
+
+
+@pytest.mark.parametrize("scene_type", ["object", "forward", "unbounded"])
+def test_scene_model_follows_the_scene_type_and_survives_save_and_load(scene_type, tmp_path):
+    frame = {"fl_x": 40.0, "fl_y": 40.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48, "split": "train",
+             "transform_matrix": np.eye(4).tolist(), "near": 1.0, "far": 20.0}
+    scene = {"type": scene_type, "foreground": {"min": [-1, -1, -1], "max": [1, 1, 1]}, "frames": [frame],
+             "world_from_input": (2 * np.eye(4)).tolist(), "input_from_world": (0.5 * np.eye(4)).tolist()}
+    if scene_type == "forward":
+        scene["forward"] = {"reference_c2w": np.eye(4).tolist(), "near": 1.0}
+    model = SceneModel.create(scene, ModelOptions(sh_degree=1), 24)
+    assert (model.fit_frame.ndc is not None) == (scene_type == "forward")
+    assert (model.background is not None) == (scene_type == "unbounded")
+    if scene_type == "forward":
+        assert model.grid.resolution == model.fit_frame.ndc.grid_resolution(24) and model.grid.resolution[2] < 24
+    else:
+        assert model.grid.resolution == (24, 24, 24)
+    generator = torch.Generator().manual_seed(0)
+    model.grid.data.copy_(torch.randn(model.grid.data.shape, generator=generator).abs())
+    if model.background is not None:
+        with torch.no_grad():
+            for p in model.background.parameters():
+                p.copy_(torch.randn(p.shape, generator=generator))
+    model.save(tmp_path)
+    loaded = SceneModel.load(tmp_path)
+    assert loaded.scene_type == scene_type and loaded.transforms["world_from_input"] == scene["world_from_input"]
+    o = torch.zeros(64, 3)
+    o[:, 2] = 3.0
+    d = torch.randn(64, 3, generator=generator) * 0.3
+    d[:, 2] = -1.0
+    d = d / d.norm(dim=1, keepdim=True)
+    a, b = model.render_rays(o, d), loaded.render_rays(o, d)
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth)
+    assert float(a.opacity.max()) > 0.1  # the rays do cross the (random, dense) grid
 
 
 @pytest.fixture(scope="module")
@@ -50,34 +85,39 @@ def forward_scene(tmp_path_factory):
     return _synthetic("forward", tmp_path_factory.mktemp("forward"))
 
 
-def _fit(scene: dict, root, **settings) -> fit.Fitter:
+@dataclass
+class Options(TrainOptions, ModelOptions):
+    """A model and its training, as the fit stage combines them."""
+
+
+def _fit(scene: dict, root, **settings) -> Fitter:
     torch.manual_seed(0)
-    s = fit.Settings(**{**FIT, **settings})
-    s.check()
+    options = Options(**{**FIT, **settings})
     images, c2ws, ks = [], [], []
     for frame in (f for f in scene["frames"] if f["split"] == "train"):
-        image, k = fit.load_frame(root, frame, 1.0, s.background_color)
+        image, k = load_frame(root, frame, 1.0, options.background_color)
         images.append(image)
         c2ws.append(np.asarray(frame["transform_matrix"]))
         ks.append(k)
-    fitter = fit.Fitter(scene, s, fit.RaySet(images, c2ws, ks), Reporter(quiet=True))
-    for _ in range(s.total_steps):
+    model = SceneModel.create(scene, options, options.resolutions[0])
+    fitter = Fitter(model, options, RaySet(images, c2ws, ks))
+    for _ in range(options.total_steps):
         fitter.train_step()
     return fitter
 
 
-def _held_out_errors(scene: dict, root, fitter: fit.Fitter) -> list[tuple[dict, np.ndarray]]:
+def _held_out_errors(scene: dict, root, fitter: Fitter) -> list[tuple[dict, np.ndarray]]:
     """Per held-out frame: the frame and its squared error per pixel [h, w] (mean over colours)."""
     out = []
     for frame in (f for f in scene["frames"] if f["split"] == "test"):
-        truth, k = fit.load_frame(root, frame, 1.0, fitter.s.background_color)
+        truth, k = load_frame(root, frame, 1.0, fitter.model.background_color)
         with torch.no_grad():
             rgb = fitter.model.render_camera(np.asarray(frame["transform_matrix"]), k)["rgb"]
         out.append((frame, ((rgb - torch.from_numpy(truth)) ** 2).mean(dim=-1).numpy()))
     return out
 
 
-def _held_out_psnr(scene: dict, root, background: str) -> tuple[float, fit.Fitter]:
+def _held_out_psnr(scene: dict, root, background: str) -> tuple[float, Fitter]:
     fitter = _fit(scene, root, background=background)
     return float(np.mean([psnr(float(e.mean())) for _, e in _held_out_errors(scene, root, fitter)])), fitter
 
@@ -111,7 +151,7 @@ def test_forward_scene_needs_ndc(forward_scene):
     for ndc in ("auto", "off"):
         # The fit's own density rate: the NDC grid's surfaces need the density the faster rate reaches.
         fitter = _fit(scene, root, ndc=ndc, lr_density=30.0, lr_density_final=3.0)
-        assert (fitter.model.ndc is not None) == (ndc == "auto")
+        assert (fitter.model.fit_frame.ndc is not None) == (ndc == "auto")
         whole, objects = [], []
         for frame, error in _held_out_errors(scene, root, fitter):
             _, _, coverage = render_view(spec, cameras[frame["file_path"]], Intrinsics.from_frame(frame), supersample=1)

@@ -1,0 +1,405 @@
+"""The training loop: fits a SceneModel to the pixels of posed images, coarse to fine.
+
+Each step renders a batch of rays (random pixels, or random square tiles of pixels, which keep the
+kernel's memory reads local) and takes one sparse RMSProp step on MSE + TV; the background model, if
+any, takes an Adam step. Both grid rates decay exponentially over the whole fit. TV weights are per
+sampled vertex; a vertex's TV gradient does not shrink with the cell size while its MSE gradient does,
+so the same weight bites harder on finer grids. At each level change vertices that no training ray
+weighs (max rendering weight) or that hold no density are pruned, the survivors are dilated, and the
+grid is upsampled within a voxel budget; the optimiser state follows the vertices.
+
+A `Fitter` holds the state of one fit; `Fitter.run` steps it to the end of its schedule, writing
+checkpoints (always from finite parameters) from which a new Fitter resumes on the same step and the
+same batches. A loss or parameter that stops being finite raises `Diverged`.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from plenoxels.cameras import Intrinsics
+from plenoxels.errors import UserError
+from plenoxels.grid import SparseGrid, sh_count
+from plenoxels.optim import GridGrad, SparseRMSProp
+from plenoxels.regularizers import tv_loss_and_grad
+from plenoxels.render import loss_and_grad, max_weights
+from plenoxels.scene_model import SceneModel, psnr
+
+# The running train PSNR averages the MSE of this many recent steps.
+LOSS_WINDOW = 50
+# Parameters are checked for NaN/inf this often (and before every checkpoint); the loss every step.
+GUARD_EVERY = 25
+# Rays per call when measuring max weights for pruning.
+RAY_CHUNK = 1 << 16
+
+
+@dataclass
+class TrainOptions:
+    """How a SceneModel is fitted: the levels, the batches, the optimiser, the regularisers and the pruning."""
+
+    resolutions: list[int] = field(default_factory=lambda: [128, 256])
+    """Grid vertices along the longest axis, one per level."""
+    steps: list[int] = field(default_factory=lambda: [1000, 1500])
+    """Optimiser steps per level."""
+    batch_size: int = 8192
+    """Rays per step."""
+    batch_mode: Literal["tiles", "rays"] = "rays"
+    """rays: random pixels; tiles: random square tiles of pixels (faster kernel, less progress per step)."""
+    tile_size: int = 32
+    """Tile side in pixels (batch_mode tiles)."""
+    lr_density: float = 30.0
+    """RMSProp rate of the density at the start, decayed exponentially to lr_density_final."""
+    lr_density_final: float = 3.0
+    """RMSProp rate of the density at the end."""
+    lr_density_delay: float = 0.1
+    """Share of the steps over which the density rate ramps up from 1% (0: none)."""
+    lr_sh: float = 0.05
+    """RMSProp rate of the SH coefficients at the start, decayed exponentially to lr_sh_final."""
+    lr_sh_final: float = 5e-3
+    """RMSProp rate of the SH coefficients at the end."""
+    rmsprop_beta: float = 0.95
+    """RMSProp decay of the squared-gradient average, in [0, 1)."""
+    tv_density: float = 1e-10
+    """TV weight of the density per sampled vertex (the MSE is a mean over the batch)."""
+    tv_sh: float = 1e-8
+    """TV weight of the SH coefficients per sampled vertex."""
+    tv_sample_fraction: float = 0.01
+    """Share of the occupied vertices the TV term looks at each step."""
+    lr_background: float = 0.01
+    """Adam rate of the background model."""
+    prune_weight: float = 0.002
+    """Pruning keeps only vertices that some training ray weighs by more than this (max rendering weight)."""
+    prune_density: float = 0.0
+    """Pruning keeps only vertices whose raw density is above this (fit-frame units)."""
+    prune_dilation: int = 2
+    """What pruning keeps is then grown by this many voxels."""
+    prune_ray_scale: float = 0.5
+    """The training rays that measure weights for pruning: images at this share of their size."""
+    prune_final: bool = True
+    """Prune the same way after the last level too (smaller model, fewer floaters)."""
+    voxel_budget: int = 16_000_000
+    """Most occupied vertices after an upsample."""
+    seed: int = 0
+    """Seed of the batches and of the TV samples."""
+
+    @property
+    def total_steps(self) -> int:
+        return sum(self.steps)
+
+
+class RaySet:
+    """Pixels of a set of images with their cameras; makes world rays for any (image, row, column).
+
+    Pixels are stored flat (uint8 [P, 3]) so images of different sizes sit side by side.
+    """
+
+    def __init__(self, images: list[np.ndarray], c2ws: list[np.ndarray], intrinsics: list[Intrinsics]):
+        self.sizes = torch.tensor([[k.h, k.w] for k in intrinsics], dtype=torch.int64)
+        counts = self.sizes[:, 0] * self.sizes[:, 1]
+        self.offsets = torch.cat([torch.zeros(1, dtype=torch.int64), counts.cumsum(0)])
+        self.pixels = torch.cat([torch.from_numpy(np.round(im * 255).astype(np.uint8).reshape(-1, 3)) for im in images])
+        self.c2w = torch.tensor(np.stack(c2ws), dtype=torch.float32)
+        self.k = torch.tensor([[k.fl_x, k.fl_y, k.cx, k.cy] for k in intrinsics], dtype=torch.float32)
+        self.intrinsics = intrinsics
+
+    @property
+    def num_pixels(self) -> int:
+        return int(self.offsets[-1])
+
+    def __len__(self) -> int:
+        return self.sizes.shape[0]
+
+    def rays(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """World origins and unit directions [B, 3] through pixel centres (plenoxels.cameras convention)."""
+        k = self.k[image]
+        d_cam = torch.stack([(col.float() + 0.5 - k[:, 2]) / k[:, 0], -(row.float() + 0.5 - k[:, 3]) / k[:, 1],
+                             -torch.ones_like(k[:, 0])], dim=-1)
+        c2w = self.c2w[image]
+        d = torch.einsum("bij,bj->bi", c2w[:, :3, :3], d_cam)
+        return c2w[:, :3, 3].contiguous(), (d / d.norm(dim=-1, keepdim=True)).contiguous()
+
+    def batch(self, size: int, mode: str, tile: int, generator: torch.Generator):
+        """A training batch: world origins, directions [B, 3] and target colours [B, 3] in [0, 1]."""
+        if mode == "rays":
+            flat = torch.randint(self.num_pixels, (size,), generator=generator)
+            image = torch.searchsorted(self.offsets, flat, right=True) - 1
+            local = flat - self.offsets[image]
+            w = self.sizes[image, 1]
+            row, col = local // w, local % w
+        else:
+            n_tiles = max(1, size // (tile * tile))
+            counts = (self.offsets[1:] - self.offsets[:-1]).double()
+            image = torch.multinomial(counts, n_tiles, replacement=True, generator=generator)
+            h, w = self.sizes[image, 0], self.sizes[image, 1]
+            th, tw = torch.clamp(h, max=tile), torch.clamp(w, max=tile)
+            top = (torch.rand(n_tiles, generator=generator) * (h - th + 1)).long()
+            left = (torch.rand(n_tiles, generator=generator) * (w - tw + 1)).long()
+            dy, dx = torch.meshgrid(torch.arange(tile), torch.arange(tile), indexing="ij")
+            dy, dx = dy.reshape(1, -1), dx.reshape(1, -1)
+            inside = (dy < th[:, None]) & (dx < tw[:, None])
+            image = image[:, None].expand(-1, tile * tile)[inside]
+            row = (top[:, None] + dy)[inside]
+            col = (left[:, None] + dx)[inside]
+            w = self.sizes[image, 1]
+            flat = self.offsets[image] + row * w + col
+        o, d = self.rays(image, row, col)
+        return o, d, self.pixels[flat].float() / 255.0
+
+    def subsampled_rays(self, scale: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rays through a regular subset of every image's pixels (every 1/scale-th row and column)."""
+        stride = max(1, round(1 / scale))
+        origins, dirs = [], []
+        for i in range(len(self)):
+            h, w = int(self.sizes[i, 0]), int(self.sizes[i, 1])
+            row, col = torch.meshgrid(torch.arange(stride // 2, h, stride), torch.arange(stride // 2, w, stride),
+                                      indexing="ij")
+            o, d = self.rays(torch.full((row.numel(),), i), row.reshape(-1), col.reshape(-1))
+            origins.append(o)
+            dirs.append(d)
+        return torch.cat(origins), torch.cat(dirs)
+
+
+def decayed_lr(initial: float, final: float, progress: float, delay: float = 0.0) -> float:
+    """Exponential (log-linear) decay from `initial` to `final` as progress goes 0 -> 1; with a delay,
+    the rate first ramps up from 1% along a quarter sine (as svox2 does)."""
+    progress = min(max(progress, 0.0), 1.0)
+    rate = math.exp(math.log(initial) * (1 - progress) + math.log(final) * progress)
+    if delay > 0:
+        rate *= 0.01 + 0.99 * math.sin(0.5 * math.pi * min(progress / delay, 1.0))
+    return rate
+
+
+def prune_mask(grid: SparseGrid, weights: torch.Tensor, options: TrainOptions) -> torch.Tensor:
+    """Rows to keep: weighed by some training ray and holding density, grown by the dilation."""
+    keep = (weights > options.prune_weight) & (grid.density > options.prune_density)
+    return grid.dilate(keep, options.prune_dilation)
+
+
+def budget_mask(grid: SparseGrid, keep: torch.Tensor, weights: torch.Tensor, budget_rows: int) -> torch.Tensor:
+    """Narrows `keep` to the `budget_rows` rows with the largest weights when it holds more."""
+    if int(keep.sum()) <= budget_rows:
+        return keep
+    score = torch.where(keep, weights, torch.full_like(weights, -1.0))
+    top = torch.topk(score, budget_rows).indices
+    narrowed = torch.zeros_like(keep)
+    narrowed[top] = True
+    return narrowed
+
+
+class Diverged(Exception):
+    """The loss or the parameters stopped being finite."""
+
+
+class Fitter:
+    """The state of one fit: the model, its optimisers, the step counter and the history."""
+
+    def __init__(self, model: SceneModel, options: TrainOptions, train: RaySet,
+                 device: torch.device = torch.device("cpu")):
+        self.options, self.train, self.device = options, train, device
+        self.model = model.to(device)
+        self.generator = torch.Generator().manual_seed(options.seed)
+        self.step = 0
+        self.level = 0
+        self.elapsed = 0.0                 # seconds of fitting so far, over every run that resumed it
+        self.history: list[dict] = []      # held-out PSNR over time
+        self.levels: list[dict] = []       # what happened at each level change
+        self.recent_mse: list[float] = []
+        self.checkpoint_step: int | None = None
+        self._new_optimiser()
+
+    # ---- optimiser state ------------------------------------------------------------------------
+    def _new_optimiser(self) -> None:
+        o = self.options
+        self.grad = GridGrad(self.model.grid)
+        self.optim = SparseRMSProp(self.model.grid, o.lr_density, o.lr_sh, o.rmsprop_beta)
+        self.bg_optim = (torch.optim.Adam(self.model.background.parameters(), lr=o.lr_background)
+                         if self.model.background is not None else None)
+
+    def _replace_grid(self, grid: SparseGrid, old_rows: torch.Tensor) -> None:
+        self.optim.remap(grid, old_rows)
+        self.model.grid = grid
+        self.grad = GridGrad(grid)
+
+    # ---- the loop -------------------------------------------------------------------------------
+    def run(self, checkpoint: Path, checkpoint_every: float, stop_requested: Callable[[], bool] = lambda: False,
+            held_out_psnr: Callable[[SceneModel], float] | None = None, eval_every: int = 0,
+            on_step: Callable[[float], None] | None = None, on_level: Callable[[SparseGrid], None] | None = None,
+            on_eval: Callable[[dict], None] | None = None) -> bool:
+        """Steps from where the fit stands to the end of its schedule; returns whether `stop_requested()`
+        ended it early. Writes `checkpoint` at each level change, every `checkpoint_every` seconds and when
+        stopped; after a complete schedule prunes once more if the options say so. Every `eval_every`
+        steps (0: never) appends `held_out_psnr(model)` to the history. Callbacks: `on_step(mse)` after each
+        step, `on_level(grid)` after each level change, `on_eval(history entry)` after each evaluation.
+        A KeyboardInterrupt writes a checkpoint (unless the parameters are no longer finite) and
+        propagates; so does Diverged, leaving the last checkpoint, which was written from finite parameters."""
+        total = self.options.total_steps
+        started = time.time() - self.elapsed
+        last_save = time.time()
+        stopped = False
+        try:
+            while self.step < total:
+                if self.step == self.level_end(self.level):
+                    self.next_level()
+                    self.elapsed = time.time() - started
+                    self.save_checkpoint(checkpoint)
+                    last_save = time.time()
+                    if on_level is not None:
+                        on_level(self.model.grid)
+                mse = self.train_step()
+                if on_step is not None:
+                    on_step(mse)
+                if eval_every and held_out_psnr is not None and self.step % eval_every == 0:
+                    self.history.append({"step": self.step, "seconds": round(time.time() - started, 1),
+                                         "train_psnr": round(self.train_psnr(), 3),
+                                         "held_out_psnr": round(held_out_psnr(self.model), 3)})
+                    if on_eval is not None:
+                        on_eval(self.history[-1])
+                if time.time() - last_save > checkpoint_every:
+                    self.elapsed = time.time() - started
+                    self.save_checkpoint(checkpoint)
+                    last_save = time.time()
+                if stop_requested():
+                    stopped = True
+                    break
+        except KeyboardInterrupt:
+            self.elapsed = time.time() - started
+            try:
+                self.save_checkpoint(checkpoint)
+            except Diverged:
+                pass  # keep the earlier, finite checkpoint
+            raise
+        self.elapsed = time.time() - started
+        if stopped:
+            self.save_checkpoint(checkpoint)
+        elif self.options.prune_final:
+            self.prune()
+        return stopped
+
+    # ---- one step ------------------------------------------------------------------------------
+    def level_end(self, level: int) -> int:
+        return sum(self.options.steps[:level + 1])
+
+    def train_step(self) -> float:
+        """One optimiser step on one batch; returns its MSE."""
+        o = self.options
+        progress = self.step / max(1, o.total_steps)
+        self.optim.set_lr(decayed_lr(o.lr_density, o.lr_density_final, progress, o.lr_density_delay),
+                          decayed_lr(o.lr_sh, o.lr_sh_final, progress))
+        o_w, d_w, target = (t.to(self.device) for t in self.train.batch(o.batch_size, o.batch_mode, o.tile_size,
+                                                                          self.generator))
+        o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
+        background = self.model.background_rgb(o_w, d_w)
+        mse, grad_background = loss_and_grad(self.model.grid, o_fit, d_fit, target, background.detach(),
+                                             self.model.render_options, self.grad)
+        if not math.isfinite(mse):
+            raise Diverged(f"the loss became {mse}")
+        tv_rows = max(1, round(o.tv_sample_fraction * self.model.grid.num_occupied))
+        tv_loss_and_grad(self.model.grid, self.grad, o.tv_density * tv_rows, o.tv_sh * tv_rows, o.tv_sample_fraction,
+                         self.generator)
+        self.optim.step(self.grad)
+        if self.bg_optim is not None:
+            self.bg_optim.zero_grad()
+            ((background * grad_background).sum() + self.model.background.regularizer()).backward()
+            self.bg_optim.step()
+        self.step += 1
+        self.recent_mse = (self.recent_mse + [mse])[-LOSS_WINDOW:]
+        if self.step % GUARD_EVERY == 0:
+            self.check_finite()
+        return mse
+
+    def check_finite(self) -> None:
+        columns = 1 + 3 * sh_count(self.model.grid.sh_degree)
+        if not bool(torch.isfinite(self.model.grid.data[:, :columns]).all()):
+            raise Diverged("a grid parameter became NaN or infinite")
+        if self.model.background is not None and not all(bool(torch.isfinite(p).all())
+                                                         for p in self.model.background.parameters()):
+            raise Diverged("a background parameter became NaN or infinite")
+
+    def train_psnr(self) -> float:
+        return psnr(sum(self.recent_mse) / len(self.recent_mse)) if self.recent_mse else float("nan")
+
+    # ---- structure changes ----------------------------------------------------------------------
+    def measure_weights(self) -> torch.Tensor:
+        origins, dirs = self.train.subsampled_rays(self.options.prune_ray_scale)
+        weights = torch.zeros(self.model.grid.num_occupied, device=self.device)
+        for start in range(0, origins.shape[0], RAY_CHUNK):
+            o, d = self.model.fit_frame.rays(origins[start:start + RAY_CHUNK].to(self.device),
+                                             dirs[start:start + RAY_CHUNK].to(self.device))
+            weights = torch.maximum(weights, max_weights(self.model.grid, o, d, self.model.render_options))
+        return weights
+
+    def prune(self, budget_rows: int | None = None) -> dict:
+        before = self.model.grid.num_occupied
+        weights = self.measure_weights()
+        keep = prune_mask(self.model.grid, weights, self.options)
+        if budget_rows is not None:
+            keep = budget_mask(self.model.grid, keep, weights, budget_rows)
+        if int(keep.sum()) == 0:
+            raise UserError("pruning would remove every voxel (no training ray hits any density); check the poses, "
+                            "or lower fit.prune_weight / fit.prune_density")
+        grid, old_rows = self.model.grid.prune(keep)
+        self._replace_grid(grid, old_rows)
+        return {"before": before, "after": grid.num_occupied}
+
+    def next_level(self) -> None:
+        """Prune, upsample to the next resolution within the voxel budget, carry the optimiser state."""
+        budget = self.options.voxel_budget
+        old_res = max(self.model.grid.resolution)
+        self.level += 1
+        new_shape = self.model.resolution_for(self.options.resolutions[self.level])
+        growth = (max(new_shape) / old_res) ** 3
+        pruned = self.prune(budget_rows=max(1, int(budget / growth)))
+        grid, old_rows = self.model.grid.upsample(new_shape)
+        if grid.num_occupied > budget:
+            # The estimate of the growth was short: drop the emptiest new vertices.
+            keep = torch.zeros(grid.num_occupied, dtype=torch.bool, device=grid.data.device)
+            keep[torch.topk(grid.density, budget).indices] = True
+            grid, rows = grid.prune(keep)
+            old_rows = old_rows[rows]
+        self._replace_grid(grid, old_rows)
+        self.levels.append({"step": self.step, "pruned_from": pruned["before"], "kept": pruned["after"],
+                            "resolution": list(grid.resolution), "occupied": grid.num_occupied,
+                            "memory_bytes": grid.memory_bytes()})
+
+    # ---- checkpoints ----------------------------------------------------------------------------
+    def state(self) -> dict:
+        grid = self.model.grid
+        return {
+            "step": self.step, "level": self.level, "elapsed": self.elapsed, "history": self.history,
+            "levels": self.levels, "recent_mse": self.recent_mse, "generator": self.generator.get_state(),
+            "grid": {"links": grid.links, "data": grid.data, "bbox_min": grid.bbox_min, "bbox_max": grid.bbox_max,
+                     "sh_degree": grid.sh_degree},
+            "optim": self.optim.state_dict(),
+            "background": self.model.background.state_dict() if self.model.background is not None else None,
+            "bg_optim": self.bg_optim.state_dict() if self.bg_optim is not None else None,
+        }
+
+    def save_checkpoint(self, path: Path) -> None:
+        self.check_finite()
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(self.state(), tmp)
+        tmp.replace(path)
+        self.checkpoint_step = self.step
+
+    def load_checkpoint(self, path: Path) -> None:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        g = state["grid"]
+        self.model.grid = SparseGrid(g["links"], g["data"], g["bbox_min"], g["bbox_max"], g["sh_degree"])
+        self.model.to(self.device)
+        self.checkpoint_step = state["step"]
+        self.step, self.level, self.elapsed = state["step"], state["level"], state["elapsed"]
+        self.history, self.levels, self.recent_mse = state["history"], state["levels"], state["recent_mse"]
+        self.generator.set_state(state["generator"])
+        self._new_optimiser()
+        self.optim.load_state_dict(state["optim"])
+        self.optim.second_moment = self.optim.second_moment.to(self.device)
+        if self.model.background is not None:
+            self.model.background.load_state_dict(state["background"])
+            self.bg_optim.load_state_dict(state["bg_optim"])
