@@ -34,11 +34,11 @@ import numpy as np
 import trimesh
 
 from pipeline import synthetic
-from plenoxels.cameras import Intrinsics, project
 from pipeline.io import read_json, write_json
+from pipeline.metrics import mesh_scores, surface_distance
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
-from stages.export import mesh_scores, surface_distance
+from plenoxels.cameras import Intrinsics, project
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "bench" / "results" / "export.json"

@@ -1,4 +1,5 @@
-"""File reading and writing shared by the stages: JSON written atomically, 8-bit RGB images in and out."""
+"""File reading and writing shared by the stages: JSON written atomically, 8-bit RGB images in and out, meshes and
+point clouds (PLY, OBJ, glTF binary)."""
 from __future__ import annotations
 
 import json
@@ -8,6 +9,8 @@ from typing import Any
 
 import imageio.v3 as iio
 import numpy as np
+import trimesh
+from trimesh.exchange.ply import export_ply
 
 
 def write_json(path: Path, data: Any) -> None:
@@ -41,3 +44,32 @@ def read_rgb(path: Path) -> np.ndarray:
 
 def write_png(path: Path, image: np.ndarray) -> None:
     iio.imwrite(path, np.ascontiguousarray(image), extension=".png")
+
+
+# glTF is y-up; these axes make a z-up frame stand upright in glTF viewers, and importers that convert
+# glTF to z-up (Blender) get the frame's own coordinates back.
+GLTF_FROM_ZUP = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
+
+
+def write_mesh_files(mesh: trimesh.Trimesh, folder: Path) -> dict[str, str]:
+    """mesh.ply (binary, with normals and colours), mesh.obj (vertex colours) and mesh.glb (y-up axes)."""
+    paths = {"ply": folder / "mesh.ply", "obj": folder / "mesh.obj", "glb": folder / "mesh.glb"}
+    paths["ply"].write_bytes(export_ply(mesh, encoding="binary", vertex_normal=True))
+    mesh.export(paths["obj"], include_normals=True)
+    gltf = mesh.copy()
+    gltf.apply_transform(GLTF_FROM_ZUP)
+    gltf.export(paths["glb"])
+    return {k: str(p.name) for k, p in paths.items()}
+
+
+def write_points(path: Path, points: np.ndarray, colours: np.ndarray, normals: np.ndarray) -> None:
+    """A binary PLY of vertices with normals and 8-bit colours (no faces)."""
+    cloud = trimesh.Trimesh(vertices=points, faces=np.zeros((0, 3), dtype=np.int64), vertex_normals=normals,
+                            vertex_colors=rgba8(colours), process=False)
+    path.write_bytes(export_ply(cloud, encoding="binary", vertex_normal=True))
+
+
+def rgba8(colours: np.ndarray) -> np.ndarray:
+    """Float RGB [N, 3] in [0, 1] -> opaque 8-bit RGBA [N, 4]."""
+    rgb = np.round(np.clip(colours, 0.0, 1.0) * 255).astype(np.uint8)
+    return np.concatenate([rgb, np.full((len(rgb), 1), 255, dtype=np.uint8)], axis=1)

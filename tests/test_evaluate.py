@@ -7,7 +7,10 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
+from pipeline import lpips
+from pipeline.camera_paths import orbit_path, spiral_path
 from pipeline.io import read_json
+from pipeline.visuals import colour_depth
 from plenoxels.scene_model import SceneModel
 from stages import evaluate, fit
 from test_fit import QUICK, make_scene, run_stage
@@ -46,6 +49,10 @@ def test_metrics_match_a_direct_computation(fitted):
     assert metrics["mean"]["psnr"] == pytest.approx(np.mean(direct_psnr), abs=1e-3)
     assert metrics["mean"]["ssim"] == pytest.approx(np.mean(direct_ssim), abs=1e-4)
     assert f"PSNR {metrics['mean']['psnr']:.2f} dB" in summary["line"]
+    if lpips.weights_available() and min(k.w, k.h) >= lpips.MIN_SIDE:
+        assert all(0 <= view["lpips"] < 1 for view in metrics["views"])
+        assert metrics["mean"]["lpips"] == pytest.approx(np.mean([v["lpips"] for v in metrics["views"]]), abs=1e-5)
+        assert f"LPIPS {metrics['mean']['lpips']:.3f}" in summary["line"]
 
     video = [f for f in iio.imiter(fitted / "evaluate" / "video.mp4")]
     assert len(video) == 6 and video[0].shape[1] == 32
@@ -57,7 +64,7 @@ def test_depth_colours_follow_depth_and_blank_empty_pixels():
     depth = np.tile(np.linspace(1.0, 3.0, 50), (4, 1))
     opacity = np.ones_like(depth)
     opacity[:, :5] = 0.0
-    image = evaluate.colour_depth(depth, opacity)
+    image = colour_depth(depth, opacity)
     assert (image[:, :5] == 0).all()
     # turbo runs from blue (near) to red (far).
     assert image[0, 6, 2] > image[0, 6, 0] and image[0, -1, 0] > image[0, -1, 2]
@@ -70,7 +77,7 @@ def test_orbit_and_spiral_cameras_look_at_the_scene():
         c2w = np.eye(4)
         c2w[:3, 3] = [3 * math.cos(angle), 3 * math.sin(angle), 1.0]
         frame["transform_matrix"] = c2w.tolist()
-    path = evaluate.orbit_path(scene, frames, 8)
+    path = orbit_path(scene, frames, 8)
     assert len(path) == 8
     for c2w in path:
         assert np.linalg.norm(c2w[:3, 3]) == pytest.approx(math.sqrt(10), rel=1e-6)
@@ -83,7 +90,7 @@ def test_orbit_and_spiral_cameras_look_at_the_scene():
         c2w = np.eye(4)
         c2w[:3, 3] = [dx, dy, 0.0]
         forward_frames.append({"transform_matrix": c2w.tolist(), "near": 1.0, "far": 10.0})
-    spiral = evaluate.spiral_path({"forward": {"reference_c2w": reference.tolist()}}, forward_frames, 10)
+    spiral = spiral_path({"forward": {"reference_c2w": reference.tolist()}}, forward_frames, 10)
     for c2w in spiral:
         assert np.all(np.abs(c2w[:3, 3]) <= 0.2 + 1e-9)
         assert c2w[2, 2] > 0.9  # still facing the way the capture faced (down -z)

@@ -12,18 +12,26 @@ from scipy.special import expit
 
 from bench.export import training_cameras, visible_from
 from pipeline import config
-from plenoxels.cameras import Intrinsics
-from plenoxels.errors import UserError
-from pipeline.io import read_json, write_json
+from pipeline.io import GLTF_FROM_ZUP, read_json, write_json, write_mesh_files, write_points
+from pipeline.metrics import mesh_scores, surface_distance
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from pipeline.stage import StageContext
 from pipeline.synthetic import build_scene, write_scene
+from plenoxels.cameras import Intrinsics
+from plenoxels.errors import UserError
+from plenoxels.fit_frame import FitFrame
 from plenoxels.grid import SparseGrid
+from plenoxels.mesh import (LEVEL_RAY_OPACITY, MARCH_STEP_VOXELS, PEAK_OPTICAL_DEPTH, auto_level, clean_mesh,
+                            grid_lattice, grid_lattice_voxel, ray_peaks, surface_colours, transform_normals,
+                            transform_points)
 from plenoxels.ndc import NDCMapping
+from plenoxels.render import COLOUR_OFFSET, SH_C0
 from plenoxels.scene_model import SceneModel
+from plenoxels.surface import (Terminations, ViewRender, point_normals, ray_terminations, render_views, seen_vertices,
+                               snap_to_level, surface_points)
 from stages import export
-from stages.export import FitFrame, Settings
+from stages.export import Settings
 
 SH_K = 4  # SH degree 1: the export must read only the degree-0 term of each channel
 
@@ -47,7 +55,7 @@ def colour_sh(points: np.ndarray) -> np.ndarray:
     sh = np.zeros(points.shape[:-1] + (3, SH_K))
     red = points[..., 0] > 0.1
     target = np.where(red[..., None], [0.9, 0.1, 0.1], [0.1, 0.1, 0.9])
-    sh[..., 0] = (target - export.COLOUR_OFFSET) / export.SH_C0
+    sh[..., 0] = (target - COLOUR_OFFSET) / SH_C0
     sh[..., 1:] = 0.8
     return sh
 
@@ -92,18 +100,18 @@ def test_sphere_surface_sits_where_the_auto_level_says_with_outward_normals_and_
 
     truth = trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS).apply_translation(SPHERE_CENTRE)
     tolerance = 0.01 * 2 * SPHERE_RADIUS
-    scores = export.mesh_scores(mesh, truth, tolerance, samples=20_000)
+    scores = mesh_scores(mesh, truth, tolerance, samples=20_000)
     assert scores["f_score"] > 0.99 and scores["max_vertex_distance"] < tolerance
     # The same mesh three tolerances off scores badly: the measure can tell.
-    shifted = export.mesh_scores(mesh.copy().apply_translation([3 * tolerance, 0, 0]), truth, tolerance, samples=20_000)
+    shifted = mesh_scores(mesh.copy().apply_translation([3 * tolerance, 0, 0]), truth, tolerance, samples=20_000)
     assert shifted["f_score"] < 0.5
 
 
 def test_a_different_level_moves_the_surface_and_finer_resolution_follows_the_trilinear_field():
     field = sphere_field(32)
     voxel = 2 / 31
-    auto_level = math.log(2) / voxel
-    higher, _ = export.build_mesh(field, FitFrame(), *BOX, Settings(level=1.6 * auto_level), _Quiet())
+    expected_level = math.log(2) / voxel
+    higher, _ = export.build_mesh(field, FitFrame(), *BOX, Settings(level=1.6 * expected_level), _Quiet())
     # density = 2L sigmoid((r - d) / w) = 1.6 L  ->  d = r - w * logit(0.8)
     expected = SPHERE_RADIUS - 0.03 * math.log(4)
     radii = np.linalg.norm(higher.vertices - SPHERE_CENTRE, axis=1)
@@ -122,7 +130,7 @@ def test_faces_no_training_view_sees_are_dropped_such_as_the_inner_wall_of_a_hol
     peak = 2 * math.log(2) / (2 / 39)
     density = peak * expit((SPHERE_RADIUS - dist) / 0.03) * expit((dist - (SPHERE_RADIUS - 0.12)) / 0.03)
     field = dense_grid(density, colour_sh(p), (-1, -1, -1), (1, 1, 1))
-    views = export.render_views(field, FitFrame(), orbit_frames(8), Settings(point_scale=1.0), _Quiet())
+    views = render_views(field, FitFrame(), orbit_frames(8), 1.0, 0, _Quiet())
     kept, _ = export.build_mesh(field, FitFrame(), *BOX, Settings(unseen="keep"), _Quiet(), views=views)
     dropped, decisions = export.build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet(), views=views)
     inner = lambda mesh: np.linalg.norm(mesh.vertices - SPHERE_CENTRE, axis=1) < SPHERE_RADIUS - 0.07
@@ -131,7 +139,7 @@ def test_faces_no_training_view_sees_are_dropped_such_as_the_inner_wall_of_a_hol
     # The outer wall the cameras see stays, colours and all.
     truth = trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS).apply_translation(SPHERE_CENTRE)
     upper = lambda q: q[:, 2] > SPHERE_CENTRE[2] - 0.5 * SPHERE_RADIUS
-    assert export.mesh_scores(dropped, truth, 0.02, samples=20_000, reference_visible=upper)["f_score"] > 0.95
+    assert mesh_scores(dropped, truth, 0.02, samples=20_000, reference_visible=upper)["f_score"] > 0.95
     assert len(dropped.visual.vertex_colors) == len(dropped.vertices)
 
 
@@ -146,9 +154,9 @@ def test_a_mesh_layer_behind_a_nearer_one_is_unseen_even_where_the_render_hides_
     views = []
     for record in orbit_frames(8, size=64):
         k = Intrinsics(record["fl_x"], record["fl_y"], record["cx"], record["cy"], record["w"], record["h"])
-        views.append(export.ViewRender(np.asarray(record["transform_matrix"]), k, np.zeros(k.w * k.h, np.float32),
+        views.append(ViewRender(np.asarray(record["transform_matrix"]), k, np.zeros(k.w * k.h, np.float32),
                                        np.zeros(k.w * k.h, np.float32)))
-    seen = export.seen_vertices(mesh, views, FitFrame(), voxel, voxel, opacity=0.5)
+    seen = seen_vertices(mesh, views, FitFrame(), voxel, voxel, opacity=0.5)
     is_inner = np.arange(len(mesh.vertices)) >= len(outer.vertices)
     assert seen[is_inner].mean() < 0.01
     # The outer sphere is seen wherever a camera on the ring above looks at its front: all but its underside.
@@ -178,7 +186,7 @@ def test_cleaning_drops_floaters_far_pieces_and_what_lies_outside_the_box():
     far_piece = trimesh.creation.icosphere(subdivisions=2, radius=0.1).apply_translation([0, 0, -0.9])
     outside = trimesh.creation.icosphere(subdivisions=2, radius=0.1).apply_translation([1.5, 0, 0])
     mesh = trimesh.util.concatenate([main, near_piece, tiny_floater, far_piece, outside])
-    cleaned, report = export.clean_mesh(mesh, np.full(3, -1.2), np.full(3, 1.2), min_piece_fraction=0.05, max_gap=0.2)
+    cleaned, report = clean_mesh(mesh, np.full(3, -1.2), np.full(3, 1.2), min_piece_fraction=0.05, max_gap=0.2)
     assert len(cleaned.faces) == len(main.faces) + len(near_piece.faces)
     assert report.cropped_faces == len(outside.faces)
     assert (report.pieces, report.dropped_small, report.dropped_far) == (4, 1, 1)
@@ -221,10 +229,10 @@ def test_ndc_grid_maps_back_to_the_world_sphere():
     assert (np.einsum("ij,ij->i", mesh.vertex_normals[facing], mesh.vertices[facing] - SPHERE_CENTRE) > 0).mean() > 0.95
 
     # Points: the reference view's rays go through NDC and their termination points come back to the world.
-    points = export.surface_points(field, frame, [view], Settings(point_scale=1.0), _Quiet())
+    points = surface_points(field, frame, [view], 1.0, 0.5, _Quiet())
     assert len(points) > 300
     assert np.median(radial_error(points)) < 0.02
-    normals = export.point_normals(field, frame, points, export.grid_lattice_voxel(field))
+    normals = point_normals(field, frame, points, grid_lattice_voxel(field))
     radial = (points - SPHERE_CENTRE) / np.linalg.norm(points - SPHERE_CENTRE, axis=1, keepdims=True)
     assert np.median(np.einsum("ij,ij->i", normals, radial)) > 0.95
 
@@ -239,10 +247,10 @@ def test_files_reload_with_the_same_counts_and_the_frame_round_trips(tmp_path):
     world_from_input = np.linalg.inv(input_from_world)
     normalized = mesh.vertices.copy()
     mesh.apply_transform(input_from_world)
-    assert np.allclose(export.transform_points(world_from_input, mesh.vertices), normalized, atol=1e-9)
+    assert np.allclose(transform_points(world_from_input, mesh.vertices), normalized, atol=1e-9)
     assert mesh.volume > 0
 
-    files = export.write_mesh_files(mesh, tmp_path)
+    files = write_mesh_files(mesh, tmp_path)
     for kind, name in files.items():
         loaded = trimesh.load(tmp_path / name, force="mesh", process=False)
         assert (len(loaded.vertices), len(loaded.faces)) == (len(mesh.vertices), len(mesh.faces)), kind
@@ -250,19 +258,19 @@ def test_files_reload_with_the_same_counts_and_the_frame_round_trips(tmp_path):
                                                                  mesh.visual.vertex_colors[:, :3]), kind
         vertices = loaded.vertices
         if kind == "glb":
-            vertices = export.transform_points(np.linalg.inv(export.GLTF_FROM_ZUP), vertices)
+            vertices = transform_points(np.linalg.inv(GLTF_FROM_ZUP), vertices)
         assert np.allclose(vertices, mesh.vertices, atol=1e-4), kind
 
     rng = np.random.default_rng(0)
     points = rng.normal(size=(50, 3))
     normals = points / np.linalg.norm(points, axis=1, keepdims=True)
-    export.write_points(tmp_path / "points.ply", points, rng.uniform(size=(50, 3)), normals)
+    write_points(tmp_path / "points.ply", points, rng.uniform(size=(50, 3)), normals)
     cloud = trimesh.load(tmp_path / "points.ply")
     assert len(cloud.vertices) == 50 and np.allclose(cloud.vertices, points, atol=1e-5)
     raw = cloud.metadata["_ply_raw"]["vertex"]["data"]
     assert np.allclose(np.stack([raw["nx"], raw["ny"], raw["nz"]], 1), normals, atol=1e-5)
-    moved = export.transform_normals(input_from_world, normals)
-    assert np.allclose(export.transform_normals(world_from_input, moved), normals, atol=1e-9)
+    moved = transform_normals(input_from_world, normals)
+    assert np.allclose(transform_normals(world_from_input, moved), normals, atol=1e-9)
 
 
 def orbit_frames(n: int, radius: float = 2.6, size: int = 40) -> list[dict]:
@@ -289,34 +297,34 @@ def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
 def test_points_lie_on_the_surface_with_its_colours_and_normals_and_set_the_auto_level():
     field = sphere_field(40)
     voxel = 2 / 39
-    points = export.surface_points(field, FitFrame(), orbit_frames(6), Settings(point_scale=1.0), _Quiet())
-    colours = export.surface_colours(field, points, voxel)
+    points = surface_points(field, FitFrame(), orbit_frames(6), 1.0, 0.5, _Quiet())
+    colours = surface_colours(field, points, voxel)
     assert len(points) > 1000
     # Expected termination sits a little inside the 50%-opacity iso-surface, within about one voxel.
     assert np.median(radial_error(points)) < 0.5 * voxel and radial_error(points).max() < 1.5 * voxel
     red = points[:, 0] > 0.1 + 2 * voxel
     blue = points[:, 0] < 0.1 - 2 * voxel
     assert np.abs(colours[red] - [0.9, 0.1, 0.1]).max() < 0.05 and np.abs(colours[blue] - [0.1, 0.1, 0.9]).max() < 0.05
-    normals = export.point_normals(field, FitFrame(), points, voxel)
+    normals = point_normals(field, FitFrame(), points, voxel)
     radial = (points - SPHERE_CENTRE) / np.linalg.norm(points - SPHERE_CENTRE, axis=1, keepdims=True)
     assert np.einsum("ij,ij->i", normals, radial).min() > 0.95
 
     # The auto level from the opaque rays is half the peak density they meet. This sphere is soft (its density D
     # sigmoid((r - d) / w) climbs from 10% to 90% of D over 2.6 voxels, and D is only 1.4 optical depths per voxel),
     # so a ray is 95% opaque before it meets all of D; the level is a little under D / 2, the mesh a little outside.
-    terminations = export.ray_terminations(field, FitFrame(), orbit_frames(6), Settings(point_scale=1.0), _Quiet())
-    opaque = terminations.subset(terminations.opacity >= export.LEVEL_RAY_OPACITY)
+    terminations = ray_terminations(render_views(field, FitFrame(), orbit_frames(6), 1.0, 0, _Quiet()), FitFrame(), 0.5)
+    opaque = terminations.subset(terminations.opacity >= LEVEL_RAY_OPACITY)
     mesh, decisions = export.build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet(), level_rays=opaque)
     assert "median peak density" in decisions["level_source"]
     peak = 2 * math.log(2) / voxel
     assert 0.4 * peak < decisions["level"] < 0.5 * peak
     radii = np.linalg.norm(mesh.vertices - SPHERE_CENTRE, axis=1)
     assert 0 < np.median(radii) - SPHERE_RADIUS < 0.25 * voxel
-    assert np.median(export.surface_distance(mesh, points, np.random.default_rng(0))) < 0.5 * voxel
+    assert np.median(surface_distance(mesh, points, np.random.default_rng(0))) < 0.5 * voxel
     # Snapped along their rays to that level, the points lie on the mesh.
-    snapped = export.snap_to_level(field, terminations, decisions["level"], voxel).world(FitFrame())
+    snapped = snap_to_level(field, terminations, decisions["level"], voxel).world(FitFrame())
     assert len(snapped) > 0.75 * len(points)  # grazing rays at the rim may never reach the level
-    assert np.median(export.surface_distance(mesh, snapped, np.random.default_rng(0))) < 0.1 * voxel
+    assert np.median(surface_distance(mesh, snapped, np.random.default_rng(0))) < 0.1 * voxel
 
 
 def test_ray_peaks_and_the_auto_level_follow_a_ramp_of_density():
@@ -331,17 +339,17 @@ def test_ray_peaks_and_the_auto_level_follow_a_ramp_of_density():
     origins = np.c_[np.full(n, -1.5), rng.uniform(-0.5, 0.5, size=(n, 2))]  # none leaves the box before it is opaque
     directions = np.tile([1.0, 0.0, 0.0], (n, 1)) + np.c_[np.zeros(n), rng.uniform(-0.3, 0.3, size=(n, 2))]
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    rays = export.Terminations(origins, directions, np.zeros(n), np.ones(n))
+    rays = Terminations(origins, directions, np.zeros(n), np.ones(n))
     c = directions[:, 0]
-    expected = np.sqrt(2 * a * c * export.PEAK_OPTICAL_DEPTH)
-    peaks = export.ray_peaks(field, rays)
-    assert np.abs(peaks - expected).max() < a * export.MARCH_STEP_VOXELS * voxel
-    level, source = export.auto_level(field, export.grid_lattice(field), rays, Settings(level_share=0.4))
+    expected = np.sqrt(2 * a * c * PEAK_OPTICAL_DEPTH)
+    peaks = ray_peaks(field, rays)
+    assert np.abs(peaks - expected).max() < a * MARCH_STEP_VOXELS * voxel
+    level, source = auto_level(field, grid_lattice(field), rays, share=0.4, opacity=0.5)
     assert level == pytest.approx(0.4 * np.median(peaks))
     # Rays that miss the density never get that opaque; too few rays fall back to the per-voxel opacity rule.
-    missing = export.Terminations(origins, -directions, np.zeros(n), np.ones(n))
-    assert np.isnan(export.ray_peaks(field, missing)).all()
-    level, source = export.auto_level(field, export.grid_lattice(field), missing, Settings())
+    missing = Terminations(origins, -directions, np.zeros(n), np.ones(n))
+    assert np.isnan(ray_peaks(field, missing)).all()
+    level, source = auto_level(field, grid_lattice(field), missing, share=0.5, opacity=0.5)
     assert level == pytest.approx(math.log(2) / voxel, rel=1e-6) and "one voxel" in source
 
 
@@ -350,7 +358,7 @@ def run_stage(tmp_path, grid, scene: dict, settings: Settings, name: str, ndc=No
     fit, normalize, work = tmp_path / name / "fit", tmp_path / name / "normalize", tmp_path / name / "export"
     for folder in (fit, normalize, work):
         folder.mkdir(parents=True)
-    SceneModel(grid, scene["type"], ndc=ndc, background=background,
+    SceneModel(grid, scene["type"], fit_frame=FitFrame(ndc), background=background,
                transforms={k: scene[k] for k in ("world_from_input", "input_from_world")}).save(fit)
     write_json(normalize / "scene.json", scene)
     ctx = StageContext(scene=tmp_path, out=tmp_path / name, work=work, scratch=tmp_path / name / "scratch",
@@ -377,20 +385,20 @@ def test_stage_writes_every_file_in_the_input_frame_or_the_normalized_one(tmp_pa
         mesh = trimesh.load(folder / "mesh.ply", force="mesh", process=False)
         assert (len(mesh.vertices), len(mesh.faces)) == (record["mesh"]["vertices"], record["mesh"]["faces"])
         assert np.allclose(mesh.bounds, [record["mesh"]["bounds"]["min"], record["mesh"]["bounds"]["max"]], atol=1e-5)
-        assert radial_error(export.transform_points(to_normalized, mesh.vertices)).max() < 0.25 * 2 / 31
+        assert radial_error(transform_points(to_normalized, mesh.vertices)).max() < 0.25 * 2 / 31
         assert mesh.volume > 0
         for name in ("mesh.obj", "mesh.glb"):
             other = trimesh.load(folder / name, force="mesh", process=False)
             assert (len(other.vertices), len(other.faces)) == (len(mesh.vertices), len(mesh.faces))
         cloud = trimesh.load(folder / "points.ply")
         assert len(cloud.vertices) == record["points"]["count"] == 500
-        assert np.median(radial_error(export.transform_points(to_normalized, cloud.vertices))) < 0.02
+        assert np.median(radial_error(transform_points(to_normalized, cloud.vertices))) < 0.02
         for kind, size in record["file_bytes"].items():
             assert (folder / record["files"][kind]).stat().st_size == size
     # The two outputs are the same mesh: the input-frame one maps back onto the normalised one.
     mesh_in = trimesh.load(folders["input"] / "mesh.ply", force="mesh", process=False)
     mesh_norm = trimesh.load(folders["normalized"] / "mesh.ply", force="mesh", process=False)
-    assert np.allclose(export.transform_points(np.linalg.inv(input_from_world), mesh_in.vertices), mesh_norm.vertices,
+    assert np.allclose(transform_points(np.linalg.inv(input_from_world), mesh_in.vertices), mesh_norm.vertices,
                        atol=1e-5)
 
 
@@ -441,7 +449,7 @@ def test_unbounded_scene_exports_the_foreground_only_not_the_ground_or_the_backg
     assert read_json(folder / "export.json")["scene_type"] == "unbounded"
     mesh, points = exported_foreground(folder, settings.crop_margin)
     truth = trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS).apply_translation(SPHERE_CENTRE)
-    scores = export.mesh_scores(mesh, truth, 0.05 * SPHERE_RADIUS, samples=20_000)
+    scores = mesh_scores(mesh, truth, 0.05 * SPHERE_RADIUS, samples=20_000)
     assert scores["f_score"] > 0.95, scores
     assert np.median(radial_error(points)) < 0.03
 
@@ -491,13 +499,13 @@ def test_full_pipeline_mesh_and_points_match_the_true_object_in_the_input_frame(
     record = read_json(out / "export" / "export.json")
     assert record["frame"] == "input" and record["scene_type"] == "object"
     mesh = trimesh.load(out / "export" / "mesh.ply", force="mesh", process=False)
-    strict = export.mesh_scores(mesh, truth, 0.01 * size, samples=20_000, reference_visible=seen)
-    loose = export.mesh_scores(mesh, truth, 0.05 * size, samples=20_000, reference_visible=seen)
+    strict = mesh_scores(mesh, truth, 0.01 * size, samples=20_000, reference_visible=seen)
+    loose = mesh_scores(mesh, truth, 0.05 * size, samples=20_000, reference_visible=seen)
     assert strict["f_score"] > 0.45 and loose["f_score"] > 0.9, (strict, loose)
     assert strict["chamfer"] < 0.03 * size and strict["max_vertex_distance"] < 0.15 * size, strict
 
     points = np.asarray(trimesh.load(out / "export" / "points.ply").vertices)
-    distance = export.surface_distance(truth, points, np.random.default_rng(0))
+    distance = surface_distance(truth, points, np.random.default_rng(0))
     assert len(points) == record["points"]["count"] > 200
     assert np.median(distance) < 0.02 * size and (distance < 0.05 * size).mean() > 0.8, (
         np.median(distance) / size, (distance < 0.05 * size).mean())
@@ -505,7 +513,7 @@ def test_full_pipeline_mesh_and_points_match_the_true_object_in_the_input_frame(
     # The same mesh left in the normalised frame is nowhere near the object: the thresholds can tell.
     scene = read_json(out / "normalize" / "scene.json")
     wrong = mesh.copy().apply_transform(np.asarray(scene["world_from_input"]))
-    assert export.mesh_scores(wrong, truth, 0.05 * size, samples=5_000, reference_visible=seen)["f_score"] < 0.3
+    assert mesh_scores(wrong, truth, 0.05 * size, samples=5_000, reference_visible=seen)["f_score"] < 0.3
 
 
 class _Quiet:
