@@ -37,10 +37,10 @@ import numpy as np
 import torch
 import trimesh
 
-from plenoxels.cameras import Intrinsics, look_at, pixel_directions
-from plenoxels.errors import UserError
 from pipeline.io import read_json, write_json, write_png
 from pipeline.report import Reporter
+from plenoxels.cameras import Intrinsics, look_at, pixel_directions
+from plenoxels.errors import UserError
 
 KINDS = ("object", "forward", "unbounded")
 WORLD_UP = (0.0, 0.0, 1.0)

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from plenoxels.errors import UserError
 from pipeline.io import read_rgb
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
+from plenoxels.errors import UserError
 
 
 def textured(h=60, w=80, seed=0):

@@ -12,14 +12,15 @@ import trimesh
 from PIL import Image
 
 from pipeline import config
-from plenoxels.cameras import Intrinsics, pixel_directions
-from plenoxels.errors import UserError
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
+from pipeline.scene_frame import Points, SceneOptions, normalize_scene, read_points
 from pipeline.stage import StageContext
 from pipeline.synthetic import build_scene, trace, write_scene
+from plenoxels.cameras import Intrinsics, pixel_directions
+from plenoxels.errors import UserError
 from stages import normalize
-from stages.normalize import Points, Settings, normalize_scene, read_points
+from stages.normalize import Settings
 
 N_VIEWS = 16
 WIDTH, HEIGHT = 48, 36
@@ -162,7 +163,7 @@ def test_forward_scene_far_covers_back_wall(scenes):
 
 def test_transforms_round_trip(scenes):
     transforms, points = _load(scenes["object"])
-    scene = normalize_scene(transforms, points, Settings())
+    scene = normalize_scene(transforms, points, SceneOptions())
     forward, backward = np.asarray(scene["world_from_input"]), np.asarray(scene["input_from_world"])
     assert np.allclose(forward @ backward, np.eye(4), atol=1e-9)
     p = np.array([0.7, -2.0, 3.1, 1.0])
@@ -192,8 +193,8 @@ def test_rotated_scaled_shifted_input_normalises_the_same(scenes, kind):
         frame["transform_matrix"] = c2w.tolist()
     moved_points = Points(points.xyz @ similarity[:3, :3].T + similarity[:3, 3], points.obs_frame, points.obs_point)
 
-    a = normalize_scene(transforms, points, Settings(), scenes[kind])
-    b = normalize_scene(moved, moved_points, Settings(), scenes[kind])
+    a = normalize_scene(transforms, points, SceneOptions(), scenes[kind])
+    b = normalize_scene(moved, moved_points, SceneOptions(), scenes[kind])
     assert a["type"] == b["type"] == kind
     assert math.isclose(b["scale"] * scale, a["scale"], rel_tol=1e-6)
     for fa, fb in zip(a["frames"], b["frames"]):
@@ -210,7 +211,7 @@ def test_up_survives_a_few_tilted_shots(scenes):
         c2w = np.asarray(transforms["frames"][index]["transform_matrix"])
         c2w[:3, :3] = c2w[:3, :3] @ _rotation([0, 0, 1], roll)  # a roll about the camera's own viewing axis
         transforms["frames"][index]["transform_matrix"] = c2w.tolist()
-    scene = normalize_scene(transforms, points, Settings())
+    scene = normalize_scene(transforms, points, SceneOptions())
     rotation = np.asarray(scene["world_from_input"])[:3, :3] / scene["scale"]
     assert np.degrees(np.arccos(np.clip(rotation[2] @ [0, 0, 1], -1, 1))) < 2.0
 
@@ -219,12 +220,12 @@ def test_split_holds_out_every_nth_by_sorted_name(scenes):
     transforms, points = _load(scenes["object"])
     transforms["frames"] = transforms["frames"][::-1]  # the split must not depend on the input order
     names = sorted(f["name"] for f in transforms["frames"])
-    scene = normalize_scene(transforms, points, Settings(holdout_every=8))
+    scene = normalize_scene(transforms, points, SceneOptions(holdout_every=8))
     assert [f["name"] for f in scene["frames"]] == names
     assert [f["name"] for f in scene["frames"] if f["split"] == "test"] == names[::8]
-    scene = normalize_scene(transforms, points, Settings(holdout_every=5))
+    scene = normalize_scene(transforms, points, SceneOptions(holdout_every=5))
     assert [f["name"] for f in scene["frames"] if f["split"] == "test"] == names[::5]
-    scene = normalize_scene(transforms, points, Settings(holdout_every=0))
+    scene = normalize_scene(transforms, points, SceneOptions(holdout_every=0))
     assert all(f["split"] == "train" for f in scene["frames"])
 
 
@@ -249,7 +250,7 @@ def test_llff_bounds_give_near_far_without_points(scenes):
     transforms, _ = _load(scenes["forward"])
     for n, frame in enumerate(transforms["frames"]):
         frame["near"], frame["far"] = 2.0 + 0.01 * n, 9.5
-    scene = normalize_scene(transforms, Points.empty(), Settings())
+    scene = normalize_scene(transforms, Points.empty(), SceneOptions())
     assert scene["type"] == "forward"
     assert scene["measured"]["near_far_from"] == {"llff bounds": N_VIEWS}
     assert scene["forward"]["from"] == "llff bounds"

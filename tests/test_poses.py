@@ -13,15 +13,16 @@ import pytest
 
 from PIL import Image
 
-from plenoxels.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, project
-from plenoxels.errors import UserError
 from pipeline.io import read_json, read_rgb, write_png
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
+from pipeline.sfm import reconstruct
+from pipeline.sfm.compare import compare_poses
+from pipeline.sfm.exif import FULL_FRAME_DIAGONAL_MM, exif_focal
+from pipeline.sfm.model_checks import MAX_CONTRADICTED_SHARE, contradicted_images, detached_images
 from pipeline.synthetic import write_scene
-import stages.poses as poses_stage
-from stages.poses import FULL_FRAME_DIAGONAL_MM, MAX_CONTRADICTED_SHARE, _contradicted, _detached, _exif_focal
-from stages.poses_compare import compare_poses
+from plenoxels.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, project
+from plenoxels.errors import UserError
 
 N_VIEWS, WIDTH, HEIGHT = 24, 480, 360
 IMPORT_VIEWS = 6
@@ -142,7 +143,7 @@ def test_global_mapper_poses_that_contradict_their_matches_fall_back_to_incremen
     # Under sequential matching, global mapping has turned an orbit's first two views about 65 and 35 degrees while
     # registering them at 0.15 px; whether it does so depends on run-to-run differences in the matches. So the real
     # global model is given that fault here, and the stage must notice it and map again with the incremental mapper.
-    real_global = poses_stage._global
+    real_global = reconstruct.global_mapping
 
     def global_with_two_views_turned(*args, **kwargs):
         models = real_global(*args, **kwargs)
@@ -153,7 +154,7 @@ def test_global_mapper_poses_that_contradict_their_matches_fall_back_to_incremen
             best.frames[image.frame_id].set_cam_from_world(image.camera_id, turned)
         return models
 
-    monkeypatch.setattr(poses_stage, "_global", global_with_two_views_turned)
+    monkeypatch.setattr(reconstruct, "global_mapping", global_with_two_views_turned)
     manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.mapper=global")
     summary = manifest["summary"]
     assert summary["registered"] == N_VIEWS and summary["mapper"] == "incremental"
@@ -211,7 +212,7 @@ def test_images_sharing_too_few_points_with_the_model_are_detached(truth, bridgi
     block, island, bridge = np.arange(40), np.arange(40, 60), np.arange(60, 60 + bridging)
     model = model_seeing(truth, {"0000": block, "0001": block, "0002": block, "0003": np.r_[block, bridge],
                                  "0004": np.r_[island, bridge], "0005": island}, xyz)
-    assert _detached(model) == detached
+    assert detached_images(model) == detached
 
 
 def test_poses_that_contradict_their_verified_matches_are_named(truth, tmp_path):
@@ -230,13 +231,13 @@ def test_poses_that_contradict_their_verified_matches_are_named(truth, tmp_path)
             for b in ids:
                 if a < b:
                     database.write_two_view_geometry(ids[a], ids[b], pycolmap.TwoViewGeometry(inlier_matches=every_point))
-    assert _contradicted(db, model, MAX_CONTRADICTED_SHARE) == {}
+    assert contradicted_images(db, model, MAX_CONTRADICTED_SHARE) == {}
 
     # Tilt view 0002 down by 5 degrees: its points move about 40 px across the (roughly horizontal) epipolar lines.
     image = next(im for im in model.images.values() if im.name == "0002.png")
     turned = pycolmap.Rigid3d(pycolmap.Rotation3d(np.radians([5.0, 0.0, 0.0])), np.zeros(3)) * image.cam_from_world()
     model.frames[image.frame_id].set_cam_from_world(image.camera_id, turned)
-    found = _contradicted(db, model, MAX_CONTRADICTED_SHARE)
+    found = contradicted_images(db, model, MAX_CONTRADICTED_SHARE)
     assert list(found) == ["0002"] and found["0002"] > 0.9
 
 
@@ -277,7 +278,7 @@ def test_exif_focal_length_starts_the_shared_camera(scene, truth, tmp_path):
 def test_exif_focal_length_in_pixels(tmp_path, tags, sensor_width_mm, expected):
     path = tmp_path / "photo.jpg"
     write_jpeg_with_exif(path, np.zeros((120, 160, 3), dtype=np.uint8), tags)  # diagonal 200 px
-    found = _exif_focal(path, sensor_width_mm)
+    found = exif_focal(path, sensor_width_mm)
     if expected is None:
         assert found is None
     else:

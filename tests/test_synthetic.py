@@ -8,10 +8,10 @@ import pytest
 import torch
 import trimesh
 
-from plenoxels.cameras import Intrinsics, pixel_directions, project, rays_from_camera
-from plenoxels.errors import UserError
 from pipeline.synthetic import (KINDS, Sphere, build_scene, camera_poses, intrinsics_for, render_view,
                                 surface_colour, trace, write_scene)
+from plenoxels.cameras import Intrinsics, pixel_directions, project, rays_from_camera
+from plenoxels.errors import UserError
 
 
 def _images(folder):

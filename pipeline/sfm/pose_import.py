@@ -2,8 +2,8 @@
 transforms.json, or LLFF poses_bounds.npy, turned into the same distorted COLMAP model that SfM makes.
 
 Every importer returns an `Imported`: a `pycolmap.Reconstruction` whose image names are the ingested
-PNGs (`<name>.png`) and whose cameras are scaled to the ingested image size, so the poses stage can
-undistort and write it exactly as it writes an SfM result. Pose files describe images by their own
+PNGs (`<name>.png`) and whose cameras are scaled to the ingested image size, so it is undistorted and
+written exactly as an SfM result is (pipeline/sfm/outputs.py). Pose files describe images by their own
 names and sizes; images are matched to pose entries by path first, then by file stem (LLFF, which has
 no names, by sorted file order), and the ones without a pose are listed.
 """
@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from pipeline.photos import photo_folder
 from plenoxels.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff
 from plenoxels.errors import UserError
 
@@ -35,10 +36,6 @@ class Imported:
 
 
 # ---- finding pose files -----------------------------------------------------------------------------------
-
-def photo_folder(scene: Path) -> Path:
-    return scene.parent if scene.is_file() else scene
-
 
 def _colmap_models(folder: Path) -> list[Path]:
     """COLMAP model folders under `folder`: sparse/0, sparse/1, ... or sparse/ itself."""
@@ -67,7 +64,7 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
 
 
 def pose_files(scene: Path) -> list[Path]:
-    """Every file the importers could read for this scene (for the stage's cache key)."""
+    """Every file the importers could read for this scene (for a cache key)."""
     files: list[Path] = []
     for kind, paths in candidates(scene).items():
         for path in paths:
@@ -109,6 +106,30 @@ def choose(kind: str, paths: list[Path], records: list[dict], scene: Path) -> Im
         if best_score is None or score > best_score:
             best, best_score = imported, score
     return best
+
+
+def find(source: str, path: str, records: list[dict], scene: Path) -> tuple[str, Imported] | None:
+    """The poses to import for a scene and their kind, or None when SfM should make them: `path` names a pose file
+    or model folder (relative to the photos when not found as given), else the pose files beside the photos are
+    searched; `source` is "auto", "sfm" or one of KINDS."""
+    if source == "sfm":
+        return None
+    if path:
+        given = Path(path).expanduser()
+        if not given.is_absolute() and not given.exists():
+            given = photo_folder(scene) / given
+        if not given.exists():
+            raise UserError(f"poses.path {path} does not exist; give a COLMAP model folder, a transforms*.json or a poses_bounds.npy")
+        kind = source if source != "auto" else kind_of(given)
+        return kind, load(kind, given, records, scene)
+    found = candidates(scene)
+    for kind in [source] if source != "auto" else list(KINDS):
+        if found[kind]:
+            return kind, choose(kind, found[kind], records, scene)
+    if source != "auto":
+        raise UserError(f"poses.source={source} but no such pose file is beside the photos in "
+                        f"{photo_folder(scene)}; set poses.path to it or use poses.source=auto")
+    return None
 
 
 # ---- shared helpers ---------------------------------------------------------------------------------------

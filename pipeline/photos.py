@@ -1,0 +1,122 @@
+"""Reading the user's photos and videos: supported file types, decoding to upright 8-bit RGB (plus alpha),
+downscaling, sharpness scoring and picking the sharpest video frames."""
+from __future__ import annotations
+
+from pathlib import Path
+import cv2
+import numpy as np
+from PIL import Image, ImageOps
+
+from plenoxels.errors import UserError
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp", ".heic", ".heif"}
+VIDEO_SUFFIXES = {".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v"}
+SHARPNESS_SIDE = 512  # score every image at the same size so scores compare across resolutions
+EXIF_ORIENTATION = 0x0112
+
+try:  # HEIC support comes from pillow-heif when it is installed
+    from pillow_heif import register_heif_opener
+
+    register_heif_opener()
+except ImportError:
+    IMAGE_SUFFIXES -= {".heic", ".heif"}
+
+
+def is_video(scene: Path) -> bool:
+    """True when the scene is a single video file rather than a folder of photos."""
+    return scene.is_file() and scene.suffix.lower() in VIDEO_SUFFIXES
+
+
+def photo_folder(scene: Path) -> Path:
+    """The folder holding the scene's photos (for a video, the folder it sits in)."""
+    return scene.parent if scene.is_file() else scene
+
+
+def sharpness(rgb: np.ndarray) -> float:
+    """Variance of the Laplacian of the grey image at a fixed size: higher is sharper."""
+    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    scale = SHARPNESS_SIDE / max(grey.shape)
+    if scale < 1:
+        grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    return float(cv2.Laplacian(grey, cv2.CV_64F).var())
+
+
+def _to_uint8(array: np.ndarray) -> np.ndarray:
+    if array.dtype == np.uint8:
+        return array
+    if array.dtype == np.uint16:
+        return (array.astype(np.uint32) * 255 // 65535).astype(np.uint8)
+    if np.issubdtype(array.dtype, np.floating):
+        return (np.clip(array, 0, 1) * 255 + 0.5).astype(np.uint8)
+    return np.clip(array, 0, 255).astype(np.uint8)
+
+
+def _orient(array: np.ndarray, exif_orientation: int) -> np.ndarray:
+    """Applies an EXIF orientation tag (1-8) to a pixel array, as a camera's viewer would."""
+    ops = {2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
+           5: lambda a: np.swapaxes(a, 0, 1), 6: lambda a: np.rot90(a, -1),
+           7: lambda a: np.rot90(a, 1)[::-1], 8: lambda a: np.rot90(a, 1)}
+    return np.ascontiguousarray(ops[exif_orientation](array)) if exif_orientation in ops else array
+
+
+def load_photo(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Any supported photo -> (8-bit RGB [h,w,3], 8-bit alpha [h,w] or None), upright per its EXIF."""
+    with Image.open(path) as im:
+        orientation = im.getexif().get(EXIF_ORIENTATION, 1)
+        mode = im.mode
+        if mode in ("I;16", "I;16B", "I;16L", "I", "F"):
+            grey = _to_uint8(np.asarray(im)) if mode != "I" else _to_uint8(np.asarray(im).astype(np.uint16))
+            rgb, alpha = np.repeat(_orient(grey, orientation)[..., None], 3, axis=-1), None
+            return rgb, alpha
+        if mode not in ("RGB", "RGBA", "L", "LA", "P", "CMYK", "YCbCr", "I;16"):
+            raise ValueError(f"unsupported pixel mode {mode}")
+        wide = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.suffix.lower() in {".png", ".tif", ".tiff"} else None
+        if wide is not None and wide.dtype == np.uint16 and wide.ndim == 3:
+            # Pillow reads 16-bit colour as 8-bit by truncation; OpenCV keeps the full range.
+            wide = cv2.cvtColor(wide, cv2.COLOR_BGRA2RGBA if wide.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+            pixels = _orient(_to_uint8(wide), orientation)
+        else:
+            im = ImageOps.exif_transpose(im)
+            has_alpha = im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info)
+            pixels = np.asarray(im.convert("RGBA" if has_alpha else "RGB"))
+    if pixels.shape[2] == 4:
+        return np.ascontiguousarray(pixels[..., :3]), np.ascontiguousarray(pixels[..., 3])
+    return np.ascontiguousarray(pixels), None
+
+
+def fit_max_side(image: np.ndarray, max_side: int) -> np.ndarray:
+    """The image downscaled (area filter) so its longest side is at most `max_side`; 0 or a larger side keeps it."""
+    scale = max_side / max(image.shape[:2]) if max_side else 1.0
+    if scale >= 1.0:
+        return image
+    size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
+def sharpest_video_frames(path: Path, max_side: int, frames_per_second: float, report) -> list[tuple[str, np.ndarray]]:
+    """(name, RGB) of the sharpest frame of each 1/frames_per_second-second window, downscaled to `max_side`."""
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise UserError(f"cannot read video {path.name}; convert it to MP4 (H.264) or extract photos")
+    fps = capture.get(cv2.CAP_PROP_FPS) or 30.0
+    total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+    window = max(1, round(fps / frames_per_second))
+    kept, best, index = [], None, 0
+    with report.bar(total=total, desc=f"reading {path.name}") as bar:
+        while True:
+            ok, bgr = capture.read()
+            if not ok:
+                break
+            rgb = fit_max_side(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), max_side)
+            score = sharpness(rgb)
+            if best is None or score > best[0]:
+                best = (score, index, rgb)
+            index += 1
+            bar.update()
+            if index % window == 0:
+                kept.append((f"frame_{best[1]:06d}", best[2]))
+                best = None
+    if best is not None:
+        kept.append((f"frame_{best[1]:06d}", best[2]))
+    capture.release()
+    return kept

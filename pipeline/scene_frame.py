@@ -1,0 +1,529 @@
+"""The scene frame: from posed cameras and sparse points, one world frame (z up, foreground in the unit cube),
+the scene type, near/far per image and the train/held-out split, i.e. everything in normalize/scene.json.
+
+The scene type decides what the fit models:
+- `forward`: every camera looks the same way (viewing directions within a narrow cone), so the scene
+  is a frustum in front of them; the fit uses NDC around the `forward.reference_c2w` camera.
+- `object`: cameras look inward at a foreground and little lies beyond it (few sparse points far from
+  it, or an empty backdrop: transparent pixels or one flat colour).
+- `unbounded`: cameras look inward but there is a real background (many points far beyond the
+  foreground, or photos with no empty backdrop); the fit needs a background model.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from PIL import Image
+
+from plenoxels.cameras import Intrinsics, project
+from plenoxels.errors import UserError
+
+# At least this many sparse points before they are trusted to describe the scene or one image's depths.
+MIN_POINTS = 30
+MIN_POINTS_PER_IMAGE = 10
+# A point belongs to the foreground candidates when at least this share of the cameras has it in view.
+COVISIBLE_SHARE = 0.7
+# Robust box of the foreground points: the bulk between these percentiles on each axis, widened to the
+# points within BOX_REACH times its size (see robust_box).
+BOX_PERCENTILES = (2.0, 98.0)
+BOX_REACH = 0.2
+# Near/far per image: these percentiles of the depths of the points seen there, widened by NEAR_FAR_MARGIN.
+NEAR_FAR_PERCENTILES = (1.0, 99.0)
+NEAR_FAR_MARGIN = 0.1
+# Sampled images and their size when measuring how much of the photos show an empty backdrop.
+BACKDROP_SAMPLES = 12
+BACKDROP_SIDE = 96
+BACKDROP_TOLERANCE = 6  # 8-bit levels from the backdrop colour that still count as backdrop
+# Up from the camera x axes needs them to spread: the middle eigenvalue (per camera) must exceed this.
+RIGHT_AXES_MIN_SPREAD = 0.01
+
+SceneType = Literal["object", "forward", "unbounded"]
+
+
+@dataclass
+class SceneOptions:
+    """How the scene is framed and typed (the normalize stage's settings)."""
+    scene_type: Literal["auto", "object", "forward", "unbounded"] = "auto"
+    """Scene type the fit models; auto: decided from the cameras, points and backdrop."""
+    holdout_every: int = 8
+    """Every Nth image by sorted name is held out for evaluation; 0: none."""
+    margin: float = 0.1
+    """Space around the foreground: its largest half-size maps to 1/(1+margin), in [0, 1]."""
+    forward_max_cone_deg: float = 30.0
+    """Forward when 90% of viewing directions lie within this many degrees of their mean."""
+    beyond_factor: float = 2.0
+    """A point is beyond the foreground outside [-f, f]^3 in the normalised frame (f > 1)."""
+    unbounded_min_beyond_fraction: float = 0.1
+    """Unbounded when at least this share of the sparse points lies beyond the foreground."""
+    object_min_empty_fraction: float = 0.2
+    """Object needs at least this share of sampled pixels to show an empty backdrop."""
+
+
+@dataclass
+class Cameras:
+    names: list[str]
+    frames: list[dict]                  # the poses stage's frame records, in the same order
+    c2w: np.ndarray                     # [N,4,4] input frame
+    intrinsics: list[Intrinsics]
+    bounds: np.ndarray | None           # [N,2] LLFF near/far depths (input units) when every frame has them
+
+    @property
+    def origins(self) -> np.ndarray:
+        return self.c2w[:, :3, 3]
+
+    @property
+    def view_dirs(self) -> np.ndarray:
+        return -self.c2w[:, :3, 2] / np.linalg.norm(self.c2w[:, :3, 2], axis=1, keepdims=True)
+
+
+@dataclass
+class Points:
+    xyz: np.ndarray                     # [P,3]
+    obs_frame: np.ndarray               # [V] index into the frames of transforms.json
+    obs_point: np.ndarray               # [V]
+
+    @staticmethod
+    def empty() -> "Points":
+        return Points(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading the poses stage's output
+
+
+def read_cameras(transforms: dict) -> Cameras:
+    frames = transforms.get("frames") or []
+    if len(frames) < 2:
+        raise UserError(f"the poses hold {len(frames)} camera(s); at least 2 posed images are needed to normalise a scene")
+    names, c2w, intrinsics = [], [], []
+    for frame in frames:
+        names.append(frame.get("name") or Path(frame["file_path"]).stem)
+        c2w.append(np.asarray(frame["transform_matrix"], dtype=np.float64))
+        intrinsics.append(Intrinsics.from_frame({**transforms, **frame}))  # per-frame values override shared ones
+    bounds = None
+    if all("near" in f and "far" in f for f in frames):
+        bounds = np.array([[f["near"], f["far"]] for f in frames], dtype=np.float64)
+    return Cameras(names, frames, np.stack(c2w), intrinsics, bounds)
+
+
+def read_points(path: Path) -> Points:
+    if not path.is_file():
+        return Points.empty()
+    with np.load(path) as data:
+        xyz = np.asarray(data["xyz"], dtype=np.float64).reshape(-1, 3)
+        obs_frame = np.asarray(data["obs_frame"], dtype=np.int64) if "obs_frame" in data else np.zeros(0, np.int64)
+        obs_point = np.asarray(data["obs_point"], dtype=np.int64) if "obs_point" in data else np.zeros(0, np.int64)
+    return Points(xyz, obs_frame, obs_point)
+
+
+# ----------------------------------------------------------------------------------------------
+# Frame: up, centre, heading
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _trimmed(vectors: np.ndarray, residual) -> np.ndarray:
+    """Drops the vectors whose residual is far above the typical one (a few tilted or rotated shots)."""
+    r = residual(vectors)
+    keep = r <= max(3.0 * np.median(r), 0.05)
+    return vectors[keep] if keep.sum() >= 2 else vectors
+
+
+def camera_up(c2w: np.ndarray, inward: bool) -> tuple[np.ndarray, str]:
+    """World up from the cameras, and which rule found it.
+
+    People keep the horizon level far more than they keep the pitch fixed, so for inward captures up is
+    the direction most nearly perpendicular to every camera's x (right) axis; that needs the right axes
+    to spread, which an orbit gives. Forward captures (and narrow arcs) use the mean camera up axis.
+    Either way the sign follows the mean camera up axis.
+    """
+    rights = _unit(c2w[:, :3, 0])
+    ups = _unit(c2w[:, :3, 1])
+    mean_up = _unit(ups.mean(axis=0))
+    if inward:
+        def smallest_axis(v):
+            values, vectors = np.linalg.eigh(v.T @ v / len(v))
+            return values, vectors[:, 0]
+        values, axis = smallest_axis(rights)
+        if values[1] > RIGHT_AXES_MIN_SPREAD:
+            kept = _trimmed(rights, lambda v: np.abs(v @ axis))
+            axis = smallest_axis(kept)[1]
+            return (axis if axis @ mean_up >= 0 else -axis), "perpendicular to the cameras' right axes"
+    kept = _trimmed(ups, lambda v: 1.0 - v @ mean_up)
+    return _unit(kept.mean(axis=0)), "mean of the cameras' up axes"
+
+
+def closest_point_of_axes(origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, float]:
+    """The point nearest to all optical axes (least squares, down-weighting axes that pass far from it,
+    so a few shots aimed elsewhere do not pull it), and how well the axes pin it down: the smallest
+    eigenvalue of the normal matrix per camera (0 when the axes are parallel)."""
+    weights = np.ones(len(origins))
+    point = origins.mean(axis=0)
+    conditioning = 0.0
+    for _ in range(5):
+        projectors = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]
+        a = np.einsum("n,nij->ij", weights, projectors)
+        b = np.einsum("n,nij,nj->i", weights, projectors, origins)
+        conditioning = float(np.linalg.eigvalsh(a / weights.sum())[0])
+        if conditioning < 1e-6:
+            break
+        point = np.linalg.solve(a, b)
+        offsets = point - origins
+        miss = np.linalg.norm(offsets - (offsets * dirs).sum(1, keepdims=True) * dirs, axis=1)
+        weights = 1.0 / np.maximum(miss, np.median(miss) + 1e-12)
+    return point, conditioning
+
+
+def view_cone_deg(dirs: np.ndarray) -> float:
+    """90th percentile of the angles between the viewing directions and their mean direction."""
+    mean = dirs.mean(axis=0)
+    if np.linalg.norm(mean) < 1e-9:
+        return 180.0
+    cos = np.clip(dirs @ _unit(mean), -1.0, 1.0)
+    return float(np.degrees(np.percentile(np.arccos(cos), 90)))
+
+
+def rotation_to_z_up(up: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """Rotation (rows = new axes in input coordinates) taking `up` to +z and `heading`'s horizontal part to +y."""
+    z = _unit(up)
+    y = heading - (heading @ z) * z
+    if np.linalg.norm(y) < 1e-6:  # heading straight up or down: any horizontal direction will do
+        y = np.cross(z, [1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.cross(z, [0.0, 1.0, 0.0])
+    y = _unit(y)
+    return np.stack([np.cross(y, z), y, z])
+
+
+def horizontal_heading(dirs: np.ndarray, up: np.ndarray, first: int) -> np.ndarray:
+    """The mean viewing direction's horizontal part when the cameras agree on one; otherwise (a full orbit,
+    where the mean is near zero and noisy) camera `first`'s, so the frame stays well defined."""
+    flat = dirs - (dirs @ up)[:, None] * up
+    mean = flat.mean(axis=0)
+    if np.linalg.norm(mean) >= 0.5 * np.linalg.norm(flat, axis=1).mean():
+        return mean
+    return flat[first] if np.linalg.norm(flat[first]) > 1e-6 else dirs[first]
+
+
+# ----------------------------------------------------------------------------------------------
+# Foreground
+
+
+def covisible_counts(xyz: np.ndarray, cams: Cameras) -> np.ndarray:
+    """How many cameras have each point in front of them and inside their image."""
+    counts = np.zeros(len(xyz), dtype=np.int64)
+    for c2w, k in zip(cams.c2w, cams.intrinsics):
+        uv, depth = project(xyz, c2w, k)
+        counts += (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= k.w) & (uv[:, 1] >= 0) & (uv[:, 1] <= k.h)
+    return counts
+
+
+def robust_box(points_rot: np.ndarray) -> np.ndarray:
+    """[2,3] the box holding the points, ignoring strays: percentiles find the bulk, then the box grows
+    to the farthest points within BOX_REACH of the bulk's size, so sparse edges (corners of a table)
+    are kept while a few far-off points are not."""
+    bulk = np.percentile(points_rot, BOX_PERCENTILES, axis=0)
+    reach = BOX_REACH * (bulk[1] - bulk[0])
+    near_bulk = np.all((points_rot >= bulk[0] - reach) & (points_rot <= bulk[1] + reach), axis=1)
+    kept = points_rot[near_bulk]
+    return np.stack([kept.min(axis=0), kept.max(axis=0)])
+
+
+def frustum_box(c2w: np.ndarray, k: Intrinsics, near: float, far: float, rotation: np.ndarray) -> np.ndarray:
+    """[2,3] axis-aligned box (in the rotated frame) around a camera's view between depths near and far."""
+    corners = []
+    for depth in (near, far):
+        for u in (0.0, k.w):
+            for v in (0.0, k.h):
+                d_cam = np.array([(u - k.cx) / k.fl_x, -(v - k.cy) / k.fl_y, -1.0]) * depth
+                corners.append(c2w[:3, :3] @ d_cam + c2w[:3, 3])
+    corners = np.asarray(corners) @ rotation.T
+    return np.stack([corners.min(0), corners.max(0)])
+
+
+def min_half_fov(cams: Cameras) -> float:
+    return min(min(math.atan2(k.w / 2, k.fl_x), math.atan2(k.h / 2, k.fl_y)) for k in cams.intrinsics)
+
+
+# ----------------------------------------------------------------------------------------------
+# Backdrop: how much of the photos show nothing (transparent, or one flat colour)
+
+
+def _thumbnail(path: Path, mode: str) -> np.ndarray:
+    """A small copy of an image; for masks ("L") an image with an alpha channel gives its alpha."""
+    with Image.open(path) as im:
+        im = im.getchannel("A") if mode == "L" and "A" in im.getbands() else im.convert(mode)
+        im.thumbnail((BACKDROP_SIDE, BACKDROP_SIDE), Image.Resampling.BOX)
+        return np.asarray(im)
+
+
+def empty_pixel_fraction(cams: Cameras, poses_dir: Path) -> float | None:
+    """Share of the pixels of a few evenly spread photos (small copies) that show an empty backdrop:
+    transparent where the images came with alpha masks, otherwise the one flat colour that dominates
+    the image borders. None when the images cannot be read."""
+    picks = np.unique(np.linspace(0, len(cams.frames) - 1, min(BACKDROP_SAMPLES, len(cams.frames))).round().astype(int))
+    frames = [cams.frames[i] for i in picks]
+    try:
+        if all(f.get("mask_path") for f in frames):
+            empty = [_thumbnail(poses_dir / f["mask_path"], "L") < 128 for f in frames]
+        else:
+            images = [_thumbnail(poses_dir / f["file_path"], "RGB").astype(np.int32) for f in frames]
+            borders = np.concatenate([np.concatenate([im[:2].reshape(-1, 3), im[-2:].reshape(-1, 3),
+                                                      im[:, :2].reshape(-1, 3), im[:, -2:].reshape(-1, 3)])
+                                      for im in images])
+            bins = borders // 32
+            keys, counts = np.unique(bins, axis=0, return_counts=True)
+            backdrop = np.median(borders[(bins == keys[counts.argmax()]).all(axis=1)], axis=0)
+            empty = [np.abs(im - backdrop).max(axis=-1) <= BACKDROP_TOLERANCE for im in images]
+    except (OSError, ValueError):
+        return None
+    return float(np.mean(np.concatenate([e.ravel() for e in empty])))
+
+
+# ----------------------------------------------------------------------------------------------
+# Near / far
+
+
+def points_seen_by_frame(points: Points, cams: Cameras) -> list[np.ndarray]:
+    """Indices of the points each frame sees: its SfM observations, or (without any) the points inside its image."""
+    if len(points.obs_frame):
+        order = np.argsort(points.obs_frame, kind="stable")
+        splits = np.searchsorted(points.obs_frame[order], np.arange(len(cams.names) + 1))
+        return [points.obs_point[order[splits[i]:splits[i + 1]]] for i in range(len(cams.names))]
+    seen = []
+    for c2w, k in zip(cams.c2w, cams.intrinsics):
+        uv, depth = project(points.xyz, c2w, k)
+        inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= k.w) & (uv[:, 1] >= 0) & (uv[:, 1] <= k.h)
+        seen.append(np.flatnonzero(inside))
+    return seen
+
+
+def near_far_from_points(xyz: np.ndarray, c2w: np.ndarray, k: Intrinsics) -> tuple[float, float] | None:
+    """Near from depths along the viewing axis, far from distances along the rays, so [near, far] brackets
+    the points whichever of the two a sampler measures (depth <= distance)."""
+    _, depth = project(xyz, c2w, k)
+    in_front = depth > 0
+    if in_front.sum() < MIN_POINTS_PER_IMAGE:
+        return None
+    distance = np.linalg.norm(xyz[in_front] - c2w[:3, 3], axis=1)
+    near = np.percentile(depth[in_front], NEAR_FAR_PERCENTILES[0]) * (1 - NEAR_FAR_MARGIN)
+    far = np.percentile(distance, NEAR_FAR_PERCENTILES[1]) * (1 + NEAR_FAR_MARGIN)
+    return float(near), float(far)
+
+
+def near_far_from_box(c2w: np.ndarray, box: np.ndarray) -> tuple[float, float]:
+    """Near: the camera's distance to the box (a small value when it is inside); far: its farthest corner."""
+    origin = c2w[:3, 3]
+    outside = np.maximum(np.maximum(box[0] - origin, origin - box[1]), 0.0)
+    corners = np.array([[box[i][0], box[j][1], box[l][2]] for i in (0, 1) for j in (0, 1) for l in (0, 1)])
+    far = np.linalg.norm(corners - origin, axis=1).max()
+    near = max(float(np.linalg.norm(outside)), 0.01 * far)
+    return near, float(far)
+
+
+# ----------------------------------------------------------------------------------------------
+# The whole decision
+
+
+def normalize_scene(transforms: dict, points: Points, options: SceneOptions, poses_dir: Path | None = None,
+                    path_prefix: str = "poses/") -> dict:
+    """Everything that goes into scene.json, from the poses stage's transforms and points.
+
+    `poses_dir` is where the frames' image and mask paths are relative to (None: do not look at the
+    photos); `path_prefix` is put before those paths in the output (relative to the scene's output folder).
+    """
+    cams = read_cameras(transforms)
+    n = len(cams.names)
+    xyz = points.xyz
+    has_points = len(xyz) >= MIN_POINTS
+    dirs = cams.view_dirs
+    cone = view_cone_deg(dirs)
+    looks_forward = cone <= options.forward_max_cone_deg
+    measured: dict = {"frames": n, "points": int(len(xyz)), "view_cone_deg": round(cone, 2)}
+    reasons = [f"90% of viewing directions lie within {cone:.1f} deg of their mean "
+               + (f"(<= {options.forward_max_cone_deg:g}): the cameras face one way" if looks_forward
+                  else f"(> {options.forward_max_cone_deg:g}): the cameras look inward from around the scene")]
+    family_forward = options.scene_type == "forward" or (options.scene_type == "auto" and looks_forward)
+
+    up, up_rule = camera_up(cams.c2w, inward=not looks_forward)
+    axes_point, axes_conditioning = closest_point_of_axes(cams.origins, dirs)
+    first_by_name = min(range(n), key=lambda i: cams.names[i])
+    rotation = rotation_to_z_up(up, horizontal_heading(dirs, up, first_by_name))
+    measured.update({"up_in_input_frame": up.round(6).tolist(), "up_from": up_rule,
+                     "axes_closest_point": axes_point.round(6).tolist(),
+                     "axes_conditioning": round(axes_conditioning, 6)})
+    if axes_conditioning < 1e-3:  # parallel axes meet nowhere: stand in a point in front of the cameras
+        axes_point = cams.origins.mean(axis=0) + dirs.mean(axis=0) * np.linalg.norm(np.ptp(cams.origins, axis=0))
+
+    camera_distance = float(np.median(np.linalg.norm(cams.origins - axes_point, axis=1)))
+    covisible = covisible_counts(xyz, cams) if has_points else np.zeros(0, dtype=np.int64)
+    foreground = covisible >= max(2, COVISIBLE_SHARE * n)
+    if not family_forward and has_points:
+        foreground &= np.linalg.norm(xyz - axes_point, axis=1) < camera_distance
+    measured["foreground_points"] = int(foreground.sum())
+
+    reference_input = None
+    if family_forward:
+        reference_input = _reference_camera(cams, dirs, up)
+        if foreground.sum() >= MIN_POINTS:
+            box_rot, box_from = robust_box(xyz[foreground] @ rotation.T), "sparse points seen by most cameras"
+        else:
+            near, far, box_from = _forward_depth_guess(cams)
+            box_rot = frustum_box(reference_input, cams.intrinsics[0], near, far, rotation)
+    elif foreground.sum() >= MIN_POINTS:
+        box_rot, box_from = robust_box(xyz[foreground] @ rotation.T), "sparse points seen by most cameras"
+    else:
+        # What every camera sees at the point the axes meet: the region the capture was aimed at.
+        half = camera_distance * math.tan(min_half_fov(cams))
+        centre_rot = rotation @ axes_point
+        box_rot = np.stack([centre_rot - half, centre_rot + half])
+        box_from = "cameras: the view of the narrowest camera where the optical axes meet"
+    measured["foreground_from"] = box_from
+
+    # Centre on the box rather than on the axes' meeting point: the box was found around that point, and
+    # centring on it wastes none of the unit cube when the foreground sits off the axes (a table below them).
+    centre = rotation.T @ box_rot.mean(axis=0)
+    half_size = float(np.max(box_rot[1] - box_rot[0]) / 2)
+    if half_size <= 0:
+        raise UserError("the cameras and points give a foreground of zero size; check the poses stage's output")
+    scale = 1.0 / ((1.0 + options.margin) * half_size)
+    world_from_input = np.eye(4)
+    world_from_input[:3, :3] = scale * rotation
+    world_from_input[:3, 3] = -scale * rotation @ centre
+    input_from_world = np.linalg.inv(world_from_input)
+    foreground_box = (box_rot - rotation @ centre) * scale
+
+    c2w_world = np.einsum("ij,njk->nik", world_from_input, cams.c2w)
+    c2w_world[:, :3, :3] /= scale
+    xyz_world = xyz @ world_from_input[:3, :3].T + world_from_input[:3, 3]
+    measured["camera_distance"] = round(camera_distance * scale, 4)
+
+    # ---- scene type -------------------------------------------------------------------------------
+    thresholds = {"forward_max_cone_deg": options.forward_max_cone_deg, "beyond_factor": options.beyond_factor,
+                  "unbounded_min_beyond_fraction": options.unbounded_min_beyond_fraction,
+                  "object_min_empty_fraction": options.object_min_empty_fraction,
+                  "min_points": MIN_POINTS}
+    if looks_forward:
+        detected: SceneType = "forward"
+    else:
+        detected = _inward_type(xyz_world, has_points, cams, poses_dir, options, measured, reasons)
+    overridden = options.scene_type != "auto"
+    scene_type = options.scene_type if overridden else detected
+    if overridden:
+        reasons.append(f"scene type set to {scene_type} by normalize.scene_type (detected: {detected})")
+
+    # ---- near / far ------------------------------------------------------------------------------------
+    seen = points_seen_by_frame(Points(xyz_world, points.obs_frame, points.obs_point), cams) if has_points else None
+    near_far, near_far_from = [], {"points": 0, "llff bounds": 0, "foreground box": 0}
+    for i in range(n):
+        k = cams.intrinsics[i]
+        estimate = near_far_from_points(xyz_world[seen[i]], c2w_world[i], k) if seen is not None else None
+        source = "points"
+        if estimate is None and cams.bounds is not None:
+            estimate = (float(cams.bounds[i, 0] * scale * (1 - NEAR_FAR_MARGIN)),
+                        float(cams.bounds[i, 1] * scale * (1 + NEAR_FAR_MARGIN)))
+            source = "llff bounds"
+        if estimate is None:
+            estimate, source = near_far_from_box(c2w_world[i], foreground_box), "foreground box"
+        near_far.append(estimate)
+        near_far_from[source] += 1
+    measured["near_far_from"] = {k: v for k, v in near_far_from.items() if v}
+
+    # ---- frames and split -----------------------------------------------------------------------------
+    order = sorted(range(n), key=lambda i: cams.names[i])
+    frames = []
+    for rank, i in enumerate(order):
+        k, frame = cams.intrinsics[i], cams.frames[i]
+        held_out = options.holdout_every > 0 and rank % options.holdout_every == 0
+        frames.append({
+            "name": cams.names[i], "file_path": path_prefix + frame["file_path"],
+            "mask_path": path_prefix + frame["mask_path"] if frame.get("mask_path") else None,
+            "transform_matrix": c2w_world[i].tolist(), "fl_x": k.fl_x, "fl_y": k.fl_y, "cx": k.cx, "cy": k.cy,
+            "w": k.w, "h": k.h, "near": near_far[i][0], "far": near_far[i][1],
+            "split": "test" if held_out else "train",
+        })
+
+    scene = {
+        "type": scene_type, "detected": detected, "reasons": reasons, "measured": measured,
+        "thresholds": thresholds, "overridden": overridden,
+        "world_from_input": world_from_input.tolist(), "input_from_world": input_from_world.tolist(),
+        "scale": scale, "foreground": {"min": foreground_box[0].tolist(), "max": foreground_box[1].tolist()},
+        "frames": frames,
+    }
+    if scene_type == "forward":
+        if reference_input is None:
+            reference_input = _reference_camera(cams, dirs, up)
+        reference = world_from_input @ reference_input
+        reference[:3, :3] /= scale
+        scene["forward"] = {"reference_c2w": reference.tolist(),
+                            **_forward_depths(xyz_world if has_points else None, reference, cams, scale, foreground_box)}
+    return scene
+
+
+def _reference_camera(cams: Cameras, dirs: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """The average pose: at the mean camera centre, looking along the mean viewing direction, level with `up`."""
+    forward = _unit(dirs.mean(axis=0))
+    right = _unit(np.cross(forward, up))
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(right, forward), -forward, cams.origins.mean(axis=0)
+    return c2w
+
+
+def _forward_depth_guess(cams: Cameras) -> tuple[float, float, str]:
+    """Depth range of a forward capture without points: LLFF bounds when the frames carry them, otherwise
+    a guess from the spread of the cameras (scenes are usually several baselines away)."""
+    if cams.bounds is not None:
+        return float(cams.bounds[:, 0].min()), float(np.percentile(cams.bounds[:, 1], 90)), "llff bounds"
+    baseline = float(np.linalg.norm(np.ptp(cams.origins, axis=0))) or 1.0
+    return 2.0 * baseline, 20.0 * baseline, "guess: 2 to 20 camera baselines in front of the cameras"
+
+
+def _forward_depths(xyz_world: np.ndarray | None, reference: np.ndarray, cams: Cameras, scale: float,
+                    box: np.ndarray) -> dict:
+    """NDC's near plane and the far depth, along the reference camera's axis (normalised units). All points
+    count, not only the foreground: the floor just in front of the cameras, seen by few of them, is what
+    sets the near plane."""
+    if xyz_world is not None:
+        depth = -((xyz_world - reference[:3, 3]) @ reference[:3, 2])
+        depth = depth[depth > 0]
+        if len(depth) >= MIN_POINTS:
+            return {"near": float(np.percentile(depth, NEAR_FAR_PERCENTILES[0]) * (1 - NEAR_FAR_MARGIN)),
+                    "far": float(np.percentile(depth, NEAR_FAR_PERCENTILES[1]) * (1 + NEAR_FAR_MARGIN)),
+                    "from": "sparse points"}
+    if cams.bounds is not None:
+        return {"near": float(cams.bounds[:, 0].min() * scale * (1 - NEAR_FAR_MARGIN)),
+                "far": float(cams.bounds[:, 1].max() * scale * (1 + NEAR_FAR_MARGIN)), "from": "llff bounds"}
+    near, far = near_far_from_box(reference, box)
+    return {"near": near, "far": far, "from": "foreground box"}
+
+
+def _inward_type(xyz_world: np.ndarray, has_points: bool, cams: Cameras, poses_dir: Path | None,
+                 options: SceneOptions, measured: dict, reasons: list[str]) -> SceneType:
+    """Object or unbounded: is there a real background beyond the foreground? Unbounded when either the
+    points or the pixels say so; object only when what can be measured says the surroundings are empty."""
+    background = []
+    if has_points:
+        beyond = float(np.mean(np.abs(xyz_world).max(axis=1) > options.beyond_factor))
+        measured["beyond_fraction"] = round(beyond, 4)
+        far_away = beyond >= options.unbounded_min_beyond_fraction
+        background.append(far_away)
+        reasons.append(f"{beyond:.0%} of the sparse points lie beyond {options.beyond_factor:g}x the foreground "
+                       f"({'>=' if far_away else '<'} {options.unbounded_min_beyond_fraction:.0%})")
+    else:
+        reasons.append("no sparse points to measure what lies beyond the foreground")
+    empty = empty_pixel_fraction(cams, poses_dir) if poses_dir is not None else None
+    if empty is not None:
+        measured["empty_pixel_fraction"] = round(empty, 4)
+        scenery = empty < options.object_min_empty_fraction
+        background.append(scenery)
+        reasons.append(f"{empty:.0%} of sampled pixels show an empty backdrop, transparent or one flat colour "
+                       f"({'<' if scenery else '>='} {options.object_min_empty_fraction:.0%}"
+                       f"{': real surroundings fill the photos' if scenery else ''})")
+    if not background:
+        reasons.append("nothing shows the surroundings are empty, so a background is assumed")
+        return "unbounded"
+    return "unbounded" if any(background) else "object"

@@ -1,0 +1,89 @@
+"""What the photos' EXIF says about their cameras: the camera model (to decide whether photos share one
+camera) and the focal length (to start COLMAP's cameras from it)."""
+from __future__ import annotations
+
+import statistics
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+from PIL import Image
+
+EXIF_MODEL_TAG = 0x0110
+EXIF_IFD = 0x8769
+EXIF_FOCAL_35MM = 0xA405                # FocalLengthIn35mmFilm, mm
+EXIF_FOCAL = 0x920A                     # FocalLength, mm
+EXIF_FOCAL_PLANE_X_RESOLUTION = 0xA20E  # sensor pixels per unit, in units of the tag below
+EXIF_FOCAL_PLANE_UNIT = 0xA210
+MM_PER_FOCAL_PLANE_UNIT = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
+# A 35 mm equivalent focal length keeps the diagonal field of view of the 36 x 24 mm frame (CIPA DC-008), so it
+# holds for any aspect ratio, not only 3:2.
+FULL_FRAME_DIAGONAL_MM = float(np.hypot(36.0, 24.0))
+
+
+def one_camera(records: list[dict], photos: Path) -> bool:
+    """True when every photo (ingest records, sources in `photos`) has the same size and the same EXIF camera
+    model (or none)."""
+    if len({(r["width"], r["height"]) for r in records}) > 1:
+        return False
+    models = set()
+    for record in records:
+        try:
+            with Image.open(photos / record["source"]) as im:
+                models.add(im.getexif().get(EXIF_MODEL_TAG))
+        except (OSError, ValueError):
+            models.add(None)
+    return len(models) <= 1
+
+
+def exif_focal(photo: Path, sensor_width_mm: float) -> tuple[float, str] | None:
+    """Focal length in pixels of the photo as stored, from its EXIF, and which tags gave it; None without them."""
+    try:
+        with Image.open(photo) as im:
+            exif = im.getexif().get_ifd(EXIF_IFD)
+            width, height = im.size
+    except (OSError, ValueError):
+        return None
+    def positive(tag: int) -> float:
+        try:
+            return max(float(exif.get(tag, 0) or 0), 0.0)
+        except (TypeError, ValueError, ZeroDivisionError):
+            return 0.0
+    focal_35mm, focal_mm = positive(EXIF_FOCAL_35MM), positive(EXIF_FOCAL)
+    if focal_35mm:
+        return focal_35mm / FULL_FRAME_DIAGONAL_MM * float(np.hypot(width, height)), f"EXIF {focal_35mm:g} mm (35 mm equivalent)"
+    per_unit, unit = positive(EXIF_FOCAL_PLANE_X_RESOLUTION), exif.get(EXIF_FOCAL_PLANE_UNIT, 2)
+    if focal_mm and per_unit and unit in MM_PER_FOCAL_PLANE_UNIT:
+        return focal_mm * per_unit / MM_PER_FOCAL_PLANE_UNIT[unit], f"EXIF {focal_mm:g} mm and focal plane resolution"
+    if focal_mm and sensor_width_mm:
+        return focal_mm / sensor_width_mm * max(width, height), f"EXIF {focal_mm:g} mm on a {sensor_width_mm:g} mm sensor"
+    return None
+
+
+def set_focal_priors(db: Path, records: list[dict], photos: Path, sensor_width_mm: float) -> dict | None:
+    """Starts each camera in the database from the EXIF focal length of its photos (the median where photos share one,
+    scaled to the ingested size), marked as a prior so verification estimates essential matrices. Without EXIF,
+    COLMAP's guess of 1.2 x the longest side stays."""
+    by_name = {f"{r['name']}.png": r for r in records}
+    found = []
+    with pycolmap.Database.open(db) as database:
+        images_of: dict[int, list] = {}
+        for image in database.read_all_images():
+            images_of.setdefault(image.camera_id, []).append(by_name[image.name])
+        for camera_id, camera_records in images_of.items():
+            priors = []
+            for record in camera_records:
+                exif = exif_focal(photos / record["source"], sensor_width_mm)
+                if exif is not None:
+                    priors.append((exif[0] * record["scale"], exif[1]))
+            if not priors:
+                continue
+            camera = database.read_camera(camera_id)
+            camera.focal_length = statistics.median(f for f, _ in priors)
+            camera.has_prior_focal_length = True
+            database.update_camera(camera)
+            found.append((database.read_camera(camera_id).focal_length, priors[0][1], len(priors)))
+    if not found:
+        return None
+    return {"focal_px": round(statistics.median(f for f, _, _ in found), 2), "from": found[0][1],
+            "images": sum(n for _, _, n in found), "cameras": len(found)}
