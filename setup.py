@@ -3,9 +3,11 @@
     python setup.py build_ext --inplace          # what `make install` runs
     pip install --no-build-isolation -e .
 
-The C++/OpenMP kernels are always built, tuned for the machine that builds them (-march=native;
-the extension is never shipped to another machine). CUDA kernels (csrc/*.cu) are added only when
-torch has CUDA, a CUDA toolkit is found and such files exist; otherwise the build is CPU-only.
+The operators are declared once (csrc/ops.cpp, torch.ops.voxfield); the C++/OpenMP kernels that
+implement them for CPU tensors are always built, tuned for the machine that builds them
+(-march=native; the extension is never shipped to another machine). The CUDA implementations
+(csrc/*.cu and bindings_cuda.cpp) are added only when torch has CUDA, a CUDA toolkit is found and
+such files exist; otherwise the build is CPU-only.
 """
 import os
 from pathlib import Path
