@@ -4,11 +4,17 @@ command-line overrides, validated on load.
 Resolution order (later wins): the dataclass defaults, `configs/<preset>.yaml`,
 `configs/scene_types/<type>.yaml` (only for stages after `normalize`, once the scene type is known),
 then `--set section.key=value` overrides. A stage's section in the YAML is its name.
+
+Each Settings field's help is the one-line string right below it (an attribute docstring, as in PEP 257 and tyro);
+`field_help` reads them and `python -m pipeline settings` prints them.
 """
 from __future__ import annotations
 
+import ast
 import dataclasses
+import inspect
 import math
+import textwrap
 import types
 import typing
 from pathlib import Path
@@ -165,3 +171,64 @@ def require(condition: bool, message: str) -> None:
     """For `check()` methods: one line that names the key and the allowed values."""
     if not condition:
         raise UserError(message)
+
+
+def field_help(cls: type) -> dict[str, str]:
+    """Field name -> its attribute docstring (the string literal on the line after the field), for `cls` and the
+    dataclasses it inherits from. Fields without one are absent."""
+    found: dict[str, str] = {}
+    for klass in reversed([k for k in cls.__mro__ if dataclasses.is_dataclass(k)]):
+        tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
+        body = next(node for node in tree.body if isinstance(node, ast.ClassDef)).body
+        for node, after in zip(body, body[1:]):
+            if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(after, ast.Expr)
+                    and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str)):
+                found[node.target.id] = " ".join(after.value.value.split())
+    return found
+
+
+@dataclasses.dataclass(frozen=True)
+class SettingInfo:
+    """One setting as `python -m pipeline settings` shows it."""
+    name: str
+    type: str
+    default: Any
+    preset_value: Any          # what the chosen preset gives (the default when it does not set it)
+    scene_types: dict[str, Any]  # scene type -> value its overlay gives, for the types that set this one
+    help: str | None
+
+
+def _default(f: dataclasses.Field) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return None
+
+
+def describe(cls: type, section: str, preset: str = "default") -> list[SettingInfo]:
+    """Every setting of the stage `section` whose Settings dataclass is `cls`, in field order."""
+    hints = typing.get_type_hints(cls)
+    helps = field_help(cls)
+    preset_values = load_preset(preset).get(section, {})
+    overlays = {p.stem: _read_yaml(p).get(section, {}) for p in sorted((CONFIG_DIR / "scene_types").glob("*.yaml"))}
+    infos = []
+    for f in dataclasses.fields(cls):
+        default = _default(f)
+        infos.append(SettingInfo(
+            f.name, _type_name(hints[f.name]), default, preset_values.get(f.name, default),
+            {kind: values[f.name] for kind, values in overlays.items() if f.name in values}, helps.get(f.name)))
+    return infos
+
+
+def format_settings(section: str, infos: list[SettingInfo], preset: str) -> str:
+    lines = [f"{section}:"]
+    for info in infos:
+        line = f"  {section}.{info.name} ({info.type}) = {info.default!r}"
+        if info.preset_value != info.default:
+            line += f"; preset {preset}: {info.preset_value!r}"
+        for kind, value in info.scene_types.items():
+            line += f"; {kind} scenes: {value!r}"
+        lines.append(line)
+        lines.append(f"      {info.help or '(no help yet)'}")
+    return "\n".join(lines)

@@ -5,8 +5,8 @@ On-disk protocol, under a scene's output root:
     .work/<stage>/           the output being written by a run in progress (wiped at the start of each run)
     .resume/<stage>/         checkpoints a stage may resume from when re-run with the same key
     .trash/<stage>/          the previous complete output during the swap; restored if a run dies mid-swap
-A stage's key hashes its upstream manifests, its resolved settings, its code and (for stages that read the
-input folder) a fingerprint of the input. Killing the process at any moment leaves the last complete output.
+A stage's key hashes its upstream manifests, its resolved settings, its code (every project module it imports, see
+`pipeline.stage.code_hash`) and (for stages that read the input folder) a fingerprint of the input. Killing the process at any moment leaves the last complete output.
 """
 from __future__ import annotations
 
@@ -23,10 +23,10 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline import config
-from plenoxels.errors import UserError
 from pipeline.io import write_json
 from pipeline.report import Reporter
 from pipeline.stage import StageContext, StageGraph, code_hash
+from plenoxels.errors import UserError
 
 
 @dataclass
@@ -97,6 +97,10 @@ class Pipeline:
             return "missing", "never completed"
         plan = self.plan(name)
         if manifest.get("key") == plan.key:
+            # Its own key still matches, but a stage it needs will re-run first and so rebuild it too.
+            rerun = [dep for dep in self.graph.load(name).DEPENDS if self.status(dep)[0] != "done"]
+            if rerun:
+                return "stale", f"{rerun[0]} will re-run"
             return "done", f"completed {manifest.get('finished', '?')}"
         reasons = [f"{dep} changed" for dep, k in plan.upstream_keys.items() if manifest.get("upstream", {}).get(dep) != k]
         changed = sorted(k for k in set(plan.settings_dict) | set(manifest.get("settings", {}))

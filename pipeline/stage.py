@@ -4,17 +4,21 @@ A stage is a module in `stages/` that defines:
     NAME: str                      the stage's name and the folder it writes under the output
     DEPENDS: tuple[str, ...]       the stages whose outputs it reads
     VERSION: int                   bump when the output format changes without a code change being visible
-    CODE: tuple[str, ...]          extra repo-relative paths whose source is part of its cache key (its own module always is)
     Settings                       a dataclass of its settings (defaults = the `default` preset)
     run(ctx: StageContext) -> dict the work; writes only into ctx.work; returns its summary, which must hold
                                    "line": one sentence a person can act on
 and optionally `fingerprint(scene: Path) -> object`, for stages that read the user's input folder directly, so that
 changed photos change the key.
+
+A stage's code enters its cache key through `code_hash`: the sources of every project module in its import closure
+(found by parsing imports, not listed by hand), plus the native core's sources when the closure loads it.
 """
 from __future__ import annotations
 
+import ast
 import hashlib
 import importlib
+import importlib.util
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,15 +69,103 @@ class StageGraph:
         return [s for s in self.order if s in needed]
 
 
+# Project packages whose modules are followed when computing a stage's import closure; anything else (numpy, torch)
+# is a dependency pinned by the install, not project code.
+PROJECT_PACKAGES = ("pipeline", "plenoxels", "stages")
+# The native core is built from these sources; a module that loads it depends on them as much as on Python code.
+NATIVE_MODULES = ("plenoxels.native", "plenoxels._C")
+NATIVE_SOURCES = REPO_ROOT / "csrc"
+
+
+def _package_dir(top: str) -> Path | None:
+    spec = importlib.util.find_spec(top)
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    return Path(list(spec.submodule_search_locations)[0])
+
+
+def _module_file(name: str, roots: dict[str, Path]) -> Path | None:
+    """The source file of project module `name` (a package's __init__.py), or None if it is not one."""
+    top, *rest = name.split(".")
+    if top not in roots:
+        return None
+    base = roots[top].joinpath(*rest)
+    for candidate in (base / "__init__.py", base.with_suffix(".py")):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _imported_names(tree: ast.AST, name: str, is_package: bool) -> set[str]:
+    """Every module name an import statement in `tree` may load, with each parent package and, for
+    `from X import Y`, the submodule X.Y in case Y is one."""
+    package = name if is_package else name.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                stem = ".".join(base + ([node.module] if node.module else []))
+            else:
+                stem = node.module or ""
+            targets = [stem] + [f"{stem}.{alias.name}" for alias in node.names if alias.name != "*"]
+        else:
+            continue
+        for target in targets:
+            parts = target.split(".")
+            found.update(".".join(parts[: i + 1]) for i in range(len(parts)) if parts[0])
+    return found
+
+
+def import_closure(module_name: str) -> dict[str, Path]:
+    """Module name -> source file for `module_name` and every project module it imports, directly or not.
+    Imports anywhere in a module count (inside functions too), so the closure errs on the side of too much."""
+    tops = set(PROJECT_PACKAGES) | {module_name.split(".")[0]}
+    roots = {top: d for top in sorted(tops) if (d := _package_dir(top)) is not None}
+    closure: dict[str, Path] = {}
+    pending = [module_name]
+    while pending:
+        name = pending.pop()
+        if name in closure:
+            continue
+        path = _module_file(name, roots)
+        if path is None:
+            if name in NATIVE_MODULES:
+                closure[name] = NATIVE_SOURCES
+            continue
+        closure[name] = path
+        parents = name.split(".")
+        pending.extend(".".join(parents[: i + 1]) for i in range(len(parents) - 1))
+        pending.extend(_imports_of(name, path))
+    return closure
+
+
+# Parsing is most of the cost of a key and `status` computes many; keyed by content, so an edit is never missed.
+_IMPORTS_SEEN: dict[tuple[str, bool, bytes], frozenset[str]] = {}
+
+
+def _imports_of(name: str, path: Path) -> frozenset[str]:
+    source = path.read_bytes()
+    is_package = path.name == "__init__.py"
+    key = (name, is_package, hashlib.sha256(source).digest())
+    if key not in _IMPORTS_SEEN:
+        _IMPORTS_SEEN[key] = frozenset(_imported_names(ast.parse(source, filename=str(path)), name, is_package))
+    return _IMPORTS_SEEN[key]
+
+
 def code_hash(module: ModuleType) -> str:
-    """Hash of the stage's own source plus the sources it declares in CODE."""
+    """Hash of the sources of every project module the stage imports (see `import_closure`), of the native core's
+    sources when one of them loads it, and of the stage's VERSION."""
+    closure = import_closure(module.__name__)
+    if any(name in closure for name in NATIVE_MODULES):
+        closure = {name: path for name, path in closure.items() if path != NATIVE_SOURCES}
+        for path in sorted(p for p in NATIVE_SOURCES.rglob("*") if p.is_file()):
+            closure[f"csrc/{path.relative_to(NATIVE_SOURCES).as_posix()}"] = path
     digest = hashlib.sha256()
-    paths = [Path(module.__file__)]
-    for rel in getattr(module, "CODE", ()):
-        p = REPO_ROOT / rel
-        paths.extend(sorted(f for f in p.rglob("*") if f.suffix in {".py", ".h", ".cpp", ".cu", ".yaml"}) if p.is_dir() else [p])
-    for p in paths:
-        digest.update(p.name.encode())
-        digest.update(p.read_bytes())
+    for name in sorted(closure):
+        digest.update(name.encode() + b"\0")
+        digest.update(closure[name].read_bytes())
     digest.update(str(getattr(module, "VERSION", 0)).encode())
     return digest.hexdigest()[:16]

@@ -11,10 +11,10 @@ from pathlib import Path
 import pytest
 
 from pipeline import config
-from plenoxels.errors import UserError
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from pipeline.stage import StageGraph
+from plenoxels.errors import UserError
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -200,7 +200,7 @@ def test_overrides_parse_types():
 
 
 def test_word_settings_survive_yaml_reading_them_as_booleans():
-    # YAML 1.1 reads no/off/yes/on as booleans: `--set poses.shared_camera=no` once failed with "bad value False".
+    # YAML 1.1 reads no/off/yes/on as booleans; a setting whose allowed values are those words must get the word back.
     from stages.fit import Settings as FitSettings
     from stages.poses import Settings as PosesSettings
 
