@@ -1,0 +1,82 @@
+"""The newest radiance field of a scene: the fit stage's output (fit/) or, while a fit runs, its latest
+checkpoint (.resume/fit/checkpoint.pt, written by plenoxels.train.Fitter.save_checkpoint)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from pipeline.io import read_json
+from plenoxels.grid import SparseGrid
+from plenoxels.scene_model import ModelOptions, SceneModel
+
+CHECKPOINT = Path(".resume") / "fit" / "checkpoint.pt"
+
+
+@dataclass(frozen=True)
+class ModelVersion:
+    path: Path
+    mtime_ns: int
+
+    @property
+    def is_checkpoint(self) -> bool:
+        return self.path.name.endswith(".pt")
+
+
+class ModelSource:
+    """Finds and loads the newest model under a scene's output folder."""
+
+    def __init__(self, out: Path):
+        self.out = Path(out)
+
+    def latest(self) -> ModelVersion | None:
+        """The newer of the finished fit and the running fit's checkpoint, or None when neither exists."""
+        candidates = []
+        for path, stamp in ((self.out / "fit" / "model.json", self.out / "fit" / "grid.pt"),
+                            (self.out / CHECKPOINT, self.out / CHECKPOINT)):
+            try:
+                if path.is_file():
+                    candidates.append(ModelVersion(path, stamp.stat().st_mtime_ns))
+            except FileNotFoundError:  # replaced between the two calls
+                continue
+        return max(candidates, key=lambda v: v.mtime_ns, default=None)
+
+    def load(self, version: ModelVersion) -> tuple[SceneModel, str]:
+        """The model and a line saying what it is."""
+        if not version.is_checkpoint:
+            model = SceneModel.load(version.path.parent)
+            record = read_json(self.out / "fit" / "fit.json") if (self.out / "fit" / "fit.json").is_file() else {}
+            done = "" if record.get("complete", True) else f", stopped at step {record.get('steps')}"
+            return model, f"fit: {'x'.join(map(str, model.grid.resolution))} grid{done}"
+        return self._from_checkpoint(version.path)
+
+    def _from_checkpoint(self, path: Path) -> tuple[SceneModel, str]:
+        # The checkpoint holds the grid and background tensors; the frame and options around them come from
+        # scene.json and the fit's settings as the fit stage builds them.
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        scene = read_json(self.out / "normalize" / "scene.json")
+        background = state.get("background")
+        options = self._model_options(background)
+        model = SceneModel.create(scene, options, 2)
+        g = state["grid"]
+        model.grid = SparseGrid(g["links"], g["data"], g["bbox_min"], g["bbox_max"], g["sh_degree"])
+        if background is not None and model.background is not None:
+            model.background.load_state_dict(background)
+        return model, f"live fit: checkpoint at step {state['step']}, {'x'.join(map(str, model.grid.resolution))} grid"
+
+    def _model_options(self, background: dict | None) -> ModelOptions:
+        """The options of the last completed fit where there is one (its manifest), else the defaults;
+        the background model's presence and shape follow the checkpoint."""
+        options = ModelOptions()
+        manifest = self.out / "fit" / "manifest.json"
+        if manifest.is_file():
+            saved = read_json(manifest).get("settings", {})
+            for name in ("ndc", "background_color", "step_size", "stop_transmittance", "box_padding"):
+                if name in saved:
+                    setattr(options, name, saved[name])
+        options.background = "on" if background is not None else "off"
+        if background is not None:
+            spheres, _, _, width = background["density"].shape
+            options.background_spheres, options.background_width = int(spheres), int(width)
+        return options
