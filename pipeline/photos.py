@@ -27,9 +27,46 @@ def is_video(scene: Path) -> bool:
     return scene.is_file() and scene.suffix.lower() in VIDEO_SUFFIXES
 
 
+# The splits a NeRF synthetic (Blender) dataset folder has: <split>/ beside transforms_<split>.json.
+DATASET_SPLITS = ("train", "val", "test")
+
+
+def _has_photos(folder: Path) -> bool:
+    return folder.is_dir() and any(p.suffix.lower() in IMAGE_SUFFIXES for p in folder.iterdir() if p.is_file())
+
+
+def is_split_dataset(folder: Path) -> bool:
+    """A NeRF synthetic layout: train/ (and val/, test/) photo folders, each beside its transforms_<split>.json."""
+    return folder.is_dir() and (folder / "transforms_train.json").is_file() and _has_photos(folder / "train")
+
+
 def photo_folder(scene: Path) -> Path:
-    """The folder holding the scene's photos (for a video, the folder it sits in)."""
-    return scene.parent if scene.is_file() else scene
+    """The folder the scene's photo paths are relative to: for a video, the folder it sits in; for a dataset
+    folder, its images/ (a COLMAP project or a nerfstudio folder) or its largest images_N/ (LLFF), or the dataset
+    itself when its photos sit in split folders (NeRF synthetic); else the folder named."""
+    if scene.is_file():
+        return scene.parent
+    if _has_photos(scene) or is_split_dataset(scene):
+        return scene
+    if _has_photos(scene / "images"):
+        return scene / "images"
+    downscaled = [d for d in scene.glob("images_*") if d.name[7:].isdigit() and _has_photos(d)]
+    return min(downscaled, key=lambda d: int(d.name[7:])) if downscaled else scene
+
+
+def scene_photos(scene: Path, holdout_split: str) -> list[tuple[Path, str | None]]:
+    """The photo files of a folder scene, each with its split when the dataset defines one: a NeRF synthetic folder
+    gives train/ as "train" and the `holdout_split` folder ("val" or "test"; "none": none) as "test"."""
+    folder = photo_folder(scene)
+    if is_split_dataset(scene):
+        holding_out = holdout_split in DATASET_SPLITS[1:]
+        splits = [("train", "train" if holding_out else None)] + ([(holdout_split, "test")] if holding_out else [])
+        if len(splits) > 1 and not _has_photos(scene / holdout_split):
+            raise UserError(f"{scene} has no {holdout_split}/ photos to hold out; set ingest.holdout_split to one it "
+                            f"has ({', '.join(d for d in DATASET_SPLITS[1:] if _has_photos(scene / d)) or 'none'})")
+        return [(p, split) for name, split in splits if (scene / name).is_dir()
+                for p in sorted(f for f in (scene / name).iterdir() if f.is_file() and not f.name.startswith("."))]
+    return [(p, None) for p in sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith("."))]
 
 
 def sharpness(rgb: np.ndarray) -> float:
@@ -57,6 +94,16 @@ def _orient(array: np.ndarray, exif_orientation: int) -> np.ndarray:
            5: lambda a: np.swapaxes(a, 0, 1), 6: lambda a: np.rot90(a, -1),
            7: lambda a: np.rot90(a, 1)[::-1], 8: lambda a: np.rot90(a, 1)}
     return np.ascontiguousarray(ops[exif_orientation](array)) if exif_orientation in ops else array
+
+
+def scene_files(scene: Path) -> list[Path]:
+    """Every file `scene_photos` may return for this scene, whatever split is held out (for a cache key)."""
+    if scene.is_file():
+        return [scene]
+    if is_split_dataset(scene):
+        return [p for split in DATASET_SPLITS if (scene / split).is_dir()
+                for p in sorted(f for f in (scene / split).iterdir() if f.is_file() and not f.name.startswith("."))]
+    return [p for p, _ in scene_photos(scene, "none")]
 
 
 def load_photo(path: Path) -> tuple[np.ndarray, np.ndarray | None]:

@@ -50,7 +50,8 @@ class SceneOptions:
     scene_type: Literal["auto", "object", "forward", "unbounded"] = "auto"
     """Scene type the fit models; auto: decided from the cameras, points and backdrop."""
     holdout_every: int = 8
-    """Every Nth image by sorted name is held out for evaluation; 0: none."""
+    """Every Nth image by sorted name is held out for evaluation; 0: none. A dataset that names its splits
+    (train/, val/, test/ folders) holds out the split ingest.holdout_split names instead."""
     margin: float = 0.1
     """Space around the foreground: its largest half-size maps to 1/(1+margin), in [0, 1]."""
     forward_max_cone_deg: float = 30.0
@@ -435,10 +436,15 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
 
     # ---- frames and split -----------------------------------------------------------------------------
     order = sorted(range(n), key=lambda i: cams.names[i])
+    # A dataset that names its splits (NeRF synthetic train/val/test) is scored on its own held-out split.
+    dataset_splits = any(f.get("split") for f in cams.frames)
     frames = []
     for rank, i in enumerate(order):
         k, frame = cams.intrinsics[i], cams.frames[i]
-        held_out = options.holdout_every > 0 and rank % options.holdout_every == 0
+        if dataset_splits:
+            held_out = frame.get("split") == "test"
+        else:
+            held_out = options.holdout_every > 0 and rank % options.holdout_every == 0
         frames.append({
             "name": cams.names[i], "file_path": path_prefix + frame["file_path"],
             "mask_path": path_prefix + frame["mask_path"] if frame.get("mask_path") else None,

@@ -12,7 +12,8 @@ import numpy as np
 
 from pipeline.config import require
 from pipeline.io import write_json, write_png
-from pipeline.photos import IMAGE_SUFFIXES, VIDEO_SUFFIXES, fit_max_side, load_photo, sharpest_video_frames, sharpness
+from pipeline.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, fit_max_side, load_photo, photo_folder, scene_files,
+                             scene_photos, sharpest_video_frames, sharpness)
 from plenoxels.errors import UserError
 
 NAME = "ingest"
@@ -30,17 +31,19 @@ class Settings:
     """Frames kept per second of video: the sharpest in each window."""
     min_images: int = 3
     """Fail when fewer usable images than this remain (at least 3)."""
+    holdout_split: str = "val"
+    """A NeRF synthetic dataset folder (train/, val/, test/): the split held out for scoring (val, test or none)."""
 
     def check(self) -> None:
         require(self.max_side == 0 or self.max_side >= 32, "ingest.max_side must be 0 (full size) or at least 32")
         require(0.0 <= self.drop_blurry_fraction < 1.0, "ingest.drop_blurry_fraction must be in [0, 1)")
         require(self.video_fps > 0, "ingest.video_fps must be positive")
         require(self.min_images >= 3, "ingest.min_images must be at least 3 (fewer cannot be posed)")
+        require(self.holdout_split in ("val", "test", "none"), "ingest.holdout_split must be val, test or none")
 
 
 def fingerprint(scene: Path) -> list:
-    files = [scene] if scene.is_file() else sorted(p for p in scene.iterdir() if p.is_file())
-    return [[p.name, p.stat().st_size, p.stat().st_mtime_ns] for p in files]
+    return [[str(p.relative_to(photo_folder(scene))), p.stat().st_size, p.stat().st_mtime_ns] for p in scene_files(scene)]
 
 
 def run(ctx) -> dict:
@@ -50,11 +53,14 @@ def run(ctx) -> dict:
     images_dir.mkdir()
     records, unreadable = [], []
 
-    def keep(name: str, source: str, rgb: np.ndarray, alpha: np.ndarray | None, original: tuple[int, int]) -> None:
+    def keep(name: str, source: str, rgb: np.ndarray, alpha: np.ndarray | None, original: tuple[int, int],
+             split: str | None = None) -> None:
         rgb = fit_max_side(rgb, s.max_side)
         record = {"name": name, "file": f"images/{name}.png", "source": source, "width": rgb.shape[1],
                   "height": rgb.shape[0], "original_width": original[0], "original_height": original[1],
                   "scale": rgb.shape[1] / original[0], "sharpness": round(sharpness(rgb), 3), "mask": None}
+        if split:
+            record["split"] = split
         write_png(images_dir / f"{name}.png", rgb)
         if alpha is not None:
             masks_dir.mkdir(exist_ok=True)
@@ -68,19 +74,27 @@ def run(ctx) -> dict:
         for name, rgb in sharpest_video_frames(ctx.scene, s.max_side, s.video_fps, ctx.report):
             keep(name, ctx.scene.name, rgb, None, (rgb.shape[1], rgb.shape[0]))
     else:
-        candidates = sorted(p for p in ctx.scene.iterdir() if p.is_file() and not p.name.startswith("."))
-        photos = [p for p in candidates if p.suffix.lower() in IMAGE_SUFFIXES]
-        unreadable += [f"{p.name} (not a supported image type)" for p in candidates
+        folder = photo_folder(ctx.scene)
+        candidates = scene_photos(ctx.scene, s.holdout_split)
+        photos = [(p.relative_to(folder), split) for p, split in candidates if p.suffix.lower() in IMAGE_SUFFIXES]
+        unreadable += [f"{p.name} (not a supported image type)" for p, _ in candidates
                        if p.suffix.lower() not in IMAGE_SUFFIXES | {".json", ".npy", ".txt", ".md"}]
-        stems = [p.stem for p in photos]
-        for path in ctx.report.track(photos, desc="reading photos"):
+        # Split folders repeat file names (train/r_0.png, val/r_0.png): then every name carries its folder, and
+        # its suffix too where only that tells two photos apart (p.jpg, p.png).
+        names = [p.stem for p, _ in photos]
+        for naming in (lambda p: p.with_suffix("").as_posix().replace("/", "_"),
+                       lambda p: p.as_posix().replace("/", "_").replace(".", "_")):
+            if len(set(names)) == len(names):
+                break
+            names = [naming(p) for p, _ in photos]
+        name_of = {p: name for (p, _), name in zip(photos, names)}
+        for relative, split in ctx.report.track(photos, desc="reading photos"):
             try:
-                rgb, alpha = load_photo(path)
+                rgb, alpha = load_photo(folder / relative)
             except Exception as e:  # any decoder failure means the same thing to the user: this file is skipped
-                unreadable.append(f"{path.name} ({str(e).splitlines()[0][:60] or type(e).__name__})")
+                unreadable.append(f"{relative.as_posix()} ({str(e).splitlines()[0][:60] or type(e).__name__})")
                 continue
-            name = path.stem if stems.count(path.stem) == 1 else path.name.replace(".", "_")
-            keep(name, path.name, rgb, alpha, (rgb.shape[1], rgb.shape[0]))
+            keep(name_of[relative], relative.as_posix(), rgb, alpha, (rgb.shape[1], rgb.shape[0]), split)
     if unreadable:
         ctx.report.warn(f"skipped {len(unreadable)} file(s) that are not readable photos: {'; '.join(unreadable)}")
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from pipeline.photos import photo_folder
+from pipeline.photos import DATASET_SPLITS, is_split_dataset, photo_folder
 from plenoxels.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff
 from plenoxels.errors import UserError
 
@@ -123,6 +123,11 @@ def find(source: str, path: str, records: list[dict], scene: Path) -> tuple[str,
         kind = source if source != "auto" else kind_of(given)
         return kind, load(kind, given, records, scene)
     found = candidates(scene)
+    if is_split_dataset(scene) and source in ("auto", "transforms"):
+        # One dataset in several files: the photos of every split the ingest kept are posed together.
+        splits = [scene / f"transforms_{split}.json" for split in DATASET_SPLITS]
+        present = [p for p in splits if p.is_file()]
+        return "transforms", from_transforms(present[0], records, scene, tuple(present[1:]))
     for kind in [source] if source != "auto" else list(KINDS):
         if found[kind]:
             return kind, choose(kind, found[kind], records, scene)
@@ -257,39 +262,49 @@ def _intrinsics_from(meta: dict, fallback: dict, record: dict) -> tuple[Intrinsi
     return Intrinsics(float(fl_x), float(fl_y), float(cx), float(cy), int(round(w)), int(round(h))), distortion
 
 
-def from_transforms(path: Path, records: list[dict], scene: Path) -> Imported:
+def _read_transforms(path: Path) -> dict:
     try:
         data = json.loads(path.read_text())
-        frames = data["frames"]
+        if not isinstance(data["frames"], list):
+            raise TypeError
     except (json.JSONDecodeError, KeyError, TypeError):
         raise UserError(f"{path} is not a transforms.json with a 'frames' list; fix it or set poses.source=sfm") from None
+    return data
+
+
+def from_transforms(path: Path, records: list[dict], scene: Path, more: tuple[Path, ...] = ()) -> Imported:
+    """Poses from a transforms.json, and from the `more` files beside it (a split dataset's transforms_<split>.json
+    files, read as one); a frame's own camera keys override its file's."""
     folder = photo_folder(scene)
-    by_path: dict[Path, dict] = {}
-    by_stem: dict[str, dict] = {}
-    for frame in frames:
-        file_path = str(frame.get("file_path", ""))
-        resolved = (path.parent / file_path).resolve()
-        by_path[resolved] = frame
-        by_path.setdefault(resolved.with_suffix(""), frame)
-        by_stem.setdefault(_stem(file_path), frame)
+    by_path: dict[Path, tuple[dict, dict]] = {}
+    by_stem: dict[str, tuple[dict, dict]] = {}
+    for file in (path, *more):
+        data = _read_transforms(file)
+        for frame in data["frames"]:
+            file_path = str(frame.get("file_path", ""))
+            resolved = (file.parent / file_path).resolve()
+            by_path[resolved] = (frame, data)
+            by_path.setdefault(resolved.with_suffix(""), (frame, data))
+            by_stem.setdefault(_stem(file_path), (frame, data))
     reconstruction = pycolmap.Reconstruction()
     cameras = _CameraTable(reconstruction)
     missing, path_matches = [], 0
     for record in records:
         photo = (folder / record["source"]).resolve()
-        frame = by_path.get(photo) or by_path.get(photo.with_suffix(""))
-        path_matches += frame is not None
-        frame = frame or by_stem.get(_stem(record["source"]))
-        if frame is None:
+        entry = by_path.get(photo) or by_path.get(photo.with_suffix(""))
+        path_matches += entry is not None
+        entry = entry or by_stem.get(_stem(record["source"]))
+        if entry is None:
             missing.append(record["name"])
             continue
+        frame, data = entry
         k, distortion = _intrinsics_from(frame, data, record)
         factor = _scale_factor(record, k.w, k.h, str(path))
         scaled = k.scaled(factor)
         scaled = Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
         c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
         _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(scaled, distortion), c2w)
-    return Imported(reconstruction, path, missing, path_matches=path_matches)
+    return Imported(reconstruction, path.parent if more else path, missing, path_matches=path_matches)
 
 
 # ---- LLFF poses_bounds.npy --------------------------------------------------------------------------------
