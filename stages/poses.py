@@ -104,6 +104,8 @@ def run(ctx) -> dict:
         line += f", {points} points, mean reprojection error {error:.2f} px, mean track length {track:.1f}"
     if source == "sfm":
         line += f" ({info['matching']} matching: {info['pairs_verified']}/{info['pairs_matched']} pairs verified)"
+    if info.get("attempt_why"):
+        line += f"; as set, {info['attempt_why']}, so these poses come from the attempt with {info['attempt']}"
     if info.get("mapper_fallback"):
         line += f"; {info['mapper_fallback']}, so the incremental mapper made these poses"
     info["seconds"] = {k: round(v, 2) for k, v in info["seconds"].items()}

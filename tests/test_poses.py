@@ -466,3 +466,82 @@ def test_llff_count_mismatch_is_a_user_error(scene, tmp_path):
     np.save(tmp_path / "fern" / "poses_bounds.npy", np.zeros((5, 17)))
     with pytest.raises(UserError, match="5 poses but the folder has 3 photos"):
         run_poses(tmp_path / "fern" / "images", tmp_path / "out")
+
+
+@pytest.mark.parametrize("recorded, used", [
+    ((160, 120), True),    # the size the camera wrote
+    ((120, 160), True),    # the same, stored rotated (EXIF orientation)
+    ((320, 240), False),   # resized after capture
+    ((160, 160), False),   # cropped
+    (None, True),          # no record of the size: the focal tags are all there is
+])
+def test_exif_focal_is_a_hint_only_for_photos_the_size_the_camera_recorded(tmp_path, recorded, used):
+    path = tmp_path / "photo.jpg"
+    tags = {0xA405: 28}
+    if recorded:
+        tags.update({0xA002: recorded[0], 0xA003: recorded[1]})
+    write_jpeg_with_exif(path, np.zeros((120, 160, 3), dtype=np.uint8), tags)
+    assert (exif_focal(path, 0.0) is not None) == used
+
+
+def test_cropped_photos_with_their_uncropped_exif_focal_still_get_true_poses(scene, truth, tmp_path):
+    # The photos say a 1.5x too short focal, as a square crop of a wider photo keeps; EXIF's recorded size gives
+    # them away, so SfM starts from its own guess, and the poses match the truth.
+    folder = tmp_path / "cropped"
+    folder.mkdir()
+    wrong_35mm = round(truth["fl_x"] / 1.5 / math.hypot(WIDTH, HEIGHT) * FULL_FRAME_DIAGONAL_MM)
+    stems = sorted(frames_by_name(truth))[:12]
+    for stem in stems:
+        write_jpeg_with_exif(folder / f"{stem}.jpg", read_rgb(scene / "images" / f"{stem}.png"),
+                             {0xA405: wrong_35mm, 0xA002: 2 * WIDTH, 0xA003: int(1.5 * HEIGHT)})
+    manifest = run_poses(folder, tmp_path / "out", "poses.source=sfm")
+    summary = manifest["summary"]
+    assert summary["focal_prior"] is None and sorted(summary["exif_resized"]) == stems
+    assert summary["registered"] == len(stems)
+    errors = pose_errors(tmp_path / "out", truth)
+    assert errors["rotation_error_deg_max"] < 0.5
+
+
+def contradicting_first_attempts(monkeypatch, attempts: int) -> None:
+    """The first `attempts` SfM runs are judged to contradict most of their matches (a wrong model, as a cropped
+    photo's focal prior or a broken sequence gives); later runs are judged as they are."""
+    real = reconstruct.contradicted_images
+
+    def judged(db, model, above):
+        if int(Path(db).parent.name.split("_")[-1]) < attempts:
+            return {Path(im.name).stem: 0.5 for im in model.images.values() if im.has_pose}
+        return real(db, model, above)
+
+    monkeypatch.setattr(reconstruct, "contradicted_images", judged)
+
+
+def test_a_model_that_contradicts_its_matches_is_made_again_safer_and_the_summary_says_so(scene, truth, tmp_path, monkeypatch):
+    contradicting_first_attempts(monkeypatch, 1)
+    manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.matching=sequential")
+    summary = manifest["summary"]
+    assert [a["attempt"] for a in summary["attempts"]] == ["as set", "exhaustive matching"]
+    assert summary["attempt"] == "exhaustive matching" and summary["matching"] == "exhaustive"
+    assert summary["attempts"][0]["problems"] and not summary["attempts"][1]["problems"]
+    assert "contradict" in summary["line"] and "exhaustive matching" in summary["line"]
+    assert summary["registered"] == N_VIEWS
+    errors = pose_errors(tmp_path / "out", truth)
+    assert errors["rotation_error_deg_max"] < 0.5
+
+
+def test_no_model_that_holds_together_stops_the_pipeline_with_one_line(scene, tmp_path, monkeypatch):
+    contradicting_first_attempts(monkeypatch, 99)
+    folder = tmp_path / "few"
+    stems = photos(scene, folder, 8)
+    pipe = Pipeline(folder, tmp_path / "out", overrides=["poses.source=sfm"], reporter=Reporter(quiet=True))
+    with pytest.raises(UserError) as caught:
+        pipe.run(["poses", "normalize"])
+    message = str(caught.value)
+    assert "\n" not in message and "holds together" in message and "poses." in message
+    assert all(stem in message for stem in stems[:3])
+    assert not (tmp_path / "out" / "poses").exists() and not (tmp_path / "out" / "normalize").exists()
+
+
+def test_repair_off_refuses_at_the_first_contradicted_model(scene, tmp_path, monkeypatch):
+    contradicting_first_attempts(monkeypatch, 1)
+    with pytest.raises(UserError, match="after 1 attempt"):
+        run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.repair=false")

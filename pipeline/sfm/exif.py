@@ -15,6 +15,7 @@ EXIF_FOCAL_35MM = 0xA405                # FocalLengthIn35mmFilm, mm
 EXIF_FOCAL = 0x920A                     # FocalLength, mm
 EXIF_FOCAL_PLANE_X_RESOLUTION = 0xA20E  # sensor pixels per unit, in units of the tag below
 EXIF_FOCAL_PLANE_UNIT = 0xA210
+EXIF_PIXEL_X, EXIF_PIXEL_Y = 0xA002, 0xA003  # the size the camera wrote the image at
 MM_PER_FOCAL_PLANE_UNIT = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
 # A 35 mm equivalent focal length keeps the diagonal field of view of the 36 x 24 mm frame (CIPA DC-008), so it
 # holds for any aspect ratio, not only 3:2.
@@ -36,13 +37,26 @@ def one_camera(records: list[dict], photos: Path) -> bool:
     return len(models) <= 1
 
 
+def recorded_size_differs(exif, size: tuple[int, int]) -> bool:
+    """True when EXIF records the size the camera wrote and the file's pixels are another size: the photo was cropped,
+    resized or re-saved from a screenshot, so its focal tags describe pixels that are no longer there."""
+    try:
+        recorded = (int(exif.get(EXIF_PIXEL_X) or 0), int(exif.get(EXIF_PIXEL_Y) or 0))
+    except (TypeError, ValueError):
+        return False
+    return all(recorded) and sorted(recorded) != sorted(size)
+
+
 def exif_focal(photo: Path, sensor_width_mm: float) -> tuple[float, str] | None:
-    """Focal length in pixels of the photo as stored, from its EXIF, and which tags gave it; None without them."""
+    """Focal length in pixels of the photo as stored, from its EXIF, and which tags gave it; None without them, or
+    when the photo is not the size EXIF says the camera recorded (a crop or a resize)."""
     try:
         with Image.open(photo) as im:
             exif = im.getexif().get_ifd(EXIF_IFD)
             width, height = im.size
     except (OSError, ValueError):
+        return None
+    if recorded_size_differs(exif, (width, height)):
         return None
     def positive(tag: int) -> float:
         try:
@@ -58,6 +72,19 @@ def exif_focal(photo: Path, sensor_width_mm: float) -> tuple[float, str] | None:
     if focal_mm and sensor_width_mm:
         return focal_mm / sensor_width_mm * max(width, height), f"EXIF {focal_mm:g} mm on a {sensor_width_mm:g} mm sensor"
     return None
+
+
+def resized_since_capture(records: list[dict], photos: Path) -> list[str]:
+    """Names of the photos whose pixels are not the size their EXIF says the camera recorded."""
+    changed = []
+    for record in records:
+        try:
+            with Image.open(photos / record["source"]) as im:
+                if recorded_size_differs(im.getexif().get_ifd(EXIF_IFD), im.size):
+                    changed.append(record["name"])
+        except (OSError, ValueError):
+            continue
+    return changed
 
 
 def set_focal_priors(db: Path, records: list[dict], photos: Path, sensor_width_mm: float) -> dict | None:

@@ -19,7 +19,8 @@ MIN_TIED_POINTS = 15
 # relative pose puts the match farther than that. Measured shares of an image's verified matches contradicted: correct
 # models up to 2.2% (synthetic orbit) and 13% (fox at 480 px, some verified matches being wrong ones); the global
 # mapper's wrong poses 23-58% (synthetic) and 20-63% (fox). Replacing a global model costs only a mapping run, so a
-# lower share triggers it than the warning about a final model, which must not cry wolf.
+# lower share triggers it than the one that marks an image of a final model as misplaced (which leaves it out, and
+# when too many images are, makes the model again or refuses it), which must not cry wolf.
 EPIPOLAR_MAX_ERROR_PX = 4.0
 GLOBAL_MAX_CONTRADICTED_SHARE = 0.1
 MAX_CONTRADICTED_SHARE = 0.2

@@ -1,7 +1,9 @@
-"""COLMAP structure from motion through pycolmap: SIFT extraction (with EXIF focal priors), exhaustive or sequential
-matching, incremental or global mapping, and the fallbacks that keep a wrong or partial model from being used:
-a global model that contradicts its matches is mapped again incrementally, sequential matching that leaves photos
-out is completed by exhaustive matching, and images left out are retried with looser registration thresholds."""
+"""COLMAP structure from motion through pycolmap: SIFT extraction (with EXIF focal priors where the photos are the size
+the camera recorded), exhaustive or sequential matching, incremental or global mapping, and the checks that keep a
+wrong or partial model from being used: a global model that contradicts its matches is mapped again incrementally,
+sequential matching that leaves photos out is completed by exhaustive matching, images left out are retried with
+looser registration thresholds, and a model that contradicts its own matches or splits in parts is made again in
+safer configurations (`attempt_plan`) or refused with what the user can do."""
 from __future__ import annotations
 
 import shutil
@@ -9,13 +11,13 @@ import statistics
 import time
 from collections import Counter
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator, Literal
 
 import pycolmap
 
-from pipeline.sfm.exif import one_camera, set_focal_priors
+from pipeline.sfm.exif import one_camera, resized_since_capture, set_focal_priors
 from pipeline.sfm.model_checks import (GLOBAL_MAX_CONTRADICTED_SHARE, MAX_CONTRADICTED_SHARE, MIN_VERIFIED_INLIERS,
                                        contradicted_images, detached_images, drop_images)
 from plenoxels.errors import UserError
@@ -28,6 +30,8 @@ RELAXED_ABS_POSE_MIN_INLIERS = 15
 RELAXED_ABS_POSE_MIN_INLIER_RATIO = 0.15
 RELAXED_INIT_MIN_INLIERS = 50
 NAMES_SHOWN = 8
+# Repairs match every pair up to this many images (COLMAP's exhaustive matching grows with the square).
+REPAIR_EXHAUSTIVE_MAX_IMAGES = 400
 
 
 @dataclass
@@ -61,6 +65,12 @@ class SfmOptions:
     """Extract and match SIFT on the GPU when pycolmap was built with CUDA."""
     seed: int = 0
     """Random seed for COLMAP's RANSAC and mappers."""
+    max_contradicted_images: float = 0.1
+    """Share of the images whose poses may contradict their verified matches before the model is made again with a
+    safer configuration, or refused."""
+    repair: bool = True
+    """When a model contradicts its matches or splits in parts, try safer configurations (exhaustive matching, no EXIF
+    focal prior, more features, full-size images) and keep the first that holds; off: refuse at once."""
 
 
 @contextmanager
@@ -218,34 +228,131 @@ def map_images(db: Path, image_dir: Path, scratch: Path, s: SfmOptions, report) 
     return models, largest_model(models), fallback
 
 
+@dataclass
+class Attempt:
+    """One configuration SfM is run with: the options, and whether the cameras start from the EXIF focal length."""
+    label: str
+    options: SfmOptions
+    focal_prior: bool
+    peak_threshold: float = SIFT_PEAK_THRESHOLD
+
+
+def attempt_plan(s: SfmOptions, n_images: int, from_video: bool) -> list[Attempt]:
+    """The configuration as set, then each safer one in turn, every step keeping the ones before it: exhaustive
+    matching (which sees every pair, so a loop closes and a bad sequence link is outvoted), no EXIF focal prior (a
+    cropped or mislabelled photo's focal starts verification from the wrong essential matrices), twice the features
+    at a lower detection threshold, and features from the full-size ingested images."""
+    plan = [Attempt("as set", s, s.exif_focal)]
+    if not s.repair:
+        return plan
+    current, prior = s, s.exif_focal
+    matching = s.matching if s.matching != "auto" else (
+        "sequential" if from_video or n_images > s.exhaustive_max_images else "exhaustive")
+    if matching != "exhaustive" and n_images <= REPAIR_EXHAUSTIVE_MAX_IMAGES:
+        current = replace(current, matching="exhaustive")
+        plan.append(Attempt("exhaustive matching", current, prior))
+    if prior:
+        prior = False
+        plan.append(Attempt("no EXIF focal prior", current, prior))
+    current = replace(current, max_features=2 * current.max_features, min_features=2 * current.min_features)
+    peak = SIFT_PEAK_THRESHOLD / LOW_FEATURE_PEAK_DIVISOR
+    plan.append(Attempt("twice the features", current, prior, peak))
+    if current.feature_max_side:
+        current = replace(current, feature_max_side=0)
+        plan.append(Attempt("full-size images", current, prior, peak))
+    return plan
+
+
+def model_problems(db: Path, best: pycolmap.Reconstruction | None, models: list[pycolmap.Reconstruction],
+                   n_images: int, s: SfmOptions) -> tuple[list[str], dict[str, float]]:
+    """Why a model cannot be trusted (none: it holds together), and its images that contradict their matches."""
+    if best is None:
+        return ["no model formed"], {}
+    contradicted = contradicted_images(db, best, MAX_CONTRADICTED_SHARE)
+    problems = []
+    if len(contradicted) > s.max_contradicted_images * n_images:
+        problems.append(f"{len(contradicted)}/{n_images} images have poses that contradict over "
+                        f"{MAX_CONTRADICTED_SHARE:.0%} of their verified matches ({short_list(sorted(contradicted))})")
+    posed = {im.name for im in best.images.values() if im.has_pose}
+    elsewhere = {im.name for m in models if m is not best for im in m.images.values() if im.has_pose} - posed
+    if len(elsewhere) >= 2:
+        problems.append(f"the images split into {len(models)} separate models; {len(elsewhere)} are outside the "
+                        f"largest ({short_list(sorted(Path(n).stem for n in elsewhere))})")
+    return problems, contradicted
+
+
 def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: bool, scratch: Path,
                 s: SfmOptions, report) -> tuple[pycolmap.Reconstruction, dict]:
     """The largest model COLMAP makes of the ingested images (`records`, PNGs in `image_dir`, original photos in
-    `photos` for their EXIF), with detached images dropped, and what happened on the way (counts, fallbacks,
-    timings). `scratch` holds the database and the mapper's models."""
+    `photos` for their EXIF) that holds together: each configuration of `attempt_plan` in turn until one gives a model
+    that neither contradicts its own matches nor splits in parts. Images left detached or contradicting their matches
+    are dropped from it; with no such model the stage stops with what the user can do. Returns the model and what
+    happened on the way (attempts, counts, fallbacks, timings). `scratch` holds the databases and models."""
+    plan = attempt_plan(s, len(records), from_video)
+    resized = resized_since_capture(records, photos) if s.exif_focal else []
+    if resized:
+        report.info(f"{len(resized)} photo(s) are not the size their EXIF says the camera recorded (cropped or resized), "
+                    "so their EXIF focal length is not used")
+    tried = []
+    for number, attempt in enumerate(plan):
+        best, info, models = sfm_attempt(records, image_dir, photos, from_video, scratch / f"attempt_{number}",
+                                         attempt, report)
+        problems, contradicted = model_problems(info.pop("db"), best, models, len(records), attempt.options)
+        tried.append({"attempt": attempt.label, "registered": best.num_reg_images() if best else 0,
+                      "contradicted": len(contradicted), "models": len(models), "problems": problems})
+        if not problems:
+            break
+        following = f"; trying {plan[number + 1].label}" if number + 1 < len(plan) else ""
+        report.warn(f"SfM ({attempt.label}): {'; '.join(problems)}{following}")
+    else:
+        if all(t["problems"] == ["no model formed"] for t in tried):
+            raise UserError(f"SfM formed no model from {len(records)} images ({info['pairs_verified']} verified pairs); "
+                            "the photos need more overlap and texture, or give poses with poses.source/poses.path")
+        raise UserError(f"no pose model of these photos holds together after {len(tried)} attempt(s) "
+                        f"({', '.join(t['attempt'] for t in tried)}): {tried[-1]['problems'][0]}; take sharper, "
+                        "more overlapping photos (or drop those named), or try poses.matching, poses.camera_model or "
+                        "poses.exif_focal=false")
+    info["attempts"], info["attempt"] = tried, attempt.label
+    if number:
+        info["attempt_why"] = tried[0]["problems"][0]
+    info["exif_resized"] = resized
+    if contradicted:
+        drop_images(best, sorted(contradicted))
+        info["contradicted"] = contradicted
+        report.warn(f"the poses of {len(contradicted)} image(s) contradict over {MAX_CONTRADICTED_SHARE:.0%} of their "
+                    f"verified matches, so they are left out: {short_list(sorted(contradicted))}")
+    return best, info
+
+
+def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: bool, scratch: Path,
+                attempt: Attempt, report) -> tuple[pycolmap.Reconstruction | None, dict, list[pycolmap.Reconstruction]]:
+    """One SfM run in one configuration: the largest model with detached images dropped, what happened on the way
+    (with the database's path under "db") and every model the mapper made."""
+    s = attempt.options
+    scratch.mkdir(parents=True, exist_ok=True)
     db = scratch / "database.db"
     names = [f"{r['name']}.png" for r in records]
     seconds: dict[str, float] = {}
-    info: dict = {}
+    info: dict = {"db": db}
 
     single = {"yes": True, "no": False}.get(s.shared_camera) if s.shared_camera != "auto" else one_camera(records, photos)
     info["shared_camera"] = single
     started = time.perf_counter()
     device = "GPU" if pycolmap_device(s.use_gpu) == pycolmap.Device.cuda else "CPU"
     report.info(f"extracting SIFT features from {len(names)} images ({device}, {'one shared camera' if single else 'one camera per image'}, {s.camera_model})")
-    extract_features(db, image_dir, names, s, single, SIFT_PEAK_THRESHOLD)
+    peak = attempt.peak_threshold
+    extract_features(db, image_dir, names, s, single, peak)
     median = median_features(db)
     if median < s.min_features:
         report.info(f"only {median:.0f} features per image (median); extracting again with a lower detection threshold")
-        extract_features(db, image_dir, names, s, single, SIFT_PEAK_THRESHOLD / LOW_FEATURE_PEAK_DIVISOR)
+        extract_features(db, image_dir, names, s, single, peak / LOW_FEATURE_PEAK_DIVISOR)
         median = median_features(db)
     info["median_features"] = median
-    info["focal_prior"] = set_focal_priors(db, records, photos, s.sensor_width_mm) if s.exif_focal else None
+    info["focal_prior"] = set_focal_priors(db, records, photos, s.sensor_width_mm) if attempt.focal_prior else None
     if info["focal_prior"]:
         prior = info["focal_prior"]
         report.info(f"initial focal length {prior['focal_px']:.1f} px from {prior['from']} ({prior['images']} photos)")
     seconds["extract"] = time.perf_counter() - started
-
     mode = s.matching
     if mode == "auto":
         mode = "sequential" if from_video or len(names) > s.exhaustive_max_images else "exhaustive"
@@ -285,16 +392,11 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
         sizes = sorted((m.num_reg_images() for m in models), reverse=True)
         report.warn(f"COLMAP made {len(models)} separate models ({', '.join(map(str, sizes))} images); using the largest")
     if best is None:
-        raise UserError(f"SfM formed no model from {len(names)} images ({matching['pairs_verified']} verified pairs); "
-                        "the photos need more overlap and texture, or give poses with poses.source/poses.path")
+        return None, info, models
     unplaced = detached_images(best)
     if unplaced:
         drop_images(best, unplaced)
         info["detached"] = unplaced
         report.warn(f"{len(unplaced)} registered image(s) share too few points with the rest of the model to place "
                     f"them, so they are left out: {short_list(unplaced)}")
-    info["contradicted"] = contradicted_images(db, best, MAX_CONTRADICTED_SHARE)
-    if info["contradicted"]:
-        report.warn(f"the poses of {len(info['contradicted'])} image(s) contradict over {MAX_CONTRADICTED_SHARE:.0%} of "
-                    f"their verified matches, so they may be wrong: {short_list(list(info['contradicted']))}")
-    return best, info
+    return best, info, models
