@@ -129,7 +129,7 @@ def pose_errors(out: Path, truth: dict, names: dict[str, str] | None = None) -> 
 
 def test_sequential_matching_matches_neighbours_only_and_poses_every_view(scene, truth, tmp_path):
     manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.matching=sequential",
-                         "poses.sequential_overlap=4")
+                         "poses.sequential_overlap=4", "poses.loop_neighbours=0")
     summary = manifest["summary"]
     assert summary["matching"] == "sequential" and summary["registered"] == N_VIEWS
     # Overlap 4 with quadratic overlap: each view is matched with the ones 1, 2, 4 and 8 after it.
@@ -174,8 +174,9 @@ def test_auto_matching_completes_sequential_with_exhaustive_when_photos_are_left
     names = {f"photo_{n:02d}": stem for n, stem in enumerate(order)}
     for name, stem in names.items():
         shutil.copy(scene / "images" / f"{stem}.png", folder / f"{name}.png")
+    # Without loop closure: its pairs of alike images would find most of the true neighbours themselves.
     manifest = run_poses(folder, tmp_path / "out", "poses.source=sfm", "poses.exhaustive_max_images=2",
-                         "poses.sequential_overlap=1")
+                         "poses.sequential_overlap=1", "poses.loop_neighbours=0")
     summary = manifest["summary"]
     assert summary["matching"] == "exhaustive after sequential" and summary["registered"] == N_VIEWS
     assert summary["pairs_matched"] > N_VIEWS
@@ -545,3 +546,25 @@ def test_repair_off_refuses_at_the_first_contradicted_model(scene, tmp_path, mon
     contradicting_first_attempts(monkeypatch, 1)
     with pytest.raises(UserError, match="after 1 attempt"):
         run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.repair=false")
+
+
+def test_sequential_matching_closes_the_loop_of_an_orbit(scene, truth, tmp_path, monkeypatch):
+    asked = []
+    real = reconstruct.loop_pairs
+    monkeypatch.setattr(reconstruct, "loop_pairs", lambda *args: asked.extend(real(*args)) or asked)
+    manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.matching=sequential",
+                         "poses.sequential_overlap=3", "poses.loop_neighbours=3", "poses.repair=false")
+    # The loop pairs join the first views with the last, and the alike pairs join views that look at the scene from
+    # nearer directions than views outside the sequential window do on average.
+    assert ("0000.png", f"{N_VIEWS - 1:04d}.png") in asked
+    axis = {f"{stem}.png": np.asarray(f["transform_matrix"])[:3, 2] for stem, f in frames_by_name(truth).items()}
+    names = sorted(axis)
+
+    def angle(a, b):
+        return np.degrees(np.arccos(np.clip(axis[a] @ axis[b], -1, 1)))
+
+    outside = [angle(a, b) for i, a in enumerate(names) for b in names[i + 4:]]
+    assert np.mean([angle(a, b) for a, b in asked]) < 0.9 * np.mean(outside)
+    assert manifest["summary"]["registered"] == N_VIEWS
+    errors = pose_errors(tmp_path / "out", truth)
+    assert errors["rotation_error_deg_max"] < 0.5 and errors["centre_error_share_max"] < 0.01

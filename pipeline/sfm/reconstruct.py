@@ -15,6 +15,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator, Literal
 
+import cv2
+import numpy as np
 import pycolmap
 
 from pipeline.sfm.exif import one_camera, resized_since_capture, set_focal_priors
@@ -30,6 +32,10 @@ RELAXED_ABS_POSE_MIN_INLIERS = 15
 RELAXED_ABS_POSE_MIN_INLIER_RATIO = 0.15
 RELAXED_INIT_MIN_INLIERS = 50
 NAMES_SHOWN = 8
+# Loop closure's visual words: descriptors sampled per image, the share of them that trains the vocabulary, its size.
+LOOP_WORD_SAMPLES = 2000
+LOOP_TRAINING_PER_IMAGE = 300
+LOOP_VOCABULARY = 256
 # Repairs match every pair up to this many images (COLMAP's exhaustive matching grows with the square).
 REPAIR_EXHAUSTIVE_MAX_IMAGES = 400
 
@@ -57,6 +63,9 @@ class SfmOptions:
     """Auto matching is exhaustive up to this many images; above, sequential completed by exhaustive when needed."""
     sequential_overlap: int = 10
     """Neighbours each image is matched with in sequential matching."""
+    loop_neighbours: int = 5
+    """In sequential matching, each image is also matched with this many of the most alike images outside its
+    neighbours, and the first images with the last, so a walk around a scene closes its loop; 0: off."""
     mapper: Literal["incremental", "global"] = "incremental"
     """COLMAP mapper; a global model that contradicts its matches is mapped again incrementally."""
     refine_principal_point: bool = False
@@ -130,6 +139,61 @@ def match_features(db: Path, mode: str, s: SfmOptions) -> None:
         pycolmap.match_exhaustive(db, matching_options=options, verification_options=verification, device=device)
 
 
+def loop_pairs(db: Path, overlap: int, neighbours: int, seed: int) -> list[tuple[str, str]]:
+    """Image pairs that close the loops of a sequence (images in name order, as sequential matching takes them): the
+    first `overlap` images with the last `overlap`, and each image with its `neighbours` most alike images farther
+    than `overlap` along the sequence. Alike means close bags of visual words: the SIFT descriptors already in the
+    database quantised by a small vocabulary learnt from them, weighted by TF-IDF, compared by cosine."""
+    with pycolmap.Database.open(db) as database:
+        images = sorted(database.read_all_images(), key=lambda im: im.name)
+        descriptors = [np.asarray(database.read_descriptors(im.image_id).data, dtype=np.float32) for im in images]
+    n = len(images)
+    pairs = {(i, j) for i in range(min(overlap, n)) for j in range(max(n - overlap, 0), n) if j - i > overlap}
+    rng = np.random.default_rng(seed)
+    sampled = [d[rng.choice(len(d), min(len(d), LOOP_WORD_SAMPLES), replace=False)] for d in descriptors if len(d)]
+    if neighbours > 0 and sampled:
+        training = np.concatenate([d[:LOOP_TRAINING_PER_IMAGE] for d in sampled])
+        words = min(LOOP_VOCABULARY, max(2, len(training) // 20))
+        cv2.setRNGSeed(seed)
+        criteria = (cv2.TERM_CRITERIA_MAX_ITER + cv2.TERM_CRITERIA_EPS, 10, 1.0)
+        _, _, centres = cv2.kmeans(training, words, None, criteria, 1, cv2.KMEANS_PP_CENTERS)
+        histograms = np.zeros((n, words))
+        for i, d in enumerate(descriptors):
+            d = d[rng.choice(len(d), min(len(d), LOOP_WORD_SAMPLES), replace=False)] if len(d) else d
+            if len(d):
+                nearest = ((d ** 2).sum(1)[:, None] - 2 * d @ centres.T + (centres ** 2).sum(1)[None]).argmin(1)
+                histograms[i] = np.bincount(nearest, minlength=words)
+        idf = np.log(n / np.maximum((histograms > 0).sum(0), 1))
+        weighted = histograms / np.maximum(histograms.sum(1, keepdims=True), 1) * idf
+        weighted /= np.maximum(np.linalg.norm(weighted, axis=1, keepdims=True), 1e-12)
+        similarity = weighted @ weighted.T
+        index = np.arange(n)
+        similarity[np.abs(index[:, None] - index[None]) <= overlap] = -np.inf
+        for i in range(n):
+            for j in np.argsort(-similarity[i])[:neighbours]:
+                if np.isfinite(similarity[i, j]):
+                    pairs.add((min(i, int(j)), max(i, int(j))))
+    return [(images[i].name, images[j].name) for i, j in sorted(pairs)]
+
+
+def match_loop_pairs(db: Path, s: SfmOptions, scratch: Path) -> int:
+    """Matches (and verifies) the loop-closing pairs of a sequence; returns how many pairs were asked for."""
+    pairs = loop_pairs(db, s.sequential_overlap, s.loop_neighbours, s.seed)
+    if not pairs:
+        return 0
+    listing = scratch / "loop_pairs.txt"
+    listing.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    options = pycolmap.FeatureMatchingOptions()
+    options.use_gpu = s.use_gpu and pycolmap.has_cuda
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = str(listing)
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = s.seed
+    pycolmap.match_image_pairs(db, matching_options=options, pairing_options=pairing,
+                               verification_options=verification, device=pycolmap_device(s.use_gpu))
+    return len(pairs)
+
+
 def matching_summary(db: Path) -> dict:
     """Pairs matched and verified, and the images with fewer than two verified partners."""
     with pycolmap.Database.open(db) as database:
@@ -153,6 +217,9 @@ def _match_and_summarise(db: Path, mode: str, s: SfmOptions, n_images: int, repo
     started = time.perf_counter()
     report.info(f"matching features ({mode})")
     match_features(db, "exhaustive" if mode.startswith("exhaustive") else mode, s)
+    if mode == "sequential" and s.loop_neighbours > 0:
+        asked = match_loop_pairs(db, s, db.parent)
+        report.info(f"matched {asked} loop-closing pairs (first with last images, and alike images)")
     seconds["match"] += time.perf_counter() - started
     matching = matching_summary(db)
     report.info(f"matching: {matching['pairs_verified']} of {matching['pairs_matched']} image pairs verified, "
