@@ -45,6 +45,7 @@ REPO = Path(__file__).resolve().parent.parent
 # The CLI's exhaustive matching of fox at full size ran past 30 minutes on the loaded 2-core machine; it now gets the
 # ingested (960 px) photos, but keep the margin.
 CHILD_TIMEOUT_S = 3600
+VIDEO_HOLD = 3
 # Settings measured per scene (--variants picks some). fox: matching both ways, the global mapper (which falls back to
 # incremental when its model misplaces images), and a refined principal point, to test whether the rotation offset
 # against fox's own COLMAP model comes from the principal point.
@@ -56,6 +57,15 @@ VARIANTS = {
     "fern": {"default": [], "principal_point": ["poses.refine_principal_point=true"]},
     # cup's own model gives each photo its own focal length (529-632 px, no distortion)
     "cup": {"default": [], "per_image_camera": ["poses.shared_camera=no"]},
+    # a 64-view orbit in capture order, matched sequentially with and without the loop-closing pairs
+    "synthetic_orbit": {"sequential": ["poses.matching=sequential"],
+                        "sequential_no_loop": ["poses.matching=sequential", "poses.loop_neighbours=0"]},
+    # square crops whose EXIF keeps the uncropped photo's focal length: with the size the camera recorded (which tells
+    # the stage to ignore the focal), and without it (so the wrong focal is used, and only the model checks can help)
+    "synthetic_cropped": {"default": []},
+    # the orbit as a video through ingest (frames kept by motion), then SfM as video gets it (sequential + loops)
+    "synthetic_video": {"default": []},
+    "synthetic_cropped_no_size": {"default": []},
 }
 
 
@@ -124,7 +134,8 @@ def run_stage(images: Path, out: Path, overrides: list[str], log: Path) -> dict:
             "points": summary["points"], "mean_reprojection_error": summary["mean_reprojection_error"],
             "matching": summary.get("matching"), "pairs_verified": summary.get("pairs_verified"),
             "models": summary.get("models"), "mapper": summary.get("mapper"),
-            "mapper_fallback": summary.get("mapper_fallback"), "line": summary["line"]}
+            "mapper_fallback": summary.get("mapper_fallback"), "attempts": summary.get("attempts"),
+            "attempt": summary.get("attempt"), "focal_prior": summary.get("focal_prior"), "line": summary["line"]}
 
 
 # The CLI runs: its defaults, and one shared camera as the stage uses for photos from one camera (the CLI's
@@ -150,7 +161,61 @@ def scenes(data: Path, work: Path, wanted: list[str]) -> dict[str, Path]:
             if not (work / name / "transforms.json").is_file():
                 write_scene(kind, work / name, n_views=views, width=640, height=480, seed=0, supersample=1)
             found[name] = work / name / "images"
+    if "synthetic_orbit" in wanted:
+        if not (work / "synthetic_orbit" / "transforms.json").is_file():
+            write_scene("object", work / "synthetic_orbit", n_views=64, width=480, height=360, seed=1, supersample=1)
+        found["synthetic_orbit"] = work / "synthetic_orbit" / "images"
+    if "synthetic_video" in wanted:
+        found["synthetic_video"] = orbit_video(work / "synthetic_orbit", work / "synthetic_video" / "video" / "orbit.avi")
+    for name, record_size in (("synthetic_cropped", True), ("synthetic_cropped_no_size", False)):
+        if name in wanted:
+            found[name] = cropped_with_exif(work / "synthetic_object", work / name, record_size)
     return {k: v for k, v in found.items() if k in wanted}
+
+
+def orbit_video(scene: Path, video: Path) -> Path:
+    """The 64-view synthetic orbit as a 24 fps video, each view held VIDEO_HOLD frames (a slow walk around it)."""
+    import cv2
+
+    if not (scene / "transforms.json").is_file():
+        write_scene("object", scene, n_views=64, width=480, height=360, seed=1, supersample=1)
+    video.parent.mkdir(parents=True, exist_ok=True)
+    photos = sorted((scene / "images").glob("*.png"))
+    first = cv2.imread(str(photos[0]))
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 24, first.shape[1::-1])
+    for photo in photos:
+        for _ in range(VIDEO_HOLD):
+            writer.write(cv2.imread(str(photo)))
+    writer.release()
+    return video
+
+
+def cropped_with_exif(scene: Path, out: Path, record_size: bool) -> Path:
+    """The synthetic object's photos cropped to a centred square, as JPEGs whose EXIF gives the uncropped photo's
+    35 mm equivalent focal (so it reads 1.33x too short for what is left), with a transforms.json of the true
+    cameras of the crops beside them."""
+    from PIL import Image
+
+    if not (scene / "transforms.json").is_file():
+        write_scene("object", scene, n_views=40, width=640, height=480, seed=0, supersample=1)
+    truth = json.loads((scene / "transforms.json").read_text())
+    w, h = truth["w"], truth["h"]
+    focal_35mm = round(truth["fl_x"] / np.hypot(w, h) * np.hypot(36.0, 24.0))
+    left = (w - h) // 2
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    frames = []
+    for frame in truth["frames"]:
+        stem = Path(frame["file_path"]).stem
+        photo = Image.open(scene / frame["file_path"]).convert("RGB").crop((left, 0, left + h, h))
+        exif = Image.Exif()
+        exif[0x0110] = "Synthetic"
+        tags = {0xA405: focal_35mm, **({0xA002: w, 0xA003: h} if record_size else {})}
+        exif.get_ifd(0x8769).update(tags)
+        photo.save(out / "images" / f"{stem}.jpg", quality=95, exif=exif)
+        frames.append({"file_path": f"images/{stem}.jpg", "transform_matrix": frame["transform_matrix"]})
+    write_json(out / "transforms.json", {"fl_x": truth["fl_x"], "fl_y": truth["fl_y"], "cx": truth["cx"] - left,
+                                         "cy": truth["cy"], "w": h, "h": h, "frames": frames})
+    return out / "images"
 
 
 def main() -> int:
@@ -185,9 +250,16 @@ def main() -> int:
         folder = args.work / key
         folder.mkdir(exist_ok=True)
         entry: dict = {"photos": str(images), "settings": size}
-        reference = run_stage(images, folder / "reference", size, folder / "reference.log")
-        ref_poses = poses_from_transforms(folder / "reference" / "poses" / "transforms.json") if "line" in reference else {}
-        entry["reference"] = {"line": reference.get("line"), "error": reference.get("error")}
+        if images.is_file():  # a video: its frames are named by index, each synthetic view held VIDEO_HOLD frames
+            truth = json.loads((images.parent.parent / "transforms.json").read_text())
+            views = sorted(truth["frames"], key=lambda f: f["file_path"])
+            ref_poses = {f"frame_{i:06d}": np.asarray(views[i // VIDEO_HOLD]["transform_matrix"])
+                         for i in range(VIDEO_HOLD * len(views))}
+            entry["reference"] = {"line": f"the true poses of the {len(views)} views"}
+        else:
+            reference = run_stage(images, folder / "reference", size, folder / "reference.log")
+            ref_poses = poses_from_transforms(folder / "reference" / "poses" / "transforms.json") if "line" in reference else {}
+            entry["reference"] = {"line": reference.get("line"), "error": reference.get("error")}
         variants = VARIANTS.get(name, {"default": []})
         if args.variants:
             variants = {k: v for k, v in variants.items() if k in args.variants.split(",")}

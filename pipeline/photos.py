@@ -12,6 +12,11 @@ from plenoxels.errors import UserError
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp", ".heic", ".heif"}
 VIDEO_SUFFIXES = {".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v"}
 SHARPNESS_SIDE = 512  # score every image at the same size so scores compare across resolutions
+# Video frames are tracked at this size; a stretch ends when fewer than this share of its corners are still followed,
+# and its frames past this share of the motion wanted are candidates to keep.
+TRACKING_SIDE = 480
+TRACKS_KEPT_SHARE = 0.5
+CANDIDATE_SHARE = 0.6
 EXIF_ORIENTATION = 0x0112
 
 try:  # HEIC support comes from pillow-heif when it is installed
@@ -140,30 +145,73 @@ def fit_max_side(image: np.ndarray, max_side: int) -> np.ndarray:
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
 
 
-def sharpest_video_frames(path: Path, max_side: int, frames_per_second: float, report) -> list[tuple[str, np.ndarray]]:
-    """(name, RGB) of the sharpest frame of each 1/frames_per_second-second window, downscaled to `max_side`."""
+def _tracking_grey(bgr: np.ndarray) -> np.ndarray:
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    scale = TRACKING_SIDE / max(grey.shape)
+    return cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else grey
+
+
+def _corners(grey: np.ndarray) -> np.ndarray | None:
+    return cv2.goodFeaturesToTrack(grey, maxCorners=400, qualityLevel=0.01, minDistance=max(4, max(grey.shape) // 60))
+
+
+def video_frames(path: Path, max_side: int, motion: float, max_per_second: float,
+                 report) -> list[tuple[str, np.ndarray]]:
+    """(name, RGB) of the frames to pose from a video, upright (its rotation metadata applied), downscaled to
+    `max_side`. A frame is due each time the view has moved by `motion` of the frame's diagonal since the last kept
+    frame (the median motion of corners tracked from it by optical flow), or when fewer than half of those corners
+    can still be followed, so neighbours keep overlapping however fast or slowly the camera moved; of the frames
+    in the last stretch before that point, the sharpest is kept. At most `max_per_second` frames per second of video."""
     capture = cv2.VideoCapture(str(path))
     if not capture.isOpened():
         raise UserError(f"cannot read video {path.name}; convert it to MP4 (H.264) or extract photos")
+    capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 1)
     fps = capture.get(cv2.CAP_PROP_FPS) or 30.0
     total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
-    window = max(1, round(fps / frames_per_second))
-    kept, best, index = [], None, 0
+    min_gap = max(1, round(fps / max_per_second))
+    kept: list[tuple[str, np.ndarray]] = []
+    candidates: list[tuple[float, int, np.ndarray]] = []   # (sharpness, index, rgb) since the stretch began
+    previous = points = start = None
+    index, last_kept, tracked = 0, -min_gap, 0
+
+    def keep(best: tuple[float, int, np.ndarray]) -> None:
+        nonlocal last_kept
+        kept.append((f"frame_{best[1]:06d}", best[2]))
+        last_kept = best[1]
+
     with report.bar(total=total, desc=f"reading {path.name}") as bar:
         while True:
             ok, bgr = capture.read()
             if not ok:
                 break
-            rgb = fit_max_side(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), max_side)
-            score = sharpness(rgb)
-            if best is None or score > best[0]:
-                best = (score, index, rgb)
+            grey = _tracking_grey(bgr)
+            moved, lost = 0.0, False
+            if previous is not None and points is not None and len(points):
+                followed, status, _ = cv2.calcOpticalFlowPyrLK(previous, grey, points, None)
+                alive = status.ravel() == 1
+                points, start = followed[alive], start[alive]
+                lost = len(points) < TRACKS_KEPT_SHARE * tracked
+                if len(points):
+                    moved = float(np.median(np.linalg.norm((points - start).reshape(-1, 2), axis=1))) / np.hypot(*grey.shape)
+            if previous is None or points is None or not len(points):
+                points = _corners(grey)
+                start, tracked = points, len(points) if points is not None else 0
+                if not kept:  # the first frame anchors the sequence
+                    rgb = fit_max_side(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), max_side)
+                    keep((sharpness(rgb), index, rgb))
+            elif moved >= CANDIDATE_SHARE * motion or lost:
+                rgb = fit_max_side(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), max_side)
+                candidates.append((sharpness(rgb), index, rgb))
+            if (moved >= motion or lost) and candidates and index - last_kept >= min_gap:
+                keep(max(candidates, key=lambda c: c[0]))
+                candidates = []
+                # Track again from this frame: the next stretch is measured from (about) the frame just kept.
+                points = _corners(grey)
+                start, tracked = points, len(points) if points is not None else 0
+            previous = grey
             index += 1
             bar.update()
-            if index % window == 0:
-                kept.append((f"frame_{best[1]:06d}", best[2]))
-                best = None
-    if best is not None:
-        kept.append((f"frame_{best[1]:06d}", best[2]))
+    if candidates and max(candidates, key=lambda c: c[0])[1] - last_kept >= min_gap:
+        keep(max(candidates, key=lambda c: c[0]))
     capture.release()
     return kept

@@ -13,7 +13,7 @@ import numpy as np
 from pipeline.config import require
 from pipeline.io import write_json, write_png
 from pipeline.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, fit_max_side, load_photo, photo_folder, scene_files,
-                             scene_photos, sharpest_video_frames, sharpness)
+                             scene_photos, sharpness, video_frames)
 from plenoxels.errors import UserError
 
 NAME = "ingest"
@@ -27,8 +27,11 @@ class Settings:
     """Downscale so the longest side is at most this many pixels; 0 keeps the full size."""
     drop_blurry_fraction: float = 0.0
     """Share of the blurriest images to drop, in [0, 1); 0 keeps all."""
-    video_fps: float = 2.0
-    """Frames kept per second of video: the sharpest in each window."""
+    video_motion: float = 0.05
+    """From a video, keep a frame each time the view has moved this share of the frame's diagonal (the sharpest of
+    the frames near that point), so neighbouring frames overlap."""
+    video_fps: float = 5.0
+    """From a video, keep at most this many frames per second."""
     min_images: int = 3
     """Fail when fewer usable images than this remain (at least 3)."""
     holdout_split: str = "val"
@@ -38,6 +41,7 @@ class Settings:
         require(self.max_side == 0 or self.max_side >= 32, "ingest.max_side must be 0 (full size) or at least 32")
         require(0.0 <= self.drop_blurry_fraction < 1.0, "ingest.drop_blurry_fraction must be in [0, 1)")
         require(self.video_fps > 0, "ingest.video_fps must be positive")
+        require(0 < self.video_motion < 1, "ingest.video_motion must be in (0, 1): a share of the frame's diagonal")
         require(self.min_images >= 3, "ingest.min_images must be at least 3 (fewer cannot be posed)")
         require(self.holdout_split in ("val", "test", "none"), "ingest.holdout_split must be val, test or none")
 
@@ -71,7 +75,7 @@ def run(ctx) -> dict:
     if ctx.scene.is_file():
         if ctx.scene.suffix.lower() not in VIDEO_SUFFIXES:
             raise UserError(f"{ctx.scene.name} is neither a folder of photos nor a video ({', '.join(sorted(VIDEO_SUFFIXES))})")
-        for name, rgb in sharpest_video_frames(ctx.scene, s.max_side, s.video_fps, ctx.report):
+        for name, rgb in video_frames(ctx.scene, s.max_side, s.video_motion, s.video_fps, ctx.report):
             keep(name, ctx.scene.name, rgb, None, (rgb.shape[1], rgb.shape[0]))
     else:
         folder = photo_folder(ctx.scene)

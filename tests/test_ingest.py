@@ -1,5 +1,6 @@
 """Ingest: every kind of photo becomes an upright 8-bit RGB PNG; bad input is reported, never a traceback."""
 import json
+import subprocess
 
 import cv2
 import numpy as np
@@ -103,14 +104,57 @@ def test_blurriest_are_dropped(photos, tmp_path):
     assert "blurry" not in [r["name"] for r in listing["images"]]
 
 
-def test_video_keeps_the_sharpest_frame_per_window(tmp_path):
-    video = tmp_path / "clip.avi"
-    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (80, 60))
-    for i in range(20):
-        frame = textured(seed=i // 5)
-        if i % 5 != 2:  # in each half-second window, only frame 2 is sharp
+def panning_video(path, frames: int, sharp_every: int = 1, step_px: int = 1, fps: int = 10):
+    """A camera panning across a textured wall, step_px pixels a frame; only every sharp_every-th frame is sharp."""
+    wall = textured(h=60, w=80 + frames * step_px, seed=11)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (80, 60))
+    for i in range(frames):
+        frame = wall[:, i * step_px:i * step_px + 80]
+        if i % sharp_every:
             frame = cv2.GaussianBlur(frame, (0, 0), 3)
-        writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+        writer.write(cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2BGR))
     writer.release()
-    _, listing = run_ingest(video, tmp_path, "ingest.video_fps=2")
-    assert [r["name"] for r in listing["images"]] == ["frame_000002", "frame_000007", "frame_000012", "frame_000017"]
+    return path
+
+
+def test_video_frames_follow_the_motion_and_keep_the_sharpest(tmp_path):
+    # 1 px a frame on an 80x60 frame (100 px diagonal): at 8% of the diagonal a frame is due about every 8 frames.
+    video = panning_video(tmp_path / "pan.avi", 60, sharp_every=3)
+    _, listing = run_ingest(video, tmp_path, "ingest.video_motion=0.08", "ingest.video_fps=100")
+    kept = [int(r["name"].split("_")[1]) for r in listing["images"]]
+    assert all(i % 3 == 0 for i in kept[1:]), kept           # of each stretch's candidates, a sharp one
+    gaps = np.diff(kept)
+    assert 5 <= np.median(gaps) <= 12 and gaps.max() <= 14, kept
+
+
+def test_video_keeps_more_frames_where_the_camera_moves_faster(tmp_path):
+    slow = run_ingest(panning_video(tmp_path / "slow.avi", 60, step_px=1), tmp_path / "a", "ingest.video_fps=100")[1]
+    fast = run_ingest(panning_video(tmp_path / "fast.avi", 60, step_px=2), tmp_path / "b", "ingest.video_fps=100")[1]
+    assert len(fast["images"]) >= 1.6 * len(slow["images"])
+    capped = run_ingest(tmp_path / "fast.avi", tmp_path / "c", "ingest.video_fps=0.5")[1]
+    assert len(capped["images"]) <= 4    # 6 s of video at most 0.5 frames a second (and the first)
+
+
+def test_rotated_video_comes_out_upright(tmp_path):
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg", reason="imageio-ffmpeg (a base dependency) writes the rotation tag")
+    landscape = panning_video(tmp_path / "landscape.avi", 30, step_px=2)
+    frames = tmp_path / "plain.mp4"
+    reader = cv2.VideoCapture(str(landscape))
+    writer = cv2.VideoWriter(str(frames), cv2.VideoWriter_fourcc(*"mp4v"), 10, (80, 60))
+    first = None
+    while True:
+        ok, bgr = reader.read()
+        if not ok:
+            break
+        first = bgr if first is None else first
+        writer.write(bgr)
+    writer.release()
+    # A phone held upright records landscape pixels and a display rotation of 90 degrees (counter-clockwise).
+    rotated = tmp_path / "portrait.mp4"
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-display_rotation", "90", "-i",
+                    str(frames), "-c", "copy", str(rotated)], check=True)
+    out, listing = run_ingest(rotated, tmp_path, "ingest.video_fps=100")
+    image = read_rgb(out / "images" / f"{listing['images'][0]['name']}.png")
+    assert image.shape[:2] == (80, 60)
+    upright = np.rot90(cv2.cvtColor(first, cv2.COLOR_BGR2RGB), 1)
+    assert np.abs(image.astype(float) - upright).mean() < 12

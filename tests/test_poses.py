@@ -6,6 +6,7 @@ import math
 import shutil
 from pathlib import Path
 
+import cv2
 import imageio.v3 as iio
 import numpy as np
 import pycolmap
@@ -568,3 +569,29 @@ def test_sequential_matching_closes_the_loop_of_an_orbit(scene, truth, tmp_path,
     assert manifest["summary"]["registered"] == N_VIEWS
     errors = pose_errors(tmp_path / "out", truth)
     assert errors["rotation_error_deg_max"] < 0.5 and errors["centre_error_share_max"] < 0.01
+
+
+def test_orbit_video_through_ingest_registers_every_kept_frame(tmp_path):
+    # A synthetic orbit rendered as a video, each view held for three frames (the camera moving slowly): ingest keeps
+    # frames by motion, and every one of them gets a pose matching the view it shows.
+    views = write_scene("object", tmp_path / "orbit", n_views=48, width=384, height=288, seed=4, supersample=1)
+    truth = read_json(views / "transforms.json")
+    stems = sorted(frames_by_name(truth))
+    folder = tmp_path / "video"
+    folder.mkdir()
+    size = iio.imread(views / "images" / f"{stems[0]}.png").shape[1::-1]
+    writer = cv2.VideoWriter(str(folder / "orbit.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 24, size)
+    for stem in stems:
+        bgr = cv2.cvtColor(iio.imread(views / "images" / f"{stem}.png")[..., :3], cv2.COLOR_RGB2BGR)
+        for _ in range(3):
+            writer.write(bgr)
+    writer.release()
+    manifest = Pipeline(folder / "orbit.avi", tmp_path / "out", reporter=Reporter(quiet=True)).run(["ingest", "poses"])
+    kept = manifest["ingest"]["summary"]["images"]
+    assert 8 <= kept <= 48
+    assert manifest["poses"]["summary"]["registered"] == kept
+    names = {name: stems[int(name.split("_")[1]) // 3] for name in frames_by_name(read_json(tmp_path / "out" / "poses" / "transforms.json"))}
+    errors = pose_errors(tmp_path / "out", truth, names)
+    # Views 15 degrees apart at 384x288 pin most poses to about 0.35 degrees; the first frame, matched on one side
+    # only, has come out 3.6 degrees off: a looser bound on the worst than on the median.
+    assert errors["rotation_error_deg_median"] < 0.6 and errors["rotation_error_deg_max"] < 5.0
