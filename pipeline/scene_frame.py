@@ -56,6 +56,9 @@ class SceneOptions:
     """Space around the foreground: its largest half-size maps to 1/(1+margin), in [0, 1]."""
     forward_max_cone_deg: float = 30.0
     """Forward when 90% of viewing directions lie within this many degrees of their mean."""
+    borderline_deg: float = 8.0
+    """Spreads within this many degrees of forward_max_cone_deg are borderline: they get the inward model (grid and
+    background), which degrades gracefully where NDC's single frustum cannot hold the views, and the summary says so."""
     beyond_factor: float = 2.0
     """A point is beyond the foreground outside [-f, f]^3 in the normalised frame (f > 1)."""
     unbounded_min_beyond_fraction: float = 0.1
@@ -343,11 +346,19 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
     has_points = len(xyz) >= MIN_POINTS
     dirs = cams.view_dirs
     cone = view_cone_deg(dirs)
-    looks_forward = cone <= options.forward_max_cone_deg
-    measured: dict = {"frames": n, "points": int(len(xyz)), "view_cone_deg": round(cone, 2)}
+    # Near the threshold a few degrees of pose noise or one more photo would flip the model, and a capture that
+    # is only almost forward (a facade shot from an arc) puts views where NDC's frustum has nothing: so the band
+    # around it decides for the inward model, which holds any spread, and says it did.
+    borderline = abs(cone - options.forward_max_cone_deg) <= options.borderline_deg
+    looks_forward = cone <= options.forward_max_cone_deg - (options.borderline_deg if borderline else 0.0)
+    measured: dict = {"frames": n, "points": int(len(xyz)), "view_cone_deg": round(cone, 2), "borderline": borderline}
     reasons = [f"90% of viewing directions lie within {cone:.1f} deg of their mean "
                + (f"(<= {options.forward_max_cone_deg:g}): the cameras face one way" if looks_forward
-                  else f"(> {options.forward_max_cone_deg:g}): the cameras look inward from around the scene")]
+                  else f"(> {options.forward_max_cone_deg:g}): the cameras look inward from around the scene"
+                  if not borderline else
+                  f"(within {options.borderline_deg:g} of {options.forward_max_cone_deg:g}, borderline): modelled as "
+                  "seen from around the scene, which holds where the forward model's single frustum would not "
+                  "(set normalize.scene_type=forward to choose it)")]
     family_forward = options.scene_type == "forward" or (options.scene_type == "auto" and looks_forward)
 
     up, up_rule = camera_up(cams.c2w, inward=not looks_forward)

@@ -28,6 +28,8 @@ class Settings(SceneOptions):
         require(self.beyond_factor > 1.0, "normalize.beyond_factor must be greater than 1")
         require(0.0 < self.unbounded_min_beyond_fraction < 1.0, "normalize.unbounded_min_beyond_fraction must be in (0, 1)")
         require(0.0 < self.object_min_empty_fraction < 1.0, "normalize.object_min_empty_fraction must be in (0, 1)")
+        require(0.0 <= self.borderline_deg < self.forward_max_cone_deg,
+                "normalize.borderline_deg must be >= 0 and below normalize.forward_max_cone_deg")
 
 
 def summary_line(scene: dict) -> str:
@@ -42,6 +44,8 @@ def summary_line(scene: dict) -> str:
         why = f"cameras inward, no points, {m['empty_pixel_fraction']:.0%} of pixels empty backdrop"
     else:
         why = "cameras inward, no points"
+    if m.get("borderline") and not scene["overridden"]:
+        why += f"; borderline: views spread {m['view_cone_deg']:.0f} deg, near the forward limit"
     if scene["overridden"]:
         why += f"; set by normalize.scene_type, detected {scene['detected']}"
     test = sum(f["split"] == "test" for f in scene["frames"])

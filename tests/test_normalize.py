@@ -17,7 +17,7 @@ from pipeline.runner import Pipeline
 from pipeline.scene_frame import Points, SceneOptions, normalize_scene, read_points
 from pipeline.stage import StageContext
 from pipeline.synthetic import build_scene, trace, write_scene
-from plenoxels.cameras import Intrinsics, pixel_directions
+from plenoxels.cameras import Intrinsics, look_at, pixel_directions
 from plenoxels.errors import UserError
 from stages import normalize
 from stages.normalize import Settings
@@ -305,3 +305,36 @@ def test_synthetic_kinds_are_classified_from_sfm(tmp_path, kind):
     true_from_sfm = u @ vt
     up_in_sfm = np.asarray(scene["world_from_input"])[2, :3] / scene["scale"]
     assert np.degrees(np.arccos(np.clip(true_from_sfm @ up_in_sfm @ [0, 0, 1], -1, 1))) < 1.5
+
+
+def _arc_in_front_of_a_wall(spread_deg: float, jitter_deg: float = 0.0, seed: int = 0, n: int = 15) -> dict:
+    """Cameras on a horizontal arc of `spread_deg` around a wall's centre, 4 units away, each aimed at the centre
+    (turned by up to `jitter_deg` where given): a facade shot from a few steps apart."""
+    rng = np.random.default_rng(seed)
+    frames = []
+    for i, angle in enumerate(np.radians(np.linspace(-spread_deg / 2, spread_deg / 2, n))):
+        eye = np.array([4 * math.sin(angle), -4 * math.cos(angle), 1.5])
+        c2w = look_at(eye, np.array([0.0, 0.0, 1.5]), np.array([0.0, 0.0, 1.0]))
+        if jitter_deg:
+            c2w[:3, :3] = _rotation(rng.normal(size=3), rng.uniform(0, jitter_deg)) @ c2w[:3, :3]
+        frames.append({"name": f"{i:03d}", "file_path": f"images/{i:03d}.png", "transform_matrix": c2w.tolist()})
+    return {"fl_x": 60.0, "fl_y": 60.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48, "frames": frames}
+
+
+@pytest.mark.parametrize("spread_deg", [20, 40, 50, 60, 66, 72, 80, 100, 140])
+def test_an_arc_near_the_forward_limit_is_borderline_and_stable(spread_deg):
+    options = SceneOptions()
+    scene = normalize_scene(_arc_in_front_of_a_wall(spread_deg), Points.empty(), options)
+    cone = scene["measured"]["view_cone_deg"]
+    near = abs(cone - options.forward_max_cone_deg) <= options.borderline_deg
+    assert scene["measured"]["borderline"] == near
+    assert (scene["type"] == "forward") == (cone < options.forward_max_cone_deg - options.borderline_deg)
+    if near:
+        assert any("borderline" in r for r in scene["reasons"]) and scene["type"] != "forward"
+        assert "borderline" in normalize.summary_line(scene)
+    # A degree of pose noise changes the decision only where the spread sits at the band's edges.
+    for seed in range(3):
+        shaken = normalize_scene(_arc_in_front_of_a_wall(spread_deg, 1.0, seed), Points.empty(), options)
+        edges = (options.forward_max_cone_deg - options.borderline_deg, options.forward_max_cone_deg + options.borderline_deg)
+        if min(abs(cone - e) for e in edges) > 1.5:
+            assert shaken["type"] == scene["type"]
