@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-PARTS = ("kernels", "poses", "normalize", "fit", "scaling", "scene_models", "export", "cuda", "lego_protocol",
+PARTS = ("kernels", "background", "poses", "normalize", "fit", "scaling", "scene_models", "export", "cuda", "lego_protocol",
          "lpips_reference")
 COMBINED = REPO / "bench" / "results.json"
 

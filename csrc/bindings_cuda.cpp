@@ -336,6 +336,50 @@ Tensor row_coords(Tensor links, int64_t rows) {
 
 }  // namespace
 
+plx_cuda::Background make_background(const Tensor& centre, const Tensor& radii, const Tensor& texture,
+                                     const Tensor& far_colour) {
+    check_cuda(centre, at::kFloat, "centre", texture);
+    check_cuda(radii, at::kFloat, "radii", texture);
+    check_cuda(texture, at::kFloat, "texture", texture);
+    check_cuda(far_colour, at::kFloat, "far_colour", texture);
+    TORCH_CHECK(centre.numel() == 3 && far_colour.numel() == 3, "centre and far_colour must hold 3 values");
+    TORCH_CHECK(texture.dim() == 4 && texture.size(3) == 4 && texture.size(0) == radii.numel(),
+                "texture must be [K, H, W, 4] with one sphere per radius");
+    return {centre.data_ptr<float>(), radii.data_ptr<float>(), texture.data_ptr<float>(), far_colour.data_ptr<float>(),
+            (int)texture.size(0), (int)texture.size(1), (int)texture.size(2)};
+}
+
+Tensor background_render(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, Tensor far_colour) {
+    const c10::cuda::CUDAGuard guard(texture.device());
+    const plx_cuda::Background bg = make_background(centre, radii, texture, far_colour);
+    const plx_cuda::Rays rays = make_rays(origins, dirs, texture);
+    Tensor rgb = at::empty({origins.size(0), 3}, texture.options());
+    check_launch(plx_cuda::background_render(bg, rays, rgb.data_ptr<float>(), stream()), "background_render");
+    return rgb;
+}
+
+int64_t background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, Tensor far_colour,
+                            Tensor rgb, Tensor grad_rgb, Tensor grad_texture, Tensor grad_mask, Tensor grad_rows,
+                            int64_t) {
+    const c10::cuda::CUDAGuard guard(texture.device());
+    const plx_cuda::Background bg = make_background(centre, radii, texture, far_colour);
+    const plx_cuda::Rays rays = make_rays(origins, dirs, texture);
+    check_cuda(rgb, at::kFloat, "rgb", texture);
+    check_cuda(grad_rgb, at::kFloat, "grad_rgb", texture);
+    check_cuda(grad_texture, at::kFloat, "grad_texture", texture);
+    const int64_t texels = texture.numel() / 4;
+    TORCH_CHECK(rgb.sizes() == origins.sizes() && grad_rgb.sizes() == origins.sizes() && grad_texture.numel() == 4 * texels,
+                "rgb and grad_rgb must be [B, 3] and grad_texture [K*H*W, 4]");
+    TORCH_CHECK(grad_mask.is_cuda() && grad_mask.scalar_type() == at::kByte && grad_mask.numel() == texels &&
+                grad_rows.is_cuda() && grad_rows.scalar_type() == at::kInt && grad_rows.numel() >= texels,
+                "grad mask and rows need one uint8 / int32 entry per texel on the texture's device");
+    check_launch(plx_cuda::background_backward(bg, rays, rgb.data_ptr<float>(), grad_rgb.data_ptr<float>(),
+                                               grad_texture.data_ptr<float>(),
+                                               grad_mask.data_ptr<uint8_t>(), stream()),
+                 "background_backward");
+    return compact_touched(grad_mask, grad_rows);
+}
+
 TORCH_LIBRARY_IMPL(voxfield, CUDA, m) {
     m.impl("grad_scratch", &grad_scratch);
     m.impl("build_occupancy", &build_occupancy);
@@ -348,6 +392,8 @@ TORCH_LIBRARY_IMPL(voxfield, CUDA, m) {
     m.impl("sample_counts", &sample_counts);
     m.impl("tv_loss_and_grad", &tv_loss_and_grad);
     m.impl("rmsprop_step", &rmsprop_step);
+    m.impl("background_render", &background_render);
+    m.impl("background_backward", &background_backward);
 }
 
 #endif  // PLX_WITH_CUDA

@@ -117,4 +117,21 @@ cudaError_t sample(const float* data, int stride, const int32_t* links, const in
 // out[row] = (x, y, z) of every allocated row below `rows`; out must be prefilled with -1.
 cudaError_t row_coords(const int32_t* links, const int res[3], int64_t rows, int32_t* out, cudaStream_t stream);
 
+// The multi-sphere background (device pointers): centre [3], radii [K], texture [K, H, W, 4], far_colour [3].
+struct Background {
+    const float* centre;
+    const float* radii;
+    const float* texture;
+    const float* far_colour;
+    int spheres, height, width;
+};
+
+// Colour [B, 3] of each ray behind everything.
+cudaError_t background_render(const Background& bg, const Rays& rays, float* rgb, cudaStream_t stream);
+
+// Adds d loss / d texel rows [K*H*W, 4] from the rays' colours (background_render's) and d loss / d colour [B, 3],
+// and sets grad_mask on the texels it touched.
+cudaError_t background_backward(const Background& bg, const Rays& rays, const float* rgb, const float* grad_rgb,
+                                float* grad_texture, uint8_t* grad_mask, cudaStream_t stream);
+
 }  // namespace plx_cuda

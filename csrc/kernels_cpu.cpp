@@ -782,6 +782,86 @@ void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor gr
     }
 }
 
+void check_background(const Tensor& origins, const Tensor& dirs, const Tensor& centre, const Tensor& radii,
+                      const Tensor& texture, const Tensor& far_colour) {
+    check_rays(origins, dirs);
+    check_float_rows(centre, "centre");
+    check_float_rows(radii, "radii");
+    check_float_rows(texture, "texture");
+    check_float_rows(far_colour, "far_colour");
+    TORCH_CHECK(centre.numel() == 3 && far_colour.numel() == 3, "centre and far_colour must hold 3 values");
+    TORCH_CHECK(texture.dim() == 4 && texture.size(3) == 4 && texture.size(0) == radii.numel() && texture.size(1) >= 1 &&
+                texture.size(2) >= 1, "texture must be [K, H, W, 4] with one sphere per radius");
+}
+
+Tensor background_render(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, Tensor far_colour) {
+    check_background(origins, dirs, centre, radii, texture, far_colour);
+    const int64_t B = origins.size(0);
+    const int K = (int)texture.size(0), H = (int)texture.size(1), W = (int)texture.size(2);
+    Tensor rgb = at::empty({B, 3}, origins.options());
+    const float *o = origins.data_ptr<float>(), *d = dirs.data_ptr<float>(), *c = centre.data_ptr<float>();
+    const float *r = radii.data_ptr<float>(), *tex = texture.data_ptr<float>(), *far = far_colour.data_ptr<float>();
+    float* out = rgb.data_ptr<float>();
+#pragma omp parallel for schedule(static)
+    for (int64_t b = 0; b < B; ++b) {
+        double rel[3], unit[3];
+        plx::bg_ray(o + 3 * b, d + 3 * b, c, rel, unit);
+        plx::bg_forward(tex, r, K, H, W, rel, unit, far, out + 3 * b);
+    }
+    return rgb;
+}
+
+// Texel gradients from many threads at once: atomic adds, and a mark (2) on texels not yet in the touched list,
+// which one pass afterwards appends in texel order (the table is small: spheres x texels).
+struct AtomicTexelSink {
+    float* grad;
+    uint8_t* mask;
+    void operator()(int texel, const float g[4]) const {
+        float* row = grad + 4 * (int64_t)texel;
+        for (int c = 0; c < 4; ++c) {
+#pragma omp atomic
+            row[c] += g[c];
+        }
+        if (__atomic_load_n(mask + texel, __ATOMIC_RELAXED) == 0) __atomic_store_n(mask + texel, (uint8_t)2, __ATOMIC_RELAXED);
+    }
+};
+
+int64_t background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, Tensor far_colour,
+                             Tensor rgb, Tensor grad_rgb, Tensor grad_texture, Tensor grad_mask, Tensor grad_rows,
+                             int64_t num_touched) {
+    check_background(origins, dirs, centre, radii, texture, far_colour);
+    check_float_rows(grad_rgb, "grad_rgb");
+    check_float_rows(grad_texture, "grad_texture");
+    const int64_t B = origins.size(0);
+    const int K = (int)texture.size(0), H = (int)texture.size(1), W = (int)texture.size(2);
+    const int64_t texels = (int64_t)K * H * W;
+    check_float_rows(rgb, "rgb");
+    TORCH_CHECK(grad_rgb.sizes() == origins.sizes() && rgb.sizes() == origins.sizes(), "rgb and grad_rgb must be [B, 3] like the rays");
+    TORCH_CHECK(grad_texture.numel() == 4 * texels, "grad_texture must hold [K*H*W, 4]");
+    TORCH_CHECK(grad_mask.scalar_type() == at::kByte && grad_mask.is_contiguous() && grad_mask.numel() == texels &&
+                grad_rows.scalar_type() == at::kInt && grad_rows.is_contiguous() && grad_rows.numel() >= texels,
+                "grad mask and rows need one uint8 / int32 entry per texel");
+    const float *o = origins.data_ptr<float>(), *d = dirs.data_ptr<float>(), *c = centre.data_ptr<float>();
+    const float *r = radii.data_ptr<float>(), *tex = texture.data_ptr<float>();
+    const float *g = grad_rgb.data_ptr<float>(), *colour = rgb.data_ptr<float>();
+    uint8_t* mask = grad_mask.data_ptr<uint8_t>();
+    const AtomicTexelSink sink{grad_texture.data_ptr<float>(), mask};
+#pragma omp parallel for schedule(static)
+    for (int64_t b = 0; b < B; ++b) {
+        double rel[3], unit[3];
+        plx::bg_ray(o + 3 * b, d + 3 * b, c, rel, unit);
+        plx::bg_backward(tex, r, K, H, W, rel, unit, colour + 3 * b, g + 3 * b, sink);
+    }
+    int32_t* rows = grad_rows.data_ptr<int32_t>();
+    for (int64_t t = 0; t < texels; ++t) {
+        if (mask[t] == 2) {
+            mask[t] = 1;
+            rows[num_touched++] = (int32_t)t;
+        }
+    }
+    return num_touched;
+}
+
 // Trilinear interpolation of every packed column at grid-frame points [P, 3]: [P, S], zeros outside the box.
 Tensor sample(Tensor data, Tensor links, Tensor points) {
     check_float_rows(data, "data");
@@ -839,4 +919,6 @@ TORCH_LIBRARY_IMPL(voxfield, CPU, m) {
     m.impl("sample_counts", &sample_counts);
     m.impl("tv_loss_and_grad", &tv_loss_and_grad);
     m.impl("rmsprop_step", &rmsprop_step);
+    m.impl("background_render", &background_render);
+    m.impl("background_backward", &background_backward);
 }

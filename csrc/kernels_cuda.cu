@@ -358,6 +358,35 @@ __global__ void sample_kernel(const float* __restrict__ data, int stride, const 
     plx::interpolate_point(data, stride, links, res, points + 3 * p, out + p * stride);
 }
 
+// The multi-sphere background: one thread per ray, the per-ray math of plenoxels_math.h.
+__global__ void background_render_kernel(Background bg, Rays rays, float* __restrict__ rgb) {
+    const int64_t b = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    if (b >= rays.count) return;
+    double rel[3], unit[3];
+    plx::bg_ray(rays.origins + 3 * b, rays.dirs + 3 * b, bg.centre, rel, unit);
+    plx::bg_forward(bg.texture, bg.radii, bg.spheres, bg.height, bg.width, rel, unit, bg.far_colour, rgb + 3 * b);
+}
+
+struct AtomicTexelSink {
+    float* grad;
+    uint8_t* mask;
+    __device__ void operator()(int texel, const float g[4]) const {
+        for (int c = 0; c < 4; ++c) atomicAdd(grad + 4 * (int64_t)texel + c, g[c]);
+        mask[texel] = 1;
+    }
+};
+
+__global__ void background_backward_kernel(Background bg, Rays rays, const float* __restrict__ rgb,
+                                           const float* __restrict__ grad_rgb, float* __restrict__ grad_texture,
+                                           uint8_t* __restrict__ grad_mask) {
+    const int64_t b = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
+    if (b >= rays.count) return;
+    double rel[3], unit[3];
+    plx::bg_ray(rays.origins + 3 * b, rays.dirs + 3 * b, bg.centre, rel, unit);
+    plx::bg_backward(bg.texture, bg.radii, bg.spheres, bg.height, bg.width, rel, unit, rgb + 3 * b, grad_rgb + 3 * b,
+                     AtomicTexelSink{grad_texture, grad_mask});
+}
+
 }  // namespace
 
 #define PLX_CUDA_DEGREE(degree, ...)                   \
@@ -458,6 +487,20 @@ cudaError_t sample(const float* data, int stride, const int32_t* links, const in
     if (count == 0) return cudaSuccess;
     sample_kernel<<<blocks_for(count), kThreads, 0, stream>>>(data, stride, links, res[0], res[1], res[2], points, count,
                                                               out);
+    return cudaGetLastError();
+}
+
+cudaError_t background_render(const Background& bg, const Rays& rays, float* rgb, cudaStream_t stream) {
+    if (rays.count == 0) return cudaSuccess;
+    background_render_kernel<<<blocks_for(rays.count), kThreads, 0, stream>>>(bg, rays, rgb);
+    return cudaGetLastError();
+}
+
+cudaError_t background_backward(const Background& bg, const Rays& rays, const float* rgb, const float* grad_rgb,
+                                float* grad_texture, uint8_t* grad_mask, cudaStream_t stream) {
+    if (rays.count == 0) return cudaSuccess;
+    background_backward_kernel<<<blocks_for(rays.count), kThreads, 0, stream>>>(bg, rays, rgb, grad_rgb, grad_texture,
+                                                                                 grad_mask);
     return cudaGetLastError();
 }
 

@@ -6,9 +6,12 @@ near background, where parallax is visible, gets most of the layers). Each spher
 equirectangular texture of density and colour. A ray's background colour is the front-to-back
 composite of the spheres it meets; whatever transmittance is left sees a constant colour.
 
-The renderer adds this colour behind the foreground (rgb = foreground + T_final * background), so the
-module is plain torch: the fit computes `rgb = bg(o, d)`, the kernel returns d(loss)/d(rgb), and
-`rgb.backward(grad)` trains the textures.
+The renderer adds this colour behind the foreground (rgb = foreground + T_final * background): the fit
+asks the native core for each ray's background colour, the grid's kernel returns d(loss)/d(colour), and
+the native background_backward turns that into gradients of the texels the batch read, which a sparse
+RMSProp step (BackgroundOptimiser) updates, as the grid's rows are. The math is stated once more in
+reference.background_colour, the PyTorch twin the tests hold the kernels to. The textures are one table
+[K, H, W, 4] (raw density, colour logits R, G, B), a row per texel.
 
 Where a ray meets a sphere: from its origin o and unit direction d, the sphere |p - centre| = r is met
 at t = -b + sqrt(b^2 - c), b = (o - centre).d, c = |o - centre|^2 - r^2: the exit point. From inside a
@@ -25,8 +28,8 @@ import math
 from typing import Any, Sequence
 
 import torch
-import torch.nn.functional as F
 
+from plenoxels import native
 from plenoxels.errors import UserError
 
 # Far spheres are placed at most this far (in foreground-box half-diagonals); beyond it parallax is nil.
@@ -54,9 +57,9 @@ class MultiSphereBackground(torch.nn.Module):
         self.register_buffer("centre", torch.tensor(list(centre), dtype=torch.float32))
         self.register_buffer("radii", (1.0 / inverse).float())
         self.register_buffer("far_colour", torch.tensor(list(far_colour), dtype=torch.float32))
-        # One texture per sphere, spheres on the batch axis so a single grid_sample reads them all.
-        self.density = torch.nn.Parameter(torch.full((n_spheres, 1, height, width), float(init_density)))
-        self.colour = torch.nn.Parameter(torch.zeros(n_spheres, 3, height, width))
+        texture = torch.zeros(n_spheres, height, width, 4)
+        texture[..., 0] = float(init_density)
+        self.texture = torch.nn.Parameter(texture, requires_grad=False)
 
     @classmethod
     def around_box(cls, bbox_min: Sequence[float], bbox_max: Sequence[float], margin: float = 1.05,
@@ -71,72 +74,136 @@ class MultiSphereBackground(torch.nn.Module):
     # ---- description --------------------------------------------------------------------------
     @property
     def n_spheres(self) -> int:
-        return self.density.shape[0]
+        return self.texture.shape[0]
+
+    @property
+    def density(self) -> torch.Tensor:
+        """Raw density [K, 1, H, W], a view of the texture table."""
+        return self.texture[..., :1].permute(0, 3, 1, 2)
+
+    @property
+    def colour(self) -> torch.Tensor:
+        """Colour logits [K, 3, H, W], a view of the texture table."""
+        return self.texture[..., 1:].permute(0, 3, 1, 2)
+
+    @property
+    def rows(self) -> torch.Tensor:
+        """The texture as a table of texel rows [K*H*W, 4] (a view)."""
+        return self.texture.data.view(-1, 4)
 
     def config(self) -> dict[str, Any]:
         """What rebuilds an empty model of this shape (the textures come from state_dict)."""
         return {"centre": self.centre.tolist(), "r_min": self.r_min, "r_max": self.r_max,
-                "n_spheres": self.n_spheres, "height": self.density.shape[2], "width": self.density.shape[3],
+                "n_spheres": self.n_spheres, "height": self.texture.shape[1], "width": self.texture.shape[2],
                 "far_colour": self.far_colour.tolist(), "tv_density": self.tv_density, "tv_colour": self.tv_colour}
 
     @classmethod
     def from_config(cls, config: dict[str, Any]) -> "MultiSphereBackground":
         return cls(**config)
 
+    def load_state_dict(self, state: dict, strict: bool = True):
+        """Also reads models saved with separate density [K, 1, H, W] and colour [K, 3, H, W] textures."""
+        if "density" in state and "texture" not in state:
+            state = dict(state)
+            density, colour = state.pop("density"), state.pop("colour")
+            state["texture"] = torch.cat([density, colour], 1).permute(0, 2, 3, 1).contiguous()
+        return super().load_state_dict(state, strict)
+
     def parameter_count(self) -> int:
-        return sum(p.numel() for p in self.parameters())
+        return self.texture.numel()
 
     def memory_bytes(self) -> int:
         """Bytes held by the parameters and buffers (the optimiser's state comes on top)."""
         return sum(t.numel() * t.element_size() for t in [*self.parameters(), *self.buffers()])
 
     # ---- rendering ----------------------------------------------------------------------------
-    def _texture_coordinates(self, o: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """grid_sample coordinates [K, B, 1, 2] of each ray's exit point on each sphere, and which hits count [K, B]."""
-        rel = o - self.centre.to(o.dtype)
-        unit = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        b = (rel * unit).sum(-1)                                                  # [B]
-        c = (rel * rel).sum(-1)
-        radii = self.radii.to(o.dtype)[:, None]                                  # [K, 1]
-        disc = b * b - c + radii * radii                                          # [K, B]
-        t = -b + disc.clamp_min(0).sqrt()
-        valid = (disc >= 0) & (t > 0)
-        # Direction of the exit point from the centre.
-        p = (rel[None] + t[..., None] * unit[None]) / radii[..., None]
-        p = p / p.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        azimuth = torch.atan2(p[..., 1], p[..., 0])                               # [-pi, pi]
-        elevation = torch.asin(p[..., 2].clamp(-1.0, 1.0))                       # [-pi/2, pi/2], z up
-        width = self.density.shape[3]
-        # The texture is padded with one wrapped column on each side, so the seam at azimuth +-pi
-        # interpolates across it; map [-1, 1] over the W real columns into the W + 2 padded ones.
-        x = (azimuth / math.pi) * width / (width + 2)
-        y = -elevation / (math.pi / 2)
-        return torch.stack([x, y], dim=-1)[:, :, None, :], valid
-
     def forward(self, o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         """Background colour [B, 3] of rays with origins o [B, 3] and directions d [B, 3] (any length)."""
         if o.shape != d.shape or o.dim() != 2 or o.shape[-1] != 3:
             raise ValueError(f"background rays must be [B, 3] origins and directions, got {tuple(o.shape)}, {tuple(d.shape)}")
-        dtype = self.density.dtype
-        grid, valid = self._texture_coordinates(o.to(dtype), d.to(dtype))
-        texture = torch.cat([self.density, self.colour], dim=1)
-        texture = torch.cat([texture[..., -1:], texture, texture[..., :1]], dim=-1)
-        samples = F.grid_sample(texture, grid, mode="bilinear", padding_mode="border", align_corners=False)
-        samples = samples[..., 0]                                                  # [K, 4, B]
-        alpha = (1 - torch.exp(-F.relu(samples[:, 0]))) * valid.to(dtype)        # [K, B]
-        rgb = torch.sigmoid(samples[:, 1:])                                       # [K, 3, B]
-        # Transmittance before each sphere, front (small radius) to back.
-        transmittance = torch.cumprod(torch.cat([torch.ones_like(alpha[:1]), 1 - alpha], dim=0), dim=0)
-        weights = alpha * transmittance[:-1]                                      # [K, B]
-        colour = (weights[:, None] * rgb).sum(0).T                                # [B, 3]
-        return colour + transmittance[-1][:, None] * self.far_colour.to(dtype)
+        device = self.texture.device
+        o = o.detach().to(device=device, dtype=torch.float32).contiguous()
+        d = d.detach().to(device=device, dtype=torch.float32).contiguous()
+        return native.ops.background_render(o, d, self.centre, self.radii, self.texture.data, self.far_colour)
 
     # ---- regulariser --------------------------------------------------------------------------
-    def regularizer(self) -> torch.Tensor:
-        """Total variation (mean squared neighbour difference) over each sphere's texture, wrapping in
-        azimuth, weighted by tv_density and tv_colour."""
-        def tv(x: torch.Tensor) -> torch.Tensor:
-            across = x - torch.roll(x, shifts=1, dims=-1)
-            down = x[..., 1:, :] - x[..., :-1, :]
-            return across.pow(2).mean() + down.pow(2).mean()
-        return self.tv_density * tv(self.density) + self.tv_colour * tv(self.colour)
+    def tv_grad(self, rows: torch.Tensor) -> torch.Tensor:
+        """d/d(texel rows [R, 4]) of the textures' total variation, the mean squared difference between
+        neighbours across (wrapping in azimuth) and down each sphere's texture, weighted by tv_density
+        (channel 0) and tv_colour (channels 1-3); only at `rows`, so a step pays for the texels it touched."""
+        k, h, w, _ = self.texture.shape
+        table = self.rows
+        x = rows % w
+        y = (rows // w) % h
+        base = rows - x - y * w
+        left, right = base + y * w + (x - 1) % w, base + y * w + (x + 1) % w
+        here = table[rows]
+        grad = 2 * (2 * here - table[left] - table[right]) / (k * h * w)
+        up_diff = torch.where((y > 0)[:, None], here - table[(rows - w).clamp_min(0)], torch.zeros_like(here))
+        down_diff = torch.where((y < h - 1)[:, None], table[(rows + w).clamp_max(table.shape[0] - 1)] - here,
+                                torch.zeros_like(here))
+        grad = grad + 2 * (up_diff - down_diff) / (k * (h - 1) * w)
+        return grad * self._tv_weights(grad)
+
+    def tv_grad_all(self) -> torch.Tensor:
+        """tv_grad at every texel row [K*H*W, 4], by whole-table shifts."""
+        k, h, w, _ = self.texture.shape
+        x = self.texture.data
+        grad = 2 * (2 * x - torch.roll(x, 1, dims=2) - torch.roll(x, -1, dims=2)) / (k * h * w)
+        down = torch.zeros_like(x)
+        down[:, 1:] += x[:, 1:] - x[:, :-1]
+        down[:, :-1] -= x[:, 1:] - x[:, :-1]
+        return (grad + 2 * down / (k * (h - 1) * w)).view(-1, 4) * self._tv_weights(x)
+
+    def _tv_weights(self, like: torch.Tensor) -> torch.Tensor:
+        # The mean over a texture's elements: the colour's three channels share tv_colour.
+        return torch.tensor([self.tv_density] + [self.tv_colour / 3] * 3, dtype=like.dtype, device=like.device)
+
+
+# Above this share of the texels touched in a step, the TV gradient is taken over the whole table.
+DENSE_TV_SHARE = 0.25
+
+
+class BackgroundOptimiser:
+    """Sparse RMSProp over the background's texels: gradients land in a table shaped like the texture's rows with
+    a record of the rows touched, and a step updates (and clears) only those, with their TV gradient added."""
+
+    def __init__(self, background: MultiSphereBackground, lr: float, beta: float = 0.95, eps: float = 1e-8):
+        self.background, self.lr, self.beta, self.eps = background, float(lr), float(beta), float(eps)
+        rows = background.rows
+        self.grad = torch.zeros_like(rows)
+        self.touched_mask = torch.zeros(rows.shape[0], dtype=torch.uint8, device=rows.device)
+        self.touched_rows = torch.zeros(rows.shape[0], dtype=torch.int32, device=rows.device)
+        self.num_touched = 0
+        self.second_moment = torch.zeros_like(rows)
+
+    def backward(self, o: torch.Tensor, d: torch.Tensor, rgb: torch.Tensor, grad_rgb: torch.Tensor) -> None:
+        """Adds d(loss)/d(texels) for rays o, d [B, 3] whose background colours were rgb [B, 3] (the model's
+        forward), given d(loss)/d(those colours) [B, 3]."""
+        bg = self.background
+        device = bg.texture.device
+        o, d, rgb, g = (t.detach().to(device=device, dtype=torch.float32).contiguous() for t in (o, d, rgb, grad_rgb))
+        self.num_touched = native.ops.background_backward(
+            o, d, bg.centre, bg.radii, bg.texture.data, bg.far_colour, rgb, g, self.grad, self.touched_mask,
+            self.touched_rows, self.num_touched)
+
+    def step(self) -> None:
+        if self.num_touched > DENSE_TV_SHARE * self.grad.shape[0]:
+            # Most texels touched (small textures, big batches): one pass over the whole table beats gathering.
+            self.grad += self.background.tv_grad_all() * (self.touched_mask != 0)[:, None]
+        else:
+            rows = self.touched_rows[: self.num_touched].long()
+            self.grad[rows] += self.background.tv_grad(rows)
+        native.ops.rmsprop_step(self.background.rows, self.second_moment, self.grad, self.touched_mask,
+                                self.touched_rows, self.num_touched, 4, self.lr, self.lr, self.beta, self.eps,
+                                None, 1, None, None)
+        self.num_touched = 0
+
+    def state_dict(self) -> dict:
+        return {"lr": self.lr, "beta": self.beta, "eps": self.eps, "second_moment": self.second_moment}
+
+    def load_state_dict(self, state: dict) -> None:
+        if state["second_moment"].shape != self.second_moment.shape:
+            raise ValueError("background optimiser state does not match the background it is loaded for")
+        self.lr, self.beta, self.eps = state["lr"], state["beta"], state["eps"]
+        self.second_moment = state["second_moment"].to(self.second_moment.device).clone()

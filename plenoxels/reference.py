@@ -18,6 +18,8 @@ Rendering one ray (all kernels agree on every step):
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
 from plenoxels.grid import SparseGrid, sh_count
@@ -210,3 +212,42 @@ def rmsprop_step(data, second_moment, grad, columns: int, lr_density, lr_sh, bet
     data[rows, :columns] -= lr * g / (torch.sqrt(v) + eps)
     grad.clear()
 
+
+
+def background_colour(origins: torch.Tensor, dirs: torch.Tensor, centre: torch.Tensor, radii: torch.Tensor,
+                      texture: torch.Tensor, far_colour: torch.Tensor) -> torch.Tensor:
+    """The multi-sphere background's colour [B, 3] (plenoxels/background.py; the native background_render), with
+    autograd through `texture` [K, H, W, 4] (raw density, colour logits).
+
+    A ray with origin o and unit direction u leaves the sphere |p - centre| = r at t = -b + sqrt(b^2 - c),
+    b = (o - centre).u, c = |o - centre|^2 - r^2; it misses where b^2 < c or t <= 0. The texture is read
+    bilinearly at that direction: texel centres at (i + 0.5) / W of the azimuth from -pi and (j + 0.5) / H of the
+    polar angle from +z, azimuth wrapping (one wrapped column padded on each side) and rows clamping. Layers
+    composite front (small radius) to back with alpha = 1 - exp(-relu(density)), colour sigmoid(logits); the
+    transmittance left sees far_colour."""
+    dtype = texture.dtype
+    o, d = origins.to(dtype), dirs.to(dtype)
+    rel = o - centre.to(dtype)
+    unit = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+    b = (rel * unit).sum(-1)
+    c = (rel * rel).sum(-1)
+    r = radii.to(dtype)[:, None]
+    disc = b * b - c + r * r                                                   # [K, B]
+    t = -b + disc.clamp_min(0).sqrt()
+    valid = (disc >= 0) & (t > 0)
+    p = rel[None] + t[..., None] * unit[None]
+    p = p / p.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+    azimuth = torch.atan2(p[..., 1], p[..., 0])
+    elevation = torch.asin(p[..., 2].clamp(-1.0, 1.0))
+    width = texture.shape[2]
+    # grid_sample's [-1, 1] spans the W real columns plus one wrapped column on each side.
+    grid = torch.stack([(azimuth / math.pi) * width / (width + 2), -elevation / (math.pi / 2)], dim=-1)[:, :, None, :]
+    channels = texture.permute(0, 3, 1, 2)                                     # [K, 4, H, W]
+    padded = torch.cat([channels[..., -1:], channels, channels[..., :1]], dim=-1)
+    samples = torch.nn.functional.grid_sample(padded, grid, mode="bilinear", padding_mode="border",
+                                              align_corners=False)[..., 0]      # [K, 4, B]
+    alpha = (1 - torch.exp(-torch.relu(samples[:, 0]))) * valid.to(dtype)
+    rgb = torch.sigmoid(samples[:, 1:])
+    transmittance = torch.cumprod(torch.cat([torch.ones_like(alpha[:1]), 1 - alpha], dim=0), dim=0)
+    weights = alpha * transmittance[:-1]
+    return (weights[:, None] * rgb).sum(0).T + transmittance[-1][:, None] * far_colour.to(dtype)

@@ -24,6 +24,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from plenoxels.background import BackgroundOptimiser
 from plenoxels.cameras import Intrinsics
 from plenoxels.errors import UserError
 from plenoxels.grid import SparseGrid, sh_count
@@ -73,7 +74,7 @@ class TrainOptions:
     tv_sample_fraction: float = 0.01
     """Share of the occupied vertices the TV term looks at each step."""
     lr_background: float = 0.01
-    """Adam rate of the background model."""
+    """RMSProp rate of the background model's texels."""
     prune_weight: float = 0.002
     """Pruning keeps only vertices that some training ray weighs by more than this (max rendering weight)."""
     prune_density: float = 0.0
@@ -211,6 +212,7 @@ class Fitter:
         self.history: list[dict] = []      # held-out PSNR over time
         self.levels: list[dict] = []       # what happened at each level change
         self.recent_mse: list[float] = []
+        self.background_seconds = 0.0       # of this run's steps, spent rendering and training the background
         self.checkpoint_step: int | None = None
         self._new_optimiser()
 
@@ -219,7 +221,7 @@ class Fitter:
         o = self.options
         self.grad = GridGrad(self.model.grid)
         self.optim = SparseRMSProp(self.model.grid, o.lr_density, o.lr_sh, o.rmsprop_beta)
-        self.bg_optim = (torch.optim.Adam(self.model.background.parameters(), lr=o.lr_background)
+        self.bg_optim = (BackgroundOptimiser(self.model.background, o.lr_background, o.rmsprop_beta)
                          if self.model.background is not None else None)
 
     def _replace_grid(self, grid: SparseGrid, old_rows: torch.Tensor) -> None:
@@ -295,8 +297,10 @@ class Fitter:
         o_w, d_w, target = (t.to(self.device) for t in self.train.batch(o.batch_size, o.batch_mode, o.tile_size,
                                                                           self.generator))
         o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
+        started = time.perf_counter()
         background = self.model.background_rgb(o_w, d_w)
-        mse, grad_background = loss_and_grad(self.model.grid, o_fit, d_fit, target, background.detach(),
+        self.background_seconds += time.perf_counter() - started
+        mse, grad_background = loss_and_grad(self.model.grid, o_fit, d_fit, target, background,
                                              self.model.render_options, self.grad)
         if not math.isfinite(mse):
             raise Diverged(f"the loss became {mse}")
@@ -305,9 +309,10 @@ class Fitter:
                          self.generator)
         self.optim.step(self.grad)
         if self.bg_optim is not None:
-            self.bg_optim.zero_grad()
-            ((background * grad_background).sum() + self.model.background.regularizer()).backward()
+            started = time.perf_counter()
+            self.bg_optim.backward(o_w, d_w, background, grad_background)
             self.bg_optim.step()
+            self.background_seconds += time.perf_counter() - started
         self.step += 1
         self.recent_mse = (self.recent_mse + [mse])[-LOSS_WINDOW:]
         if self.step % GUARD_EVERY == 0:

@@ -198,6 +198,11 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         "model": model.describe(),
         "memory_bytes": memory,
     }
+    if fitter.bg_optim is not None:
+        optimiser_bytes = sum(t.numel() * t.element_size() for t in (fitter.bg_optim.grad, fitter.bg_optim.second_moment))
+        record["background_cost"] = {"seconds": round(fitter.background_seconds, 2),
+                                     "share_of_fitting": round(fitter.background_seconds / max(fitter.elapsed, 1e-9), 4),
+                                     "model_bytes": memory["background"], "optimiser_bytes": optimiser_bytes}
     write_json(ctx.work / "fit.json", record)
     res = grid.resolution
     shape = f"{res[0]}^3" if len(set(res)) == 1 else "x".join(map(str, res))
@@ -208,7 +213,9 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         line += f", held-out ~{final_psnr:.1f} dB ({len(held_out.views)} views at {s.eval_scale:g}x)"
     line += f", {format_duration(fitter.elapsed)}"
     if model.background is not None:
-        line += f", background model {format_bytes(memory['background'])}"
+        cost = record["background_cost"]
+        line += (f", background model {format_bytes(cost['model_bytes'] + cost['optimiser_bytes'])} with its optimiser, "
+                 f"{cost['share_of_fitting']:.0%} of the fitting time")
     if model.fit_frame.ndc is not None:
         line += ", in NDC"
     if stopped_early:

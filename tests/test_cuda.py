@@ -21,6 +21,7 @@ import torch
 import torch.utils.cpp_extension
 
 from plenoxels import native
+from plenoxels.background import BackgroundOptimiser, MultiSphereBackground
 from plenoxels.errors import UserError
 from plenoxels.grid import SparseGrid
 from plenoxels.native import CUDA_MISSING, cuda_ready, resolve_device
@@ -502,3 +503,27 @@ def test_training_steps_on_cuda_follow_cpu():
     _close(runs["cuda"][1], runs["cpu"][1], rtol=1e-2, atol=2e-3)
     _close(runs["cuda"][2], runs["cpu"][2], rtol=1e-2, atol=2e-3)
     assert abs(runs["cuda"][3] - runs["cpu"][3]) <= 0.01 * runs["cpu"][3]
+
+
+@needs_gpu
+@pytest.mark.parametrize("spread", [0.9, 8.0])
+def test_background_matches_cpu(spread):
+    g = torch.Generator().manual_seed(21)
+    cpu = MultiSphereBackground(r_min=1.5, r_max=3e5, n_spheres=6, height=8, width=16)
+    with torch.no_grad():
+        cpu.texture.copy_(torch.randn(cpu.texture.shape, generator=g))
+    gpu = MultiSphereBackground.from_config(cpu.config())
+    gpu.load_state_dict(cpu.state_dict())
+    gpu.to("cuda")
+    o = (torch.rand(4096, 3, generator=g) * 2 - 1) * spread
+    d = torch.randn(4096, 3, generator=g)
+    grad_rgb = torch.randn(4096, 3, generator=g)
+    torch.testing.assert_close(gpu(o.cuda(), d.cuda()).cpu(), cpu(o, d), atol=1e-5, rtol=1e-5)
+    grads = []
+    for model in (cpu, gpu):
+        optimiser = BackgroundOptimiser(model, lr=0.0)
+        optimiser.backward(o, d, model(o.to(model.texture.device), d.to(model.texture.device)), grad_rgb)
+        rows = optimiser.touched_rows[: optimiser.num_touched].long()
+        grads.append((optimiser.grad.cpu(), set(rows.cpu().tolist())))
+    assert grads[0][1] == grads[1][1]
+    torch.testing.assert_close(grads[1][0], grads[0][0], atol=1e-4, rtol=1e-4)
