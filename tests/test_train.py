@@ -8,7 +8,10 @@ import torch
 from pipeline.images import load_frame
 from pipeline.io import read_json
 from plenoxels.cameras import rays_from_camera
-from plenoxels.train import RaySet, decayed_lr
+from plenoxels.grid import SparseGrid
+from plenoxels.optim import GridGrad
+from plenoxels.render import RenderOptions, loss_and_grad
+from plenoxels.train import RaySet, coherent_order, decayed_lr
 from test_fit import make_scene
 
 
@@ -41,3 +44,48 @@ def test_learning_rate_schedule():
     assert math.isclose(decayed_lr(30.0, 0.05, 0.5), math.sqrt(30.0 * 0.05))
     assert decayed_lr(30.0, 0.05, 0.0, delay=0.2) == pytest.approx(0.3)
     assert decayed_lr(30.0, 0.05, 0.2, delay=0.2) == pytest.approx(decayed_lr(30.0, 0.05, 0.2))
+
+
+def test_coherent_batches_are_the_same_rays_in_an_order_that_keeps_neighbours_together(tmp_path):
+    root = make_scene(tmp_path)
+    frames = [f for f in read_json(root / "normalize" / "scene.json")["frames"] if f["split"] == "train"]
+    loaded = [load_frame(root, frame, 1.0, (1.0, 1.0, 1.0)) for frame in frames]
+    train = RaySet([image for image, _ in loaded], [np.asarray(f["transform_matrix"]) for f in frames],
+                   [k for _, k in loaded])
+    plain = train.batch(2048, "rays", 16, torch.Generator().manual_seed(5))
+    ordered = train.batch(2048, "rays", 16, torch.Generator().manual_seed(5), coherent=True)
+    # The same rays and targets, each once.
+    key = lambda batch: sorted(map(tuple, torch.cat(batch, 1).tolist()))  # noqa: E731
+    assert key(plain) == key(ordered)
+    assert not torch.equal(plain[0], ordered[0])
+
+    def spread(o, d):  # mean distance between consecutive rays' points closest to the centre
+        u = d / d.norm(dim=1, keepdim=True)
+        p = o - u * (o * u).sum(1, keepdim=True)
+        return float((p[1:] - p[:-1]).norm(dim=1).mean())
+
+    assert spread(*ordered[:2]) < 0.25 * spread(*plain[:2])
+    # The grid's gradient is the same sum in another order.
+    grid = SparseGrid.dense((24, 24, 24), (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 1, init_density=0.5)
+    grid.data[:, 1:13] = torch.randn(grid.data.shape[0], 12, generator=torch.Generator().manual_seed(6)) * 0.3
+    grads = []
+    for o, d, target in (plain, ordered):
+        grad = GridGrad(grid)
+        loss, _ = loss_and_grad(grid, o, d, target, torch.ones_like(target), RenderOptions(), grad)
+        grads.append((loss, grad.data.clone()))
+    assert grads[0][0] == pytest.approx(grads[1][0], rel=1e-6)
+    torch.testing.assert_close(grads[1][1], grads[0][1], atol=1e-7, rtol=1e-4)
+
+
+def test_coherent_order_follows_a_space_filling_curve():
+    # Rays whose points closest to the centre are a 4x4x4 lattice, shuffled (each ray runs square to its point's
+    # direction from the centre): the order visits each octant's 8 points together.
+    axis = torch.tensor([-0.75, -0.25, 0.25, 0.75])
+    points = torch.cartesian_prod(axis, axis, axis)
+    shuffled = points[torch.randperm(64, generator=torch.Generator().manual_seed(1))]
+    dirs = torch.nn.functional.normalize(torch.linalg.cross(shuffled, torch.tensor([[0.3, -0.2, 1.0]]).expand(64, 3)), dim=1)
+    origins = shuffled - 5 * dirs
+    visited = shuffled[coherent_order(origins, dirs)]
+    for start in range(0, 64, 8):
+        octants = {tuple((p > 0).tolist()) for p in visited[start:start + 8]}
+        assert len(octants) == 1
