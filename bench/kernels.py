@@ -139,6 +139,27 @@ def time_backend(grid, batches, backend: str, opts: RenderOptions) -> tuple[list
     return wall, cpu
 
 
+def thread_scaling(grid, make, seed: int, repeats: int, rays: int, opts: RenderOptions) -> dict:
+    """Native samples/s with 1, 2, ... up to the machine's threads (the same batches for each count), and each
+    count's speed-up over one thread."""
+    most = torch.get_num_threads()
+    gen = torch.Generator().manual_seed(seed + 1)
+    batches = []
+    for _ in range(repeats + 1):
+        origins, dirs = make(rays, gen)
+        batches.append((origins, dirs, torch.rand(origins.shape[0], 3, generator=gen), torch.ones(origins.shape[0], 3)))
+    counts = [sample_counts(grid, b[0], b[1], opts)[1] for b in batches[1:]]
+    by_threads = {}
+    try:
+        for threads in range(1, most + 1):
+            torch.set_num_threads(threads)  # also the native core's OpenMP team
+            wall, _ = time_backend(grid, batches, "native", opts)
+            by_threads[threads] = statistics.median(c / t for c, t in zip(counts, wall[1:]))
+    finally:
+        torch.set_num_threads(most)
+    return {str(t): {"samples_per_s": v, "speedup": v / by_threads[1]} for t, v in by_threads.items()}
+
+
 def run(sizes, repeats: int, rays: int, twin_rays: int) -> dict:
     opts = RenderOptions(step_size=0.5)
     rows = []
@@ -174,6 +195,7 @@ def run(sizes, repeats: int, rays: int, twin_rays: int) -> dict:
                     "samples_per_s_cpu_time_based": statistics.median(threads * c[1] / t for c, t in zip(counts, cpu)),
                 }
             result["speedup"] = result["native"]["samples_per_s"] / result["torch"]["samples_per_s"]
+            result["native_by_threads"] = thread_scaling(grid, make, size, repeats, rays, opts)
             rows.append(result)
             print_row(result)
         del grid
@@ -206,7 +228,8 @@ def print_row(r: dict) -> None:
     spr = n["samples_per_batch"] / n["rays_per_batch"]
     print(f"{r['resolution']:>4}^3 {r['grid']:>13} {r['batch']:>13} {n['samples_per_s'] / 1e6:>11.2f} "
           f"{n['samples_per_s_cpu_time_based'] / 1e6:>10.2f} {t['samples_per_s'] / 1e6:>9.3f} {r['speedup']:>6.0f} "
-          f"{spr:>11.1f}", flush=True)
+          f"{spr:>11.1f}  threads: " + ", ".join(f"{t}: {v['samples_per_s'] / 1e6:.2f} ({v['speedup']:.2f}x)"
+                                              for t, v in r["native_by_threads"].items()), flush=True)
 
 
 print_row.first = True
