@@ -102,6 +102,9 @@ def run(ctx) -> dict:
     line = f"{how} {registered}/{len(records)} images at {written['width']}x{written['height']}"
     if points:
         line += f", {points} points, mean reprojection error {error:.2f} px, mean track length {track:.1f}"
+    elif written.get("triangulated"):
+        points = written["triangulated"]["points"]
+        line += f", {points} points triangulated from {written['triangulated']['pairs']} pairs of nearby photos"
     if source == "sfm":
         line += f" ({info['matching']} matching: {info['pairs_verified']}/{info['pairs_matched']} pairs verified)"
     if info.get("attempt_why"):

@@ -20,9 +20,10 @@ from pipeline.runner import Pipeline
 from pipeline.sfm import reconstruct
 from pipeline.sfm.compare import compare_poses
 from pipeline.sfm.exif import FULL_FRAME_DIAGONAL_MM, exif_focal
+from pipeline.sfm.triangulate import neighbour_pairs
 from pipeline.sfm.model_checks import MAX_CONTRADICTED_SHARE, contradicted_images, detached_images
-from pipeline.synthetic import write_scene
-from plenoxels.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, project
+from pipeline.synthetic import build_scene, trace, write_scene
+from plenoxels.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, look_at, opengl_c2w_from_llff, project
 from plenoxels.errors import UserError
 
 N_VIEWS, WIDTH, HEIGHT = 24, 480, 360
@@ -595,3 +596,47 @@ def test_orbit_video_through_ingest_registers_every_kept_frame(tmp_path):
     # Views 15 degrees apart at 384x288 pin most poses to about 0.35 degrees; the first frame, matched on one side
     # only, has come out 3.6 degrees off: a looser bound on the worst than on the median.
     assert errors["rotation_error_deg_median"] < 0.6 and errors["rotation_error_deg_max"] < 5.0
+
+
+def test_imported_poses_without_points_get_points_triangulated_on_the_true_surface(scene, truth, tmp_path):
+    # The whole orbit with its true poses, as a transforms.json beside the photos (no points come with it).
+    capture = tmp_path / "capture"
+    shutil.copytree(scene / "images", capture / "images")
+    shutil.copy(scene / "transforms.json", capture / "transforms.json")
+    manifest = run_poses(capture, tmp_path / "out")
+    assert "points triangulated" in manifest["summary"]["line"]
+    with np.load(tmp_path / "out" / "poses" / "points.npz") as points:
+        xyz, obs_frame, obs_point = points["xyz"], points["obs_frame"], points["obs_point"]
+    assert len(xyz) > 1000 and len(obs_frame) == 2 * len(xyz) and obs_point.max() == len(xyz) - 1
+    # On the slab and the objects, not scattered along the rays: the true surface lies where each point is, seen from
+    # the first camera that observed it (ray-cast against the generator's exact shapes).
+    spec = build_scene("object", seed=0)
+    first = np.full(len(xyz), -1)
+    first[obs_point[::-1]] = obs_frame[::-1]
+    frames = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    error = np.zeros(len(xyz))
+    for f in np.unique(first):
+        origin = np.asarray(frames["frames"][f]["transform_matrix"])[:3, 3]
+        mine = first == f
+        distance = np.linalg.norm(xyz[mine] - origin, axis=1)
+        surface, _ = trace(spec, origin, (xyz[mine] - origin) / distance[:, None])
+        error[mine] = np.abs(surface - distance)
+    bounds = read_json(scene / "ground_truth" / "scene.json")["object_bounds"]
+    size = float(np.linalg.norm(np.subtract(bounds["max"], bounds["min"])))
+    assert np.median(error) < 0.005 * size and np.mean(error < 0.01 * size) > 0.9
+    # Each observation is where its frame sees the point.
+    k = Intrinsics.from_frame(frames)
+    for f in range(0, len(frames["frames"]), 6):
+        seen = xyz[obs_point[obs_frame == f]]
+        uv, depth = project(seen, np.asarray(frames["frames"][f]["transform_matrix"]), k)
+        assert (depth > 0).all() and ((uv >= 0) & (uv <= [k.w, k.h])).all()
+
+
+def test_triangulation_pairs_only_cameras_that_face_the_same_way():
+    # Three cameras round an object, one opposite them and one beside the first looking sideways: the last two face
+    # no other camera, so they pair with no one.
+    c2w = np.stack([look_at([3 * math.cos(a), 3 * math.sin(a), 1], [0, 0, 0]) for a in np.radians([0, 20, 40, 180])]
+                   + [look_at([3.1, 0.2, 1], [3.1, 10, 1])])
+    pairs = neighbour_pairs(c2w, neighbours=2)
+    assert (0, 1) in pairs and (1, 2) in pairs
+    assert all(4 not in p for p in pairs) and all(3 not in p for p in pairs)

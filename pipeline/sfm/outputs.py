@@ -11,7 +11,8 @@ import pycolmap
 from PIL import Image
 
 from pipeline.io import write_json, write_png
-from plenoxels.cameras import opengl_c2w_from_colmap_w2c
+from pipeline.sfm.triangulate import triangulate
+from plenoxels.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
 
 
 def _camera_dict(camera: pycolmap.Camera) -> dict:
@@ -84,8 +85,18 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
         "camera_model": "PINHOLE", **shared, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
         "original_camera": originals[0], "source": source,
         "source_path": str(source_path) if source_path else None, "frames": frames})
-    write_points(out / "points.npz", undistorted, frame_index)
-    return {"frames": len(frames), "width": shared["w"], "height": shared["h"]}
+    written = {"frames": len(frames), "width": shared["w"], "height": shared["h"]}
+    if undistorted.num_points3D():
+        write_points(out / "points.npz", undistorted, frame_index)
+    else:
+        # Imported poses without points: triangulate some from the photos, so normalize sees where the content lies.
+        report.info("triangulating points from the photos for the imported poses")
+        points = triangulate([np.asarray(Image.open(out / f["file_path"]).convert("RGB")) for f in frames],
+                             np.stack([np.asarray(f["transform_matrix"]) for f in frames]),
+                             [Intrinsics.from_frame({**shared, **f}) for f in frames])
+        np.savez(out / "points.npz", **points.arrays())
+        written["triangulated"] = {"points": len(points.xyz), "pairs": points.pairs}
+    return written
 
 
 def write_points(path: Path, reconstruction: pycolmap.Reconstruction, frame_index: dict[int, int]) -> None:
