@@ -304,14 +304,10 @@ PLX_HD bool bg_exit(const double rel[3], const double unit[3], double radius, do
     if (disc < 0.0) return false;
     const double t = -b + sqrt(disc);
     if (!(t > 0.0)) return false;
-    double n = 0.0;
-    for (int a = 0; a < 3; ++a) {
-        p[a] = rel[a] + t * unit[a];
-        n += p[a] * p[a];
-    }
-    n = sqrt(n);
-    if (!(n > 0.0)) return false;
-    for (int a = 0; a < 3; ++a) p[a] /= n;
+    // The exit point lies on the sphere, so dividing by the radius makes it a unit vector (to rounding, which the
+    // texel lookup's clamp absorbs).
+    const double inv = 1.0 / radius;
+    for (int a = 0; a < 3; ++a) p[a] = (rel[a] + t * unit[a]) * inv;
     return true;
 }
 
@@ -379,12 +375,16 @@ PLX_HD void bg_ray(const float* o, const float* d, const float* centre, double r
     for (int a = 0; a < 3; ++a) unit[a] /= n;
 }
 
+// A ray stops compositing spheres once this little light gets through (as the grid's rays stop at
+// stop_transmittance): the spheres behind an opaque one cost nothing. reference.background_colour does the same.
+#define PLX_BG_STOP_TRANSMITTANCE 1e-4f
+
 // Colour of one ray: front-to-back composite of the spheres, then far_colour.
 PLX_HD void bg_forward(const float* texture, const float* radii, int spheres, int height, int width, const double rel[3],
                        const double unit[3], const float* far_colour, float rgb[3]) {
     float transmittance = 1.0f;
     rgb[0] = rgb[1] = rgb[2] = 0.0f;
-    for (int k = 0; k < spheres; ++k) {
+    for (int k = 0; k < spheres && transmittance >= PLX_BG_STOP_TRANSMITTANCE; ++k) {
         BgLayer layer;
         if (!bg_layer(texture, k, height, width, rel, unit, radii[k], &layer)) continue;
         const float alpha = 1.0f - expf(-(layer.raw[0] > 0.0f ? layer.raw[0] : 0.0f));
@@ -406,7 +406,7 @@ template <typename Add>
 PLX_HD void bg_backward(const float* texture, const float* radii, int spheres, int height, int width,
                         const double rel[3], const double unit[3], const float total[3], const float g[3], Add add) {
     float transmittance = 1.0f, acc[3] = {0.0f, 0.0f, 0.0f};
-    for (int k = 0; k < spheres; ++k) {
+    for (int k = 0; k < spheres && transmittance >= PLX_BG_STOP_TRANSMITTANCE; ++k) {
         BgLayer layer;
         if (!bg_layer(texture, k, height, width, rel, unit, radii[k], &layer)) continue;
         const bool positive = layer.raw[0] > 0.0f;

@@ -20,7 +20,8 @@ behind whatever the ray passes in the middle, which keeps every sphere behind th
 ray misses (b^2 < c), or whose exit lies behind the origin, add nothing.
 
 Opacity of a layer is alpha = 1 - exp(-relu(sigma)), colour is sigmoid(logit): a layer is a thin shell,
-so its density is already integrated across it.
+so its density is already integrated across it. A ray stops once less than BACKGROUND_STOP_TRANSMITTANCE of its
+light gets through; what is left sees the far colour.
 """
 from __future__ import annotations
 
@@ -32,6 +33,9 @@ import torch
 from plenoxels import native
 from plenoxels.errors import UserError
 
+# A ray stops compositing spheres once this little of its light gets through (the grid's rays stop the same way), so
+# the spheres behind an opaque one cost nothing; PLX_BG_STOP_TRANSMITTANCE in csrc/plenoxels_math.h.
+BACKGROUND_STOP_TRANSMITTANCE = 1e-4
 # Far spheres are placed at most this far (in foreground-box half-diagonals); beyond it parallax is nil.
 DEFAULT_FAR_RATIO = 1000.0
 

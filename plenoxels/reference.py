@@ -22,6 +22,7 @@ import math
 
 import torch
 
+from plenoxels.background import BACKGROUND_STOP_TRANSMITTANCE
 from plenoxels.grid import SparseGrid, sh_count
 from plenoxels.render import COLOUR_OFFSET, SH_C0, SH_C1, SH_C2, SH_C3, ray_samples
 
@@ -223,8 +224,9 @@ def background_colour(origins: torch.Tensor, dirs: torch.Tensor, centre: torch.T
     b = (o - centre).u, c = |o - centre|^2 - r^2; it misses where b^2 < c or t <= 0. The texture is read
     bilinearly at that direction: texel centres at (i + 0.5) / W of the azimuth from -pi and (j + 0.5) / H of the
     polar angle from +z, azimuth wrapping (one wrapped column padded on each side) and rows clamping. Layers
-    composite front (small radius) to back with alpha = 1 - exp(-relu(density)), colour sigmoid(logits); the
-    transmittance left sees far_colour."""
+    composite front (small radius) to back with alpha = 1 - exp(-relu(density)), colour sigmoid(logits), a ray
+    stopping once less than BACKGROUND_STOP_TRANSMITTANCE of its light gets through; the transmittance left sees
+    far_colour."""
     dtype = texture.dtype
     o, d = origins.to(dtype), dirs.to(dtype)
     rel = o - centre.to(dtype)
@@ -248,6 +250,9 @@ def background_colour(origins: torch.Tensor, dirs: torch.Tensor, centre: torch.T
                                               align_corners=False)[..., 0]      # [K, 4, B]
     alpha = (1 - torch.exp(-torch.relu(samples[:, 0]))) * valid.to(dtype)
     rgb = torch.sigmoid(samples[:, 1:])
+    # Early termination: a layer counts only while the light reaching it is at least the threshold.
+    reaching = torch.cumprod(torch.cat([torch.ones_like(alpha[:1]), 1 - alpha[:-1]], dim=0), dim=0)
+    alpha = alpha * (reaching.detach() >= BACKGROUND_STOP_TRANSMITTANCE).to(dtype)
     transmittance = torch.cumprod(torch.cat([torch.ones_like(alpha[:1]), 1 - alpha], dim=0), dim=0)
     weights = alpha * transmittance[:-1]
     return (weights[:, None] * rgb).sum(0).T + transmittance[-1][:, None] * far_colour.to(dtype)

@@ -74,8 +74,11 @@ class ModelOptions:
     """A ray stops once this little light gets through."""
     background_spheres: int = 32
     """Background model: number of spheres."""
-    background_width: int = 128
-    """Background model: texture width in pixels (the height is half)."""
+    background_width: int = 0
+    """Background model: texture width in texels (the height is half); 0: from the training photos, so that a texel
+    spans about background_texel_px of their pixels (between 64 and 2048 texels)."""
+    background_texel_px: float = 2.0
+    """Background model with background_width 0: how many training pixels one texel spans."""
     tv_background: float = 1e-3
     """Background model: TV weight of its density and colour."""
 
@@ -106,16 +109,17 @@ class SceneModel:
 
     # ---- construction ---------------------------------------------------------------------------
     @classmethod
-    def create(cls, scene: dict, options: ModelOptions, resolution: int) -> "SceneModel":
+    def create(cls, scene: dict, options: ModelOptions, resolution: int, focal_px: float | None = None) -> "SceneModel":
         """An initial model for normalize/scene.json at `resolution` vertices along the grid's longest
         axis, every vertex allocated; NDC and the background model follow the scene type where the
-        options say auto."""
+        options say auto. `focal_px`, the training photos' focal length in pixels, sizes the background's
+        texture when options.background_width is 0 (without it: 128 texels)."""
         scene_type = scene.get("type", "object")
         ndc = NDCMapping.from_scene(scene) if _uses(options.ndc, scene_type == "forward") else None
         lo, hi = foreground_box(scene, options.box_padding)
         background = None
         if _uses(options.background, scene_type == "unbounded"):
-            width = options.background_width
+            width = options.background_width or background_width_for(focal_px, options.background_texel_px)
             background = MultiSphereBackground.around_box(
                 lo, hi, n_spheres=options.background_spheres, height=max(2, width // 2), width=width,
                 far_colour=tuple(options.background_color), tv_density=options.tv_background,
@@ -242,6 +246,15 @@ class SceneModel:
         return cls(grid, record.get("scene_type", "object"), FitFrame(ndc), background,
                    record.get("background_color", (1, 1, 1)), RenderOptions(**record.get("render_options", {})),
                    transforms)
+
+
+def background_width_for(focal_px: float | None, texel_px: float) -> int:
+    """Texels around the background's equator so that one spans about `texel_px` pixels of photos with this focal
+    length: a pixel subtends 1/focal radians, so 2 pi focal / texel_px texels (a multiple of 8, in [64, 2048])."""
+    if not focal_px or focal_px <= 0:
+        return 128
+    width = 2.0 * math.pi * focal_px / max(texel_px, 1e-6)
+    return int(min(max(round(width / 8) * 8, 64), 2048))
 
 
 def foreground_box(scene: dict, padding: float) -> tuple[tuple[float, ...], tuple[float, ...]]:

@@ -29,7 +29,7 @@ from plenoxels.cameras import Intrinsics
 from plenoxels.errors import UserError
 from plenoxels.grid import SparseGrid, sh_count
 from plenoxels.optim import GridGrad, SparseRMSProp
-from plenoxels.regularizers import tv_loss_and_grad
+from plenoxels.regularizers import tv_loss_and_grad, tv_scale_for_views, views_per_point
 from plenoxels.render import loss_and_grad, max_weights
 from plenoxels.scene_model import SceneModel, psnr
 
@@ -76,6 +76,13 @@ class TrainOptions:
     """TV weight of the SH coefficients per sampled vertex."""
     tv_sample_fraction: float = 0.01
     """Share of the occupied vertices the TV term looks at each step."""
+    tv_views: float = 32.0
+    """Few views: where the training photos see each point of the grid's box fewer than this many times on average,
+    both TV weights grow by (tv_views / views)^tv_views_power (0: the weights as set, whatever the capture)."""
+    tv_views_power: float = 3.0
+    """How fast TV grows as the views per point fall below tv_views."""
+    tv_views_max_scale: float = 1000.0
+    """The most that few views multiply the TV weights by."""
     lr_background: float = 0.01
     """RMSProp rate of the background model's texels."""
     prune_weight: float = 0.002
@@ -236,6 +243,7 @@ class Fitter:
         self.recent_mse: list[float] = []
         self.background_seconds = 0.0       # of this run's steps, spent rendering and training the background
         self.checkpoint_step: int | None = None
+        self.regularisation = self._regularisation()
         self._new_optimiser()
 
     # ---- optimiser state ------------------------------------------------------------------------
@@ -250,6 +258,19 @@ class Fitter:
         self.optim.remap(grid, old_rows)
         self.model.grid = grid
         self.grad = GridGrad(grid)
+
+    def _regularisation(self) -> dict:
+        """The TV weights this capture gets: as set, grown where few training views see the grid's box (world grids;
+        an NDC grid's box is not a region of the world, and the forward overlay sets its own weights)."""
+        o = self.options
+        record = {"tv_density": o.tv_density, "tv_sh": o.tv_sh, "views_per_point": None, "tv_scale": 1.0}
+        if o.tv_views > 0 and self.model.fit_frame.ndc is None:
+            views = views_per_point(self.train.c2w.double().numpy(), self.train.intrinsics, self.model.grid.bbox_min,
+                                    self.model.grid.bbox_max, seed=o.seed)
+            scale = tv_scale_for_views(views, o.tv_views, o.tv_views_power, o.tv_views_max_scale)
+            record.update(views_per_point=round(views, 2), tv_scale=scale, tv_density=o.tv_density * scale,
+                          tv_sh=o.tv_sh * scale)
+        return record
 
     # ---- the loop -------------------------------------------------------------------------------
     def run(self, checkpoint: Path, checkpoint_every: float, stop_requested: Callable[[], bool] = lambda: False,
@@ -327,8 +348,9 @@ class Fitter:
         if not math.isfinite(mse):
             raise Diverged(f"the loss became {mse}")
         tv_rows = max(1, round(o.tv_sample_fraction * self.model.grid.num_occupied))
-        tv_loss_and_grad(self.model.grid, self.grad, o.tv_density * tv_rows, o.tv_sh * tv_rows, o.tv_sample_fraction,
-                         self.generator)
+        tv = self.regularisation
+        tv_loss_and_grad(self.model.grid, self.grad, tv["tv_density"] * tv_rows, tv["tv_sh"] * tv_rows,
+                         o.tv_sample_fraction, self.generator)
         self.optim.step(self.grad)
         if self.bg_optim is not None:
             started = time.perf_counter()

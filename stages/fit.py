@@ -87,8 +87,9 @@ class Settings(TrainOptions, ModelOptions):
         require(len(self.background_color) == 3 and all(0 <= c <= 1 for c in self.background_color),
                 "fit.background_color must be three numbers in [0, 1] (for example [1, 1, 1])")
         require(self.box_padding >= 0, "fit.box_padding must be >= 0")
-        require(self.background_spheres >= 1 and self.background_width >= 4,
-                "fit.background_spheres must be >= 1 and fit.background_width >= 4")
+        require(self.background_spheres >= 1 and (self.background_width == 0 or self.background_width >= 4),
+                "fit.background_spheres must be >= 1 and fit.background_width 0 (from the photos) or >= 4")
+        require(self.background_texel_px > 0, "fit.background_texel_px must be positive")
         require(self.lr_background > 0 and self.tv_background >= 0, "fit.lr_background must be > 0, fit.tv_background >= 0")
         require(self.eval_every >= 0 and self.eval_views >= 0, "fit.eval_every and fit.eval_views must be >= 0")
         require(0 < self.eval_scale <= 1, "fit.eval_scale must be in (0, 1]")
@@ -140,7 +141,7 @@ def run(ctx) -> dict:
         ctx.report.info(f"fitting on {device}")
     scene = read_json(ctx.upstream["normalize"] / "scene.json")
     train, held_out_frames = load_training(ctx, scene, s)
-    fitter = Fitter(SceneModel.create(scene, s, s.resolutions[0]), s, train, device)
+    fitter = Fitter(SceneModel.create(scene, s, s.resolutions[0], focal_px=float(train.k[:, :2].median())), s, train, device)
     held_out = HeldOut(ctx.out, held_out_frames, s)
 
     checkpoint = ctx.scratch / CHECKPOINT
@@ -197,6 +198,7 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         "history": fitter.history, "levels": fitter.levels,
         "model": model.describe(),
         "memory_bytes": memory,
+        "regularisation": fitter.regularisation,
     }
     if fitter.bg_optim is not None:
         optimiser_bytes = sum(t.numel() * t.element_size() for t in (fitter.bg_optim.grad, fitter.bg_optim.second_moment))
@@ -216,6 +218,9 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         cost = record["background_cost"]
         line += (f", background model {format_bytes(cost['model_bytes'] + cost['optimiser_bytes'])} with its optimiser, "
                  f"{cost['share_of_fitting']:.0%} of the fitting time")
+    if fitter.regularisation["tv_scale"] > 1.0:
+        line += (f", TV x{fitter.regularisation['tv_scale']:.3g} for few views "
+                 f"({fitter.regularisation['views_per_point']:.1f} per point)")
     if model.fit_frame.ndc is not None:
         line += ", in NDC"
     if stopped_early:

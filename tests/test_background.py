@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from plenoxels import reference
-from plenoxels.background import BackgroundOptimiser, MultiSphereBackground
+from plenoxels.background import BACKGROUND_STOP_TRANSMITTANCE, BackgroundOptimiser, MultiSphereBackground
 from plenoxels.errors import UserError
 
 
@@ -50,6 +50,8 @@ def _reference(model: MultiSphereBackground, o: torch.Tensor, d: torch.Tensor) -
         di = di / di.norm()
         colour, transmittance = torch.zeros(3, dtype=torch.float64), 1.0
         for k, r in enumerate(model.radii.double()):
+            if transmittance < BACKGROUND_STOP_TRANSMITTANCE:
+                break
             rel = oi - centre
             b, c = float(rel @ di), float(rel @ rel - r * r)
             if b * b - c < 0:
@@ -103,6 +105,23 @@ def test_constant_spheres_match_closed_form():
     expected = (alpha[:, None] * before[:-1, None] * torch.sigmoid(logits)).sum(0) + before[-1] * model.far_colour
     o, d = _random_rays(64, 0, dtype=torch.float32)
     torch.testing.assert_close(model(o, d), expected.expand(64, 3), atol=1e-5, rtol=1e-5)
+
+
+def test_rays_stop_at_an_opaque_sphere_and_the_spheres_behind_it_get_no_gradient():
+    model = _textured(MultiSphereBackground(r_min=1.5, r_max=40.0, n_spheres=4, height=5, width=8), seed=3)
+    with torch.no_grad():
+        model.density[1] = 12.0  # the second sphere lets exp(-12) ~ 6e-6 of the light through: below the threshold
+    o, d = _random_rays(60, 4, spread=0.9)
+    rgb = model(o.float(), d.float())
+    torch.testing.assert_close(rgb.double(), twin(model, o, d), atol=2e-6, rtol=0)
+    torch.testing.assert_close(rgb.double(), _reference(model, o, d), atol=2e-6, rtol=0)
+    optimiser = BackgroundOptimiser(model, lr=0.0)
+    optimiser.backward(o.float(), d.float(), rgb, torch.ones_like(rgb))
+    touched = optimiser.touched_rows[: optimiser.num_touched].long()
+    sphere = touched // (5 * 8)
+    assert set(sphere.tolist()) == {0, 1}  # the two spheres behind it are neither read nor trained
+    torch.testing.assert_close(native_texel_grad(model, o, d, torch.ones_like(rgb)), twin_texel_grad(model, o, d, torch.ones_like(rgb)),
+                               atol=1e-5, rtol=1e-4)
 
 
 @pytest.mark.parametrize("spread", [0.9, 6.0, 60.0])

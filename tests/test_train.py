@@ -1,4 +1,5 @@
-"""The training loop's parts: batches of real pixels and the learning-rate schedule."""
+"""The training loop's parts: batches of real pixels, the learning-rate schedule, TV for few views, the background's
+texture size."""
 import math
 
 import numpy as np
@@ -7,11 +8,13 @@ import torch
 
 from pipeline.images import load_frame
 from pipeline.io import read_json
-from plenoxels.cameras import rays_from_camera
+from plenoxels.cameras import Intrinsics, look_at, rays_from_camera
 from plenoxels.grid import SparseGrid
 from plenoxels.optim import GridGrad
 from plenoxels.render import RenderOptions, loss_and_grad
-from plenoxels.train import RaySet, coherent_order, decayed_lr
+from plenoxels.regularizers import tv_scale_for_views, views_per_point
+from plenoxels.scene_model import ModelOptions, SceneModel, background_width_for
+from plenoxels.train import Fitter, RaySet, TrainOptions, coherent_order, decayed_lr
 from test_fit import make_scene
 
 
@@ -89,3 +92,44 @@ def test_coherent_order_follows_a_space_filling_curve():
     for start in range(0, 64, 8):
         octants = {tuple((p > 0).tolist()) for p in visited[start:start + 8]}
         assert len(octants) == 1
+
+
+def test_views_per_point_counts_the_cameras_that_see_the_box():
+    k = Intrinsics(60.0, 60.0, 32.0, 32.0, 64, 64)
+    around = [look_at([4 * math.cos(a), 4 * math.sin(a), 1.0], [0, 0, 0]) for a in np.linspace(0, 2 * math.pi, 12, endpoint=False)]
+    away = [look_at([4 * math.cos(a), 4 * math.sin(a), 1.0], [8 * math.cos(a), 8 * math.sin(a), 1.0]) for a in (0.3, 2.0)]
+    box = ([-0.5] * 3, [0.5] * 3)
+    assert views_per_point(around, [k] * 12, *box) == pytest.approx(12, abs=0.5)
+    assert views_per_point(around + away, [k] * 14, *box) == pytest.approx(12, abs=0.5)
+    assert views_per_point(around[::4], [k] * 3, *box) == pytest.approx(3, abs=0.2)
+
+
+def test_few_views_strengthen_tv_and_many_keep_it_as_set(tmp_path):
+    assert tv_scale_for_views(40.0, 32.0, 3.0, 1000.0) == 1.0
+    assert tv_scale_for_views(16.0, 32.0, 3.0, 1000.0) == pytest.approx(8.0)
+    assert tv_scale_for_views(1.0, 32.0, 3.0, 1000.0) == 1000.0
+    assert tv_scale_for_views(1.0, 0.0, 3.0, 1000.0) == 1.0
+    root = make_scene(tmp_path)
+    scene = read_json(root / "normalize" / "scene.json")
+    frames = [f for f in scene["frames"] if f["split"] == "train"]
+    scales = []
+    for kept in (frames, frames[::4]):
+        loaded = [load_frame(root, frame, 1.0, (1.0, 1.0, 1.0)) for frame in kept]
+        train = RaySet([image for image, _ in loaded], [np.asarray(f["transform_matrix"]) for f in kept],
+                       [k for _, k in loaded])
+        options = TrainOptions(tv_views=12.0)
+        fitter = Fitter(SceneModel.create(scene, ModelOptions(), 16), options, train)
+        tv = fitter.regularisation
+        assert tv["views_per_point"] <= len(kept)
+        assert tv["tv_density"] == pytest.approx(options.tv_density * tv["tv_scale"])
+        assert tv["tv_sh"] == pytest.approx(options.tv_sh * tv["tv_scale"])
+        scales.append(tv["tv_scale"])
+    # 16 training views see the box about 12 times or more; a quarter of them need TV several times stronger.
+    assert scales[0] == pytest.approx(1.0, abs=0.3) and scales[1] > 10 * scales[0]
+
+
+def test_background_texels_follow_the_photos_pixels():
+    assert background_width_for(138.0, 2.0) == 432  # 2 pi 138 / 2 = 433.5, a multiple of 8
+    assert background_width_for(276.0, 2.0) == 2 * background_width_for(138.0, 2.0)  # twice the focal, twice the texels
+    assert background_width_for(5.0, 2.0) == 64 and background_width_for(1e5, 2.0) == 2048
+    assert background_width_for(None, 2.0) == 128
