@@ -1,6 +1,8 @@
 # Two commands for a new user: `make all` (installs what is missing, runs the demo or scene=PATH)
 # and `make test`. One stage: `make scene=PATH poses` (ingest, poses, normalize, fit, evaluate, export).
 # The install also puts the command line in .venv/bin/voxfield (`voxfield settings` lists every setting).
+# budget=5m (or 90s, 2m30s, seconds): the fit picks its levels, resolutions and steps to end within that time, from a
+# cost model it measures on this machine the first time (a few seconds, cached in ~/.cache/voxfield/).
 SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -15,6 +17,7 @@ preset ?=
 parts ?=
 args ?=
 set ?=
+budget ?=
 cameras ?= auto
 size ?=
 frames ?=
@@ -30,7 +33,8 @@ comma := ,
 EXTRA_STAMPS := $(foreach e,$(subst $(comma), ,$(extras)),$(VENV)/.installed-$(e))
 export OMP_NUM_THREADS ?= $(shell nproc)
 
-RUN_ARGS = $(if $(out),--out $(out)) $(if $(preset),--preset $(preset)) $(foreach s,$(set),--set $(s))
+SET_ARGS = $(foreach s,$(set),--set $(s)) $(if $(budget),--set fit.time_budget=$(budget))
+RUN_ARGS = $(if $(out),--out $(out)) $(if $(preset),--preset $(preset)) $(SET_ARGS)
 
 .PHONY: all install test bench status render view batch clean $(STAGES)
 
@@ -50,7 +54,7 @@ endif
 
 status: $(STAMP)
 ifeq ($(scene),)
-	$(PY) -m pipeline status out/demo/demo-photos/images --out out/demo --preset $(or $(preset),fast) $(foreach s,$(set),--set $(s))
+	$(PY) -m pipeline status out/demo/demo-photos/images --out out/demo --preset $(or $(preset),fast) $(SET_ARGS)
 else
 	$(PY) -m pipeline status "$(scene)" $(RUN_ARGS)
 endif
@@ -90,7 +94,7 @@ view: $(STAMP)
 # local one); results in DIR/batch.json and batch.csv (python -m pipeline batch).
 batch: $(STAMP)
 	$(PY) -m pipeline batch $(scenes) --out "$(or $(out),out)" $(if $(preset),--preset $(preset)) \
-		$(foreach s,$(set),--set $(s)) $(if $(until),--until $(until)) $(if $(workers),--workers $(workers)) \
+		$(SET_ARGS) $(if $(until),--until $(until)) $(if $(workers),--workers $(workers)) \
 		$(if $(ray),--ray $(filter-out here,$(ray)))
 
 test: $(STAMP)

@@ -283,13 +283,14 @@ class Fitter:
         steps (0: never) appends `held_out_psnr(model)` to the history. Callbacks: `on_step(mse)` after each
         step, `on_level(grid)` after each level change, `on_eval(history entry)` after each evaluation.
         A KeyboardInterrupt writes a checkpoint (unless the parameters are no longer finite) and
-        propagates; so does Diverged, leaving the last checkpoint, which was written from finite parameters."""
-        total = self.options.total_steps
+        propagates; so does Diverged, leaving the last checkpoint, which was written from finite parameters.
+        The schedule is read from `options` at every step, so a callback may change the steps of levels not yet done
+        (plenoxels/budget.py does, to end on time)."""
         started = time.time() - self.elapsed
         last_save = time.time()
         stopped = False
         try:
-            while self.step < total:
+            while self.step < self.options.total_steps:
                 if self.step == self.level_end(self.level):
                     self.next_level()
                     self.elapsed = time.time() - started

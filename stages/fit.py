@@ -8,6 +8,10 @@ pruning and upsampling between levels are described there).
 Writes fit/grid.pt and fit/model.json (SceneModel.save) and fit/fit.json (the levels, occupied voxels,
 memory, losses and held-out PSNR over time, timings).
 
+With `time_budget` the levels, resolutions and steps are not the settings' but a plan made by
+plenoxels.budget.TimeBudget to end the stage within the budget (from a cost model measured on this
+machine, then the fit's own measured cost); a stop at its deadline is a normal end (`complete: true`).
+
 Interruptions:
 - a checkpoint is written to the stage's scratch folder every `checkpoint_every` seconds and at each
   level change; a re-run with the same inputs and settings resumes from it (same step, same batches);
@@ -20,6 +24,7 @@ Interruptions:
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -27,11 +32,12 @@ from typing import Literal
 import numpy as np
 import torch
 
-from pipeline.config import require
+from pipeline.config import parse_duration, require
 from pipeline.images import load_frame
 from pipeline.interrupts import StopRequest
 from pipeline.io import read_json, write_json
 from pipeline.report import format_bytes, format_count, format_duration
+from plenoxels.budget import TimeBudget
 from plenoxels.errors import UserError
 from plenoxels.native import resolve_device
 from plenoxels.scene_model import ModelOptions, SceneModel, psnr
@@ -42,6 +48,7 @@ DEPENDS: tuple[str, ...] = ("normalize",)
 VERSION = 1
 
 CHECKPOINT = "checkpoint.pt"
+BUDGET_PLAN = "budget_plan.json"
 
 
 @dataclass
@@ -61,6 +68,13 @@ class Settings(TrainOptions, ModelOptions):
     """Share of their size the held-out views are rendered at."""
     checkpoint_every: float = 180.0
     """Seconds between checkpoints."""
+    time_budget: float | str = 0.0
+    """Finish the fit within this time (90s, 5m, 2m30s or seconds; 0: off), with levels, resolutions and steps
+    chosen for it by a cost model measured on this machine (fit.resolutions and fit.steps are then ignored)."""
+
+    @property
+    def budget_seconds(self) -> float:
+        return parse_duration(self.time_budget, "fit.time_budget")
 
     def check(self) -> None:
         require(len(self.resolutions) >= 1 and all(r >= 8 for r in self.resolutions),
@@ -94,6 +108,7 @@ class Settings(TrainOptions, ModelOptions):
         require(self.eval_every >= 0 and self.eval_views >= 0, "fit.eval_every and fit.eval_views must be >= 0")
         require(0 < self.eval_scale <= 1, "fit.eval_scale must be in (0, 1]")
         require(self.checkpoint_every > 0, "fit.checkpoint_every must be positive (seconds)")
+        parse_duration(self.time_budget, "fit.time_budget")
 
 
 class HeldOut:
@@ -109,6 +124,11 @@ class HeldOut:
 
     def __bool__(self) -> bool:
         return bool(self.views)
+
+    @property
+    def rays(self) -> int:
+        """Rays of one evaluation."""
+        return sum(k.w * k.h for _, k, _ in self.views)
 
     def psnr(self, model: SceneModel) -> float:
         errors = []
@@ -135,51 +155,79 @@ def load_training(ctx, scene: dict, s: Settings) -> tuple[RaySet, list[dict]]:
 
 
 def run(ctx) -> dict:
+    started = time.time()
     s: Settings = ctx.settings
     device = resolve_device(s.device)
     if device.type != "cpu":
         ctx.report.info(f"fitting on {device}")
     scene = read_json(ctx.upstream["normalize"] / "scene.json")
     train, held_out_frames = load_training(ctx, scene, s)
-    fitter = Fitter(SceneModel.create(scene, s, s.resolutions[0], focal_px=float(train.k[:, :2].median())), s, train, device)
     held_out = HeldOut(ctx.out, held_out_frames, s)
-
     checkpoint = ctx.scratch / CHECKPOINT
+
+    def new_model(resolution: int) -> SceneModel:
+        return SceneModel.create(scene, s, resolution, focal_px=float(train.k[:, :2].median()))
+
+    budget = None
+    if s.budget_seconds:
+        budget = TimeBudget(s.budget_seconds, s, new_model, train, held_out.rays, device, started,
+                            plan_file=ctx.scratch / BUDGET_PLAN, resume=checkpoint.is_file(), say=ctx.report.info)
+        ctx.report.info(budget.line())
+    options = budget.options if budget is not None else s
+    fitter = Fitter(new_model(options.resolutions[0]), options, train, device)
+
     if checkpoint.is_file():
         fitter.load_checkpoint(checkpoint)
-        ctx.report.info(f"resuming from the checkpoint at step {fitter.step}/{s.total_steps}")
+        ctx.report.info(f"resuming from the checkpoint at step {fitter.step}/{options.total_steps}")
     resumed_from = fitter.step
+    if budget is not None:
+        budget.attach(fitter)
 
     def on_level(grid) -> None:
+        if budget is not None:
+            budget.level()
         ctx.report.info(f"level {fitter.level + 1}: {'x'.join(map(str, grid.resolution))} grid, "
                         f"{format_count(grid.num_occupied)} voxels ({format_bytes(grid.memory_bytes())})")
 
     def on_eval(entry: dict) -> None:
         ctx.report.info(f"step {entry['step']}: held-out PSNR {entry['held_out_psnr']:.2f} dB")
 
+    evaluate = held_out.psnr if budget is None else budget.timed(held_out.psnr)
     try:
-        with StopRequest() as stop, ctx.report.bar(total=s.total_steps, desc="fitting") as bar:
+        with StopRequest() as stop, ctx.report.bar(total=options.total_steps, desc="fitting") as bar:
             bar.update(fitter.step)
 
             def on_step(mse: float) -> None:
+                if budget is not None:
+                    budget.step()
+                    bar.total = options.total_steps  # re-planned
                 bar.update(1)
                 bar.set_postfix(loss=f"{mse:.4f}", psnr=f"{fitter.train_psnr():.2f}", refresh=False)
 
-            stopped_early = fitter.run(checkpoint, s.checkpoint_every, stop_requested=lambda: stop.requested,
-                                       held_out_psnr=held_out.psnr if held_out else None, eval_every=s.eval_every,
-                                       on_step=on_step, on_level=on_level, on_eval=on_eval)
+            def stop_requested() -> bool:
+                return stop.requested or (budget is not None and budget.due())
+
+            stopped = fitter.run(checkpoint, s.checkpoint_every, stop_requested=stop_requested,
+                                 held_out_psnr=evaluate if held_out else None, eval_every=s.eval_every,
+                                 on_step=on_step, on_level=on_level, on_eval=on_eval)
     except Diverged as exc:
         kept = (f"the last good checkpoint (step {fitter.checkpoint_step}) is kept"
                 if fitter.checkpoint_step is not None else "no checkpoint was written yet")
         raise UserError(f"the fit diverged at step {fitter.step} ({exc}); lower fit.lr_density (now {s.lr_density:g}) "
                         f"or fit.lr_sh (now {s.lr_sh:g}) and run again; {kept}") from None
+    stopped_early = stopped and stop.requested
+    at_deadline = stopped and not stop.requested
     if stopped_early:
-        ctx.report.warn(f"stopped early at step {fitter.step}/{s.total_steps} (Ctrl-C); writing the model as it stands")
-    return finish(ctx, fitter, held_out, resumed_from, stopped_early, device)
+        ctx.report.warn(f"stopped early at step {fitter.step}/{options.total_steps} (Ctrl-C); writing the model as "
+                        f"it stands")
+    elif at_deadline and options.prune_final:
+        fitter.prune()  # the time budget's deadline: the end of the fit, pruned as a complete schedule is
+    return finish(ctx, fitter, held_out, resumed_from, stopped_early, device, budget, at_deadline)
 
 
-def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_early: bool, device) -> dict:
-    s: Settings = ctx.settings
+def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_early: bool, device,
+           budget: TimeBudget | None = None, at_deadline: bool = False) -> dict:
+    s: Settings = fitter.options
     model = fitter.model
     final_psnr = held_out.psnr(model) if held_out else None
     memory = model.memory_bytes()
@@ -205,6 +253,9 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         record["background_cost"] = {"seconds": round(fitter.background_seconds, 2),
                                      "share_of_fitting": round(fitter.background_seconds / max(fitter.elapsed, 1e-9), 4),
                                      "model_bytes": memory["background"], "optimiser_bytes": optimiser_bytes}
+    if budget is not None:
+        record["budget"] = budget.record(at_deadline)
+        record["budget"]["stage_seconds"] = round(time.time() - budget.started, 1)
     write_json(ctx.work / "fit.json", record)
     res = grid.resolution
     shape = f"{res[0]}^3" if len(set(res)) == 1 else "x".join(map(str, res))
@@ -225,6 +276,9 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         line += ", in NDC"
     if stopped_early:
         line += f"; stopped early at step {fitter.step}/{s.total_steps} (Ctrl-C)"
+    if budget is not None:
+        line += f"; {budget.line()}; " + (f"stopped at the deadline at step {fitter.step}/{s.total_steps}"
+                                         if at_deadline else f"ran {'+'.join(map(str, s.steps))} steps")
     return {"line": line, "complete": not stopped_early, "steps": fitter.step, "occupied": grid.num_occupied,
             "train_psnr": record["train_psnr"], "held_out_psnr": record["held_out_psnr"],
             "seconds": record["seconds"], "memory_bytes": memory["total"]}

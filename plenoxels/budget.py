@@ -1,0 +1,663 @@
+"""A time budget for the fit: a cost model measured on this machine, the plan it picks, and a pacer that keeps
+the fit on time.
+
+- `calibrate(options, device, background)`: times train steps of the real Fitter on a small synthetic object (thin
+  opaque surfaces, the vertices within 3 voxels of them allocated, as pruning leaves a fit) at a few resolutions, a
+  pruning pass and a level change, on the device and with the threads the fit uses. The `CostModel` fitted to that
+  is cached as JSON under `$XDG_CACHE_HOME/voxfield/` (else `~/.cache/voxfield/`), keyed by the CPU and GPU model,
+  the thread counts, the device, the code of the native core and of this package, and the options that set what a
+  step costs; a changed key measures again (a few seconds).
+- `TimeBudget`: picks the plan (levels, resolutions, steps) whose predicted time fits what is left of the budget;
+  attached to the Fitter, it measures what the real scene costs as the fit goes, re-plans the steps of the levels
+  under way and to come every few steps and at each level change, and says when the fit must stop to end on time.
+
+What a prediction adds up, from where the fit stands to its end: steps times seconds per step (for the level under
+way, what its steps measure; for later levels, the cost model at their occupied voxels, times the ratio of this
+scene's measured pruned levels to it; a first level's ratio counts only above 1, as a first level clears its empty
+space and gets cheaper than a pruned grid of as many voxels while a busy machine does not), level changes (a pruning
+pass over the training rays at the old resolution, then upsampling and a checkpoint that grow with the new grid),
+held-out evaluations, checkpoints, and the end (the last pruning pass, the held-out PSNR, the save). A later level's
+voxels are the level before's, times the share pruning keeps, times the upsampling's growth; the share is a prior
+until a level change has measured it.
+
+Which plan, from what the project measured (bench/README.md, "Fit: quality against cost"): grid resolution buys more
+than steps for the same time (lego `fast` with a 192^3 last level: 29.17 dB in 68 s; with twice the steps at 128^3:
+28.73 dB in 67 s), and a level needs enough steps to converge, but half the presets' steps lose less than one rung of
+resolution does (lego `fast` with half its steps: 27.44 dB; at 96^3 with all of them: 26.96 dB). A grid finer than
+the training photos have pixels across buys nothing (the bench's synthetic scene, trained on 200x150 photos: 128^3
+34.38 dB, 192^3 34.98 dB, 256^3 35.36 dB with more steps than 192^3's 35.43; the demo, trained on 160x120: `fast`'s
+128^3 34.75 dB, a 192^3 plan with fewer steps 34.69 dB). So the rule is: the finest rung of LADDER no finer than the
+photos' longest side whose predicted time fits with at least MIN_SHARE of its steps, given as many steps as the time
+allows up to MAX_SHARE of them (twice the steps bought lego `fast` 0.5 dB). A budget beyond that ends early.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import importlib.util
+import json
+import math
+import os
+import platform
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from plenoxels import native
+from plenoxels.cameras import Intrinsics, look_at
+from plenoxels.grid import SparseGrid, sh_count
+from plenoxels.scene_model import SceneModel
+from plenoxels.train import Fitter, RaySet
+
+CACHE_VERSION = 1
+# Resolutions the calibration times steps at (grids as pruning leaves a fit: about 50k, 230k and 520k voxels).
+CALIBRATION_RESOLUTIONS = (64, 128, 192)
+CALIBRATION_WARMUP = 2
+CALIBRATION_STEPS = 8
+# The calibration's cameras: this many views of this many pixels a side, around the synthetic object.
+CALIBRATION_VIEWS = 24
+CALIBRATION_SIDE = 64
+
+# Shares of a rung's steps a plan may give: at least MIN_SHARE (a level needs enough steps to converge), at most
+# MAX_SHARE (past it, time goes further in a finer grid).
+MIN_SHARE = 0.5
+MAX_SHARE = 2.0
+# Priors for the share of a level's voxels that pruning keeps, until a level change has measured it: the first prune
+# (of a first level's whole box: the demo object keeps 10-25%, a scene that fills its box more) and later ones (of
+# grids pruned before: the demo's last prune keeps 50%). Too high a prior picks a coarser plan than the time allows
+# (re-plans then give it more steps), too low a finer one (re-plans then give it fewer).
+FIRST_KEEP_PRIOR = 0.2
+LATER_KEEP_PRIOR = 0.6
+# Re-plan every this many steps; a level's step time is the mean of its latest STEP_WINDOW, after its first few.
+REPLAN_EVERY = 20
+STEP_WINDOW = 100
+LEVEL_WARMUP = 3
+# Re-plans aim this share of the budget short of the deadline, so that noise in the step times ends the schedule
+# before the deadline's stop does (which would cut the last level's learning-rate decay short).
+SLACK = 0.02
+
+
+@dataclass(frozen=True)
+class Rung:
+    """A candidate schedule: the resolution of each level and its steps at a share of 1."""
+    resolutions: tuple[int, ...]
+    steps: tuple[int, ...]
+
+    def scaled(self, share: float) -> list[int]:
+        return [max(1, round(share * n)) for n in self.steps]
+
+
+# Candidate schedules, coarse to fine, at the presets' step counts: the presets (fast 64->128, balanced 96->192,
+# default 128->256, quality 128->256->384) and rungs between them made the same way.
+LADDER = (
+    Rung((64,), (1000,)),
+    Rung((48, 96), (500, 1000)),
+    Rung((64, 128), (500, 1000)),
+    Rung((80, 160), (600, 1200)),
+    Rung((96, 192), (750, 1500)),
+    Rung((112, 224), (900, 1500)),
+    Rung((128, 256), (1000, 1500)),
+    Rung((128, 256, 320), (1000, 1500, 1500)),
+    Rung((128, 256, 384), (1000, 1500, 1500)),
+)
+
+
+# ---- the cost model and its calibration --------------------------------------------------------------------------
+@dataclass
+class CostModel:
+    """Seconds the parts of a fit take on one machine, for one set of the options that set them."""
+    step_fixed: float
+    """Seconds of one train step whatever the grid (the batch, its rays, the calls)."""
+    step_per_voxel: float
+    """Seconds of one train step per occupied voxel."""
+    pass_per_ray: float
+    """Seconds per ray and per vertex of resolution of a pass that marches the grid (pruning, held-out renders)."""
+    change_per_voxel: float
+    """Seconds per voxel of the new grid at a level change, beyond its pruning pass (upsampling, optimiser state)."""
+    checkpoint_per_voxel: float
+    """Seconds per voxel to write a checkpoint (at each level change, every checkpoint_every seconds, at a stop)."""
+    save_per_voxel: float
+    """Seconds per voxel to save the fitted model."""
+
+    def step_seconds(self, voxels: float) -> float:
+        return self.step_fixed + self.step_per_voxel * voxels
+
+    def pass_seconds(self, rays: float, resolution: int) -> float:
+        return self.pass_per_ray * rays * resolution
+
+    def describe(self) -> str:
+        return f"{1000 * self.step_fixed:.1f} ms per step plus {1e8 * self.step_per_voxel:.1f} ms per 100k voxels"
+
+
+def cache_dir() -> Path:
+    """Where calibrations are kept: $XDG_CACHE_HOME/voxfield, else ~/.cache/voxfield."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "voxfield"
+
+
+def _processor() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+@functools.lru_cache(maxsize=4)
+def _file_digest(path: str, size: int, mtime: float) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def code_hash() -> str:
+    """The native core's build and this package's sources: the code a step runs."""
+    digest = hashlib.sha256()
+    spec = importlib.util.find_spec("plenoxels._C")
+    if spec is not None and spec.origin:
+        stat = os.stat(spec.origin)
+        digest.update(_file_digest(spec.origin, stat.st_size, stat.st_mtime).encode())
+    for source in sorted(Path(__file__).resolve().parent.glob("*.py")):
+        digest.update(source.name.encode() + source.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def calibration_key(options, device: torch.device, background: dict | None,
+                    resolutions=CALIBRATION_RESOLUTIONS) -> dict:
+    """What a calibration holds for: the machine, the code, the options (of the fit's Settings, a TrainOptions and a
+    ModelOptions) that set what a step costs, and the fit's background model (n_spheres, width; None: none)."""
+    cost_options = {name: getattr(options, name) for name in (
+        "batch_size", "batch_mode", "tile_size", "coherent_batches", "sh_degree", "step_size", "stop_transmittance",
+        "tv_sample_fraction", "prune_ray_scale")}
+    return {
+        "version": CACHE_VERSION, "cpu": _processor(),
+        "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
+        "device": device.type, "threads": native.num_threads(), "torch_threads": torch.get_num_threads(),
+        "code": code_hash(), "background": background, "options": cost_options, "resolutions": list(resolutions),
+    }
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _surface_distance(points: torch.Tensor) -> torch.Tensor:
+    """Signed distance (negative inside) to the calibration object in [-1, 1]^3: a ball, a box and a thin slab."""
+    ball = (points - torch.tensor([0.25, 0.1, 0.05])).norm(dim=-1) - 0.45
+    q = (points - torch.tensor([-0.35, -0.2, -0.15])).abs() - torch.tensor([0.3, 0.25, 0.35])
+    box = q.clamp_min(0).norm(dim=-1) + q.max(dim=-1).values.clamp_max(0)
+    slab = torch.maximum((points[..., 2] + 0.6).abs() - 0.05, (points[..., :2].abs() - 0.9).max(dim=-1).values)
+    return torch.minimum(torch.minimum(ball, box), slab)
+
+
+def _surface_grid(model: SceneModel, resolution: int, sh_degree: int) -> SparseGrid:
+    """The calibration object in the model's box as a converged, pruned fit has it: opaque within a voxel inside its
+    surfaces, empty elsewhere, the vertices within 3 voxels of a surface allocated."""
+    shape = model.resolution_for(resolution)
+    lo, hi = model.grid.bbox_min, model.grid.bbox_max
+    axes = [torch.linspace(lo[a], hi[a], shape[a]) for a in range(3)]
+    voxel = max((hi[a] - lo[a]) / (shape[a] - 1) for a in range(3))
+    y, z = torch.meshgrid(axes[1], axes[2], indexing="ij")
+    distance = torch.stack([_surface_distance(torch.stack([torch.full_like(y, float(x)), y, z], dim=-1))
+                            for x in axes[0]])  # a slab at a time: little memory at any resolution
+    keep = distance.abs() < 3 * voxel
+    links = torch.full(shape, -1, dtype=torch.int32)
+    count = int(keep.sum())
+    links[keep] = torch.arange(count, dtype=torch.int32)
+    density = 300.0 * torch.sigmoid(-distance[keep] / voxel) - 10.0
+    sh = torch.randn(count, 3 * sh_count(sh_degree), generator=torch.Generator().manual_seed(0)) * 0.3
+    return SparseGrid.from_values(links, density, sh, lo, hi, sh_degree)
+
+
+def _calibration_views(model: SceneModel) -> RaySet:
+    """CALIBRATION_VIEWS cameras on a band of a sphere around the object, looking at it, with `model`'s renders as
+    their photos."""
+    images, c2ws, ks = [], [], []
+    side = CALIBRATION_SIDE
+    for i in range(CALIBRATION_VIEWS):
+        z = 0.9 - 1.4 * (i + 0.5) / CALIBRATION_VIEWS
+        angle = i * math.pi * (3 - math.sqrt(5))
+        eye = 3.0 * np.array([math.sqrt(1 - z * z) * math.cos(angle), math.sqrt(1 - z * z) * math.sin(angle), z])
+        c2ws.append(look_at(eye, (0.0, 0.0, 0.0)))
+        ks.append(Intrinsics(1.2 * side, 1.2 * side, side / 2, side / 2, side, side))
+        images.append(model.render_camera(c2ws[-1], ks[-1])["rgb"].cpu().numpy())
+    return RaySet(images, c2ws, ks)
+
+
+def _time_steps(fitter: Fitter, device: torch.device) -> float:
+    """Median seconds of CALIBRATION_STEPS train steps after CALIBRATION_WARMUP."""
+    for _ in range(CALIBRATION_WARMUP):
+        fitter.train_step()
+    times = []
+    for _ in range(CALIBRATION_STEPS):
+        _sync(device)
+        started = time.perf_counter()
+        fitter.train_step()
+        _sync(device)
+        times.append(time.perf_counter() - started)
+    return float(np.median(times))
+
+
+def measure(options, device: torch.device, background: dict | None, resolutions=CALIBRATION_RESOLUTIONS) -> dict:
+    """Times the real Fitter with these options (and a background model of `background`'s n_spheres and width) on
+    the calibration object: steps and a pruning pass at each resolution, then one level change. Returns the cost
+    model's fields and what was measured."""
+    started = time.perf_counter()
+    scene = {"type": "object", "foreground": {"min": [-1.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}}
+    model_options = dataclasses.replace(options, ndc="off", background="on" if background else "off")
+    if background:
+        model_options = dataclasses.replace(model_options, background_spheres=background["n_spheres"],
+                                            background_width=background["width"])
+
+    def model_at(resolution: int) -> SceneModel:
+        model = SceneModel.create(scene, model_options, 8)
+        model.grid = _surface_grid(model, resolution, options.sh_degree)
+        return model
+
+    views = _calibration_views(model_at(resolutions[0]))
+    rays = views.subsampled_rays(options.prune_ray_scale)[0].shape[0]
+
+    def fitter_at(levels: list[int]) -> Fitter:
+        fit_options = dataclasses.replace(model_options, resolutions=levels, steps=[1_000_000] * len(levels))
+        return Fitter(model_at(levels[0]), fit_options, views, device)
+
+    points, passes = [], []
+    for resolution in resolutions:
+        fitter = fitter_at([resolution])
+        points.append((fitter.model.grid.num_occupied, _time_steps(fitter, device)))
+        _sync(device)
+        begun = time.perf_counter()
+        fitter.measure_weights()
+        _sync(device)
+        passes.append((rays * resolution, time.perf_counter() - begun))
+        del fitter
+    voxels, seconds = np.array([p[0] for p in points], dtype=np.float64), np.array([p[1] for p in points])
+    slope, fixed = np.polyfit(voxels, seconds, 1)
+    if fixed < 0 or slope <= 0:  # noise: keep the model positive and not decreasing
+        slope, fixed = max(0.0, float((voxels * seconds).sum() / (voxels * voxels).sum())), 0.0
+        if slope == 0.0:
+            fixed = float(seconds.mean())
+    pass_per_ray = float(sum(a * t for a, t in passes) / sum(a * a for a, _ in passes))
+
+    # One level change, from the coarsest grid to twice its resolution, then a checkpoint and a save of the model.
+    fitter = fitter_at([resolutions[0], 2 * resolutions[0]])
+    fitter.step = fitter.level_end(0)
+    with tempfile.TemporaryDirectory() as tmp:
+        _sync(device)
+        clock = [time.perf_counter()]
+        fitter.next_level()
+        _sync(device)
+        clock.append(time.perf_counter())
+        fitter.save_checkpoint(Path(tmp) / "checkpoint.pt")
+        clock.append(time.perf_counter())
+        fitter.model.save(Path(tmp))
+        clock.append(time.perf_counter())
+    change, checkpoint, save = np.diff(clock)
+    new_voxels = fitter.model.grid.num_occupied
+    return {
+        "costs": {"step_fixed": float(fixed), "step_per_voxel": float(slope), "pass_per_ray": pass_per_ray,
+                  "change_per_voxel": max(0.0, change - pass_per_ray * rays * resolutions[0]) / new_voxels,
+                  "checkpoint_per_voxel": checkpoint / new_voxels, "save_per_voxel": save / new_voxels},
+        "points": [{"resolution": r, "voxels": n, "step_seconds": round(t, 5)}
+                   for r, (n, t) in zip(resolutions, points)],
+        "level_change": {"voxels": new_voxels, "seconds": round(float(change), 4),
+                         "checkpoint_seconds": round(float(checkpoint), 4), "save_seconds": round(float(save), 4)},
+        "seconds": round(time.perf_counter() - started, 2),
+        "load_average": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
+        "when": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
+
+
+def calibrate(options, device: torch.device, background: dict | None = None, resolutions=CALIBRATION_RESOLUTIONS,
+              say: Callable[[str], None] | None = None) -> tuple[CostModel, dict]:
+    """The cost model for these options on this machine: from the cache when its key matches, else measured (a few
+    seconds) and cached. Returns it and the calibration's record, with `cached` and `file` added."""
+    key = calibration_key(options, device, background, resolutions)
+    path = cache_dir() / f"fit-cost-{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]}.json"
+    try:
+        record = json.loads(path.read_text())
+        if record.get("key") == key:
+            return CostModel(**record["costs"]), {**record, "cached": True, "file": str(path)}
+    except (OSError, ValueError, TypeError, KeyError):
+        pass  # none yet, or unreadable: measure
+    if say is not None:
+        say(f"measuring what the fit costs on this machine ({key['device']}, {key['threads']} threads; once, then "
+            f"cached in {path.parent})")
+    record = {"key": key, **measure(options, device, background, resolutions)}
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(record, indent=2))
+        tmp.replace(path)
+    except OSError:
+        pass  # an unwritable cache: measure again next time
+    return CostModel(**record["costs"]), {**record, "cached": False, "file": str(path)}
+
+
+# ---- predictions and plans ----------------------------------------------------------------------------------------
+@dataclass
+class FitFacts:
+    """What a prediction needs to know of the fit besides its schedule."""
+    box_voxels: Callable[[int], int]   # vertices of a first level's grid (its whole box) at a resolution
+    prune_rays: int                    # rays of a pruning pass
+    eval_rays: int                     # rays of one held-out evaluation (0: none)
+    eval_every: int
+    checkpoint_every: float
+    voxel_budget: int
+    max_resolution: int = 1 << 30      # the finest final resolution worth fitting: the photos' longest side
+
+
+@dataclass
+class Outlook:
+    """Where the fit stands and what it has measured: the state a prediction starts from."""
+    level: int = 0
+    step: int = 0
+    voxels: int = 0                    # of the current grid
+    dense: bool = True                 # the current grid is a first level's (nothing pruned yet)
+    step_seconds: float | None = None  # measured at the current level
+    step_ratio: float = 1.0            # for later levels: this scene's measured step time over the model's
+    change_ratio: float = 1.0          # this scene's measured level changes (and their checkpoints) over the model's
+    eval_ratio: float = 1.0            # this scene's measured held-out evaluations over the model's
+    first_keep: float = FIRST_KEEP_PRIOR
+    later_keep: float = LATER_KEEP_PRIOR
+
+
+def finish_seconds(costs: CostModel, facts: FitFacts, now: Outlook, resolution: int, voxels: float,
+                   stop: bool = False) -> float:
+    """The end of a fit at this resolution and size: the last pruning pass (of a pruned grid, as the calibration's
+    are), the held-out PSNR and the save; after a `stop`, the checkpoint the stop writes first."""
+    return (costs.pass_seconds(facts.prune_rays, resolution) + costs.save_per_voxel * voxels
+            + now.eval_ratio * costs.pass_seconds(facts.eval_rays, resolution)
+            + (costs.checkpoint_per_voxel * voxels if stop else 0.0))
+
+
+def predict(costs: CostModel, facts: FitFacts, now: Outlook, resolutions: list[int], steps: list[int]) -> float:
+    """Seconds from where the fit stands to its end for this schedule, whose levels before `now.level` are done."""
+    seconds, voxels, start, remaining = 0.0, float(now.voxels), sum(steps[:now.level]), 0
+    for level in range(now.level, len(resolutions)):
+        if level == now.level:
+            step = now.step_seconds or now.step_ratio * costs.step_seconds(voxels)
+        else:
+            kept = (now.first_keep if level == 1 else now.later_keep) * voxels
+            voxels = min(facts.voxel_budget, kept * (resolutions[level] / resolutions[level - 1]) ** 3)
+            seconds += now.change_ratio * (costs.pass_seconds(facts.prune_rays, resolutions[level - 1])
+                                           + (costs.change_per_voxel + costs.checkpoint_per_voxel) * voxels)
+            step = now.step_ratio * costs.step_seconds(voxels)
+        end = start + steps[level]
+        first = max(start, now.step)
+        seconds += (end - first) * step
+        remaining += end - first
+        if facts.eval_every and facts.eval_rays:
+            evaluations = end // facts.eval_every - first // facts.eval_every
+            seconds += evaluations * now.eval_ratio * costs.pass_seconds(facts.eval_rays, resolutions[level])
+        start = end
+    checkpoints = min(remaining, math.floor(seconds / facts.checkpoint_every))  # at most one a step
+    seconds += checkpoints * costs.checkpoint_per_voxel * voxels
+    return seconds + finish_seconds(costs, facts, now, resolutions[-1], voxels)
+
+
+def _largest_share(fits: Callable[[float], bool], low: float, high: float) -> float | None:
+    """The largest share in [low, high] for which `fits` holds (which then holds for every smaller share)."""
+    if not fits(low):
+        return None
+    if fits(high):
+        return high
+    for _ in range(30):
+        middle = (low + high) / 2
+        low, high = (middle, high) if fits(middle) else (low, middle)
+    return low
+
+
+@dataclass
+class Plan:
+    resolutions: list[int]
+    steps: list[int]
+    share: float       # of the rung's steps
+    predicted: float   # seconds from when it was made to the end of the fit
+    fits: bool         # whether it fits with at least MIN_SHARE of its steps
+
+    def describe(self) -> str:
+        levels = f"{len(self.resolutions)} level{'s' if len(self.resolutions) > 1 else ''}"
+        return f"{levels} {'->'.join(map(str, self.resolutions))}, {'+'.join(map(str, self.steps))} steps"
+
+
+def _finest_first(ladder) -> list[Rung]:
+    return sorted(ladder, key=lambda r: (r.resolutions[-1], len(r.resolutions)), reverse=True)
+
+
+def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung, ...] | None = None) -> Plan:
+    """The plan for a fit that has not started: the finest rung (no finer than `facts.max_resolution`) whose predicted
+    time fits `seconds` with at least MIN_SHARE of its steps, with the most steps that fit up to MAX_SHARE; when none
+    fits, the coarsest rung with the steps that fit (at least one a level)."""
+    ladder = _finest_first(ladder or LADDER)
+    ladder = [r for r in ladder if r.resolutions[-1] <= facts.max_resolution] or ladder[-1:]
+
+    def seconds_for(rung: Rung, share: float) -> float:
+        now = Outlook(voxels=facts.box_voxels(rung.resolutions[0]))
+        return predict(costs, facts, now, list(rung.resolutions), rung.scaled(share))
+
+    def plan(rung: Rung, share: float) -> Plan:
+        return Plan(list(rung.resolutions), rung.scaled(share), share, seconds_for(rung, share), share >= MIN_SHARE)
+
+    for rung in ladder:
+        share = _largest_share(lambda s: seconds_for(rung, s) <= seconds, MIN_SHARE, MAX_SHARE)
+        if share is not None:
+            return plan(rung, share)
+    coarsest = ladder[-1]
+    return plan(coarsest, _largest_share(lambda s: seconds_for(coarsest, s) <= seconds, 0.0, MIN_SHARE) or 0.0)
+
+
+def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung: Rung, resolutions: list[int],
+           steps: list[int], measured: bool) -> tuple[list[int], list[int], float]:
+    """(resolutions, steps, share) for a fit under way, the levels done kept: the most steps (a share of the rung's,
+    at most MAX_SHARE) whose predicted time fits `seconds`. With `measured` costs (after a level change), a level still
+    to come that would get less than MIN_SHARE of its steps is dropped."""
+    done = now.step - sum(steps[:now.level])
+
+    def schedule(share: float, levels: int) -> list[int]:
+        new = rung.scaled(share)[:levels]
+        new[:now.level] = steps[:now.level]
+        new[now.level] = max(done, new[now.level])
+        return new
+
+    def fits(levels: int) -> Callable[[float], bool]:
+        return lambda s: predict(costs, facts, now, resolutions[:levels], schedule(s, levels)) <= seconds
+
+    for levels in range(len(resolutions), now.level, -1) if measured else [len(resolutions)]:
+        share = _largest_share(fits(levels), MIN_SHARE, MAX_SHARE)
+        if share is not None:
+            return resolutions[:levels], schedule(share, levels), share
+    share = _largest_share(fits(len(resolutions)), 0.0, MIN_SHARE) or 0.0
+    return list(resolutions), schedule(share, len(resolutions)), share
+
+
+# ---- the budget of one fit ----------------------------------------------------------------------------------------
+class TimeBudget:
+    """Plans a fit to end by `started + seconds` and keeps it on time.
+
+    Made before the Fitter, whose options are then `options` (the fit's, with the plan's levels and steps), and
+    `attach`ed to it once it exists (resumed or new). While it runs, the caller calls `step()` after each step and
+    `level()` after each level change, wraps held-out evaluations in `timed`, and stops the fit when `due()`.
+    `line()` says what was chosen and why; `record()` says it all, for fit.json.
+    """
+
+    def __init__(self, seconds: float, options, new_model: Callable[[int], SceneModel], train: RaySet,
+                 eval_rays: int, device: torch.device, started: float, plan_file: Path | None = None,
+                 resume: bool = False, say: Callable[[str], None] | None = None,
+                 ladder: tuple[Rung, ...] | None = None):
+        """`new_model(resolution)` makes the fit's first model (its box and background are what a plan needs)."""
+        self.seconds, self.started, self.plan_file = float(seconds), started, plan_file
+        self.deadline = started + self.seconds
+        probe = new_model(8)
+        firsts = {rung.resolutions[0] for rung in ladder or LADDER}
+        box_voxels = {r: int(np.prod(probe.resolution_for(r))) for r in firsts}
+        background = probe.background.config() if probe.background is not None else None
+        del probe
+        stride = max(1, round(1 / options.prune_ray_scale))  # as RaySet.subsampled_rays takes them
+        prune_rays = sum(math.ceil(h / stride) * math.ceil(w / stride) for h, w in train.sizes.tolist())
+        self.facts = FitFacts(box_voxels=box_voxels.__getitem__, prune_rays=prune_rays, eval_rays=eval_rays,
+                              eval_every=options.eval_every, checkpoint_every=options.checkpoint_every,
+                              voxel_budget=options.voxel_budget, max_resolution=int(train.sizes.max()))
+        background = background and {"n_spheres": background["n_spheres"], "width": background["width"]}
+        self.costs, self.calibration = calibrate(options, device, background, say=say)
+        saved = json.loads(plan_file.read_text()) if resume and plan_file is not None and plan_file.is_file() else None
+        if saved is not None:  # a resumed fit keeps the plan its checkpoint was made with
+            self.rung = Rung(tuple(saved["rung"]["resolutions"]), tuple(saved["rung"]["steps"]))
+            self.plan = Plan(**saved["plan"])
+            resolutions, steps = saved["resolutions"], saved["steps"]
+        else:
+            self.plan = choose(self.left(), self.costs, self.facts, ladder)
+            self.rung = next(r for r in ladder or LADDER if list(r.resolutions) == self.plan.resolutions)
+            resolutions, steps = self.plan.resolutions, self.plan.steps
+        self.options = dataclasses.replace(options, resolutions=list(resolutions), steps=list(steps))
+        self.now = Outlook()
+        self.fitter: Fitter | None = None
+        self.replans: list[dict] = []          # at each level change, and the latest one within each level
+        self.level_seconds: list[float] = []   # the step time measured at each level
+        self._intervals: list[float] = []      # the current level's latest step times
+        self._last = time.perf_counter()
+        self._eval_seconds = 0.0               # of held-out evaluations since the last step
+        self._save_plan()
+
+    def left(self) -> float:
+        return self.deadline - time.time()
+
+    def attach(self, fitter: Fitter) -> None:
+        """Follows `fitter` from here; a resumed fit has already used `fitter.elapsed` of the budget."""
+        self.fitter = fitter
+        self.deadline = self.started + self.seconds - fitter.elapsed
+        start = sum(self.options.steps[:fitter.level])
+        self.options.steps[fitter.level] = max(self.options.steps[fitter.level], fitter.step - start)
+        self.now = Outlook(level=fitter.level, step=fitter.step, voxels=fitter.model.grid.num_occupied,
+                           dense=not fitter.levels)
+        self._last = time.perf_counter()
+
+    def due(self) -> bool:
+        """True when what is left of the budget is what it takes to end the fit as it stands (the stop's checkpoint,
+        the last pruning pass, the held-out PSNR and the save)."""
+        resolution = self.options.resolutions[self.fitter.level]
+        return self.left() <= finish_seconds(self.costs, self.facts, self.now, resolution, self.now.voxels, stop=True)
+
+    def step(self) -> None:
+        """After each step: its time (held-out evaluations left out), and a re-plan every REPLAN_EVERY steps."""
+        clock = time.perf_counter()
+        interval, self._last, self._eval_seconds = clock - self._last - self._eval_seconds, clock, 0.0
+        if self.fitter.step - sum(self.options.steps[:self.fitter.level]) > LEVEL_WARMUP:
+            self._intervals = (self._intervals + [interval])[-STEP_WINDOW:]
+        if self.fitter.step % REPLAN_EVERY == 0 and len(self._intervals) >= 5:
+            measured = float(np.mean(self._intervals))
+            ratio = measured / self.costs.step_seconds(self.now.voxels)
+            self.now.step_ratio = max(1.0, ratio) if self.now.dense else ratio
+            self.now.step_seconds = measured
+            self._replan("steps")
+
+    def level(self) -> None:
+        """After a level change: what it took, the share pruning kept, the new grid; then a re-plan."""
+        fitter = self.fitter
+        change, self._eval_seconds = time.perf_counter() - self._last - self._eval_seconds, 0.0
+        entry = fitter.levels[-1]
+        predicted = (self.costs.pass_seconds(self.facts.prune_rays, self.options.resolutions[fitter.level - 1])
+                     + (self.costs.change_per_voxel + self.costs.checkpoint_per_voxel) * entry["occupied"])
+        self.now.change_ratio = change / max(predicted, 1e-9)
+        kept = entry["kept"] / max(1, entry["pruned_from"])
+        if self.now.dense:
+            self.now.first_keep = kept
+        else:
+            self.now.later_keep = kept
+        if self._intervals:
+            self.level_seconds.append(round(float(np.mean(self._intervals)), 5))
+        self.now.level, self.now.voxels, self.now.dense = fitter.level, entry["occupied"], False
+        self.now.step_seconds = None
+        self._intervals = []
+        self._last = time.perf_counter()
+        self._replan("level change")
+
+    def timed(self, evaluate: Callable[[SceneModel], float]) -> Callable[[SceneModel], float]:
+        """`evaluate` (a held-out evaluation), timed: kept out of the step times, and what later ones will take."""
+        def run(model: SceneModel) -> float:
+            begun = time.perf_counter()
+            value = evaluate(model)
+            took = time.perf_counter() - begun
+            self._eval_seconds += took
+            if self.facts.eval_rays:
+                self.now.eval_ratio = took / max(self.costs.pass_seconds(self.facts.eval_rays,
+                                                                         max(model.grid.resolution)), 1e-9)
+            return value
+        return run
+
+    def _replan(self, why: str) -> None:
+        self.now.step = self.fitter.step
+        resolutions, steps, share = replan(self.left() - SLACK * self.seconds, self.costs, self.facts, self.now,
+                                           self.rung, self.options.resolutions, self.options.steps,
+                                           measured=bool(self.fitter.levels))
+        entry = {"why": why, "step": self.fitter.step, "seconds_left": round(self.left(), 1), "share": round(share, 3),
+                 "steps": steps, "step_seconds": round(self.now.step_seconds or 0.0, 5)}
+        if len(resolutions) < len(self.options.resolutions):
+            entry["dropped_levels"] = self.options.resolutions[len(resolutions):]
+        # In place: the Fitter reads its schedule from these lists at every step (Fitter.run).
+        self.options.resolutions[:] = resolutions
+        self.options.steps[:] = steps
+        if why == "steps" and self.replans and self.replans[-1]["why"] == "steps" and "dropped_levels" not in entry:
+            self.replans[-1] = entry
+        else:
+            self.replans.append(entry)
+        self._save_plan()
+
+    def _save_plan(self) -> None:
+        if self.plan_file is None:
+            return
+        state = {"rung": dataclasses.asdict(self.rung), "plan": dataclasses.asdict(self.plan),
+                 "resolutions": self.options.resolutions, "steps": self.options.steps}
+        tmp = self.plan_file.with_name(self.plan_file.name + ".tmp")
+        tmp.write_text(json.dumps(state))
+        tmp.replace(self.plan_file)
+
+    # ---- what it says -----------------------------------------------------------------------------------------
+    def line(self) -> str:
+        """'budget 90s: 2 levels 96->192, 600+900 steps, predicted 84 s from a calibration of ... on this machine'."""
+        note = ""
+        if not self.plan.fits:
+            note = " (less than the coarsest plan needs: it stops at the deadline)"
+        elif self.plan.share >= MAX_SHARE and not any(
+                self.plan.resolutions[-1] < r.resolutions[-1] <= self.facts.max_resolution for r in LADDER):
+            note = (f" (as fine as the {self.facts.max_resolution}-pixel photos are worth, with twice the steps: more "
+                    f"time would not help)")
+        return (f"budget {_duration(self.seconds)}: {self.plan.describe()}, predicted {self.plan.predicted:.0f} s"
+                f"{note} from a calibration of {self.costs.describe()} on this machine")
+
+    def record(self, stopped_at_deadline: bool) -> dict:
+        latest = [round(float(np.mean(self._intervals)), 5)] if self._intervals else []
+        return {
+            "seconds": self.seconds, "line": self.line(),
+            "why": (f"the finest candidate (plenoxels/budget.py LADDER) no finer than the photos' "
+                    f"{self.facts.max_resolution} pixels whose predicted time fits with at least {MIN_SHARE:g}x its "
+                    f"steps, given the most steps that fit, up to {MAX_SHARE:g}x"),
+            "chosen": {**dataclasses.asdict(self.plan), "share": round(self.plan.share, 3),
+                       "predicted": round(self.plan.predicted, 1)},
+            "ran": {"resolutions": list(self.options.resolutions), "steps": list(self.options.steps)},
+            "stopped_at_deadline": stopped_at_deadline,
+            "step_seconds_per_level": self.level_seconds + latest,
+            "scene_over_model": {"later_steps": round(self.now.step_ratio, 3),
+                                 "level_change": round(self.now.change_ratio, 3),
+                                 "held_out": round(self.now.eval_ratio, 3)},
+            "kept_share": {"first_prune": round(self.now.first_keep, 4), "later_prunes": round(self.now.later_keep, 4)},
+            "replans": self.replans,
+            "calibration": {"costs": dataclasses.asdict(self.costs), "points": self.calibration.get("points"),
+                            "level_change": self.calibration.get("level_change"),
+                            "cached": self.calibration["cached"], "file": self.calibration["file"],
+                            "key": self.calibration["key"], "measured_in_seconds": self.calibration.get("seconds"),
+                            "load_average": self.calibration.get("load_average"),
+                            "when": self.calibration.get("when")},
+        }
+
+
+def _duration(seconds: float) -> str:
+    """90 -> '1m30s', 300 -> '5m', 45 -> '45s'."""
+    minutes, rest = divmod(int(round(seconds)), 60)
+    return f"{minutes}m{rest:02d}s" if minutes and rest else f"{minutes}m" if minutes else f"{rest}s"

@@ -1,0 +1,225 @@
+"""The fit's time budget: durations, the cached calibration, plans that fit, and budgeted fits that end on time."""
+import os
+import shutil
+import signal
+import time
+
+import pytest
+import torch
+from test_fit import QUICK, make_scene, run_stage
+
+from pipeline import config
+from pipeline.io import read_json
+from plenoxels import budget
+from plenoxels.budget import CostModel, FitFacts, Outlook, Rung
+from plenoxels.errors import UserError
+from plenoxels.train import Fitter
+from stages import fit
+
+# A tiny ladder and a cost model that thinks every step is free: the plan then asks for far more steps than the
+# budget holds, and only the deadline's stop can end the fit on time.
+TINY_LADDER = (Rung((16, 32), (400, 800)),)
+FREE = CostModel(step_fixed=1e-6, step_per_voxel=1e-12, pass_per_ray=1e-12, change_per_voxel=1e-12,
+                 checkpoint_per_voxel=1e-12, save_per_voxel=1e-12)
+# Roughly what this machine measured with the fast preset's options on one thread.
+MEASURED = CostModel(step_fixed=0.018, step_per_voxel=7e-8, pass_per_ray=1.7e-8, change_per_voxel=5e-7,
+                     checkpoint_per_voxel=4e-7, save_per_voxel=1e-7)
+FACTS = FitFacts(box_voxels=lambda r: r ** 3, prune_rays=170_000, eval_rays=3600, eval_every=250,
+                 checkpoint_every=180.0, voxel_budget=16_000_000)
+# What the budgeted fits of the tiny scene share with tests/test_fit.py, without its levels.
+BUDGETED = {k: v for k, v in QUICK.items() if k not in ("resolutions", "steps")} | {"sh_degree": 1}
+
+
+@pytest.fixture(autouse=True)
+def private_cache(tmp_path, monkeypatch):
+    """Calibrations go to a folder of the test's own, never to the user's cache."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_scene(tmp_path_factory.mktemp("budget"))
+
+
+@pytest.fixture
+def fresh(scene, tmp_path):
+    root = tmp_path / "scene"
+    shutil.copytree(scene / "synth", root / "synth")
+    shutil.copytree(scene / "normalize", root / "normalize")
+    return root
+
+
+# ---- the setting ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("value, seconds", [("90s", 90), ("5m", 300), ("2m30s", 150), ("1h", 3600), (90, 90),
+                                            ("90", 90), (12.5, 12.5), ("1.5m", 90), (0, 0), ("0", 0), ("", 0)])
+def test_time_budget_takes_durations(value, seconds):
+    assert config.build(fit.Settings, "fit", {"time_budget": value}).budget_seconds == seconds
+
+
+@pytest.mark.parametrize("raw", ["5x", "abc", "-3", "30s2m", "5m5m", "m", "null", "inf"])
+def test_a_bad_time_budget_is_a_one_line_error_naming_the_key(raw):
+    values = config.parse_overrides([f"fit.time_budget={raw}"])["fit"]
+    with pytest.raises(UserError) as info:
+        config.build(fit.Settings, "fit", values)
+    message = str(info.value)
+    assert "fit.time_budget" in message and "\n" not in message
+
+
+def test_the_default_is_no_budget():
+    assert fit.Settings().budget_seconds == 0
+
+
+# ---- the calibration -----------------------------------------------------------------------------------------------
+def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(monkeypatch):
+    options = config.build(fit.Settings, "fit", {"batch_size": 512, "sh_degree": 0})
+    small = (16, 24, 32)
+    measured = []
+    original = budget.measure
+    monkeypatch.setattr(budget, "measure", lambda *a, **k: measured.append(1) or original(*a, **k))
+    cpu = torch.device("cpu")
+
+    costs, record = budget.calibrate(options, cpu, None, small)
+    assert not record["cached"] and len(measured) == 1
+    assert costs.step_fixed + costs.step_per_voxel * 1e5 > 0 and costs.pass_per_ray > 0
+    assert record["file"].startswith(os.environ["XDG_CACHE_HOME"])
+    assert record["key"]["threads"] >= 1 and record["key"]["code"] and record["key"]["device"] == "cpu"
+
+    again, record = budget.calibrate(options, cpu, None, small)
+    assert record["cached"] and len(measured) == 1 and again == costs
+
+    budget.calibrate(config.build(fit.Settings, "fit", {"batch_size": 256, "sh_degree": 0}), cpu, None, small)
+    assert len(measured) == 2  # other options that set a step's cost
+    budget.calibrate(options, cpu, {"n_spheres": 4, "width": 16}, small)
+    assert len(measured) == 3  # a background model
+    monkeypatch.setattr(budget.native, "num_threads", lambda: 97)
+    budget.calibrate(options, cpu, None, small)
+    assert len(measured) == 4  # another thread count
+    monkeypatch.setattr(budget, "code_hash", lambda: "changed")
+    _, record = budget.calibrate(options, cpu, None, small)
+    assert len(measured) == 5 and not record["cached"]  # other code
+    with open(record["file"], "w") as handle:
+        handle.write("{ not json")
+    _, record = budget.calibrate(options, cpu, None, small)
+    assert len(measured) == 6 and not record["cached"]  # an unreadable cache file is measured again
+    assert len(list(budget.cache_dir().glob("fit-cost-*.json"))) == 5
+
+
+# ---- plans ---------------------------------------------------------------------------------------------------------
+def test_a_plan_never_predicts_more_than_its_budget_and_more_time_buys_a_finer_grid():
+    finals = []
+    for seconds in (20, 30, 45, 60, 90, 120, 180, 300, 600, 1200, 3600):
+        plan = budget.choose(seconds, MEASURED, FACTS)
+        assert plan.fits and plan.predicted <= seconds, (seconds, plan)
+        assert budget.MIN_SHARE <= plan.share <= budget.MAX_SHARE
+        rung = next(r for r in budget.LADDER if list(r.resolutions) == plan.resolutions)
+        assert plan.steps == rung.scaled(plan.share)
+        finer = [r for r in budget.LADDER if r.resolutions[-1] > plan.resolutions[-1]]
+        for other in finer:  # the finest that fits: no finer rung fits with its fewest steps
+            now, fewest = Outlook(voxels=FACTS.box_voxels(other.resolutions[0])), other.scaled(budget.MIN_SHARE)
+            assert budget.predict(MEASURED, FACTS, now, list(other.resolutions), fewest) > seconds
+        finals.append(plan.resolutions[-1])
+    assert finals == sorted(finals) and finals[-1] > finals[0] and len(set(finals)) >= 4, finals
+
+
+def test_a_plan_is_no_finer_than_the_photos_have_pixels():
+    small_photos = FitFacts(**{**FACTS.__dict__, "max_resolution": 160})
+    plan = budget.choose(3600, MEASURED, small_photos)
+    assert plan.resolutions[-1] == 160 and plan.share == budget.MAX_SHARE and plan.predicted < 3600
+    assert budget.choose(3600, MEASURED, FACTS).resolutions[-1] == 384
+
+
+def test_a_budget_below_the_coarsest_plan_gets_what_fits_of_it():
+    plan = budget.choose(2.0, MEASURED, FACTS)
+    assert not plan.fits and plan.resolutions == [64] and plan.share < budget.MIN_SHARE
+    assert plan.predicted <= 2.0
+
+
+def test_a_replan_follows_the_measured_cost_and_drops_a_level_that_cannot_converge():
+    rung = budget.LADDER[-1]  # 128 -> 256 -> 384
+    resolutions, steps = list(rung.resolutions), rung.scaled(1.0)
+    now = Outlook(level=1, step=1100, voxels=2_000_000, dense=False)
+    fast_left = budget.predict(MEASURED, FACTS, now, resolutions, steps)
+    kept, new_steps, share = budget.replan(fast_left, MEASURED, FACTS, now, rung, resolutions, steps, measured=True)
+    assert kept == resolutions and share == pytest.approx(1.0, abs=0.02)
+    assert budget.predict(MEASURED, FACTS, now, kept, new_steps) <= fast_left
+
+    now.step_seconds, now.step_ratio = 3 * MEASURED.step_seconds(2_000_000), 3.0  # three times slower than modelled
+    kept, new_steps, share = budget.replan(fast_left, MEASURED, FACTS, now, rung, resolutions, steps, measured=True)
+    assert budget.predict(MEASURED, FACTS, now, kept, new_steps) <= fast_left
+    assert new_steps[0] == steps[0] and new_steps[1] >= 100  # the levels done stay as they were
+    assert kept == resolutions[:2] and share >= budget.MIN_SHARE  # the 384 level could not get half its steps
+
+
+# ---- budgeted fits -------------------------------------------------------------------------------------------------
+def test_a_budgeted_fit_ends_within_its_budget_with_a_complete_model(fresh):
+    seconds = 12.0
+    started = time.time()
+    summary = run_stage(fresh, fit, {**BUDGETED, "time_budget": f"{seconds:g}s"})
+    took = time.time() - started
+    # The budget covers the stage, its first calibration included; generous for a machine shared with other work.
+    assert took <= 1.1 * seconds + 4.0, took
+    record = read_json(fresh / "fit" / "fit.json")
+    assert record["complete"] and (fresh / "fit" / "grid.pt").is_file()
+    plan = record["budget"]
+    assert plan["seconds"] == seconds and plan["chosen"]["predicted"] <= seconds
+    assert plan["ran"]["resolutions"] == record["resolutions"] and record["steps"] <= sum(plan["ran"]["steps"])
+    assert plan["calibration"]["cached"] is False and plan["calibration"]["costs"]["step_fixed"] >= 0
+    assert record["held_out_psnr"] > 13.0, record["held_out_psnr"]  # it learned the scene (an untrained grid: ~10)
+    assert "budget 12s: " in summary["line"] and "from a calibration of" in summary["line"]
+
+
+def test_the_deadline_ends_a_fit_whose_plan_was_too_long_and_it_is_still_complete(fresh, monkeypatch):
+    monkeypatch.setattr(budget, "LADDER", TINY_LADDER)
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
+    monkeypatch.setattr(budget, "REPLAN_EVERY", 10 ** 9)  # no re-plan shortens the free steps' schedule
+    prunes = []
+    original = Fitter.prune
+    monkeypatch.setattr(Fitter, "prune", lambda self, budget_rows=None: prunes.append(budget_rows)
+                        or original(self, budget_rows))
+    seconds = 4.0
+    started = time.time()
+    summary = run_stage(fresh, fit, {**BUDGETED, "time_budget": seconds})
+    assert time.time() - started <= seconds + 3.0
+    record = read_json(fresh / "fit" / "fit.json")
+    assert record["budget"]["stopped_at_deadline"] and record["complete"]
+    assert record["steps"] < record["total_steps"] == 2 * 1200
+    assert prunes[-1] is None  # pruned once more at the end, as a complete schedule is
+    assert "stopped at the deadline" in summary["line"]
+
+
+def test_ctrl_c_still_stops_a_budgeted_fit_with_a_usable_model(fresh, monkeypatch):
+    monkeypatch.setattr(budget, "LADDER", TINY_LADDER)
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
+    original = Fitter.train_step
+
+    def interrupted(self):
+        if self.step == 30:
+            os.kill(os.getpid(), signal.SIGINT)
+        return original(self)
+
+    monkeypatch.setattr(Fitter, "train_step", interrupted)
+    summary = run_stage(fresh, fit, {**BUDGETED, "time_budget": "1m"})
+    record = read_json(fresh / "fit" / "fit.json")
+    assert not record["complete"] and record["steps"] == 31 and not record["budget"]["stopped_at_deadline"]
+    assert "stopped early at step 31" in summary["line"] and (fresh / "fit" / "grid.pt").is_file()
+
+
+def test_a_budgeted_fit_resumes_with_its_plan(fresh, monkeypatch):
+    monkeypatch.setattr(budget, "LADDER", (Rung((16, 32), (40, 40)),))
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
+    original = Fitter.train_step
+
+    def interrupted(self):
+        if self.step == 50:
+            raise KeyboardInterrupt
+        return original(self)
+
+    monkeypatch.setattr(Fitter, "train_step", interrupted)
+    values = {**BUDGETED, "time_budget": "1m", "checkpoint_every": 1e-6}
+    with pytest.raises(KeyboardInterrupt):
+        run_stage(fresh, fit, values)
+    monkeypatch.setattr(Fitter, "train_step", original)
+    run_stage(fresh, fit, values)
+    record = read_json(fresh / "fit" / "fit.json")
+    assert record["resumed_from_step"] == 50 and record["complete"]
+    assert record["resolutions"] == [16, 32] and record["steps"] == record["total_steps"] == 160  # the plan's 2x
