@@ -164,15 +164,18 @@ class MultiSphereBackground(torch.nn.Module):
         return torch.tensor([self.tv_density] + [self.tv_colour / 3] * 3, dtype=like.dtype, device=like.device)
 
 
-# Above this share of the texels touched in a step, the TV gradient is taken over the whole table.
+# Above this share of the texels touched in a step, the TV gradient of a small table is taken over all of it.
 DENSE_TV_SHARE = 0.25
+# Below it, TV looks at most this many of the touched texels a step (drawn at random, the gradient scaled up to stand
+# for all of them), as the grid's TV samples its vertices: a large texture's TV then costs what a small one's does.
+TV_SAMPLE_ROWS = 16384
 
 
 class BackgroundOptimiser:
     """Sparse RMSProp over the background's texels: gradients land in a table shaped like the texture's rows with
     a record of the rows touched, and a step updates (and clears) only those, with their TV gradient added."""
 
-    def __init__(self, background: MultiSphereBackground, lr: float, beta: float = 0.95, eps: float = 1e-8):
+    def __init__(self, background: MultiSphereBackground, lr: float, beta: float = 0.95, eps: float = 1e-8, seed: int = 0):
         self.background, self.lr, self.beta, self.eps = background, float(lr), float(beta), float(eps)
         rows = background.rows
         self.grad = torch.zeros_like(rows)
@@ -180,6 +183,7 @@ class BackgroundOptimiser:
         self.touched_rows = torch.zeros(rows.shape[0], dtype=torch.int32, device=rows.device)
         self.num_touched = 0
         self.second_moment = torch.zeros_like(rows)
+        self.generator = torch.Generator(device=rows.device).manual_seed(seed)
 
     def backward(self, o: torch.Tensor, d: torch.Tensor, rgb: torch.Tensor, grad_rgb: torch.Tensor) -> None:
         """Adds d(loss)/d(texels) for rays o, d [B, 3] whose background colours were rgb [B, 3] (the model's
@@ -192,22 +196,29 @@ class BackgroundOptimiser:
             self.touched_rows, self.num_touched)
 
     def step(self) -> None:
-        if self.num_touched > DENSE_TV_SHARE * self.grad.shape[0]:
+        if self.num_touched > DENSE_TV_SHARE * self.grad.shape[0] and self.grad.shape[0] <= 8 * TV_SAMPLE_ROWS:
             # Most texels touched (small textures, big batches): one pass over the whole table beats gathering.
             self.grad += self.background.tv_grad_all() * (self.touched_mask != 0)[:, None]
         else:
             rows = self.touched_rows[: self.num_touched].long()
-            self.grad[rows] += self.background.tv_grad(rows)
+            if len(rows) > TV_SAMPLE_ROWS:
+                picked = rows[torch.randint(len(rows), (TV_SAMPLE_ROWS,), generator=self.generator, device=rows.device)]
+                self.grad.index_add_(0, picked, self.background.tv_grad(picked) * (len(rows) / TV_SAMPLE_ROWS))
+            else:
+                self.grad[rows] += self.background.tv_grad(rows)
         native.ops.rmsprop_step(self.background.rows, self.second_moment, self.grad, self.touched_mask,
                                 self.touched_rows, self.num_touched, 4, self.lr, self.lr, self.beta, self.eps,
                                 None, 1, None, None)
         self.num_touched = 0
 
     def state_dict(self) -> dict:
-        return {"lr": self.lr, "beta": self.beta, "eps": self.eps, "second_moment": self.second_moment}
+        return {"lr": self.lr, "beta": self.beta, "eps": self.eps, "second_moment": self.second_moment,
+                "generator": self.generator.get_state()}
 
     def load_state_dict(self, state: dict) -> None:
         if state["second_moment"].shape != self.second_moment.shape:
             raise ValueError("background optimiser state does not match the background it is loaded for")
         self.lr, self.beta, self.eps = state["lr"], state["beta"], state["eps"]
         self.second_moment = state["second_moment"].to(self.second_moment.device).clone()
+        if "generator" in state:
+            self.generator.set_state(state["generator"])

@@ -79,7 +79,7 @@ class TrainOptions:
     tv_views: float = 32.0
     """Few views: where the training photos see each point of the grid's box fewer than this many times on average,
     both TV weights grow by (tv_views / views)^tv_views_power (0: the weights as set, whatever the capture)."""
-    tv_views_power: float = 3.0
+    tv_views_power: float = 2.0
     """How fast TV grows as the views per point fall below tv_views."""
     tv_views_max_scale: float = 1000.0
     """The most that few views multiply the TV weights by."""
@@ -251,7 +251,7 @@ class Fitter:
         o = self.options
         self.grad = GridGrad(self.model.grid)
         self.optim = SparseRMSProp(self.model.grid, o.lr_density, o.lr_sh, o.rmsprop_beta)
-        self.bg_optim = (BackgroundOptimiser(self.model.background, o.lr_background, o.rmsprop_beta)
+        self.bg_optim = (BackgroundOptimiser(self.model.background, o.lr_background, o.rmsprop_beta, seed=o.seed)
                          if self.model.background is not None else None)
 
     def _replace_grid(self, grid: SparseGrid, old_rows: torch.Tensor) -> None:

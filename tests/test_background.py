@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from plenoxels import background as background_module
 from plenoxels import reference
 from plenoxels.background import BACKGROUND_STOP_TRANSMITTANCE, BackgroundOptimiser, MultiSphereBackground
 from plenoxels.errors import UserError
@@ -231,6 +232,42 @@ def test_optimiser_steps_only_the_touched_texels_and_lowers_the_loss():
     changed = (model.texture.detach() != before).any(-1).view(-1)
     assert losses[-1] < 0.5 * losses[0]
     assert bool(changed.any()) and not bool((changed & ~reached).any())
+
+
+def test_a_large_texture_samples_its_tv_and_the_samples_average_to_the_whole(monkeypatch):
+    # With more touched texels than it samples, a step's TV gradient is a random share of the touched texels' scaled
+    # up: on average over steps, the TV gradient of every touched texel.
+    monkeypatch.setattr(background_module, "TV_SAMPLE_ROWS", 64)
+    model = _textured(MultiSphereBackground(r_min=1.5, r_max=40.0, n_spheres=4, height=16, width=32), seed=5)
+    o, d = _random_rays(400, 17, dtype=torch.float32)
+    optimiser = BackgroundOptimiser(model, lr=0.0)
+    optimiser.backward(o, d, model(o, d), torch.zeros(400, 3))    # marks the touched texels, adds no data gradient
+    rows = optimiser.touched_rows[: optimiser.num_touched].long().clone()
+    assert len(rows) > 4 * 64 and model.rows.shape[0] > 8 * 64
+    mask = optimiser.touched_mask.clone()
+    total = torch.zeros_like(optimiser.grad)
+    steps = []
+
+    class Recorder:  # stands in for the native optimiser step: keeps the gradient it was handed
+        class ops:
+            @staticmethod
+            def rmsprop_step(rows_table, second_moment, grad, *rest):
+                steps.append(grad.clone())
+                grad.zero_()
+
+    monkeypatch.setattr(background_module, "native", Recorder)
+    draws = 2000
+    for _ in range(draws):
+        optimiser.touched_mask.copy_(mask)
+        optimiser.num_touched = len(rows)
+        optimiser.step()
+        total += steps[-1]
+    exact = torch.zeros_like(total)
+    exact[rows] = model.tv_grad(rows)
+    assert not bool(total[~mask.bool()].any())
+    # Each touched texel is drawn about 2000 * 64 / len(rows) times, so the average holds to about a tenth.
+    assert float((total / draws - exact).norm() / exact.norm()) < 0.15
+    assert float(steps[0].norm()) > 0 and int((steps[0] != 0).any(1).sum()) <= 64
 
 
 def test_legacy_state_and_round_trip_memory_and_bad_settings():

@@ -86,10 +86,12 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
         "original_camera": originals[0], "source": source,
         "source_path": str(source_path) if source_path else None, "frames": frames})
     written = {"frames": len(frames), "width": shared["w"], "height": shared["h"]}
-    if undistorted.num_points3D():
+    if undistorted.num_points3D() or bounds:
+        # SfM's points, an imported model's, or none where the poses bring their depth range (LLFF's bounds).
         write_points(out / "points.npz", undistorted, frame_index)
     else:
-        # Imported poses without points: triangulate some from the photos, so normalize sees where the content lies.
+        # Imported poses with no points and no depths: triangulate some from the photos, so normalize sees where the
+        # content lies.
         report.info("triangulating points from the photos for the imported poses")
         points = triangulate([np.asarray(Image.open(out / f["file_path"]).convert("RGB")) for f in frames],
                              np.stack([np.asarray(f["transform_matrix"]) for f in frames]),
