@@ -12,8 +12,8 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-PARTS = ("kernels", "background", "poses", "normalize", "fit", "scaling", "scene_models", "export", "cuda", "lego_protocol",
-         "lpips_reference")
+PARTS = ("kernels", "background", "poses", "normalize", "fit", "scaling", "scene_models", "real_scenes", "export", "cuda",
+         "lego_protocol", "lpips_reference")
 COMBINED = REPO / "bench" / "results.json"
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
 import tempfile
 from collections.abc import Iterator
@@ -24,6 +25,18 @@ def fit_context(scene: dict, root: Path, settings, report: Reporter) -> Iterator
         (tmp / "normalize" / "scene.json").write_text(json.dumps(scene))
         yield StageContext(scene=root, out=root, work=tmp / "work", scratch=tmp / "scratch", settings=settings,
                            upstream={"normalize": tmp / "normalize"}, scene_type=scene["type"], report=report)
+
+
+def run_child(module: str, spec: dict, what: str) -> dict | None:
+    """Runs `python -m <module> --one` with `spec` on its standard input, in the repository, and returns the JSON
+    result it prints last; None, after saying `what` failed, when it exits with an error."""
+    repo = Path(__file__).resolve().parent.parent
+    proc = subprocess.run([sys.executable, "-m", module, "--one"], input=json.dumps(spec), cwd=repo,
+                          stdout=subprocess.PIPE, text=True)
+    if proc.returncode != 0:
+        print(f"  {what}: failed (exit {proc.returncode})", flush=True)
+        return None
+    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 def run_part(args, one_run, whole_run) -> int:

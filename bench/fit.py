@@ -30,7 +30,6 @@ import json
 import os
 import platform
 import resource
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -206,12 +205,11 @@ def spawn(spec: dict) -> dict | None:
     """Runs one_run in a child process; None (after saying so) if it failed."""
     load_before = os.getloadavg()
     started = time.time()
-    proc = subprocess.run([sys.executable, "-m", "bench.fit", "--one"], input=json.dumps(spec), cwd=REPO,
-                          stdout=subprocess.PIPE, text=True)
-    if proc.returncode != 0:
-        print(f"  {spec['scene']} {spec['label']}: failed (exit {proc.returncode})", flush=True)
+    from bench.common import run_child
+
+    result = run_child("bench.fit", spec, f"{spec['scene']} {spec['label']}")
+    if result is None:
         return None
-    result = json.loads(proc.stdout.strip().splitlines()[-1])
     keep = ("key", "scene", "scene_type", "preset", "knob", "label", "common", "overrides", "scoring", "settings")
     return {**{k: spec[k] for k in keep}, **result, "process_seconds": round(time.time() - started, 1),
             "threads": os.environ.get("OMP_NUM_THREADS"),

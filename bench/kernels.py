@@ -16,7 +16,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import statistics
 import sys
 import time
@@ -27,6 +26,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from plenoxels import native, reference  # noqa: E402
+from plenoxels.budget import processor_name  # noqa: E402
 from plenoxels.grid import SparseGrid  # noqa: E402
 from plenoxels.optim import GridGrad  # noqa: E402
 from plenoxels.render import RenderOptions  # noqa: E402
@@ -202,21 +202,11 @@ def run(sizes, repeats: int, rays: int, twin_rays: int) -> dict:
     return {
         "what": "forward+backward (fused MSE loss and gradient), SH degree 2, step 0.5 voxel; samples/s counts "
                 "contributing samples; median over repeats",
-        "machine": {"cpu": cpu_name(), "threads": native.num_threads(), "torch": torch.__version__,
+        "machine": {"cpu": processor_name(), "threads": native.num_threads(), "torch": torch.__version__,
                     "load_average_at_end": os.getloadavg()[0]},
         "repeats": repeats,
         "results": rows,
     }
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def print_row(r: dict) -> None:

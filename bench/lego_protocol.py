@@ -16,7 +16,6 @@ import argparse
 import json
 import os
 import resource
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -72,12 +71,9 @@ def one_run(spec: dict) -> dict:
 
 
 def spawn(spec: dict) -> dict | None:
-    proc = subprocess.run([sys.executable, "-m", "bench.lego_protocol", "--one"], input=json.dumps(spec), cwd=REPO,
-                          stdout=subprocess.PIPE, text=True)
-    if proc.returncode != 0:
-        print(f"  {spec['preset']}: failed (exit {proc.returncode})", flush=True)
-        return None
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    from bench.common import run_child
+
+    return run_child("bench.lego_protocol", spec, spec["preset"])
 
 
 def table(results: dict) -> str:

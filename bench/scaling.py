@@ -21,7 +21,6 @@ import json
 import os
 import resource
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -104,13 +103,12 @@ def one_point(spec: dict) -> dict:
 
 def spawn(spec: dict) -> dict | None:
     load_before = os.getloadavg()
-    proc = subprocess.run([sys.executable, "-m", "bench.scaling", "--one"], input=json.dumps(spec), cwd=REPO,
-                          stdout=subprocess.PIPE, text=True)
-    if proc.returncode != 0:
-        print(f"  resolution {spec['resolution']}, {spec['images'] or 'all'} images: failed (exit {proc.returncode})",
-              flush=True)
+    from bench.common import run_child
+
+    result = run_child("bench.scaling", spec, f"resolution {spec['resolution']}, {spec['images'] or 'all'} images")
+    if result is None:
         return None
-    return {**json.loads(proc.stdout.strip().splitlines()[-1]), "threads": os.environ.get("OMP_NUM_THREADS"),
+    return {**result, "threads": os.environ.get("OMP_NUM_THREADS"),
             "load_average": {"before": [round(x, 2) for x in load_before],
                              "after": [round(x, 2) for x in os.getloadavg()]}}
 

@@ -140,7 +140,8 @@ def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "voxfield"
 
 
-def _processor() -> str:
+def processor_name() -> str:
+    """The CPU's model name (what a calibration holds for)."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
@@ -175,7 +176,7 @@ def calibration_key(options, device: torch.device, background: dict | None,
         "batch_size", "batch_mode", "tile_size", "coherent_batches", "sh_degree", "step_size", "stop_transmittance",
         "tv_sample_fraction", "prune_ray_scale")}
     return {
-        "version": CACHE_VERSION, "cpu": _processor(),
+        "version": CACHE_VERSION, "cpu": processor_name(),
         "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
         "device": device.type, "threads": native.num_threads(), "torch_threads": torch.get_num_threads(),
         "code": code_hash(), "background": background, "options": cost_options, "resolutions": list(resolutions),

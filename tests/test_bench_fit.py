@@ -98,3 +98,15 @@ def test_image_counts_are_spread_over_the_training_frames():
     assert [f["name"] for f in training_frames(scene, 1)] == ["t0"]
     with pytest.raises(UserError, match="10 training images"):
         training_frames(scene, 11)
+
+
+def test_real_scenes_quarter_keeps_every_held_out_view_and_every_fourth_training_view():
+    from bench.real_scenes import with_views
+
+    frames = [{"name": f"{i:02d}", "split": "test" if i % 8 == 0 else "train"} for i in range(40)]
+    scene = {"type": "unbounded", "frames": frames}
+    quarter = with_views(scene, 4)
+    train = [f["name"] for f in frames if f["split"] == "train"]
+    assert [f["name"] for f in quarter["frames"] if f["split"] == "test"] == ["00", "08", "16", "24", "32"]
+    assert [f["name"] for f in quarter["frames"] if f["split"] == "train"] == train[::4]
+    assert with_views(scene, 1)["frames"] == frames and scene["frames"] == frames

@@ -1,0 +1,187 @@
+"""Real captures at every preset: fox, cup and the synthetic unbounded scene, with all their photos and with a
+quarter of them, scored on the same held-out views.
+
+Each scene goes through the pipeline as a user's folder would (ingest at the preset's size, poses imported from the
+files beside the photos, with points triangulated when they bring none, normalize), cached under
+bench/out/real_scenes/<scene>-<preset>/. Then each run fits the normalised scene with the preset (and the scene type's
+overlay), in a process of its own (its peak memory is its own), on all the training photos or on every 4th of them
+(`quarter`: the few-views case), and scores every held-out view (normalize's every 8th photo) at the fit's image
+scale with PSNR and SSIM, as the evaluate stage does. The first held-out view is written beside its truth to
+bench/results/real_scenes/<scene>-<preset>-<views>.png.
+
+The synthetic unbounded scene (pipeline/synthetic.py) is 40 views at 320x240 of an object on an endless textured
+ground inside a textured sphere, written under bench/out/ with its true poses as a transforms.json.
+
+    .venv/bin/python -m bench.real_scenes                                     # every scene, preset and view count
+    .venv/bin/python -m bench.real_scenes --scenes fox --presets fast --views all quarter
+    .venv/bin/python -m bench.real_scenes --set tv_density=1e-9 --label tv10  # a variant, kept beside the others
+    .venv/bin/python -m bench.real_scenes --table
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from plenoxels.errors import UserError  # noqa: E402
+
+RESULTS = REPO / "bench" / "results" / "real_scenes.json"
+RENDERS = REPO / "bench" / "results" / "real_scenes"
+CACHE = REPO / "bench" / "out" / "real_scenes"
+SCENES = ("fox", "cup", "synthetic_unbounded")
+PRESETS = ("fast", "balanced", "default", "quality")
+VIEWS = {"all": 1, "quarter": 4}
+
+
+def scene_folder(name: str, data: Path) -> Path:
+    """The photo folder the pipeline is pointed at (a dataset folder for the real scenes)."""
+    if name != "synthetic_unbounded":
+        folder = data / name
+        if not folder.is_dir():
+            raise UserError(f"no {name} scene under {data}; pass --data (the folder that holds {name}/)")
+        return folder
+    from pipeline.synthetic import write_scene
+
+    folder = CACHE / "synthetic_unbounded-photos"
+    if not (folder / "transforms.json").is_file():
+        write_scene("unbounded", folder, n_views=40, width=320, height=240)
+    return folder
+
+
+def prepared(name: str, preset: str, data: Path) -> Path:
+    """The pipeline's output folder for the scene with its stages up to normalize done."""
+    from pipeline.report import Reporter
+    from pipeline.runner import Pipeline
+
+    out = CACHE / f"{name}-{preset}"
+    Pipeline(scene_folder(name, data), out, preset=preset, reporter=Reporter(quiet=True)).run(["normalize"])
+    return out
+
+
+def with_views(scene: dict, every: int) -> dict:
+    """The scene with every `every`-th training frame kept (held-out frames unchanged)."""
+    train = [f for f in scene["frames"] if f["split"] == "train"]
+    kept = {id(f) for f in train[::every]}
+    return {**scene, "frames": [f for f in scene["frames"] if f["split"] != "train" or id(f) in kept]}
+
+
+def one_run(spec: dict) -> dict:
+    import numpy as np
+    import torch
+
+    from bench.common import fit_context
+    from bench.fit import resolve
+    from pipeline.images import load_frame
+    from pipeline.io import write_png
+    from pipeline.metrics import image_scores, mean_scores, to_uint8
+    from pipeline.report import Reporter
+    from plenoxels.scene_model import SceneModel
+    from stages import fit
+
+    out = Path(spec["out"])
+    scene = with_views(json.loads((out / "normalize" / "scene.json").read_text()), VIEWS[spec["views"]])
+    settings = resolve(spec["preset"], scene["type"], spec["overrides"])
+    load_before = os.getloadavg()[0]
+    with fit_context(scene, out, settings, Reporter(quiet=not spec.get("verbose"))) as ctx:
+        started = time.time()
+        summary = fit.run(ctx)
+        wall = time.time() - started
+        record = json.loads((ctx.work / "fit.json").read_text())
+        model = SceneModel.load(ctx.work)
+    views, first = [], None
+    for frame in [f for f in scene["frames"] if f["split"] == "test"]:
+        truth, k = load_frame(out, frame, settings.image_scale, settings.background_color)
+        with torch.no_grad():
+            render = model.render_camera(np.asarray(frame["transform_matrix"]), k)["rgb"].numpy()
+        views.append({"name": frame["name"], **image_scores(render, truth, with_lpips=False)})
+        first = first if first is not None else (truth, render)
+    RENDERS.mkdir(parents=True, exist_ok=True)
+    gap = np.ones((first[0].shape[0], 4, 3), dtype=np.float32)
+    write_png(RENDERS / f"{spec['scene']}-{spec['preset']}-{spec['views']}{spec['label_suffix']}.png",
+              to_uint8(np.concatenate([first[0], gap, first[1]], axis=1)))
+    return {"scene": spec["scene"], "preset": spec["preset"], "views": spec["views"], "label": spec["label"],
+            "overrides": spec["overrides"], "type": scene["type"], "mean": mean_scores(views), "held_out": views,
+            "train_images": record["train_images"], "image_size": [k.w, k.h],
+            "fit_seconds": record["seconds"], "wall_seconds": round(wall, 1),
+            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+            "load_average": [round(load_before, 2), round(os.getloadavg()[0], 2)],
+            "threads": os.environ.get("OMP_NUM_THREADS"), "regularisation": record.get("regularisation"),
+            "background_cost": record.get("background_cost"), "resolution": record["model"]["resolution"],
+            "occupied": record["model"]["occupied"], "summary": summary["line"]}
+
+
+def spawn(spec: dict) -> dict | None:
+    from bench.common import run_child
+
+    return run_child("bench.real_scenes", spec, f"{spec['scene']} {spec['preset']} {spec['views']}")
+
+
+def table(results: dict) -> str:
+    lines = ["| scene | preset | photos | run | held-out PSNR | SSIM | fit time | peak memory | background's share |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in results.get("runs", []):
+        share = (r.get("background_cost") or {}).get("share_of_fitting")
+        lines.append(f"| {r['scene']} | {r['preset']} | {r['views']} ({r['train_images']} train) | {r['label']} | "
+                     f"{r['mean']['psnr']:.2f} dB | {r['mean']['ssim']:.3f} | {r['fit_seconds']:.0f} s | "
+                     f"{r['peak_rss_mb'] / 1024:.1f} GiB | {'-' if share is None else f'{share:.0%}'} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+    parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=PRESETS)
+    parser.add_argument("--views", nargs="+", default=list(VIEWS), choices=list(VIEWS))
+    parser.add_argument("--set", action="append", default=[], help="key=value (a fit setting) for every run")
+    parser.add_argument("--label", default="as set", help="names the runs (a run replaces the same-labelled one)")
+    parser.add_argument("--table", action="store_true", help="print the results as a Markdown table and exit")
+    parser.add_argument("--verbose", action="store_true", help="show each fit's progress")
+    args = parser.parse_args(argv)
+    from bench.common import run_part
+
+    return run_part(args, one_run, run_all)
+
+
+def run_all(args) -> int:
+    from bench.common import fit_overrides
+    from bench.fit import machine
+    from pipeline.io import write_json
+
+    results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"runs": []}
+    if args.table:
+        print(table(results))
+        return 0
+    overrides = fit_overrides(args.set)
+    results["machine"] = machine()
+    for name in args.scenes:
+        for preset in args.presets:
+            out = prepared(name, preset, args.data)
+            for views in args.views:
+                spec = {"scene": name, "preset": preset, "views": views, "label": args.label, "overrides": overrides,
+                        "out": str(out), "verbose": args.verbose,
+                        "label_suffix": "" if args.label == "as set" else f"-{args.label.replace(' ', '_')}"}
+                record = spawn(spec)
+                if record is None:
+                    continue
+                key = (name, preset, views, args.label)
+                results["runs"] = [r for r in results["runs"]
+                                   if (r["scene"], r["preset"], r["views"], r["label"]) != key] + [record]
+                write_json(RESULTS, results)
+                print(f"{name} {preset} {views} ({args.label}): {record['mean']['psnr']:.2f} dB, SSIM "
+                      f"{record['mean']['ssim']:.3f}, fit {record['fit_seconds']:.0f} s, {record['summary']}", flush=True)
+    print(table(results))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
