@@ -606,7 +606,7 @@ def test_imported_poses_without_points_get_points_triangulated_on_the_true_surfa
     manifest = run_poses(capture, tmp_path / "out")
     assert "points triangulated" in manifest["summary"]["line"]
     with np.load(tmp_path / "out" / "poses" / "points.npz") as points:
-        xyz, obs_frame, obs_point = points["xyz"], points["obs_frame"], points["obs_point"]
+        xyz, rgb, obs_frame, obs_point = points["xyz"], points["rgb"], points["obs_frame"], points["obs_point"]
     assert len(xyz) > 1000 and len(obs_frame) == 2 * len(xyz) and obs_point.max() == len(xyz) - 1
     # On the slab and the objects, not scattered along the rays: the true surface lies where each point is, seen from
     # the first camera that observed it (ray-cast against the generator's exact shapes).
@@ -626,6 +626,12 @@ def test_imported_poses_without_points_get_points_triangulated_on_the_true_surfa
     assert np.median(error) < 0.005 * size and np.mean(error < 0.01 * size) > 0.9
     # Each observation is where its frame sees the point.
     k = Intrinsics.from_frame(frames)
+    # Each point's colour is the photo's where its first observer saw it.
+    photo = read_rgb(tmp_path / "out" / "poses" / frames["frames"][first[0]]["file_path"]).astype(np.float64)
+    mine = np.flatnonzero(first == first[0])
+    uv, _ = project(xyz[mine], np.asarray(frames["frames"][first[0]]["transform_matrix"]), k)
+    seen = photo[np.clip(uv[:, 1].astype(int), 0, k.h - 1), np.clip(uv[:, 0].astype(int), 0, k.w - 1)]
+    assert np.median(np.abs(seen - rgb[mine]).max(axis=1)) < 40
     for f in range(0, len(frames["frames"]), 6):
         seen = xyz[obs_point[obs_frame == f]]
         uv, depth = project(seen, np.asarray(frames["frames"][f]["transform_matrix"]), k)

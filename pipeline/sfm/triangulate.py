@@ -90,6 +90,13 @@ def _epipolar_distance(f: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndar
     return np.maximum(d1, d2)
 
 
+def _colours(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """uint8 colours [M, 3] of `image` at continuous pixel coordinates xy [M, 2] (centres at +0.5)."""
+    col = np.clip(xy[:, 0].astype(np.int64), 0, image.shape[1] - 1)
+    row = np.clip(xy[:, 1].astype(np.int64), 0, image.shape[0] - 1)
+    return image[row, col].astype(np.uint8)
+
+
 def triangulate(images: list[np.ndarray], c2w: np.ndarray, intrinsics: list[Intrinsics], seed: int = 0) -> TriangulatedPoints:
     """Points seen by pairs of the posed photos `images` (uint8 RGB [h, w, 3], at the size `intrinsics` describe)."""
     sift = cv2.SIFT_create(nfeatures=FEATURES)
@@ -146,10 +153,8 @@ def triangulate(images: list[np.ndarray], c2w: np.ndarray, intrinsics: list[Intr
     error = np.concatenate(err_all)
     obs_frame = np.concatenate([o[0] for o in obs_all])
     obs_point = np.concatenate([o[1] for o in obs_all])
-    first_xy = np.concatenate([o[2] for o in obs_all])
-    first_frame = np.concatenate([np.full(len(o[2]), o[0][0] if len(o[0]) else 0) for o in obs_all])
-    rgb = np.stack([images[f][min(int(y), images[f].shape[0] - 1), min(int(x), images[f].shape[1] - 1)]
-                    for f, (x, y) in zip(first_frame, first_xy)]).astype(np.uint8)
+    # Each point's colour where the first photo of its pair saw it.
+    rgb = np.concatenate([_colours(images[o[0][0]], o[2]) for o in obs_all if len(o[2])])
     if len(xyz) > MAX_POINTS:
         chosen = np.sort(np.random.default_rng(seed).choice(len(xyz), MAX_POINTS, replace=False))
         remap = np.full(len(xyz), -1)
