@@ -3,6 +3,7 @@ Chromium (selenium), whose screenshots must show our render where the object is 
 and change when the camera is dragged; plus the camera conversions, stale render requests, the live
 checkpoint pick-up, the closed share tunnel, and the crop box from the viewer to the export stage."""
 import io
+import json
 import math
 import shutil
 import socket
@@ -327,3 +328,23 @@ def test_the_page_shows_the_render_and_the_frustums_and_follows_a_drag(scene_out
     finally:
         viewer.stop()
     assert time.time() - started < 60
+
+
+def test_a_checkpoint_of_an_unbounded_fit_loads_with_its_background(tmp_path):
+    # The background's texture is one table [K, H, W, 4] in checkpoints; the live model rebuilds it to that shape.
+    frame = {"fl_x": 40.0, "fl_y": 40.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48, "split": "train", "name": "a",
+             "transform_matrix": np.eye(4).tolist(), "near": 1.0, "far": 20.0}
+    scene = {"type": "unbounded", "foreground": {"min": [-1, -1, -1], "max": [1, 1, 1]}, "frames": [frame]}
+    (tmp_path / "normalize").mkdir()
+    (tmp_path / "normalize" / "scene.json").write_text(json.dumps(scene))
+    model = SceneModel.create(scene, ModelOptions(sh_degree=1, background_spheres=3, background_width=12), 8)
+    with torch.no_grad():
+        model.background.texture.normal_(generator=torch.Generator().manual_seed(0))
+    image = np.zeros((48, 64, 3), dtype=np.float32)
+    fitter = Fitter(model, TrainOptions(resolutions=[8], steps=[1]), RaySet([image], [np.eye(4)], [Intrinsics.from_frame(frame)]))
+    (tmp_path / CHECKPOINT).parent.mkdir(parents=True)
+    fitter.save_checkpoint(tmp_path / CHECKPOINT)
+    source = ModelSource(tmp_path)
+    live, line = source.load(source.latest())
+    assert "checkpoint" in line and live.background is not None
+    torch.testing.assert_close(live.background.texture, model.background.texture)

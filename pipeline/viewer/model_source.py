@@ -77,6 +77,9 @@ class ModelSource:
                     setattr(options, name, saved[name])
         options.background = "on" if background is not None else "off"
         if background is not None:
-            spheres, _, _, width = background["density"].shape
+            if "texture" in background:   # one table [K, H, W, 4]
+                spheres, _, width, _ = background["texture"].shape
+            else:                           # older checkpoints: density [K, 1, H, W] and colour apart
+                spheres, _, _, width = background["density"].shape
             options.background_spheres, options.background_width = int(spheres), int(width)
         return options
