@@ -754,13 +754,20 @@ void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor gr
         blocks = b.data_ptr<uint8_t>();
         for (int a = 0; a < 3; ++a) nb[a] = (int)n.size(a);
     }
+    // When a step touches a large share of the rows (a coarse level, a busy grid), walking the touch mask in memory
+    // order reads the three tables in sequence instead of at first-touch order's scattered rows; the same rows get
+    // the same update either way.
+    const int64_t N = data.size(0);
+    const bool in_memory_order = num_touched * 4 > N;
+    const int64_t span = in_memory_order ? N : num_touched;
 #pragma omp parallel
     {
         // Blocks whose live count this thread took across zero: only their flags can change.
         std::vector<int64_t> crossed;
 #pragma omp for schedule(static)
-        for (int64_t j = 0; j < num_touched; ++j) {
-            const int64_t row = rows[j];
+        for (int64_t j = 0; j < span; ++j) {
+            if (in_memory_order && !mask[j]) continue;
+            const int64_t row = in_memory_order ? j : rows[j];
             float* pr = p + row * S;
             const bool was_live = pr[0] > 0.0f;
             float* vr = v + row * S;
