@@ -10,7 +10,9 @@ image scales compare; PSNR and SSIM are stages/evaluate.py's.
 Runs: the presets on both scenes, and each single knob varied alone from a base preset, `fast` on both
 (so the sweep stays affordable on a laptop CPU). The knobs: final grid
 resolution (0.5x, 0.75x, 1.5x the base's, same total steps), SH degree (0-3), image scale (0.5x, 2x),
-steps (0.5x, 2x, every level). --base picks other base presets.
+steps (0.5x, 2x, every level). --base picks other base presets. The knob "budget" is the time budget's sweep
+(fit.time_budget 30 s to 10 min on `default`'s detail), drawn on the same axes as the presets, with a verdict on
+each: on or above the presets' front, or which preset beats it in less time.
 
 bench/results/fit.json holds one record per run, keyed by scene, preset, overrides and scoring: a new
 run replaces the earlier one with its key, and records whose settings differ from what their preset
@@ -45,7 +47,11 @@ CACHE = REPO / "bench" / "out"
 SCENES = ("lego", "synthetic")
 PRESETS = ("fast", "balanced", "default", "quality")
 SWEEP_BASE = {"lego": "fast", "synthetic": "fast"}
-KNOBS = ("resolution", "sh", "image_scale", "steps")
+KNOBS = ("resolution", "sh", "image_scale", "steps", "budget")
+# The time budget's sweep (knob "budget"): fit.time_budget on the preset whose detail the budget plans from (its
+# SH degree and image scale; the budget picks levels, resolutions and steps), beside the presets' front.
+BUDGETS = ("30s", "1m", "2m", "5m", "10m")
+BUDGET_BASE = "default"
 SYNTHETIC = {"kind": "object", "n_views": 48, "width": 400, "height": 300, "holdout_every": 8}
 
 
@@ -156,6 +162,9 @@ def plan(args, common: dict) -> list[dict]:
             for knob, label, variant in knob_variants(base):
                 if knob in args.knobs:
                     add(scene, base_preset, knob, f"{base_preset}, {label}", {**common, **variant})
+        if "budget" in args.knobs:
+            for budget in BUDGETS:
+                add(scene, BUDGET_BASE, "budget", f"{BUDGET_BASE}, budget {budget}", {**common, "time_budget": budget})
     return specs
 
 
@@ -296,7 +305,8 @@ def plot(runs: list[dict], path: Path, machine_line: str) -> None:
             for scene in sorted({series(r) for r in runs}):
                 mine = sorted((r for r in runs if series(r) == scene), key=lambda r: r[cost])
                 presets = [r for r in mine if not r["knob"]]
-                knobs = [r for r in mine if r["knob"]]
+                knobs = [r for r in mine if r["knob"] and r["knob"] != "budget"]
+                budgets = [r for r in mine if r["knob"] == "budget"]
                 dots = ax.scatter([r[cost] for r in presets], [r[metric] for r in presets], marker="s", s=50,
                                   label=f"{scene}: presets")
                 colour = dots.get_facecolor()[0]
@@ -304,6 +314,9 @@ def plot(runs: list[dict], path: Path, machine_line: str) -> None:
                     bases = "/".join(sorted({r["preset"] for r in knobs}))
                     ax.scatter([r[cost] for r in knobs], [r[metric] for r in knobs], marker="o", s=22,
                                color=colour, alpha=0.6, label=f"{scene}: one knob from {bases}")
+                if budgets:
+                    ax.plot([r[cost] for r in budgets], [r[metric] for r in budgets], "-^", color=colour,
+                            markersize=8, linewidth=1.5, label=f"{scene}: time budgets on {BUDGET_BASE}")
                 front = [r for r in mine if r["key"] in on_front[scene, metric, cost]]
                 ax.plot([r[cost] for r in front], [r[metric] for r in front], "--", color=colour, linewidth=1)
                 ax.scatter([r[cost] for r in front], [r[metric] for r in front], s=140, facecolors="none",
@@ -326,6 +339,19 @@ def plot(runs: list[dict], path: Path, machine_line: str) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def budget_verdict(run: dict, runs: list[dict]) -> str:
+    """Where a time budget's run stands against the presets' runs of its series (PSNR against fit wall time): on
+    or above their front when no preset reached a higher PSNR in as little time."""
+    presets = [r for r in runs if not r["knob"] and series(r) == series(run) and r["common"] == run["common"]]
+    if not presets:
+        return "no preset run to compare with"
+    faster = [r for r in presets if r["wall_seconds"] <= run["wall_seconds"] and r["psnr"] > run["psnr"]]
+    if not faster:
+        return "on or above the presets' front"
+    best = max(faster, key=lambda r: r["psnr"])
+    return f"below {best['label']} ({best['psnr']:.2f} dB in {best['wall_seconds']:.0f} s)"
 
 
 def cpu_name(m: dict) -> str:
@@ -360,6 +386,8 @@ def table(results: dict) -> str:
     for r in sorted(runs, key=lambda r: (order.get(r["scene"], 9), r["knob"] is not None, r["knob"] or "",
                                          r["wall_seconds"])):
         marks = ["yes" if r["key"] in on_front[series(r), "psnr", cost] else "-" for cost, _ in COSTS]
+        if r["knob"] == "budget":
+            marks[0] += f" ({budget_verdict(r, runs)})"
         w, h = r["eval_size"]
         seconds = f"{r['wall_seconds']:.{0 if r['wall_seconds'] >= 10 else 1}f}"
         lines.append(f"| {r['scene']} ({w}x{h}, {r['held_out_views']} views) | {r['label']} | {r['psnr']:.2f} dB | "

@@ -16,6 +16,11 @@ ground inside a textured sphere, written under bench/out/ with its true poses as
     .venv/bin/python -m bench.real_scenes --scenes fox --presets fast --views all quarter
     .venv/bin/python -m bench.real_scenes --set tv_density=1e-9 --label tv10  # a variant, kept beside the others
     .venv/bin/python -m bench.real_scenes --table
+    .venv/bin/python -m bench.real_scenes --scenes fox --presets default --views all --budgets 30s 1m 2m 5m 10m
+
+With --budgets each run is the preset's detail under fit.time_budget (labelled "budget 30s", ...); --table then says
+for each where it stands against the presets' runs labelled --front, and bench/results/real_scenes_budget.png draws
+them on the axes of the presets' Pareto plot (held-out PSNR against fit time).
 """
 from __future__ import annotations
 
@@ -124,15 +129,83 @@ def spawn(spec: dict) -> dict | None:
     return run_child("bench.real_scenes", spec, f"{spec['scene']} {spec['preset']} {spec['views']}")
 
 
-def table(results: dict) -> str:
+def is_budget(run: dict) -> bool:
+    return "time_budget" in run["overrides"]
+
+
+def front_runs(run: dict, runs: list[dict], front: str) -> list[dict]:
+    """The preset runs a budget run is compared with: its scene, photos and scoring size (PSNRs at two sizes do not
+    compare), labelled `front`, no overrides."""
+    return [r for r in runs if (r["scene"], r["views"], r["label"]) == (run["scene"], run["views"], front)
+            and r["image_size"] == run["image_size"] and not r["overrides"]]
+
+
+def budget_verdict(run: dict, runs: list[dict], front: str) -> str:
+    """On or above the presets' front when no preset run reached a higher PSNR in as little fitting time."""
+    presets = front_runs(run, runs, front)
+    if not presets:
+        return f"no preset run labelled '{front}' to compare with"
+    faster = [r for r in presets if r["fit_seconds"] <= run["fit_seconds"] and r["mean"]["psnr"] > run["mean"]["psnr"]]
+    if not faster:
+        return "on or above the presets' front"
+    best = max(faster, key=lambda r: r["mean"]["psnr"])
+    return f"below {best['preset']} ({best['mean']['psnr']:.2f} dB in {best['fit_seconds']:.0f} s)"
+
+
+def table(results: dict, front: str = "after") -> str:
     lines = ["| scene | preset | photos | run | held-out PSNR | SSIM | fit time | peak memory | background's share |",
              "|---|---|---|---|---|---|---|---|---|"]
-    for r in results.get("runs", []):
+    runs = results.get("runs", [])
+    for r in runs:
         share = (r.get("background_cost") or {}).get("share_of_fitting")
-        lines.append(f"| {r['scene']} | {r['preset']} | {r['views']} ({r['train_images']} train) | {r['label']} | "
+        label = f"{r['label']}: {budget_verdict(r, runs, front)}" if is_budget(r) else r["label"]
+        lines.append(f"| {r['scene']} | {r['preset']} | {r['views']} ({r['train_images']} train) | {label} | "
                      f"{r['mean']['psnr']:.2f} dB | {r['mean']['ssim']:.3f} | {r['fit_seconds']:.0f} s | "
                      f"{r['peak_rss_mb'] / 1024:.1f} GiB | {'-' if share is None else f'{share:.0%}'} |")
     return "\n".join(lines)
+
+
+def plot_budgets(results: dict, front: str, path: Path) -> None:
+    """Held-out PSNR against fit time: each scene's preset runs with their Pareto front, and its budget runs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from bench.fit import pareto
+
+    runs = results.get("runs", [])
+    budgets = [r for r in runs if is_budget(r)]
+    groups = sorted({(r["scene"], r["views"]) for r in budgets})
+    if not groups:
+        return
+    fig, ax = plt.subplots(figsize=(8, 6))
+    for scene, views in groups:
+        mine = sorted((r for r in budgets if (r["scene"], r["views"]) == (scene, views)), key=lambda r: r["fit_seconds"])
+        presets = sorted(front_runs(mine[0], runs, front), key=lambda r: r["fit_seconds"])
+        line, = ax.plot([r["fit_seconds"] for r in mine], [r["mean"]["psnr"] for r in mine], "-^", markersize=8,
+                        label=f"{scene} ({views} photos): time budgets on {mine[0]['preset']}")
+        for r in mine:
+            ax.annotate(r["overrides"]["time_budget"], (r["fit_seconds"], r["mean"]["psnr"]), fontsize=7,
+                        xytext=(4, -10), textcoords="offset points")
+        if presets:
+            points = [(r["fit_seconds"], r["mean"]["psnr"]) for r in presets]
+            on_front = [presets[i] for i in pareto(points)]
+            ax.scatter(*zip(*points), marker="s", s=50, color=line.get_color(), label=f"{scene}: presets")
+            ax.plot([r["fit_seconds"] for r in on_front], [r["mean"]["psnr"] for r in on_front], "--",
+                    color=line.get_color(), linewidth=1)
+            for r in presets:
+                ax.annotate(r["preset"], (r["fit_seconds"], r["mean"]["psnr"]), fontsize=7, xytext=(4, 3),
+                            textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_xlabel("fit time (s), log scale")
+    ax.set_ylabel("held-out PSNR (dB)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    ax.set_title("real captures: the time budget against the presets (dashed: the presets' Pareto front)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def main(argv=None) -> int:
@@ -144,6 +217,8 @@ def main(argv=None) -> int:
     parser.add_argument("--views", nargs="+", default=list(VIEWS), choices=list(VIEWS))
     parser.add_argument("--set", action="append", default=[], help="key=value (a fit setting) for every run")
     parser.add_argument("--label", default="as set", help="names the runs (a run replaces the same-labelled one)")
+    parser.add_argument("--budgets", nargs="+", default=[], help="fit.time_budget values: one run each (30s 1m ...)")
+    parser.add_argument("--front", default="after", help="the label of the preset runs budget runs are compared with")
     parser.add_argument("--table", action="store_true", help="print the results as a Markdown table and exit")
     parser.add_argument("--verbose", action="store_true", help="show each fit's progress")
     args = parser.parse_args(argv)
@@ -158,28 +233,35 @@ def run_all(args) -> int:
     from pipeline.io import write_json
 
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"runs": []}
+    budget_plot = RESULTS.with_name("real_scenes_budget.png")
     if args.table:
-        print(table(results))
+        print(table(results, args.front))
+        plot_budgets(results, args.front, budget_plot)
         return 0
     overrides = fit_overrides(args.set)
+    variants = ([(f"budget {b}", {**overrides, "time_budget": b}) for b in args.budgets] if args.budgets
+                else [(args.label, overrides)])
     results["machine"] = machine()
     for name in args.scenes:
         for preset in args.presets:
             out = prepared(name, preset, args.data)
             for views in args.views:
-                spec = {"scene": name, "preset": preset, "views": views, "label": args.label, "overrides": overrides,
-                        "out": str(out), "verbose": args.verbose,
-                        "label_suffix": "" if args.label == "as set" else f"-{args.label.replace(' ', '_')}"}
-                record = spawn(spec)
-                if record is None:
-                    continue
-                key = (name, preset, views, args.label)
-                results["runs"] = [r for r in results["runs"]
-                                   if (r["scene"], r["preset"], r["views"], r["label"]) != key] + [record]
-                write_json(RESULTS, results)
-                print(f"{name} {preset} {views} ({args.label}): {record['mean']['psnr']:.2f} dB, SSIM "
-                      f"{record['mean']['ssim']:.3f}, fit {record['fit_seconds']:.0f} s, {record['summary']}", flush=True)
-    print(table(results))
+                for label, run_overrides in variants:
+                    spec = {"scene": name, "preset": preset, "views": views, "label": label,
+                            "overrides": run_overrides, "out": str(out), "verbose": args.verbose,
+                            "label_suffix": "" if label == "as set" else f"-{label.replace(' ', '_')}"}
+                    record = spawn(spec)
+                    if record is None:
+                        continue
+                    key = (name, preset, views, label)
+                    results["runs"] = [r for r in results["runs"]
+                                       if (r["scene"], r["preset"], r["views"], r["label"]) != key] + [record]
+                    write_json(RESULTS, results)
+                    print(f"{name} {preset} {views} ({label}): {record['mean']['psnr']:.2f} dB, SSIM "
+                          f"{record['mean']['ssim']:.3f}, fit {record['fit_seconds']:.0f} s, {record['summary']}",
+                          flush=True)
+    print(table(results, args.front))
+    plot_budgets(results, args.front, budget_plot)
     return 0
 
 
