@@ -228,9 +228,16 @@ def spawn(spec: dict) -> dict | None:
 
 
 # ---- results --------------------------------------------------------------------------------------
+# The background model's settings: they change nothing in a fit without one.
+BACKGROUND_SETTINGS = ("background_spheres", "background_width", "background_texel_px", "lr_background", "tv_background")
+
+
 def still_valid(run: dict) -> bool:
-    """Whether a stored run's settings are what its preset and overrides give today."""
+    """Whether a stored run's settings are what its preset and overrides give today. A setting added since the run
+    counts as the same when it sits at its default (which keeps the behaviour from before it), and the background
+    model's settings do not count for a fit without one."""
     from pipeline import config
+    from stages import fit
 
     if not all(k in run for k in ("key", "scene_type", "settings")):
         return False
@@ -238,7 +245,12 @@ def still_valid(run: dict) -> bool:
         settings = resolve(run["preset"], run["scene_type"], run["overrides"])
     except UserError:
         return False
-    return json.loads(json.dumps(config.to_dict(settings))) == run["settings"]
+    now = json.loads(json.dumps(config.to_dict(settings)))
+    defaults = json.loads(json.dumps(config.to_dict(fit.Settings())))
+    stored = run["settings"]
+    has_background = settings.background == "on" or (settings.background == "auto" and run["scene_type"] == "unbounded")
+    return all(stored.get(k, defaults[k]) == v for k, v in now.items()
+               if has_background or k not in BACKGROUND_SETTINGS) and set(stored) <= set(now)
 
 
 def load_results(path: Path, fresh: bool) -> dict:

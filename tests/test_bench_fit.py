@@ -4,7 +4,8 @@ import json
 
 import pytest
 
-from bench.fit import fronts, knob_variants, load_results, pareto, resolve, run_key, table
+from bench.fit import (BUDGETS, budget_verdict, fronts, knob_variants, load_results, pareto, plan, resolve, run_key,
+                       still_valid, table)
 from bench.scaling import training_frames
 from pipeline import config
 from plenoxels.errors import UserError
@@ -65,6 +66,45 @@ def test_stored_runs_whose_settings_changed_since_are_dropped(tmp_path):
     assert load_results(path, fresh=True)["runs"] == []
 
 
+def test_settings_added_since_at_their_default_and_unused_background_settings_keep_a_run():
+    before = _record("fast", {})
+    del before["settings"]["time_budget"]  # stored before the setting existed
+    assert still_valid(before)
+    before["settings"]["background_width"] = 128  # an object scene has no background model to use it
+    assert still_valid(before)
+    unbounded = {**_record("fast", {}), "scene_type": "unbounded"}
+    unbounded["settings"] = json.loads(json.dumps(config.to_dict(resolve("fast", "unbounded", {}))))
+    assert still_valid(unbounded)
+    unbounded["settings"]["background_width"] += 1
+    assert not still_valid(unbounded)
+    later = _record("fast", {})
+    later["settings"]["a_setting_since_removed"] = 1
+    assert not still_valid(later)
+
+
+def test_the_budget_sweep_plans_each_budget_on_the_base_preset():
+    class Args:
+        scenes, presets, knobs, base, eval_scale, val_limit = ["synthetic"], [], ["budget"], {"synthetic": "fast"}, 0.5, 25
+
+    specs = plan(Args, {})
+    assert [s["overrides"] for s in specs] == [{"time_budget": b} for b in BUDGETS]
+    assert {s["knob"] for s in specs} == {"budget"} and len({s["key"] for s in specs}) == len(BUDGETS)
+
+
+def test_a_budget_run_is_judged_against_the_presets_that_took_no_longer():
+    presets = [run("fast", 40, 500, 28.0), run("default", 250, 900, 31.0)]
+    for r in presets:
+        r["common"] = {}
+
+    def budget(seconds, psnr):
+        return {**run(f"budget {seconds}", seconds, 500, psnr), "knob": "budget", "common": {}}
+
+    assert budget_verdict(budget(60, 29.0), presets) == "on or above the presets' front"
+    assert budget_verdict(budget(60, 27.5), presets).startswith("below fast (28.00 dB in 40 s)")
+    assert budget_verdict(budget(300, 30.0), presets).startswith("below default")
+    assert budget_verdict(budget(30, 20.0), presets) == "on or above the presets' front"  # no preset was that quick
+
+
 def run(label, seconds, rss, psnr, eval_size=(200, 150)):
     return {"key": label, "scene": "synthetic", "knob": None, "label": label, "psnr": psnr, "ssim": psnr / 40,
             "wall_seconds": seconds, "peak_rss_mb": rss, "eval_size": list(eval_size), "held_out_views": 6,
@@ -110,3 +150,19 @@ def test_real_scenes_quarter_keeps_every_held_out_view_and_every_fourth_training
     assert [f["name"] for f in quarter["frames"] if f["split"] == "test"] == ["00", "08", "16", "24", "32"]
     assert [f["name"] for f in quarter["frames"] if f["split"] == "train"] == train[::4]
     assert with_views(scene, 1)["frames"] == frames and scene["frames"] == frames
+
+
+def test_real_scenes_budget_runs_compare_with_the_front_label_at_their_own_scoring_size():
+    from bench.real_scenes import budget_verdict
+
+    def record(preset, label, seconds, psnr, size=(266, 474), overrides=None):
+        return {"scene": "fox", "views": "all", "preset": preset, "label": label, "fit_seconds": seconds,
+                "mean": {"psnr": psnr}, "image_size": list(size), "overrides": overrides or {}}
+
+    runs = [record("default", "after", 400, 26.0), record("fast", "after", 80, 27.0, size=(178, 316)),
+            record("default", "before", 100, 30.0)]
+    budget = record("default", "budget 2m", 120, 25.0, overrides={"time_budget": "2m"})
+    # fast was scored on smaller images, `before` is not the front's label: neither beats it.
+    assert budget_verdict(budget, runs, "after") == "on or above the presets' front"
+    assert budget_verdict({**budget, "fit_seconds": 450}, runs, "after") == "below default (26.00 dB in 400 s)"
+    assert "no preset run" in budget_verdict(budget, runs, "nothing")
