@@ -163,7 +163,7 @@ def plan(args, common: dict) -> list[dict]:
                 if knob in args.knobs:
                     add(scene, base_preset, knob, f"{base_preset}, {label}", {**common, **variant})
         if "budget" in args.knobs:
-            for budget in BUDGETS:
+            for budget in args.budgets:
                 add(scene, BUDGET_BASE, "budget", f"{BUDGET_BASE}, budget {budget}", {**common, "time_budget": budget})
     return specs
 
@@ -430,6 +430,7 @@ def main(argv=None) -> int:
     parser.add_argument("--knobs", default="all", help=f"knobs to sweep: {', '.join(KNOBS)}, all or none")
     parser.add_argument("--base", default=",".join(f"{k}={v}" for k, v in SWEEP_BASE.items()),
                         help="the preset each scene's knobs are varied from, as scene=preset,...")
+    parser.add_argument("--budgets", default=",".join(BUDGETS), help="the knob budget's time budgets, comma-separated")
     parser.add_argument("--eval-scale", type=float, default=0.5, help="score held-out views at this share of the photos")
     parser.add_argument("--val-limit", type=int, default=25, help="score the first N lego val views")
     parser.add_argument("--set", action="append", default=[], help="key=value (a fit setting) for every run")
@@ -461,6 +462,11 @@ def sweep(args) -> int:
     args.scenes = parse_list(args.scenes, SCENES, "scene")
     args.presets = parse_list(args.presets, tuple(config.preset_names()), "preset")
     args.knobs = parse_list(args.knobs, KNOBS, "knob")
+    args.budgets = [b.strip() for b in args.budgets.split(",") if b.strip()]
+    from pipeline.config import parse_duration
+
+    for budget in args.budgets:
+        parse_duration(budget, "--budgets")  # a bad one stops here, not in a child
     bases = dict(SWEEP_BASE)
     for item in args.base.split(","):
         scene, _, preset = item.partition("=")

@@ -85,6 +85,7 @@ def test_settings_added_since_at_their_default_and_unused_background_settings_ke
 def test_the_budget_sweep_plans_each_budget_on_the_base_preset():
     class Args:
         scenes, presets, knobs, base, eval_scale, val_limit = ["synthetic"], [], ["budget"], {"synthetic": "fast"}, 0.5, 25
+        budgets = list(BUDGETS)
 
     specs = plan(Args, {})
     assert [s["overrides"] for s in specs] == [{"time_budget": b} for b in BUDGETS]
