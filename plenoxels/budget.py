@@ -372,8 +372,9 @@ class Outlook:
 def finish_seconds(costs: CostModel, facts: FitFacts, now: Outlook, resolution: int, voxels: float,
                    stop: bool = False) -> float:
     """The end of a fit at this resolution and size: the last pruning pass (of a pruned grid, as the calibration's
-    are), the held-out PSNR and the save; after a `stop`, the checkpoint the stop writes first."""
-    return (costs.pass_seconds(facts.prune_rays, resolution) + costs.save_per_voxel * voxels
+    are; at what this scene's level changes measured against the model), the held-out PSNR and the save; after a
+    `stop`, the checkpoint the stop writes first."""
+    return (now.change_ratio * costs.pass_seconds(facts.prune_rays, resolution) + costs.save_per_voxel * voxels
             + now.eval_ratio * costs.pass_seconds(facts.eval_rays, resolution)
             + (costs.checkpoint_per_voxel * voxels if stop else 0.0))
 
