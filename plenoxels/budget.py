@@ -547,6 +547,7 @@ class TimeBudget:
     def attach(self, fitter: Fitter) -> None:
         """Follows `fitter` from here; a resumed fit has already used `fitter.elapsed` of the budget."""
         self.fitter = fitter
+        fitter.on_pruned = self.pruned
         self.deadline = self.started + self.seconds - fitter.elapsed
         start = sum(self.options.steps[:fitter.level])
         self.options.steps[fitter.level] = max(self.options.steps[fitter.level], fitter.step - start)
@@ -572,6 +573,15 @@ class TimeBudget:
             self.now.step_ratio = max(1.0, ratio) if self.now.dense else ratio
             self.now.step_seconds = measured
             self._replan("steps")
+
+    def pruned(self, before: int, after: int) -> None:
+        """At a level change, between its pruning and its upsampling: the share pruning kept, then a re-plan that may
+        still lower the level about to start (it has not been built yet)."""
+        if self.now.dense:
+            self.now.first_keep = after / max(1, before)
+        else:
+            self.now.later_keep = after / max(1, before)
+        self._replan("pruned")
 
     def level(self) -> None:
         """After a level change: what it took, the share pruning kept, the new grid; then a re-plan."""
