@@ -364,6 +364,8 @@ class Outlook:
     step_seconds: float | None = None  # measured at the current level
     step_ratio: float = 1.0            # for later levels: this scene's measured step time over the model's
     change_ratio: float = 1.0          # this scene's measured level changes (and their checkpoints) over the model's
+    pass_ratio: float = 1.0            # this scene's measured pruning passes over the model's
+    pass_done: bool = False            # the level change under way has made its pruning pass
     eval_ratio: float = 1.0            # this scene's measured held-out evaluations over the model's
     first_keep: float = FIRST_KEEP_PRIOR
     later_keep: float = LATER_KEEP_PRIOR
@@ -372,9 +374,9 @@ class Outlook:
 def finish_seconds(costs: CostModel, facts: FitFacts, now: Outlook, resolution: int, voxels: float,
                    stop: bool = False) -> float:
     """The end of a fit at this resolution and size: the last pruning pass (of a pruned grid, as the calibration's
-    are; at what this scene's level changes measured against the model), the held-out PSNR and the save; after a
+    are; at what this scene's pruning passes measured against the model), the held-out PSNR and the save; after a
     `stop`, the checkpoint the stop writes first."""
-    return (now.change_ratio * costs.pass_seconds(facts.prune_rays, resolution) + costs.save_per_voxel * voxels
+    return (now.pass_ratio * costs.pass_seconds(facts.prune_rays, resolution) + costs.save_per_voxel * voxels
             + now.eval_ratio * costs.pass_seconds(facts.eval_rays, resolution)
             + (costs.checkpoint_per_voxel * voxels if stop else 0.0))
 
@@ -388,8 +390,9 @@ def predict(costs: CostModel, facts: FitFacts, now: Outlook, resolutions: list[i
         else:
             kept = (now.first_keep if level == 1 else now.later_keep) * voxels
             voxels = min(facts.voxel_budget, kept * (resolutions[level] / resolutions[level - 1]) ** 3)
-            seconds += now.change_ratio * (costs.pass_seconds(facts.prune_rays, resolutions[level - 1])
-                                           + (costs.change_per_voxel + costs.checkpoint_per_voxel) * voxels)
+            prune = 0.0 if level == now.level + 1 and now.pass_done else costs.pass_seconds(facts.prune_rays,
+                                                                                              resolutions[level - 1])
+            seconds += now.change_ratio * (prune + (costs.change_per_voxel + costs.checkpoint_per_voxel) * voxels)
             step = now.step_ratio * costs.step_seconds(voxels)
         end = start + steps[level]
         first = max(start, now.step)
@@ -577,6 +580,9 @@ class TimeBudget:
     def pruned(self, before: int, after: int) -> None:
         """At a level change, between its pruning and its upsampling: the share pruning kept, then a re-plan that may
         still lower the level about to start (it has not been built yet)."""
+        took = time.perf_counter() - self._last - self._eval_seconds
+        passed = self.costs.pass_seconds(self.facts.prune_rays, self.options.resolutions[self.fitter.level - 1])
+        self.now.pass_ratio, self.now.pass_done = took / max(passed, 1e-9), True
         if self.now.dense:
             self.now.first_keep = after / max(1, before)
         else:
@@ -599,6 +605,7 @@ class TimeBudget:
         if self._intervals:
             self.level_seconds.append(round(float(np.mean(self._intervals)), 5))
         self.now.level, self.now.voxels, self.now.dense = fitter.level, entry["occupied"], False
+        self.now.pass_done = False
         self.now.step_seconds = None
         self._intervals = []
         self._last = time.perf_counter()
@@ -677,6 +684,7 @@ class TimeBudget:
             "step_seconds_per_level": self.level_seconds + latest,
             "scene_over_model": {"later_steps": round(self.now.step_ratio, 3),
                                  "level_change": round(self.now.change_ratio, 3),
+                                 "pruning_pass": round(self.now.pass_ratio, 3),
                                  "held_out": round(self.now.eval_ratio, 3)},
             "kept_share": {"first_prune": round(self.now.first_keep, 4), "later_prunes": round(self.now.later_keep, 4)},
             "replans": self.replans,

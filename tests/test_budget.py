@@ -168,6 +168,18 @@ def test_a_scene_costlier_than_planned_gets_a_coarser_last_level_with_enough_ste
     assert budget.predict(MEASURED, FACTS, now, finer, rung.scaled(budget.MIN_SHARE)) > left
 
 
+def test_a_level_change_pruning_pass_counts_once_and_the_last_one_at_the_measured_pass_ratio():
+    now = Outlook(level=0, step=500, voxels=FACTS.box_voxels(64))
+    schedule = ([64, 128], [500, 1000])
+    full = budget.predict(MEASURED, FACTS, now, *schedule)
+    now.pass_done = True  # between the level change's pruning and its upsampling
+    assert full - budget.predict(MEASURED, FACTS, now, *schedule) == pytest.approx(
+        MEASURED.pass_seconds(FACTS.prune_rays, 64))
+    slower = Outlook(pass_ratio=3.0)
+    assert budget.finish_seconds(MEASURED, FACTS, slower, 128, 1e5) - budget.finish_seconds(
+        MEASURED, FACTS, Outlook(), 128, 1e5) == pytest.approx(2 * MEASURED.pass_seconds(FACTS.prune_rays, 128))
+
+
 # ---- budgeted fits -------------------------------------------------------------------------------------------------
 def test_a_budgeted_fit_ends_within_its_budget_with_a_complete_model(fresh):
     seconds = 12.0
