@@ -458,17 +458,13 @@ def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung
     return plan(coarsest, _largest_share(lambda s: seconds_for(coarsest, s) <= seconds, 0.0, MIN_SHARE) or 0.0)
 
 
-# A last level not yet started may come down in steps of this many vertices when the scene costs more than planned.
-LOWER_STEP = 16
-
-
 def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung: Rung, resolutions: list[int],
            steps: list[int], measured: bool) -> tuple[list[int], list[int], float]:
     """(resolutions, steps, share) for a fit under way, the levels done kept: the most steps (a share of the rung's,
     at most MAX_SHARE) whose predicted time fits `seconds`. With `measured` costs (after a level change), a level still
-    to come that would get less than MIN_SHARE of its steps is dropped. When the plan cannot get MIN_SHARE of its
-    steps, a last level not yet started comes down, LOWER_STEP vertices at a time, to the finest that can (the rule
-    the plan was chosen by: a coarser grid with enough steps beats a finer one without)."""
+    to come that would get less than MIN_SHARE of its steps is dropped. The resolutions stay the plan's otherwise:
+    lowering a last level not yet started to the finest that still got MIN_SHARE of its steps lost on lego at every
+    budget tried (bench/README.md, "The time budget against the presets")."""
     done = now.step - sum(steps[:now.level])
 
     def schedule(share: float, levels: int) -> list[int]:
@@ -477,23 +473,15 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
         new[now.level] = max(done, new[now.level])
         return new
 
-    def fits(levels: int, last: int | None = None) -> Callable[[float], bool]:
-        levels_resolutions = resolutions[:levels - 1] + [last or resolutions[levels - 1]]
-        return lambda s: predict(costs, facts, now, levels_resolutions, schedule(s, levels)) <= seconds
+    def fits(levels: int) -> Callable[[float], bool]:
+        return lambda s: predict(costs, facts, now, resolutions[:levels], schedule(s, levels)) <= seconds
 
     for levels in range(len(resolutions), now.level, -1) if measured else [len(resolutions)]:
         share = _largest_share(fits(levels), MIN_SHARE, MAX_SHARE)
         if share is not None:
             return resolutions[:levels], schedule(share, levels), share
-    levels = len(resolutions)
-    if levels - 1 > now.level:
-        floor = resolutions[-2]
-        for last in range(resolutions[-1] - LOWER_STEP, floor, -LOWER_STEP):
-            share = _largest_share(fits(levels, last), MIN_SHARE, MAX_SHARE)
-            if share is not None:
-                return resolutions[:-1] + [last], schedule(share, levels), share
-    share = _largest_share(fits(levels), 0.0, MIN_SHARE) or 0.0
-    return list(resolutions), schedule(share, levels), share
+    share = _largest_share(fits(len(resolutions)), 0.0, MIN_SHARE) or 0.0
+    return list(resolutions), schedule(share, len(resolutions)), share
 
 
 # ---- the budget of one fit ----------------------------------------------------------------------------------------
@@ -578,8 +566,8 @@ class TimeBudget:
             self._replan("steps")
 
     def pruned(self, before: int, after: int) -> None:
-        """At a level change, between its pruning and its upsampling: the share pruning kept, then a re-plan that may
-        still lower the level about to start (it has not been built yet)."""
+        """At a level change, between its pruning and its upsampling: what the pruning pass took and the share it
+        kept, then a re-plan of the steps with them."""
         took = time.perf_counter() - self._last - self._eval_seconds
         passed = self.costs.pass_seconds(self.facts.prune_rays, self.options.resolutions[self.fitter.level - 1])
         self.now.pass_ratio, self.now.pass_done = took / max(passed, 1e-9), True
@@ -633,13 +621,11 @@ class TimeBudget:
                  "steps": steps, "step_seconds": round(self.now.step_seconds or 0.0, 5)}
         if len(resolutions) < len(self.options.resolutions):
             entry["dropped_levels"] = self.options.resolutions[len(resolutions):]
-        elif resolutions[-1] != self.options.resolutions[-1]:
-            entry["last_level_lowered"] = [self.options.resolutions[-1], resolutions[-1]]
         # In place: the Fitter reads its schedule from these lists at every step (Fitter.run).
         self.options.resolutions[:] = resolutions
         self.options.steps[:] = steps
         def changed(e: dict) -> bool:  # a re-plan that changed the levels stays in the record
-            return "dropped_levels" in e or "last_level_lowered" in e
+            return "dropped_levels" in e
 
         if why == "steps" and self.replans and self.replans[-1]["why"] == "steps" and not (
                 changed(entry) or changed(self.replans[-1])):

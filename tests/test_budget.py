@@ -150,24 +150,6 @@ def test_a_replan_follows_the_measured_cost_and_drops_a_level_that_cannot_conver
     assert kept == resolutions[:2] and share >= budget.MIN_SHARE  # the 384 level could not get half its steps
 
 
-def test_a_scene_costlier_than_planned_gets_a_coarser_last_level_with_enough_steps_not_a_starved_one():
-    plan = budget.choose(60, MEASURED, FACTS)
-    rung = next(r for r in budget.LADDER if list(r.resolutions) == plan.resolutions)
-    resolutions, steps = list(plan.resolutions), list(plan.steps)
-    now = Outlook(level=0, step=40, voxels=FACTS.box_voxels(resolutions[0]))
-    left = 60 - 40 * MEASURED.step_seconds(now.voxels)
-    now.step_seconds = MEASURED.step_seconds(now.voxels)
-    kept, _, share = budget.replan(left, MEASURED, FACTS, now, rung, resolutions, steps, measured=False)
-    assert kept == resolutions and share >= budget.MIN_SHARE  # as modelled: the plan holds
-
-    now.step_seconds, now.step_ratio = 2.5 * now.step_seconds, 2.5  # the scene's steps cost 2.5x the calibration's
-    lowered, new_steps, share = budget.replan(left, MEASURED, FACTS, now, rung, resolutions, steps, measured=False)
-    assert resolutions[0] == lowered[0] < lowered[-1] < resolutions[-1]
-    assert share >= budget.MIN_SHARE and budget.predict(MEASURED, FACTS, now, lowered, new_steps) <= left
-    finer = lowered[:-1] + [lowered[-1] + budget.LOWER_STEP]  # the finest that gets its steps: one finer cannot
-    assert budget.predict(MEASURED, FACTS, now, finer, rung.scaled(budget.MIN_SHARE)) > left
-
-
 def test_a_level_change_pruning_pass_counts_once_and_the_last_one_at_the_measured_pass_ratio():
     now = Outlook(level=0, step=500, voxels=FACTS.box_voxels(64))
     schedule = ([64, 128], [500, 1000])
