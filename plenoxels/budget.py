@@ -364,7 +364,6 @@ class Outlook:
     step_seconds: float | None = None  # measured at the current level
     step_ratio: float = 1.0            # for later levels: this scene's measured step time over the model's
     change_ratio: float = 1.0          # this scene's measured level changes (and their checkpoints) over the model's
-    pass_ratio: float = 1.0            # this scene's measured pruning passes over the model's
     pass_done: bool = False            # the level change under way has made its pruning pass
     eval_ratio: float = 1.0            # this scene's measured held-out evaluations over the model's
     first_keep: float = FIRST_KEEP_PRIOR
@@ -374,9 +373,10 @@ class Outlook:
 def finish_seconds(costs: CostModel, facts: FitFacts, now: Outlook, resolution: int, voxels: float,
                    stop: bool = False) -> float:
     """The end of a fit at this resolution and size: the last pruning pass (of a pruned grid, as the calibration's
-    are; at what this scene's pruning passes measured against the model), the held-out PSNR and the save; after a
+    are; at what this scene's held-out renders, passes through the same pruned grid, measured against the model), the
+    held-out PSNR and the save; after a
     `stop`, the checkpoint the stop writes first."""
-    return (now.pass_ratio * costs.pass_seconds(facts.prune_rays, resolution) + costs.save_per_voxel * voxels
+    return (now.eval_ratio * costs.pass_seconds(facts.prune_rays, resolution) + costs.save_per_voxel * voxels
             + now.eval_ratio * costs.pass_seconds(facts.eval_rays, resolution)
             + (costs.checkpoint_per_voxel * voxels if stop else 0.0))
 
@@ -566,11 +566,9 @@ class TimeBudget:
             self._replan("steps")
 
     def pruned(self, before: int, after: int) -> None:
-        """At a level change, between its pruning and its upsampling: what the pruning pass took and the share it
-        kept, then a re-plan of the steps with them."""
-        took = time.perf_counter() - self._last - self._eval_seconds
-        passed = self.costs.pass_seconds(self.facts.prune_rays, self.options.resolutions[self.fitter.level - 1])
-        self.now.pass_ratio, self.now.pass_done = took / max(passed, 1e-9), True
+        """At a level change, between its pruning and its upsampling: the share the pruning kept, then a re-plan of the
+        steps with it."""
+        self.now.pass_done = True
         if self.now.dense:
             self.now.first_keep = after / max(1, before)
         else:
@@ -670,7 +668,6 @@ class TimeBudget:
             "step_seconds_per_level": self.level_seconds + latest,
             "scene_over_model": {"later_steps": round(self.now.step_ratio, 3),
                                  "level_change": round(self.now.change_ratio, 3),
-                                 "pruning_pass": round(self.now.pass_ratio, 3),
                                  "held_out": round(self.now.eval_ratio, 3)},
             "kept_share": {"first_prune": round(self.now.first_keep, 4), "later_prunes": round(self.now.later_keep, 4)},
             "replans": self.replans,
