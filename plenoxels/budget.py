@@ -364,7 +364,6 @@ class Outlook:
     step_seconds: float | None = None  # measured at the current level
     step_ratio: float = 1.0            # for later levels: this scene's measured step time over the model's
     change_ratio: float = 1.0          # this scene's measured level changes (and their checkpoints) over the model's
-    pass_done: bool = False            # the level change under way has made its pruning pass
     eval_ratio: float = 1.0            # this scene's measured held-out evaluations over the model's
     first_keep: float = FIRST_KEEP_PRIOR
     later_keep: float = LATER_KEEP_PRIOR
@@ -373,9 +372,8 @@ class Outlook:
 def finish_seconds(costs: CostModel, facts: FitFacts, now: Outlook, resolution: int, voxels: float,
                    stop: bool = False) -> float:
     """The end of a fit at this resolution and size: the last pruning pass (of a pruned grid, as the calibration's
-    are; at what this scene's held-out renders, passes through the same pruned grid, measured against the model), the
-    held-out PSNR and the save; after a
-    `stop`, the checkpoint the stop writes first."""
+    are, at the ratio this scene's held-out renders through the same grid measured against the model), the held-out
+    PSNR and the save; after a `stop`, the checkpoint the stop writes first."""
     return (now.eval_ratio * costs.pass_seconds(facts.prune_rays, resolution) + costs.save_per_voxel * voxels
             + now.eval_ratio * costs.pass_seconds(facts.eval_rays, resolution)
             + (costs.checkpoint_per_voxel * voxels if stop else 0.0))
@@ -390,9 +388,8 @@ def predict(costs: CostModel, facts: FitFacts, now: Outlook, resolutions: list[i
         else:
             kept = (now.first_keep if level == 1 else now.later_keep) * voxels
             voxels = min(facts.voxel_budget, kept * (resolutions[level] / resolutions[level - 1]) ** 3)
-            prune = 0.0 if level == now.level + 1 and now.pass_done else costs.pass_seconds(facts.prune_rays,
-                                                                                              resolutions[level - 1])
-            seconds += now.change_ratio * (prune + (costs.change_per_voxel + costs.checkpoint_per_voxel) * voxels)
+            seconds += now.change_ratio * (costs.pass_seconds(facts.prune_rays, resolutions[level - 1])
+                                           + (costs.change_per_voxel + costs.checkpoint_per_voxel) * voxels)
             step = now.step_ratio * costs.step_seconds(voxels)
         end = start + steps[level]
         first = max(start, now.step)
@@ -538,7 +535,6 @@ class TimeBudget:
     def attach(self, fitter: Fitter) -> None:
         """Follows `fitter` from here; a resumed fit has already used `fitter.elapsed` of the budget."""
         self.fitter = fitter
-        fitter.on_pruned = self.pruned
         self.deadline = self.started + self.seconds - fitter.elapsed
         start = sum(self.options.steps[:fitter.level])
         self.options.steps[fitter.level] = max(self.options.steps[fitter.level], fitter.step - start)
@@ -565,16 +561,6 @@ class TimeBudget:
             self.now.step_seconds = measured
             self._replan("steps")
 
-    def pruned(self, before: int, after: int) -> None:
-        """At a level change, between its pruning and its upsampling: the share the pruning kept, then a re-plan of the
-        steps with it."""
-        self.now.pass_done = True
-        if self.now.dense:
-            self.now.first_keep = after / max(1, before)
-        else:
-            self.now.later_keep = after / max(1, before)
-        self._replan("pruned")
-
     def level(self) -> None:
         """After a level change: what it took, the share pruning kept, the new grid; then a re-plan."""
         fitter = self.fitter
@@ -591,7 +577,6 @@ class TimeBudget:
         if self._intervals:
             self.level_seconds.append(round(float(np.mean(self._intervals)), 5))
         self.now.level, self.now.voxels, self.now.dense = fitter.level, entry["occupied"], False
-        self.now.pass_done = False
         self.now.step_seconds = None
         self._intervals = []
         self._last = time.perf_counter()
@@ -622,11 +607,9 @@ class TimeBudget:
         # In place: the Fitter reads its schedule from these lists at every step (Fitter.run).
         self.options.resolutions[:] = resolutions
         self.options.steps[:] = steps
-        def changed(e: dict) -> bool:  # a re-plan that changed the levels stays in the record
-            return "dropped_levels" in e
-
-        if why == "steps" and self.replans and self.replans[-1]["why"] == "steps" and not (
-                changed(entry) or changed(self.replans[-1])):
+        # A steps-only re-plan replaces the one before it, unless either dropped a level (that stays in the record).
+        if (why == "steps" and self.replans and self.replans[-1]["why"] == "steps"
+                and "dropped_levels" not in entry and "dropped_levels" not in self.replans[-1]):
             self.replans[-1] = entry
         else:
             self.replans.append(entry)

@@ -243,7 +243,6 @@ class Fitter:
         self.recent_mse: list[float] = []
         self.background_seconds = 0.0       # of this run's steps, spent rendering and training the background
         self.checkpoint_step: int | None = None
-        self.on_pruned: Callable[[int, int], None] | None = None  # see next_level
         self.regularisation = self._regularisation()
         self._new_optimiser()
 
@@ -400,17 +399,13 @@ class Fitter:
         return {"before": before, "after": grid.num_occupied}
 
     def next_level(self) -> None:
-        """Prune, upsample to the next resolution within the voxel budget, carry the optimiser state. Between the
-        two, `on_pruned(before, after)` (when set) may change the schedule's resolutions still to come: the time
-        budget picks the next level's resolution once it knows what the scene keeps."""
+        """Prune, upsample to the next resolution within the voxel budget, carry the optimiser state."""
         budget = self.options.voxel_budget
         old_res = max(self.model.grid.resolution)
         self.level += 1
-        growth = (max(self.model.resolution_for(self.options.resolutions[self.level])) / old_res) ** 3
-        pruned = self.prune(budget_rows=max(1, int(budget / growth)))
-        if self.on_pruned is not None:
-            self.on_pruned(pruned["before"], pruned["after"])
         new_shape = self.model.resolution_for(self.options.resolutions[self.level])
+        growth = (max(new_shape) / old_res) ** 3
+        pruned = self.prune(budget_rows=max(1, int(budget / growth)))
         grid, old_rows = self.model.grid.upsample(new_shape)
         if grid.num_occupied > budget:
             # The estimate of the growth was short: drop the emptiest new vertices.

@@ -277,8 +277,9 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
     if stopped_early:
         line += f"; stopped early at step {fitter.step}/{s.total_steps} (Ctrl-C)"
     if budget is not None:
+        ran = f"ran {'->'.join(map(str, s.resolutions))}, {'+'.join(map(str, s.steps))} steps"
         line += f"; {budget.line()}; " + (f"stopped at the deadline at step {fitter.step}/{s.total_steps}"
-                                         if at_deadline else f"ran {'->'.join(map(str, s.resolutions))}, {'+'.join(map(str, s.steps))} steps")
+                                         if at_deadline else ran)
     return {"line": line, "complete": not stopped_early, "steps": fitter.step, "occupied": grid.num_occupied,
             "train_psnr": record["train_psnr"], "held_out_psnr": record["held_out_psnr"],
             "seconds": record["seconds"], "memory_bytes": memory["total"]}

@@ -150,13 +150,7 @@ def test_a_replan_follows_the_measured_cost_and_drops_a_level_that_cannot_conver
     assert kept == resolutions[:2] and share >= budget.MIN_SHARE  # the 384 level could not get half its steps
 
 
-def test_a_level_change_pruning_pass_counts_once_and_the_last_one_at_the_held_out_renders_ratio():
-    now = Outlook(level=0, step=500, voxels=FACTS.box_voxels(64))
-    schedule = ([64, 128], [500, 1000])
-    full = budget.predict(MEASURED, FACTS, now, *schedule)
-    now.pass_done = True  # between the level change's pruning and its upsampling
-    assert full - budget.predict(MEASURED, FACTS, now, *schedule) == pytest.approx(
-        MEASURED.pass_seconds(FACTS.prune_rays, 64))
+def test_the_last_pruning_pass_is_predicted_at_the_held_out_renders_measured_ratio():
     slower = Outlook(eval_ratio=3.0)
     assert budget.finish_seconds(MEASURED, FACTS, slower, 128, 1e5) - budget.finish_seconds(
         MEASURED, FACTS, Outlook(), 128, 1e5) == pytest.approx(

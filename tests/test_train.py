@@ -133,27 +133,3 @@ def test_background_texels_follow_the_photos_pixels():
     assert background_width_for(276.0, 2.0) == 2 * background_width_for(138.0, 2.0)  # twice the focal, twice the texels
     assert background_width_for(5.0, 2.0) == 64 and background_width_for(1e5, 2.0) == 2048
     assert background_width_for(None, 2.0) == 128
-
-
-def test_a_level_change_builds_the_resolution_its_pruning_hook_leaves_in_the_schedule(tmp_path):
-    root = make_scene(tmp_path)
-    scene = read_json(root / "normalize" / "scene.json")
-    frames = [f for f in scene["frames"] if f["split"] == "train"][:4]
-    loaded = [load_frame(root, frame, 0.5, (1.0, 1.0, 1.0)) for frame in frames]
-    train = RaySet([image for image, _ in loaded], [np.asarray(f["transform_matrix"]) for f in frames],
-                   [k for _, k in loaded])
-    options = TrainOptions(resolutions=[16, 32], steps=[2, 2], batch_size=256)
-    fitter = Fitter(SceneModel.create(scene, ModelOptions(), 16), options, train)
-    seen = []
-
-    def lower(before: int, after: int) -> None:
-        seen.append((before, after, fitter.model.grid.num_occupied))
-        options.resolutions[1] = 24  # what the time budget does when the scene keeps more than it planned for
-
-    fitter.on_pruned = lower
-    for _ in range(2):
-        fitter.train_step()
-    fitter.next_level()
-    (before, after, occupied_then), = seen
-    assert after == occupied_then <= before  # called after the pruning, before the upsampling
-    assert max(fitter.model.grid.resolution) == 24 and fitter.levels[-1]["resolution"] == list(fitter.model.grid.resolution)
