@@ -27,6 +27,21 @@ def fit_context(scene: dict, root: Path, settings, report: Reporter) -> Iterator
                            upstream={"normalize": tmp / "normalize"}, scene_type=scene["type"], report=report)
 
 
+def fitted(scene: dict, root: Path, settings, quiet: bool = True) -> tuple[dict, float, dict, object]:
+    """Runs the fit stage on `scene` (see fit_context) and returns its summary, its wall seconds, its fit.json and the
+    fitted model."""
+    import time
+
+    from plenoxels.scene_model import SceneModel
+    from stages import fit
+
+    with fit_context(scene, root, settings, Reporter(quiet=quiet)) as ctx:
+        started = time.time()
+        summary = fit.run(ctx)
+        wall = time.time() - started
+        return summary, wall, json.loads((ctx.work / "fit.json").read_text()), SceneModel.load(ctx.work)
+
+
 def run_child(module: str, spec: dict, what: str) -> dict | None:
     """Runs `python -m <module> --one` with `spec` on its standard input, in the repository, and returns the JSON
     result it prints last; None, after saying `what` failed, when it exits with an error."""

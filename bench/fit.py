@@ -174,21 +174,13 @@ def one_run(spec: dict) -> dict:
     import numpy as np
     import torch
 
-    from bench.common import fit_context
+    from bench.common import fitted
     from pipeline.images import load_frame
-    from pipeline.report import Reporter
-    from plenoxels.scene_model import SceneModel
-    from stages import fit
     from pipeline.metrics import image_psnr, image_ssim
 
     scene, root = load_scene(spec["scene"], Path(spec["data"]), spec["scoring"]["val_limit"])
     settings = resolve(spec["preset"], spec["scene_type"], spec["overrides"])
-    with fit_context(scene, root, settings, Reporter(quiet=not spec.get("verbose"))) as ctx:
-        started = time.time()
-        summary = fit.run(ctx)
-        wall = time.time() - started
-        record = json.loads((ctx.work / "fit.json").read_text())
-        model = SceneModel.load(ctx.work)
+    summary, wall, record, model = fitted(scene, root, settings, quiet=not spec.get("verbose"))
     psnrs, ssims = [], []
     render_started = time.time()
     for frame in [f for f in scene["frames"] if f.get("split") == "test"]:

@@ -37,22 +37,14 @@ def one_run(spec: dict) -> dict:
     import numpy as np
     import torch
 
-    from bench.common import fit_context
+    from bench.common import fitted
     from bench.fit import load_scene, resolve
     from pipeline.images import load_frame
     from pipeline.metrics import image_scores, mean_scores
-    from pipeline.report import Reporter
-    from plenoxels.scene_model import SceneModel
-    from stages import fit
 
     scene, root = load_scene("lego", Path(spec["data"]), spec["views"])
     settings = resolve(spec["preset"], "object", spec["overrides"])
-    with fit_context(scene, root, settings, Reporter(quiet=not spec.get("verbose"))) as ctx:
-        started = time.time()
-        summary = fit.run(ctx)
-        wall = time.time() - started
-        record = json.loads((ctx.work / "fit.json").read_text())
-        model = SceneModel.load(ctx.work)
+    summary, wall, record, model = fitted(scene, root, settings, quiet=not spec.get("verbose"))
     held_out = [f for f in scene["frames"] if f.get("split") == "test"]
     sizes = {}
     for label, scale in SIZES.items():

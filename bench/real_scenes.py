@@ -29,7 +29,6 @@ import json
 import os
 import resource
 import sys
-import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
@@ -82,25 +81,17 @@ def one_run(spec: dict) -> dict:
     import numpy as np
     import torch
 
-    from bench.common import fit_context
+    from bench.common import fitted
     from bench.fit import resolve
     from pipeline.images import load_frame
     from pipeline.io import write_png
     from pipeline.metrics import image_scores, mean_scores, to_uint8
-    from pipeline.report import Reporter
-    from plenoxels.scene_model import SceneModel
-    from stages import fit
 
     out = Path(spec["out"])
     scene = with_views(json.loads((out / "normalize" / "scene.json").read_text()), VIEWS[spec["views"]])
     settings = resolve(spec["preset"], scene["type"], spec["overrides"])
     load_before = os.getloadavg()[0]
-    with fit_context(scene, out, settings, Reporter(quiet=not spec.get("verbose"))) as ctx:
-        started = time.time()
-        summary = fit.run(ctx)
-        wall = time.time() - started
-        record = json.loads((ctx.work / "fit.json").read_text())
-        model = SceneModel.load(ctx.work)
+    summary, wall, record, model = fitted(scene, out, settings, quiet=not spec.get("verbose"))
     views, first = [], None
     for frame in [f for f in scene["frames"] if f["split"] == "test"]:
         truth, k = load_frame(out, frame, settings.image_scale, settings.background_color)
