@@ -53,7 +53,7 @@ from plenoxels import native
 from plenoxels.cameras import Intrinsics, look_at
 from plenoxels.grid import SparseGrid, sh_count
 from plenoxels.scene_model import SceneModel
-from plenoxels.train import Fitter, RaySet
+from plenoxels.train import Fitter, RaySet, pruning_rays
 
 CACHE_VERSION = 1
 # Resolutions the calibration times steps at (grids as pruning leaves a fit: about 50k, 230k and 520k voxels).
@@ -174,7 +174,7 @@ def calibration_key(options, device: torch.device, background: dict | None,
     ModelOptions) that set what a step costs, and the fit's background model (n_spheres, width; None: none)."""
     cost_options = {name: getattr(options, name) for name in (
         "batch_size", "batch_mode", "tile_size", "coherent_batches", "sh_degree", "step_size", "stop_transmittance",
-        "tv_sample_fraction", "prune_ray_scale")}
+        "tv_sample_fraction", "prune_ray_scale", "prune_rays_per_cell")}
     return {
         "version": CACHE_VERSION, "cpu": processor_name(),
         "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
@@ -262,7 +262,7 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
         return model
 
     views = _calibration_views(model_at(resolutions[0]))
-    rays = views.subsampled_rays(options.prune_ray_scale)[0].shape[0]
+    rays = {r: pruning_rays(views.sizes, r, options) for r in resolutions}
 
     def fitter_at(levels: list[int]) -> Fitter:
         fit_options = dataclasses.replace(model_options, resolutions=levels, steps=[1_000_000] * len(levels))
@@ -276,7 +276,7 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
         begun = time.perf_counter()
         fitter.measure_weights()
         _sync(device)
-        passes.append((rays * resolution, time.perf_counter() - begun))
+        passes.append((rays[resolution] * resolution, time.perf_counter() - begun))
         del fitter
     voxels, seconds = np.array([p[0] for p in points], dtype=np.float64), np.array([p[1] for p in points])
     slope, fixed = np.polyfit(voxels, seconds, 1)
@@ -303,7 +303,7 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
     new_voxels = fitter.model.grid.num_occupied
     return {
         "costs": {"step_fixed": float(fixed), "step_per_voxel": float(slope), "pass_per_ray": pass_per_ray,
-                  "change_per_voxel": max(0.0, change - pass_per_ray * rays * resolutions[0]) / new_voxels,
+                  "change_per_voxel": max(0.0, change - pass_per_ray * rays[resolutions[0]] * resolutions[0]) / new_voxels,
                   "checkpoint_per_voxel": checkpoint / new_voxels, "save_per_voxel": save / new_voxels},
         "points": [{"resolution": r, "voxels": n, "step_seconds": round(t, 5)}
                    for r, (n, t) in zip(resolutions, points)],
@@ -346,7 +346,7 @@ def calibrate(options, device: torch.device, background: dict | None = None, res
 class FitFacts:
     """What a prediction needs to know of the fit besides its schedule."""
     box_voxels: Callable[[int], int]   # vertices of a first level's grid (its whole box) at a resolution
-    prune_rays: int                    # rays of a pruning pass
+    prune_rays: Callable[[int], int]   # rays of a pruning pass at a resolution
     eval_rays: int                     # rays of one held-out evaluation (0: none)
     eval_every: int
     checkpoint_every: float
@@ -374,7 +374,7 @@ def finish_seconds(costs: CostModel, facts: FitFacts, now: Outlook, resolution: 
     """The end of a fit at this resolution and size: the last pruning pass (of a pruned grid, as the calibration's
     are, at the ratio this scene's held-out renders through the same grid measured against the model), the held-out
     PSNR and the save; after a `stop`, the checkpoint the stop writes first."""
-    return (now.eval_ratio * costs.pass_seconds(facts.prune_rays, resolution) + costs.save_per_voxel * voxels
+    return (now.eval_ratio * costs.pass_seconds(facts.prune_rays(resolution), resolution) + costs.save_per_voxel * voxels
             + now.eval_ratio * costs.pass_seconds(facts.eval_rays, resolution)
             + (costs.checkpoint_per_voxel * voxels if stop else 0.0))
 
@@ -388,7 +388,8 @@ def predict(costs: CostModel, facts: FitFacts, now: Outlook, resolutions: list[i
         else:
             kept = (now.first_keep if level == 1 else now.later_keep) * voxels
             voxels = min(facts.voxel_budget, kept * (resolutions[level] / resolutions[level - 1]) ** 3)
-            seconds += now.change_ratio * (costs.pass_seconds(facts.prune_rays, resolutions[level - 1])
+            seconds += now.change_ratio * (costs.pass_seconds(facts.prune_rays(resolutions[level - 1]),
+                                                              resolutions[level - 1])
                                            + (costs.change_per_voxel + costs.checkpoint_per_voxel) * voxels)
             step = now.step_ratio * costs.step_seconds(voxels)
         end = start + steps[level]
@@ -499,13 +500,15 @@ class TimeBudget:
         self.seconds, self.started, self.plan_file = float(seconds), started, plan_file
         self.deadline = started + self.seconds
         probe = new_model(8)
+        resolution_for = probe.resolution_for  # a small grid; kept for the pruning passes' sizes
         firsts = {rung.resolutions[0] for rung in ladder or LADDER}
         box_voxels = {r: int(np.prod(probe.resolution_for(r))) for r in firsts}
         background = probe.background.config() if probe.background is not None else None
         del probe
-        stride = max(1, round(1 / options.prune_ray_scale))  # as RaySet.subsampled_rays takes them
-        prune_rays = sum(math.ceil(h / stride) * math.ceil(w / stride) for h, w in train.sizes.tolist())
-        self.facts = FitFacts(box_voxels=box_voxels.__getitem__, prune_rays=prune_rays, eval_rays=eval_rays,
+        sizes = train.sizes.clone()
+        self.facts = FitFacts(box_voxels=box_voxels.__getitem__, eval_rays=eval_rays,
+                              prune_rays=functools.lru_cache(maxsize=None)(
+                                  lambda r: pruning_rays(sizes, max(resolution_for(r)), options)),
                               eval_every=options.eval_every, checkpoint_every=options.checkpoint_every,
                               voxel_budget=options.voxel_budget, max_resolution=int(train.sizes.max()))
         background = background and {"n_spheres": background["n_spheres"], "width": background["width"]}
@@ -566,7 +569,8 @@ class TimeBudget:
         fitter = self.fitter
         change, self._eval_seconds = time.perf_counter() - self._last - self._eval_seconds, 0.0
         entry = fitter.levels[-1]
-        predicted = (self.costs.pass_seconds(self.facts.prune_rays, self.options.resolutions[fitter.level - 1])
+        before = self.options.resolutions[fitter.level - 1]
+        predicted = (self.costs.pass_seconds(self.facts.prune_rays(before), before)
                      + (self.costs.change_per_voxel + self.costs.checkpoint_per_voxel) * entry["occupied"])
         self.now.change_ratio = change / max(predicted, 1e-9)
         kept = entry["kept"] / max(1, entry["pruned_from"])

@@ -92,7 +92,12 @@ class TrainOptions:
     prune_dilation: int = 2
     """What pruning keeps is then grown by this many voxels."""
     prune_ray_scale: float = 0.5
-    """The training rays that measure weights for pruning: images at this share of their size."""
+    """The densest set of training rays that measure weights for pruning: images at this share of their size."""
+    prune_rays_per_cell: float = 16.0
+    """A pruning pass marches about this many rays per cell of the grid's largest face (resolution squared), through
+    an even lattice of every photo's pixels (never denser than prune_ray_scale; 0: always that dense). What it must
+    find, the voxels some photo sees, grows with the grid's faces, not with the photos: many large photos then
+    prune in a fraction of the time, and a voxel still meets rays from several photos."""
     prune_final: bool = True
     """Prune the same way after the last level too (smaller model, fewer floaters)."""
     voxel_budget: int = 16_000_000
@@ -168,9 +173,8 @@ class RaySet:
             return o[order], d[order], target[order]
         return o, d, target
 
-    def subsampled_rays(self, scale: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """Rays through a regular subset of every image's pixels (every 1/scale-th row and column)."""
-        stride = max(1, round(1 / scale))
+    def strided_rays(self, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rays through a regular subset of every image's pixels (every stride-th row and column)."""
         origins, dirs = [], []
         for i in range(len(self)):
             h, w = int(self.sizes[i, 0]), int(self.sizes[i, 1])
@@ -204,6 +208,23 @@ def decayed_lr(initial: float, final: float, progress: float, delay: float = 0.0
     if delay > 0:
         rate *= 0.01 + 0.99 * math.sin(0.5 * math.pi * min(progress / delay, 1.0))
     return rate
+
+
+def pruning_stride(sizes: torch.Tensor, resolution: int, options: TrainOptions) -> int:
+    """The pixel stride of a pruning pass over photos of these [N, 2] sizes on a grid of this resolution: the
+    largest that still gives prune_rays_per_cell rays per face cell, no smaller than prune_ray_scale's."""
+    densest = max(1, round(1 / options.prune_ray_scale))
+    if options.prune_rays_per_cell <= 0:
+        return densest
+    pixels = float((sizes[:, 0].double() * sizes[:, 1].double()).sum())
+    return max(densest, math.floor(math.sqrt(pixels / (options.prune_rays_per_cell * resolution ** 2))))
+
+
+def pruning_rays(sizes: torch.Tensor, resolution: int, options: TrainOptions) -> int:
+    """How many rays a pruning pass at this resolution marches (as RaySet.strided_rays takes them)."""
+    stride = pruning_stride(sizes, resolution, options)
+    return sum(math.ceil((h - stride // 2) / stride) * math.ceil((w - stride // 2) / stride)
+               for h, w in sizes.tolist())
 
 
 def prune_mask(grid: SparseGrid, weights: torch.Tensor, options: TrainOptions) -> torch.Tensor:
@@ -377,7 +398,8 @@ class Fitter:
 
     # ---- structure changes ----------------------------------------------------------------------
     def measure_weights(self) -> torch.Tensor:
-        origins, dirs = self.train.subsampled_rays(self.options.prune_ray_scale)
+        origins, dirs = self.train.strided_rays(
+            pruning_stride(self.train.sizes, max(self.model.grid.resolution), self.options))
         weights = torch.zeros(self.model.grid.num_occupied, device=self.device)
         for start in range(0, origins.shape[0], RAY_CHUNK):
             o, d = self.model.fit_frame.rays(origins[start:start + RAY_CHUNK].to(self.device),

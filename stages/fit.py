@@ -97,6 +97,7 @@ class Settings(TrainOptions, ModelOptions):
         require(0 <= self.stop_transmittance < 1, "fit.stop_transmittance must be in [0, 1)")
         require(self.prune_weight >= 0 and self.prune_dilation >= 0, "fit.prune_weight and fit.prune_dilation must be >= 0")
         require(0 < self.prune_ray_scale <= 1, "fit.prune_ray_scale must be in (0, 1]")
+        require(self.prune_rays_per_cell >= 0, "fit.prune_rays_per_cell must be >= 0 (0: every pixel at fit.prune_ray_scale)")
         require(self.voxel_budget >= 1000, "fit.voxel_budget must be at least 1000")
         require(len(self.background_color) == 3 and all(0 <= c <= 1 for c in self.background_color),
                 "fit.background_color must be three numbers in [0, 1] (for example [1, 1, 1])")

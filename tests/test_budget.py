@@ -24,7 +24,7 @@ FREE = CostModel(step_fixed=1e-6, step_per_voxel=1e-12, pass_per_ray=1e-12, chan
 # Roughly what this machine measured with the fast preset's options on one thread.
 MEASURED = CostModel(step_fixed=0.018, step_per_voxel=7e-8, pass_per_ray=1.7e-8, change_per_voxel=5e-7,
                      checkpoint_per_voxel=4e-7, save_per_voxel=1e-7)
-FACTS = FitFacts(box_voxels=lambda r: r ** 3, prune_rays=170_000, eval_rays=3600, eval_every=250,
+FACTS = FitFacts(box_voxels=lambda r: r ** 3, prune_rays=lambda r: 170_000, eval_rays=3600, eval_every=250,
                  checkpoint_every=180.0, voxel_budget=16_000_000)
 # What the budgeted fits of the tiny scene share with tests/test_fit.py, without its levels.
 BUDGETED = {k: v for k, v in QUICK.items() if k not in ("resolutions", "steps")} | {"sh_degree": 1}
@@ -154,7 +154,7 @@ def test_the_last_pruning_pass_is_predicted_at_the_held_out_renders_measured_rat
     slower = Outlook(eval_ratio=3.0)
     assert budget.finish_seconds(MEASURED, FACTS, slower, 128, 1e5) - budget.finish_seconds(
         MEASURED, FACTS, Outlook(), 128, 1e5) == pytest.approx(
-        2 * MEASURED.pass_seconds(FACTS.prune_rays + FACTS.eval_rays, 128))  # the last pruning pass and the held-out
+        2 * MEASURED.pass_seconds(FACTS.prune_rays(128) + FACTS.eval_rays, 128))  # the last pruning pass and the held-out
 
 
 # ---- budgeted fits -------------------------------------------------------------------------------------------------

@@ -1,5 +1,7 @@
 """The training loop's parts: batches of real pixels, the learning-rate schedule, TV for few views, the background's
 texture size."""
+import copy
+import dataclasses
 import math
 
 import numpy as np
@@ -8,13 +10,15 @@ import torch
 
 from pipeline.images import load_frame
 from pipeline.io import read_json
+from pipeline.metrics import image_psnr
 from plenoxels.cameras import Intrinsics, look_at, rays_from_camera
 from plenoxels.grid import SparseGrid
 from plenoxels.optim import GridGrad
 from plenoxels.render import RenderOptions, loss_and_grad
 from plenoxels.regularizers import tv_scale_for_views, views_per_point
 from plenoxels.scene_model import ModelOptions, SceneModel, background_width_for
-from plenoxels.train import Fitter, RaySet, TrainOptions, coherent_order, decayed_lr
+from plenoxels.train import (Fitter, RaySet, TrainOptions, coherent_order, decayed_lr, prune_mask, pruning_rays,
+                             pruning_stride)
 from test_fit import make_scene
 
 
@@ -133,3 +137,52 @@ def test_background_texels_follow_the_photos_pixels():
     assert background_width_for(276.0, 2.0) == 2 * background_width_for(138.0, 2.0)  # twice the focal, twice the texels
     assert background_width_for(5.0, 2.0) == 64 and background_width_for(1e5, 2.0) == 2048
     assert background_width_for(None, 2.0) == 128
+
+
+def test_a_pruning_pass_marches_rays_by_the_grid_not_the_photos_and_keeps_what_they_see(tmp_path):
+    root = make_scene(tmp_path, width=160)
+    scene = read_json(root / "normalize" / "scene.json")
+    frames = [f for f in scene["frames"] if f["split"] == "train"]
+    loaded = [load_frame(root, frame, 1.0, (1.0, 1.0, 1.0)) for frame in frames]
+    train = RaySet([image for image, _ in loaded], [np.asarray(f["transform_matrix"]) for f in frames],
+                   [k for _, k in loaded])
+    options = TrainOptions(resolutions=[32], steps=[150], batch_size=2048, prune_ray_scale=1.0)
+    wanted = options.prune_rays_per_cell * 32 ** 2
+    stride = pruning_stride(train.sizes, 32, options)
+    # The sparsest lattice of pixels that still gives the wanted rays (16 photos of 160x120: every 4th pixel).
+    assert stride > 1
+    assert pruning_rays(train.sizes, 32, options) == train.strided_rays(stride)[0].shape[0] >= wanted
+    assert train.strided_rays(stride + 1)[0].shape[0] < wanted
+    # A finer grid needs more rays, up to every pixel at prune_ray_scale; 0 asks for that always.
+    assert pruning_stride(train.sizes, 64, options) < stride
+    assert pruning_stride(train.sizes, 256, options) == 1
+    assert pruning_stride(train.sizes, 32, dataclasses.replace(options, prune_rays_per_cell=0.0)) == 1
+    assert pruning_stride(train.sizes, 256, dataclasses.replace(options, prune_ray_scale=0.25)) == 4
+
+    fitter = Fitter(SceneModel.create(scene, ModelOptions(), 32), options, train)
+    for _ in range(150):
+        fitter.train_step()
+    sparse = fitter.measure_weights()
+    fitter.options = dataclasses.replace(options, prune_rays_per_cell=0.0)
+    every_pixel = fitter.measure_weights()
+    assert float(sparse.max()) > 0.5  # the fit has an opaque surface by now
+    kept = prune_mask(fitter.model.grid, sparse, options)
+    kept_by_every_pixel = prune_mask(fitter.model.grid, every_pixel, options)
+    assert int(kept.sum()) < 0.5 * kept.numel()  # the empty box goes
+    assert bool(kept[every_pixel > 0.5].all())   # and what the photos see clearly stays
+
+    def rendered_psnr(keep: torch.Tensor) -> float:
+        """Mean PSNR of the held-out and the first training views with only the `keep` rows."""
+        model = copy.copy(fitter.model)
+        model.grid = fitter.model.grid.prune(keep)[0]
+        views = [f for f in scene["frames"] if f["split"] == "test"] + frames[:4]
+        scores = []
+        for frame in views:
+            truth, k = load_frame(root, frame, 1.0, (1.0, 1.0, 1.0))
+            with torch.no_grad():
+                scores.append(image_psnr(model.render_camera(np.asarray(frame["transform_matrix"]), k)["rgb"].numpy(),
+                                         truth))
+        return float(np.mean(scores))
+
+    # Pruned by the sparse pass, the photos and the held-out views render as they do pruned by every pixel.
+    assert rendered_psnr(kept) == pytest.approx(rendered_psnr(kept_by_every_pixel), abs=0.05)
