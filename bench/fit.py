@@ -226,8 +226,9 @@ BACKGROUND_SETTINGS = ("background_spheres", "background_width", "background_tex
 
 def still_valid(run: dict) -> bool:
     """Whether a stored run's settings are what its preset and overrides give today. A setting added since the run
-    counts as the same when it sits at its default (which keeps the behaviour from before it), and the background
-    model's settings do not count for a fit without one."""
+    counts as the same when it sits at its default, and the background model's settings do not count for a fit
+    without one. (Most new settings' defaults keep the behaviour from before them; fit.prune_rays_per_cell's does not,
+    and bench/README.md says which session each number comes from.)"""
     from pipeline import config
     from stages import fit
 
