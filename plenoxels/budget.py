@@ -499,16 +499,13 @@ class TimeBudget:
         """`new_model(resolution)` makes the fit's first model (its box and background are what a plan needs)."""
         self.seconds, self.started, self.plan_file = float(seconds), started, plan_file
         self.deadline = started + self.seconds
-        probe = new_model(8)
-        resolution_for = probe.resolution_for  # a small grid; kept for the pruning passes' sizes
+        probe = new_model(8)  # an 8^3 grid: kept, as its shape at each resolution sets a pruning pass's rays
         firsts = {rung.resolutions[0] for rung in ladder or LADDER}
         box_voxels = {r: int(np.prod(probe.resolution_for(r))) for r in firsts}
         background = probe.background.config() if probe.background is not None else None
-        del probe
-        sizes = train.sizes.clone()
         self.facts = FitFacts(box_voxels=box_voxels.__getitem__, eval_rays=eval_rays,
                               prune_rays=functools.lru_cache(maxsize=None)(
-                                  lambda r: pruning_rays(sizes, max(resolution_for(r)), options)),
+                                  lambda r: pruning_rays(train.sizes, max(probe.resolution_for(r)), options)),
                               eval_every=options.eval_every, checkpoint_every=options.checkpoint_every,
                               voxel_budget=options.voxel_budget, max_resolution=int(train.sizes.max()))
         background = background and {"n_spheres": background["n_spheres"], "width": background["width"]}

@@ -1,5 +1,5 @@
 """The training loop's parts: batches of real pixels, the learning-rate schedule, TV for few views, the background's
-texture size."""
+texture size, the pruning pass's rays."""
 import copy
 import dataclasses
 import math
