@@ -69,10 +69,13 @@ CALIBRATION_SIDE = 64
 MIN_SHARE = 0.5
 MAX_SHARE = 2.0
 # Priors for the share of a level's voxels that pruning keeps, until a level change has measured it: the first prune
-# (of a first level's whole box: the demo object keeps 10-25%, a scene that fills its box more) and later ones (of
-# grids pruned before: the demo's last prune keeps 50%). Too high a prior picks a coarser plan than the time allows
-# (re-plans then give it more steps), too low a finer one (re-plans then give it fewer).
-FIRST_KEEP_PRIOR = 0.2
+# (of a first level's whole box) by the scene type, and later ones (of grids pruned before: the demo's last prune keeps
+# 50%). An object's or a forward capture's box is mostly air in front of and around thin surfaces (the demo object
+# keeps 10-25%); an unbounded scene's box is the room the cameras stand in, seen from every side, and keeps most of
+# itself (fox 80%, cup 78%, the synthetic unbounded scene 58%). Too high a prior picks a coarser plan than the time
+# allows (re-plans then give it more steps), too low a finer one (re-plans then give it fewer: a fox 2-minute budget
+# planned 128->256 on the object's prior and ran a third of its steps).
+FIRST_KEEP_PRIOR = {"object": 0.2, "forward": 0.2, "unbounded": 0.75}
 LATER_KEEP_PRIOR = 0.6
 # Re-plan every this many steps; a level's step time is the mean of its latest STEP_WINDOW, after its first few.
 REPLAN_EVERY = 20
@@ -352,6 +355,11 @@ class FitFacts:
     checkpoint_every: float
     voxel_budget: int
     max_resolution: int = 1 << 30      # the finest final resolution worth fitting: the photos' longest side
+    first_keep: float = FIRST_KEEP_PRIOR["object"]  # the first prune's kept share until it is measured (by scene type)
+
+    def outlook(self, **where) -> "Outlook":
+        """The state of a fit of this scene at `where`, with the scene's prior for what the first prune keeps."""
+        return Outlook(**{"first_keep": self.first_keep, **where})
 
 
 @dataclass
@@ -365,7 +373,7 @@ class Outlook:
     step_ratio: float = 1.0            # for later levels: this scene's measured step time over the model's
     change_ratio: float = 1.0          # this scene's measured level changes (and their checkpoints) over the model's
     eval_ratio: float = 1.0            # this scene's measured held-out evaluations over the model's
-    first_keep: float = FIRST_KEEP_PRIOR
+    first_keep: float = FIRST_KEEP_PRIOR["object"]
     later_keep: float = LATER_KEEP_PRIOR
 
 
@@ -442,7 +450,7 @@ def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung
     ladder = [r for r in ladder if r.resolutions[-1] <= facts.max_resolution] or ladder[-1:]
 
     def seconds_for(rung: Rung, share: float) -> float:
-        now = Outlook(voxels=facts.box_voxels(rung.resolutions[0]))
+        now = facts.outlook(voxels=facts.box_voxels(rung.resolutions[0]))
         return predict(costs, facts, now, list(rung.resolutions), rung.scaled(share))
 
     def plan(rung: Rung, share: float) -> Plan:
@@ -507,7 +515,8 @@ class TimeBudget:
                               prune_rays=functools.lru_cache(maxsize=None)(
                                   lambda r: pruning_rays(train.sizes, max(probe.resolution_for(r)), options)),
                               eval_every=options.eval_every, checkpoint_every=options.checkpoint_every,
-                              voxel_budget=options.voxel_budget, max_resolution=int(train.sizes.max()))
+                              voxel_budget=options.voxel_budget, max_resolution=int(train.sizes.max()),
+                              first_keep=FIRST_KEEP_PRIOR.get(probe.scene_type, FIRST_KEEP_PRIOR["object"]))
         background = background and {"n_spheres": background["n_spheres"], "width": background["width"]}
         self.costs, self.calibration = calibrate(options, device, background, say=say)
         saved = json.loads(plan_file.read_text()) if resume and plan_file is not None and plan_file.is_file() else None
@@ -520,7 +529,7 @@ class TimeBudget:
             self.rung = next(r for r in ladder or LADDER if list(r.resolutions) == self.plan.resolutions)
             resolutions, steps = self.plan.resolutions, self.plan.steps
         self.options = dataclasses.replace(options, resolutions=list(resolutions), steps=list(steps))
-        self.now = Outlook()
+        self.now = self.facts.outlook()
         self.fitter: Fitter | None = None
         self.replans: list[dict] = []          # at each level change, and the latest one within each level
         self.level_seconds: list[float] = []   # the step time measured at each level
@@ -538,8 +547,8 @@ class TimeBudget:
         self.deadline = self.started + self.seconds - fitter.elapsed
         start = sum(self.options.steps[:fitter.level])
         self.options.steps[fitter.level] = max(self.options.steps[fitter.level], fitter.step - start)
-        self.now = Outlook(level=fitter.level, step=fitter.step, voxels=fitter.model.grid.num_occupied,
-                           dense=not fitter.levels)
+        self.now = self.facts.outlook(level=fitter.level, step=fitter.step, voxels=fitter.model.grid.num_occupied,
+                                      dense=not fitter.levels)
         self._last = time.perf_counter()
 
     def due(self) -> bool:
@@ -653,7 +662,8 @@ class TimeBudget:
             "scene_over_model": {"later_steps": round(self.now.step_ratio, 3),
                                  "level_change": round(self.now.change_ratio, 3),
                                  "held_out": round(self.now.eval_ratio, 3)},
-            "kept_share": {"first_prune": round(self.now.first_keep, 4), "later_prunes": round(self.now.later_keep, 4)},
+            "kept_share": {"first_prune": round(self.now.first_keep, 4), "later_prunes": round(self.now.later_keep, 4),
+                           "first_prune_prior": self.facts.first_keep},
             "replans": self.replans,
             "calibration": {"costs": dataclasses.asdict(self.costs), "points": self.calibration.get("points"),
                             "level_change": self.calibration.get("level_change"),

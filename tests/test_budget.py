@@ -1,4 +1,5 @@
 """The fit's time budget: durations, the cached calibration, plans that fit, and budgeted fits that end on time."""
+import json
 import os
 import shutil
 import signal
@@ -134,6 +135,24 @@ def test_a_budget_below_the_coarsest_plan_gets_what_fits_of_it():
     assert plan.predicted <= 2.0
 
 
+def test_a_scene_that_fills_its_box_is_planned_coarser_for_the_same_budget():
+    """An unbounded scene's first prune keeps most of its box (the room), so its later levels cost more than an
+    object's: the same budget buys it a coarser or shorter plan, which its prediction says fits."""
+    room = FitFacts(**{**FACTS.__dict__, "first_keep": budget.FIRST_KEEP_PRIOR["unbounded"]})
+    assert room.first_keep > FACTS.first_keep
+    coarser = 0
+    for seconds in (60, 120, 300):
+        mine, objects = budget.choose(seconds, MEASURED, room), budget.choose(seconds, MEASURED, FACTS)
+        assert mine.fits and mine.predicted <= seconds
+        assert (mine.resolutions[-1], mine.share) <= (objects.resolutions[-1], objects.share), (seconds, mine, objects)
+        # What the room's plan predicts for the object's plan is over the budget: the prior is what changed it.
+        if mine.resolutions != objects.resolutions:
+            coarser += 1
+            now = room.outlook(voxels=room.box_voxels(objects.resolutions[0]))
+            assert budget.predict(MEASURED, room, now, objects.resolutions, objects.steps) > seconds
+    assert coarser >= 2
+
+
 def test_a_replan_follows_the_measured_cost_and_drops_a_level_that_cannot_converge():
     rung = budget.LADDER[-1]  # 128 -> 256 -> 384
     resolutions, steps = list(rung.resolutions), rung.scaled(1.0)
@@ -230,3 +249,15 @@ def test_a_budgeted_fit_resumes_with_its_plan(fresh, monkeypatch):
     record = read_json(fresh / "fit" / "fit.json")
     assert record["resumed_from_step"] == 50 and record["complete"]
     assert record["resolutions"] == [16, 32] and record["steps"] == record["total_steps"] == 160  # the plan's 2x
+
+
+@pytest.mark.parametrize("scene_type", ["object", "unbounded"])
+def test_a_budgeted_fit_plans_with_its_scene_types_prior_for_the_first_prune(fresh, monkeypatch, scene_type):
+    monkeypatch.setattr(budget, "LADDER", (Rung((16, 32), (20, 20)),))
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
+    scene = read_json(fresh / "normalize" / "scene.json")
+    (fresh / "normalize" / "scene.json").write_text(json.dumps({**scene, "type": scene_type}))
+    run_stage(fresh, fit, {**BUDGETED, "time_budget": "1m"})
+    kept = read_json(fresh / "fit" / "fit.json")["budget"]["kept_share"]
+    assert kept["first_prune_prior"] == budget.FIRST_KEEP_PRIOR[scene_type]
+    assert kept["first_prune"] != kept["first_prune_prior"]  # measured at the level change, in place of the prior
