@@ -467,10 +467,14 @@ def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung
 def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung: Rung, resolutions: list[int],
            steps: list[int], measured: bool) -> tuple[list[int], list[int], float]:
     """(resolutions, steps, share) for a fit under way, the levels done kept: the most steps (a share of the rung's,
-    at most MAX_SHARE) whose predicted time fits `seconds`. With `measured` costs (after a level change), a level still
-    to come that would get less than MIN_SHARE of its steps is dropped. The resolutions stay the plan's otherwise:
-    lowering a last level not yet started to the finest that still got MIN_SHARE of its steps lost on lego at every
-    budget tried (bench/README.md, "The time budget against the presets")."""
+    at most MAX_SHARE) whose predicted time fits `seconds`. A level still to come is dropped when keeping it would leave
+    less than MIN_SHARE of the steps: with `measured` costs (after a level change) any such level; during the first
+    level only a third or later one, as what pruning keeps is still a prior and a first level alone is never a whole
+    fit. Without that, a first level gives up the steps a level dropped later would have needed (fox, 5-minute
+    budget: 128->256->384 planned at half its steps, 256 of 1000 first-level steps run, then 384 dropped at the level
+    change). When no schedule gets MIN_SHARE, the fewest levels allowed get what fits. The resolutions stay the plan's
+    otherwise: lowering a last level not yet started to the finest that still got MIN_SHARE of its steps lost on lego
+    at every budget tried (bench/README.md, "The time budget against the presets")."""
     done = now.step - sum(steps[:now.level])
 
     def schedule(share: float, levels: int) -> list[int]:
@@ -482,12 +486,13 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     def fits(levels: int) -> Callable[[float], bool]:
         return lambda s: predict(costs, facts, now, resolutions[:levels], schedule(s, levels)) <= seconds
 
-    for levels in range(len(resolutions), now.level, -1) if measured else [len(resolutions)]:
+    fewest = now.level + 1 if measured else min(len(resolutions), max(now.level + 1, 2))
+    for levels in range(len(resolutions), fewest - 1, -1):
         share = _largest_share(fits(levels), MIN_SHARE, MAX_SHARE)
         if share is not None:
             return resolutions[:levels], schedule(share, levels), share
-    share = _largest_share(fits(len(resolutions)), 0.0, MIN_SHARE) or 0.0
-    return list(resolutions), schedule(share, len(resolutions)), share
+    share = _largest_share(fits(fewest), 0.0, MIN_SHARE) or 0.0
+    return resolutions[:fewest], schedule(share, fewest), share
 
 
 # ---- the budget of one fit ----------------------------------------------------------------------------------------

@@ -169,6 +169,25 @@ def test_a_replan_follows_the_measured_cost_and_drops_a_level_that_cannot_conver
     assert kept == resolutions[:2] and share >= budget.MIN_SHARE  # the 384 level could not get half its steps
 
 
+def test_a_replan_during_the_first_level_drops_a_third_level_but_keeps_two():
+    """Steps 3x dearer than modelled, measured early in the first level: a plan that cannot give its levels half their
+    steps loses its third level before the first level gives up steps for it, never its second."""
+    three, two = budget.LADDER[-1], budget.LADDER[-3]  # 128 -> 256 -> 384 and 128 -> 256
+    now = Outlook(level=0, step=100, voxels=FACTS.box_voxels(128), dense=True, step_ratio=3.0,
+                  step_seconds=3 * MEASURED.step_seconds(FACTS.box_voxels(128)))
+    planned = three.scaled(budget.MIN_SHARE)
+    seconds = 0.6 * budget.predict(MEASURED, FACTS, now, list(three.resolutions), planned)
+    kept, steps, share = budget.replan(seconds, MEASURED, FACTS, now, three, list(three.resolutions), planned,
+                                       measured=False)
+    assert kept == [128, 256] and share >= budget.MIN_SHARE and steps[0] > planned[0]
+    assert budget.predict(MEASURED, FACTS, now, kept, steps) <= seconds
+    # Not even two levels get half their steps: both stay, with what fits.
+    tight = 0.3 * budget.predict(MEASURED, FACTS, now, [128, 256], two.scaled(budget.MIN_SHARE))
+    kept, steps, share = budget.replan(tight, MEASURED, FACTS, now, two, [128, 256], two.scaled(1.0), measured=False)
+    assert kept == [128, 256] and 0 < share < budget.MIN_SHARE
+    assert budget.predict(MEASURED, FACTS, now, kept, steps) <= tight
+
+
 def test_the_last_pruning_pass_is_predicted_at_the_held_out_renders_measured_ratio():
     slower = Outlook(eval_ratio=3.0)
     assert budget.finish_seconds(MEASURED, FACTS, slower, 128, 1e5) - budget.finish_seconds(
