@@ -1,6 +1,7 @@
-"""Total-variation regulariser over a random subset of occupied vertices (see reference.tv_loss), and how strong it
-needs to be for a capture: few photos far apart leave each point of the scene seen by few of them, and a fit then
-memorises the photos (floaters and smears that only a held-out view shows) unless the field is held smoother."""
+"""Regularisers over a random subset of occupied vertices: total variation (see reference.tv_loss) and a sparsity
+prior on density; and how strong TV needs to be for a capture: few photos far apart leave each point of the scene
+seen by few of them, and a fit then memorises the photos (floaters and smears that only a held-out view shows) unless
+the field is held smoother."""
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -34,6 +35,34 @@ def tv_loss_and_grad(grid: SparseGrid, grad: GridGrad, weight_density: float, we
     loss, grad.num_touched = native.ops.tv_loss_and_grad(
         grid.data, grid.links, grid.coords(), rows.to(grid.data.device), float(weight_density), float(weight_sh),
         grid.sh_degree, grad.data, grad.touched_mask, grad.touched_rows, grad.num_touched, *grad.scratch())
+    return float(loss)
+
+
+# The sparsity prior's scale: the optical thickness of one voxel (density times the voxel's length) at which the
+# Cauchy penalty turns from quadratic to logarithmic. A vertex that stops less than about this share of the light
+# (faint haze, which pruning would otherwise keep wherever some ray sees it) is pulled to zero; surfaces, far above
+# it, feel almost nothing.
+SPARSITY_THICKNESS = 0.01
+
+
+def sparsity_loss_and_grad(grid: SparseGrid, grad: GridGrad, weight: float, sample_fraction: float,
+                           generator: torch.Generator | None = None) -> float:
+    """weight * sum over sampled vertices of log(1 + (relu(density) * voxel / SPARSITY_THICKNESS)^2), a Cauchy prior
+    that density is zero (svox2's lambda_sparsity, here on grid vertices rather than ray samples); its gradient is
+    added into `grad`. The voxel length makes it the same prior on every level."""
+    rows = sample_rows(grid, sample_fraction, generator)
+    if rows.shape[0] == 0 or weight == 0:
+        return 0.0
+    rows = torch.unique(rows.to(grid.data.device))
+    voxel = max((hi - lo) / max(1, r - 1) for lo, hi, r in zip(grid.bbox_min, grid.bbox_max, grid.resolution))
+    thickness = grid.data[rows, 0].clamp_min(0.0) * (voxel / SPARSITY_THICKNESS)
+    live = thickness > 0
+    if not bool(live.any()):
+        return 0.0
+    thickness, rows = thickness[live], rows[live]
+    loss = weight * torch.log1p(thickness * thickness).sum()
+    d_density = weight * 2.0 * thickness / (1.0 + thickness * thickness) * (voxel / SPARSITY_THICKNESS)
+    grad.accumulate(rows, d_density, d_density.new_zeros(d_density.shape[0], 0))
     return float(loss)
 
 

@@ -29,7 +29,7 @@ from plenoxels.cameras import Intrinsics
 from plenoxels.errors import UserError
 from plenoxels.grid import SparseGrid, sh_count
 from plenoxels.optim import GridGrad, SparseRMSProp
-from plenoxels.regularizers import tv_loss_and_grad, tv_scale_for_views, views_per_point
+from plenoxels.regularizers import sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_views, views_per_point
 from plenoxels.render import loss_and_grad, max_weights
 from plenoxels.scene_model import SceneModel, psnr
 
@@ -76,6 +76,9 @@ class TrainOptions:
     """TV weight of the SH coefficients per sampled vertex."""
     tv_sample_fraction: float = 0.01
     """Share of the occupied vertices the TV term looks at each step."""
+    sparsity: float = 0.0
+    """Weight of a Cauchy prior that density is zero, per sampled vertex (the same vertices as TV): pulls faint haze,
+    which no photo needs but pruning keeps wherever some ray sees it, off the grid (0: off)."""
     tv_views: float = 32.0
     """Few views: where the training photos see each point of the grid's box fewer than this many times on average,
     both TV weights grow by (tv_views / views)^tv_views_power (0: the weights as set, whatever the capture)."""
@@ -284,7 +287,8 @@ class Fitter:
         """The TV weights this capture gets: as set, grown where few training views see the grid's box (world grids;
         an NDC grid's box is not a region of the world, and the forward overlay sets its own weights)."""
         o = self.options
-        record = {"tv_density": o.tv_density, "tv_sh": o.tv_sh, "views_per_point": None, "tv_scale": 1.0}
+        record = {"tv_density": o.tv_density, "tv_sh": o.tv_sh, "views_per_point": None, "tv_scale": 1.0,
+                  "sparsity": o.sparsity}
         if o.tv_views > 0 and self.model.fit_frame.ndc is None:
             views = views_per_point(self.train.c2w.double().numpy(), self.train.intrinsics, self.model.grid.bbox_min,
                                     self.model.grid.bbox_max, seed=o.seed)
@@ -373,6 +377,7 @@ class Fitter:
         tv = self.regularisation
         tv_loss_and_grad(self.model.grid, self.grad, tv["tv_density"] * tv_rows, tv["tv_sh"] * tv_rows,
                          o.tv_sample_fraction, self.generator)
+        sparsity_loss_and_grad(self.model.grid, self.grad, o.sparsity, o.tv_sample_fraction, self.generator)
         self.optim.step(self.grad)
         if self.bg_optim is not None:
             started = time.perf_counter()

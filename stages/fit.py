@@ -93,6 +93,7 @@ class Settings(TrainOptions, ModelOptions):
         require(0 <= self.rmsprop_beta < 1, "fit.rmsprop_beta must be in [0, 1)")
         require(self.tv_density >= 0 and self.tv_sh >= 0, "fit.tv_density and fit.tv_sh must be >= 0")
         require(0 < self.tv_sample_fraction <= 1, "fit.tv_sample_fraction must be in (0, 1]")
+        require(self.sparsity >= 0, "fit.sparsity must be >= 0 (0: off)")
         require(self.step_size > 0, "fit.step_size must be positive (voxels)")
         require(0 <= self.stop_transmittance < 1, "fit.stop_transmittance must be in [0, 1)")
         require(self.prune_weight >= 0 and self.prune_dilation >= 0, "fit.prune_weight and fit.prune_dilation must be >= 0")

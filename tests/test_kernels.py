@@ -9,7 +9,7 @@ from plenoxels import native, reference
 from plenoxels.grid import SparseGrid
 from plenoxels.grid import OCCUPANCY_BLOCK
 from plenoxels.optim import GridGrad, SparseRMSProp
-from plenoxels.regularizers import sample_rows, tv_loss_and_grad
+from plenoxels.regularizers import SPARSITY_THICKNESS, sample_rows, sparsity_loss_and_grad, tv_loss_and_grad
 from plenoxels.render import RenderOptions
 from plenoxels.render import COLOUR_OFFSET, SH_C0, loss_and_grad, max_weights, ray_samples, render, sample_counts
 
@@ -129,6 +129,31 @@ def test_tv_native_matches_twin(fraction):
     assert loss_n == pytest.approx(loss_t, rel=1e-5)
     assert set(native.touched().tolist()) == set(twin.touched().tolist())
     torch.testing.assert_close(native.data, twin.data, atol=1e-7, rtol=1e-4)
+
+
+def test_the_sparsity_prior_matches_autograd_and_spares_what_has_no_density():
+    grid = random_grid(seed=15, holes=0.2)
+    grid.density[:5] = torch.tensor([-2.0, 0.0, 1e-6, 50.0, 1e4])  # none, the kink, haze, a surface, far beyond
+    grad = GridGrad(grid)
+    loss = sparsity_loss_and_grad(grid, grad, 0.3, 1.0)
+    voxel = max((hi - lo) / (r - 1) for lo, hi, r in zip(grid.bbox_min, grid.bbox_max, grid.resolution))
+    density = grid.density.double().requires_grad_(True)
+    reference_loss = 0.3 * torch.log1p((density.clamp_min(0) * voxel / SPARSITY_THICKNESS) ** 2).sum()
+    reference_loss.backward()
+    reference_loss = reference_loss.detach()
+    assert loss == pytest.approx(reference_loss.item(), rel=1e-5)
+    torch.testing.assert_close(grad.density.double(), density.grad, atol=1e-9, rtol=1e-4)
+    assert grad.sh.abs().max() == 0  # colour is not its business
+    touched = set(grad.touched().tolist())
+    assert touched == set(torch.nonzero(grid.density > 0).flatten().tolist()) and 0 not in touched and 1 not in touched
+    # Haze is pulled far harder, relative to its density, than a surface is; the surface's pull is all but gone.
+    assert grad.density[2] / grid.density[2] > 1e3 * grad.density[3] / grid.density[3]
+    assert 0 < grad.density[4] < 1e-3 * float(grad.density.max())
+    # Sampled rows only, each once, and nothing at all at weight 0.
+    partial = GridGrad(grid)
+    sparsity_loss_and_grad(grid, partial, 0.3, 0.2, torch.Generator().manual_seed(3))
+    assert 0 < partial.num_touched < grad.num_touched
+    assert sparsity_loss_and_grad(grid, GridGrad(grid), 0.0, 1.0) == 0.0
 
 
 def test_tv_twin_gradcheck_and_known_value():
