@@ -77,8 +77,9 @@ class TrainOptions:
     tv_sample_fraction: float = 0.01
     """Share of the occupied vertices the TV term looks at each step."""
     sparsity: float = 0.0
-    """Weight of a Cauchy prior that density is zero, per sampled vertex (the same vertices as TV): pulls faint haze,
-    which no photo needs but pruning keeps wherever some ray sees it, off the grid (0: off)."""
+    """Weight of a Cauchy prior that density is zero, per sampled vertex (the same vertices as TV), on the first level:
+    pulls faint haze, which no photo needs but pruning keeps wherever some ray sees it, off the grid before the first
+    pruning decides what the finer levels are built from; they then fit detail without it (0: off)."""
     tv_views: float = 32.0
     """Few views: where the training photos see each point of the grid's box fewer than this many times on average,
     both TV weights grow by (tv_views / views)^tv_views_power (0: the weights as set, whatever the capture)."""
@@ -377,7 +378,8 @@ class Fitter:
         tv = self.regularisation
         tv_loss_and_grad(self.model.grid, self.grad, tv["tv_density"] * tv_rows, tv["tv_sh"] * tv_rows,
                          o.tv_sample_fraction, self.generator)
-        sparsity_loss_and_grad(self.model.grid, self.grad, o.sparsity, o.tv_sample_fraction, self.generator)
+        if self.level == 0:
+            sparsity_loss_and_grad(self.model.grid, self.grad, o.sparsity, o.tv_sample_fraction, self.generator)
         self.optim.step(self.grad)
         if self.bg_optim is not None:
             started = time.perf_counter()
