@@ -50,10 +50,11 @@ def sparsity_loss_and_grad(grid: SparseGrid, grad: GridGrad, weight: float, samp
     """weight * sum over sampled vertices of log(1 + (relu(density) * voxel / SPARSITY_THICKNESS)^2), a Cauchy prior
     that density is zero (svox2's lambda_sparsity, here on grid vertices rather than ray samples); its gradient is
     added into `grad`. The voxel length makes it the same prior on every level."""
-    rows = sample_rows(grid, sample_fraction, generator)
-    if rows.shape[0] == 0 or weight == 0:
+    if weight == 0:
+        return 0.0  # before drawing rows: a fit without the prior draws the batches it always drew
+    rows = torch.unique(sample_rows(grid, sample_fraction, generator).to(grid.data.device))
+    if rows.shape[0] == 0:
         return 0.0
-    rows = torch.unique(rows.to(grid.data.device))
     voxel = max((hi - lo) / max(1, r - 1) for lo, hi, r in zip(grid.bbox_min, grid.bbox_max, grid.resolution))
     thickness = grid.data[rows, 0].clamp_min(0.0) * (voxel / SPARSITY_THICKNESS)
     live = thickness > 0
