@@ -382,7 +382,8 @@ def finish_seconds(costs: CostModel, facts: FitFacts, now: Outlook, resolution: 
     """The end of a fit at this resolution and size: the last pruning pass (of a pruned grid, as the calibration's
     are, at the ratio this scene's held-out renders through the same grid measured against the model), the held-out
     PSNR and the save; after a `stop`, the checkpoint the stop writes first."""
-    return (now.eval_ratio * costs.pass_seconds(facts.prune_rays(resolution), resolution) + costs.save_per_voxel * voxels
+    return (now.eval_ratio * costs.pass_seconds(facts.prune_rays(resolution), resolution)
+            + costs.save_per_voxel * voxels
             + now.eval_ratio * costs.pass_seconds(facts.eval_rays, resolution)
             + (costs.checkpoint_per_voxel * voxels if stop else 0.0))
 
@@ -521,7 +522,7 @@ class TimeBudget:
                                   lambda r: pruning_rays(train.sizes, max(probe.resolution_for(r)), options)),
                               eval_every=options.eval_every, checkpoint_every=options.checkpoint_every,
                               voxel_budget=options.voxel_budget, max_resolution=int(train.sizes.max()),
-                              first_keep=FIRST_KEEP_PRIOR.get(probe.scene_type, FIRST_KEEP_PRIOR["object"]))
+                              first_keep=FIRST_KEEP_PRIOR[probe.scene_type])
         background = background and {"n_spheres": background["n_spheres"], "width": background["width"]}
         self.costs, self.calibration = calibrate(options, device, background, say=say)
         saved = json.loads(plan_file.read_text()) if resume and plan_file is not None and plan_file.is_file() else None

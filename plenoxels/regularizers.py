@@ -55,7 +55,7 @@ def sparsity_loss_and_grad(grid: SparseGrid, grad: GridGrad, weight: float, samp
     rows = torch.unique(sample_rows(grid, sample_fraction, generator).to(grid.data.device))
     if rows.shape[0] == 0:
         return 0.0
-    voxel = max((hi - lo) / max(1, r - 1) for lo, hi, r in zip(grid.bbox_min, grid.bbox_max, grid.resolution))
+    voxel = 1.0 / min(grid.scale)  # the longest vertex spacing, in fit-frame units
     thickness = grid.data[rows, 0].clamp_min(0.0) * (voxel / SPARSITY_THICKNESS)
     live = thickness > 0
     if not bool(live.any()):
