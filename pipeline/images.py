@@ -1,7 +1,10 @@
 """Frame images as the fit and evaluate stages see them: float RGB in [0, 1], masks composited, resized."""
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import imageio.v3 as iio
@@ -18,19 +21,45 @@ def load_frame(root: Path, frame: dict, scale: float, background_color) -> tuple
     path = root / frame["file_path"]
     if not path.is_file():
         raise UserError(f"image {path} listed in scene.json is missing; re-run the stages before fit")
-    rgb = read_rgb(path).astype(np.float32) / 255.0
+    mask_path = frame.get("mask_path")
+    if mask_path == frame["file_path"]:
+        # An RGBA photo that is its own mask (a dataset read in place): one decode gives both.
+        rgb, alpha = split_alpha(iio.imread(path))
+    else:
+        rgb = read_rgb(path)
+        alpha = read_alpha(root / mask_path) if mask_path else None
+    rgb = rgb.astype(np.float32) / 255.0
     k = Intrinsics.from_frame(frame)
     if (rgb.shape[1], rgb.shape[0]) != (k.w, k.h):
         raise UserError(f"{path} is {rgb.shape[1]}x{rgb.shape[0]} but scene.json says {k.w}x{k.h}; re-run normalize")
-    if frame.get("mask_path"):
-        alpha = read_alpha(root / frame["mask_path"])
+    if alpha is not None:
         if alpha.shape != rgb.shape[:2]:
-            raise UserError(f"mask {frame['mask_path']} is not the size of its image; re-run ingest")
+            raise UserError(f"mask {mask_path} is not the size of its image; re-run ingest")
         rgb = rgb * alpha[..., None] + np.asarray(background_color, dtype=np.float32) * (1 - alpha[..., None])
     k = k.scaled(scale) if scale != 1 else k
     if (k.w, k.h) != (rgb.shape[1], rgb.shape[0]):
         rgb = cv2.resize(rgb, (k.w, k.h), interpolation=cv2.INTER_AREA)
     return np.ascontiguousarray(rgb), k
+
+
+def load_frames(root: Path, frames: list[dict], scale: float, background_color,
+                threads: int | None = None) -> Iterator[tuple[np.ndarray, Intrinsics]]:
+    """load_frame of each frame, in order, decoded on `threads` threads (default: one per core; PNG decoding and
+    resizing release the GIL), yielded as each is ready so a progress bar can follow."""
+    threads = threads or os.cpu_count() or 1
+    if threads == 1 or len(frames) <= 1:
+        yield from (load_frame(root, frame, scale, background_color) for frame in frames)
+        return
+    with ThreadPoolExecutor(threads) as pool:
+        yield from pool.map(lambda frame: load_frame(root, frame, scale, background_color), frames)
+
+
+def split_alpha(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """An 8-bit image as RGB [h,w,3] and its alpha [h,w] in [0,1] (None without an alpha channel)."""
+    if image.ndim == 2:
+        return np.repeat(image[..., None], 3, axis=-1), None
+    alpha = image[..., 3].astype(np.float32) / 255.0 if image.shape[2] == 4 else None
+    return np.ascontiguousarray(image[..., :3]), alpha
 
 
 def read_alpha(path: Path) -> np.ndarray:

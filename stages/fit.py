@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from pipeline.config import parse_duration, require
-from pipeline.images import load_frame
+from pipeline.images import load_frames
 from pipeline.interrupts import StopRequest
 from pipeline.io import read_json, write_json
 from pipeline.report import format_bytes, format_count, format_duration
@@ -119,10 +119,9 @@ class HeldOut:
     def __init__(self, root: Path, frames: list[dict], s: Settings):
         pick = frames if len(frames) <= s.eval_views else [frames[i] for i in
                                                              np.linspace(0, len(frames) - 1, s.eval_views).round().astype(int)]
-        self.views = []
-        for frame in pick if s.eval_views else []:
-            image, k = load_frame(root, frame, s.eval_scale, s.background_color)
-            self.views.append((np.asarray(frame["transform_matrix"], dtype=np.float64), k, torch.from_numpy(image)))
+        pick = pick if s.eval_views else []
+        self.views = [(np.asarray(frame["transform_matrix"], dtype=np.float64), k, torch.from_numpy(image))
+                      for frame, (image, k) in zip(pick, load_frames(root, pick, s.eval_scale, s.background_color))]
 
     def __bool__(self) -> bool:
         return bool(self.views)
@@ -148,8 +147,8 @@ def load_training(ctx, scene: dict, s: Settings) -> tuple[RaySet, list[dict]]:
     if not train:
         raise UserError("scene.json has no training frames; re-run normalize with fewer held out (normalize.holdout_every)")
     images, c2ws, ks = [], [], []
-    for frame in ctx.report.track(train, desc="loading training images"):
-        image, k = load_frame(ctx.out, frame, s.image_scale, s.background_color)
+    loaded = load_frames(ctx.out, train, s.image_scale, s.background_color)
+    for frame, (image, k) in zip(train, ctx.report.track(loaded, total=len(train), desc="loading training images")):
         images.append(image)
         c2ws.append(np.asarray(frame["transform_matrix"], dtype=np.float64))
         ks.append(k)

@@ -9,6 +9,7 @@ from skimage.metrics import structural_similarity
 
 from pipeline import lpips
 from pipeline.camera_paths import orbit_path, spiral_path
+from pipeline.images import load_frame
 from pipeline.io import read_json
 from pipeline.visuals import colour_depth
 from plenoxels.scene_model import SceneModel
@@ -32,7 +33,7 @@ def test_metrics_match_a_direct_computation(fitted):
     model = SceneModel.load(fitted / "fit")
     direct_psnr, direct_ssim = [], []
     for frame, view in zip(held_out, metrics["views"]):
-        truth, k = fit.load_frame(fitted, frame, 1.0, (1.0, 1.0, 1.0))
+        truth, k = load_frame(fitted, frame, 1.0, (1.0, 1.0, 1.0))
         render = model.render_camera(np.asarray(frame["transform_matrix"]), k)["rgb"].numpy()
         mse = float(np.mean((render.astype(np.float64) - truth) ** 2))
         direct_psnr.append(-10 * math.log10(mse))
