@@ -30,7 +30,7 @@ from bench.kernels import make_grid  # noqa: E402
 from plenoxels.background import MultiSphereBackground  # noqa: E402
 from plenoxels.cameras import Intrinsics, look_at  # noqa: E402
 from plenoxels.render import RenderOptions  # noqa: E402
-from plenoxels.scene_model import ModelOptions, SceneModel  # noqa: E402
+from plenoxels.scene_model import ModelOptions, SceneModel, background_width_for  # noqa: E402
 from plenoxels.train import Fitter, RaySet, TrainOptions  # noqa: E402
 
 RESULTS = REPO / "bench" / "results" / "background.json"
@@ -48,8 +48,11 @@ def training_rays(views: int = 40, width: int = 400, height: int = 300, seed: in
     return RaySet(images, c2ws, ks)
 
 
-# (spheres, texture width) of the background: what unbounded scenes get, and the fit's defaults.
-SIZES = {"unbounded overlay": (16, 64), "fit defaults": (ModelOptions().background_spheres, ModelOptions().background_width)}
+# (spheres, texture width) of the background: what unbounded scenes get, and the fit's defaults (whose width 0 means
+# texels sized from the photos: these rays' focal length of 0.8 x 400 pixels).
+SIZES = {"unbounded overlay": (16, 64),
+         "fit defaults": (ModelOptions().background_spheres,
+                          ModelOptions().background_width or background_width_for(0.8 * 400, ModelOptions().background_texel_px))}
 
 
 def model(sparse: bool, background_size: tuple[int, int] | None) -> SceneModel:

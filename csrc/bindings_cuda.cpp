@@ -360,7 +360,7 @@ Tensor background_render(Tensor origins, Tensor dirs, Tensor centre, Tensor radi
 
 int64_t background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, Tensor far_colour,
                             Tensor rgb, Tensor grad_rgb, Tensor grad_texture, Tensor grad_mask, Tensor grad_rows,
-                            int64_t) {
+                            int64_t, Tensor, Tensor) {
     const c10::cuda::CUDAGuard guard(texture.device());
     const plx_cuda::Background bg = make_background(centre, radii, texture, far_colour);
     const plx_cuda::Rays rays = make_rays(origins, dirs, texture);

@@ -818,24 +818,9 @@ Tensor background_render(Tensor origins, Tensor dirs, Tensor centre, Tensor radi
     return rgb;
 }
 
-// Texel gradients from many threads at once: atomic adds, and a mark (2) on texels not yet in the touched list,
-// which one pass afterwards appends in texel order (the table is small: spheres x texels).
-struct AtomicTexelSink {
-    float* grad;
-    uint8_t* mask;
-    void operator()(int texel, const float g[4]) const {
-        float* row = grad + 4 * (int64_t)texel;
-        for (int c = 0; c < 4; ++c) {
-#pragma omp atomic
-            row[c] += g[c];
-        }
-        if (__atomic_load_n(mask + texel, __ATOMIC_RELAXED) == 0) __atomic_store_n(mask + texel, (uint8_t)2, __ATOMIC_RELAXED);
-    }
-};
-
 int64_t background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, Tensor far_colour,
                              Tensor rgb, Tensor grad_rgb, Tensor grad_texture, Tensor grad_mask, Tensor grad_rows,
-                             int64_t num_touched) {
+                             int64_t num_touched, Tensor scratch_grad, Tensor scratch_mask) {
     check_background(origins, dirs, centre, radii, texture, far_colour);
     check_float_rows(grad_rgb, "grad_rgb");
     check_float_rows(grad_texture, "grad_texture");
@@ -844,29 +829,38 @@ int64_t background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor r
     const int64_t texels = (int64_t)K * H * W;
     check_float_rows(rgb, "rgb");
     TORCH_CHECK(grad_rgb.sizes() == origins.sizes() && rgb.sizes() == origins.sizes(), "rgb and grad_rgb must be [B, 3] like the rays");
-    TORCH_CHECK(grad_texture.numel() == 4 * texels, "grad_texture must hold [K*H*W, 4]");
+    TORCH_CHECK(grad_texture.dim() == 2 && grad_texture.size(0) == texels && grad_texture.size(1) == 4,
+                "grad_texture must be [K*H*W, 4]");
     TORCH_CHECK(grad_mask.scalar_type() == at::kByte && grad_mask.is_contiguous() && grad_mask.numel() == texels &&
                 grad_rows.scalar_type() == at::kInt && grad_rows.is_contiguous() && grad_rows.numel() >= texels,
                 "grad mask and rows need one uint8 / int32 entry per texel");
+    // Every ray reads the same few spheres, so the texels are shared by many rays at once: each thread adds into its
+    // own table (the grid's per-thread scheme) and the tables are merged after, where atomic adds would fight over
+    // the same cache lines.
+    ThreadGrads scratch(grad_texture, scratch_grad, scratch_mask);
+    GradTarget target{grad_texture.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), grad_rows.data_ptr<int32_t>(),
+                      num_touched};
     const float *o = origins.data_ptr<float>(), *d = dirs.data_ptr<float>(), *c = centre.data_ptr<float>();
     const float *r = radii.data_ptr<float>(), *tex = texture.data_ptr<float>();
     const float *g = grad_rgb.data_ptr<float>(), *colour = rgb.data_ptr<float>();
-    uint8_t* mask = grad_mask.data_ptr<uint8_t>();
-    const AtomicTexelSink sink{grad_texture.data_ptr<float>(), mask};
-#pragma omp parallel for schedule(static)
-    for (int64_t b = 0; b < B; ++b) {
-        double rel[3], unit[3];
-        plx::bg_ray(o + 3 * b, d + 3 * b, c, rel, unit);
-        plx::bg_backward(tex, r, K, H, W, rel, unit, colour + 3 * b, g + 3 * b, sink);
-    }
-    int32_t* rows = grad_rows.data_ptr<int32_t>();
-    for (int64_t t = 0; t < texels; ++t) {
-        if (mask[t] == 2) {
-            mask[t] = 1;
-            rows[num_touched++] = (int32_t)t;
+    const int threads = scratch.threads();
+#pragma omp parallel num_threads(threads)
+    {
+        GradSink sink = sink_for(omp_get_thread_num(), &target, &scratch);
+        const auto add = [&sink](int texel, const float grad[4]) {
+            sink.touch(texel);
+            float* row = sink.buf + 4 * (int64_t)texel;
+            for (int k = 0; k < 4; ++k) row[k] += grad[k];
+        };
+#pragma omp for schedule(static)
+        for (int64_t b = 0; b < B; ++b) {
+            double rel[3], unit[3];
+            plx::bg_ray(o + 3 * b, d + 3 * b, c, rel, unit);
+            plx::bg_backward(tex, r, K, H, W, rel, unit, colour + 3 * b, g + 3 * b, add);
         }
     }
-    return num_touched;
+    merge(&target, &scratch, threads);
+    return target.count;
 }
 
 // Trilinear interpolation of every packed column at grid-frame points [P, 3]: [P, S], zeros outside the box.

@@ -56,12 +56,10 @@ TORCH_LIBRARY(voxfield, m) {
     // around `centre`, textures [K, H, W, 4] (raw density, colour logits), far_colour [3].
     m.def("background_render(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, "
           "Tensor far_colour) -> Tensor");
-    // Adds d loss / d texture into grad_texture [K*H*W, 4] from the rays' colours (background_render's) and
-    // d loss / d colour [B, 3]; touched texels join
-    // grad_rows as for the grid; returns the new touched count.
+    // Adds d loss / d texture into the gradient table [K*H*W, 4] (its texel rows, as the grid's) from the rays'
+    // colours (background_render's) and d loss / d colour [B, 3]; returns the new touched count.
     m.def("background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, "
-          "Tensor far_colour, Tensor rgb, Tensor grad_rgb, Tensor(a!) grad_texture, Tensor(b!) grad_mask, Tensor(c!) grad_rows, "
-          "int num_touched) -> int");
+          "Tensor far_colour, Tensor rgb, Tensor grad_rgb, " PLX_GRAD ") -> int");
     // RMSProp on the touched rows; clears their gradient. With live coords/counts/blocks, keeps them current.
     m.def("rmsprop_step(Tensor(a!) data, Tensor(b!) second_moment, Tensor(c!) grad_data, Tensor(d!) grad_mask, "
           "Tensor grad_rows, int num_touched, int columns, float lr_density, float lr_sh, float beta, float eps, "

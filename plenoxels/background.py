@@ -182,6 +182,8 @@ class BackgroundOptimiser:
         self.touched_mask = torch.zeros(rows.shape[0], dtype=torch.uint8, device=rows.device)
         self.touched_rows = torch.zeros(rows.shape[0], dtype=torch.int32, device=rows.device)
         self.num_touched = 0
+        # The CPU kernel's per-thread gradient tables (pages mapped on first touch; empty on a GPU).
+        self.scratch = tuple(native.ops.grad_scratch(self.grad))
         self.second_moment = torch.zeros_like(rows)
         self.generator = torch.Generator(device=rows.device).manual_seed(seed)
 
@@ -193,7 +195,7 @@ class BackgroundOptimiser:
         o, d, rgb, g = (t.detach().to(device=device, dtype=torch.float32).contiguous() for t in (o, d, rgb, grad_rgb))
         self.num_touched = native.ops.background_backward(
             o, d, bg.centre, bg.radii, bg.texture.data, bg.far_colour, rgb, g, self.grad, self.touched_mask,
-            self.touched_rows, self.num_touched)
+            self.touched_rows, self.num_touched, *self.scratch)
 
     def step(self) -> None:
         if self.num_touched > DENSE_TV_SHARE * self.grad.shape[0] and self.grad.shape[0] <= 8 * TV_SAMPLE_ROWS:

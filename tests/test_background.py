@@ -168,6 +168,32 @@ def test_native_texel_gradients_match_the_twin(case):
     torch.testing.assert_close(native, expected, atol=2e-5 * float(expected.abs().max()), rtol=0)
 
 
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_texels_shared_by_every_thread_sum_their_gradients_across_calls(threads):
+    # A tiny texture under thousands of rays: every texel is read by rays of every thread (each adds into its own
+    # table, merged after), and a second call adds to the first, as a step's several batches would.
+    model = _textured(MultiSphereBackground(r_min=1.5, r_max=40.0, n_spheres=2, height=3, width=4), seed=21)
+    o, d = _random_rays(3000, 22, spread=0.9)
+    o, d = o.float().double(), d.float().double()
+    grad_rgb = torch.randn(o.shape[0], 3, generator=torch.Generator().manual_seed(23), dtype=torch.float64)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        optimiser = BackgroundOptimiser(model, lr=0.0)
+        for half in (slice(0, 1500), slice(1500, 3000)):
+            oh, dh = o[half].float().contiguous(), d[half].float().contiguous()
+            optimiser.backward(oh, dh, model(oh, dh), grad_rgb[half].float().contiguous())
+    finally:
+        torch.set_num_threads(before)
+    rows = optimiser.touched_rows[: optimiser.num_touched].long()
+    assert sorted(rows.tolist()) == list(range(model.rows.shape[0]))  # every texel listed, once
+    assert bool((optimiser.touched_mask == 1).all())
+    assert not any(bool(t.any()) for t in optimiser.scratch)         # the per-thread tables are left clear
+    expected = twin_texel_grad(model, o, d, grad_rgb)
+    torch.testing.assert_close(optimiser.grad.view_as(model.texture).double(), expected,
+                               atol=1e-5 * float(expected.abs().max()), rtol=0)
+
+
 def test_inverse_radii_are_evenly_spaced_from_just_outside_the_box():
     model = MultiSphereBackground.around_box((-1, -1, -1), (1, 1, 1), n_spheres=16)
     inverse = 1 / model.radii.double()
