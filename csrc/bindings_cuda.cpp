@@ -349,7 +349,12 @@ plx_cuda::Background make_background(const Tensor& centre, const Tensor& radii, 
             (int)texture.size(0), (int)texture.size(1), (int)texture.size(2)};
 }
 
-Tensor background_render(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, Tensor far_colour) {
+// The forward's layer record is the CPU's saving (a GPU re-intersects the spheres at no cost that matters): the
+// background's optimiser asks for none on a GPU.
+Tensor background_render(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, Tensor far_colour,
+                         std::optional<Tensor> layer_texels, std::optional<Tensor> layer_weights) {
+    TORCH_CHECK(!layer_texels.has_value() && !layer_weights.has_value(),
+                "the background's layer record is a CPU path; a GPU re-intersects the spheres");
     const c10::cuda::CUDAGuard guard(texture.device());
     const plx_cuda::Background bg = make_background(centre, radii, texture, far_colour);
     const plx_cuda::Rays rays = make_rays(origins, dirs, texture);
@@ -359,8 +364,11 @@ Tensor background_render(Tensor origins, Tensor dirs, Tensor centre, Tensor radi
 }
 
 int64_t background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, Tensor far_colour,
-                            Tensor rgb, Tensor grad_rgb, Tensor grad_texture, Tensor grad_mask, Tensor grad_rows,
+                            Tensor rgb, Tensor grad_rgb, std::optional<Tensor> layer_texels,
+                            std::optional<Tensor> layer_weights, Tensor grad_texture, Tensor grad_mask, Tensor grad_rows,
                             int64_t, Tensor, Tensor) {
+    TORCH_CHECK(!layer_texels.has_value() && !layer_weights.has_value(),
+                "the background's layer record is a CPU path; a GPU re-intersects the spheres");
     const c10::cuda::CUDAGuard guard(texture.device());
     const plx_cuda::Background bg = make_background(centre, radii, texture, far_colour);
     const plx_cuda::Rays rays = make_rays(origins, dirs, texture);

@@ -801,10 +801,29 @@ void check_background(const Tensor& origins, const Tensor& dirs, const Tensor& c
                 texture.size(2) >= 1, "texture must be [K, H, W, 4] with one sphere per radius");
 }
 
-Tensor background_render(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, Tensor far_colour) {
+// A forward pass's record of each ray's layers for its backward pass: texel rows [B, K, 4] int32 (-1 where the ray
+// met no layer: a sphere it missed, or one behind where it stopped) and their bilinear weights [B, K, 4].
+struct LayerRecord {
+    int32_t* texels = nullptr;
+    float* weights = nullptr;
+};
+
+LayerRecord layer_record(const std::optional<Tensor>& texels, const std::optional<Tensor>& weights, int64_t B, int K) {
+    TORCH_CHECK(texels.has_value() == weights.has_value(), "the background's layer record needs texels and weights");
+    if (!texels.has_value()) return {};
+    TORCH_CHECK(texels->scalar_type() == at::kInt && texels->is_contiguous() && texels->numel() == B * K * 4,
+                "layer texels must be int32 [B, K, 4]");
+    check_float_rows(*weights, "layer weights");
+    TORCH_CHECK(weights->numel() == B * K * 4, "layer weights must be float32 [B, K, 4]");
+    return {texels->data_ptr<int32_t>(), weights->data_ptr<float>()};
+}
+
+Tensor background_render(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, Tensor far_colour,
+                         std::optional<Tensor> layer_texels, std::optional<Tensor> layer_weights) {
     check_background(origins, dirs, centre, radii, texture, far_colour);
     const int64_t B = origins.size(0);
     const int K = (int)texture.size(0), H = (int)texture.size(1), W = (int)texture.size(2);
+    const LayerRecord record = layer_record(layer_texels, layer_weights, B, K);
     Tensor rgb = at::empty({B, 3}, origins.options());
     const float *o = origins.data_ptr<float>(), *d = dirs.data_ptr<float>(), *c = centre.data_ptr<float>();
     const float *r = radii.data_ptr<float>(), *tex = texture.data_ptr<float>(), *far = far_colour.data_ptr<float>();
@@ -813,13 +832,29 @@ Tensor background_render(Tensor origins, Tensor dirs, Tensor centre, Tensor radi
     for (int64_t b = 0; b < B; ++b) {
         double rel[3], unit[3];
         plx::bg_ray(o + 3 * b, d + 3 * b, c, rel, unit);
-        plx::bg_forward(tex, r, K, H, W, rel, unit, far, out + 3 * b);
+        if (!record.texels) {
+            plx::bg_forward(tex, r, K, H, W, rel, unit, far, out + 3 * b);
+            continue;
+        }
+        int32_t* texels = record.texels + b * K * 4;
+        float* weights = record.weights + b * K * 4;
+        for (int k = 0; k < K; ++k) texels[4 * k] = -1;
+        const auto layer = [&](int k, plx::BgLayer* l) {
+            if (!plx::bg_layer(tex, k, H, W, rel, unit, r[k], l)) return false;
+            for (int i = 0; i < 4; ++i) {
+                texels[4 * k + i] = l->texel[i];
+                weights[4 * k + i] = l->w[i];
+            }
+            return true;
+        };
+        plx::bg_composite(K, layer, far, out + 3 * b);
     }
     return rgb;
 }
 
 int64_t background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, Tensor far_colour,
-                             Tensor rgb, Tensor grad_rgb, Tensor grad_texture, Tensor grad_mask, Tensor grad_rows,
+                             Tensor rgb, Tensor grad_rgb, std::optional<Tensor> layer_texels,
+                             std::optional<Tensor> layer_weights, Tensor grad_texture, Tensor grad_mask, Tensor grad_rows,
                              int64_t num_touched, Tensor scratch_grad, Tensor scratch_mask) {
     check_background(origins, dirs, centre, radii, texture, far_colour);
     check_float_rows(grad_rgb, "grad_rgb");
@@ -837,6 +872,9 @@ int64_t background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor r
     // Every ray reads the same few spheres, so the texels are shared by many rays at once: each thread adds into its
     // own table (the grid's per-thread scheme) and the tables are merged after, where atomic adds would fight over
     // the same cache lines.
+    // With the forward pass's record of the layers the backward skips re-intersecting every sphere (the square roots
+    // and arc functions that are most of a ray's cost) and reads the same texels with the same weights.
+    const LayerRecord record = layer_record(layer_texels, layer_weights, B, K);
     ThreadGrads scratch(grad_texture, scratch_grad, scratch_mask);
     GradTarget target{grad_texture.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), grad_rows.data_ptr<int32_t>(),
                       num_touched};
@@ -854,6 +892,21 @@ int64_t background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor r
         };
 #pragma omp for schedule(static)
         for (int64_t b = 0; b < B; ++b) {
+            if (record.texels) {
+                const int32_t* texels = record.texels + b * K * 4;
+                const float* weights = record.weights + b * K * 4;
+                const auto layer = [&](int k, plx::BgLayer* l) {
+                    if (texels[4 * k] < 0) return false;
+                    for (int i = 0; i < 4; ++i) {
+                        l->texel[i] = texels[4 * k + i];
+                        l->w[i] = weights[4 * k + i];
+                    }
+                    plx::bg_read(tex, l);
+                    return true;
+                };
+                plx::bg_composite_backward(K, layer, colour + 3 * b, g + 3 * b, add);
+                continue;
+            }
             double rel[3], unit[3];
             plx::bg_ray(o + 3 * b, d + 3 * b, c, rel, unit);
             plx::bg_backward(tex, r, K, H, W, rel, unit, colour + 3 * b, g + 3 * b, add);

@@ -54,12 +54,16 @@ TORCH_LIBRARY(voxfield, m) {
           "float weight_sh, int sh_degree, " PLX_GRAD ") -> (float, int)");
     // The multi-sphere background: colour [B, 3] of rays (origins, any-length dirs) through spheres of `radii`
     // around `centre`, textures [K, H, W, 4] (raw density, colour logits), far_colour [3].
+    // With layer_texels [B, K, 4] int32 and layer_weights [B, K, 4] (CPU), it also records where each ray met each
+    // sphere (texel rows, -1 for none; bilinear weights), which background_backward then reads instead of
+    // intersecting the spheres again.
     m.def("background_render(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, "
-          "Tensor far_colour) -> Tensor");
+          "Tensor far_colour, Tensor(a!)? layer_texels=None, Tensor(b!)? layer_weights=None) -> Tensor");
     // Adds d loss / d texture into the gradient table [K*H*W, 4] (its texel rows, as the grid's) from the rays'
     // colours (background_render's) and d loss / d colour [B, 3]; returns the new touched count.
     m.def("background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture, "
-          "Tensor far_colour, Tensor rgb, Tensor grad_rgb, " PLX_GRAD ") -> int");
+          "Tensor far_colour, Tensor rgb, Tensor grad_rgb, Tensor? layer_texels, Tensor? layer_weights, " PLX_GRAD
+          ") -> int");
     // RMSProp on the touched rows; clears their gradient. With live coords/counts/blocks, keeps them current.
     m.def("rmsprop_step(Tensor(a!) data, Tensor(b!) second_moment, Tensor(c!) grad_data, Tensor(d!) grad_mask, "
           "Tensor grad_rows, int num_touched, int columns, float lr_density, float lr_sh, float beta, float eps, "

@@ -346,18 +346,24 @@ struct BgLayer {
     float raw[4];    // interpolated raw density and colour logits
 };
 
+// The interpolated channels of the texels `layer` names (texel rows and bilinear weights already set).
+PLX_HD void bg_read(const float* texture, BgLayer* layer) {
+    for (int c = 0; c < 4; ++c) layer->raw[c] = 0.0f;
+    for (int i = 0; i < 4; ++i) {
+        const float* row = texture + 4 * (int64_t)layer->texel[i];
+        for (int c = 0; c < 4; ++c) layer->raw[c] += layer->w[i] * row[c];
+    }
+}
+
+// Where a ray meets sphere k: its texels and weights (sphere offset included) and their channels.
 PLX_HD bool bg_layer(const float* texture, int k, int height, int width, const double rel[3], const double unit[3],
                      double radius, BgLayer* layer) {
     double p[3];
     if (!bg_exit(rel, unit, radius, p)) return false;
     bg_texels(p, height, width, layer->texel, layer->w);
     const int64_t base = (int64_t)k * height * width;
-    for (int c = 0; c < 4; ++c) layer->raw[c] = 0.0f;
-    for (int i = 0; i < 4; ++i) {
-        layer->texel[i] += (int)base;
-        const float* row = texture + 4 * (int64_t)layer->texel[i];
-        for (int c = 0; c < 4; ++c) layer->raw[c] += layer->w[i] * row[c];
-    }
+    for (int i = 0; i < 4; ++i) layer->texel[i] += (int)base;
+    bg_read(texture, layer);
     return true;
 }
 
@@ -379,20 +385,33 @@ PLX_HD void bg_ray(const float* o, const float* d, const float* centre, double r
 // stop_transmittance): the spheres behind an opaque one cost nothing. reference.background_colour does the same.
 #define PLX_BG_STOP_TRANSMITTANCE 1e-4f
 
+// The compositing below takes each sphere's layer from `layer(k, &out)` (false: the ray does not meet sphere k), so
+// one statement of the math serves rays that intersect the spheres as they go (bg_layer) and a backward pass that
+// reads back the layers its forward pass recorded.
+
 // Colour of one ray: front-to-back composite of the spheres, then far_colour.
-PLX_HD void bg_forward(const float* texture, const float* radii, int spheres, int height, int width, const double rel[3],
-                       const double unit[3], const float* far_colour, float rgb[3]) {
+#ifdef __CUDACC__
+#pragma nv_exec_check_disable  // `layer` is a device functor on the GPU, a host one on the CPU
+#endif
+template <typename Layer>
+PLX_HD void bg_composite(int spheres, Layer layer, const float* far_colour, float rgb[3]) {
     float transmittance = 1.0f;
     rgb[0] = rgb[1] = rgb[2] = 0.0f;
     for (int k = 0; k < spheres && transmittance >= PLX_BG_STOP_TRANSMITTANCE; ++k) {
-        BgLayer layer;
-        if (!bg_layer(texture, k, height, width, rel, unit, radii[k], &layer)) continue;
-        const float alpha = 1.0f - expf(-(layer.raw[0] > 0.0f ? layer.raw[0] : 0.0f));
+        BgLayer l;
+        if (!layer(k, &l)) continue;
+        const float alpha = 1.0f - expf(-(l.raw[0] > 0.0f ? l.raw[0] : 0.0f));
         const float weight = transmittance * alpha;
-        for (int c = 0; c < 3; ++c) rgb[c] += weight * bg_sigmoid(layer.raw[1 + c]);
+        for (int c = 0; c < 3; ++c) rgb[c] += weight * bg_sigmoid(l.raw[1 + c]);
         transmittance *= 1.0f - alpha;
     }
     for (int c = 0; c < 3; ++c) rgb[c] += transmittance * far_colour[c];
+}
+
+PLX_HD void bg_forward(const float* texture, const float* radii, int spheres, int height, int width, const double rel[3],
+                       const double unit[3], const float* far_colour, float rgb[3]) {
+    bg_composite(spheres, [&](int k, BgLayer* l) { return bg_layer(texture, k, height, width, rel, unit, radii[k], l); },
+                 far_colour, rgb);
 }
 
 // d loss / d texel channels of one ray given its colour `total` (bg_forward's) and d loss / d colour `g`, handed
@@ -400,22 +419,21 @@ PLX_HD void bg_forward(const float* texture, const float* radii, int spheres, in
 // ray's colour, d C / d sigma_k = T_k (1 - alpha_k) c_k - (C - A_k) for sigma_k > 0: no division by 1 - alpha, so
 // opaque layers stay finite.
 #ifdef __CUDACC__
-#pragma nv_exec_check_disable  // `add` is a device functor on the GPU, a host one on the CPU
+#pragma nv_exec_check_disable  // `layer` and `add` are device functors on the GPU, host ones on the CPU
 #endif
-template <typename Add>
-PLX_HD void bg_backward(const float* texture, const float* radii, int spheres, int height, int width,
-                        const double rel[3], const double unit[3], const float total[3], const float g[3], Add add) {
+template <typename Layer, typename Add>
+PLX_HD void bg_composite_backward(int spheres, Layer layer, const float total[3], const float g[3], Add add) {
     float transmittance = 1.0f, acc[3] = {0.0f, 0.0f, 0.0f};
     for (int k = 0; k < spheres && transmittance >= PLX_BG_STOP_TRANSMITTANCE; ++k) {
-        BgLayer layer;
-        if (!bg_layer(texture, k, height, width, rel, unit, radii[k], &layer)) continue;
-        const bool positive = layer.raw[0] > 0.0f;
-        const float alpha = 1.0f - expf(-(positive ? layer.raw[0] : 0.0f));
+        BgLayer l;
+        if (!layer(k, &l)) continue;
+        const bool positive = l.raw[0] > 0.0f;
+        const float alpha = 1.0f - expf(-(positive ? l.raw[0] : 0.0f));
         const float weight = transmittance * alpha;
         float colour[3], grad[4];
         float dsigma = 0.0f;
         for (int c = 0; c < 3; ++c) {
-            colour[c] = bg_sigmoid(layer.raw[1 + c]);
+            colour[c] = bg_sigmoid(l.raw[1 + c]);
             acc[c] += weight * colour[c];
             grad[1 + c] = g[c] * weight * colour[c] * (1.0f - colour[c]);
             dsigma += g[c] * (transmittance * (1.0f - alpha) * colour[c] - (total[c] - acc[c]));
@@ -423,11 +441,22 @@ PLX_HD void bg_backward(const float* texture, const float* radii, int spheres, i
         grad[0] = positive ? dsigma : 0.0f;
         for (int i = 0; i < 4; ++i) {
             float texel_grad[4];
-            for (int c = 0; c < 4; ++c) texel_grad[c] = layer.w[i] * grad[c];
-            add(layer.texel[i], texel_grad);
+            for (int c = 0; c < 4; ++c) texel_grad[c] = l.w[i] * grad[c];
+            add(l.texel[i], texel_grad);
         }
         transmittance *= 1.0f - alpha;
     }
+}
+
+#ifdef __CUDACC__
+#pragma nv_exec_check_disable  // `add` is a device functor on the GPU, a host one on the CPU
+#endif
+template <typename Add>
+PLX_HD void bg_backward(const float* texture, const float* radii, int spheres, int height, int width,
+                        const double rel[3], const double unit[3], const float total[3], const float g[3], Add add) {
+    bg_composite_backward(
+        spheres, [&](int k, BgLayer* l) { return bg_layer(texture, k, height, width, rel, unit, radii[k], l); }, total,
+        g, add);
 }
 
 }  // namespace plx

@@ -184,17 +184,33 @@ class BackgroundOptimiser:
         self.num_touched = 0
         # The CPU kernel's per-thread gradient tables (pages mapped on first touch; empty on a GPU).
         self.scratch = tuple(native.ops.grad_scratch(self.grad))
+        self.record = None  # (origins, dirs, layer texels, layer weights) of the last forward's batch
         self.second_moment = torch.zeros_like(rows)
         self.generator = torch.Generator(device=rows.device).manual_seed(seed)
 
+    def forward(self, o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """The background colours [B, 3] of a training batch (as the model's forward), keeping on a CPU where each ray
+        met each sphere, so that the backward of this batch reads the texels back instead of intersecting again."""
+        bg = self.background
+        if bg.texture.device.type != "cpu":
+            self.record = None
+            return bg(o, d)
+        shape = (o.shape[0], bg.n_spheres, 4)
+        self.record = (o, d, torch.empty(shape, dtype=torch.int32), torch.empty(shape, dtype=torch.float32))
+        o, d = (t.detach().to(dtype=torch.float32).contiguous() for t in (o, d))
+        return native.ops.background_render(o, d, bg.centre, bg.radii, bg.texture.data, bg.far_colour, *self.record[2:])
+
     def backward(self, o: torch.Tensor, d: torch.Tensor, rgb: torch.Tensor, grad_rgb: torch.Tensor) -> None:
         """Adds d(loss)/d(texels) for rays o, d [B, 3] whose background colours were rgb [B, 3] (the model's
-        forward), given d(loss)/d(those colours) [B, 3]."""
+        forward, or this optimiser's, whose record of the layers it then uses), given d(loss)/d(those colours) [B, 3]."""
         bg = self.background
         device = bg.texture.device
+        record = self.record if self.record is not None and self.record[0] is o and self.record[1] is d else None
+        self.record = None
         o, d, rgb, g = (t.detach().to(device=device, dtype=torch.float32).contiguous() for t in (o, d, rgb, grad_rgb))
+        layers = record[2:] if record is not None else (None, None)
         self.num_touched = native.ops.background_backward(
-            o, d, bg.centre, bg.radii, bg.texture.data, bg.far_colour, rgb, g, self.grad, self.touched_mask,
+            o, d, bg.centre, bg.radii, bg.texture.data, bg.far_colour, rgb, g, *layers, self.grad, self.touched_mask,
             self.touched_rows, self.num_touched, *self.scratch)
 
     def step(self) -> None:

@@ -368,7 +368,8 @@ class Fitter:
                                                                           self.generator, o.coherent_batches))
         o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
         started = time.perf_counter()
-        background = self.model.background_rgb(o_w, d_w)
+        # The background's optimiser renders the batch itself, keeping where each ray met each sphere for its backward.
+        background = self.bg_optim.forward(o_w, d_w) if self.bg_optim is not None else self.model.background_rgb(o_w, d_w)
         self.background_seconds += time.perf_counter() - started
         mse, grad_background = loss_and_grad(self.model.grid, o_fit, d_fit, target, background,
                                              self.model.render_options, self.grad)

@@ -194,6 +194,51 @@ def test_texels_shared_by_every_thread_sum_their_gradients_across_calls(threads)
                                atol=1e-5 * float(expected.abs().max()), rtol=0)
 
 
+@pytest.mark.parametrize("spread", [0.9, 8.0])
+def test_the_forward_record_of_layers_gives_the_backward_the_same_texels_and_gradients(spread):
+    # Cameras inside every sphere and outside the inner ones (some spheres missed); an opaque second sphere stops some
+    # rays early, so their record ends there as their compositing does.
+    model = _textured(MultiSphereBackground(r_min=1.5, r_max=40.0, n_spheres=4, height=5, width=8), seed=31)
+    with torch.no_grad():
+        model.texture[1, :3, :, 0] = 20.0
+    o, d = _random_rays(400, 32, spread=spread)
+    o, d = o.float(), d.float()
+    grad_rgb = torch.randn(o.shape[0], 3, generator=torch.Generator().manual_seed(33))
+    recorded = BackgroundOptimiser(model, lr=0.0)
+    rgb = recorded.forward(o, d)
+    assert recorded.record is not None and bool((recorded.record[2] < 0).any())  # missed or behind an opaque one
+    torch.testing.assert_close(rgb, model(o, d), atol=0, rtol=0)
+    recorded.backward(o, d, rgb, grad_rgb)
+    assert recorded.record is None                                   # a record serves the one backward
+    again = BackgroundOptimiser(model, lr=0.0)
+    again.backward(o, d, model(o, d), grad_rgb)                      # no record: the spheres intersected again
+    torch.testing.assert_close(recorded.grad, again.grad, atol=0, rtol=0)
+    assert sorted(recorded.touched_rows[: recorded.num_touched].tolist()) == \
+        sorted(again.touched_rows[: again.num_touched].tolist())
+    expected = twin_texel_grad(model, o.double(), d.double(), grad_rgb.double())
+    torch.testing.assert_close(recorded.grad.view_as(model.texture).double(), expected,
+                               atol=2e-5 * float(expected.abs().max()), rtol=0)
+    # The backward reads the record, not the spheres: a record with every layer blanked out passes no gradient.
+    blanked = BackgroundOptimiser(model, lr=0.0)
+    rgb = blanked.forward(o, d)
+    blanked.record[2].fill_(-1)
+    blanked.backward(o, d, rgb, grad_rgb)
+    assert blanked.num_touched == 0 and not bool(blanked.grad.any())
+
+
+def test_a_backward_of_other_rays_than_the_recorded_ones_intersects_them_itself():
+    model = _textured(MultiSphereBackground(r_min=1.5, r_max=40.0, n_spheres=3, height=4, width=6), seed=41)
+    o, d = (t.float() for t in _random_rays(50, 42))
+    other_o, other_d = (t.float() for t in _random_rays(50, 43))
+    grad_rgb = torch.randn(50, 3, generator=torch.Generator().manual_seed(44))
+    optimiser = BackgroundOptimiser(model, lr=0.0)
+    optimiser.forward(o, d)
+    optimiser.backward(other_o, other_d, model(other_o, other_d), grad_rgb)
+    expected = twin_texel_grad(model, other_o.double(), other_d.double(), grad_rgb.double())
+    torch.testing.assert_close(optimiser.grad.view_as(model.texture).double(), expected,
+                               atol=2e-5 * float(expected.abs().max()), rtol=0)
+
+
 def test_inverse_radii_are_evenly_spaced_from_just_outside_the_box():
     model = MultiSphereBackground.around_box((-1, -1, -1), (1, 1, 1), n_spheres=16)
     inverse = 1 / model.radii.double()
