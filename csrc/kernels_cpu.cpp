@@ -869,11 +869,10 @@ int64_t background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor r
     TORCH_CHECK(grad_mask.scalar_type() == at::kByte && grad_mask.is_contiguous() && grad_mask.numel() == texels &&
                 grad_rows.scalar_type() == at::kInt && grad_rows.is_contiguous() && grad_rows.numel() >= texels,
                 "grad mask and rows need one uint8 / int32 entry per texel");
-    // Every ray reads the same few spheres, so the texels are shared by many rays at once: each thread adds into its
-    // own table (the grid's per-thread scheme) and the tables are merged after, where atomic adds would fight over
-    // the same cache lines.
-    // With the forward pass's record of the layers the backward skips re-intersecting every sphere (the square roots
-    // and arc functions that are most of a ray's cost) and reads the same texels with the same weights.
+    // Every ray reads the same few spheres, so many rays share each texel: each thread adds into its own table (the
+    // grid's per-thread scheme, merged after), where atomic adds would fight over the same cache lines. With the
+    // forward's record of the layers, the backward reads the same texels and weights back instead of intersecting
+    // every sphere again (the square roots and arc functions that are most of a ray's cost).
     const LayerRecord record = layer_record(layer_texels, layer_weights, B, K);
     ThreadGrads scratch(grad_texture, scratch_grad, scratch_mask);
     GradTarget target{grad_texture.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), grad_rows.data_ptr<int32_t>(),

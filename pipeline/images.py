@@ -1,7 +1,6 @@
 """Frame images as the fit and evaluate stages see them: float RGB in [0, 1], masks composited, resized."""
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterator
@@ -9,6 +8,7 @@ from typing import Iterator
 import cv2
 import imageio.v3 as iio
 import numpy as np
+import torch
 
 from pipeline.io import read_rgb
 from plenoxels.cameras import Intrinsics
@@ -44,9 +44,10 @@ def load_frame(root: Path, frame: dict, scale: float, background_color) -> tuple
 
 def load_frames(root: Path, frames: list[dict], scale: float, background_color,
                 threads: int | None = None) -> Iterator[tuple[np.ndarray, Intrinsics]]:
-    """load_frame of each frame, in order, decoded on `threads` threads (default: one per core; PNG decoding and
-    resizing release the GIL), yielded as each is ready so a progress bar can follow."""
-    threads = threads or os.cpu_count() or 1
+    """load_frame of each frame, in order, decoded on `threads` threads (default: as many as the fit's kernels use,
+    OMP_NUM_THREADS, so a batch's share of the cores holds here too; PNG decoding and resizing release the GIL),
+    yielded as each is ready so a progress bar can follow."""
+    threads = threads or torch.get_num_threads()
     if threads == 1 or len(frames) <= 1:
         yield from (load_frame(root, frame, scale, background_color) for frame in frames)
         return
