@@ -10,7 +10,7 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
-from pipeline.io import read_rgb
+from pipeline.io import read_rgb, rgb_of
 from plenoxels.cameras import Intrinsics
 from plenoxels.errors import UserError
 
@@ -24,7 +24,8 @@ def load_frame(root: Path, frame: dict, scale: float, background_color) -> tuple
     mask_path = frame.get("mask_path")
     if mask_path == frame["file_path"]:
         # An RGBA photo that is its own mask (a dataset read in place): one decode gives both.
-        rgb, alpha = split_alpha(iio.imread(path))
+        image = iio.imread(path)
+        rgb, alpha = rgb_of(image), alpha_of(image)
     else:
         rgb = read_rgb(path)
         alpha = read_alpha(root / mask_path) if mask_path else None
@@ -55,17 +56,13 @@ def load_frames(root: Path, frames: list[dict], scale: float, background_color,
         yield from pool.map(lambda frame: load_frame(root, frame, scale, background_color), frames)
 
 
-def split_alpha(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """An 8-bit image as RGB [h,w,3] and its alpha [h,w] in [0,1] (None without an alpha channel)."""
-    if image.ndim == 2:
-        return np.repeat(image[..., None], 3, axis=-1), None
-    alpha = image[..., 3].astype(np.float32) / 255.0 if image.shape[2] == 4 else None
-    return np.ascontiguousarray(image[..., :3]), alpha
-
-
 def read_alpha(path: Path) -> np.ndarray:
     """A mask as float32 [h,w] in [0,1]: a grey image, or the alpha channel of an RGBA one."""
-    image = iio.imread(path)
+    return alpha_of(iio.imread(path))
+
+
+def alpha_of(image: np.ndarray) -> np.ndarray:
+    """A decoded mask as float32 [h,w] in [0,1]: a grey image, or the alpha channel of an RGBA one."""
     if image.ndim == 3:
         image = image[..., 3] if image.shape[2] == 4 else image[..., 0]
     scale = 65535.0 if image.dtype == np.uint16 else 255.0

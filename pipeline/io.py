@@ -36,7 +36,11 @@ def _jsonable(value: Any) -> Any:
 
 def read_rgb(path: Path) -> np.ndarray:
     """An 8-bit RGB image [h, w, 3] (the ingest stage has already normalised every image to this)."""
-    image = iio.imread(path)
+    return rgb_of(iio.imread(path))
+
+
+def rgb_of(image: np.ndarray) -> np.ndarray:
+    """The RGB channels [h, w, 3] of a decoded image: grey repeated, alpha dropped."""
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=-1)
     return np.ascontiguousarray(image[..., :3])

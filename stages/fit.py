@@ -119,7 +119,6 @@ class HeldOut:
     def __init__(self, root: Path, frames: list[dict], s: Settings):
         pick = frames if len(frames) <= s.eval_views else [frames[i] for i in
                                                              np.linspace(0, len(frames) - 1, s.eval_views).round().astype(int)]
-        pick = pick if s.eval_views else []
         self.views = [(np.asarray(frame["transform_matrix"], dtype=np.float64), k, torch.from_numpy(image))
                       for frame, (image, k) in zip(pick, load_frames(root, pick, s.eval_scale, s.background_color))]
 
