@@ -9,6 +9,7 @@ import pytest
 
 from pipeline import config
 from pipeline.stage import STAGE_ORDER, StageGraph
+from prerequisites import missing
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -67,6 +68,6 @@ def test_voxfield_console_script_runs_the_cli():
     assert scripts["voxfield"] == "pipeline.cli:main"
     installed = Path(sys.executable).parent / "voxfield"
     if not installed.exists():
-        pytest.skip("voxfield is not installed in this environment yet: make install")
+        missing("voxfield is not installed in this environment yet: make install")
     result = subprocess.run([str(installed), "--help"], capture_output=True, text=True, cwd=REPO)
     assert result.returncode == 0 and result.stdout.startswith("usage: voxfield") and "settings" in result.stdout

@@ -11,13 +11,14 @@ import pytest
 
 from pipeline import lpips
 from plenoxels.errors import UserError
+from prerequisites import missing
 
 
 @pytest.fixture(scope="module")
 def weights_path():
     path = lpips.default_weights_path()
     if not path.is_file():
-        pytest.skip(f"LPIPS weights not installed at {path}: run `make install` (or python -m pipeline.lpips install)")
+        missing(f"LPIPS weights not installed at {path}: run `make install` (or python -m pipeline.lpips install)")
     return path
 
 

@@ -33,6 +33,7 @@ from plenoxels.grid import SparseGrid
 from plenoxels.scene_model import ModelOptions, SceneModel
 from plenoxels.train import Fitter, RaySet, TrainOptions
 from stages import export
+from prerequisites import missing
 
 SH_C0 = 0.28209479177387814
 RED, BLUE = np.array([0.9, 0.1, 0.1]), np.array([0.1, 0.1, 0.9])
@@ -247,10 +248,13 @@ def _which(names) -> str | None:
 
 @pytest.fixture
 def browser():
-    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is missing: make install")
+    try:
+        from selenium import webdriver
+    except ImportError:
+        missing("selenium is missing: make install")
     chromium, driver = _which(CHROMIUM), _which(CHROMEDRIVER)
     if not chromium or not driver:
-        pytest.skip("headless Chromium is missing: apt-get install chromium chromium-driver")
+        missing("headless Chromium is missing: apt-get install chromium chromium-driver")
     options = webdriver.ChromeOptions()
     options.binary_location = chromium
     for flag in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--use-angle=swiftshader",
