@@ -79,8 +79,8 @@ plx_cuda::Grid make_grid(const Tensor& data, const Tensor& links, const Tensor& 
 }
 
 plx_cuda::March make_march(double step, double stop_transmittance, double near, double sigma_threshold,
-                           int64_t max_samples) {
-    return plx_cuda::March{step, (float)stop_transmittance, near, (float)sigma_threshold, (int)max_samples};
+                           int64_t max_samples, bool contract) {
+    return plx_cuda::March{step, (float)stop_transmittance, near, (float)sigma_threshold, (int)max_samples, contract};
 }
 
 plx_cuda::Rays make_rays(const Tensor& origins, const Tensor& dirs, const Tensor& like) {
@@ -112,7 +112,7 @@ int64_t compact_touched(const Tensor& grad_mask, Tensor& grad_rows) {
 std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
                            c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree, Tensor origins,
                            Tensor dirs, std::optional<Tensor> background, double step, double stop_transmittance,
-                           double near, double sigma_threshold, int64_t max_samples) {
+                           double near, double sigma_threshold, int64_t max_samples, bool contract) {
     const c10::cuda::CUDAGuard guard(data.device());
     const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, bmin, bmax, degree);
     plx_cuda::Rays rays = make_rays(origins, dirs, data);
@@ -125,7 +125,7 @@ std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor bl
     Tensor rgb = at::empty({B, 3}, data.options());
     Tensor depth = at::empty({B}, data.options());
     Tensor opacity = at::empty({B}, data.options());
-    check_launch(plx_cuda::render(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples),
+    check_launch(plx_cuda::render(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples, contract),
                                   (int)degree, rays, rgb.data_ptr<float>(), depth.data_ptr<float>(),
                                   opacity.data_ptr<float>(), stream()),
                  "render");
@@ -137,7 +137,7 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
                                                   c10::ArrayRef<double> bmax, int64_t degree, Tensor origins,
                                                   Tensor dirs, Tensor targets, Tensor background, double step,
                                                   double stop_transmittance, double near, double sigma_threshold,
-                                                  int64_t max_samples, Tensor grad_data, Tensor grad_mask,
+                                                  int64_t max_samples, bool contract, Tensor grad_data, Tensor grad_mask,
                                                   Tensor grad_rows, int64_t num_touched, Tensor, Tensor) {
     const c10::cuda::CUDAGuard guard(data.device());
     const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, bmin, bmax, degree);
@@ -154,7 +154,7 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
     plx_cuda::Rays with_background = rays;
     with_background.background = background.data_ptr<float>();
     const float loss_scale = 1.0f / (3.0f * (float)B);
-    check_launch(plx_cuda::loss_and_grad(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples),
+    check_launch(plx_cuda::loss_and_grad(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples, contract),
                                          (int)degree, with_background, targets.data_ptr<float>(), loss_scale,
                                          sse.data_ptr<double>(), grad_background.data_ptr<float>(),
                                          grad_data.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), stream()),
@@ -166,13 +166,13 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
 void max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
                    c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree, Tensor origins,
                    Tensor dirs, double step, double stop_transmittance, double near, double sigma_threshold,
-                   int64_t max_samples, Tensor out) {
+                   int64_t max_samples, bool contract, Tensor out) {
     const c10::cuda::CUDAGuard guard(data.device());
     const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, bmin, bmax, degree);
     const plx_cuda::Rays rays = make_rays(origins, dirs, data);
     check_cuda(out, at::kFloat, "out", data);
     TORCH_CHECK(out.numel() == data.size(0), "out must have one entry per row");
-    check_launch(plx_cuda::max_weights(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples),
+    check_launch(plx_cuda::max_weights(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples, contract),
                                        rays, out.data_ptr<float>(), stream()),
                  "max_weights");
 }
@@ -180,12 +180,12 @@ void max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, i
 std::tuple<int64_t, int64_t> sample_counts(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
                                            c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree,
                                            Tensor origins, Tensor dirs, double step, double stop_transmittance,
-                                           double near, double sigma_threshold, int64_t max_samples) {
+                                           double near, double sigma_threshold, int64_t max_samples, bool contract) {
     const c10::cuda::CUDAGuard guard(data.device());
     const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, bmin, bmax, degree);
     const plx_cuda::Rays rays = make_rays(origins, dirs, data);
     Tensor counts = at::zeros({2}, data.options().dtype(at::kLong));
-    check_launch(plx_cuda::sample_counts(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples),
+    check_launch(plx_cuda::sample_counts(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples, contract),
                                          rays, reinterpret_cast<unsigned long long*>(counts.data_ptr<int64_t>()),
                                          stream()),
                  "sample_counts");

@@ -33,6 +33,7 @@ struct March {
     double near;
     float sigma_threshold;
     int max_samples;
+    bool contract;  // the grid is in contracted space (plx::contract_point)
 };
 
 struct Rays {

@@ -47,6 +47,7 @@ struct MarchOptions {
     double near;
     float sigma_threshold;
     int max_samples;
+    bool contract;  // the grid is in contracted space (plx::contract_point)
 };
 
 using Ray = plx::RayMarch;
@@ -69,10 +70,8 @@ GridView make_view(const at::Tensor& data, const at::Tensor& links, const at::Te
 }
 
 void setup_ray(const GridView& g, const float* o, const float* d, const MarchOptions& opt, Ray* r) {
-    plx::setup_ray(g.res, g.bmin, g.scale, o, d, opt.near, opt.step, opt.max_samples, r);
+    plx::setup_ray(g.res, g.bmin, g.scale, o, d, opt.near, opt.step, opt.max_samples, opt.contract, r);
 }
-
-inline void grid_point(const GridView& g, const Ray& r, double t, float p[3]) { plx::grid_point(g.res, r, t, p); }
 
 using plx::cell_of;
 
@@ -93,7 +92,7 @@ inline void prefetch_row(const float* row, bool for_write) {
 struct Sample {
     int32_t rows[8];
     float w[8];
-    float sigma, alpha, transmittance_factor, t_before, t;
+    float sigma, delta, alpha, transmittance_factor, t_before, t;
     float colour[3], raw[3];
 };
 
@@ -103,23 +102,17 @@ struct Sample {
 template <int S, typename Visit>
 inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, float* interp, Visit visit) {
     float transmittance = 1.0f;
-    const float delta = (float)r.dt;
-    int i = 0;
-    while (i < r.n) {
-        const double t = r.t_start + (i + 0.5) * r.dt;
-        float p[3];
-        grid_point(g, r, t, p);
-        int cell[3];
-        const int next = plx::occupied_or_next(g.res, g.bres, g.block, g.block_occ, g.cell_occ, r, p, i, cell);
-        if (next != i) {
-            i = next;
-            continue;
-        }
+    plx::MarchCursor m = plx::march_start(r);
+    double t, delta;
+    float p[3];
+    int cell[3];
+    while (plx::next_sample(g.res, g.bres, g.block, g.block_occ, g.cell_occ, g.bmin, g.scale, r, &m, &t, &delta, p,
+                            cell)) {
         // Start loading the rows of the cell kLookahead samples ahead, so that its cache misses overlap the
         // work on this sample (memory latency, not arithmetic, bounds this loop).
-        if (i + kLookahead < r.n) {
+        if (m.i - 1 + kLookahead < r.n) {
             float q[3];
-            grid_point(g, r, t + kLookahead * r.dt, q);
+            plx::point_ahead(g.res, g.bmin, g.scale, r, m, t, kLookahead, q);
             const int next[3] = {cell_of(q[0], g.res[0]), cell_of(q[1], g.res[1]), cell_of(q[2], g.res[2])};
             if (next[0] != cell[0] || next[1] != cell[1] || next[2] != cell[2]) {
                 for (int c = 0; c < 8; ++c) {
@@ -136,7 +129,6 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
             s.rows[c] = g.links[plx::corner_index(cell, g.res, c)];
             if (s.rows[c] >= 0) raw_density += s.w[c] * g.data[(int64_t)s.rows[c] * S];
         }
-        ++i;
         if (!(raw_density > opt.sigma_threshold)) continue;
         for (int k = 0; k < S; ++k) interp[k] = 0.0f;
         for (int c = 0; c < 8; ++c) {
@@ -147,7 +139,8 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
             for (int k = 0; k < S; ++k) interp[k] += w * row[k];
         }
         s.sigma = raw_density;
-        s.alpha = plx::sample_alpha(s.sigma, delta, &s.transmittance_factor);
+        s.delta = (float)delta;
+        s.alpha = plx::sample_alpha(s.sigma, s.delta, &s.transmittance_factor);
         s.t_before = transmittance;
         s.t = (float)t;
         transmittance = visit(s, interp);
@@ -361,7 +354,6 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
                 grad_background[3 * b + ch] = dl_drgb[ch] * t_final;
             }
             // Backward: walk the same samples again, with what lies behind each one known from the total.
-            const float delta = (float)r.dt;
             float front[3] = {0.0f, 0.0f, 0.0f};
             for (const Sample& s : samples) {
                 const float w = s.t_before * s.alpha;
@@ -371,7 +363,7 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
                 for (int ch = 0; ch < 3; ++ch) {
                     front[ch] += w * s.colour[ch];
                     const float behind = total[ch] - front[ch];
-                    dsigma += dl_drgb[ch] * plx::dcolour_dsigma(delta, t_after, s.colour[ch], behind);
+                    dsigma += dl_drgb[ch] * plx::dcolour_dsigma(s.delta, t_after, s.colour[ch], behind);
                     const float dc = dl_drgb[ch] * w * plx::colour_relu_grad(s.raw[ch]);
                     for (int k = 0; k < K; ++k) grow[1 + ch * K + k] = dc * basis[k];
                 }
@@ -434,7 +426,7 @@ void sample_counts_impl(const GridView& g, const MarchOptions& opt, const float*
         for (int64_t b = 0; b < B; ++b) {
             Ray r;
             setup_ray(g, origins + 3 * b, dirs + 3 * b, opt, &r);
-            lattice_total += r.n;
+            lattice_total += plx::ray_length_samples(g.res, g.bmin, g.scale, r);
             march<S>(g, r, opt, interp, [&](Sample& s, const float*) {
                 ++used_total;
                 return s.t_before * s.transmittance_factor;
@@ -448,8 +440,8 @@ void sample_counts_impl(const GridView& g, const MarchOptions& opt, const float*
 using at::Tensor;
 
 MarchOptions make_options(double step, double stop_transmittance, double near, double sigma_threshold,
-                          int64_t max_samples) {
-    return MarchOptions{step, (float)stop_transmittance, near, (float)sigma_threshold, (int)max_samples};
+                          int64_t max_samples, bool contract) {
+    return MarchOptions{step, (float)stop_transmittance, near, (float)sigma_threshold, (int)max_samples, contract};
 }
 
 #define PLX_DISPATCH_DEGREE(degree, ...)                                     \
@@ -481,7 +473,7 @@ void check_rays(const Tensor& origins, const Tensor& dirs) {
 std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
                            c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree, Tensor origins,
                            Tensor dirs, std::optional<Tensor> background, double step, double stop_transmittance,
-                           double near, double sigma_threshold, int64_t max_samples) {
+                           double near, double sigma_threshold, int64_t max_samples, bool contract) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
     check_rays(origins, dirs);
     const int64_t B = origins.size(0);
@@ -492,7 +484,7 @@ std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor bl
         bg = background->data_ptr<float>();
     }
     const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
-    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples);
+    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract);
     Tensor rgb = at::empty({B, 3}, data.options());
     Tensor depth = at::empty({B}, data.options());
     Tensor opacity = at::empty({B}, data.options());
@@ -505,7 +497,7 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
                                                   int64_t block, c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax,
                                                   int64_t degree, Tensor origins, Tensor dirs, Tensor targets,
                                                   Tensor background, double step, double stop_transmittance,
-                                                  double near, double sigma_threshold, int64_t max_samples,
+                                                  double near, double sigma_threshold, int64_t max_samples, bool contract,
                                                   Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
                                                   int64_t num_touched, Tensor scratch_grad, Tensor scratch_mask) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
@@ -518,7 +510,7 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
     ThreadGrads scratch(grad_data, scratch_grad, scratch_mask);
     const int64_t B = origins.size(0);
     const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
-    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples);
+    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract);
     Tensor grad_background = at::empty({B, 3}, data.options());
     GradTarget target{grad_data.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), grad_rows.data_ptr<int32_t>(), num_touched};
     const float loss_scale = B > 0 ? 1.0f / (3.0f * (float)B) : 0.0f;
@@ -531,14 +523,14 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
 
 void max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
                    c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree, Tensor origins, Tensor dirs,
-                   double step, double stop_transmittance, double near, double sigma_threshold, int64_t max_samples,
+                   double step, double stop_transmittance, double near, double sigma_threshold, int64_t max_samples, bool contract,
                    Tensor out) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
     check_rays(origins, dirs);
     check_float_rows(out, "out");
     TORCH_CHECK(out.numel() == data.size(0), "out must have one entry per row");
     const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
-    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples);
+    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract);
     PLX_DISPATCH_DEGREE(degree, max_weights_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
                                                     origins.size(0), out.data_ptr<float>()));
 }
@@ -547,11 +539,11 @@ void max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, i
 std::tuple<int64_t, int64_t> sample_counts(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
                                            c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree,
                                            Tensor origins, Tensor dirs, double step, double stop_transmittance,
-                                           double near, double sigma_threshold, int64_t max_samples) {
+                                           double near, double sigma_threshold, int64_t max_samples, bool contract) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
     check_rays(origins, dirs);
     const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
-    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples);
+    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract);
     int64_t lattice = 0, used = 0;
     PLX_DISPATCH_DEGREE(degree, sample_counts_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
                                                       origins.size(0), &lattice, &used));

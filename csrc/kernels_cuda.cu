@@ -24,13 +24,13 @@ inline unsigned blocks_for(int64_t n) { return (unsigned)((n + kThreads - 1) / k
 using RayState = plx::RayMarch;
 
 __device__ __forceinline__ void setup_ray(const Grid& g, const float* o, const float* d, const March& opt, RayState* r) {
-    plx::setup_ray(g.res, g.bmin, g.scale, o, d, opt.near, opt.step, opt.max_samples, r);
+    plx::setup_ray(g.res, g.bmin, g.scale, o, d, opt.near, opt.step, opt.max_samples, opt.contract, r);
 }
 
 struct Sample {
     int32_t rows[8];
     float w[8];
-    float alpha, transmittance_factor, t_before, t;
+    float delta, alpha, transmittance_factor, t_before, t;
 };
 
 // Marches one ray front to back and calls visit(sample, density, interp) for each sample that
@@ -41,19 +41,13 @@ struct Sample {
 template <int C, typename Visit>
 __device__ float march(const Grid& g, const RayState& r, const March& opt, Visit visit) {
     float transmittance = 1.0f;
-    const float delta = (float)r.dt;
     const int S = g.stride;
-    int i = 0;
-    while (i < r.n) {
-        const double t = r.t_start + (i + 0.5) * r.dt;
-        float p[3];
-        plx::grid_point(g.res, r, t, p);
-        int cell[3];
-        const int next = plx::occupied_or_next(g.res, g.bres, g.block, g.block_occ, g.cell_occ, r, p, i, cell);
-        if (next != i) {
-            i = next;
-            continue;
-        }
+    plx::MarchCursor m = plx::march_start(r);
+    double t, delta;
+    float p[3];
+    int cell[3];
+    while (plx::next_sample(g.res, g.bres, g.block, g.block_occ, g.cell_occ, g.bmin, g.scale, r, &m, &t, &delta, p,
+                            cell)) {
         Sample s;
         plx::trilinear(p, g.res, cell, s.w);
         float raw_density = 0.0f;
@@ -62,7 +56,6 @@ __device__ float march(const Grid& g, const RayState& r, const March& opt, Visit
             s.rows[c] = g.links[plx::corner_index(cell, g.res, c)];
             if (s.rows[c] >= 0) raw_density += s.w[c] * g.data[(int64_t)s.rows[c] * S];
         }
-        ++i;
         if (!(raw_density > opt.sigma_threshold)) continue;
         float interp[4 * float4s(C)];
         if constexpr (C == 1) {
@@ -85,7 +78,8 @@ __device__ float march(const Grid& g, const RayState& r, const March& opt, Visit
                 }
             }
         }
-        s.alpha = plx::sample_alpha(raw_density, delta, &s.transmittance_factor);
+        s.delta = (float)delta;
+        s.alpha = plx::sample_alpha(raw_density, s.delta, &s.transmittance_factor);
         s.t_before = transmittance;
         s.t = (float)t;
         transmittance = visit(s, raw_density, interp);
@@ -152,7 +146,6 @@ __global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __re
     }
     sse[b] = sq;
     // Backward: march the same samples again; what lies behind each one follows from the total.
-    const float delta = (float)r.dt;
     const int S = g.stride;
     float front[3] = {0.0f, 0.0f, 0.0f};
     march<C>(g, r, opt, [&](const Sample& s, float, const float* row) {
@@ -167,7 +160,7 @@ __global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __re
             const float colour = plx::sh_colour(row + 1 + ch * K, basis, K, &raw);
             front[ch] += w * colour;
             const float behind = total[ch] - front[ch];
-            dsigma += dl_drgb[ch] * plx::dcolour_dsigma(delta, t_after, colour, behind);
+            dsigma += dl_drgb[ch] * plx::dcolour_dsigma(s.delta, t_after, colour, behind);
             const float dc = dl_drgb[ch] * w * plx::colour_relu_grad(raw);
             for (int k = 0; k < K; ++k) grow[1 + ch * K + k] = dc * basis[k];
         }
@@ -224,7 +217,8 @@ __global__ void sample_counts_kernel(Grid g, March opt, Rays rays, unsigned long
         ++used;
         return s.t_before * s.transmittance_factor;
     });
-    if (r.n > 0) atomicAdd(counts, (unsigned long long)r.n);
+    const int lattice = plx::ray_length_samples(g.res, g.bmin, g.scale, r);
+    if (lattice > 0) atomicAdd(counts, (unsigned long long)lattice);
     if (used > 0) atomicAdd(counts + 1, used);
 }
 

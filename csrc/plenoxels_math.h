@@ -6,7 +6,8 @@
 // - Grid coordinates: vertex (i, j, k) sits at integer coordinates; a fit-frame point p maps to
 //   g = (p - bbox_min) * scale with scale = (R - 1) / (bbox_max - bbox_min) per axis.
 // - A sample at grid point g interpolates the 8 vertices of cell floor(g) (clamped to the last cell).
-// - Density: sigma = relu(interpolated raw density), per fit-frame unit of distance.
+// - Density: sigma = relu(interpolated raw density), per fit-frame unit of distance (per contracted unit on a
+//   contracted grid: contract_point).
 // - Colour: c = relu(sum_k sh_k * Y_k(dir) + 0.5) per channel, dir the unit fit-frame direction.
 // - Compositing front to back: alpha = 1 - exp(-sigma * delta), weight = T * alpha, T *= 1 - alpha.
 #pragma once
@@ -136,26 +137,38 @@ PLX_HD int sample_lattice(double t_start, double t_end, double step_t, int max_s
 }
 
 // One ray prepared for marching, identically on every backend.
+// On a contracted grid (see contract_point) og and dg are the ray's origin and unit direction in the frame before
+// contraction, dt is the step in contracted units and n the most steps the ray may take.
 struct RayMarch {
     double og[3], dg[3];  // grid-space origin and direction (per unit of fit-frame distance)
     float dir[3];         // unit fit-frame direction
     double t_start, dt;   // sample i sits at t_start + (i + 0.5) * dt
     int n;                // samples on the ray (0: it misses the grid)
+    bool contracted;
 };
 
 // Maps a fit-frame ray into grid coordinates (g = (p - bmin) * scale), clips it to the grid box and
-// to t >= near, and lays out its samples `step` grid units apart.
+// to t >= near, and lays out its samples `step` grid units apart. On a contracted grid the ray keeps its frame and
+// starts at near; its samples are laid out as it is marched (next_sample).
 PLX_HD void setup_ray(const int res[3], const double bmin[3], const double scale[3], const float* o, const float* d,
-                      double near, double step, int max_samples, RayMarch* r) {
+                      double near, double step, int max_samples, bool contracted, RayMarch* r) {
     const double norm = sqrt((double)d[0] * d[0] + (double)d[1] * d[1] + (double)d[2] * d[2]);
-    double dg2 = 0.0, hi[3];
+    double dg2 = 0.0, hi[3], finest = 0.0;
+    r->contracted = contracted;
     for (int a = 0; a < 3; ++a) {
         const double u = d[a] / norm;
         r->dir[a] = (float)u;
-        r->og[a] = ((double)o[a] - bmin[a]) * scale[a];
-        r->dg[a] = u * scale[a];
+        r->og[a] = contracted ? (double)o[a] : ((double)o[a] - bmin[a]) * scale[a];
+        r->dg[a] = contracted ? u : u * scale[a];
         dg2 += r->dg[a] * r->dg[a];
         hi[a] = res[a] - 1;
+        finest = scale[a] > finest ? scale[a] : finest;
+    }
+    if (contracted) {
+        r->t_start = near;
+        r->dt = step / finest;
+        r->n = max_samples;
+        return;
     }
     double t_enter, t_exit;
     r->n = 0;
@@ -213,6 +226,165 @@ PLX_HD int occupied_or_next(const int res[3], const int bres[3], int block, cons
     if (!block_occ[block_index]) return skip_block(res, block, r, cell, i);
     const int64_t cell_index = ((int64_t)cell[0] * (res[1] - 1) + cell[1]) * (res[2] - 1) + cell[2];
     return cell_occ[cell_index] ? i : i + 1;
+}
+
+// Whether the cell holding grid point p (already clamped) may hold density; fills `cell`.
+PLX_HD bool cell_occupied(const int res[3], const int bres[3], int block, const uint8_t* block_occ,
+                          const uint8_t* cell_occ, const float p[3], int cell[3]) {
+    for (int a = 0; a < 3; ++a) cell[a] = cell_of(p[a], res[a]);
+    const int64_t block_index =
+        ((int64_t)(cell[0] / block) * bres[1] + cell[1] / block) * bres[2] + cell[2] / block;
+    if (!block_occ[block_index]) return false;
+    return cell_occ[((int64_t)cell[0] * (res[1] - 1) + cell[1]) * (res[2] - 1) + cell[2]] != 0;
+}
+
+// ---- Scene contraction (unbounded scenes) ------------------------------------------------------------------------
+// The contraction of the frame the rays come in (mip-NeRF 360's, in the max norm as MERF and nerfstudio have it): a
+// point q with |q|_inf <= 1 stays, one beyond moves to (2 - 1/m) q / m with m = |q|_inf, so all of space lies in the
+// cube [-2, 2]^3 that the grid spans, the inner cube [-1, 1]^3 (the foreground) at full resolution and the rest at a
+// resolution falling off as 1/m^2. Rays bend in the contracted frame, so they are marched in their own frame with
+// steps of constant contracted length dt, and each sample integrates density over dt: density is per contracted unit,
+// which is the frame's own unit in the inner cube. Returns |contracted q|_inf.
+// The axis of |q|_inf: the first of the largest.
+PLX_HD int major_axis(const double q[3]) {
+    const double x = fabs(q[0]), y = fabs(q[1]), z = fabs(q[2]);
+    if (x >= y && x >= z) return 0;
+    return y >= z ? 1 : 2;
+}
+
+PLX_HD double contract_point(const double q[3], double c[3]) {
+    const double m = fabs(q[major_axis(q)]);
+    if (m <= 1.0) {
+        for (int a = 0; a < 3; ++a) c[a] = q[a];
+        return m;
+    }
+    const double f = (2.0 - 1.0 / m) / m;
+    for (int a = 0; a < 3; ++a) c[a] = f * q[a];
+    return 2.0 - 1.0 / m;
+}
+
+// |J(q) u|: contracted length per unit of t along direction u at q. Beyond the inner cube, with k the major axis,
+// m = |q_k| and f(m) = (2 - 1/m) / m: c_k = (2 - 1/m) sign(q_k) moves by u_k / m^2, and every other c_j = f(m) q_j by
+// f(m) u_j + q_j f'(m) sign(q_k) u_k.
+PLX_HD double contracted_speed(const double q[3], const double u[3]) {
+    const int k = major_axis(q);
+    const double m = fabs(q[k]);
+    if (m <= 1.0) return sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+    const double f = (2.0 - 1.0 / m) / m, df = (2.0 / m - 2.0) / (m * m);
+    const double along = q[k] < 0.0 ? -u[k] : u[k];
+    double sum = 0.0;
+    for (int a = 0; a < 3; ++a) {
+        const double v = a == k ? u[k] / (m * m) : f * u[a] + q[a] * df * along;
+        sum += v * v;
+    }
+    return sqrt(sum);
+}
+
+// The grid point (clamped) of the contracted ray at distance t; returns |contracted point|_inf there.
+PLX_HD double contracted_grid_point(const int res[3], const double bmin[3], const double scale[3], const RayMarch& r,
+                                    double t, float p[3]) {
+    double q[3], c[3];
+    for (int a = 0; a < 3; ++a) q[a] = r.og[a] + t * r.dg[a];
+    const double radius = contract_point(q, c);
+    for (int a = 0; a < 3; ++a) p[a] = clamp_to((float)((c[a] - bmin[a]) * scale[a]), 0.0f, (float)(res[a] - 1));
+    return radius;
+}
+
+// Where a march stands on its ray: the index of the next sample and, on a contracted ray, the distance where its
+// next step begins and the length of the last step.
+struct MarchCursor {
+    int i;
+    double t, dt;
+};
+
+PLX_HD MarchCursor march_start(const RayMarch& r) { return MarchCursor{0, r.t_start, r.dt}; }
+
+// A contracted ray's step from t may not shrink or grow |q|_inf by more than this share of it (at least 1), so a ray
+// coming in from far away, where the contraction is slow, does not leap over the foreground in one step.
+#define PLX_CONTRACTED_MAX_STEP 0.25
+
+// One step of a contracted ray from the cursor: dt contracted units long at the speed where it starts (at most
+// PLX_CONTRACTED_MAX_STEP of |q|_inf), its sample half way at *t, whose contracted length (*delta, by the midpoint
+// rule) it integrates density over. Returns |contracted sample|_inf, leaves the grid point in p and says in *receding
+// whether |q|_inf grows there: it is convex along the ray, so from then on it never shrinks again.
+PLX_HD double contracted_step(const int res[3], const double bmin[3], const double scale[3], const RayMarch& r,
+                              MarchCursor* m, double* t, double* delta, float p[3], bool* receding) {
+    double q[3];
+    for (int a = 0; a < 3; ++a) q[a] = r.og[a] + m->t * r.dg[a];
+    const double reach = fabs(q[major_axis(q)]);
+    const double cap = PLX_CONTRACTED_MAX_STEP * (reach > 1.0 ? reach : 1.0);
+    const double dt = r.dt / contracted_speed(q, r.dg);
+    m->dt = dt < cap ? dt : cap;
+    *t = m->t + 0.5 * m->dt;
+    m->t += m->dt;
+    ++m->i;
+    for (int a = 0; a < 3; ++a) q[a] = r.og[a] + *t * r.dg[a];
+    *delta = m->dt * contracted_speed(q, r.dg);
+    const int k = major_axis(q);
+    *receding = !((q[k] < 0.0 ? -r.dg[k] : r.dg[k]) < 0.0);
+    return contracted_grid_point(res, bmin, scale, r, *t, p);
+}
+
+// The next sample worth visiting (its cell may hold density): its distance t, the length delta it integrates density
+// over, its grid point p (clamped) and cell; false when the ray has none left. A lattice ray's samples sit at
+// t_start + (i + 0.5) dt, each dt long, and skip empty blocks whole. A contracted ray steps as contracted_step says
+// and ends after n steps or where it leaves for infinity: half a step short of the cube's faces and receding. (A ray
+// from beyond that shell, coming in, skips its samples there.)
+PLX_HD bool next_sample(const int res[3], const int bres[3], int block, const uint8_t* block_occ,
+                        const uint8_t* cell_occ, const double bmin[3], const double scale[3], const RayMarch& r,
+                        MarchCursor* m, double* t, double* delta, float p[3], int cell[3]) {
+    if (!r.contracted) {
+        *delta = r.dt;
+        while (m->i < r.n) {
+            *t = r.t_start + (m->i + 0.5) * r.dt;
+            grid_point(res, r, *t, p);
+            const int next = occupied_or_next(res, bres, block, block_occ, cell_occ, r, p, m->i, cell);
+            if (next == m->i) {
+                ++m->i;
+                return true;
+            }
+            m->i = next;
+        }
+        return false;
+    }
+    const double edge = 2.0 - 0.5 * r.dt;
+    while (m->i < r.n) {
+        bool receding;
+        if (!(contracted_step(res, bmin, scale, r, m, t, delta, p, &receding) < edge)) {
+            if (receding) return false;
+            continue;
+        }
+        if (cell_occupied(res, bres, block, block_occ, cell_occ, p, cell)) return true;
+    }
+    return false;
+}
+
+// The grid point about `ahead` samples past the one at t (for prefetching; clamped).
+PLX_HD void point_ahead(const int res[3], const double bmin[3], const double scale[3], const RayMarch& r,
+                        const MarchCursor& m, double t, int ahead, float p[3]) {
+    if (r.contracted)
+        contracted_grid_point(res, bmin, scale, r, t + ahead * m.dt, p);
+    else
+        grid_point(res, r, t + ahead * r.dt, p);
+}
+
+// Samples on the ray before any occupancy test or early stop: n on a lattice, the steps to the end on a contracted
+// ray (reports and benchmarks).
+PLX_HD int ray_length_samples(const int res[3], const double bmin[3], const double scale[3], const RayMarch& r) {
+    if (!r.contracted) return r.n;
+    MarchCursor m = march_start(r);
+    const double edge = 2.0 - 0.5 * r.dt;
+    int samples = 0;
+    while (m.i < r.n) {
+        double t, delta;
+        float p[3];
+        bool receding;
+        if (contracted_step(res, bmin, scale, r, &m, &t, &delta, p, &receding) < edge)
+            ++samples;
+        else if (receding)
+            break;
+    }
+    return samples;
 }
 
 // Cell and trilinear weights of grid point g (already clamped to [0, res-1]); res >= 2 per axis.

@@ -75,11 +75,15 @@ def large_zeros(like: torch.Tensor) -> torch.Tensor:
 
 
 class SparseGrid:
-    def __init__(self, links: torch.Tensor, data: torch.Tensor, bbox_min, bbox_max, sh_degree: int):
+    def __init__(self, links: torch.Tensor, data: torch.Tensor, bbox_min, bbox_max, sh_degree: int,
+                 contracted: bool = False):
         if not 0 <= int(sh_degree) <= 3:
             raise UserError(f"sh_degree must be 0, 1, 2 or 3, got {sh_degree}")
         self.sh_degree = int(sh_degree)
         self.bbox_min, self.bbox_max = _check_box(bbox_min, bbox_max)
+        # The box lies in contracted space (csrc/plenoxels_math.h, contract_point): rays come in the frame before the
+        # contraction and bend through the grid.
+        self.contracted = bool(contracted)
         _check_resolution(links.shape)
         stride = row_stride(self.sh_degree)
         if data.dim() != 2 or data.shape[1] != stride:
@@ -92,7 +96,7 @@ class SparseGrid:
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
-    def from_values(cls, links, density, sh, bbox_min, bbox_max, sh_degree) -> "SparseGrid":
+    def from_values(cls, links, density, sh, bbox_min, bbox_max, sh_degree, contracted: bool = False) -> "SparseGrid":
         """A grid from unpacked values: density [N], sh [N, 3K]."""
         k3 = 3 * sh_count(sh_degree)
         if sh.shape != (density.shape[0], k3):
@@ -100,17 +104,18 @@ class SparseGrid:
         data = torch.zeros(density.shape[0], row_stride(sh_degree), dtype=torch.float32)
         data[:, 0] = density
         data[:, 1 : 1 + k3] = sh
-        return cls(links, data, bbox_min, bbox_max, sh_degree)
+        return cls(links, data, bbox_min, bbox_max, sh_degree, contracted)
 
     @classmethod
-    def dense(cls, resolution, bbox_min, bbox_max, sh_degree: int, init_density=0.1, init_sh=0.0) -> "SparseGrid":
+    def dense(cls, resolution, bbox_min, bbox_max, sh_degree: int, init_density=0.1, init_sh=0.0,
+              contracted: bool = False) -> "SparseGrid":
         res = _check_resolution(resolution)
         n = res[0] * res[1] * res[2]
         links = torch.arange(n, dtype=torch.int32).reshape(res)
         data = torch.zeros(n, row_stride(int(sh_degree)), dtype=torch.float32)
         data[:, 0] = init_density
         data[:, 1 : 1 + 3 * sh_count(int(sh_degree))] = init_sh
-        return cls(links, data, bbox_min, bbox_max, sh_degree)
+        return cls(links, data, bbox_min, bbox_max, sh_degree, contracted)
 
     # ---- views and facts ----------------------------------------------------------------------
     @property
@@ -210,7 +215,8 @@ class SparseGrid:
         native.check_device(device)
         if self.data.device == device:
             return self
-        return SparseGrid(self._links.to(device), self.data.to(device), self.bbox_min, self.bbox_max, self.sh_degree)
+        return SparseGrid(self._links.to(device), self.data.to(device), self.bbox_min, self.bbox_max, self.sh_degree,
+                          self.contracted)
 
     def prune(self, keep: torch.Tensor) -> tuple["SparseGrid", torch.Tensor]:
         """Keeps rows where `keep` is true; returns the new grid and, for each new row, its old row."""
@@ -224,8 +230,24 @@ class SparseGrid:
         occupied = flat >= 0
         links = torch.full_like(flat, -1)
         links[occupied] = new_index[flat[occupied].long()]
-        grid = SparseGrid(links.reshape(self._links.shape), self.data[old_rows], self.bbox_min, self.bbox_max, self.sh_degree)
+        grid = SparseGrid(links.reshape(self._links.shape), self.data[old_rows], self.bbox_min, self.bbox_max,
+                          self.sh_degree, self.contracted)
         return grid, old_rows
+
+    def crop(self, first: tuple[int, int, int], last: tuple[int, int, int]) -> "SparseGrid":
+        """The vertices from index `first` to `last` (inclusive) per axis as a grid of their own, over the box
+        those vertices span (not contracted: the caller says which frame that box is in)."""
+        lo_i, hi_i = [int(v) for v in first], [int(v) for v in last]
+        if not all(0 <= a < b < r for a, b, r in zip(lo_i, hi_i, self.resolution)):
+            raise ValueError(f"crop {lo_i}..{hi_i} is not a box of at least 2 vertices inside {self.resolution}")
+        links = self._links[lo_i[0]:hi_i[0] + 1, lo_i[1]:hi_i[1] + 1, lo_i[2]:hi_i[2] + 1]
+        old_rows = links[links >= 0].long()
+        new_links = torch.full_like(links, -1)
+        new_links[links >= 0] = torch.arange(old_rows.shape[0], dtype=torch.int32, device=links.device)
+        step = [(hi - lo) / (r - 1) for lo, hi, r in zip(self.bbox_min, self.bbox_max, self.resolution)]
+        box_min = [lo + i * d for lo, i, d in zip(self.bbox_min, lo_i, step)]
+        box_max = [lo + i * d for lo, i, d in zip(self.bbox_min, hi_i, step)]
+        return SparseGrid(new_links.contiguous(), self.data[old_rows], box_min, box_max, self.sh_degree)
 
     def dilate(self, keep: torch.Tensor, radius: int = 1) -> torch.Tensor:
         """Grows a per-row keep mask to every allocated vertex within `radius` voxels (Chebyshev)."""
@@ -284,7 +306,7 @@ class SparseGrid:
             nearest.append(self._links[near[:, 0], near[:, 1], near[:, 2]].long())
         data = torch.cat(values) if values else torch.zeros(0, row_stride(self.sh_degree))
         old_rows = torch.cat(nearest) if nearest else torch.zeros(0, dtype=torch.int64)
-        return SparseGrid(links, data, self.bbox_min, self.bbox_max, self.sh_degree), old_rows
+        return SparseGrid(links, data, self.bbox_min, self.bbox_max, self.sh_degree, self.contracted), old_rows
 
     # ---- persistence --------------------------------------------------------------------------
     def save(self, path, extra: dict | None = None) -> None:
@@ -297,6 +319,7 @@ class SparseGrid:
             "bbox_min": list(self.bbox_min),
             "bbox_max": list(self.bbox_max),
             "sh_degree": self.sh_degree,
+            "contracted": self.contracted,
             "extra": dict(extra or {}),
         }
         path = Path(path)
@@ -318,5 +341,5 @@ class SparseGrid:
         if payload.get("version") != FORMAT_VERSION:
             raise UserError(f"{path} has grid format version {payload.get('version')}, expected {FORMAT_VERSION}: fit again")
         grid = cls.from_values(payload["links"], payload["density"], payload["sh"], payload["bbox_min"],
-                               payload["bbox_max"], payload["sh_degree"])
+                               payload["bbox_max"], payload["sh_degree"], bool(payload.get("contracted", False)))
         return grid, payload["extra"]

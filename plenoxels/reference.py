@@ -15,6 +15,12 @@ Rendering one ray (all kernels agree on every step):
 5. alpha_i = 1 - exp(-sigma_i dt), T_i = prod_{j<i} (1 - alpha_j), weight_i = T_i alpha_i.
    A sample is used only while T_i >= stop_transmittance (early termination).
 6. rgb = sum_i weight_i c_i + T_final * background; depth = sum_i weight_i t_i; opacity = 1 - T_final.
+
+A contracted grid (unbounded scenes; plenoxels/fit_frame.py) spans [-2, 2]^3 of the contracted frame and the rays
+come in the frame before the contraction. Steps 2-3 become a march from t = near: each step is dt = step_size /
+(finest grid scale) contracted units long at the speed |J u| of the contraction where it starts (but no longer than a
+quarter of |q|_inf), its sample half way, until it leaves for infinity, half a step short of the cube's faces and moving
+out (contracted_samples); step 5 integrates each sample over its step's contracted length, step x |J u| at the sample.
 """
 from __future__ import annotations
 
@@ -27,6 +33,8 @@ from plenoxels.grid import SparseGrid, sh_count
 from plenoxels.render import COLOUR_OFFSET, SH_C0, SH_C1, SH_C2, SH_C3, ray_samples
 
 TV_EPS = 1e-9
+# csrc/plenoxels_math.h's PLX_CONTRACTED_MAX_STEP.
+CONTRACTED_MAX_STEP = 0.25
 
 
 def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
@@ -73,24 +81,104 @@ def interpolate(links: torch.Tensor, values: torch.Tensor, g: torch.Tensor, rows
     return out
 
 
-def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torch.Tensor) -> dict:
-    """All samples of a batch with their weights and colours (steps 1-5), differentiable in density and sh."""
+def _contracted_speed(q: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """|J(q) u| per ray [B] (float64), csrc/plenoxels_math.h's contracted_speed term by term."""
+    a = q.abs()
+    k = torch.where((a[:, 0] >= a[:, 1]) & (a[:, 0] >= a[:, 2]), 0, torch.where(a[:, 1] >= a[:, 2], 1, 2))[:, None]
+    m = a.gather(1, k)[:, 0]
+    ms = m.clamp_min(1.0)
+    f, df = (2.0 - 1.0 / ms) / ms, (2.0 / ms - 2.0) / (ms * ms)
+    uk = u.gather(1, k)[:, 0]
+    along = torch.where(q.gather(1, k)[:, 0] < 0, -uk, uk)
+    v = (f[:, None] * u + q * (df * along)[:, None]).scatter(1, k, (uk / (ms * ms))[:, None])
+    outside = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2]).sqrt()
+    return torch.where(m <= 1.0, (u[:, 0] * u[:, 0] + u[:, 1] * u[:, 1] + u[:, 2] * u[:, 2]).sqrt(), outside)
+
+
+def _contract(q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(contracted points [B, 3], their |.|_inf [B]) in float64, as contract_point computes them."""
+    m = q.abs().amax(dim=1)
+    ms = m.clamp_min(1.0)
+    c = ((2.0 - 1.0 / ms) / ms)[:, None] * q
+    return torch.where((m <= 1.0)[:, None], q, c), torch.where(m <= 1.0, m, 2.0 - 1.0 / ms)
+
+
+def contracted_samples(grid: SparseGrid, origins, dirs, opts) -> dict:
+    """The samples of rays through a contracted grid, stepped as csrc/plenoxels_math.h's contracted_step does: each
+    step dt contracted units (step_size voxels of the grid's finest axis) long at its start's speed, but at most
+    PLX_CONTRACTED_MAX_STEP of |q|_inf (at least 1), its sample half way, integrating density over step x speed at the
+    sample; until max_samples_per_ray steps, or half a step short of the cube's faces and moving out (|q|_inf growing).
+    Per ray `n` and `unit`; per
+    step `t` [B, M], the contracted points `c` [B, M, 3], the lengths `delta` [B, M] and which are samples, `valid`
+    [B, M] (not past the ray's end, nor beyond the shell it comes in through from further out)."""
+    o, d = origins.double(), dirs.double()
+    norm = (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]).sqrt()
+    u = d / norm[:, None]
+    dt = opts.step_size / max(grid.scale)
+    edge = 2.0 - 0.5 * dt
+    cursor = torch.full((o.shape[0],), float(opts.near), dtype=torch.float64)
+    alive = torch.ones(o.shape[0], dtype=torch.bool)
+    ts, cs, deltas, valid = [], [], [], []
+    for _ in range(opts.max_samples_per_ray):
+        q = o + cursor[:, None] * u
+        cap = CONTRACTED_MAX_STEP * q.abs().amax(dim=1).clamp_min(1.0)
+        step = torch.minimum(dt / _contracted_speed(q, u), cap)
+        t = cursor + 0.5 * step
+        cursor = cursor + step
+        at = o + t[:, None] * u
+        c, size = _contract(at)
+        k = torch.where((at[:, 0].abs() >= at[:, 1].abs()) & (at[:, 0].abs() >= at[:, 2].abs()), 0,
+                        torch.where(at[:, 1].abs() >= at[:, 2].abs(), 1, 2))[:, None]
+        toward = torch.where(at.gather(1, k)[:, 0] < 0, -u.gather(1, k)[:, 0], u.gather(1, k)[:, 0])
+        inside = size < edge
+        alive = alive & (inside | (toward < 0))  # beyond the shell and receding: gone to infinity
+        if not bool(alive.any()):
+            break
+        ts.append(t)
+        cs.append(c)
+        deltas.append(step * _contracted_speed(at, u))
+        valid.append(alive & inside)
+    empty = torch.zeros(o.shape[0], 0, dtype=torch.float64)
+    stack = (lambda xs: torch.stack(xs, dim=1)) if ts else (lambda xs: empty)
+    valid = stack(valid).bool() if ts else torch.zeros(o.shape[0], 0, dtype=torch.bool)
+    c = torch.stack(cs, dim=1) if cs else empty[..., None].expand(-1, -1, 3)
+    return {"t": stack(ts), "c": c, "delta": stack(deltas), "valid": valid, "n": valid.sum(dim=1),
+            "unit": u.to(torch.float32)}
+
+
+def _samples(grid: SparseGrid, origins, dirs, opts) -> tuple:
+    """(ray [P], idx [P], t [P] float64, grid point [P, 3] float64 not clamped, delta [P] float64,
+    unit directions [B, 3] float32, samples per ray M) of every sample of a batch (steps 1-3)."""
+    if grid.contracted:
+        cs = contracted_samples(grid, origins, dirs, opts)
+        M = cs["t"].shape[1]
+        ray, idx = torch.nonzero(cs["valid"], as_tuple=True)
+        lo = torch.tensor(grid.bbox_min, dtype=torch.float64)
+        scale = torch.tensor(grid.scale, dtype=torch.float64)
+        g = (cs["c"][ray, idx] - lo) * scale
+        return ray, idx, cs["t"][ray, idx], g, cs["delta"][ray, idx], cs["unit"], M
     lat = ray_samples(grid, origins, dirs, opts)
-    B, M = origins.shape[0], int(lat["n"].max()) if origins.shape[0] else 0
+    M = int(lat["n"].max()) if origins.shape[0] else 0
     i = torch.arange(M, dtype=torch.float64)
     valid = i.long()[None, :] < lat["n"][:, None]
     ray, idx = torch.nonzero(valid, as_tuple=True)
     t = lat["t_start"][ray] + (idx.double() + 0.5) * lat["dt"][ray]
+    return ray, idx, t, lat["og"][ray] + t[:, None] * lat["dg"][ray], lat["dt"][ray], lat["unit"], M
+
+
+def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torch.Tensor) -> dict:
+    """All samples of a batch with their weights and colours (steps 1-5), differentiable in density and sh."""
+    ray, idx, t, g, delta, unit, M = _samples(grid, origins, dirs, opts)
+    B = origins.shape[0]
     dtype = density.dtype  # float32 like the kernels; float64 for gradcheck
     hi = torch.tensor(grid.resolution, dtype=dtype) - 1
-    g = (lat["og"][ray] + t[:, None] * lat["dg"][ray]).to(dtype)
-    g = torch.minimum(g.clamp_min(0), hi)
+    g = torch.minimum(g.to(dtype).clamp_min(0), hi)
     rows, weights = corners(grid.links, g)
     raw = interpolate(grid.links, density[:, None], g, rows, weights)[:, 0]
     used = raw > opts.sigma_threshold
     sigma = torch.where(used, raw, torch.zeros_like(raw))
-    delta = lat["dt"].to(dtype)
-    tau = torch.zeros(B, M, dtype=dtype).index_put((ray, idx), sigma * delta[ray])
+    delta = delta.to(dtype)
+    tau = torch.zeros(B, M, dtype=dtype).index_put((ray, idx), sigma * delta)
     used_pad = torch.zeros(B, M, dtype=torch.bool).index_put((ray, idx), used)
     t_before = torch.exp(-(torch.cumsum(tau, dim=1) - tau))
     alive = used_pad & (t_before >= opts.stop_transmittance)
@@ -99,7 +187,7 @@ def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torc
     t_final = torch.exp(-(tau * alive).sum(dim=1))
     K = sh_count(grid.sh_degree)
     coeffs = interpolate(grid.links, sh, g, rows, weights).reshape(-1, 3, K)
-    basis = sh_basis(grid.sh_degree, lat["unit"].to(dtype))[ray]
+    basis = sh_basis(grid.sh_degree, unit.to(dtype))[ray]
     colour = torch.relu((coeffs * basis[:, None, :]).sum(-1) + COLOUR_OFFSET)
     colour_pad = torch.zeros(B, M, 3, dtype=dtype).index_put((ray, idx), colour)
     t_pad = torch.zeros(B, M, dtype=dtype).index_put((ray, idx), t.to(dtype))

@@ -114,9 +114,9 @@ def _grid_args(grid: SparseGrid) -> tuple:
             grid.sh_degree)
 
 
-def _march_args(opts: RenderOptions) -> tuple:
+def _march_args(opts: RenderOptions, grid: SparseGrid) -> tuple:
     return (float(opts.step_size), float(opts.stop_transmittance), float(opts.near), float(opts.sigma_threshold),
-            int(opts.max_samples_per_ray))
+            int(opts.max_samples_per_ray), grid.contracted)
 
 
 def render(grid: SparseGrid, origins, dirs, background=None, opts: RenderOptions | None = None) -> RenderResult:
@@ -125,7 +125,7 @@ def render(grid: SparseGrid, origins, dirs, background=None, opts: RenderOptions
     device = grid.data.device
     origins, dirs = _rays(origins, dirs, device)
     background = _colours(background, origins.shape[0], "background", device)
-    rgb, depth, opacity = native.ops.render(*_grid_args(grid), origins, dirs, background, *_march_args(opts))
+    rgb, depth, opacity = native.ops.render(*_grid_args(grid), origins, dirs, background, *_march_args(opts, grid))
     return RenderResult(rgb, depth, opacity)
 
 
@@ -147,7 +147,7 @@ def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts: Re
     if grad.data.shape != grid.data.shape:
         raise ValueError("gradient storage belongs to another grid: make a new GridGrad after prune/upsample")
     sse, grad_background, grad.num_touched = native.ops.loss_and_grad(
-        *_grid_args(grid), origins, dirs, targets, background, *_march_args(opts), grad.data, grad.touched_mask,
+        *_grid_args(grid), origins, dirs, targets, background, *_march_args(opts, grid), grad.data, grad.touched_mask,
         grad.touched_rows, grad.num_touched, *grad.scratch())
     return (sse / (3 * b) if b else 0.0), grad_background
 
@@ -157,7 +157,7 @@ def max_weights(grid: SparseGrid, origins, dirs, opts: RenderOptions | None = No
     opts = (opts or RenderOptions()).check()
     origins, dirs = _rays(origins, dirs, grid.data.device)
     out = torch.zeros(grid.num_occupied, dtype=torch.float32, device=grid.data.device)
-    native.ops.max_weights(*_grid_args(grid), origins, dirs, *_march_args(opts), out)
+    native.ops.max_weights(*_grid_args(grid), origins, dirs, *_march_args(opts, grid), out)
     return out
 
 
@@ -165,5 +165,5 @@ def sample_counts(grid: SparseGrid, origins, dirs, opts: RenderOptions | None = 
     """(lattice samples inside the box, samples that contribute) over these rays."""
     opts = (opts or RenderOptions()).check()
     origins, dirs = _rays(origins, dirs, grid.data.device)
-    lattice, used = native.ops.sample_counts(*_grid_args(grid), origins, dirs, *_march_args(opts))
+    lattice, used = native.ops.sample_counts(*_grid_args(grid), origins, dirs, *_march_args(opts, grid))
     return int(lattice), int(used)

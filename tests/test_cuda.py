@@ -187,21 +187,22 @@ def _cuda(values):
 
 
 def _march_args(march):
-    return [march["step"], march["stop_transmittance"], march["near"], march["sigma_threshold"], march["max_samples"]]
+    return [march["step"], march["stop_transmittance"], march["near"], march["sigma_threshold"], march["max_samples"],
+            march.get("contract", False)]
 
 
 def _close(gpu, cpu, rtol=1e-4, atol=1e-5):
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=rtol, atol=atol)
 
 
-def _render_both(links, data, degree, origins, dirs, background, march=MARCH):
+def _render_both(links, data, degree, origins, dirs, background, march=MARCH, box=(BMIN, BMAX)):
     C, G = _native()
     cells, blocks = C.build_occupancy(links, BLOCK)
-    args = [data, links, cells, blocks, BLOCK, BMIN, BMAX, degree, origins, dirs, background, *_march_args(march)]
+    args = [data, links, cells, blocks, BLOCK, *box, degree, origins, dirs, background, *_march_args(march)]
     return C.render(*args), G.render(*_cuda(args))
 
 
-def _loss_grad_both(links, data, degree, origins, dirs, targets, background, march=MARCH):
+def _loss_grad_both(links, data, degree, origins, dirs, targets, background, march=MARCH, box=(BMIN, BMAX)):
     C, G = _native()
     cells, blocks = C.build_occupancy(links, BLOCK)
     n, stride = data.shape
@@ -210,7 +211,7 @@ def _loss_grad_both(links, data, degree, origins, dirs, targets, background, mar
         grad = torch.zeros(n, stride)
         mask = torch.zeros(n, dtype=torch.uint8)
         rows = torch.zeros(n, dtype=torch.int32)
-        args = [data, links, cells, blocks, BLOCK, BMIN, BMAX, degree, origins, dirs, targets, background,
+        args = [data, links, cells, blocks, BLOCK, *box, degree, origins, dirs, targets, background,
                 *_march_args(march), grad, mask, rows, 0]
         moved = move(args)
         sse, grad_background, count = core.loss_and_grad(*moved, *native.ops.grad_scratch(moved[17]))
@@ -240,6 +241,27 @@ def test_render_matches_cpu(degree):
     for g, c in zip(gpu, cpu):
         _close(g, c)
     assert (cpu[2] > 0.5).any() and (cpu[2] < 0.5).any(), "the scene should give opaque and clear rays"
+
+
+@needs_gpu
+def test_contracted_grid_renders_and_differentiates_as_on_cpu():
+    """Bent rays through a contracted grid (unbounded scenes): from inside the inner cube, from the shell and from far
+    away, on both devices."""
+    links, data = _grid(1, res=(17, 17, 17), density_scale=1.5)
+    gen = torch.Generator().manual_seed(8)
+    origins = torch.cat([torch.randn(1500, 3, generator=gen) * 2.0, torch.randn(500, 3, generator=gen) * 40.0])
+    dirs = torch.randn(2000, 3, generator=gen)
+    background, targets = torch.rand(2000, 3, generator=gen), torch.rand(2000, 3, generator=gen)
+    march, box = {**MARCH, "contract": True}, ([-2.0] * 3, [2.0] * 3)
+    cpu, gpu = _render_both(links, data, 1, origins, dirs, background, march, box)
+    for g, c in zip(gpu, cpu):
+        _close(g, c)
+    assert (cpu[2] > 0.5).any() and (cpu[2] < 0.5).any()
+    cpu, gpu = _loss_grad_both(links, data, 1, origins, dirs, targets, background, march, box)
+    assert gpu[0] == pytest.approx(cpu[0], rel=1e-5)
+    scale = float(cpu[2].abs().max())
+    _close(gpu[2], cpu[2], rtol=1e-3, atol=1e-5 * scale)
+    assert gpu[4] == cpu[4] and len(cpu[4]) > 0
 
 
 @needs_gpu
