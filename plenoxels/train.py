@@ -291,8 +291,8 @@ class Fitter:
         record = {"tv_density": o.tv_density, "tv_sh": o.tv_sh, "views_per_point": None, "tv_scale": 1.0,
                   "sparsity": o.sparsity}
         if o.tv_views > 0 and self.model.fit_frame.ndc is None:
-            views = views_per_point(self.train.c2w.double().numpy(), self.train.intrinsics, self.model.grid.bbox_min,
-                                    self.model.grid.bbox_max, seed=o.seed)
+            lo, hi = self.model.region_box()
+            views = views_per_point(self.train.c2w.double().numpy(), self.train.intrinsics, lo, hi, seed=o.seed)
             scale = tv_scale_for_views(views, o.tv_views, o.tv_views_power, o.tv_views_max_scale)
             record.update(views_per_point=round(views, 2), tv_scale=scale, tv_density=o.tv_density * scale,
                           tv_sh=o.tv_sh * scale)
@@ -455,7 +455,7 @@ class Fitter:
             "step": self.step, "level": self.level, "elapsed": self.elapsed, "history": self.history,
             "levels": self.levels, "recent_mse": self.recent_mse, "generator": self.generator.get_state(),
             "grid": {"links": grid.links, "data": grid.data, "bbox_min": grid.bbox_min, "bbox_max": grid.bbox_max,
-                     "sh_degree": grid.sh_degree},
+                     "sh_degree": grid.sh_degree, "contracted": grid.contracted},
             "optim": self.optim.state_dict(),
             "background": self.model.background.state_dict() if self.model.background is not None else None,
             "bg_optim": self.bg_optim.state_dict() if self.bg_optim is not None else None,
@@ -471,7 +471,8 @@ class Fitter:
     def load_checkpoint(self, path: Path) -> None:
         state = torch.load(path, map_location="cpu", weights_only=False)
         g = state["grid"]
-        self.model.grid = SparseGrid(g["links"], g["data"], g["bbox_min"], g["bbox_max"], g["sh_degree"])
+        self.model.grid = SparseGrid(g["links"], g["data"], g["bbox_min"], g["bbox_max"], g["sh_degree"],
+                                     g.get("contracted", False))
         self.model.to(self.device)
         self.checkpoint_step = state["step"]
         self.step, self.level, self.elapsed = state["step"], state["level"], state["elapsed"]

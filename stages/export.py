@@ -173,7 +173,8 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
 def run(ctx) -> dict:
     s: Settings = ctx.settings
     scene = read_json(ctx.upstream["normalize"] / "scene.json")
-    model = SceneModel.load(ctx.upstream["fit"])
+    # A contracted grid's far world is coarse and squeezed: exports read its inner cube, which holds the foreground box.
+    model = SceneModel.load(ctx.upstream["fit"]).foreground_model()
     grid = model.grid
     frame = model.fit_frame
     box_min = np.asarray(scene["foreground"]["min"], dtype=np.float64)
@@ -224,7 +225,8 @@ def run(ctx) -> dict:
         "frame_description": frame_name,
         "output_from_normalized": to_output.tolist(),
         "scene_type": scene.get("type"),
-        "fit_frame": "ndc" if frame.ndc is not None else "normalized",
+        "fit_frame": "ndc" if frame.ndc is not None else "inner cube of a contracted grid"
+        if frame.contraction is not None else "normalized",
         "files": files,
         "file_bytes": sizes,
         "mesh": {"vertices": len(mesh.vertices), "faces": len(mesh.faces), "bounds": _bounds(mesh.vertices)},

@@ -103,6 +103,7 @@ class Settings(TrainOptions, ModelOptions):
         require(len(self.background_color) == 3 and all(0 <= c <= 1 for c in self.background_color),
                 "fit.background_color must be three numbers in [0, 1] (for example [1, 1, 1])")
         require(self.box_padding >= 0, "fit.box_padding must be >= 0")
+        require(0 <= self.near_share < 1, "fit.near_share must be in [0, 1)")
         require(self.background_spheres >= 1 and (self.background_width == 0 or self.background_width >= 4),
                 "fit.background_spheres must be >= 1 and fit.background_width 0 (from the photos) or >= 4")
         require(self.background_texel_px > 0, "fit.background_texel_px must be positive")
@@ -165,8 +166,10 @@ def run(ctx) -> dict:
     held_out = HeldOut(ctx.out, held_out_frames, s)
     checkpoint = ctx.scratch / CHECKPOINT
 
+    mean_colour = (train.pixels.double().mean(dim=0) / 255).tolist()
+
     def new_model(resolution: int) -> SceneModel:
-        return SceneModel.create(scene, s, resolution, focal_px=float(train.k[:, :2].median()))
+        return SceneModel.create(scene, s, resolution, focal_px=float(train.k[:, :2].median()), mean_colour=mean_colour)
 
     budget = None
     if s.budget_seconds:
@@ -274,6 +277,8 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
                  f"({fitter.regularisation['views_per_point']:.1f} per point)")
     if model.fit_frame.ndc is not None:
         line += ", in NDC"
+    if model.fit_frame.contraction is not None:
+        line += ", contracted (all of space)"
     if stopped_early:
         line += f"; stopped early at step {fitter.step}/{s.total_steps} (Ctrl-C)"
     if budget is not None:

@@ -1,15 +1,17 @@
 """The contracted grid of unbounded scenes: the contraction's math, the kernels against the twin on bent rays
-(values, gradients, pruning weights, sample counts) at the extremes."""
+(values, gradients, pruning weights, sample counts) at the extremes, and the scene model built on it."""
 
 import numpy as np
 import pytest
 import torch
 
 from plenoxels import reference
+from plenoxels.cameras import Intrinsics
 from plenoxels.fit_frame import CONTRACTED_BOX, contract, uncontract
 from plenoxels.grid import SparseGrid
 from plenoxels.optim import GridGrad
 from plenoxels.render import RenderOptions, loss_and_grad, max_weights, render, sample_counts
+from plenoxels.scene_model import ModelOptions, SceneModel
 
 ATOL = 2e-5
 
@@ -145,3 +147,79 @@ def test_a_contracted_ray_takes_the_twins_steps_out_to_infinity_and_no_more_than
     lattice, _ = sample_counts(grid, origins, dirs, capped)
     assert lattice == int(reference.contracted_samples(grid, origins, dirs, capped)["n"].sum())
     assert lattice <= 5 * origins.shape[0]
+
+
+def unbounded_scene(beyond=0.3):
+    """An unbounded scene as normalize writes it, `beyond` of its sparse points far beyond the foreground."""
+    return {"type": "unbounded", "foreground": {"min": [-0.5, -0.4, -0.2], "max": [0.9, 0.6, 0.3]},
+            "measured": {"beyond_fraction": beyond}, "thresholds": {"unbounded_min_beyond_fraction": 0.1}}
+
+
+def test_far_content_gets_a_contracted_grid_and_no_background_model(tmp_path):
+    model = SceneModel.create(unbounded_scene(), ModelOptions(), 16)
+    assert model.grid.contracted and model.background is None
+    assert model.grid.resolution == (16, 16, 16)
+    assert (model.grid.bbox_min, model.grid.bbox_max) == CONTRACTED_BOX
+    contraction = model.fit_frame.contraction
+    # The inner cube holds the padded foreground box.
+    lo, hi = model.region_box()
+    fg = unbounded_scene()["foreground"]
+    assert np.all(np.asarray(lo) <= fg["min"]) and np.all(np.asarray(hi) >= fg["max"])
+    # Off, or content that all lies near (a room around an object): the bounded grid and the multi-sphere background.
+    for plain in (SceneModel.create(unbounded_scene(), ModelOptions(contract="off"), 16),
+                  SceneModel.create(unbounded_scene(beyond=0.02), ModelOptions(), 16)):
+        assert not plain.grid.contracted and plain.background is not None
+    assert SceneModel.create(unbounded_scene(beyond=0.02), ModelOptions(contract="on"), 16).grid.contracted
+    assert not SceneModel.create({**unbounded_scene(), "type": "object"}, ModelOptions(), 16).grid.contracted
+    # Past infinity a contracted grid's rays see the photos' mean colour (unless masks say what lies behind), and its
+    # rays start half the nearest sparse point's depth from their camera.
+    frames = [{"near": 0.4, "far": 3.0}, {"near": 0.3, "far": 2.0}]
+    grey = SceneModel.create({**unbounded_scene(), "frames": frames}, ModelOptions(), 16, mean_colour=(0.3, 0.4, 0.5))
+    assert grey.background_color == (0.3, 0.4, 0.5)
+    assert grey.render_options.near == pytest.approx(0.5 * 0.3 / grey.fit_frame.contraction.half_size)
+    masked = [{**f, "mask_path": "masks/a.png"} for f in frames]
+    assert SceneModel.create({**unbounded_scene(), "frames": masked}, ModelOptions(), 16,
+                             mean_colour=(0.3, 0.4, 0.5)).background_color == (1.0, 1.0, 1.0)
+    bounded = SceneModel.create({**unbounded_scene(0.0), "frames": frames}, ModelOptions(), 16, mean_colour=(0.3, 0.4, 0.5))
+    assert bounded.background_color == (1.0, 1.0, 1.0) and bounded.render_options.near == 0.0
+    # Saved and loaded, it renders the same; world depth is in world units.
+    gen = torch.Generator().manual_seed(0)
+    model.grid.density.copy_(torch.rand(model.grid.num_occupied, generator=gen) * 3)
+    model.save(tmp_path)
+    again = SceneModel.load(tmp_path)
+    assert again.grid.contracted and again.fit_frame.contraction == contraction
+    c2w = np.eye(4)
+    c2w[:3, 3] = [0.2, 0.1, 3.0]
+    k = Intrinsics(fl_x=6.0, fl_y=6.0, cx=4.0, cy=3.0, w=8, h=6)
+    a, b = model.render_camera(c2w, k), again.render_camera(c2w, k)
+    torch.testing.assert_close(a["rgb"], b["rgb"])
+    # Depth: the kernels' t is in inner-frame units; the model reports world distance.
+    o = torch.tensor([[0.2, 0.1, 3.0]])
+    d = torch.tensor([[0.0, 0.0, -1.0]])
+    result = model.render_rays(o, d)
+    expected = result.depth / result.opacity * contraction.half_size
+    assert float(model.world_depth(o, d, result)) == pytest.approx(float(expected), rel=1e-6)
+
+
+def test_the_foreground_model_is_the_inner_cube_and_renders_it_as_the_full_model_does():
+    model = SceneModel.create(unbounded_scene(), ModelOptions(), 17)
+    grid = model.grid
+    gen = torch.Generator().manual_seed(2)
+    grid.density.copy_(torch.rand(grid.num_occupied, generator=gen) * 3)
+    grid.sh.copy_(torch.randn(grid.sh.shape, generator=gen) * 0.3)
+    # Nothing outside the inner cube, so both models see the same matter.
+    g = grid.coords().double() / 16 * 4 - 2
+    grid.density[(g.abs().amax(dim=1) > 1.0 - 1e-9)] = 0.0
+    inner = model.foreground_model()
+    assert not inner.grid.contracted and inner.grid.resolution == (9, 9, 9)
+    assert inner.grid.bbox_min == (-1.0, -1.0, -1.0) and inner.grid.bbox_max == (1.0, 1.0, 1.0)
+    # The inner frame's points map to the world as the contracted frame's do inside the cube.
+    points = np.random.default_rng(0).uniform(-0.9, 0.9, (50, 3))
+    np.testing.assert_allclose(inner.fit_frame.to_world(points), model.fit_frame.to_world(points))
+    lo, hi = model.region_box()
+    centre = (np.asarray(lo) + np.asarray(hi)) / 2
+    origins = torch.tensor(centre + np.random.default_rng(1).normal(size=(40, 3)) * 3, dtype=torch.float32)
+    dirs = torch.tensor(centre, dtype=torch.float32) - origins
+    full, crop = model.render_rays(origins, dirs), inner.render_rays(origins, dirs)
+    torch.testing.assert_close(full.opacity, crop.opacity, atol=0.02, rtol=0)
+    assert float(full.opacity.mean()) > 0.3

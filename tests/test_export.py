@@ -20,7 +20,7 @@ from pipeline.stage import StageContext
 from pipeline.synthetic import build_scene, write_scene
 from plenoxels.cameras import Intrinsics
 from plenoxels.errors import UserError
-from plenoxels.fit_frame import FitFrame
+from plenoxels.fit_frame import CONTRACTED_BOX, Contraction, FitFrame
 from plenoxels.grid import SparseGrid
 from plenoxels.mesh import (LEVEL_RAY_OPACITY, MARCH_STEP_VOXELS, PEAK_OPTICAL_DEPTH, auto_level, clean_mesh,
                             grid_lattice, grid_lattice_voxel, ray_peaks, surface_colours, transform_normals,
@@ -353,12 +353,13 @@ def test_ray_peaks_and_the_auto_level_follow_a_ramp_of_density():
     assert level == pytest.approx(math.log(2) / voxel, rel=1e-6) and "one voxel" in source
 
 
-def run_stage(tmp_path, grid, scene: dict, settings: Settings, name: str, ndc=None, background=None) -> tuple[dict, Path]:
+def run_stage(tmp_path, grid, scene: dict, settings: Settings, name: str, ndc=None, background=None,
+              contraction=None) -> tuple[dict, Path]:
     """The export stage as the runner calls it, on a fit folder written by SceneModel.save."""
     fit, normalize, work = tmp_path / name / "fit", tmp_path / name / "normalize", tmp_path / name / "export"
     for folder in (fit, normalize, work):
         folder.mkdir(parents=True)
-    SceneModel(grid, scene["type"], fit_frame=FitFrame(ndc), background=background,
+    SceneModel(grid, scene["type"], fit_frame=FitFrame(ndc, contraction), background=background,
                transforms={k: scene[k] for k in ("world_from_input", "input_from_world")}).save(fit)
     write_json(normalize / "scene.json", scene)
     ctx = StageContext(scene=tmp_path, out=tmp_path / name, work=work, scratch=tmp_path / name / "scratch",
@@ -447,6 +448,27 @@ def test_unbounded_scene_exports_the_foreground_only_not_the_ground_or_the_backg
               background=background)
     folder = tmp_path / "unbounded" / "export"
     assert read_json(folder / "export.json")["scene_type"] == "unbounded"
+    mesh, points = exported_foreground(folder, settings.crop_margin)
+    truth = trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS).apply_translation(SPHERE_CENTRE)
+    scores = mesh_scores(mesh, truth, 0.05 * SPHERE_RADIUS, samples=20_000)
+    assert scores["f_score"] > 0.95, scores
+    assert np.median(radial_error(points)) < 0.03
+
+
+def test_contracted_scene_exports_its_inner_cube_only_not_the_far_world(tmp_path):
+    # A contracted grid holds all of space: a slab just below the foreground box (inside the inner cube) and a
+    # far wall and ground out in the contracted shell. Only the sphere may reach the mesh and the points, in the
+    # world frame (the inner frame is moved and scaled from it).
+    contraction = Contraction((0.05, -0.1, 0.0), 1.05)
+    clutter = lambda p: (p[..., 2] < -0.95) | (p[..., 0] > 4.0) | (p[..., 2] < -3.0)
+    field = cluttered_sphere_field(97, clutter, contraction.to_world, *CONTRACTED_BOX)
+    field.contracted = True
+    # Every face kept: the ring of views sees little of the sphere's underside at this grid's finer voxels.
+    settings = Settings(frame="normalized", points=2000, point_scale=1.0, unseen="keep")
+    run_stage(tmp_path, field, identity_scene("unbounded", orbit_frames(6, size=32)), settings, "contracted",
+              contraction=contraction)
+    folder = tmp_path / "contracted" / "export"
+    assert read_json(folder / "export.json")["fit_frame"] == "inner cube of a contracted grid"
     mesh, points = exported_foreground(folder, settings.crop_margin)
     truth = trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS).apply_translation(SPHERE_CENTRE)
     scores = mesh_scores(mesh, truth, 0.05 * SPHERE_RADIUS, samples=20_000)

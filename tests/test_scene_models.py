@@ -164,3 +164,16 @@ def test_forward_scene_needs_ndc(forward_scene):
           f"whole views {ndc_whole:.2f} and {world_whole:.2f} dB")
     assert ndc_objects > world_objects + 1.5, results
     assert ndc_whole > world_whole - 0.3, results
+
+
+def test_far_content_fits_better_in_a_contracted_grid(unbounded_scene):
+    """The synthetic unbounded scene's ground and sky reach far beyond its foreground: a contracted grid places them
+    in depth, where the bounded grid and its background spheres can only paint them by direction."""
+    scene, root = unbounded_scene
+    results = {}
+    for contract in ("on", "off"):
+        errors = _held_out_errors(scene, root, _fit(scene, root, contract=contract))
+        results[contract] = float(np.mean([psnr(float(e.mean())) for _, e in errors]))
+    print(f"held-out PSNR: {results['on']:.2f} dB contracted, {results['off']:.2f} dB bounded with the background model")
+    # Measured: 12.8 dB contracted, 11.9 dB bounded with the background model (12.6 and 11.6 at the fit's own rates).
+    assert results["on"] > results["off"] + 0.5, results

@@ -60,7 +60,8 @@ class ModelSource:
         options = self._model_options(background)
         model = SceneModel.create(scene, options, 2)
         g = state["grid"]
-        model.grid = SparseGrid(g["links"], g["data"], g["bbox_min"], g["bbox_max"], g["sh_degree"])
+        model.grid = SparseGrid(g["links"], g["data"], g["bbox_min"], g["bbox_max"], g["sh_degree"],
+                                g.get("contracted", False))
         if background is not None and model.background is not None:
             model.background.load_state_dict(background)
         return model, f"live fit: checkpoint at step {state['step']}, {'x'.join(map(str, model.grid.resolution))} grid"
@@ -72,7 +73,7 @@ class ModelSource:
         manifest = self.out / "fit" / "manifest.json"
         if manifest.is_file():
             saved = read_json(manifest).get("settings", {})
-            for name in ("ndc", "background_color", "step_size", "stop_transmittance", "box_padding"):
+            for name in ("ndc", "contract", "background_color", "step_size", "stop_transmittance", "box_padding"):
                 if name in saved:
                     setattr(options, name, saved[name])
         options.background = "on" if background is not None else "off"
