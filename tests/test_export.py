@@ -432,6 +432,15 @@ def exported_foreground(folder: Path, crop_margin: float) -> tuple[trimesh.Trime
     return mesh, points
 
 
+def assert_only_the_sphere(folder: Path, crop_margin: float) -> None:
+    """The export holds the sphere, whole and in place, and nothing of the clutter around it."""
+    mesh, points = exported_foreground(folder, crop_margin)
+    truth = trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS).apply_translation(SPHERE_CENTRE)
+    scores = mesh_scores(mesh, truth, 0.05 * SPHERE_RADIUS, samples=20_000)
+    assert scores["f_score"] > 0.95, scores
+    assert np.median(radial_error(points)) < 0.03
+
+
 def test_unbounded_scene_exports_the_foreground_only_not_the_ground_or_the_background_model(tmp_path):
     # The grid reaches past the foreground box into a ground slab and a wall, as an unbounded fit's grid
     # can; the background model behind it is opaque. Neither may reach the mesh or the points.
@@ -448,11 +457,7 @@ def test_unbounded_scene_exports_the_foreground_only_not_the_ground_or_the_backg
               background=background)
     folder = tmp_path / "unbounded" / "export"
     assert read_json(folder / "export.json")["scene_type"] == "unbounded"
-    mesh, points = exported_foreground(folder, settings.crop_margin)
-    truth = trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS).apply_translation(SPHERE_CENTRE)
-    scores = mesh_scores(mesh, truth, 0.05 * SPHERE_RADIUS, samples=20_000)
-    assert scores["f_score"] > 0.95, scores
-    assert np.median(radial_error(points)) < 0.03
+    assert_only_the_sphere(folder, settings.crop_margin)
 
 
 def test_contracted_scene_exports_its_inner_cube_only_not_the_far_world(tmp_path):
@@ -469,11 +474,7 @@ def test_contracted_scene_exports_its_inner_cube_only_not_the_far_world(tmp_path
               contraction=contraction)
     folder = tmp_path / "contracted" / "export"
     assert read_json(folder / "export.json")["fit_frame"] == "inner cube of a contracted grid"
-    mesh, points = exported_foreground(folder, settings.crop_margin)
-    truth = trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS).apply_translation(SPHERE_CENTRE)
-    scores = mesh_scores(mesh, truth, 0.05 * SPHERE_RADIUS, samples=20_000)
-    assert scores["f_score"] > 0.95, scores
-    assert np.median(radial_error(points)) < 0.03
+    assert_only_the_sphere(folder, settings.crop_margin)
 
 
 def test_forward_scene_exports_the_foreground_only_not_the_far_wall(tmp_path):
