@@ -458,6 +458,7 @@ class Fitter:
                      "sh_degree": grid.sh_degree, "contracted": grid.contracted},
             "optim": self.optim.state_dict(),
             "background": self.model.background.state_dict() if self.model.background is not None else None,
+            "background_color": list(self.model.background_color),
             "bg_optim": self.bg_optim.state_dict() if self.bg_optim is not None else None,
         }
 

@@ -64,6 +64,8 @@ class ModelSource:
                                 g.get("contracted", False))
         if background is not None and model.background is not None:
             model.background.load_state_dict(background)
+        if "background_color" in state:  # what the fit sees behind everything (a contracted grid's: the photos' mean)
+            model.background_color = tuple(float(c) for c in state["background_color"])
         return model, f"live fit: checkpoint at step {state['step']}, {'x'.join(map(str, model.grid.resolution))} grid"
 
     def _model_options(self, background: dict | None) -> ModelOptions:
