@@ -334,40 +334,45 @@ def test_the_page_shows_the_render_and_the_frustums_and_follows_a_drag(scene_out
     assert time.time() - started < 60
 
 
-def test_a_checkpoint_of_an_unbounded_fit_loads_with_its_background(tmp_path):
-    # The background's texture is one table [K, H, W, 4] in checkpoints; the live model rebuilds it to that shape.
-    frame = {"fl_x": 40.0, "fl_y": 40.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48, "split": "train", "name": "a",
-             "transform_matrix": np.eye(4).tolist(), "near": 1.0, "far": 20.0}
-    scene = {"type": "unbounded", "foreground": {"min": [-1, -1, -1], "max": [1, 1, 1]}, "frames": [frame]}
+CHECKPOINT_FRAME = {"fl_x": 40.0, "fl_y": 40.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48, "split": "train", "name": "a",
+                    "transform_matrix": np.eye(4).tolist(), "near": 1.0, "far": 20.0}
+
+
+def unbounded_out(tmp_path, **scene) -> dict:
+    """An output folder with an unbounded scene.json of one frame (plus `scene`'s keys); returns the scene."""
+    scene = {"type": "unbounded", "foreground": {"min": [-1, -1, -1], "max": [1, 1, 1]}, "frames": [CHECKPOINT_FRAME],
+             **scene}
     (tmp_path / "normalize").mkdir()
     (tmp_path / "normalize" / "scene.json").write_text(json.dumps(scene))
-    model = SceneModel.create(scene, ModelOptions(sh_degree=1, background_spheres=3, background_width=12), 8)
-    with torch.no_grad():
-        model.background.texture.normal_(generator=torch.Generator().manual_seed(0))
+    return scene
+
+
+def live_model_of_checkpoint(tmp_path, model: SceneModel) -> tuple[SceneModel, str]:
+    """A fit's checkpoint of `model` written where the fit writes it, and what the viewer loads from it."""
     image = np.zeros((48, 64, 3), dtype=np.float32)
-    fitter = Fitter(model, TrainOptions(resolutions=[8], steps=[1]), RaySet([image], [np.eye(4)], [Intrinsics.from_frame(frame)]))
+    rays = RaySet([image], [np.eye(4)], [Intrinsics.from_frame(CHECKPOINT_FRAME)])
+    fitter = Fitter(model, TrainOptions(resolutions=[8], steps=[1]), rays)
     (tmp_path / CHECKPOINT).parent.mkdir(parents=True)
     fitter.save_checkpoint(tmp_path / CHECKPOINT)
     source = ModelSource(tmp_path)
-    live, line = source.load(source.latest())
+    return source.load(source.latest())
+
+
+def test_a_checkpoint_of_an_unbounded_fit_loads_with_its_background(tmp_path):
+    # The background's texture is one table [K, H, W, 4] in checkpoints; the live model rebuilds it to that shape.
+    scene = unbounded_out(tmp_path)
+    model = SceneModel.create(scene, ModelOptions(sh_degree=1, background_spheres=3, background_width=12), 8)
+    with torch.no_grad():
+        model.background.texture.normal_(generator=torch.Generator().manual_seed(0))
+    live, line = live_model_of_checkpoint(tmp_path, model)
     assert "checkpoint" in line and live.background is not None
     torch.testing.assert_close(live.background.texture, model.background.texture)
 
 
 def test_a_checkpoint_of_a_contracted_fit_loads_contracted_with_its_far_colour(tmp_path):
-    frame = {"fl_x": 40.0, "fl_y": 40.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48, "split": "train", "name": "a",
-             "transform_matrix": np.eye(4).tolist(), "near": 1.0, "far": 20.0}
-    scene = {"type": "unbounded", "foreground": {"min": [-1, -1, -1], "max": [1, 1, 1]}, "frames": [frame],
-             "measured": {"beyond_fraction": 0.4}, "thresholds": {"unbounded_min_beyond_fraction": 0.1}}
-    (tmp_path / "normalize").mkdir()
-    (tmp_path / "normalize" / "scene.json").write_text(json.dumps(scene))
+    scene = unbounded_out(tmp_path, measured={"beyond_fraction": 0.4}, thresholds={"unbounded_min_beyond_fraction": 0.1})
     model = SceneModel.create(scene, ModelOptions(sh_degree=1), 8, mean_colour=(0.2, 0.3, 0.4))
-    image = np.zeros((48, 64, 3), dtype=np.float32)
-    fitter = Fitter(model, TrainOptions(resolutions=[8], steps=[1]), RaySet([image], [np.eye(4)], [Intrinsics.from_frame(frame)]))
-    (tmp_path / CHECKPOINT).parent.mkdir(parents=True)
-    fitter.save_checkpoint(tmp_path / CHECKPOINT)
-    source = ModelSource(tmp_path)
-    live, _ = source.load(source.latest())
+    live, _ = live_model_of_checkpoint(tmp_path, model)
     assert live.grid.contracted and live.fit_frame.contraction == model.fit_frame.contraction
     assert live.background is None and live.background_color == (0.2, 0.3, 0.4)
     o, d = torch.zeros(4, 3), torch.nn.functional.normalize(torch.randn(4, 3, generator=torch.Generator().manual_seed(0)))
