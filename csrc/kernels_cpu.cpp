@@ -102,17 +102,14 @@ struct Sample {
 template <int S, typename Visit>
 inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, float* interp, Visit visit) {
     float transmittance = 1.0f;
-    plx::MarchCursor m = plx::march_start(r);
-    double t, delta;
-    float p[3];
-    int cell[3];
-    while (plx::next_sample(g.res, g.bres, g.block, g.block_occ, g.cell_occ, g.bmin, g.scale, r, &m, &t, &delta, p,
-                            cell)) {
+    plx::MarchWalk walk = plx::march_start(r);
+    while (plx::next_sample(g.res, g.bres, g.block, g.block_occ, g.cell_occ, g.bmin, g.scale, r, &walk)) {
+        const int* cell = walk.cell;
         // Start loading the rows of the cell kLookahead samples ahead, so that its cache misses overlap the
         // work on this sample (memory latency, not arithmetic, bounds this loop).
-        if (m.i - 1 + kLookahead < r.n) {
+        if (walk.i - 1 + kLookahead < r.n) {
             float q[3];
-            plx::point_ahead(g.res, g.bmin, g.scale, r, m, t, kLookahead, q);
+            plx::point_ahead(g.res, g.bmin, g.scale, r, walk, kLookahead, q);
             const int next[3] = {cell_of(q[0], g.res[0]), cell_of(q[1], g.res[1]), cell_of(q[2], g.res[2])};
             if (next[0] != cell[0] || next[1] != cell[1] || next[2] != cell[2]) {
                 for (int c = 0; c < 8; ++c) {
@@ -123,7 +120,7 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
             }
         }
         Sample s;
-        plx::trilinear(p, g.res, cell, s.w);
+        plx::trilinear(walk.p, g.res, walk.cell, s.w);
         float raw_density = 0.0f;
         for (int c = 0; c < 8; ++c) {
             s.rows[c] = g.links[plx::corner_index(cell, g.res, c)];
@@ -139,10 +136,10 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
             for (int k = 0; k < S; ++k) interp[k] += w * row[k];
         }
         s.sigma = raw_density;
-        s.delta = (float)delta;
+        s.delta = (float)walk.delta;
         s.alpha = plx::sample_alpha(s.sigma, s.delta, &s.transmittance_factor);
         s.t_before = transmittance;
-        s.t = (float)t;
+        s.t = (float)walk.t;
         transmittance = visit(s, interp);
         if (transmittance < opt.stop_transmittance) break;
     }

@@ -42,18 +42,14 @@ template <int C, typename Visit>
 __device__ float march(const Grid& g, const RayState& r, const March& opt, Visit visit) {
     float transmittance = 1.0f;
     const int S = g.stride;
-    plx::MarchCursor m = plx::march_start(r);
-    double t, delta;
-    float p[3];
-    int cell[3];
-    while (plx::next_sample(g.res, g.bres, g.block, g.block_occ, g.cell_occ, g.bmin, g.scale, r, &m, &t, &delta, p,
-                            cell)) {
+    plx::MarchWalk walk = plx::march_start(r);
+    while (plx::next_sample(g.res, g.bres, g.block, g.block_occ, g.cell_occ, g.bmin, g.scale, r, &walk)) {
         Sample s;
-        plx::trilinear(p, g.res, cell, s.w);
+        plx::trilinear(walk.p, g.res, walk.cell, s.w);
         float raw_density = 0.0f;
 #pragma unroll
         for (int c = 0; c < 8; ++c) {
-            s.rows[c] = g.links[plx::corner_index(cell, g.res, c)];
+            s.rows[c] = g.links[plx::corner_index(walk.cell, g.res, c)];
             if (s.rows[c] >= 0) raw_density += s.w[c] * g.data[(int64_t)s.rows[c] * S];
         }
         if (!(raw_density > opt.sigma_threshold)) continue;
@@ -78,10 +74,10 @@ __device__ float march(const Grid& g, const RayState& r, const March& opt, Visit
                 }
             }
         }
-        s.delta = (float)delta;
+        s.delta = (float)walk.delta;
         s.alpha = plx::sample_alpha(raw_density, s.delta, &s.transmittance_factor);
         s.t_before = transmittance;
-        s.t = (float)t;
+        s.t = (float)walk.t;
         transmittance = visit(s, raw_density, interp);
         if (transmittance < opt.stop_transmittance) break;
     }

@@ -214,6 +214,15 @@ PLX_HD int skip_block(const int res[3], int block, const RayMarch& r, const int 
     return next < (double)r.n ? (int)next : r.n;
 }
 
+// Flat indices of the occupancy block and of the cell (block_occ [bres], cell_occ [res - 1]) that hold `cell`.
+PLX_HD int64_t block_index(const int bres[3], int block, const int cell[3]) {
+    return ((int64_t)(cell[0] / block) * bres[1] + cell[1] / block) * bres[2] + cell[2] / block;
+}
+
+PLX_HD int64_t cell_index(const int res[3], const int cell[3]) {
+    return ((int64_t)cell[0] * (res[1] - 1) + cell[1]) * (res[2] - 1) + cell[2];
+}
+
 // Empty-space skipping for sample i at grid point p (already clamped): fills `cell` and returns i when the
 // sample's cell may hold density, otherwise the index of the next sample worth visiting (always > i).
 // block_occ flags cubes of `block` cells ([bres]) with any live vertex; cell_occ flags cells with any
@@ -221,21 +230,15 @@ PLX_HD int skip_block(const int res[3], int block, const RayMarch& r, const int 
 PLX_HD int occupied_or_next(const int res[3], const int bres[3], int block, const uint8_t* block_occ,
                             const uint8_t* cell_occ, const RayMarch& r, const float p[3], int i, int cell[3]) {
     for (int a = 0; a < 3; ++a) cell[a] = cell_of(p[a], res[a]);
-    const int64_t block_index =
-        ((int64_t)(cell[0] / block) * bres[1] + cell[1] / block) * bres[2] + cell[2] / block;
-    if (!block_occ[block_index]) return skip_block(res, block, r, cell, i);
-    const int64_t cell_index = ((int64_t)cell[0] * (res[1] - 1) + cell[1]) * (res[2] - 1) + cell[2];
-    return cell_occ[cell_index] ? i : i + 1;
+    if (!block_occ[block_index(bres, block, cell)]) return skip_block(res, block, r, cell, i);
+    return cell_occ[cell_index(res, cell)] ? i : i + 1;
 }
 
 // Whether the cell holding grid point p (already clamped) may hold density; fills `cell`.
 PLX_HD bool cell_occupied(const int res[3], const int bres[3], int block, const uint8_t* block_occ,
                           const uint8_t* cell_occ, const float p[3], int cell[3]) {
     for (int a = 0; a < 3; ++a) cell[a] = cell_of(p[a], res[a]);
-    const int64_t block_index =
-        ((int64_t)(cell[0] / block) * bres[1] + cell[1] / block) * bres[2] + cell[2] / block;
-    if (!block_occ[block_index]) return false;
-    return cell_occ[((int64_t)cell[0] * (res[1] - 1) + cell[1]) * (res[2] - 1) + cell[2]] != 0;
+    return block_occ[block_index(bres, block, cell)] && cell_occ[cell_index(res, cell)];
 }
 
 // ---- Scene contraction (unbounded scenes) ------------------------------------------------------------------------
@@ -290,99 +293,99 @@ PLX_HD double contracted_grid_point(const int res[3], const double bmin[3], cons
     return radius;
 }
 
-// Where a march stands on its ray: the index of the next sample and, on a contracted ray, the distance where its
-// next step begins and the length of the last step.
-struct MarchCursor {
-    int i;
-    double t, dt;
+// A march along one ray: where it stands and the sample it is at.
+struct MarchWalk {
+    int i;              // steps taken (on a lattice: the index of the next sample)
+    double cursor, dt;  // contracted ray: where its next step begins, and the last step's length
+    double t, delta;    // the sample: its distance along the ray and the length it integrates density over
+    float p[3];         // its grid point (clamped)
+    int cell[3];        // its cell
 };
 
-PLX_HD MarchCursor march_start(const RayMarch& r) { return MarchCursor{0, r.t_start, r.dt}; }
+PLX_HD MarchWalk march_start(const RayMarch& r) {
+    MarchWalk w;
+    w.i = 0;
+    w.cursor = r.t_start;
+    w.dt = w.delta = r.dt;
+    return w;
+}
 
 // A contracted ray's step from t may not shrink or grow |q|_inf by more than this share of it (at least 1), so a ray
 // coming in from far away, where the contraction is slow, does not leap over the foreground in one step.
 #define PLX_CONTRACTED_MAX_STEP 0.25
 
-// One step of a contracted ray from the cursor: dt contracted units long at the speed where it starts (at most
-// PLX_CONTRACTED_MAX_STEP of |q|_inf), its sample half way at *t, whose contracted length (*delta, by the midpoint
-// rule) it integrates density over. Returns |contracted sample|_inf, leaves the grid point in p and says in *receding
-// whether |q|_inf grows there: it is convex along the ray, so from then on it never shrinks again.
-PLX_HD double contracted_step(const int res[3], const double bmin[3], const double scale[3], const RayMarch& r,
-                              MarchCursor* m, double* t, double* delta, float p[3], bool* receding) {
+// Where a contracted ray's step put its sample: inside the grid's reach, in the shell beyond it (half a step from the
+// cube's faces, that is, at infinity) coming in, or there and moving out, gone: |q|_inf is convex along a ray, so once
+// it grows it never shrinks again.
+enum ContractedSample { kInside, kBeyondComingIn, kGone };
+
+// One step of a contracted ray: dt contracted units long at the speed where it starts (at most
+// PLX_CONTRACTED_MAX_STEP of |q|_inf), its sample half way, integrating density over the step's contracted length (by
+// the midpoint rule). Fills the walk's t, delta and p.
+PLX_HD ContractedSample contracted_step(const int res[3], const double bmin[3], const double scale[3],
+                                        const RayMarch& r, MarchWalk* w) {
     double q[3];
-    for (int a = 0; a < 3; ++a) q[a] = r.og[a] + m->t * r.dg[a];
+    for (int a = 0; a < 3; ++a) q[a] = r.og[a] + w->cursor * r.dg[a];
     const double reach = fabs(q[major_axis(q)]);
     const double cap = PLX_CONTRACTED_MAX_STEP * (reach > 1.0 ? reach : 1.0);
     const double dt = r.dt / contracted_speed(q, r.dg);
-    m->dt = dt < cap ? dt : cap;
-    *t = m->t + 0.5 * m->dt;
-    m->t += m->dt;
-    ++m->i;
-    for (int a = 0; a < 3; ++a) q[a] = r.og[a] + *t * r.dg[a];
-    *delta = m->dt * contracted_speed(q, r.dg);
+    w->dt = dt < cap ? dt : cap;
+    w->t = w->cursor + 0.5 * w->dt;
+    w->cursor += w->dt;
+    ++w->i;
+    for (int a = 0; a < 3; ++a) q[a] = r.og[a] + w->t * r.dg[a];
+    w->delta = w->dt * contracted_speed(q, r.dg);
+    if (contracted_grid_point(res, bmin, scale, r, w->t, w->p) < 2.0 - 0.5 * r.dt) return kInside;
     const int k = major_axis(q);
-    *receding = !((q[k] < 0.0 ? -r.dg[k] : r.dg[k]) < 0.0);
-    return contracted_grid_point(res, bmin, scale, r, *t, p);
+    return (q[k] < 0.0 ? -r.dg[k] : r.dg[k]) < 0.0 ? kBeyondComingIn : kGone;
 }
 
-// The next sample worth visiting (its cell may hold density): its distance t, the length delta it integrates density
-// over, its grid point p (clamped) and cell; false when the ray has none left. A lattice ray's samples sit at
-// t_start + (i + 0.5) dt, each dt long, and skip empty blocks whole. A contracted ray steps as contracted_step says
-// and ends after n steps or where it leaves for infinity: half a step short of the cube's faces and receding. (A ray
-// from beyond that shell, coming in, skips its samples there.)
+// Moves the walk to the next sample worth visiting (its cell may hold density); false when the ray has none left. A
+// lattice ray's samples sit at t_start + (i + 0.5) dt, each dt long, and skip empty blocks whole. A contracted ray
+// steps as contracted_step says, skips samples beyond the grid's reach and ends where it is gone or after n steps.
 PLX_HD bool next_sample(const int res[3], const int bres[3], int block, const uint8_t* block_occ,
                         const uint8_t* cell_occ, const double bmin[3], const double scale[3], const RayMarch& r,
-                        MarchCursor* m, double* t, double* delta, float p[3], int cell[3]) {
+                        MarchWalk* w) {
     if (!r.contracted) {
-        *delta = r.dt;
-        while (m->i < r.n) {
-            *t = r.t_start + (m->i + 0.5) * r.dt;
-            grid_point(res, r, *t, p);
-            const int next = occupied_or_next(res, bres, block, block_occ, cell_occ, r, p, m->i, cell);
-            if (next == m->i) {
-                ++m->i;
+        while (w->i < r.n) {
+            w->t = r.t_start + (w->i + 0.5) * r.dt;
+            grid_point(res, r, w->t, w->p);
+            const int next = occupied_or_next(res, bres, block, block_occ, cell_occ, r, w->p, w->i, w->cell);
+            if (next == w->i) {
+                ++w->i;
                 return true;
             }
-            m->i = next;
+            w->i = next;
         }
         return false;
     }
-    const double edge = 2.0 - 0.5 * r.dt;
-    while (m->i < r.n) {
-        bool receding;
-        if (!(contracted_step(res, bmin, scale, r, m, t, delta, p, &receding) < edge)) {
-            if (receding) return false;
-            continue;
-        }
-        if (cell_occupied(res, bres, block, block_occ, cell_occ, p, cell)) return true;
+    while (w->i < r.n) {
+        const ContractedSample where = contracted_step(res, bmin, scale, r, w);
+        if (where == kGone) return false;
+        if (where == kInside && cell_occupied(res, bres, block, block_occ, cell_occ, w->p, w->cell)) return true;
     }
     return false;
 }
 
-// The grid point about `ahead` samples past the one at t (for prefetching; clamped).
+// The grid point about `ahead` samples past the walk's (for prefetching; clamped).
 PLX_HD void point_ahead(const int res[3], const double bmin[3], const double scale[3], const RayMarch& r,
-                        const MarchCursor& m, double t, int ahead, float p[3]) {
+                        const MarchWalk& w, int ahead, float p[3]) {
     if (r.contracted)
-        contracted_grid_point(res, bmin, scale, r, t + ahead * m.dt, p);
+        contracted_grid_point(res, bmin, scale, r, w.t + ahead * w.dt, p);
     else
-        grid_point(res, r, t + ahead * r.dt, p);
+        grid_point(res, r, w.t + ahead * r.dt, p);
 }
 
-// Samples on the ray before any occupancy test or early stop: n on a lattice, the steps to the end on a contracted
-// ray (reports and benchmarks).
+// Samples on the ray before any occupancy test or early stop: n on a lattice, the steps inside the grid's reach on a
+// contracted ray (reports and benchmarks).
 PLX_HD int ray_length_samples(const int res[3], const double bmin[3], const double scale[3], const RayMarch& r) {
     if (!r.contracted) return r.n;
-    MarchCursor m = march_start(r);
-    const double edge = 2.0 - 0.5 * r.dt;
+    MarchWalk w = march_start(r);
     int samples = 0;
-    while (m.i < r.n) {
-        double t, delta;
-        float p[3];
-        bool receding;
-        if (contracted_step(res, bmin, scale, r, &m, &t, &delta, p, &receding) < edge)
-            ++samples;
-        else if (receding)
-            break;
+    while (w.i < r.n) {
+        const ContractedSample where = contracted_step(res, bmin, scale, r, &w);
+        if (where == kGone) break;
+        samples += where == kInside;
     }
     return samples;
 }

@@ -34,7 +34,7 @@ def contract(q):
     (2 - 1/m) q / m with m = |q|_inf."""
     m = _max_norm(q)
     safe = np.maximum(m, 1) if not isinstance(m, torch.Tensor) else m.clamp_min(1)
-    return (2 - 1 / safe) * q / safe
+    return ((2 - 1 / safe) / safe) * q  # the kernels' order of operations (csrc/plenoxels_math.h, contract_point)
 
 
 def uncontract(c):

@@ -29,6 +29,7 @@ import math
 import torch
 
 from plenoxels.background import BACKGROUND_STOP_TRANSMITTANCE
+from plenoxels.fit_frame import contract
 from plenoxels.grid import SparseGrid, sh_count
 from plenoxels.render import COLOUR_OFFSET, SH_C0, SH_C1, SH_C2, SH_C3, ray_samples
 
@@ -81,11 +82,16 @@ def interpolate(links: torch.Tensor, values: torch.Tensor, g: torch.Tensor, rows
     return out
 
 
+def _major_axis(q: torch.Tensor) -> torch.Tensor:
+    """The axis of |q|_inf per point [B, 1] (the first of the largest), as csrc/plenoxels_math.h's major_axis."""
+    a = q.abs()
+    return torch.where((a[:, 0] >= a[:, 1]) & (a[:, 0] >= a[:, 2]), 0, torch.where(a[:, 1] >= a[:, 2], 1, 2))[:, None]
+
+
 def _contracted_speed(q: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """|J(q) u| per ray [B] (float64), csrc/plenoxels_math.h's contracted_speed term by term."""
-    a = q.abs()
-    k = torch.where((a[:, 0] >= a[:, 1]) & (a[:, 0] >= a[:, 2]), 0, torch.where(a[:, 1] >= a[:, 2], 1, 2))[:, None]
-    m = a.gather(1, k)[:, 0]
+    k = _major_axis(q)
+    m = q.abs().gather(1, k)[:, 0]
     ms = m.clamp_min(1.0)
     f, df = (2.0 - 1.0 / ms) / ms, (2.0 / ms - 2.0) / (ms * ms)
     uk = u.gather(1, k)[:, 0]
@@ -95,22 +101,14 @@ def _contracted_speed(q: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     return torch.where(m <= 1.0, (u[:, 0] * u[:, 0] + u[:, 1] * u[:, 1] + u[:, 2] * u[:, 2]).sqrt(), outside)
 
 
-def _contract(q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(contracted points [B, 3], their |.|_inf [B]) in float64, as contract_point computes them."""
-    m = q.abs().amax(dim=1)
-    ms = m.clamp_min(1.0)
-    c = ((2.0 - 1.0 / ms) / ms)[:, None] * q
-    return torch.where((m <= 1.0)[:, None], q, c), torch.where(m <= 1.0, m, 2.0 - 1.0 / ms)
-
-
 def contracted_samples(grid: SparseGrid, origins, dirs, opts) -> dict:
     """The samples of rays through a contracted grid, stepped as csrc/plenoxels_math.h's contracted_step does: each
     step dt contracted units (step_size voxels of the grid's finest axis) long at its start's speed, but at most
     PLX_CONTRACTED_MAX_STEP of |q|_inf (at least 1), its sample half way, integrating density over step x speed at the
     sample; until max_samples_per_ray steps, or half a step short of the cube's faces and moving out (|q|_inf growing).
-    Per ray `n` and `unit`; per
-    step `t` [B, M], the contracted points `c` [B, M, 3], the lengths `delta` [B, M] and which are samples, `valid`
-    [B, M] (not past the ray's end, nor beyond the shell it comes in through from further out)."""
+    Per ray `n` and `unit`; per step `t` [B, M], the contracted points `c` [B, M, 3], the lengths `delta` [B, M] and
+    which are samples, `valid` [B, M] (not past the ray's end, nor beyond the shell it comes in through from further
+    out)."""
     o, d = origins.double(), dirs.double()
     norm = (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]).sqrt()
     u = d / norm[:, None]
@@ -126,16 +124,15 @@ def contracted_samples(grid: SparseGrid, origins, dirs, opts) -> dict:
         t = cursor + 0.5 * step
         cursor = cursor + step
         at = o + t[:, None] * u
-        c, size = _contract(at)
-        k = torch.where((at[:, 0].abs() >= at[:, 1].abs()) & (at[:, 0].abs() >= at[:, 2].abs()), 0,
-                        torch.where(at[:, 1].abs() >= at[:, 2].abs(), 1, 2))[:, None]
+        m = at.abs().amax(dim=1)
+        inside = torch.where(m <= 1.0, m, 2.0 - 1.0 / m.clamp_min(1.0)) < edge  # |contracted point|_inf
+        k = _major_axis(at)
         toward = torch.where(at.gather(1, k)[:, 0] < 0, -u.gather(1, k)[:, 0], u.gather(1, k)[:, 0])
-        inside = size < edge
         alive = alive & (inside | (toward < 0))  # beyond the shell and receding: gone to infinity
         if not bool(alive.any()):
             break
         ts.append(t)
-        cs.append(c)
+        cs.append(contract(at))
         deltas.append(step * _contracted_speed(at, u))
         valid.append(alive & inside)
     empty = torch.zeros(o.shape[0], 0, dtype=torch.float64)

@@ -61,7 +61,10 @@ def ray_samples(grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt
     """The sample lattice every kernel marches (steps 1-3 of reference.py's docstring), in float64 so
     that it matches theirs exactly: per ray t_start, dt and n (sample i at t_start + (i + 0.5) dt,
     fit-frame distance), the grid-space origin og and direction dg (per unit t), and the unit
-    fit-frame direction `unit` (float32)."""
+    fit-frame direction `unit` (float32). A contracted grid has no lattice: its rays bend and are marched step by step
+    (reference.contracted_samples states how)."""
+    if grid.contracted:
+        raise ValueError("a contracted grid's samples lie on no lattice: take its foreground model's grid")
     o, d = origins.double(), dirs.double()
     unit = d / d.norm(dim=1, keepdim=True)
     lo = torch.tensor(grid.bbox_min, dtype=torch.float64, device=o.device)

@@ -133,6 +133,11 @@ class RaySet:
     def num_pixels(self) -> int:
         return int(self.offsets[-1])
 
+    def mean_colour(self) -> list[float]:
+        """The mean RGB in [0, 1] of every pixel, summed a slice at a time (no float copy of the whole set)."""
+        total = sum(chunk.sum(dim=0, dtype=torch.float64) for chunk in self.pixels.split(1 << 20))
+        return (total / (255.0 * max(self.num_pixels, 1))).tolist()
+
     def __len__(self) -> int:
         return self.sizes.shape[0]
 

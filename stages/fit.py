@@ -166,7 +166,7 @@ def run(ctx) -> dict:
     held_out = HeldOut(ctx.out, held_out_frames, s)
     checkpoint = ctx.scratch / CHECKPOINT
 
-    mean_colour = (train.pixels.double().mean(dim=0) / 255).tolist()
+    mean_colour = train.mean_colour()
 
     def new_model(resolution: int) -> SceneModel:
         return SceneModel.create(scene, s, resolution, focal_px=float(train.k[:, :2].median()), mean_colour=mean_colour)

@@ -216,3 +216,17 @@ def test_the_foreground_model_is_the_inner_cube_and_renders_it_as_the_full_model
     full, crop = model.render_rays(origins, dirs), inner.render_rays(origins, dirs)
     torch.testing.assert_close(full.opacity, crop.opacity, atol=0.02, rtol=0)
     assert float(full.opacity.mean()) > 0.3
+
+
+def test_a_contracted_grid_has_no_lattice_and_the_photos_mean_colour_is_their_pixels_mean():
+    from plenoxels.render import ray_samples
+    from plenoxels.train import RaySet
+
+    with pytest.raises(ValueError, match="no lattice"):
+        ray_samples(contracted_grid(), *awkward_rays(), RenderOptions())
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (5, 7, 3)) / 255.0, rng.integers(0, 256, (3, 4, 3)) / 255.0]
+    k = Intrinsics(fl_x=5.0, fl_y=5.0, cx=3.5, cy=2.5, w=7, h=5)
+    rays = RaySet(images, [np.eye(4)] * 2, [k, Intrinsics(fl_x=3.0, fl_y=3.0, cx=2.0, cy=1.5, w=4, h=3)])
+    every = np.concatenate([im.reshape(-1, 3) for im in images])
+    np.testing.assert_allclose(rays.mean_colour(), every.mean(axis=0), atol=1e-12)
