@@ -105,8 +105,16 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
     plx::MarchWalk walk = plx::march_start(r);
     while (plx::next_sample(g.res, g.bres, g.block, g.block_occ, g.cell_occ, g.bmin, g.scale, r, &walk)) {
         const int* cell = walk.cell;
-        // Start loading the rows of the cell kLookahead samples ahead, so that its cache misses overlap the
-        // work on this sample (memory latency, not arithmetic, bounds this loop).
+        // Memory latency, not arithmetic, bounds this loop, so the march loads ahead in two stages: the links (and
+        // occupancy) of the cell 2 kLookahead samples ahead, then the rows of the cell kLookahead ahead, whose links
+        // the first stage has brought in; each stage's misses overlap the work on this sample.
+        if (walk.i - 1 + 2 * kLookahead < r.n) {
+            float q[3];
+            plx::point_ahead(g.res, g.bmin, g.scale, r, walk, 2 * kLookahead, q);
+            const int far[3] = {cell_of(q[0], g.res[0]), cell_of(q[1], g.res[1]), cell_of(q[2], g.res[2])};
+            for (int c = 0; c < 8; c += 2) __builtin_prefetch(g.links + plx::corner_index(far, g.res, c), 0, 3);
+            __builtin_prefetch(g.cell_occ + plx::cell_index(g.res, far), 0, 3);
+        }
         if (walk.i - 1 + kLookahead < r.n) {
             float q[3];
             plx::point_ahead(g.res, g.bmin, g.scale, r, walk, kLookahead, q);
@@ -195,16 +203,19 @@ class ThreadGrads {
 };
 
 // Zeroed per-thread scratch for a gradient table: slots for threads 1..T-1 of T = omp_get_max_threads().
-// calloc maps zero pages lazily, so a thread's slot costs memory only for the rows it ever touches.
+// Anonymous mappings are zero pages mapped lazily, so a thread's slot costs memory only for the rows it ever
+// touches, and they start on a page, so rows stay whole cache lines (calloc's large blocks start 16 bytes in,
+// which split every row across one more line).
 std::vector<at::Tensor> grad_scratch(const at::Tensor& grad_data) {
     TORCH_CHECK(grad_data.device().is_cpu() && grad_data.dim() == 2, "grad data must be a CPU [N, S] table");
     const int64_t slots = std::max(omp_get_max_threads() - 1, 0), rows = grad_data.size(0), stride = grad_data.size(1);
     const auto zeroed = [](int64_t count, size_t size, at::IntArrayRef shape, at::ScalarType type, bool huge) {
         if (count == 0) return at::zeros(shape, at::TensorOptions().dtype(type));
-        void* p = std::calloc((size_t)count, size);
-        TORCH_CHECK(p, "out of memory for per-thread gradient buffers");
-        if (huge) advise_huge_pages(p, (size_t)count * size);
-        return at::from_blob(p, shape, [](void* q) { std::free(q); }, at::TensorOptions().dtype(type));
+        const size_t bytes = (size_t)count * size;
+        void* p = mmap(nullptr, bytes, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+        TORCH_CHECK(p != MAP_FAILED, "out of memory for per-thread gradient buffers");
+        if (huge) advise_huge_pages(p, bytes);
+        return at::from_blob(p, shape, [bytes](void* q) { munmap(q, bytes); }, at::TensorOptions().dtype(type));
     };
     return {zeroed(slots * rows * stride, sizeof(float), {slots, rows, stride}, at::kFloat, true),
             zeroed(slots * rows, 1, {slots, rows}, at::kByte, false)};
@@ -240,6 +251,9 @@ GradSink sink_for(int thread, GradTarget* target, ThreadGrads* scratch) {
     return GradSink{scratch->buffer(thread), scratch->mask(thread), nullptr, nullptr, &scratch->list(thread)};
 }
 
+// How many rows ahead merge prefetches.
+constexpr int kMergeLookahead = 8;
+
 // Adds every other thread's gradients into the caller's tensors and clears what they touched.
 void merge(GradTarget* target, ThreadGrads* scratch, int threads) {
     const int S = scratch->stride();
@@ -251,6 +265,14 @@ void merge(GradTarget* target, ThreadGrads* scratch, int threads) {
         const int64_t n = (int64_t)list.size();
 #pragma omp parallel for schedule(static)
         for (int64_t j = 0; j < n; ++j) {
+            // The rows lie scattered over the tables: ask for those a few iterations ahead.
+            if (j + kMergeLookahead < n) {
+                const int64_t ahead = list[j + kMergeLookahead];
+                for (int k = 0; k < S; k += 16) {
+                    __builtin_prefetch(buf + ahead * S + k, 1, 3);
+                    __builtin_prefetch(target->data + ahead * S + k, 1, 3);
+                }
+            }
             const int64_t row = list[j];
             float* src = buf + row * S;
             float* dst = target->data + row * S;
@@ -261,7 +283,9 @@ void merge(GradTarget* target, ThreadGrads* scratch, int threads) {
             }
             mask[row] = 0;
         }
-        for (int32_t row : list) {
+        for (int64_t j = 0; j < n; ++j) {
+            if (j + kMergeLookahead < n) __builtin_prefetch(target->mask + list[j + kMergeLookahead], 1, 3);
+            const int32_t row = list[j];
             if (!target->mask[row]) {
                 target->mask[row] = 1;
                 target->rows[target->count++] = row;
@@ -337,8 +361,11 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
                     acc[ch] += w * s.colour[ch];
                 }
                 // The backward pass writes these gradient rows once the ray is done: fetch them now.
-                for (int c = 0; c < 8; ++c)
-                    if (s.rows[c] >= 0) prefetch_row<S>(sink.buf + (int64_t)s.rows[c] * S, true);
+                for (int c = 0; c < 8; ++c) {
+                    if (s.rows[c] < 0) continue;
+                    prefetch_row<S>(sink.buf + (int64_t)s.rows[c] * S, true);
+                    __builtin_prefetch(sink.mask + s.rows[c], 1, 3);
+                }
                 samples.push_back(s);
                 return s.t_before * s.transmittance_factor;
             });
