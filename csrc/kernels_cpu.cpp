@@ -166,8 +166,10 @@ bool advise_huge_pages(void* ptr, size_t bytes) {
 }
 
 // Per-thread gradient accumulation into the packed [N, S] layout, with touched-row bookkeeping:
-// a view of the caller's scratch tensors (grad_scratch), whose slot t-1 belongs to thread t. Every
-// call leaves them all zero again (merge clears what it adds).
+// a view of the caller's scratch tensors (grad_scratch), whose slot t-1 belongs to thread t. A slot's rows
+// hold whatever an earlier call left there: a thread zeroes a row when it first touches it in a call (its
+// mask says which it has), so merge reads them and never writes them back, and every call leaves the
+// masks clear again.
 class ThreadGrads {
    public:
     ThreadGrads(const at::Tensor& grad_data, const at::Tensor& scratch_grad, const at::Tensor& scratch_mask)
@@ -221,21 +223,27 @@ std::vector<at::Tensor> grad_scratch(const at::Tensor& grad_data) {
             zeroed(slots * rows, 1, {slots, rows}, at::kByte, false)};
 }
 
-// Where one thread writes gradients: thread 0 writes into the caller's tensors.
+// Where one thread writes gradients: thread 0 adds into the caller's tensors, the others into their scratch.
 struct GradSink {
     float* buf;
+    int stride;
     uint8_t* mask;
     int32_t* main_rows;  // thread 0 only: the caller's touched-row list
     int64_t* main_count;
     std::vector<int32_t>* list;  // other threads
 
-    inline void touch(int32_t row) {
-        if (mask[row]) return;
-        mask[row] = 1;
-        if (main_rows)
-            main_rows[(*main_count)++] = row;
-        else
-            list->push_back(row);
+    // The gradient row to add into, recorded as touched.
+    inline float* row(int32_t r) {
+        float* dst = buf + (int64_t)r * stride;
+        if (mask[r]) return dst;
+        mask[r] = 1;
+        if (main_rows) {
+            main_rows[(*main_count)++] = r;
+        } else {
+            list->push_back(r);
+            for (int k = 0; k < stride; ++k) dst[k] = 0.0f;
+        }
+        return dst;
     }
 };
 
@@ -247,14 +255,15 @@ struct GradTarget {
 };
 
 GradSink sink_for(int thread, GradTarget* target, ThreadGrads* scratch) {
-    if (thread == 0) return GradSink{target->data, target->mask, target->rows, &target->count, nullptr};
-    return GradSink{scratch->buffer(thread), scratch->mask(thread), nullptr, nullptr, &scratch->list(thread)};
+    const int S = scratch->stride();
+    if (thread == 0) return GradSink{target->data, S, target->mask, target->rows, &target->count, nullptr};
+    return GradSink{scratch->buffer(thread), S, scratch->mask(thread), nullptr, nullptr, &scratch->list(thread)};
 }
 
 // How many rows ahead merge prefetches.
 constexpr int kMergeLookahead = 8;
 
-// Adds every other thread's gradients into the caller's tensors and clears what they touched.
+// Adds every other thread's gradients into the caller's tensors and clears their masks.
 void merge(GradTarget* target, ThreadGrads* scratch, int threads) {
     const int S = scratch->stride();
     for (int t = 1; t < threads; ++t) {
@@ -269,18 +278,15 @@ void merge(GradTarget* target, ThreadGrads* scratch, int threads) {
             if (j + kMergeLookahead < n) {
                 const int64_t ahead = list[j + kMergeLookahead];
                 for (int k = 0; k < S; k += 16) {
-                    __builtin_prefetch(buf + ahead * S + k, 1, 3);
+                    __builtin_prefetch(buf + ahead * S + k, 0, 3);
                     __builtin_prefetch(target->data + ahead * S + k, 1, 3);
                 }
             }
             const int64_t row = list[j];
-            float* src = buf + row * S;
+            const float* src = buf + row * S;
             float* dst = target->data + row * S;
 #pragma omp simd
-            for (int k = 0; k < S; ++k) {
-                dst[k] += src[k];
-                src[k] = 0.0f;
-            }
+            for (int k = 0; k < S; ++k) dst[k] += src[k];
             mask[row] = 0;
         }
         for (int64_t j = 0; j < n; ++j) {
@@ -393,10 +399,8 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
                 }
                 grow[0] = dsigma;
                 for (int c = 0; c < 8; ++c) {
-                    const int32_t row = s.rows[c];
-                    if (row < 0) continue;
-                    sink.touch(row);
-                    float* dst = sink.buf + (int64_t)row * S;
+                    if (s.rows[c] < 0) continue;
+                    float* dst = sink.row(s.rows[c]);
                     const float wc = s.w[c];
 #pragma omp simd
                     for (int k = 0; k < S; ++k) dst[k] += wc * grow[k];
@@ -707,9 +711,9 @@ std::tuple<double, int64_t> tv_loss_and_grad(Tensor data, Tensor links, Tensor c
                 nb[a] = q[a] < res[a] ? l[((int64_t)q[0] * res[1] + q[1]) * res[2] + q[2]] : -1;
             }
             if (nb[0] < 0 && nb[1] < 0 && nb[2] < 0) continue;
-            sink.touch(row);
-            for (int a = 0; a < 3; ++a)
-                if (nb[a] >= 0) sink.touch(nb[a]);
+            float* grad_self = sink.row(row);
+            float* grad_nb[3];
+            for (int a = 0; a < 3; ++a) grad_nb[a] = nb[a] >= 0 ? sink.row(nb[a]) : nullptr;
             const float* v = d + (int64_t)row * S;
             for (int k = c_begin; k < c_end; ++k) {
                 const float scale = (float)((k == 0 ? weight_density : weight_sh) / (double)M);
@@ -721,10 +725,10 @@ std::tuple<double, int64_t> tv_loss_and_grad(Tensor data, Tensor links, Tensor c
                 for (int a = 0; a < 3; ++a) {
                     if (nb[a] < 0) continue;
                     const float gd = scale * diff[a] * inv;
-                    sink.buf[(int64_t)nb[a] * S + k] += gd;
+                    grad_nb[a][k] += gd;
                     self -= gd;
                 }
-                sink.buf[(int64_t)row * S + k] += self;
+                grad_self[k] += self;
             }
         }
     }
@@ -901,8 +905,7 @@ int64_t background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor r
     {
         GradSink sink = sink_for(omp_get_thread_num(), &target, &scratch);
         const auto add = [&sink](int texel, const float grad[4]) {
-            sink.touch(texel);
-            float* row = sink.buf + 4 * (int64_t)texel;
+            float* row = sink.row(texel);
             for (int k = 0; k < 4; ++k) row[k] += grad[k];
         };
 #pragma omp for schedule(static)

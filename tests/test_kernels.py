@@ -85,6 +85,29 @@ def test_loss_and_grad_native_matches_twin(sh_degree):
     assert bool((native.data[untouched] == 0).all())
 
 
+@pytest.mark.parametrize("threads", [2, 3])
+def test_gradients_of_every_thread_sum_across_calls(threads):
+    # Each thread adds into its own table, which keeps the last call's values: a row it has not touched yet in this
+    # call must start from zero, or a second call counts the first one's gradients again.
+    grid = random_grid(seed=31)
+    gen = torch.Generator().manual_seed(32)
+    opts = RenderOptions(step_size=0.6)
+    native, twin = GridGrad(grid), GridGrad(grid)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for seed in (33, 34, 35):
+            origins, dirs = random_rays(n=256, seed=seed)
+            targets, background = torch.rand(256, 3, generator=gen), torch.rand(256, 3, generator=gen)
+            loss_and_grad(grid, origins, dirs, targets, background, opts, native)
+            reference.loss_and_grad(grid, origins, dirs, targets, background, opts, twin)
+    finally:
+        torch.set_num_threads(before)
+    assert set(native.touched().tolist()) == set(twin.touched().tolist())
+    torch.testing.assert_close(native.data, twin.data, atol=1e-5 * float(twin.data.abs().max()), rtol=1e-4)
+    assert not bool(native.scratch()[1].any())  # the per-thread masks are left clear
+
+
 def test_twin_gradcheck_float64():
     grid = random_grid(res=(2, 3, 3), sh_degree=1, holes=0.0, seed=7)
     # Densities well above 0 and colours well inside the relu keep gradcheck away from kinks.
