@@ -59,7 +59,8 @@ plx_cuda::Grid make_grid(const Tensor& data, const Tensor& links, const Tensor& 
                 "data must be [N, padded row] for this SH degree");
     TORCH_CHECK(links.dim() == 3 && links.size(0) >= 2 && links.size(1) >= 2 && links.size(2) >= 2,
                 "links must be [Rx,Ry,Rz] with every size >= 2");
-    TORCH_CHECK(block_occ.dim() == 3 && block > 0, "block_occ must be 3-D and block > 0");
+    TORCH_CHECK(block_occ.dim() == 3 && block > 0 && (block & (block - 1)) == 0,
+                "block_occ must be 3-D and block a power of two");
     TORCH_CHECK(bmin.size() == 3 && bmax.size() == 3, "bbox bounds must have 3 values each");
     check_aligned(data, "data");
     plx_cuda::Grid g;

@@ -54,6 +54,7 @@ using Ray = plx::RayMarch;
 
 GridView make_view(const at::Tensor& data, const at::Tensor& links, const at::Tensor& cell_occ,
                    const at::Tensor& block_occ, int block, c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax) {
+    TORCH_CHECK(block > 0 && (block & (block - 1)) == 0, "the occupancy block must be a power of two, got ", block);
     GridView g;
     g.data = data.data_ptr<float>();
     g.links = links.data_ptr<int32_t>();
@@ -87,6 +88,9 @@ inline void prefetch_row(const float* row, bool for_write) {
             __builtin_prefetch(row + k, 0, 3);
     }
 }
+
+// What an unallocated corner holds (rows are at most this long).
+alignas(64) constexpr float kZeroRow[row_stride(3)] = {};
 
 // A sample that passed empty-space skipping and has density above the threshold.
 struct Sample {
@@ -129,19 +133,20 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
         }
         Sample s;
         plx::trilinear(walk.p, g.res, walk.cell, s.w);
+        // An unallocated corner reads a row of zeros, so the sums below run without branches, in registers.
+        const float* corner[8];
         float raw_density = 0.0f;
         for (int c = 0; c < 8; ++c) {
             s.rows[c] = g.links[plx::corner_index(cell, g.res, c)];
-            if (s.rows[c] >= 0) raw_density += s.w[c] * g.data[(int64_t)s.rows[c] * S];
+            corner[c] = s.rows[c] >= 0 ? g.data + (int64_t)s.rows[c] * S : kZeroRow;
+            raw_density += s.w[c] * corner[c][0];
         }
         if (!(raw_density > opt.sigma_threshold)) continue;
-        for (int k = 0; k < S; ++k) interp[k] = 0.0f;
-        for (int c = 0; c < 8; ++c) {
-            if (s.rows[c] < 0) continue;
-            const float* row = g.data + (int64_t)s.rows[c] * S;
-            const float w = s.w[c];
 #pragma omp simd
-            for (int k = 0; k < S; ++k) interp[k] += w * row[k];
+        for (int k = 0; k < S; ++k) {
+            float v = 0.0f;
+            for (int c = 0; c < 8; ++c) v += s.w[c] * corner[c][k];
+            interp[k] = v;
         }
         s.sigma = raw_density;
         s.delta = (float)walk.delta;

@@ -18,7 +18,7 @@
 #ifdef __CUDACC__
 #define PLX_HD __host__ __device__ __forceinline__
 #else
-#define PLX_HD inline
+#define PLX_HD inline __attribute__((always_inline))
 #endif
 
 namespace plx {
@@ -141,6 +141,7 @@ PLX_HD int sample_lattice(double t_start, double t_end, double step_t, int max_s
 // contraction, dt is the step in contracted units and n the most steps the ray may take.
 struct RayMarch {
     double og[3], dg[3];  // grid-space origin and direction (per unit of fit-frame distance)
+    double inv_dg[3];     // 1 / dg (0 where dg is 0): where the march meets a block's faces
     float dir[3];         // unit fit-frame direction
     double t_start, dt;   // sample i sits at t_start + (i + 0.5) * dt
     int n;                // samples on the ray (0: it misses the grid)
@@ -160,6 +161,7 @@ PLX_HD void setup_ray(const int res[3], const double bmin[3], const double scale
         r->dir[a] = (float)u;
         r->og[a] = contracted ? (double)o[a] : ((double)o[a] - bmin[a]) * scale[a];
         r->dg[a] = contracted ? u : u * scale[a];
+        r->inv_dg[a] = r->dg[a] != 0.0 ? 1.0 / r->dg[a] : 0.0;
         dg2 += r->dg[a] * r->dg[a];
         hi[a] = res[a] - 1;
         finest = scale[a] > finest ? scale[a] : finest;
@@ -197,16 +199,26 @@ PLX_HD int cell_of(float p, int res) {
     return lo < res - 2 ? lo : res - 2;
 }
 
+// The occupancy block (cubes of `block` cells, a power of two) holding cell coordinate x >= 0: a shift, where a
+// division by a block size known only at run time costs the march tens of cycles per sample.
+PLX_HD int block_of(int x, int block) {
+#ifdef __CUDA_ARCH__
+    return x >> (__ffs(block) - 1);
+#else
+    return x >> __builtin_ctz((unsigned)block);
+#endif
+}
+
 // Index of the first sample at or after the point where the ray leaves the occupancy block (cubes of
 // `block` cells) that holds `cell`; always > i so the march advances.
 PLX_HD int skip_block(const int res[3], int block, const RayMarch& r, const int cell[3], int i) {
     double t_out = 1e300;
     for (int a = 0; a < 3; ++a) {
         if (r.dg[a] == 0.0) continue;
-        const int b = cell[a] / block;
+        const int b = block_of(cell[a], block);
         const int upper = (b + 1) * block < res[a] - 1 ? (b + 1) * block : res[a] - 1;
         const double face = r.dg[a] > 0.0 ? (double)upper : (double)(b * block);
-        const double t_face = (face - r.og[a]) / r.dg[a];
+        const double t_face = (face - r.og[a]) * r.inv_dg[a];
         t_out = t_face < t_out ? t_face : t_out;
     }
     const double next = ceil((t_out - r.t_start) / r.dt - 0.5);
@@ -216,7 +228,7 @@ PLX_HD int skip_block(const int res[3], int block, const RayMarch& r, const int 
 
 // Flat indices of the occupancy block and of the cell (block_occ [bres], cell_occ [res - 1]) that hold `cell`.
 PLX_HD int64_t block_index(const int bres[3], int block, const int cell[3]) {
-    return ((int64_t)(cell[0] / block) * bres[1] + cell[1] / block) * bres[2] + cell[2] / block;
+    return ((int64_t)block_of(cell[0], block) * bres[1] + block_of(cell[1], block)) * bres[2] + block_of(cell[2], block);
 }
 
 PLX_HD int64_t cell_index(const int res[3], const int cell[3]) {
