@@ -39,6 +39,7 @@ struct GridView {
     int bres[3];
     double bmin[3];
     double scale[3];
+    int64_t corner_offset[8];  // links index of corner c less that of corner 0 (plx::corner_index)
 };
 
 struct MarchOptions {
@@ -67,6 +68,8 @@ GridView make_view(const at::Tensor& data, const at::Tensor& links, const at::Te
         g.bmin[a] = bmin[a];
         g.scale[a] = (g.res[a] - 1) / (bmax[a] - bmin[a]);
     }
+    const int origin[3] = {0, 0, 0};
+    for (int c = 0; c < 8; ++c) g.corner_offset[c] = plx::corner_index(origin, g.res, c);
     return g;
 }
 
@@ -116,7 +119,8 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
             float q[3];
             plx::point_ahead(g.res, g.bmin, g.scale, r, walk, 2 * kLookahead, q);
             const int far[3] = {cell_of(q[0], g.res[0]), cell_of(q[1], g.res[1]), cell_of(q[2], g.res[2])};
-            for (int c = 0; c < 8; c += 2) __builtin_prefetch(g.links + plx::corner_index(far, g.res, c), 0, 3);
+            const int32_t* links = g.links + plx::corner_index(far, g.res, 0);
+            for (int c = 0; c < 8; c += 2) __builtin_prefetch(links + g.corner_offset[c], 0, 3);
             __builtin_prefetch(g.cell_occ + plx::cell_index(g.res, far), 0, 3);
         }
         if (walk.i - 1 + kLookahead < r.n) {
@@ -124,8 +128,9 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
             plx::point_ahead(g.res, g.bmin, g.scale, r, walk, kLookahead, q);
             const int next[3] = {cell_of(q[0], g.res[0]), cell_of(q[1], g.res[1]), cell_of(q[2], g.res[2])};
             if (next[0] != cell[0] || next[1] != cell[1] || next[2] != cell[2]) {
+                const int32_t* links = g.links + plx::corner_index(next, g.res, 0);
                 for (int c = 0; c < 8; ++c) {
-                    const int32_t row = g.links[plx::corner_index(next, g.res, c)];
+                    const int32_t row = links[g.corner_offset[c]];
                     if (row < 0) continue;
                     prefetch_row<S>(g.data + (int64_t)row * S, false);
                 }
@@ -136,8 +141,9 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
         // An unallocated corner reads a row of zeros, so the sums below run without branches, in registers.
         const float* corner[8];
         float raw_density = 0.0f;
+        const int32_t* links = g.links + plx::corner_index(cell, g.res, 0);
         for (int c = 0; c < 8; ++c) {
-            s.rows[c] = g.links[plx::corner_index(cell, g.res, c)];
+            s.rows[c] = links[g.corner_offset[c]];
             corner[c] = s.rows[c] >= 0 ? g.data + (int64_t)s.rows[c] * S : kZeroRow;
             raw_density += s.w[c] * corner[c][0];
         }
