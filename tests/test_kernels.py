@@ -108,6 +108,18 @@ def test_gradients_of_every_thread_sum_across_calls(threads):
     assert not bool(native.scratch()[1].any())  # the per-thread masks are left clear
 
 
+def test_march_refuses_an_occupancy_block_that_is_not_a_power_of_two():
+    # The march finds a cell's block with a shift; any other block size would index the wrong block.
+    from plenoxels.render import _grid_args, _march_args
+
+    grid = random_grid(seed=41)
+    origins, dirs = random_rays(n=4, seed=42)
+    args = list(_grid_args(grid))
+    args[4] = 3
+    with pytest.raises(RuntimeError, match="power of two"):
+        native.ops.sample_counts(*args, origins, dirs, *_march_args(RenderOptions(), grid))
+
+
 def test_twin_gradcheck_float64():
     grid = random_grid(res=(2, 3, 3), sh_degree=1, holes=0.0, seed=7)
     # Densities well above 0 and colours well inside the relu keep gradcheck away from kinks.
