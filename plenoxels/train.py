@@ -195,18 +195,23 @@ class RaySet:
         return torch.cat(origins), torch.cat(dirs)
 
 
-def coherent_order(origins: torch.Tensor, dirs: torch.Tensor, bits: int = 10, extent: float = 2.0) -> torch.Tensor:
+def coherent_order(origins: torch.Tensor, dirs: torch.Tensor, extent: float = 2.0) -> torch.Tensor:
     """A permutation that puts rays passing near each other next to each other: by the Morton code (a space-filling
-    curve, `bits` per axis) of each ray's point closest to the scene's centre, which the normalised frame puts at the
+    curve, 10 bits per axis) of each ray's point closest to the scene's centre, which the normalised frame puts at the
     origin with the foreground inside [-1, 1]^3 (points beyond `extent` share the faces of the curve's cube)."""
     unit = dirs / dirs.norm(dim=1, keepdim=True)
     closest = origins - unit * (origins * unit).sum(1, keepdim=True)
-    cell = ((closest.clamp(-extent, extent) + extent) / (2 * extent) * ((1 << bits) - 1)).long()
-    code = torch.zeros(cell.shape[0], dtype=torch.int64)
-    for bit in range(bits):
-        for axis in range(3):
-            code |= ((cell[:, axis] >> bit) & 1) << (3 * bit + axis)
-    return torch.argsort(code)
+    cell = ((closest.clamp(-extent, extent) + extent) / (2 * extent) * 1023).long()
+    spread = _every_third_bit(cell)
+    return torch.argsort(spread[:, 0] | (spread[:, 1] << 1) | (spread[:, 2] << 2))
+
+
+def _every_third_bit(v: torch.Tensor) -> torch.Tensor:
+    """Bit i of each 10-bit value moved to bit 3i, in four shifts and masks (not thirty single-bit steps)."""
+    v = (v | (v << 16)) & 0x030000FF
+    v = (v | (v << 8)) & 0x0300F00F
+    v = (v | (v << 4)) & 0x030C30C3
+    return (v | (v << 2)) & 0x09249249
 
 
 def decayed_lr(initial: float, final: float, progress: float, delay: float = 0.0) -> float:

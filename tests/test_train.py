@@ -98,6 +98,22 @@ def test_coherent_order_follows_a_space_filling_curve():
         assert len(octants) == 1
 
 
+def test_coherent_order_sorts_by_the_interleaved_bits_of_the_closest_point():
+    # The Morton code bit by bit, as its definition reads: bit b of axis a becomes bit 3b + a.
+    gen = torch.Generator().manual_seed(2)
+    origins, dirs = torch.randn(4096, 3, generator=gen) * 3, torch.randn(4096, 3, generator=gen)
+    unit = dirs / dirs.norm(dim=1, keepdim=True)
+    closest = origins - unit * (origins * unit).sum(1, keepdim=True)
+    cell = ((closest.clamp(-2, 2) + 2) / 4 * 1023).long()
+    code = torch.zeros(4096, dtype=torch.int64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((cell[:, axis] >> bit) & 1) << (3 * bit + axis)
+    order = coherent_order(origins, dirs)
+    assert sorted(order.tolist()) == list(range(4096))
+    assert bool((code[order][1:] >= code[order][:-1]).all())
+
+
 def test_views_per_point_counts_the_cameras_that_see_the_box():
     k = Intrinsics(60.0, 60.0, 32.0, 32.0, 64, 64)
     around = [look_at([4 * math.cos(a), 4 * math.sin(a), 1.0], [0, 0, 0]) for a in np.linspace(0, 2 * math.pi, 12, endpoint=False)]
