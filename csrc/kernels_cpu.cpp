@@ -16,7 +16,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstdlib>
 #include <cstring>
 #include <memory>
 #include <optional>
@@ -112,7 +111,7 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
     plx::MarchWalk walk = plx::march_start(r);
     while (plx::next_sample(g.res, g.bres, g.block, g.block_occ, g.cell_occ, g.bmin, g.scale, r, &walk)) {
         const int* cell = walk.cell;
-        // Memory latency, not arithmetic, bounds this loop, so the march loads ahead in two stages: the links (and
+        // Rows scattered over hundreds of MB miss the cache, so the march loads ahead in two stages: the links (and
         // occupancy) of the cell 2 kLookahead samples ahead, then the rows of the cell kLookahead ahead, whose links
         // the first stage has brought in; each stage's misses overlap the work on this sample.
         if (walk.i - 1 + 2 * kLookahead < r.n) {
