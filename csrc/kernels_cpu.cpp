@@ -109,6 +109,11 @@ template <int S, typename Visit>
 inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, float* interp, Visit visit) {
     float transmittance = 1.0f;
     plx::MarchWalk walk = plx::march_start(r);
+    // The far stage's cells by sample index, so that the near stage finds a cell it already located.
+    struct Ahead {
+        int i = -1;
+        int cell[3];
+    } ahead[2 * kLookahead];
     while (plx::next_sample(g.res, g.bres, g.block, g.block_occ, g.cell_occ, g.bmin, g.scale, r, &walk)) {
         const int* cell = walk.cell;
         // Rows scattered over hundreds of MB miss the cache, so the march loads ahead in two stages: the links (and
@@ -117,15 +122,24 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
         if (walk.i - 1 + 2 * kLookahead < r.n) {
             float q[3];
             plx::point_ahead(g.res, g.bmin, g.scale, r, walk, 2 * kLookahead, q);
-            const int far[3] = {cell_of(q[0], g.res[0]), cell_of(q[1], g.res[1]), cell_of(q[2], g.res[2])};
+            Ahead& slot = ahead[(walk.i - 1) % (2 * kLookahead)];
+            slot.i = walk.i - 1 + 2 * kLookahead;
+            int* far = slot.cell;
+            for (int a = 0; a < 3; ++a) far[a] = cell_of(q[a], g.res[a]);
             const int32_t* links = g.links + plx::corner_index(far, g.res, 0);
             for (int c = 0; c < 8; c += 2) __builtin_prefetch(links + g.corner_offset[c], 0, 3);
             __builtin_prefetch(g.cell_occ + plx::cell_index(g.res, far), 0, 3);
         }
         if (walk.i - 1 + kLookahead < r.n) {
-            float q[3];
-            plx::point_ahead(g.res, g.bmin, g.scale, r, walk, kLookahead, q);
-            const int next[3] = {cell_of(q[0], g.res[0]), cell_of(q[1], g.res[1]), cell_of(q[2], g.res[2])};
+            const Ahead& slot = ahead[(walk.i - 1 + kLookahead) % (2 * kLookahead)];
+            int next[3];
+            if (slot.i == walk.i - 1 + kLookahead) {
+                for (int a = 0; a < 3; ++a) next[a] = slot.cell[a];
+            } else {
+                float q[3];
+                plx::point_ahead(g.res, g.bmin, g.scale, r, walk, kLookahead, q);
+                for (int a = 0; a < 3; ++a) next[a] = cell_of(q[a], g.res[a]);
+            }
             if (next[0] != cell[0] || next[1] != cell[1] || next[2] != cell[2]) {
                 const int32_t* links = g.links + plx::corner_index(next, g.res, 0);
                 for (int c = 0; c < 8; ++c) {
