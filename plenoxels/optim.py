@@ -37,8 +37,9 @@ class GridGrad:
         return self.touched_rows[: self.num_touched].long()
 
     def scratch(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The CPU kernels' per-thread gradient buffers and touched masks, zero between calls (allocated
-        once, pages mapped on first touch); empty on a GPU."""
+        """The CPU kernels' per-thread gradient buffers and touched masks (allocated once, pages mapped on first
+        touch; the masks are clear between calls, and a kernel zeroes a buffer row when its thread first touches it);
+        empty on a GPU."""
         if self._scratch is None:
             self._scratch = tuple(native.ops.grad_scratch(self.data))
         return self._scratch
