@@ -309,6 +309,16 @@ class SparseGrid:
         return SparseGrid(links, data, self.bbox_min, self.bbox_max, self.sh_degree, self.contracted), old_rows
 
     # ---- persistence --------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """The grid as a fit checkpoint holds it (its tensors as they are); from_state_dict reads it back."""
+        return {"links": self.links, "data": self.data, "bbox_min": self.bbox_min, "bbox_max": self.bbox_max,
+                "sh_degree": self.sh_degree, "contracted": self.contracted}
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> "SparseGrid":
+        return cls(state["links"], state["data"], state["bbox_min"], state["bbox_max"], state["sh_degree"],
+                   bool(state.get("contracted", False)))
+
     def save(self, path, extra: dict | None = None) -> None:
         payload = {
             "format": FORMAT,

@@ -460,12 +460,10 @@ class Fitter:
 
     # ---- checkpoints ----------------------------------------------------------------------------
     def state(self) -> dict:
-        grid = self.model.grid
         return {
             "step": self.step, "level": self.level, "elapsed": self.elapsed, "history": self.history,
             "levels": self.levels, "recent_mse": self.recent_mse, "generator": self.generator.get_state(),
-            "grid": {"links": grid.links, "data": grid.data, "bbox_min": grid.bbox_min, "bbox_max": grid.bbox_max,
-                     "sh_degree": grid.sh_degree, "contracted": grid.contracted},
+            "grid": self.model.grid.state_dict(),
             "optim": self.optim.state_dict(),
             "background": self.model.background.state_dict() if self.model.background is not None else None,
             "background_color": list(self.model.background_color),
@@ -481,9 +479,7 @@ class Fitter:
 
     def load_checkpoint(self, path: Path) -> None:
         state = torch.load(path, map_location="cpu", weights_only=False)
-        g = state["grid"]
-        self.model.grid = SparseGrid(g["links"], g["data"], g["bbox_min"], g["bbox_max"], g["sh_degree"],
-                                     g.get("contracted", False))
+        self.model.grid = SparseGrid.from_state_dict(state["grid"])
         self.model.to(self.device)
         self.checkpoint_step = state["step"]
         self.step, self.level, self.elapsed = state["step"], state["level"], state["elapsed"]

@@ -59,9 +59,7 @@ class ModelSource:
         background = state.get("background")
         options = self._model_options(background)
         model = SceneModel.create(scene, options, 2)
-        g = state["grid"]
-        model.grid = SparseGrid(g["links"], g["data"], g["bbox_min"], g["bbox_max"], g["sh_degree"],
-                                g.get("contracted", False))
+        model.grid = SparseGrid.from_state_dict(state["grid"])
         if background is not None and model.background is not None:
             model.background.load_state_dict(background)
         if "background_color" in state:  # what the fit sees behind everything (a contracted grid's: the photos' mean)
