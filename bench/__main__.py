@@ -12,7 +12,8 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-PARTS = ("kernels", "background", "poses", "normalize", "fit", "scaling", "scene_models", "real_scenes", "export", "cuda",
+PARTS = ("kernels", "background", "poses", "normalize", "fit", "scaling", "scene_models", "real_scenes", "grid_ceiling",
+         "export", "cuda",
          "lego_protocol", "lpips_reference")
 COMBINED = REPO / "bench" / "results.json"
 

@@ -247,6 +247,15 @@ def render_view(scene: SceneSpec, c2w: np.ndarray, intrinsics: Intrinsics,
     return _to_uint8(rgb), depth, alpha
 
 
+def surface_points(scene: SceneSpec, c2w: np.ndarray, k: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Where each pixel centre's ray first meets a shape: world points [h*w,3] (inf for a miss) and the index into
+    scene.shapes [h*w] (-1 for a miss)."""
+    c2w = np.asarray(c2w, dtype=np.float64)
+    dirs = _rotate(_camera_directions(k), c2w[:3, :3])
+    t, index = trace(scene, c2w[:3, 3], dirs)
+    return c2w[:3, 3] + t[:, None] * dirs, index
+
+
 def _render_float(scene: SceneSpec, c2w: np.ndarray, k: Intrinsics, supersample: int):
     c2w = np.asarray(c2w, dtype=np.float64)
     origin, rot = c2w[:3, 3], c2w[:3, :3]

@@ -9,7 +9,7 @@ import torch
 import trimesh
 
 from pipeline.synthetic import (KINDS, Sphere, build_scene, camera_poses, intrinsics_for, render_view,
-                                surface_colour, trace, write_scene)
+                                surface_colour, surface_points, trace, write_scene)
 from plenoxels.cameras import Intrinsics, pixel_directions, project, rays_from_camera
 from plenoxels.errors import UserError
 
@@ -265,3 +265,26 @@ def test_sift_finds_many_keypoints_that_match_correctly_between_neighbouring_vie
     projected, _ = project(world, views[1], k)
     correct = np.linalg.norm(projected - uv_b[finite], axis=1) < 3
     assert correct.mean() > 0.8
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_surface_points_lie_at_the_rendered_depth_on_the_shape_they_name(kind):
+    scene = build_scene(kind, seed=2)
+    k = intrinsics_for(kind, 64, 48)
+    c2w = camera_poses(scene, 12)[5]
+    points, index = surface_points(scene, c2w, k)
+    _, depth, _ = render_view(scene, c2w, k, supersample=1)
+    hit = index >= 0
+    assert hit.sum() > 300
+    # Depth runs along the viewing axis (camera -z).
+    along_axis = (points[hit] - c2w[:3, 3]) @ -c2w[:3, 2]
+    assert np.allclose(along_axis, depth.reshape(-1)[hit], rtol=1e-9, atol=1e-9)
+    assert np.all(np.isinf(depth.reshape(-1)[~hit]))
+    dirs = points[hit] - c2w[:3, 3]
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    points, index = points[hit], index[hit]
+    for s in np.unique(index):
+        on = index == s
+        # The shape it names is met exactly there: it is the nearest of all the shapes.
+        t = scene.shapes[s].intersect(c2w[:3, 3], dirs[on])
+        assert np.allclose(c2w[:3, 3] + t[:, None] * dirs[on], points[on], rtol=0, atol=1e-9)
