@@ -302,7 +302,7 @@ std::vector<Tensor> build_occupancy(Tensor links, int64_t block) {
 }
 
 // No per-thread buffers on the GPU: empty scratch on the gradient's device.
-std::vector<Tensor> grad_scratch(Tensor grad_data) {
+std::vector<Tensor> grad_scratch(Tensor grad_data, int64_t /*max_slots*/) {
     return {at::empty({0, grad_data.size(0), grad_data.size(1)}, grad_data.options()),
             at::empty({0, grad_data.size(0)}, grad_data.options().dtype(at::kByte))};
 }

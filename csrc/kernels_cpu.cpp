@@ -228,13 +228,16 @@ class ThreadGrads {
     std::vector<std::vector<int32_t>> lists_;
 };
 
-// Zeroed per-thread scratch for a gradient table: slots for threads 1..T-1 of T = omp_get_max_threads().
+// Zeroed per-thread scratch for a gradient table: slots for threads 1..T-1 of T = omp_get_max_threads(), at most
+// max_slots of them (the caller's memory share: random rays soon touch every page of a slot).
 // Anonymous mappings are zero pages mapped lazily, so a thread's slot costs memory only for the rows it ever
 // touches, and they start on a page, so rows stay whole cache lines (calloc's large blocks start 16 bytes in,
 // which split every row across one more line).
-std::vector<at::Tensor> grad_scratch(const at::Tensor& grad_data) {
+std::vector<at::Tensor> grad_scratch(const at::Tensor& grad_data, int64_t max_slots) {
     TORCH_CHECK(grad_data.device().is_cpu() && grad_data.dim() == 2, "grad data must be a CPU [N, S] table");
-    const int64_t slots = std::max(omp_get_max_threads() - 1, 0), rows = grad_data.size(0), stride = grad_data.size(1);
+    TORCH_CHECK(max_slots >= 0, "max_slots must be >= 0");
+    const int64_t slots = std::min<int64_t>(std::max(omp_get_max_threads() - 1, 0), max_slots);
+    const int64_t rows = grad_data.size(0), stride = grad_data.size(1);
     const auto zeroed = [](int64_t count, size_t size, at::IntArrayRef shape, at::ScalarType type, bool huge) {
         if (count == 0) return at::zeros(shape, at::TensorOptions().dtype(type));
         const size_t bytes = (size_t)count * size;

@@ -31,8 +31,9 @@ TORCH_LIBRARY(voxfield, m) {
     m.def("num_threads() -> int", []() -> int64_t { return omp_get_max_threads(); });
     // Asks for 2 MiB pages behind a contiguous CPU tensor; true when advised.
     m.def("advise_huge_pages(Tensor t) -> bool");
-    // Per-thread gradient scratch for a gradient table: (float [T-1, N, S], uint8 [T-1, N]), zero.
-    m.def("grad_scratch(Tensor grad_data) -> Tensor[]");
+    // Per-thread gradient scratch for a gradient table: (float [T-1, N, S], uint8 [T-1, N]), zero, with T - 1 at
+    // most max_slots: the kernels that add gradient run on as many threads as there are slots, plus one.
+    m.def("grad_scratch(Tensor grad_data, int max_slots) -> Tensor[]");
     // (cells [Rx-1, Ry-1, Rz-1], blocks) uint8: any corner allocated / any cell of the block occupied.
     m.def("build_occupancy(Tensor links, int block) -> Tensor[]");
     // Live-vertex counts and flags per occupancy block, recounted from scratch.

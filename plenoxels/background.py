@@ -32,6 +32,7 @@ import torch
 
 from plenoxels import native
 from plenoxels.errors import UserError
+from plenoxels.optim import scratch_slots
 
 # A ray stops compositing spheres once this little of its light gets through (the grid's rays stop the same way), so
 # the spheres behind an opaque one cost nothing; PLX_BG_STOP_TRANSMITTANCE in csrc/plenoxels_math.h.
@@ -183,7 +184,8 @@ class BackgroundOptimiser:
         self.touched_rows = torch.zeros(rows.shape[0], dtype=torch.int32, device=rows.device)
         self.num_touched = 0
         # The CPU kernel's per-thread gradient tables (pages mapped on first touch; empty on a GPU).
-        self.scratch = tuple(native.ops.grad_scratch(self.grad))
+        table = self.grad.numel() * self.grad.element_size() + rows.shape[0]
+        self.scratch = tuple(native.ops.grad_scratch(self.grad, scratch_slots(table)))
         self.record = None  # (origins, dirs, layer texels, layer weights) of the last forward's batch
         self.second_moment = torch.zeros_like(rows)
         self.generator = torch.Generator(device=rows.device).manual_seed(seed)

@@ -6,10 +6,30 @@ ever zeroes or scans the whole grid.
 """
 from __future__ import annotations
 
+import os
+
 import torch
 
 from plenoxels import native
 from plenoxels.grid import OCCUPANCY_BLOCK, SparseGrid, large_zeros, sh_count
+
+
+# The share of physical memory the per-thread gradient tables may take together. Each thread past the first adds a
+# table the size of the grid's (random rays touch every page of it within a few batches), so on many cores a fine
+# grid would otherwise take a table per core: 15 x 1.5 GB for 12 M voxels on 16 cores.
+SCRATCH_MEMORY_SHARE = 0.25
+
+
+def physical_memory() -> int:
+    """Bytes of physical memory on this machine."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def scratch_slots(table_bytes: int, memory: int | None = None) -> int:
+    """How many per-thread copies of a gradient table of `table_bytes` (with its mask) fit in SCRATCH_MEMORY_SHARE
+    of `memory` (default: this machine's); the kernels that add gradient use one thread per copy, plus one."""
+    memory = physical_memory() if memory is None else memory
+    return int(SCRATCH_MEMORY_SHARE * memory // max(table_bytes, 1))
 
 
 class GridGrad:
@@ -38,11 +58,16 @@ class GridGrad:
 
     def scratch(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The CPU kernels' per-thread gradient buffers and touched masks (allocated once, pages mapped on first
-        touch; the masks are clear between calls, and a kernel zeroes a buffer row when its thread first touches it);
-        empty on a GPU."""
+        touch; the masks are clear between calls, and a kernel zeroes a buffer row when its thread first touches it),
+        as many as scratch_slots allows; empty on a GPU."""
         if self._scratch is None:
-            self._scratch = tuple(native.ops.grad_scratch(self.data))
+            table = self.data.numel() * self.data.element_size() + self.touched_mask.numel()
+            self._scratch = tuple(native.ops.grad_scratch(self.data, scratch_slots(table)))
         return self._scratch
+
+    def threads(self) -> tuple[int, int]:
+        """(threads the CPU kernels add this table's gradients on: its scratch slots plus one, threads they have)."""
+        return min(self.scratch()[0].shape[0] + 1, native.ops.num_threads()), native.ops.num_threads()
 
     def accumulate(self, rows: torch.Tensor, density: torch.Tensor, sh: torch.Tensor) -> None:
         """Adds gradients for distinct rows (the PyTorch path) and records them as touched."""

@@ -251,6 +251,9 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         "memory_bytes": memory,
         "regularisation": fitter.regularisation,
     }
+    if device.type == "cpu":
+        used, available = fitter.grad.threads()
+        record["gradient_threads"] = {"used": used, "available": available}
     if fitter.bg_optim is not None:
         optimiser_bytes = sum(t.numel() * t.element_size() for t in (fitter.bg_optim.grad, fitter.bg_optim.second_moment))
         record["background_cost"] = {"seconds": round(fitter.background_seconds, 2),
@@ -275,6 +278,9 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
     if fitter.regularisation["tv_scale"] > 1.0:
         line += (f", TV x{fitter.regularisation['tv_scale']:.3g} for few views "
                  f"({fitter.regularisation['views_per_point']:.1f} per point)")
+    if "gradient_threads" in record and record["gradient_threads"]["used"] < record["gradient_threads"]["available"]:
+        line += (f", gradients on {record['gradient_threads']['used']} of {record['gradient_threads']['available']} "
+                 f"threads (a table per thread would pass a quarter of the memory)")
     if model.fit_frame.ndc is not None:
         line += ", in NDC"
     if model.fit_frame.contraction is not None:

@@ -214,7 +214,7 @@ def _loss_grad_both(links, data, degree, origins, dirs, targets, background, mar
         args = [data, links, cells, blocks, BLOCK, *box, degree, origins, dirs, targets, background,
                 *_march_args(march), grad, mask, rows, 0]
         moved = move(args)
-        sse, grad_background, count = core.loss_and_grad(*moved, *native.ops.grad_scratch(moved[17]))
+        sse, grad_background, count = core.loss_and_grad(*moved, *native.ops.grad_scratch(moved[17], 64))
         grad_out, mask_out, rows_out = moved[17], moved[18], moved[19]
         grads[name] = (sse, grad_background.cpu(), grad_out.cpu(), mask_out.cpu(),
                        set(rows_out[:count].cpu().tolist()))
@@ -311,10 +311,10 @@ def test_tv_matches_cpu(weights):
         rows = torch.zeros(n, dtype=torch.int32)
         args = [data, links, coords, sample_rows, *weights, degree, grad, mask, rows, 0]
         if name == "cpu":
-            loss, count = C.tv_loss_and_grad(*args, *native.ops.grad_scratch(grad))
+            loss, count = C.tv_loss_and_grad(*args, *native.ops.grad_scratch(grad, 64))
         else:
             args = _cuda(args)
-            loss, count = G.tv_loss_and_grad(*args, *native.ops.grad_scratch(args[7]))
+            loss, count = G.tv_loss_and_grad(*args, *native.ops.grad_scratch(args[7], 64))
             grad, mask, rows = args[7], args[8], args[9]
         out[name] = (loss, grad.cpu(), mask.cpu(), set(rows[:count].cpu().tolist()))
     assert out["cpu"][0] > 0

@@ -112,6 +112,24 @@ def test_the_sparsity_prior_leaves_less_density_for_as_good_a_fit(fresh, monkeyp
         config.build(fit.Settings, "fit", {"sparsity": -1.0})
 
 
+def test_a_fit_whose_per_thread_tables_would_pass_their_memory_share_adds_gradients_on_fewer_threads(fresh,
+                                                                                                   monkeypatch):
+    import plenoxels.optim as optim
+
+    if torch.get_num_threads() < 2:
+        pytest.skip("needs two threads (OMP_NUM_THREADS >= 2) to have a thread to leave out")
+    monkeypatch.setattr(optim, "physical_memory", lambda: 1024)
+    summary = run_stage(fresh, fit, {**QUICK, "steps": [30, 30]})
+    record = read_json(fresh / "fit" / "fit.json")
+    assert record["gradient_threads"] == {"used": 1, "available": torch.get_num_threads()}
+    assert f"gradients on 1 of {torch.get_num_threads()} threads" in summary["line"]
+    assert record["train_psnr"] > 12  # it still fits
+    monkeypatch.undo()
+    run_stage(fresh, fit, {**QUICK, "steps": [30, 30]})
+    record = read_json(fresh / "fit" / "fit.json")
+    assert record["gradient_threads"]["used"] == record["gradient_threads"]["available"]
+
+
 def test_resume_continues_from_the_checkpoint(fresh, monkeypatch):
     values = {**QUICK, "resolutions": [16], "steps": [60], "checkpoint_every": 1e-6}
     original = Fitter.train_step

@@ -108,6 +108,31 @@ def test_gradients_of_every_thread_sum_across_calls(threads):
     assert not bool(native.scratch()[1].any())  # the per-thread masks are left clear
 
 
+def test_per_thread_tables_stop_at_their_memory_share_and_the_gradients_still_sum(monkeypatch):
+    # Memory for one table beside the caller's: three threads ask, two add gradients, and nothing is lost.
+    import plenoxels.optim as optim
+
+    grid = random_grid(seed=51)
+    table = grid.data.numel() * 4 + grid.num_occupied
+    monkeypatch.setattr(optim, "physical_memory", lambda: int(1.5 * table / optim.SCRATCH_MEMORY_SHARE))
+    assert optim.scratch_slots(table) == 1 and optim.scratch_slots(table, memory=8 * table) == 2
+    gen = torch.Generator().manual_seed(52)
+    opts = RenderOptions(step_size=0.6)
+    before = torch.get_num_threads()
+    torch.set_num_threads(3)
+    try:
+        native, twin = GridGrad(grid), GridGrad(grid)
+        assert native.threads() == (2, 3)
+        for seed in (53, 54):
+            origins, dirs = random_rays(n=256, seed=seed)
+            targets, background = torch.rand(256, 3, generator=gen), torch.rand(256, 3, generator=gen)
+            loss_and_grad(grid, origins, dirs, targets, background, opts, native)
+            reference.loss_and_grad(grid, origins, dirs, targets, background, opts, twin)
+    finally:
+        torch.set_num_threads(before)
+    torch.testing.assert_close(native.data, twin.data, atol=1e-5 * float(twin.data.abs().max()), rtol=1e-4)
+
+
 def test_march_refuses_an_occupancy_block_that_is_not_a_power_of_two():
     # The march finds a cell's block with a shift; any other block size would index the wrong block.
     from plenoxels.render import _grid_args, _march_args
