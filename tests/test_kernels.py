@@ -85,24 +85,31 @@ def test_loss_and_grad_native_matches_twin(sh_degree):
     assert bool((native.data[untouched] == 0).all())
 
 
-@pytest.mark.parametrize("threads", [2, 3])
-def test_gradients_of_every_thread_sum_across_calls(threads):
-    # Each thread adds into its own table, which keeps the last call's values: a row it has not touched yet in this
-    # call must start from zero, or a second call counts the first one's gradients again.
-    grid = random_grid(seed=31)
-    gen = torch.Generator().manual_seed(32)
+def gradients_on_threads(grid, threads: int, seeds, seed: int) -> tuple[GridGrad, GridGrad]:
+    """The native and twin gradients of the MSE over one batch of random rays per seed, summed, the native ones added
+    on `threads` threads (its per-thread tables made there too)."""
+    gen = torch.Generator().manual_seed(seed)
     opts = RenderOptions(step_size=0.6)
-    native, twin = GridGrad(grid), GridGrad(grid)
     before = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
-        for seed in (33, 34, 35):
-            origins, dirs = random_rays(n=256, seed=seed)
+        native, twin = GridGrad(grid), GridGrad(grid)
+        native.scratch()
+        for ray_seed in seeds:
+            origins, dirs = random_rays(n=256, seed=ray_seed)
             targets, background = torch.rand(256, 3, generator=gen), torch.rand(256, 3, generator=gen)
             loss_and_grad(grid, origins, dirs, targets, background, opts, native)
             reference.loss_and_grad(grid, origins, dirs, targets, background, opts, twin)
     finally:
         torch.set_num_threads(before)
+    return native, twin
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_gradients_of_every_thread_sum_across_calls(threads):
+    # Each thread adds into its own table, which keeps the last call's values: a row it has not touched yet in this
+    # call must start from zero, or a second call counts the first one's gradients again.
+    native, twin = gradients_on_threads(random_grid(seed=31), threads, (33, 34, 35), seed=32)
     assert set(native.touched().tolist()) == set(twin.touched().tolist())
     torch.testing.assert_close(native.data, twin.data, atol=1e-5 * float(twin.data.abs().max()), rtol=1e-4)
     assert not bool(native.scratch()[1].any())  # the per-thread masks are left clear
@@ -116,18 +123,11 @@ def test_per_thread_tables_stop_at_their_memory_share_and_the_gradients_still_su
     table = grid.data.numel() * 4 + grid.num_occupied
     monkeypatch.setattr(optim, "physical_memory", lambda: int(1.5 * table / optim.SCRATCH_MEMORY_SHARE))
     assert optim.scratch_slots(table) == 1 and optim.scratch_slots(table, memory=8 * table) == 2
-    gen = torch.Generator().manual_seed(52)
-    opts = RenderOptions(step_size=0.6)
+    native, twin = gradients_on_threads(grid, 3, (53, 54), seed=52)
     before = torch.get_num_threads()
     torch.set_num_threads(3)
     try:
-        native, twin = GridGrad(grid), GridGrad(grid)
         assert native.threads() == (2, 3)
-        for seed in (53, 54):
-            origins, dirs = random_rays(n=256, seed=seed)
-            targets, background = torch.rand(256, 3, generator=gen), torch.rand(256, 3, generator=gen)
-            loss_and_grad(grid, origins, dirs, targets, background, opts, native)
-            reference.loss_and_grad(grid, origins, dirs, targets, background, opts, twin)
     finally:
         torch.set_num_threads(before)
     torch.testing.assert_close(native.data, twin.data, atol=1e-5 * float(twin.data.abs().max()), rtol=1e-4)
