@@ -290,7 +290,9 @@ GradSink sink_for(int thread, GradTarget* target, ThreadGrads* scratch) {
 // How many rows ahead merge prefetches.
 constexpr int kMergeLookahead = 8;
 
-// Adds every other thread's gradients into the caller's tensors and clears their masks.
+// Adds every other thread's gradients into the caller's tensors and clears their masks. Rows new to the caller's
+// list are gathered by each worker as it merges them (a row is in a thread's list once, so no two workers meet at
+// a mask byte) and appended after, in no set order.
 void merge(GradTarget* target, ThreadGrads* scratch, int threads) {
     const int S = scratch->stride();
     for (int t = 1; t < threads; ++t) {
@@ -299,29 +301,36 @@ void merge(GradTarget* target, ThreadGrads* scratch, int threads) {
         float* buf = scratch->buffer(t);
         uint8_t* mask = scratch->mask(t);
         const int64_t n = (int64_t)list.size();
-#pragma omp parallel for schedule(static)
-        for (int64_t j = 0; j < n; ++j) {
-            // The rows lie scattered over the tables: ask for those a few iterations ahead.
-            if (j + kMergeLookahead < n) {
-                const int64_t ahead = list[j + kMergeLookahead];
-                for (int k = 0; k < S; k += 16) {
-                    __builtin_prefetch(buf + ahead * S + k, 0, 3);
-                    __builtin_prefetch(target->data + ahead * S + k, 1, 3);
+#pragma omp parallel
+        {
+            thread_local std::vector<int32_t> fresh;
+            fresh.clear();
+#pragma omp for schedule(static) nowait
+            for (int64_t j = 0; j < n; ++j) {
+                // The rows lie scattered over the tables: ask for those a few iterations ahead.
+                if (j + kMergeLookahead < n) {
+                    const int64_t ahead = list[j + kMergeLookahead];
+                    for (int k = 0; k < S; k += 16) {
+                        __builtin_prefetch(buf + ahead * S + k, 0, 3);
+                        __builtin_prefetch(target->data + ahead * S + k, 1, 3);
+                    }
+                    __builtin_prefetch(target->mask + ahead, 1, 3);
+                }
+                const int64_t row = list[j];
+                const float* src = buf + row * S;
+                float* dst = target->data + row * S;
+#pragma omp simd
+                for (int k = 0; k < S; ++k) dst[k] += src[k];
+                mask[row] = 0;
+                if (!target->mask[row]) {
+                    target->mask[row] = 1;
+                    fresh.push_back((int32_t)row);
                 }
             }
-            const int64_t row = list[j];
-            const float* src = buf + row * S;
-            float* dst = target->data + row * S;
-#pragma omp simd
-            for (int k = 0; k < S; ++k) dst[k] += src[k];
-            mask[row] = 0;
-        }
-        for (int64_t j = 0; j < n; ++j) {
-            if (j + kMergeLookahead < n) __builtin_prefetch(target->mask + list[j + kMergeLookahead], 1, 3);
-            const int32_t row = list[j];
-            if (!target->mask[row]) {
-                target->mask[row] = 1;
-                target->rows[target->count++] = row;
+#pragma omp critical(plx_merge_rows)
+            {
+                std::copy(fresh.begin(), fresh.end(), target->rows + target->count);
+                target->count += (int64_t)fresh.size();
             }
         }
         list.clear();
