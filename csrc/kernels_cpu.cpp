@@ -18,6 +18,7 @@
 #include <cmath>
 #include <cstring>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <tuple>
 #include <vector>
@@ -209,7 +210,8 @@ class ThreadGrads {
         threads_ = std::min<int>(omp_get_max_threads(), (int)scratch_grad.size(0) + 1);
         buffers_ = scratch_grad.data_ptr<float>();
         masks_ = scratch_mask.data_ptr<uint8_t>();
-        lists_.resize(threads_);
+        if ((int)lists_.size() < threads_) lists_.resize(threads_);
+        for (auto& list : lists_) list.clear();
     }
 
     int stride() const { return stride_; }
@@ -225,7 +227,11 @@ class ThreadGrads {
     int threads_;
     float* buffers_;
     uint8_t* masks_;
-    std::vector<std::vector<int32_t>> lists_;
+    // The touched-row lists outlive the call (one set, behind lock_), so their memory is faulted in once, not on every
+    // call as they grow: a 256^3 batch lists about a million rows a thread.
+    static inline std::mutex mutex_;
+    static inline std::vector<std::vector<int32_t>> lists_;
+    std::lock_guard<std::mutex> lock_{mutex_};
 };
 
 // Zeroed per-thread scratch for a gradient table: slots for threads 1..T-1 of T = omp_get_max_threads(), at most
