@@ -280,7 +280,7 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
                  f"({fitter.regularisation['views_per_point']:.1f} per point)")
     if "gradient_threads" in record and record["gradient_threads"]["used"] < record["gradient_threads"]["available"]:
         line += (f", gradients on {record['gradient_threads']['used']} of {record['gradient_threads']['available']} "
-                 f"threads (a table per thread would pass a quarter of the memory)")
+                 f"threads (a gradient table per thread would pass their share of the memory)")
     if model.fit_frame.ndc is not None:
         line += ", in NDC"
     if model.fit_frame.contraction is not None:
