@@ -36,20 +36,6 @@ RESULTS = REPO / "bench" / "results" / "grid_ceiling.json"
 SCENE = "synthetic_unbounded"
 
 
-def trilinear(grid_points: np.ndarray, shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Vertex indices [N, 8] (into the grid's vertices, x slowest) and trilinear weights [N, 8] of grid-frame points."""
-    shape = np.asarray(shape)
-    g = np.clip(grid_points, 0, shape - 1 - 1e-9)
-    lo = np.floor(g).astype(np.int64)
-    frac = g - lo
-    index, weight = [], []
-    for corner in np.ndindex(2, 2, 2):
-        v = lo + corner
-        index.append((v[:, 0] * shape[1] + v[:, 1]) * shape[2] + v[:, 2])
-        weight.append(np.prod(np.where(corner, frac, 1 - frac), axis=1))
-    return np.stack(index, 1), np.stack(weight, 1)
-
-
 def psnr(mse: float) -> float:
     return float(-10 * np.log10(max(mse, 1e-12)))
 
@@ -62,6 +48,7 @@ def ceiling(preset: str, data: Path, iterations: int) -> dict:
     from bench.fit import resolve
     from pipeline.images import load_frame
     from pipeline.synthetic import build_scene, surface_points
+    from plenoxels.reference import corners
     from plenoxels.scene_model import SceneModel
 
     started = time.time()
@@ -82,8 +69,10 @@ def ceiling(preset: str, data: Path, iterations: int) -> dict:
         points, _ = surface_points(spec, input_pose[frame["name"]], k)
         world = points @ world_from_input[:3, :3].T + world_from_input[:3, 3]
         fit = model.fit_frame.from_world(world)
-        grid = model.grid.world_to_grid(torch.from_numpy(fit)).numpy()
-        views[frame["split"]].append((*trilinear(grid, shape), truth.reshape(-1, 3).astype(np.float64)))
+        grid = model.grid.world_to_grid(torch.from_numpy(fit))
+        # The grid is dense (every vertex has a row), so a corner's row names its vertex.
+        rows, weights = corners(model.grid.links, grid.clamp(torch.zeros(3), torch.tensor(shape) - 1.0))
+        views[frame["split"]].append((rows.numpy(), weights.numpy(), truth.reshape(-1, 3).astype(np.float64)))
 
     index = np.concatenate([v[0] for v in views["train"]])
     weight = np.concatenate([v[1] for v in views["train"]])

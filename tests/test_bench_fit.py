@@ -2,9 +2,7 @@
 import dataclasses
 import json
 
-import numpy as np
 import pytest
-import torch
 
 from bench.fit import (BUDGETS, budget_verdict, fronts, knob_variants, load_results, pareto, plan, resolve, run_key,
                        still_valid, table)
@@ -170,19 +168,3 @@ def test_real_scenes_budget_runs_compare_with_the_front_label_at_their_own_scori
     assert budget_verdict({**budget, "fit_seconds": 450}, runs, "after") == "below default (26.00 dB in 400 s)"
     assert "no preset run" in budget_verdict(budget, runs, "nothing")
 
-
-def test_grid_ceiling_blends_the_same_vertices_with_the_same_weights_as_the_grid():
-    from bench.grid_ceiling import trilinear
-    from plenoxels.grid import SparseGrid
-
-    gen = torch.Generator().manual_seed(3)
-    grid = SparseGrid.dense((5, 7, 6), (-1.0, -2.0, 0.0), (1.0, 2.0, 3.0), sh_degree=0)
-    grid.data[:, 0] = torch.rand(grid.data.shape[0], generator=gen)
-    points = torch.rand(200, 3, generator=gen, dtype=torch.float64) * torch.tensor([2.0, 4.0, 3.0]) + torch.tensor([-1.0, -2.0, 0.0])
-    index, weight = trilinear(grid.world_to_grid(points).numpy(), grid.resolution)
-    rows = grid.links.reshape(-1)[torch.from_numpy(index)]
-    assert bool((rows >= 0).all())
-    assert np.allclose(weight.sum(axis=1), 1.0)
-    blended = (torch.from_numpy(weight) * grid.data[rows, 0].double()).sum(dim=1)
-    density, _ = grid.sample(points)
-    assert torch.allclose(blended.float(), density, atol=1e-5)
