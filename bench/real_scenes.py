@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import resource
 import sys
 from pathlib import Path
@@ -240,7 +241,7 @@ def run_all(args) -> int:
                 for label, run_overrides in variants:
                     spec = {"scene": name, "preset": preset, "views": views, "label": label,
                             "overrides": run_overrides, "out": str(out), "verbose": args.verbose,
-                            "label_suffix": "" if label == "as set" else f"-{label.replace(' ', '_')}"}
+                            "label_suffix": "" if label == "as set" else "-" + re.sub(r"[^A-Za-z0-9._-]+", "_", label)}
                     record = spawn(spec)
                     if record is None:
                         continue
