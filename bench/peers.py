@@ -12,8 +12,8 @@ training. Its loop calls its evaluation hook every step here; the hook is replac
 views with TensoRF's renderer once the training clock passes each of --checkpoints, and stops the loop after the
 last. The clock starts at the loop (the photos' loading and the model's set-up are not counted) and pauses while
 the hook scores. The modules TensoRF imports only for logging, depth pictures and mesh export (tensorboard,
-plyfile, scikit-image) are stood in for by empty ones, torchvision's ToTensor by the same conversion; it needs configargparse (its options) and kornia
-(its rays), which leave this environment's torch as it is.
+plyfile, scikit-image) are stood in for by empty ones, torchvision's ToTensor by the same conversion; it needs
+configargparse (its options) and kornia (its rays), which leave this environment's torch as it is.
 
 Ours: the `fast` preset and time budgets on `default`'s detail (--budgets), at image scale 0.25, each the fit stage
 as the pipeline runs it, photos loaded inside its time, in a process of its own (bench/fit.py's runs).
@@ -47,7 +47,8 @@ SCALE = 0.25  # 800x800 -> 200x200
 VIEWS = 25
 BUDGETS = ("5s", "12s", "30s")
 MISSING = ("bench.peers: skipped: needs a TensoRF checkout (git clone https://github.com/apchenstu/TensoRF "
-           "bench/out/peers/TensoRF, or pass --tensorf) and configargparse and kornia (.venv/bin/pip install configargparse kornia)")
+           "bench/out/peers/TensoRF, or pass --tensorf) and configargparse and kornia "
+           "(.venv/bin/pip install configargparse kornia)")
 
 
 def protocol_data(lego: Path, folder: Path) -> Path:
@@ -117,16 +118,17 @@ class Finished(Exception):
 
 
 def tensorf_run(spec: dict) -> dict:
-    """TensoRF's training loop on lego for spec["minutes"], with its held-out PSNR at each checkpoint."""
+    """TensoRF's training loop on lego until the last of spec["checkpoints"] (training seconds), with its held-out
+    PSNR at each."""
     import numpy as np
     import torch
 
-    from bench.cuda import lego_scene
+    from bench.cuda import blender_frames
     from pipeline.images import load_frame
     from pipeline.metrics import image_psnr
 
     checkout, lego = Path(spec["checkout"]), Path(spec["lego"])
-    _, val = lego_scene(lego, VIEWS)
+    val = blender_frames(lego, "val")[:VIEWS]  # the views protocol_data wrote as TensoRF's test split
     truths = [load_frame(lego, frame, SCALE, np.ones(3, dtype=np.float32))[0] for frame in val]
     stand_ins()
     sys.path.insert(0, str(checkout))
