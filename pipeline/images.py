@@ -29,18 +29,28 @@ def load_frame(root: Path, frame: dict, scale: float, background_color) -> tuple
     else:
         rgb = read_rgb(path)
         alpha = read_alpha(root / mask_path) if mask_path else None
-    rgb = rgb.astype(np.float32) / 255.0
     k = Intrinsics.from_frame(frame)
     if (rgb.shape[1], rgb.shape[0]) != (k.w, k.h):
         raise UserError(f"{path} is {rgb.shape[1]}x{rgb.shape[0]} but scene.json says {k.w}x{k.h}; re-run normalize")
-    if alpha is not None:
-        if alpha.shape != rgb.shape[:2]:
-            raise UserError(f"mask {mask_path} is not the size of its image; re-run ingest")
-        rgb = rgb * alpha[..., None] + np.asarray(background_color, dtype=np.float32) * (1 - alpha[..., None])
+    if alpha is not None and alpha.shape != rgb.shape[:2]:
+        raise UserError(f"mask {mask_path} is not the size of its image; re-run ingest")
     k = k.scaled(scale) if scale != 1 else k
-    if (k.w, k.h) != (rgb.shape[1], rgb.shape[0]):
-        rgb = cv2.resize(rgb, (k.w, k.h), interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(rgb), k
+    colour = rgb.astype(np.float32)
+    if alpha is None:
+        return np.ascontiguousarray(resized(colour, k) / 255.0), k
+    # Colour weighted by alpha and alpha itself are resized apart, then composited: area resizing is linear, so this
+    # is the composite resized, with the arithmetic done at the new size.
+    colour *= alpha[..., None]
+    alpha = resized(alpha, k)[..., None]
+    background = np.asarray(background_color, dtype=np.float32)
+    return np.ascontiguousarray(resized(colour, k) / 255.0 + background * (1 - alpha)), k
+
+
+def resized(image: np.ndarray, k: Intrinsics) -> np.ndarray:
+    """`image` at k's size (area resampling: each pixel the mean of what it covers)."""
+    if (k.w, k.h) == (image.shape[1], image.shape[0]):
+        return image
+    return cv2.resize(image, (k.w, k.h), interpolation=cv2.INTER_AREA)
 
 
 def load_frames(root: Path, frames: list[dict], scale: float, background_color,
