@@ -3,7 +3,8 @@ the fit on time.
 
 - `calibrate(options, device, background)`: times train steps of the real Fitter on a small synthetic object (thin
   opaque surfaces, the vertices within 3 voxels of them allocated, as pruning leaves a fit) at a few resolutions, a
-  pruning pass and a level change, on the device and with the threads the fit uses. The `CostModel` fitted to that
+  pruning pass and a level change, steps of a first level (a new model's grid, the whole box) at a few resolutions,
+  on the device and with the threads the fit uses. The `CostModel` fitted to that
   is cached as JSON under `$XDG_CACHE_HOME/voxfield/` (else `~/.cache/voxfield/`), keyed by the CPU and GPU model,
   the thread counts, the device, the code of the native core and of this package, and the options that set what a
   step costs; a changed key measures again (a few seconds).
@@ -12,9 +13,10 @@ the fit on time.
   under way and to come every few steps and at each level change, and says when the fit must stop to end on time.
 
 What a prediction adds up, from where the fit stands to its end: steps times seconds per step (for the level under
-way, what its steps measure; for later levels, the cost model at their occupied voxels, times the ratio of this
-scene's measured pruned levels to it; a first level's ratio counts only above 1, as a first level clears its empty
-space and gets cheaper than a pruned grid of as many voxels while a busy machine does not), level changes (a pruning
+way, what its steps measure, or before they have, the first-level model at its box's voxels; for later levels, the
+cost model at their occupied voxels, times the ratio of this scene's measured steps to the model's; a first level's
+ratio counts only above 1, as a first level clears its empty space and gets cheaper as it goes while a busy machine
+does not), level changes (a pruning
 pass over the training rays at the old resolution, then upsampling and a checkpoint that grow with the new grid),
 held-out evaluations, checkpoints, and the end (the last pruning pass, the held-out PSNR, the save). A later level's
 voxels are the level before's, times the share pruning keeps, times the upsampling's growth; the share is a prior
@@ -30,11 +32,10 @@ the training photos have pixels across buys nothing (the bench's synthetic scene
 photos' longest side whose predicted time fits with at least MIN_SHARE of its steps, given as many steps as the time
 allows up to MAX_SHARE of them (twice the steps bought lego `fast` 0.5 dB). A budget beyond that ends early.
 
-The coarsest rungs start at 32^3: a first level's grid is its whole box, and its first steps march all of it (a new
-model's step on the calibration's cameras: 24-26 ms at 32^3, 73-85 ms at 64^3, against 11-14 ms for the calibration's
-pruned 64^3 grid), so a 32^3 level finds the occupied space for a fraction of a 64^3 one's time (lego at 200x200, held
-out: 32->64 with 100+200 steps 25.63 dB in 4.5 s of fitting, 64 alone with 170 steps 25.53 dB in 8.8 s; 32->64->128
-with 100+250+600 steps 30.31 dB in 27 s, 64->128 with 300+600 30.41 dB in 36 s).
+The coarsest rungs start at 32^3: a first level's step marches its whole box, so it is the dearest step of a fit for
+its voxels, and a 32^3 level finds the occupied space for a fraction of a 64^3 one's time (lego at 200x200, held out:
+32->64->128 with 100+250+600 steps 30.31 dB in 27 s, 64->128 with 300+600 30.41 dB in 36 s; 32->64 with 100+200
+25.63 dB in 4.5 s, 64 alone with 170 steps 25.53 dB in 8.8 s).
 """
 from __future__ import annotations
 
@@ -61,9 +62,14 @@ from plenoxels.grid import SparseGrid, sh_count
 from plenoxels.scene_model import SceneModel
 from plenoxels.train import Fitter, RaySet, pruning_rays
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 # Resolutions the calibration times steps at (grids as pruning leaves a fit: about 50k, 230k and 520k voxels).
 CALIBRATION_RESOLUTIONS = (64, 128, 192)
+# Resolutions it times a first level's steps at: the whole box allocated, as a fit starts (33k, 262k and 885k voxels).
+# Such a step marches every ray through the box with nothing to skip and nothing opaque to stop it: 3-10x a pruned
+# grid's step of as many voxels (64^3: 85 ms against 14 ms for the surface grid's 50k voxels).
+DENSE_RESOLUTIONS = (32, 64, 96)
+DENSE_STEPS = 4
 CALIBRATION_WARMUP = 2
 CALIBRATION_STEPS = 8
 # The calibration's cameras: this many views of this many pixels a side, around the synthetic object.
@@ -135,15 +141,25 @@ class CostModel:
     """Seconds per voxel to write a checkpoint (at each level change, every checkpoint_every seconds, at a stop)."""
     save_per_voxel: float
     """Seconds per voxel to save the fitted model."""
+    dense_fixed: float | None = None
+    """Seconds of one step of a first level (its whole box allocated) whatever the grid; None: as a pruned grid's."""
+    dense_per_voxel: float | None = None
+    """Seconds of one step of a first level per voxel of its box."""
 
-    def step_seconds(self, voxels: float) -> float:
+    def step_seconds(self, voxels: float, dense: bool = False) -> float:
+        if dense and self.dense_fixed is not None:
+            return self.dense_fixed + self.dense_per_voxel * voxels
         return self.step_fixed + self.step_per_voxel * voxels
 
     def pass_seconds(self, rays: float, resolution: int) -> float:
         return self.pass_per_ray * rays * resolution
 
     def describe(self) -> str:
-        return f"{1000 * self.step_fixed:.1f} ms per step plus {1e8 * self.step_per_voxel:.1f} ms per 100k voxels"
+        line = f"{1000 * self.step_fixed:.1f} ms per step plus {1e8 * self.step_per_voxel:.1f} ms per 100k voxels"
+        if self.dense_fixed is not None:
+            line += (f" ({1000 * self.dense_fixed:.1f} ms plus {1e8 * self.dense_per_voxel:.1f} ms per 100k voxels "
+                     f"at a first level)")
+        return line
 
 
 def cache_dir() -> Path:
@@ -180,7 +196,7 @@ def code_hash() -> str:
 
 
 def calibration_key(options, device: torch.device, background: dict | None,
-                    resolutions=CALIBRATION_RESOLUTIONS) -> dict:
+                    resolutions=CALIBRATION_RESOLUTIONS, dense_resolutions=DENSE_RESOLUTIONS) -> dict:
     """What a calibration holds for: the machine, the code, the options (of the fit's Settings, a TrainOptions and a
     ModelOptions) that set what a step costs, and the fit's background model (n_spheres, width; None: none)."""
     cost_options = {name: getattr(options, name) for name in (
@@ -191,6 +207,7 @@ def calibration_key(options, device: torch.device, background: dict | None,
         "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
         "device": device.type, "threads": native.num_threads(), "torch_threads": torch.get_num_threads(),
         "code": code_hash(), "background": background, "options": cost_options, "resolutions": list(resolutions),
+        "first_level_resolutions": list(dense_resolutions),
     }
 
 
@@ -242,12 +259,12 @@ def _calibration_views(model: SceneModel) -> RaySet:
     return RaySet(images, c2ws, ks)
 
 
-def _time_steps(fitter: Fitter, device: torch.device) -> float:
-    """Median seconds of CALIBRATION_STEPS train steps after CALIBRATION_WARMUP."""
+def _time_steps(fitter: Fitter, device: torch.device, steps: int = CALIBRATION_STEPS) -> float:
+    """Median seconds of `steps` train steps after CALIBRATION_WARMUP."""
     for _ in range(CALIBRATION_WARMUP):
         fitter.train_step()
     times = []
-    for _ in range(CALIBRATION_STEPS):
+    for _ in range(steps):
         _sync(device)
         started = time.perf_counter()
         fitter.train_step()
@@ -256,10 +273,22 @@ def _time_steps(fitter: Fitter, device: torch.device) -> float:
     return float(np.median(times))
 
 
-def measure(options, device: torch.device, background: dict | None, resolutions=CALIBRATION_RESOLUTIONS) -> dict:
+def _line(points: list[tuple[int, float]]) -> tuple[float, float]:
+    """(fixed, per voxel) seconds of a step, fitted to (voxels, seconds) points; positive and not decreasing."""
+    voxels, seconds = np.array([p[0] for p in points], dtype=np.float64), np.array([p[1] for p in points])
+    slope, fixed = np.polyfit(voxels, seconds, 1)
+    if fixed < 0 or slope <= 0:  # noise
+        slope, fixed = max(0.0, float((voxels * seconds).sum() / (voxels * voxels).sum())), 0.0
+        if slope == 0.0:
+            fixed = float(seconds.mean())
+    return float(fixed), float(slope)
+
+
+def measure(options, device: torch.device, background: dict | None, resolutions=CALIBRATION_RESOLUTIONS,
+            dense_resolutions=DENSE_RESOLUTIONS) -> dict:
     """Times the real Fitter with these options (and a background model of `background`'s n_spheres and width) on
-    the calibration object: steps and a pruning pass at each resolution, then one level change. Returns the cost
-    model's fields and what was measured."""
+    the calibration object: steps and a pruning pass at each resolution, steps of a new model's grid (a first level)
+    at each dense resolution, then one level change. Returns the cost model's fields and what was measured."""
     started = time.perf_counter()
     scene = {"type": "object", "foreground": {"min": [-1.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}}
     model_options = dataclasses.replace(options, ndc="off", background="on" if background else "off")
@@ -275,9 +304,11 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
     views = _calibration_views(model_at(resolutions[0]))
     rays = {r: pruning_rays(views.sizes, r, options) for r in resolutions}
 
-    def fitter_at(levels: list[int]) -> Fitter:
+    def fitter_at(levels: list[int], first: bool = False) -> Fitter:
+        """A Fitter at `levels[0]`: on the calibration object's pruned grid, or (`first`) on a new model's grid."""
         fit_options = dataclasses.replace(model_options, resolutions=levels, steps=[1_000_000] * len(levels))
-        return Fitter(model_at(levels[0]), fit_options, views, device)
+        model = SceneModel.create(scene, model_options, levels[0]) if first else model_at(levels[0])
+        return Fitter(model, fit_options, views, device)
 
     points, passes = [], []
     for resolution in resolutions:
@@ -289,12 +320,13 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
         _sync(device)
         passes.append((rays[resolution] * resolution, time.perf_counter() - begun))
         del fitter
-    voxels, seconds = np.array([p[0] for p in points], dtype=np.float64), np.array([p[1] for p in points])
-    slope, fixed = np.polyfit(voxels, seconds, 1)
-    if fixed < 0 or slope <= 0:  # noise: keep the model positive and not decreasing
-        slope, fixed = max(0.0, float((voxels * seconds).sum() / (voxels * voxels).sum())), 0.0
-        if slope == 0.0:
-            fixed = float(seconds.mean())
+    fixed, slope = _line(points)
+    dense_points = []
+    for resolution in dense_resolutions:
+        fitter = fitter_at([resolution], first=True)
+        dense_points.append((fitter.model.grid.num_occupied, _time_steps(fitter, device, DENSE_STEPS)))
+        del fitter
+    dense_fixed, dense_slope = _line(dense_points)
     pass_per_ray = float(sum(a * t for a, t in passes) / sum(a * a for a, _ in passes))
 
     # One level change, from the coarsest grid to twice its resolution, then a checkpoint and a save of the model.
@@ -313,11 +345,14 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
     change, checkpoint, save = np.diff(clock)
     new_voxels = fitter.model.grid.num_occupied
     return {
-        "costs": {"step_fixed": float(fixed), "step_per_voxel": float(slope), "pass_per_ray": pass_per_ray,
+        "costs": {"step_fixed": fixed, "step_per_voxel": slope, "pass_per_ray": pass_per_ray,
                   "change_per_voxel": max(0.0, change - pass_per_ray * rays[resolutions[0]] * resolutions[0]) / new_voxels,
-                  "checkpoint_per_voxel": checkpoint / new_voxels, "save_per_voxel": save / new_voxels},
+                  "checkpoint_per_voxel": checkpoint / new_voxels, "save_per_voxel": save / new_voxels,
+                  "dense_fixed": dense_fixed, "dense_per_voxel": dense_slope},
         "points": [{"resolution": r, "voxels": n, "step_seconds": round(t, 5)}
                    for r, (n, t) in zip(resolutions, points)],
+        "first_level_points": [{"resolution": r, "voxels": n, "step_seconds": round(t, 5)}
+                               for r, (n, t) in zip(dense_resolutions, dense_points)],
         "level_change": {"voxels": new_voxels, "seconds": round(float(change), 4),
                          "checkpoint_seconds": round(float(checkpoint), 4), "save_seconds": round(float(save), 4)},
         "seconds": round(time.perf_counter() - started, 2),
@@ -327,10 +362,10 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
 
 
 def calibrate(options, device: torch.device, background: dict | None = None, resolutions=CALIBRATION_RESOLUTIONS,
-              say: Callable[[str], None] | None = None) -> tuple[CostModel, dict]:
+              dense_resolutions=DENSE_RESOLUTIONS, say: Callable[[str], None] | None = None) -> tuple[CostModel, dict]:
     """The cost model for these options on this machine: from the cache when its key matches, else measured (a few
     seconds) and cached. Returns it and the calibration's record, with `cached` and `file` added."""
-    key = calibration_key(options, device, background, resolutions)
+    key = calibration_key(options, device, background, resolutions, dense_resolutions)
     path = cache_dir() / f"fit-cost-{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]}.json"
     try:
         record = json.loads(path.read_text())
@@ -341,7 +376,7 @@ def calibrate(options, device: torch.device, background: dict | None = None, res
     if say is not None:
         say(f"measuring what the fit costs on this machine ({key['device']}, {key['threads']} threads; once, then "
             f"cached in {path.parent})")
-    record = {"key": key, **measure(options, device, background, resolutions)}
+    record = {"key": key, **measure(options, device, background, resolutions, dense_resolutions)}
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
@@ -401,7 +436,7 @@ def predict(costs: CostModel, facts: FitFacts, now: Outlook, resolutions: list[i
     seconds, voxels, start, remaining = 0.0, float(now.voxels), sum(steps[:now.level]), 0
     for level in range(now.level, len(resolutions)):
         if level == now.level:
-            step = now.step_seconds or now.step_ratio * costs.step_seconds(voxels)
+            step = now.step_seconds or now.step_ratio * costs.step_seconds(voxels, dense=now.dense)
         else:
             kept = (now.first_keep if level == 1 else now.later_keep) * voxels
             voxels = min(facts.voxel_budget, kept * (resolutions[level] / resolutions[level - 1]) ** 3)
@@ -579,7 +614,7 @@ class TimeBudget:
             self._intervals = (self._intervals + [interval])[-STEP_WINDOW:]
         if self.fitter.step % REPLAN_EVERY == 0 and len(self._intervals) >= 5:
             measured = float(np.mean(self._intervals))
-            ratio = measured / self.costs.step_seconds(self.now.voxels)
+            ratio = measured / self.costs.step_seconds(self.now.voxels, dense=self.now.dense)
             self.now.step_ratio = max(1.0, ratio) if self.now.dense else ratio
             self.now.step_seconds = measured
             self._replan("steps")

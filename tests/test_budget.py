@@ -73,36 +73,40 @@ def test_the_default_is_no_budget():
 # ---- the calibration -----------------------------------------------------------------------------------------------
 def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(monkeypatch):
     options = config.build(fit.Settings, "fit", {"batch_size": 512, "sh_degree": 0})
-    small = (16, 24, 32)
+    small, first = (16, 24, 32), (8, 16)
     measured = []
     original = budget.measure
     monkeypatch.setattr(budget, "measure", lambda *a, **k: measured.append(1) or original(*a, **k))
     cpu = torch.device("cpu")
 
-    costs, record = budget.calibrate(options, cpu, None, small)
+    costs, record = budget.calibrate(options, cpu, None, small, first)
     assert not record["cached"] and len(measured) == 1
     assert costs.step_fixed + costs.step_per_voxel * 1e5 > 0 and costs.pass_per_ray > 0
+    assert costs.step_seconds(1e5, dense=True) > 0 and costs.dense_fixed is not None
+    assert [p["voxels"] for p in record["first_level_points"]] == [8 ** 3, 16 ** 3]  # a new model's whole box
     assert record["file"].startswith(os.environ["XDG_CACHE_HOME"])
     assert record["key"]["threads"] >= 1 and record["key"]["code"] and record["key"]["device"] == "cpu"
 
-    again, record = budget.calibrate(options, cpu, None, small)
+    again, record = budget.calibrate(options, cpu, None, small, first)
     assert record["cached"] and len(measured) == 1 and again == costs
 
-    budget.calibrate(config.build(fit.Settings, "fit", {"batch_size": 256, "sh_degree": 0}), cpu, None, small)
+    budget.calibrate(config.build(fit.Settings, "fit", {"batch_size": 256, "sh_degree": 0}), cpu, None, small, first)
     assert len(measured) == 2  # other options that set a step's cost
-    budget.calibrate(options, cpu, {"n_spheres": 4, "width": 16}, small)
+    budget.calibrate(options, cpu, {"n_spheres": 4, "width": 16}, small, first)
     assert len(measured) == 3  # a background model
     monkeypatch.setattr(budget.native, "num_threads", lambda: 97)
-    budget.calibrate(options, cpu, None, small)
+    budget.calibrate(options, cpu, None, small, first)
     assert len(measured) == 4  # another thread count
     monkeypatch.setattr(budget, "code_hash", lambda: "changed")
-    _, record = budget.calibrate(options, cpu, None, small)
+    _, record = budget.calibrate(options, cpu, None, small, first)
     assert len(measured) == 5 and not record["cached"]  # other code
     with open(record["file"], "w") as handle:
         handle.write("{ not json")
-    _, record = budget.calibrate(options, cpu, None, small)
+    _, record = budget.calibrate(options, cpu, None, small, first)
     assert len(measured) == 6 and not record["cached"]  # an unreadable cache file is measured again
-    assert len(list(budget.cache_dir().glob("fit-cost-*.json"))) == 5
+    budget.calibrate(options, cpu, None, small, (8, 12))
+    assert len(measured) == 7  # other first-level resolutions
+    assert len(list(budget.cache_dir().glob("fit-cost-*.json"))) == 6
 
 
 # ---- plans ---------------------------------------------------------------------------------------------------------
@@ -134,6 +138,25 @@ def test_a_budget_below_the_coarsest_plan_gets_what_fits_of_it():
     coarsest = min(budget.LADDER, key=lambda r: (r.resolutions[-1], len(r.resolutions)))
     assert not plan.fits and plan.resolutions == list(coarsest.resolutions) and plan.share < budget.MIN_SHARE
     assert plan.predicted <= 2.0
+
+
+def test_a_first_level_is_predicted_at_its_own_cost_model():
+    """A first level's steps march the whole box: with a first-level model its prediction is its steps times that
+    model at the box's voxels, and a later level's is the pruned model's as before."""
+    dear = CostModel(**{**MEASURED.__dict__, "dense_fixed": 0.05, "dense_per_voxel": 3e-7})
+    box = FACTS.box_voxels(64)
+    first = Outlook(voxels=box)
+    gap = budget.predict(dear, FACTS, first, [64, 128], [500, 1000]) - budget.predict(MEASURED, FACTS, first, [64, 128],
+                                                                                      [500, 1000])
+    assert gap == pytest.approx(500 * (dear.step_seconds(box, dense=True) - MEASURED.step_seconds(box)), rel=1e-6)
+    later = Outlook(level=1, step=500, voxels=200_000, dense=False)
+    assert budget.predict(dear, FACTS, later, [64, 128], [500, 1000]) == budget.predict(MEASURED, FACTS, later,
+                                                                                       [64, 128], [500, 1000])
+    # The dearer first levels buy a coarser (or shorter) plan for the same budget.
+    for seconds in (30, 120):
+        mine, before = budget.choose(seconds, dear, FACTS), budget.choose(seconds, MEASURED, FACTS)
+        assert mine.predicted <= seconds
+        assert (mine.resolutions[-1], mine.share) < (before.resolutions[-1], before.share), (seconds, mine, before)
 
 
 def test_a_scene_that_fills_its_box_is_planned_coarser_for_the_same_budget():
