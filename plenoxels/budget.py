@@ -109,8 +109,8 @@ class Rung:
 
 
 # Candidate schedules, coarse to fine, at the presets' step counts: the presets (fast 64->128, balanced 96->192,
-# default 128->256, quality 128->256->384) and rungs between them made the same way; below them, two that start at
-# 32^3 (see the module's docstring), one of which is the one to take when nothing fits.
+# default 128->256, quality 128->256->384) and rungs between them made the same way; at the bottom, two that start at
+# 32^3 (see the module's docstring), 32->64 being what a budget too short for any plan gets.
 LADDER = (
     Rung((32, 64), (300, 600)),
     Rung((48, 96), (500, 1000)),
@@ -715,6 +715,7 @@ class TimeBudget:
                            "first_prune_prior": self.facts.first_keep},
             "replans": self.replans,
             "calibration": {"costs": dataclasses.asdict(self.costs), "points": self.calibration.get("points"),
+                            "first_level_points": self.calibration.get("first_level_points"),
                             "level_change": self.calibration.get("level_change"),
                             "cached": self.calibration["cached"], "file": self.calibration["file"],
                             "key": self.calibration["key"], "measured_in_seconds": self.calibration.get("seconds"),

@@ -159,6 +159,21 @@ def test_a_first_level_is_predicted_at_its_own_cost_model():
         assert (mine.resolutions[-1], mine.share) < (before.resolutions[-1], before.share), (seconds, mine, before)
 
 
+def test_a_32_start_reaches_a_128_grid_on_a_budget_a_dense_64_start_cannot():
+    """A first level is its whole box: starting at 32^3 makes a 128^3 plan cheaper than 64->128's, and a budget
+    between the two gets the 32^3 start rather than a coarser grid."""
+    three = next(r for r in budget.LADDER if r.resolutions == (32, 64, 128))
+    two = next(r for r in budget.LADDER if r.resolutions == (64, 128))
+
+    def fewest(rung):
+        now = FACTS.outlook(voxels=FACTS.box_voxels(rung.resolutions[0]))
+        return budget.predict(MEASURED, FACTS, now, list(rung.resolutions), rung.scaled(budget.MIN_SHARE))
+
+    assert fewest(three) < fewest(two)
+    plan = budget.choose((fewest(three) + fewest(two)) / 2, MEASURED, FACTS)
+    assert plan.resolutions == [32, 64, 128] and plan.fits
+
+
 def test_a_scene_that_fills_its_box_is_planned_coarser_for_the_same_budget():
     """An unbounded scene's first prune keeps most of its box (the room), so its later levels cost more than an
     object's: the same budget buys it a coarser or shorter plan, which its prediction says fits."""
