@@ -35,15 +35,21 @@ def load_frame(root: Path, frame: dict, scale: float, background_color) -> tuple
     if alpha is not None and alpha.shape != rgb.shape[:2]:
         raise UserError(f"mask {mask_path} is not the size of its image; re-run ingest")
     k = k.scaled(scale) if scale != 1 else k
-    colour = rgb.astype(np.float32)
+    return composited(rgb.astype(np.float32), 255.0, alpha, k, background_color), k
+
+
+def composited(colour: np.ndarray, peak: float, alpha: np.ndarray | None, k: Intrinsics,
+               background_color) -> np.ndarray:
+    """`colour` (float32 [h, w, 3] in [0, peak]; weighted in place) with `alpha` ([h, w] in [0, 1], or None)
+    composited onto `background_color`, at k's size, as float32 RGB in [0, 1]."""
     if alpha is None:
-        return np.ascontiguousarray(resized(colour, k) / 255.0), k
+        return np.ascontiguousarray(resized(colour, k) / peak)
     # Colour weighted by alpha and alpha itself are resized apart, then composited: area resizing is linear, so this
     # is the composite resized, with the arithmetic done at the new size.
     colour *= alpha[..., None]
     alpha = resized(alpha, k)[..., None]
     background = np.asarray(background_color, dtype=np.float32)
-    return np.ascontiguousarray(resized(colour, k) / 255.0 + background * (1 - alpha)), k
+    return np.ascontiguousarray(resized(colour, k) / peak + background * (1 - alpha))
 
 
 def resized(image: np.ndarray, k: Intrinsics) -> np.ndarray:

@@ -24,14 +24,13 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import cv2
 import imageio.v2 as imageio
 import imageio.v3 as iio
 import numpy as np
 import torch
 
 from pipeline import camera_paths
-from pipeline.images import read_alpha
+from pipeline.images import composited, read_alpha
 from pipeline.io import read_json, write_json, write_png
 from pipeline.lpips import weights_available
 from pipeline.metrics import image_scores, mean_scores, to_uint8
@@ -225,19 +224,13 @@ def read_truth(cam: RenderCamera, background_color) -> np.ndarray:
     image = iio.imread(cam.image)
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=-1)
-    scale = 65535.0 if image.dtype == np.uint16 else 255.0
-    rgb = image[..., :3].astype(np.float32) / scale
-    alpha = image[..., 3].astype(np.float32) / scale if image.shape[2] == 4 else None
+    peak = 65535.0 if image.dtype == np.uint16 else 255.0
+    alpha = image[..., 3].astype(np.float32) / peak if image.shape[2] == 4 else None
     if cam.mask is not None:
         alpha = read_alpha(cam.mask)
-    if alpha is not None:
-        if alpha.shape != rgb.shape[:2]:
-            raise UserError(f"mask {cam.mask} is not the size of its photo {cam.image}")
-        rgb = rgb * alpha[..., None] + np.asarray(background_color, dtype=np.float32) * (1 - alpha[..., None])
-    k = cam.intrinsics
-    if (rgb.shape[1], rgb.shape[0]) != (k.w, k.h):
-        rgb = cv2.resize(rgb, (k.w, k.h), interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(rgb)
+    if alpha is not None and alpha.shape != image.shape[:2]:
+        raise UserError(f"mask {cam.mask} is not the size of its photo {cam.image}")
+    return composited(image[..., :3].astype(np.float32), peak, alpha, cam.intrinsics, background_color)
 
 
 def render_cameras(model, cameras: CameraSet, out: Path, report, input_units_per_world: float = 1.0) -> dict:
