@@ -5,8 +5,10 @@ Each scene goes through the pipeline as a user's folder would (ingest at the pre
 files beside the photos, with points triangulated when they bring none, normalize), cached under
 bench/out/real_scenes/<scene>-<preset>/. Then each run fits the normalised scene with the preset (and the scene type's
 overlay), in a process of its own (its peak memory is its own), on all the training photos or on every 4th of them
-(`quarter`: the few-views case), and scores every held-out view (normalize's every 8th photo) at the fit's image
-scale with PSNR and SSIM, as the evaluate stage does. The first held-out view is written beside its truth to
+(`quarter`: the few-views case), and scores every held-out view (normalize's every 8th photo) with PSNR and SSIM, as
+the evaluate stage does, at one size whatever the preset: the photo with its longest side --score-side pixels (the
+presets ingest and fit photos of different sizes, and PSNRs at two sizes do not compare; 320, about `fast`'s fit
+photos, so the comparison never favours the larger ones). The first held-out view is written beside its truth to
 bench/results/real_scenes/<scene>-<preset>-<views>.png.
 
 The synthetic unbounded scene (pipeline/synthetic.py) is 40 views at 320x240 of an object on an endless textured
@@ -43,6 +45,7 @@ RENDERS = REPO / "bench" / "results" / "real_scenes"
 CACHE = REPO / "bench" / "out" / "real_scenes"
 SCENES = ("fox", "cup", "synthetic_unbounded")
 PRESETS = ("fast", "balanced", "default", "quality")
+SCORE_SIDE = 320
 VIEWS = {"all": 1, "quarter": 4}
 
 
@@ -93,9 +96,11 @@ def one_run(spec: dict) -> dict:
     settings = resolve(spec["preset"], scene["type"], spec["overrides"])
     load_before = os.getloadavg()[0]
     summary, wall, record, model = fitted(scene, out, settings, quiet=not spec.get("verbose"))
-    views, first = [], None
+    views, first, fit_size = [], None, None
     for frame in [f for f in scene["frames"] if f["split"] == "test"]:
-        truth, k = load_frame(out, frame, settings.image_scale, settings.background_color)
+        fit_size = [round(frame["w"] * settings.image_scale), round(frame["h"] * settings.image_scale)]
+        scale = spec["score_side"] / max(frame["w"], frame["h"]) if spec.get("score_side") else settings.image_scale
+        truth, k = load_frame(out, frame, scale, settings.background_color)
         with torch.no_grad():
             render = model.render_camera(np.asarray(frame["transform_matrix"]), k)["rgb"].numpy()
         views.append({"name": frame["name"], **image_scores(render, truth, with_lpips=False)})
@@ -106,7 +111,7 @@ def one_run(spec: dict) -> dict:
               to_uint8(np.concatenate([first[0], gap, first[1]], axis=1)))
     return {"scene": spec["scene"], "preset": spec["preset"], "views": spec["views"], "label": spec["label"],
             "overrides": spec["overrides"], "type": scene["type"], "mean": mean_scores(views), "held_out": views,
-            "train_images": record["train_images"], "image_size": [k.w, k.h],
+            "train_images": record["train_images"], "image_size": fit_size, "score_size": [k.w, k.h],
             "fit_seconds": record["seconds"], "wall_seconds": round(wall, 1),
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
             "load_average": [round(load_before, 2), round(os.getloadavg()[0], 2)],
@@ -127,9 +132,13 @@ def is_budget(run: dict) -> bool:
 
 def front_runs(run: dict, runs: list[dict], front: str) -> list[dict]:
     """The preset runs a budget run is compared with: its scene, photos and scoring size (PSNRs at two sizes do not
-    compare), labelled `front`, no overrides."""
+    compare; runs before --score-side were scored at their fit's size), labelled `front`, no overrides."""
     return [r for r in runs if (r["scene"], r["views"], r["label"]) == (run["scene"], run["views"], front)
-            and r["image_size"] == run["image_size"] and not r["overrides"]]
+            and scored_size(r) == scored_size(run) and not r["overrides"]]
+
+
+def scored_size(run: dict) -> list[int]:
+    return run.get("score_size", run["image_size"])
 
 
 def budget_verdict(run: dict, runs: list[dict], front: str) -> str:
@@ -210,6 +219,8 @@ def main(argv=None) -> int:
     parser.add_argument("--set", action="append", default=[], help="key=value (a fit setting) for every run")
     parser.add_argument("--label", default="as set", help="names the runs (a run replaces the same-labelled one)")
     parser.add_argument("--budgets", nargs="+", default=[], help="fit.time_budget values: one run each (30s 1m ...)")
+    parser.add_argument("--score-side", type=int, default=SCORE_SIDE,
+                        help="score held-out views with their longest side this many pixels (0: at the fit's size)")
     parser.add_argument("--front", default="after", help="the label of the preset runs budget runs are compared with")
     parser.add_argument("--table", action="store_true", help="print the results as a Markdown table and exit")
     parser.add_argument("--verbose", action="store_true", help="show each fit's progress")
@@ -241,6 +252,7 @@ def run_all(args) -> int:
                 for label, run_overrides in variants:
                     spec = {"scene": name, "preset": preset, "views": views, "label": label,
                             "overrides": run_overrides, "out": str(out), "verbose": args.verbose,
+                            "score_side": args.score_side,
                             "label_suffix": "" if label == "as set" else "-" + re.sub(r"[^A-Za-z0-9._-]+", "_", label)}
                     record = spawn(spec)
                     if record is None:

@@ -168,3 +168,18 @@ def test_real_scenes_budget_runs_compare_with_the_front_label_at_their_own_scori
     assert budget_verdict({**budget, "fit_seconds": 450}, runs, "after") == "below default (26.00 dB in 400 s)"
     assert "no preset run" in budget_verdict(budget, runs, "nothing")
 
+
+
+def test_real_scenes_runs_scored_at_one_size_compare_whatever_size_they_fit_at():
+    from bench.real_scenes import budget_verdict
+
+    def record(preset, label, seconds, psnr, fit_size, overrides=None):
+        return {"scene": "fox", "views": "all", "preset": preset, "label": label, "fit_seconds": seconds,
+                "mean": {"psnr": psnr}, "image_size": list(fit_size), "score_size": [180, 320],
+                "overrides": overrides or {}}
+
+    runs = [record("fast", "after", 80, 27.0, (178, 316)), record("default", "after", 400, 26.0, (266, 474))]
+    budget = record("default", "budget 2m", 120, 26.5, (266, 474), overrides={"time_budget": "2m"})
+    # Scored at the same size, fast's smaller photos no longer keep it off the budget's front.
+    assert budget_verdict(budget, runs, "after") == "below fast (27.00 dB in 80 s)"
+    assert budget_verdict({**budget, "mean": {"psnr": 27.5}}, runs, "after") == "on or above the presets' front"
