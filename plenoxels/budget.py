@@ -109,19 +109,20 @@ class Rung:
 
 
 # Candidate schedules, coarse to fine, at the presets' step counts: the presets (fast 64->128, balanced 96->192,
-# default 128->256, quality 128->256->384) and rungs between them made the same way; at the bottom, two that start at
-# 32^3 (see the module's docstring), 32->64 being what a budget too short for any plan gets.
+# default 128->256, quality 128->256->384, each first level pruned after a fifth of its steps: a repeated resolution)
+# and rungs between them made the same way; at the bottom, two that start at 32^3 (see the module's docstring), 32->64
+# being what a budget too short for any plan gets.
 LADDER = (
     Rung((32, 64), (300, 600)),
-    Rung((48, 96), (500, 1000)),
+    Rung((48, 48, 96), (100, 400, 1000)),
     Rung((32, 64, 128), (250, 500, 1000)),
-    Rung((64, 128), (500, 1000)),
-    Rung((80, 160), (600, 1200)),
-    Rung((96, 192), (750, 1500)),
-    Rung((112, 224), (900, 1500)),
-    Rung((128, 256), (1000, 1500)),
-    Rung((128, 256, 320), (1000, 1500, 1500)),
-    Rung((128, 256, 384), (1000, 1500, 1500)),
+    Rung((64, 64, 128), (100, 400, 1000)),
+    Rung((80, 80, 160), (120, 480, 1200)),
+    Rung((96, 96, 192), (150, 600, 1500)),
+    Rung((112, 112, 224), (180, 720, 1500)),
+    Rung((128, 128, 256), (200, 800, 1500)),
+    Rung((128, 128, 256, 320), (200, 800, 1500, 1500)),
+    Rung((128, 128, 256, 384), (200, 800, 1500, 1500)),
 )
 
 
@@ -483,13 +484,14 @@ class Plan:
 
 
 def _finest_first(ladder) -> list[Rung]:
-    return sorted(ladder, key=lambda r: (r.resolutions[-1], len(r.resolutions)), reverse=True)
+    return sorted(ladder, key=lambda r: (r.resolutions[-1], len(set(r.resolutions))), reverse=True)
 
 
 def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung, ...] | None = None) -> Plan:
     """The plan for a fit that has not started: the finest rung (no finer than `facts.max_resolution`) whose predicted
-    time fits `seconds` with at least MIN_SHARE of its steps, with the most steps that fit up to MAX_SHARE; when none
-    fits, the coarsest rung with the steps that fit (at least one a level)."""
+    time fits `seconds` with at least MIN_SHARE of its steps, with the most steps that fit up to MAX_SHARE (of rungs
+    ending at the same resolution, the one that gets the largest share); when none fits, the coarsest rung with the
+    steps that fit (at least one a level)."""
     ladder = _finest_first(ladder or LADDER)
     ladder = [r for r in ladder if r.resolutions[-1] <= facts.max_resolution] or ladder[-1:]
 
@@ -500,9 +502,12 @@ def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung
     def plan(rung: Rung, share: float) -> Plan:
         return Plan(list(rung.resolutions), rung.scaled(share), share, seconds_for(rung, share), share >= MIN_SHARE)
 
-    for rung in ladder:
-        share = _largest_share(lambda s: seconds_for(rung, s) <= seconds, MIN_SHARE, MAX_SHARE)
-        if share is not None:
+    for finest in sorted({r.resolutions[-1] for r in ladder}, reverse=True):
+        shares = [(share, rung) for rung in ladder if rung.resolutions[-1] == finest
+                  for share in [_largest_share(lambda s: seconds_for(rung, s) <= seconds, MIN_SHARE, MAX_SHARE)]
+                  if share is not None]
+        if shares:
+            share, rung = max(shares, key=lambda pair: pair[0])  # the first of equal shares: ladder order
             return plan(rung, share)
     coarsest = ladder[-1]
     return plan(coarsest, _largest_share(lambda s: seconds_for(coarsest, s) <= seconds, 0.0, MIN_SHARE) or 0.0)
@@ -512,9 +517,9 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
            steps: list[int], measured: bool) -> tuple[list[int], list[int], float]:
     """(resolutions, steps, share) for a fit under way, the levels done kept: the most steps (a share of the rung's,
     at most MAX_SHARE) whose predicted time fits `seconds`. A level still to come is dropped when keeping it would leave
-    less than MIN_SHARE of the steps: with `measured` costs (after a level change) any such level; during the first
-    level only a third or later one, as what pruning keeps is still a prior and a first level alone is never a whole
-    fit. Without that, a first level gives up the steps a level dropped later would have needed (fox, 5-minute
+    less than MIN_SHARE of the steps: with `measured` costs (once the grid has left its first resolution) any such
+    level; before that only one past the second resolution, as what pruning keeps is still a prior and a first
+    resolution alone is never a whole fit. Without that, a first level gives up the steps a level dropped later would have needed (fox, 5-minute
     budget: 128->256->384 planned at half its steps, 256 of 1000 first-level steps run, then 384 dropped at the level
     change). When no schedule gets MIN_SHARE, the fewest levels allowed get what fits. The resolutions stay the plan's
     otherwise: lowering a last level not yet started to the finest that still got MIN_SHARE of its steps lost on lego
@@ -530,7 +535,10 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     def fits(levels: int) -> Callable[[float], bool]:
         return lambda s: predict(costs, facts, now, resolutions[:levels], schedule(s, levels)) <= seconds
 
-    fewest = now.level + 1 if measured else min(len(resolutions), max(now.level + 1, 2))
+    # Unmeasured, keep two resolutions (a repeated one only prunes).
+    fewest = now.level + 1 if measured else min(
+        len(resolutions), max(now.level + 1, 1 + next((i for i, r in enumerate(resolutions) if r != resolutions[0]),
+                                                       len(resolutions))))
     for levels in range(len(resolutions), fewest - 1, -1):
         share = _largest_share(fits(levels), MIN_SHARE, MAX_SHARE)
         if share is not None:
@@ -658,7 +666,7 @@ class TimeBudget:
         self.now.step = self.fitter.step
         resolutions, steps, share = replan(self.left() - SLACK * self.seconds, self.costs, self.facts, self.now,
                                            self.rung, self.options.resolutions, self.options.steps,
-                                           measured=bool(self.fitter.levels))
+                                           measured=self.options.resolutions[self.fitter.level] != self.options.resolutions[0])
         entry = {"why": why, "step": self.fitter.step, "seconds_left": round(self.left(), 1), "share": round(share, 3),
                  "steps": steps, "step_seconds": round(self.now.step_seconds or 0.0, 5)}
         if len(resolutions) < len(self.options.resolutions):

@@ -45,9 +45,12 @@ RAY_CHUNK = 1 << 16
 class TrainOptions:
     """How a SceneModel is fitted: the levels, the batches, the optimiser, the regularisers and the pruning."""
 
-    resolutions: list[int] = field(default_factory=lambda: [128, 256])
-    """Grid vertices along the longest axis, one per level."""
-    steps: list[int] = field(default_factory=lambda: [1000, 1500])
+    resolutions: list[int] = field(default_factory=lambda: [128, 128, 256])
+    """Grid vertices along the longest axis, one per level. A level at the resolution of the one before prunes the
+    grid without upsampling it: a first level's grid is the whole box, and until it is pruned every ray marches all of
+    it, so the presets prune it after a fifth of its steps (lego `default`: 1000 steps at 128^3 in 61 s instead of 97,
+    the same held-out PSNR)."""
+    steps: list[int] = field(default_factory=lambda: [200, 800, 1500])
     """Optimiser steps per level."""
     batch_size: int = 8192
     """Rays per step."""
@@ -77,8 +80,8 @@ class TrainOptions:
     tv_sample_fraction: float = 0.01
     """Share of the occupied vertices the TV term looks at each step."""
     sparsity: float = 0.0
-    """Weight of a Cauchy prior that density is zero, per vertex of a random sample as large as TV's, on the first
-    level: pulls faint haze, which no photo needs but pruning keeps wherever some ray sees it, off the grid before the
+    """Weight of a Cauchy prior that density is zero, per vertex of a random sample as large as TV's, at the first
+    level's resolution: pulls faint haze, which no photo needs but pruning keeps wherever some ray sees it, off the grid before the
     first pruning decides what the finer levels are built from; they then fit detail without it (0: off)."""
     tv_views: float = 32.0
     """Few views: where the training photos see each point of the grid's box fewer than this many times on average,
@@ -389,7 +392,7 @@ class Fitter:
         tv = self.regularisation
         tv_loss_and_grad(self.model.grid, self.grad, tv["tv_density"] * tv_rows, tv["tv_sh"] * tv_rows,
                          o.tv_sample_fraction, self.generator)
-        if self.level == 0:
+        if o.resolutions[self.level] == o.resolutions[0]:
             sparsity_loss_and_grad(self.model.grid, self.grad, o.sparsity, o.tv_sample_fraction, self.generator)
         self.optim.step(self.grad)
         if self.bg_optim is not None:
@@ -439,21 +442,24 @@ class Fitter:
         return {"before": before, "after": grid.num_occupied}
 
     def next_level(self) -> None:
-        """Prune, upsample to the next resolution within the voxel budget, carry the optimiser state."""
+        """Prune, upsample to the next resolution within the voxel budget (at the same resolution: prune only), carry
+        the optimiser state."""
         budget = self.options.voxel_budget
         old_res = max(self.model.grid.resolution)
         self.level += 1
         new_shape = self.model.resolution_for(self.options.resolutions[self.level])
         growth = (max(new_shape) / old_res) ** 3
         pruned = self.prune(budget_rows=max(1, int(budget / growth)))
-        grid, old_rows = self.model.grid.upsample(new_shape)
-        if grid.num_occupied > budget:
-            # The estimate of the growth was short: drop the emptiest new vertices.
-            keep = torch.zeros(grid.num_occupied, dtype=torch.bool, device=grid.data.device)
-            keep[torch.topk(grid.density, budget).indices] = True
-            grid, rows = grid.prune(keep)
-            old_rows = old_rows[rows]
-        self._replace_grid(grid, old_rows)
+        if tuple(new_shape) != self.model.grid.resolution:
+            grid, old_rows = self.model.grid.upsample(new_shape)
+            if grid.num_occupied > budget:
+                # The estimate of the growth was short: drop the emptiest new vertices.
+                keep = torch.zeros(grid.num_occupied, dtype=torch.bool, device=grid.data.device)
+                keep[torch.topk(grid.density, budget).indices] = True
+                grid, rows = grid.prune(keep)
+                old_rows = old_rows[rows]
+            self._replace_grid(grid, old_rows)
+        grid = self.model.grid
         self.levels.append({"step": self.step, "pruned_from": pruned["before"], "kept": pruned["after"],
                             "resolution": list(grid.resolution), "occupied": grid.num_occupied,
                             "memory_bytes": grid.memory_bytes()})

@@ -79,8 +79,9 @@ class Settings(TrainOptions, ModelOptions):
     def check(self) -> None:
         require(len(self.resolutions) >= 1 and all(r >= 8 for r in self.resolutions),
                 "fit.resolutions must be a list of at least one resolution, each >= 8 (for example [128, 256])")
-        require(all(b > a for a, b in zip(self.resolutions, self.resolutions[1:])),
-                "fit.resolutions must increase from level to level (for example [128, 256])")
+        require(all(b >= a for a, b in zip(self.resolutions, self.resolutions[1:])),
+                "fit.resolutions must not decrease from level to level (for example [128, 128, 256]: a repeated "
+                "resolution prunes the grid without upsampling it)")
         require(len(self.steps) == len(self.resolutions) and all(s >= 1 for s in self.steps),
                 f"fit.steps must list one positive step count per resolution ({len(self.resolutions)} here)")
         require(self.batch_size >= 1, "fit.batch_size must be at least 1")

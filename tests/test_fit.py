@@ -90,8 +90,8 @@ def test_fit_reaches_quality_and_writes_outputs(scene):
 
 def test_the_sparsity_prior_leaves_less_density_for_as_good_a_fit(fresh, monkeypatch):
     """One level with and without the Cauchy prior on density: with it, fewer vertices hold any density (the faint
-    ones it pulls to zero), the pruning keeps fewer, and the held-out views are as good. It acts on the first level
-    only."""
+    ones it pulls to zero), the pruning keeps fewer, and the held-out views are as good. It acts at the first level's
+    resolution only."""
     live, kept, held_out = {}, {}, {}
     for weight in (0.0, 1e-4):
         run_stage(fresh, fit, {**QUICK, "resolutions": [32], "steps": [200], "sparsity": weight})
@@ -108,6 +108,9 @@ def test_the_sparsity_prior_leaves_less_density_for_as_good_a_fit(fresh, monkeyp
                         or original(grid, *a))
     run_stage(fresh, fit, {**QUICK, "steps": [20, 20], "sparsity": 1e-4})
     assert len(levels) == 20 and len(set(levels)) == 1, (len(levels), set(levels))  # the first level's 20 steps
+    levels.clear()  # a first level pruned early (a repeated resolution) keeps the prior until the grid is upsampled
+    run_stage(fresh, fit, {**QUICK, "resolutions": [16, 16, 32], "steps": [10, 10, 20], "sparsity": 1e-4})
+    assert len(levels) == 20 and len(set(levels)) == 1, (len(levels), set(levels))
     with pytest.raises(UserError, match="fit.sparsity"):
         config.build(fit.Settings, "fit", {"sparsity": -1.0})
 
@@ -200,8 +203,9 @@ def test_non_finite_parameters_stop_with_the_setting_to_change(fresh, monkeypatc
 def test_bad_settings_are_one_line_errors():
     with pytest.raises(UserError, match="fit.steps"):
         config.build(fit.Settings, "fit", {"resolutions": [64, 128], "steps": [100]})
-    with pytest.raises(UserError, match="increase"):
+    with pytest.raises(UserError, match="not decrease"):
         config.build(fit.Settings, "fit", {"resolutions": [128, 64], "steps": [1, 1]})
+    assert config.build(fit.Settings, "fit", {"resolutions": [64, 64, 128], "steps": [1, 1, 1]}).total_steps == 3
     with pytest.raises(UserError, match="fit.device"):
         config.build(fit.Settings, "fit", {"device": "tpu"})
 

@@ -202,3 +202,29 @@ def test_a_pruning_pass_marches_rays_by_the_grid_not_the_photos_and_keeps_what_t
 
     # Pruned by the sparse pass, the photos and the held-out views render as they do pruned by every pixel.
     assert rendered_psnr(kept) == pytest.approx(rendered_psnr(kept_by_every_pixel), abs=0.05)
+
+
+def test_a_repeated_resolution_prunes_the_grid_without_upsampling_it(tmp_path):
+    """A level at the resolution of the one before: the pruning pass's voxels and no others, at the same shape, with
+    the values and optimiser state they had; the next resolution then upsamples as usual."""
+    root = make_scene(tmp_path, width=160)
+    scene = read_json(root / "normalize" / "scene.json")
+    frames = [f for f in scene["frames"] if f["split"] == "train"]
+    loaded = [load_frame(root, frame, 1.0, (1.0, 1.0, 1.0)) for frame in frames]
+    train = RaySet([image for image, _ in loaded], [np.asarray(f["transform_matrix"]) for f in frames],
+                   [k for _, k in loaded])
+    options = TrainOptions(resolutions=[32, 32, 48], steps=[100, 20, 20], batch_size=2048)
+    fitter = Fitter(SceneModel.create(scene, ModelOptions(), 32), options, train)
+    for _ in range(100):
+        fitter.train_step()
+    grid, second_moment = fitter.model.grid, fitter.optim.second_moment.clone()
+    keep = prune_mask(grid, fitter.measure_weights(), options)
+    fitter.next_level()
+    pruned = fitter.model.grid
+    assert pruned.resolution == grid.resolution and pruned.num_occupied == int(keep.sum()) < 0.5 * grid.num_occupied
+    assert torch.equal(pruned.data, grid.data[keep]) and torch.equal(fitter.optim.second_moment, second_moment[keep])
+    assert fitter.levels[-1]["kept"] == fitter.levels[-1]["occupied"] == pruned.num_occupied
+    for _ in range(20):
+        fitter.train_step()
+    fitter.next_level()
+    assert max(fitter.model.grid.resolution) == 48 and fitter.model.grid.num_occupied > pruned.num_occupied
