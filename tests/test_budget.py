@@ -162,21 +162,20 @@ def test_a_first_level_is_predicted_at_its_own_cost_model():
 
 
 def test_of_rungs_ending_at_one_resolution_the_plan_takes_the_one_that_gets_the_most_steps():
-    """32->64->128 and 64->64->128 (a 64^3 first level pruned early) both end at 128^3: the budget gets whichever the
-    cost model says gets the larger share of its steps, and with a dearer first level that is the 32^3 start."""
+    """Rungs that end at the same resolution: the budget gets whichever its cost model says gets the larger share of
+    its steps, not the first in the ladder's order."""
     three = next(r for r in budget.LADDER if r.resolutions == (32, 64, 128))
-    two = next(r for r in budget.LADDER if r.resolutions == (64, 64, 128))
-    ladder = (three, two)
 
-    def fewest(rung, costs):
+    def fewest(rung):
         now = FACTS.outlook(voxels=FACTS.box_voxels(rung.resolutions[0]))
-        return budget.predict(costs, FACTS, now, list(rung.resolutions), rung.scaled(budget.MIN_SHARE))
+        return budget.predict(MEASURED, FACTS, now, list(rung.resolutions), rung.scaled(budget.MIN_SHARE))
 
-    dear = dataclasses.replace(MEASURED, dense_fixed=0.04, dense_per_voxel=5e-7)
-    for costs, cheaper in ((MEASURED, two), (dear, three)):
-        assert fewest(cheaper, costs) < fewest(three if cheaper is two else two, costs)
-        plan = budget.choose(2 * fewest(cheaper, costs), costs, FACTS, ladder)
-        assert tuple(plan.resolutions) == cheaper.resolutions and plan.fits and plan.predicted <= 2 * fewest(cheaper, costs)
+    for other in (Rung((64, 128), (100, 200)), Rung((64, 128), (5000, 10000))):
+        cheaper = other if fewest(other) < fewest(three) else three
+        seconds = 1.5 * max(fewest(other), fewest(three))  # both fit with more than MIN_SHARE
+        plan = budget.choose(seconds, MEASURED, FACTS, (three, other))
+        assert tuple(plan.resolutions) == cheaper.resolutions and plan.fits and plan.predicted <= seconds
+    assert fewest(Rung((64, 128), (100, 200))) < fewest(three) < fewest(Rung((64, 128), (5000, 10000)))
 
 
 def test_a_scene_that_fills_its_box_is_planned_coarser_for_the_same_budget():
@@ -198,9 +197,9 @@ def test_a_scene_that_fills_its_box_is_planned_coarser_for_the_same_budget():
 
 
 def test_a_replan_follows_the_measured_cost_and_drops_a_level_that_cannot_converge():
-    rung = budget.LADDER[-1]  # 128 -> 128 -> 256 -> 384
+    rung = budget.LADDER[-1]  # 128 -> 256 -> 384
     resolutions, steps = list(rung.resolutions), rung.scaled(1.0)
-    now = Outlook(level=2, step=1100, voxels=2_000_000, dense=False)
+    now = Outlook(level=1, step=1100, voxels=2_000_000, dense=False)
     fast_left = budget.predict(MEASURED, FACTS, now, resolutions, steps)
     kept, new_steps, share = budget.replan(fast_left, MEASURED, FACTS, now, rung, resolutions, steps, measured=True)
     assert kept == resolutions and share == pytest.approx(1.0, abs=0.02)
@@ -209,27 +208,32 @@ def test_a_replan_follows_the_measured_cost_and_drops_a_level_that_cannot_conver
     now.step_seconds, now.step_ratio = 3 * MEASURED.step_seconds(2_000_000), 3.0  # three times slower than modelled
     kept, new_steps, share = budget.replan(fast_left, MEASURED, FACTS, now, rung, resolutions, steps, measured=True)
     assert budget.predict(MEASURED, FACTS, now, kept, new_steps) <= fast_left
-    assert new_steps[:2] == steps[:2] and new_steps[2] >= 100  # the levels done stay as they were
-    assert kept == resolutions[:3] and share >= budget.MIN_SHARE  # the 384 level could not get half its steps
+    assert new_steps[0] == steps[0] and new_steps[1] >= 100  # the levels done stay as they were
+    assert kept == resolutions[:2] and share >= budget.MIN_SHARE  # the 384 level could not get half its steps
 
 
 def test_a_replan_during_the_first_level_drops_a_third_level_but_keeps_two():
     """Steps 3x dearer than modelled, measured early in the first level: a plan that cannot give its levels half their
     steps loses its third level before the first level gives up steps for it, never its second."""
-    three, two = budget.LADDER[-1], budget.LADDER[-3]  # 128 -> 128 -> 256 -> 384 and 128 -> 128 -> 256
+    three, two = budget.LADDER[-1], budget.LADDER[-3]  # 128 -> 256 -> 384 and 128 -> 256
     now = Outlook(level=0, step=100, voxels=FACTS.box_voxels(128), dense=True, step_ratio=3.0,
                   step_seconds=3 * MEASURED.step_seconds(FACTS.box_voxels(128)))
     planned = three.scaled(budget.MIN_SHARE)
     seconds = 0.6 * budget.predict(MEASURED, FACTS, now, list(three.resolutions), planned)
     kept, steps, share = budget.replan(seconds, MEASURED, FACTS, now, three, list(three.resolutions), planned,
                                        measured=False)
-    assert kept == [128, 128, 256] and share >= budget.MIN_SHARE and steps[0] > planned[0]
+    assert kept == [128, 256] and share >= budget.MIN_SHARE and steps[0] > planned[0]
     assert budget.predict(MEASURED, FACTS, now, kept, steps) <= seconds
     # Not even two resolutions get half their steps: both stay, with what fits.
-    tight = 0.3 * budget.predict(MEASURED, FACTS, now, [128, 128, 256], two.scaled(budget.MIN_SHARE))
-    kept, steps, share = budget.replan(tight, MEASURED, FACTS, now, two, [128, 128, 256], two.scaled(1.0),
+    tight = 0.3 * budget.predict(MEASURED, FACTS, now, [128, 256], two.scaled(budget.MIN_SHARE))
+    kept, steps, share = budget.replan(tight, MEASURED, FACTS, now, two, [128, 256], two.scaled(1.0),
                                        measured=False)
-    assert kept == [128, 128, 256] and 0 < share < budget.MIN_SHARE
+    assert kept == [128, 256] and 0 < share < budget.MIN_SHARE
+    # A first level pruned early (a repeated resolution) is still the first resolution: the second one stays.
+    early = Rung((128, 128, 256), (200, 800, 1500))
+    kept, steps, share = budget.replan(tight, MEASURED, FACTS, now, early, [128, 128, 256], [200, 800, 1500],
+                                       measured=False)
+    assert kept == [128, 128, 256]
     assert budget.predict(MEASURED, FACTS, now, kept, steps) <= tight
 
 
