@@ -111,10 +111,11 @@ class Rung:
 # Candidate schedules, coarse to fine, at the presets' step counts: the presets' levels (fast 64->128, balanced
 # 96->192, default 128->256, quality 128->256->384) and rungs between them made the same way; at the bottom, two that
 # start at 32^3 (see the module's docstring), 32->64 being what a budget too short for any plan gets. Unlike the
-# presets, the rungs do not prune their first level early: a grid pruned a fifth of the way into its first level is
-# still diffuse, and its steps cost up to 2.5x what the cost model predicts for a pruned grid of its size, which the
-# re-plans then carried to the finer levels (lego at 400x400 with such rungs: 1 min 27.81 dB, 2 min 28.84 dB, their
-# 192^3 and 256^3 levels cut to less than half their planned steps; 28.49 and 29.76 dB without).
+# presets, the rungs do not prune their first level early: a budget's share scales that prune to fewer than 100-130
+# steps, before the density's rate has ramped up, and what it keeps is still diffuse: more voxels than the plan
+# assumed, dearer steps than the cost model predicts for their number, and a finer grid twice the size (lego at
+# 400x400 with such rungs: 1 min 27.81 dB, 2 min 28.84 dB, their last levels cut to under half their planned steps;
+# 28.41 and 29.88 dB without).
 LADDER = (
     Rung((32, 64), (300, 600)),
     Rung((48, 96), (500, 1000)),
