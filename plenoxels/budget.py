@@ -523,9 +523,9 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     at most MAX_SHARE) whose predicted time fits `seconds`. A level still to come is dropped when keeping it would leave
     less than MIN_SHARE of the steps: with `measured` costs (once the grid has left its first resolution) any such
     level; before that only one past the second resolution, as what pruning keeps is still a prior and a first
-    resolution alone is never a whole fit. Without that, a first level gives up the steps a level dropped later would have needed (fox, 5-minute
-    budget: 128->256->384 planned at half its steps, 256 of 1000 first-level steps run, then 384 dropped at the level
-    change). When no schedule gets MIN_SHARE, the fewest levels allowed get what fits. The resolutions stay the plan's
+    resolution alone is never a whole fit. Without that, a first level gives up the steps a level dropped later would
+    have needed (fox, 5-minute budget: 128->256->384 planned at half its steps, 256 of 1000 first-level steps run, then
+    384 dropped at the level change). When no schedule gets MIN_SHARE, the fewest levels allowed get what fits. The resolutions stay the plan's
     otherwise: lowering a last level not yet started to the finest that still got MIN_SHARE of its steps lost on lego
     at every budget tried (bench/README.md, "The time budget against the presets")."""
     done = now.step - sum(steps[:now.level])
@@ -668,9 +668,10 @@ class TimeBudget:
 
     def _replan(self, why: str) -> None:
         self.now.step = self.fitter.step
+        first_resolution = self.options.resolutions[self.fitter.level] == self.options.resolutions[0]
         resolutions, steps, share = replan(self.left() - SLACK * self.seconds, self.costs, self.facts, self.now,
                                            self.rung, self.options.resolutions, self.options.steps,
-                                           measured=self.options.resolutions[self.fitter.level] != self.options.resolutions[0])
+                                           measured=not first_resolution)
         entry = {"why": why, "step": self.fitter.step, "seconds_left": round(self.left(), 1), "share": round(share, 3),
                  "steps": steps, "step_seconds": round(self.now.step_seconds or 0.0, 5)}
         if len(resolutions) < len(self.options.resolutions):

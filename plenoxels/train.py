@@ -81,8 +81,8 @@ class TrainOptions:
     """Share of the occupied vertices the TV term looks at each step."""
     sparsity: float = 0.0
     """Weight of a Cauchy prior that density is zero, per vertex of a random sample as large as TV's, at the first
-    level's resolution: pulls faint haze, which no photo needs but pruning keeps wherever some ray sees it, off the grid before the
-    first pruning decides what the finer levels are built from; they then fit detail without it (0: off)."""
+    level's resolution: pulls faint haze, which no photo needs but pruning keeps wherever some ray sees it, off the
+    grid before the first upsampling builds the finer levels from it; they then fit detail without it (0: off)."""
     tv_views: float = 32.0
     """Few views: where the training photos see each point of the grid's box fewer than this many times on average,
     both TV weights grow by (tv_views / views)^tv_views_power (0: the weights as set, whatever the capture)."""

@@ -169,7 +169,6 @@ def test_real_scenes_budget_runs_compare_with_the_front_label_at_their_own_scori
     assert "no preset run" in budget_verdict(budget, runs, "nothing")
 
 
-
 def test_real_scenes_runs_scored_at_one_size_compare_whatever_size_they_fit_at():
     from bench.real_scenes import budget_verdict
 

@@ -1,11 +1,10 @@
 """The fit's time budget: durations, the cached calibration, plans that fit, and budgeted fits that end on time."""
+import dataclasses
 import json
 import os
 import shutil
 import signal
 import time
-
-import dataclasses
 
 import pytest
 import torch
