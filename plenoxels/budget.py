@@ -111,11 +111,11 @@ class Rung:
 # Candidate schedules, coarse to fine, at the presets' step counts: the presets' levels (fast 64->128, balanced
 # 96->192, default 128->256, quality 128->256->384) and rungs between them made the same way; at the bottom, two that
 # start at 32^3 (see the module's docstring), 32->64 being what a budget too short for any plan gets. Unlike the
-# presets, the rungs do not prune their first level early: a budget's share scales that prune to fewer than 100-130
-# steps, before the density's rate has ramped up, and what it keeps is still diffuse: more voxels than the plan
-# assumed, dearer steps than the cost model predicts for their number, and a finer grid twice the size (lego at
-# 400x400 with such rungs: 1 min 27.81 dB, 2 min 28.84 dB, their last levels cut to under half their planned steps;
-# 28.41 and 29.88 dB without).
+# presets, the rungs do not prune their first level early: a budget's share scales that prune down to 73-132 steps,
+# and what it keeps then is still diffuse: more voxels than the plan assumed (22-25% of the box against 15% at lego
+# `default`'s step 200), dearer steps than the cost model predicts for their number, and a finer grid twice the size
+# (lego at 400x400 with such rungs: 1 min 27.81 dB, 2 min 28.84 dB, their last levels cut to under half their planned
+# steps; 28.41 and 29.88 dB without).
 LADDER = (
     Rung((32, 64), (300, 600)),
     Rung((48, 96), (500, 1000)),
@@ -539,10 +539,9 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     def fits(levels: int) -> Callable[[float], bool]:
         return lambda s: predict(costs, facts, now, resolutions[:levels], schedule(s, levels)) <= seconds
 
-    # Unmeasured, keep two resolutions (a repeated one only prunes).
-    fewest = now.level + 1 if measured else min(
-        len(resolutions), max(now.level + 1, 1 + next((i for i, r in enumerate(resolutions) if r != resolutions[0]),
-                                                       len(resolutions))))
+    # Unmeasured, keep the levels up to the second resolution (a repeated one only prunes).
+    second = next((i for i, r in enumerate(resolutions) if r != resolutions[0]), len(resolutions) - 1)
+    fewest = now.level + 1 if measured else max(now.level + 1, second + 1)
     for levels in range(len(resolutions), fewest - 1, -1):
         share = _largest_share(fits(levels), MIN_SHARE, MAX_SHARE)
         if share is not None:
