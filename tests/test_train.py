@@ -22,12 +22,17 @@ from plenoxels.train import (Fitter, RaySet, TrainOptions, coherent_order, decay
 from test_fit import make_scene
 
 
+def training_rays(root, frames: list[dict]) -> RaySet:
+    """The frames' photos, full size on white, as the fit's training rays."""
+    loaded = [load_frame(root, frame, 1.0, (1.0, 1.0, 1.0)) for frame in frames]
+    return RaySet([image for image, _ in loaded], [np.asarray(f["transform_matrix"]) for f in frames],
+                  [k for _, k in loaded])
+
+
 def test_batches_are_the_rays_and_colours_of_real_pixels(tmp_path):
     root = make_scene(tmp_path)
     frames = [f for f in read_json(root / "normalize" / "scene.json")["frames"] if f["split"] == "train"]
-    loaded = [load_frame(root, frame, 1.0, (1.0, 1.0, 1.0)) for frame in frames]
-    train = RaySet([image for image, _ in loaded], [np.asarray(f["transform_matrix"]) for f in frames],
-                   [k for _, k in loaded])
+    train = training_rays(root, frames)
     generator = torch.Generator().manual_seed(3)
     for mode in ("tiles", "rays"):
         o, d, colour = train.batch(1024, mode, 16, generator)
@@ -56,9 +61,7 @@ def test_learning_rate_schedule():
 def test_coherent_batches_are_the_same_rays_in_an_order_that_keeps_neighbours_together(tmp_path):
     root = make_scene(tmp_path)
     frames = [f for f in read_json(root / "normalize" / "scene.json")["frames"] if f["split"] == "train"]
-    loaded = [load_frame(root, frame, 1.0, (1.0, 1.0, 1.0)) for frame in frames]
-    train = RaySet([image for image, _ in loaded], [np.asarray(f["transform_matrix"]) for f in frames],
-                   [k for _, k in loaded])
+    train = training_rays(root, frames)
     plain = train.batch(2048, "rays", 16, torch.Generator().manual_seed(5))
     ordered = train.batch(2048, "rays", 16, torch.Generator().manual_seed(5), coherent=True)
     # The same rays and targets, each once.
@@ -134,9 +137,7 @@ def test_few_views_strengthen_tv_and_many_keep_it_as_set(tmp_path):
     frames = [f for f in scene["frames"] if f["split"] == "train"]
     scales = []
     for kept in (frames, frames[::4]):
-        loaded = [load_frame(root, frame, 1.0, (1.0, 1.0, 1.0)) for frame in kept]
-        train = RaySet([image for image, _ in loaded], [np.asarray(f["transform_matrix"]) for f in kept],
-                       [k for _, k in loaded])
+        train = training_rays(root, kept)
         options = TrainOptions(tv_views=12.0)
         fitter = Fitter(SceneModel.create(scene, ModelOptions(), 16), options, train)
         tv = fitter.regularisation
@@ -159,9 +160,7 @@ def test_a_pruning_pass_marches_rays_by_the_grid_not_the_photos_and_keeps_what_t
     root = make_scene(tmp_path, width=160)
     scene = read_json(root / "normalize" / "scene.json")
     frames = [f for f in scene["frames"] if f["split"] == "train"]
-    loaded = [load_frame(root, frame, 1.0, (1.0, 1.0, 1.0)) for frame in frames]
-    train = RaySet([image for image, _ in loaded], [np.asarray(f["transform_matrix"]) for f in frames],
-                   [k for _, k in loaded])
+    train = training_rays(root, frames)
     options = TrainOptions(resolutions=[32], steps=[150], batch_size=2048, prune_ray_scale=1.0)
     wanted = options.prune_rays_per_cell * 32 ** 2
     stride = pruning_stride(train.sizes, 32, options)
@@ -210,9 +209,7 @@ def test_a_repeated_resolution_prunes_the_grid_without_upsampling_it(tmp_path):
     root = make_scene(tmp_path, width=160)
     scene = read_json(root / "normalize" / "scene.json")
     frames = [f for f in scene["frames"] if f["split"] == "train"]
-    loaded = [load_frame(root, frame, 1.0, (1.0, 1.0, 1.0)) for frame in frames]
-    train = RaySet([image for image, _ in loaded], [np.asarray(f["transform_matrix"]) for f in frames],
-                   [k for _, k in loaded])
+    train = training_rays(root, frames)
     options = TrainOptions(resolutions=[32, 32, 48], steps=[100, 20, 20], batch_size=2048)
     fitter = Fitter(SceneModel.create(scene, ModelOptions(), 32), options, train)
     for _ in range(100):
