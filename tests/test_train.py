@@ -225,3 +225,26 @@ def test_a_repeated_resolution_prunes_the_grid_without_upsampling_it(tmp_path):
         fitter.train_step()
     fitter.next_level()
     assert max(fitter.model.grid.resolution) == 48 and fitter.model.grid.num_occupied > pruned.num_occupied
+
+
+def test_a_fit_stopped_between_the_early_prune_and_the_upsample_resumes_to_the_same_model(tmp_path):
+    """On one thread (the gradient sums' order is then fixed), a fit stopped inside a repeated resolution's level and
+    resumed from its checkpoint ends where the fit that never stopped does."""
+    root = make_scene(tmp_path, width=64)
+    scene = read_json(root / "normalize" / "scene.json")
+    train = training_rays(root, [f for f in scene["frames"] if f["split"] == "train"])
+    options = TrainOptions(resolutions=[16, 16, 32], steps=[30, 10, 10], batch_size=1024)
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        fits = [Fitter(SceneModel.create(scene, ModelOptions(), 16), options, train) for _ in range(3)]
+        whole, stopped, resumed = fits
+        whole.run(tmp_path / "whole.pt", 1e9)
+        assert stopped.run(tmp_path / "stopped.pt", 1e9, stop_requested=lambda: stopped.step >= 35)
+        assert stopped.level == 1 and list(stopped.model.grid.resolution) == whole.levels[0]["resolution"]
+        resumed.load_checkpoint(tmp_path / "stopped.pt")
+        resumed.run(tmp_path / "resumed.pt", 1e9)
+    finally:
+        torch.set_num_threads(before)
+    assert resumed.levels == whole.levels
+    assert torch.equal(resumed.model.grid.data, whole.model.grid.data)
