@@ -488,7 +488,7 @@ class Plan:
 
 
 def _finest_first(ladder) -> list[Rung]:
-    return sorted(ladder, key=lambda r: (r.resolutions[-1], len(set(r.resolutions))), reverse=True)
+    return sorted(ladder, key=lambda r: (r.resolutions[-1], len(r.resolutions)), reverse=True)
 
 
 def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung, ...] | None = None) -> Plan:
@@ -521,11 +521,11 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
            steps: list[int], measured: bool) -> tuple[list[int], list[int], float]:
     """(resolutions, steps, share) for a fit under way, the levels done kept: the most steps (a share of the rung's,
     at most MAX_SHARE) whose predicted time fits `seconds`. A level still to come is dropped when keeping it would leave
-    less than MIN_SHARE of the steps: with `measured` costs (once the grid has left its first resolution) any such
-    level; before that only one past the second resolution, as what pruning keeps is still a prior and a first
-    resolution alone is never a whole fit. Without that, a first level gives up the steps a level dropped later would
-    have needed (fox, 5-minute budget: 128->256->384 planned at half its steps, 256 of 1000 first-level steps run, then
-    384 dropped at the level change). When no schedule gets MIN_SHARE, the fewest levels allowed get what fits. The resolutions stay the plan's
+    less than MIN_SHARE of the steps: with `measured` costs (after a level change) any such level; during the first
+    level only a third or later one, as what pruning keeps is still a prior and a first level alone is never a whole
+    fit. Without that, a first level gives up the steps a level dropped later would have needed (fox, 5-minute
+    budget: 128->256->384 planned at half its steps, 256 of 1000 first-level steps run, then 384 dropped at the level
+    change). When no schedule gets MIN_SHARE, the fewest levels allowed get what fits. The resolutions stay the plan's
     otherwise: lowering a last level not yet started to the finest that still got MIN_SHARE of its steps lost on lego
     at every budget tried (bench/README.md, "The time budget against the presets")."""
     done = now.step - sum(steps[:now.level])
@@ -539,9 +539,7 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     def fits(levels: int) -> Callable[[float], bool]:
         return lambda s: predict(costs, facts, now, resolutions[:levels], schedule(s, levels)) <= seconds
 
-    # Unmeasured, keep the levels up to the second resolution (a repeated one only prunes).
-    second = next((i for i, r in enumerate(resolutions) if r != resolutions[0]), len(resolutions) - 1)
-    fewest = now.level + 1 if measured else max(now.level + 1, second + 1)
+    fewest = now.level + 1 if measured else min(len(resolutions), max(now.level + 1, 2))
     for levels in range(len(resolutions), fewest - 1, -1):
         share = _largest_share(fits(levels), MIN_SHARE, MAX_SHARE)
         if share is not None:
@@ -667,10 +665,9 @@ class TimeBudget:
 
     def _replan(self, why: str) -> None:
         self.now.step = self.fitter.step
-        first_resolution = self.options.resolutions[self.fitter.level] == self.options.resolutions[0]
         resolutions, steps, share = replan(self.left() - SLACK * self.seconds, self.costs, self.facts, self.now,
                                            self.rung, self.options.resolutions, self.options.steps,
-                                           measured=not first_resolution)
+                                           measured=bool(self.fitter.levels))
         entry = {"why": why, "step": self.fitter.step, "seconds_left": round(self.left(), 1), "share": round(share, 3),
                  "steps": steps, "step_seconds": round(self.now.step_seconds or 0.0, 5)}
         if len(resolutions) < len(self.options.resolutions):

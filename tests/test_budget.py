@@ -1,5 +1,4 @@
 """The fit's time budget: durations, the cached calibration, plans that fit, and budgeted fits that end on time."""
-import dataclasses
 import json
 import os
 import shutil
@@ -160,6 +159,21 @@ def test_a_first_level_is_predicted_at_its_own_cost_model():
         assert (mine.resolutions[-1], mine.share) < (before.resolutions[-1], before.share), (seconds, mine, before)
 
 
+def test_a_32_start_reaches_a_128_grid_on_a_budget_a_dense_64_start_cannot():
+    """A first level is its whole box: starting at 32^3 makes a 128^3 plan cheaper than 64->128's, and a budget
+    between the two gets the 32^3 start rather than a coarser grid."""
+    three = next(r for r in budget.LADDER if r.resolutions == (32, 64, 128))
+    two = next(r for r in budget.LADDER if r.resolutions == (64, 128))
+
+    def fewest(rung):
+        now = FACTS.outlook(voxels=FACTS.box_voxels(rung.resolutions[0]))
+        return budget.predict(MEASURED, FACTS, now, list(rung.resolutions), rung.scaled(budget.MIN_SHARE))
+
+    assert fewest(three) < fewest(two)
+    plan = budget.choose((fewest(three) + fewest(two)) / 2, MEASURED, FACTS)
+    assert plan.resolutions == [32, 64, 128] and plan.fits
+
+
 def test_of_rungs_ending_at_one_resolution_the_plan_takes_the_one_that_gets_the_most_steps():
     """Rungs that end at the same resolution: the budget gets whichever its cost model says gets the larger share of
     its steps, not the first in the ladder's order."""
@@ -223,16 +237,10 @@ def test_a_replan_during_the_first_level_drops_a_third_level_but_keeps_two():
                                        measured=False)
     assert kept == [128, 256] and share >= budget.MIN_SHARE and steps[0] > planned[0]
     assert budget.predict(MEASURED, FACTS, now, kept, steps) <= seconds
-    # Not even two resolutions get half their steps: both stay, with what fits.
+    # Not even two levels get half their steps: both stay, with what fits.
     tight = 0.3 * budget.predict(MEASURED, FACTS, now, [128, 256], two.scaled(budget.MIN_SHARE))
-    kept, steps, share = budget.replan(tight, MEASURED, FACTS, now, two, [128, 256], two.scaled(1.0),
-                                       measured=False)
+    kept, steps, share = budget.replan(tight, MEASURED, FACTS, now, two, [128, 256], two.scaled(1.0), measured=False)
     assert kept == [128, 256] and 0 < share < budget.MIN_SHARE
-    # A first level pruned early (a repeated resolution) is still the first resolution: the second one stays.
-    early = Rung((128, 128, 256), (200, 800, 1500))
-    kept, steps, share = budget.replan(tight, MEASURED, FACTS, now, early, [128, 128, 256], [200, 800, 1500],
-                                       measured=False)
-    assert kept == [128, 128, 256]
     assert budget.predict(MEASURED, FACTS, now, kept, steps) <= tight
 
 
