@@ -15,8 +15,8 @@ the fit on time.
 What a prediction adds up, from where the fit stands to its end: steps times seconds per step (for the level under
 way, what its steps measure, or before they have, the first-level model at its box's voxels; for later levels, the
 cost model at their occupied voxels, times the ratio of this scene's measured steps to the model's; a first level's
-ratio counts only above 1, as a first level clears its empty space and gets cheaper as it goes while a busy machine
-does not), level changes (a pruning
+ratio, and that of a first level's early-pruned rest, counts only above 1, as such a level clears its empty space and
+gets cheaper as it goes while a busy machine does not), level changes (a pruning
 pass over the training rays at the old resolution, then upsampling and a checkpoint that grow with the new grid),
 held-out evaluations, checkpoints, and the end (the last pruning pass, the held-out PSNR, the save). A later level's
 voxels are the level before's, times the share pruning keeps, times the upsampling's growth; the share is a prior
@@ -103,30 +103,40 @@ class Rung:
     """A candidate schedule: the resolution of each level and its steps at a share of 1."""
     resolutions: tuple[int, ...]
     steps: tuple[int, ...]
+    fixed: int = 0
+    """Leading levels whose steps stay as they are whatever the share (a first level's early prune)."""
 
     def scaled(self, share: float) -> list[int]:
-        return [max(1, round(share * n)) for n in self.steps]
+        return [n if level < self.fixed else max(1, round(share * n)) for level, n in enumerate(self.steps)]
+
+
+def _pruned_early(resolutions: tuple[int, ...], steps: tuple[int, ...]) -> Rung:
+    """A rung whose first level prunes after a fifth of its steps, as the presets' do, and goes on at the same
+    resolution: the prune comes after that many steps whatever the share, as what a grid keeps after fewer is still
+    diffuse."""
+    early = steps[0] // 5
+    return Rung((resolutions[0],) + resolutions, (early, steps[0] - early) + steps[1:], fixed=1)
 
 
 # Candidate schedules, coarse to fine, at the presets' step counts: the presets' levels (fast 64->128, balanced
-# 96->192, default 128->256, quality 128->256->384) and rungs between them made the same way; at the bottom, two that
-# start at 32^3 (see the module's docstring), 32->64 being what a budget too short for any plan gets. Unlike the
-# presets, the rungs do not prune their first level early: a budget's share scales that prune down to 73-132 steps,
-# and what it keeps then is still diffuse: more voxels than the plan assumed (22-25% of the box against 15% at lego
-# `default`'s step 200), dearer steps than the cost model predicts for their number, and a finer grid twice the size
-# (lego at 400x400 with such rungs: 1 min 27.81 dB, 2 min 28.84 dB, their last levels cut to under half their planned
-# steps; 28.41 and 29.88 dB without).
+# 96->192, default 128->256, quality 128->256->384) and rungs between them made the same way, each first level pruned
+# early as the presets' are (a first level's steps march its whole box until a prune clears it: lego `default` 31.19 dB
+# in 246 s without, 31.24 dB in 216 s with); at the bottom, two that start at 32^3 (see the module's docstring), 32->64
+# being what a budget too short for any plan gets. A share scaled the early prune too in an earlier form of these rungs,
+# down to 73-132 steps, and what a grid keeps after so few steps is still diffuse: more voxels than the plan assumed
+# (22-25% of the box against 15% at lego `default`'s step 200) and a finer grid twice the size (lego at 400x400: 1 min
+# 27.81 dB, 2 min 28.84 dB, against 28.41 and 29.88 dB with no early prune); hence `fixed`.
 LADDER = (
     Rung((32, 64), (300, 600)),
     Rung((48, 96), (500, 1000)),
     Rung((32, 64, 128), (250, 500, 1000)),
-    Rung((64, 128), (500, 1000)),
-    Rung((80, 160), (600, 1200)),
-    Rung((96, 192), (750, 1500)),
-    Rung((112, 224), (900, 1500)),
-    Rung((128, 256), (1000, 1500)),
-    Rung((128, 256, 320), (1000, 1500, 1500)),
-    Rung((128, 256, 384), (1000, 1500, 1500)),
+    _pruned_early((64, 128), (500, 1000)),
+    _pruned_early((80, 160), (600, 1200)),
+    _pruned_early((96, 192), (750, 1500)),
+    _pruned_early((112, 224), (900, 1500)),
+    _pruned_early((128, 256), (1000, 1500)),
+    _pruned_early((128, 256, 320), (1000, 1500, 1500)),
+    _pruned_early((128, 256, 384), (1000, 1500, 1500)),
 )
 
 
@@ -539,7 +549,9 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     def fits(levels: int) -> Callable[[float], bool]:
         return lambda s: predict(costs, facts, now, resolutions[:levels], schedule(s, levels)) <= seconds
 
-    fewest = now.level + 1 if measured else min(len(resolutions), max(now.level + 1, 2))
+    # A first level pruned early goes on at its resolution: the second level is then the one after that.
+    second = next((level + 1 for level, r in enumerate(resolutions) if r != resolutions[0]), len(resolutions))
+    fewest = now.level + 1 if measured else min(len(resolutions), max(now.level + 1, second))
     for levels in range(len(resolutions), fewest - 1, -1):
         share = _largest_share(fits(levels), MIN_SHARE, MAX_SHARE)
         if share is not None:
@@ -579,7 +591,8 @@ class TimeBudget:
         self.costs, self.calibration = calibrate(options, device, background, say=say)
         saved = json.loads(plan_file.read_text()) if resume and plan_file is not None and plan_file.is_file() else None
         if saved is not None:  # a resumed fit keeps the plan its checkpoint was made with
-            self.rung = Rung(tuple(saved["rung"]["resolutions"]), tuple(saved["rung"]["steps"]))
+            self.rung = Rung(tuple(saved["rung"]["resolutions"]), tuple(saved["rung"]["steps"]),
+                             saved["rung"].get("fixed", 0))
             self.plan = Plan(**saved["plan"])
             resolutions, steps = saved["resolutions"], saved["steps"]
         else:
@@ -624,7 +637,10 @@ class TimeBudget:
         if self.fitter.step % REPLAN_EVERY == 0 and len(self._intervals) >= 5:
             measured = float(np.mean(self._intervals))
             ratio = measured / self.costs.step_seconds(self.now.voxels, dense=self.now.dense)
-            self.now.step_ratio = max(1.0, ratio) if self.now.dense else ratio
+            # A grid at the first resolution, pruned early or not, is still clearing: cheaper than what comes after it
+            # (lego 1- to 4-minute budgets: 0.86-1.04 of the model there, 1.28-1.6 at the last level).
+            clearing = self.now.dense or self.options.resolutions[self.fitter.level] == self.options.resolutions[0]
+            self.now.step_ratio = max(1.0, ratio) if clearing else ratio
             self.now.step_seconds = measured
             self._replan("steps")
 

@@ -163,7 +163,7 @@ def test_a_32_start_reaches_a_128_grid_on_a_budget_a_dense_64_start_cannot():
     """A first level is its whole box: starting at 32^3 makes a 128^3 plan cheaper than 64->128's, and a budget
     between the two gets the 32^3 start rather than a coarser grid."""
     three = next(r for r in budget.LADDER if r.resolutions == (32, 64, 128))
-    two = next(r for r in budget.LADDER if r.resolutions == (64, 128))
+    two = next(r for r in budget.LADDER if r.resolutions[0] == 64 and r.resolutions[-1] == 128)
 
     def fewest(rung):
         now = FACTS.outlook(voxels=FACTS.box_voxels(rung.resolutions[0]))
@@ -210,7 +210,7 @@ def test_a_scene_that_fills_its_box_is_planned_coarser_for_the_same_budget():
 
 
 def test_a_replan_follows_the_measured_cost_and_drops_a_level_that_cannot_converge():
-    rung = budget.LADDER[-1]  # 128 -> 256 -> 384
+    rung = Rung((128, 256, 384), (1000, 1500, 1500))
     resolutions, steps = list(rung.resolutions), rung.scaled(1.0)
     now = Outlook(level=1, step=1100, voxels=2_000_000, dense=False)
     fast_left = budget.predict(MEASURED, FACTS, now, resolutions, steps)
@@ -227,20 +227,24 @@ def test_a_replan_follows_the_measured_cost_and_drops_a_level_that_cannot_conver
 
 def test_a_replan_during_the_first_level_drops_a_third_level_but_keeps_two():
     """Steps 3x dearer than modelled, measured early in the first level: a plan that cannot give its levels half their
-    steps loses its third level before the first level gives up steps for it, never its second."""
-    three, two = budget.LADDER[-1], budget.LADDER[-3]  # 128 -> 256 -> 384 and 128 -> 256
+    steps loses its third level before the first level gives up steps for it, never its second (the level after the
+    first resolution, not the first level's own early prune)."""
+    three, two = budget.LADDER[-1], budget.LADDER[-3]  # 128 -> 128 -> 256 -> 384 and 128 -> 128 -> 256
+    assert three.resolutions == (128, 128, 256, 384) and two.resolutions == (128, 128, 256)
     now = Outlook(level=0, step=100, voxels=FACTS.box_voxels(128), dense=True, step_ratio=3.0,
                   step_seconds=3 * MEASURED.step_seconds(FACTS.box_voxels(128)))
     planned = three.scaled(budget.MIN_SHARE)
     seconds = 0.6 * budget.predict(MEASURED, FACTS, now, list(three.resolutions), planned)
     kept, steps, share = budget.replan(seconds, MEASURED, FACTS, now, three, list(three.resolutions), planned,
                                        measured=False)
-    assert kept == [128, 256] and share >= budget.MIN_SHARE and steps[0] > planned[0]
+    assert kept == [128, 128, 256] and share >= budget.MIN_SHARE and steps[1] > planned[1]
+    assert steps[0] == planned[0]  # the early prune stays where it was
     assert budget.predict(MEASURED, FACTS, now, kept, steps) <= seconds
-    # Not even two levels get half their steps: both stay, with what fits.
-    tight = 0.3 * budget.predict(MEASURED, FACTS, now, [128, 256], two.scaled(budget.MIN_SHARE))
-    kept, steps, share = budget.replan(tight, MEASURED, FACTS, now, two, [128, 256], two.scaled(1.0), measured=False)
-    assert kept == [128, 256] and 0 < share < budget.MIN_SHARE
+    # Not even two resolutions get half their steps: both stay, with what fits.
+    tight = 0.3 * budget.predict(MEASURED, FACTS, now, list(two.resolutions), two.scaled(budget.MIN_SHARE))
+    kept, steps, share = budget.replan(tight, MEASURED, FACTS, now, two, list(two.resolutions), two.scaled(1.0),
+                                       measured=False)
+    assert kept == [128, 128, 256] and 0 < share < budget.MIN_SHARE
     assert budget.predict(MEASURED, FACTS, now, kept, steps) <= tight
 
 
@@ -340,3 +344,27 @@ def test_a_budgeted_fit_plans_with_its_scene_types_prior_for_the_first_prune(fre
     kept = read_json(fresh / "fit" / "fit.json")["budget"]["kept_share"]
     assert kept["first_prune_prior"] == budget.FIRST_KEEP_PRIOR[scene_type]
     assert kept["first_prune"] != kept["first_prune_prior"]  # measured at the level change, in place of the prior
+
+
+def test_a_rungs_early_prune_stays_at_its_steps_and_its_cheap_steps_do_not_speak_for_the_finer_level(fresh,
+                                                                                                       monkeypatch):
+    """A rung whose first level prunes early: the prune comes after the rung's steps whatever the share, prunes without
+    upsampling, and the steps of the level at the first resolution, which are cheaper than the model (the grid is still
+    clearing), never make the finer level's prediction cheaper than the model's; the finer level's own steps do."""
+    monkeypatch.setattr(budget, "LADDER", (Rung((16, 16, 32), (20, 40, 40), fixed=1),))
+    dear = CostModel(**{**FREE.__dict__, "step_fixed": 0.2})  # the real steps take a few ms: a ratio far below 1
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (dear, {"cached": True, "file": "-", "key": {}}))
+    ratios = []
+    replan = budget.TimeBudget._replan
+    monkeypatch.setattr(budget.TimeBudget, "_replan", lambda self, why: ratios.append(
+        (self.options.resolutions[self.fitter.level] if self.fitter.levels else 0, self.now.step_ratio))
+        or replan(self, why))
+    run_stage(fresh, fit, {**BUDGETED, "time_budget": "30s"})
+    record = read_json(fresh / "fit" / "fit.json")
+    assert record["budget"]["chosen"]["share"] > 1  # the budget gave the rung more steps, not its early prune
+    assert record["resolutions"] == [16, 16, 32] and record["budget"]["ran"]["steps"][0] == 20
+    first, second = record["levels"]
+    assert first["step"] == 20 and first["kept"] == first["occupied"] < first["pruned_from"]  # pruned, not upsampled
+    assert second["occupied"] > second["kept"]  # the next level upsamples
+    assert [r for res, r in ratios if res in (0, 16)] and all(r == 1.0 for res, r in ratios if res in (0, 16))
+    assert [r for res, r in ratios if res == 32][-1] < 0.5
