@@ -199,6 +199,8 @@ def one_run(spec: dict) -> dict:
         "resolution": record["model"]["resolution"], "occupied": record["model"]["occupied"],
         "model_bytes": record["memory_bytes"]["total"], "history": record["history"], "levels": record["levels"],
         "summary": summary["line"],
+        # A budget's plan, re-plans and what it measured of the scene (its calibration's points left out).
+        **({"budget": {k: v for k, v in record["budget"].items() if k != "calibration"}} if "budget" in record else {}),
     }
 
 
