@@ -225,6 +225,29 @@ def test_a_replan_follows_the_measured_cost_and_drops_a_level_that_cannot_conver
     assert kept == resolutions[:2] and share >= budget.MIN_SHARE  # the 384 level could not get half its steps
 
 
+def test_a_replan_keeps_a_short_level_rather_than_end_the_fit_early_without_it():
+    """After a level change, steps dearer than modelled leave the last level less than half its steps; without it the
+    levels before, at twice their steps, would end the fit with time unused: it stays, with what fits."""
+    rung = next(r for r in budget.LADDER if r.resolutions == (32, 64, 128))
+    resolutions, planned = list(rung.resolutions), rung.scaled(0.6)
+    now = Outlook(level=1, step=planned[0] + 20, voxels=50_000, dense=False, step_ratio=1.3,
+                  step_seconds=1.3 * MEASURED.step_seconds(50_000))
+
+    def left(levels, share):  # the first level done as planned
+        return budget.predict(MEASURED, FACTS, now, resolutions[:levels], (planned[:1] + rung.scaled(share)[1:])[:levels])
+
+    two_at_most, three_at_least = left(2, budget.MAX_SHARE), left(3, budget.MIN_SHARE)
+    assert two_at_most < three_at_least
+    seconds = (two_at_most + three_at_least) / 2
+    kept, steps, share = budget.replan(seconds, MEASURED, FACTS, now, rung, resolutions, planned, measured=True)
+    assert kept == resolutions and 0 < share < budget.MIN_SHARE
+    assert budget.predict(MEASURED, FACTS, now, kept, steps) <= seconds
+    # Where the levels before would use the time, the level is dropped, as before.
+    seconds = two_at_most * 0.99
+    kept, steps, share = budget.replan(seconds, MEASURED, FACTS, now, rung, resolutions, planned, measured=True)
+    assert kept == resolutions[:2] and budget.MIN_SHARE <= share < budget.MAX_SHARE
+
+
 def test_a_replan_during_the_first_level_drops_a_third_level_but_keeps_two():
     """Steps 3x dearer than modelled, measured early in the first level: a plan that cannot give its levels half their
     steps loses its third level before the first level gives up steps for it, never its second (the level after the
