@@ -117,7 +117,10 @@ def one_run(spec: dict) -> dict:
             "load_average": [round(load_before, 2), round(os.getloadavg()[0], 2)],
             "threads": os.environ.get("OMP_NUM_THREADS"), "regularisation": record.get("regularisation"),
             "background_cost": record.get("background_cost"), "resolution": record["model"]["resolution"],
-            "occupied": record["model"]["occupied"], "summary": summary["line"]}
+            "occupied": record["model"]["occupied"], "summary": summary["line"],
+            # A budget's plan, re-plans and what it measured of the scene (its calibration's points left out).
+            **({"budget": {k: v for k, v in record["budget"].items() if k != "calibration"}} if "budget" in record
+               else {})}
 
 
 def spawn(spec: dict) -> dict | None:
