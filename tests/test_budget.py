@@ -234,7 +234,8 @@ def test_a_replan_keeps_a_short_level_rather_than_end_the_fit_early_without_it()
                   step_seconds=1.3 * MEASURED.step_seconds(50_000))
 
     def left(levels, share):  # the first level done as planned
-        return budget.predict(MEASURED, FACTS, now, resolutions[:levels], (planned[:1] + rung.scaled(share)[1:])[:levels])
+        steps = planned[:1] + rung.scaled(share)[1:]
+        return budget.predict(MEASURED, FACTS, now, resolutions[:levels], steps[:levels])
 
     two_at_most, three_at_least = left(2, budget.MAX_SHARE), left(3, budget.MIN_SHARE)
     assert two_at_most < three_at_least
@@ -369,8 +370,7 @@ def test_a_budgeted_fit_plans_with_its_scene_types_prior_for_the_first_prune(fre
     assert kept["first_prune"] != kept["first_prune_prior"]  # measured at the level change, in place of the prior
 
 
-def test_a_rungs_early_prune_stays_at_its_steps_and_its_cheap_steps_do_not_speak_for_the_finer_level(fresh,
-                                                                                                       monkeypatch):
+def test_a_rungs_early_prune_stays_at_its_step_and_its_cheap_steps_do_not_speak_for_later_ones(fresh, monkeypatch):
     """A rung whose first level prunes early: the prune comes after the rung's steps whatever the share, prunes without
     upsampling, and the steps of the level at the first resolution, which are cheaper than the model (the grid is still
     clearing), never make the finer level's prediction cheaper than the model's; the finer level's own steps do."""
@@ -380,8 +380,7 @@ def test_a_rungs_early_prune_stays_at_its_steps_and_its_cheap_steps_do_not_speak
     ratios = []
     replan = budget.TimeBudget._replan
     monkeypatch.setattr(budget.TimeBudget, "_replan", lambda self, why: ratios.append(
-        (self.options.resolutions[self.fitter.level] if self.fitter.levels else 0, self.now.step_ratio))
-        or replan(self, why))
+        (self.options.resolutions[self.fitter.level], self.now.step_ratio)) or replan(self, why))
     run_stage(fresh, fit, {**BUDGETED, "time_budget": "30s"})
     record = read_json(fresh / "fit" / "fit.json")
     assert record["budget"]["chosen"]["share"] > 1  # the budget gave the rung more steps, not its early prune
@@ -389,5 +388,5 @@ def test_a_rungs_early_prune_stays_at_its_steps_and_its_cheap_steps_do_not_speak
     first, second = record["levels"]
     assert first["step"] == 20 and first["kept"] == first["occupied"] < first["pruned_from"]  # pruned, not upsampled
     assert second["occupied"] > second["kept"]  # the next level upsamples
-    assert [r for res, r in ratios if res in (0, 16)] and all(r == 1.0 for res, r in ratios if res in (0, 16))
+    assert [r for res, r in ratios if res == 16] and all(r == 1.0 for res, r in ratios if res == 16)
     assert [r for res, r in ratios if res == 32][-1] < 0.5
