@@ -293,8 +293,12 @@ def test_a_budgeted_fit_ends_within_its_budget_with_a_complete_model(fresh):
     assert plan["seconds"] == seconds and plan["chosen"]["predicted"] <= seconds
     assert plan["ran"]["resolutions"] == record["resolutions"] and record["steps"] <= sum(plan["ran"]["steps"])
     assert plan["calibration"]["cached"] is False and plan["calibration"]["costs"]["step_fixed"] >= 0
-    assert record["held_out_psnr"] > 13.0, record["held_out_psnr"]  # it learned the scene (an untrained grid: ~10)
     assert "budget 12s: " in summary["line"] and "from a calibration of" in summary["line"]
+    if plan["chosen"]["fits"]:
+        assert record["held_out_psnr"] > 13.0, record["held_out_psnr"]  # it learned the scene (an untrained grid: ~10)
+    else:  # a machine so busy that the first calibration took most of the budget: the summary says what that left
+        assert plan["calibration"]["measured_in_seconds"] > seconds / 3, plan["calibration"]
+        assert "less than the coarsest plan needs" in summary["line"]
 
 
 def test_the_deadline_ends_a_fit_whose_plan_was_too_long_and_it_is_still_complete(fresh, monkeypatch):
