@@ -42,6 +42,14 @@ def fitted(scene: dict, root: Path, settings, quiet: bool = True) -> tuple[dict,
         return summary, wall, json.loads((ctx.work / "fit.json").read_text()), SceneModel.load(ctx.work)
 
 
+def budget_of(record: dict) -> dict:
+    """A budgeted fit's plan, re-plans and what it measured of the scene, from its fit.json (the calibration's points
+    left out), as a run's `budget`; nothing for a fit without a budget."""
+    if "budget" not in record:
+        return {}
+    return {"budget": {k: v for k, v in record["budget"].items() if k != "calibration"}}
+
+
 def run_child(module: str, spec: dict, what: str) -> dict | None:
     """Runs `python -m <module> --one` with `spec` on its standard input, in the repository, and returns the JSON
     result it prints last; None, after saying `what` failed, when it exits with an error."""

@@ -174,7 +174,7 @@ def one_run(spec: dict) -> dict:
     import numpy as np
     import torch
 
-    from bench.common import fitted
+    from bench.common import budget_of, fitted
     from pipeline.images import load_frame
     from pipeline.metrics import image_psnr, image_ssim
 
@@ -199,8 +199,7 @@ def one_run(spec: dict) -> dict:
         "resolution": record["model"]["resolution"], "occupied": record["model"]["occupied"],
         "model_bytes": record["memory_bytes"]["total"], "history": record["history"], "levels": record["levels"],
         "summary": summary["line"],
-        # A budget's plan, re-plans and what it measured of the scene (its calibration's points left out).
-        **({"budget": {k: v for k, v in record["budget"].items() if k != "calibration"}} if "budget" in record else {}),
+        **budget_of(record),
     }
 
 

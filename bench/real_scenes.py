@@ -85,7 +85,7 @@ def one_run(spec: dict) -> dict:
     import numpy as np
     import torch
 
-    from bench.common import fitted
+    from bench.common import budget_of, fitted
     from bench.fit import resolve
     from pipeline.images import load_frame
     from pipeline.io import write_png
@@ -117,10 +117,7 @@ def one_run(spec: dict) -> dict:
             "load_average": [round(load_before, 2), round(os.getloadavg()[0], 2)],
             "threads": os.environ.get("OMP_NUM_THREADS"), "regularisation": record.get("regularisation"),
             "background_cost": record.get("background_cost"), "resolution": record["model"]["resolution"],
-            "occupied": record["model"]["occupied"], "summary": summary["line"],
-            # A budget's plan, re-plans and what it measured of the scene (its calibration's points left out).
-            **({"budget": {k: v for k, v in record["budget"].items() if k != "calibration"}} if "budget" in record
-               else {})}
+            "occupied": record["model"]["occupied"], "summary": summary["line"], **budget_of(record)}
 
 
 def spawn(spec: dict) -> dict | None:

@@ -531,9 +531,9 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
            steps: list[int], measured: bool) -> tuple[list[int], list[int], float]:
     """(resolutions, steps, share) for a fit under way, the levels done kept: the most steps (a share of the rung's,
     at most MAX_SHARE) whose predicted time fits `seconds`. A level still to come is dropped when keeping it would leave
-    less than MIN_SHARE of the steps: with `measured` costs (after a level change) any such level; during the first
-    level only a third or later one, as what pruning keeps is still a prior and a first level alone is never a whole
-    fit. Without that, a first level gives up the steps a level dropped later would have needed (fox, 5-minute
+    less than MIN_SHARE of the steps: with `measured` costs (once the fit has left its first resolution) any such level;
+    before that only one past the second resolution, as what pruning keeps is still a prior and a first resolution
+    alone, pruned early or not, is never a whole fit. Without that, a first level gives up the steps a level dropped later would have needed (fox, 5-minute
     budget: 128->256->384 planned at half its steps, 256 of 1000 first-level steps run, then 384 dropped at the level
     change). A level is not dropped where the levels before it, at MAX_SHARE, would end the fit early: it stays, with
     what fits (lego, 30-second budget: 128 dropped at step 180 of 32->64->128, 64^3 at twice its steps, 25.42 dB in
@@ -645,8 +645,7 @@ class TimeBudget:
             ratio = measured / self.costs.step_seconds(self.now.voxels, dense=self.now.dense)
             # A grid at the first resolution, pruned early or not, is still clearing: cheaper than what comes after it
             # (lego 1- to 4-minute budgets: 0.86-1.04 of the model there, 1.28-1.6 at the last level).
-            clearing = self.now.dense or self.options.resolutions[self.fitter.level] == self.options.resolutions[0]
-            self.now.step_ratio = max(1.0, ratio) if clearing else ratio
+            self.now.step_ratio = max(1.0, ratio) if self._at_first_resolution() else ratio
             self.now.step_seconds = measured
             self._replan("steps")
 
@@ -685,11 +684,15 @@ class TimeBudget:
             return value
         return run
 
+    def _at_first_resolution(self) -> bool:
+        """Whether the fit is still at its first level's resolution (its early-pruned rest included)."""
+        return self.options.resolutions[self.fitter.level] == self.options.resolutions[0]
+
     def _replan(self, why: str) -> None:
         self.now.step = self.fitter.step
         resolutions, steps, share = replan(self.left() - SLACK * self.seconds, self.costs, self.facts, self.now,
                                            self.rung, self.options.resolutions, self.options.steps,
-                                           measured=bool(self.fitter.levels))
+                                           measured=not self._at_first_resolution())
         entry = {"why": why, "step": self.fitter.step, "seconds_left": round(self.left(), 1), "share": round(share, 3),
                  "steps": steps, "step_seconds": round(self.now.step_seconds or 0.0, 5)}
         if len(resolutions) < len(self.options.resolutions):

@@ -377,14 +377,17 @@ def test_a_budgeted_fit_plans_with_its_scene_types_prior_for_the_first_prune(fre
 def test_a_rungs_early_prune_stays_at_its_step_and_its_cheap_steps_do_not_speak_for_later_ones(fresh, monkeypatch):
     """A rung whose first level prunes early: the prune comes after the rung's steps whatever the share, prunes without
     upsampling, and the steps of the level at the first resolution, which are cheaper than the model (the grid is still
-    clearing), never make the finer level's prediction cheaper than the model's; the finer level's own steps do."""
+    clearing), never make the finer level's prediction cheaper than the model's; the finer level's own steps do. Its
+    re-plans treat the costs as a prior until the fit leaves the first resolution."""
     monkeypatch.setattr(budget, "LADDER", (Rung((16, 16, 32), (20, 40, 40), fixed=1),))
     dear = CostModel(**{**FREE.__dict__, "step_fixed": 0.2})  # the real steps take a few ms: a ratio far below 1
     monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (dear, {"cached": True, "file": "-", "key": {}}))
-    ratios = []
-    replan = budget.TimeBudget._replan
+    ratios, measured = [], []
+    replan_budget, replan = budget.TimeBudget._replan, budget.replan
     monkeypatch.setattr(budget.TimeBudget, "_replan", lambda self, why: ratios.append(
-        (self.options.resolutions[self.fitter.level], self.now.step_ratio)) or replan(self, why))
+        (self.options.resolutions[self.fitter.level], self.now.step_ratio)) or replan_budget(self, why))
+    monkeypatch.setattr(budget, "replan", lambda *args, **kwargs: measured.append(
+        (args[3].level, kwargs["measured"])) or replan(*args, **kwargs))
     run_stage(fresh, fit, {**BUDGETED, "time_budget": "30s"})
     record = read_json(fresh / "fit" / "fit.json")
     assert record["budget"]["chosen"]["share"] > 1  # the budget gave the rung more steps, not its early prune
@@ -394,3 +397,7 @@ def test_a_rungs_early_prune_stays_at_its_step_and_its_cheap_steps_do_not_speak_
     assert second["occupied"] > second["kept"]  # the next level upsamples
     assert [r for res, r in ratios if res == 16] and all(r == 1.0 for res, r in ratios if res == 16)
     assert [r for res, r in ratios if res == 32][-1] < 0.5
+    # Its re-plans take the costs as measured only once the fit has left the first resolution: until then the second
+    # resolution is never dropped.
+    assert {level for level, _ in measured} == {0, 1, 2}
+    assert all(flag == (level == 2) for level, flag in measured), measured
