@@ -3,8 +3,8 @@ the fit on time.
 
 - `calibrate(options, device, background)`: times train steps of the real Fitter on a small synthetic object (thin
   opaque surfaces, the vertices within 3 voxels of them allocated, as pruning leaves a fit) at a few resolutions, a
-  pruning pass and a level change, steps of a first level (a new model's grid, the whole box) at a few resolutions,
-  on the device and with the threads the fit uses. The `CostModel` fitted to that
+  pruning pass and a level change and the steps on the grid it upsampled, steps of a first level (a new model's grid,
+  the whole box) at a few resolutions, on the device and with the threads the fit uses. The `CostModel` fitted to that
   is cached as JSON under `$XDG_CACHE_HOME/voxfield/` (else `~/.cache/voxfield/`), keyed by the CPU and GPU model,
   the thread counts, the device, the code of the native core and of this package, and the options that set what a
   step costs; a changed key measures again (a few seconds).
@@ -16,7 +16,8 @@ What a prediction adds up, from where the fit stands to its end: steps times sec
 way, what its steps measure, or before they have, the first-level model at its box's voxels; for later levels, the
 cost model at their occupied voxels, times the ratio of this scene's measured steps to the model's; a first level's
 ratio, and that of a first level's early-pruned rest, counts only above 1, as such a level clears its empty space and
-gets cheaper as it goes while a busy machine does not), level changes (a pruning
+gets cheaper as it goes while a busy machine does not, and until a level at a finer resolution has measured its own,
+it is times what an upsampled grid's steps cost over the model in the calibration), level changes (a pruning
 pass over the training rays at the old resolution, then upsampling and a checkpoint that grow with the new grid),
 held-out evaluations, checkpoints, and the end (the last pruning pass, the held-out PSNR, the save). A later level's
 voxels are the level before's, times the share pruning keeps, times the upsampling's growth; the share is a prior
@@ -62,7 +63,7 @@ from plenoxels.grid import SparseGrid, sh_count
 from plenoxels.scene_model import SceneModel
 from plenoxels.train import Fitter, RaySet, pruning_rays
 
-CACHE_VERSION = 2
+CACHE_VERSION = 3
 # Resolutions the calibration times steps at (grids as pruning leaves a fit: about 50k, 230k and 520k voxels).
 CALIBRATION_RESOLUTIONS = (64, 128, 192)
 # Resolutions it times a first level's steps at: the whole box allocated, as a fit starts (33k, 262k and 885k voxels).
@@ -160,6 +161,9 @@ class CostModel:
     """Seconds of one step of a first level (its whole box allocated) whatever the grid; None: as a pruned grid's."""
     dense_per_voxel: float | None = None
     """Seconds of one step of a first level per voxel of its box."""
+    upsampled_ratio: float = 1.0
+    """A step on a grid just upsampled from a pruned one over the model's at its voxels: a fit's later levels start
+    from such a grid, a thicker and softer shell than a converged one, whose rays march more samples per voxel."""
 
     def step_seconds(self, voxels: float, dense: bool = False) -> float:
         if dense and self.dense_fixed is not None:
@@ -174,7 +178,7 @@ class CostModel:
         if self.dense_fixed is not None:
             line += (f" ({1000 * self.dense_fixed:.1f} ms plus {1e8 * self.dense_per_voxel:.1f} ms per 100k voxels "
                      f"at a first level)")
-        return line
+        return line + f", {self.upsampled_ratio:.2f}x on an upsampled grid"
 
 
 def cache_dir() -> Path:
@@ -359,16 +363,18 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
         clock.append(time.perf_counter())
     change, checkpoint, save = np.diff(clock)
     new_voxels = fitter.model.grid.num_occupied
+    upsampled = _time_steps(fitter, device)
     return {
         "costs": {"step_fixed": fixed, "step_per_voxel": slope, "pass_per_ray": pass_per_ray,
                   "change_per_voxel": max(0.0, change - pass_per_ray * rays[resolutions[0]] * resolutions[0]) / new_voxels,
                   "checkpoint_per_voxel": checkpoint / new_voxels, "save_per_voxel": save / new_voxels,
-                  "dense_fixed": dense_fixed, "dense_per_voxel": dense_slope},
+                  "dense_fixed": dense_fixed, "dense_per_voxel": dense_slope,
+                  "upsampled_ratio": upsampled / (fixed + slope * new_voxels)},
         "points": [{"resolution": r, "voxels": n, "step_seconds": round(t, 5)}
                    for r, (n, t) in zip(resolutions, points)],
         "first_level_points": [{"resolution": r, "voxels": n, "step_seconds": round(t, 5)}
                                for r, (n, t) in zip(dense_resolutions, dense_points)],
-        "level_change": {"voxels": new_voxels, "seconds": round(float(change), 4),
+        "level_change": {"voxels": new_voxels, "seconds": round(float(change), 4), "step_seconds": round(upsampled, 5),
                          "checkpoint_seconds": round(float(checkpoint), 4), "save_seconds": round(float(save), 4)},
         "seconds": round(time.perf_counter() - started, 2),
         "load_average": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
@@ -429,6 +435,7 @@ class Outlook:
     dense: bool = True                 # the current grid is a first level's (nothing pruned yet)
     step_seconds: float | None = None  # measured at the current level
     step_ratio: float = 1.0            # for later levels: this scene's measured step time over the model's
+    ratio_at_first: bool = True        # step_ratio is the first resolution's (or a prior): not yet of an upsampled grid
     change_ratio: float = 1.0          # this scene's measured level changes (and their checkpoints) over the model's
     eval_ratio: float = 1.0            # this scene's measured held-out evaluations over the model's
     first_keep: float = FIRST_KEEP_PRIOR["object"]
@@ -449,16 +456,20 @@ def finish_seconds(costs: CostModel, facts: FitFacts, now: Outlook, resolution: 
 def predict(costs: CostModel, facts: FitFacts, now: Outlook, resolutions: list[int], steps: list[int]) -> float:
     """Seconds from where the fit stands to its end for this schedule, whose levels before `now.level` are done."""
     seconds, voxels, start, remaining = 0.0, float(now.voxels), sum(steps[:now.level]), 0
+    # A level at another resolution than the first starts from an upsampled grid, whose steps the calibration measured
+    # at costs.upsampled_ratio of its model, until this scene's steps at such a level have been measured.
+    upsampled = now.step_ratio * (costs.upsampled_ratio if now.ratio_at_first else 1.0)
     for level in range(now.level, len(resolutions)):
+        ratio = now.step_ratio if resolutions[level] == resolutions[0] else upsampled
         if level == now.level:
-            step = now.step_seconds or now.step_ratio * costs.step_seconds(voxels, dense=now.dense)
+            step = now.step_seconds or ratio * costs.step_seconds(voxels, dense=now.dense)
         else:
             kept = (now.first_keep if level == 1 else now.later_keep) * voxels
             voxels = min(facts.voxel_budget, kept * (resolutions[level] / resolutions[level - 1]) ** 3)
             seconds += now.change_ratio * (costs.pass_seconds(facts.prune_rays(resolutions[level - 1]),
                                                               resolutions[level - 1])
                                            + (costs.change_per_voxel + costs.checkpoint_per_voxel) * voxels)
-            step = now.step_ratio * costs.step_seconds(voxels)
+            step = ratio * costs.step_seconds(voxels)
         end = start + steps[level]
         first = max(start, now.step)
         seconds += (end - first) * step
@@ -645,7 +656,8 @@ class TimeBudget:
             ratio = measured / self.costs.step_seconds(self.now.voxels, dense=self.now.dense)
             # A grid at the first resolution, pruned early or not, is still clearing: cheaper than what comes after it
             # (lego 1- to 4-minute budgets: 0.86-1.04 of the model there, 1.28-1.6 at the last level).
-            self.now.step_ratio = max(1.0, ratio) if self._at_first_resolution() else ratio
+            self.now.ratio_at_first = self._at_first_resolution()
+            self.now.step_ratio = max(1.0, ratio) if self.now.ratio_at_first else ratio
             self.now.step_seconds = measured
             self._replan("steps")
 

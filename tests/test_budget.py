@@ -84,6 +84,10 @@ def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(mon
     assert costs.step_fixed + costs.step_per_voxel * 1e5 > 0 and costs.pass_per_ray > 0
     assert costs.step_seconds(1e5, dense=True) > 0 and costs.dense_fixed is not None
     assert [p["voxels"] for p in record["first_level_points"]] == [8 ** 3, 16 ** 3]  # a new model's whole box
+    # The steps on the grid the level change upsampled, over the model at its voxels.
+    change = record["level_change"]
+    assert change["step_seconds"] > 0 and costs.upsampled_ratio == pytest.approx(
+        change["step_seconds"] / costs.step_seconds(change["voxels"]), abs=1e-5 / costs.step_seconds(change["voxels"]))
     assert record["file"].startswith(os.environ["XDG_CACHE_HOME"])
     assert record["key"]["threads"] >= 1 and record["key"]["code"] and record["key"]["device"] == "cpu"
 
@@ -154,6 +158,35 @@ def test_a_first_level_is_predicted_at_its_own_cost_model():
                                                                                        [64, 128], [500, 1000])
     # The dearer first levels buy a coarser (or shorter) plan for the same budget.
     for seconds in (30, 120):
+        mine, before = budget.choose(seconds, dear, FACTS), budget.choose(seconds, MEASURED, FACTS)
+        assert mine.predicted <= seconds
+        assert (mine.resolutions[-1], mine.share) < (before.resolutions[-1], before.share), (seconds, mine, before)
+
+
+def test_an_upsampled_level_is_predicted_at_the_calibrations_ratio_until_the_scene_measures_one():
+    """The calibration's upsampled grid costs `upsampled_ratio` times its model: a level at a finer resolution is
+    predicted at that times the scene's ratio until the fit has measured steps at such a level; a first level's
+    early-pruned rest, at the first resolution, is not upsampled."""
+    dear = CostModel(**{**MEASURED.__dict__, "upsampled_ratio": 1.5})
+    facts = FitFacts(**{**FACTS.__dict__, "checkpoint_every": 1e9, "eval_rays": 0})  # the steps' time alone
+    resolutions, steps, voxels = [128, 128, 256], [200, 800, 1500], 300_000
+    rest = Outlook(level=1, step=400, voxels=voxels, dense=False, step_ratio=1.2)
+    finer = min(facts.voxel_budget, rest.later_keep * voxels * 8)
+    gap = budget.predict(dear, facts, rest, resolutions, steps) - budget.predict(MEASURED, facts, rest, resolutions,
+                                                                                 steps)
+    assert gap == pytest.approx(1500 * 1.2 * 0.5 * MEASURED.step_seconds(finer), rel=1e-6)
+    # Right after the level change, before the finer level's steps are measured: its steps at the upsampled ratio.
+    changed = Outlook(level=2, step=1000, voxels=finer, dense=False, step_ratio=1.2)
+    assert budget.predict(dear, facts, changed, resolutions, steps) - budget.predict(
+        MEASURED, facts, changed, resolutions, steps) == pytest.approx(gap, rel=1e-6)
+    # Measured there: the scene's own ratio, whatever the calibration said.
+    measured = Outlook(level=2, step=1100, voxels=finer, dense=False, step_ratio=1.7, ratio_at_first=False)
+    assert budget.predict(dear, facts, measured, resolutions, steps) == budget.predict(MEASURED, facts, measured,
+                                                                                       resolutions, steps)
+    # The first resolution's levels alone are not upsampled.
+    assert budget.predict(dear, facts, rest, resolutions[:2], steps[:2]) == budget.predict(
+        MEASURED, facts, rest, resolutions[:2], steps[:2])
+    for seconds in (60, 240):  # a dearer upsampled grid buys a coarser (or shorter) plan, which fits
         mine, before = budget.choose(seconds, dear, FACTS), budget.choose(seconds, MEASURED, FACTS)
         assert mine.predicted <= seconds
         assert (mine.resolutions[-1], mine.share) < (before.resolutions[-1], before.share), (seconds, mine, before)
