@@ -165,6 +165,11 @@ class CostModel:
     """A step on a grid just upsampled from a pruned one over the model's at its voxels: a fit's later levels start
     from such a grid, a thicker and softer shell than a converged one, whose rays march more samples per voxel."""
 
+    def scaled(self, factor: float) -> "CostModel":
+        """Every time `factor` times longer (the machine that slower); the upsampled grid's ratio as it is."""
+        times = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "upsampled_ratio"}
+        return dataclasses.replace(self, **{k: v * factor for k, v in times.items() if v is not None})
+
     def step_seconds(self, voxels: float, dense: bool = False) -> float:
         if dense and self.dense_fixed is not None:
             return self.dense_fixed + self.dense_per_voxel * voxels
@@ -303,32 +308,41 @@ def _line(points: list[tuple[int, float]]) -> tuple[float, float]:
     return float(fixed), float(slope)
 
 
+class CalibrationObject:
+    """The calibration's synthetic object with its views, and Fitters on it with these options and a background model
+    of `background`'s n_spheres and width (None: none)."""
+
+    def __init__(self, options, device: torch.device, background: dict | None, resolution: int):
+        self.options, self.device = options, device
+        self.scene = {"type": "object", "foreground": {"min": [-1.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}}
+        self.model_options = dataclasses.replace(options, ndc="off", background="on" if background else "off")
+        if background:
+            self.model_options = dataclasses.replace(self.model_options, background_spheres=background["n_spheres"],
+                                                     background_width=background["width"])
+        self.views = _calibration_views(self.model_at(resolution))
+
+    def model_at(self, resolution: int) -> SceneModel:
+        model = SceneModel.create(self.scene, self.model_options, 8)
+        model.grid = _surface_grid(model, resolution, self.options.sh_degree)
+        return model
+
+    def fitter_at(self, levels: list[int], first: bool = False) -> Fitter:
+        """A Fitter at `levels[0]`: on the object's pruned grid, or (`first`) on a new model's grid."""
+        fit_options = dataclasses.replace(self.model_options, resolutions=levels, steps=[1_000_000] * len(levels))
+        model = (SceneModel.create(self.scene, self.model_options, levels[0]) if first
+                 else self.model_at(levels[0]))
+        return Fitter(model, fit_options, self.views, self.device)
+
+
 def measure(options, device: torch.device, background: dict | None, resolutions=CALIBRATION_RESOLUTIONS,
             dense_resolutions=DENSE_RESOLUTIONS) -> dict:
     """Times the real Fitter with these options (and a background model of `background`'s n_spheres and width) on
     the calibration object: steps and a pruning pass at each resolution, steps of a new model's grid (a first level)
     at each dense resolution, then one level change. Returns the cost model's fields and what was measured."""
     started = time.perf_counter()
-    scene = {"type": "object", "foreground": {"min": [-1.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}}
-    model_options = dataclasses.replace(options, ndc="off", background="on" if background else "off")
-    if background:
-        model_options = dataclasses.replace(model_options, background_spheres=background["n_spheres"],
-                                            background_width=background["width"])
-
-    def model_at(resolution: int) -> SceneModel:
-        model = SceneModel.create(scene, model_options, 8)
-        model.grid = _surface_grid(model, resolution, options.sh_degree)
-        return model
-
-    views = _calibration_views(model_at(resolutions[0]))
+    calibration = CalibrationObject(options, device, background, resolutions[0])
+    fitter_at, views = calibration.fitter_at, calibration.views
     rays = {r: pruning_rays(views.sizes, r, options) for r in resolutions}
-
-    def fitter_at(levels: list[int], first: bool = False) -> Fitter:
-        """A Fitter at `levels[0]`: on the calibration object's pruned grid, or (`first`) on a new model's grid."""
-        fit_options = dataclasses.replace(model_options, resolutions=levels, steps=[1_000_000] * len(levels))
-        model = SceneModel.create(scene, model_options, levels[0]) if first else model_at(levels[0])
-        return Fitter(model, fit_options, views, device)
-
     points, passes = [], []
     for resolution in resolutions:
         fitter = fitter_at([resolution])
@@ -384,14 +398,22 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
 
 def calibrate(options, device: torch.device, background: dict | None = None, resolutions=CALIBRATION_RESOLUTIONS,
               dense_resolutions=DENSE_RESOLUTIONS, say: Callable[[str], None] | None = None) -> tuple[CostModel, dict]:
-    """The cost model for these options on this machine: from the cache when its key matches, else measured (a few
-    seconds) and cached. Returns it and the calibration's record, with `cached` and `file` added."""
+    """The cost model for these options on this machine: from the cache when its key matches, with its times scaled by
+    how much longer the calibration's first step takes now than it did (a shared host's speed drifts: 1.2x within an
+    hour on the 2-core one the benches ran on, and a plan from a calibration made at a fast moment starves its last
+    level), else measured (a few seconds) and cached. Returns it and the calibration's record, with `cached`, `file`
+    and `slower_now` (that scale; 1 for a calibration just measured) added."""
     key = calibration_key(options, device, background, resolutions, dense_resolutions)
     path = cache_dir() / f"fit-cost-{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]}.json"
     try:
         record = json.loads(path.read_text())
         if record.get("key") == key:
-            return CostModel(**record["costs"]), {**record, "cached": True, "file": str(path)}
+            reference = record["points"][0]
+            fitter = CalibrationObject(options, device, background, reference["resolution"]).fitter_at(
+                [reference["resolution"]])
+            slower = _time_steps(fitter, device) / reference["step_seconds"]
+            return (CostModel(**record["costs"]).scaled(slower),
+                    {**record, "cached": True, "file": str(path), "slower_now": round(slower, 3)})
     except (OSError, ValueError, TypeError, KeyError):
         pass  # none yet, or unreadable: measure
     if say is not None:
@@ -405,7 +427,7 @@ def calibrate(options, device: torch.device, background: dict | None = None, res
         tmp.replace(path)
     except OSError:
         pass  # an unwritable cache: measure again next time
-    return CostModel(**record["costs"]), {**record, "cached": False, "file": str(path)}
+    return CostModel(**record["costs"]), {**record, "cached": False, "file": str(path), "slower_now": 1.0}
 
 
 # ---- predictions and plans ----------------------------------------------------------------------------------------
@@ -739,8 +761,11 @@ class TimeBudget:
                 self.plan.resolutions[-1] < r.resolutions[-1] <= self.facts.max_resolution for r in LADDER):
             note = (f" (as fine as the {self.facts.max_resolution}-pixel photos are worth, with twice the steps: more "
                     f"time would not help)")
+        slower = self.calibration.get("slower_now")
+        cached = (f" (cached, scaled by {slower:.2f} to the machine's speed now)"
+                  if self.calibration["cached"] and slower else "")
         return (f"budget {_duration(self.seconds)}: {self.plan.describe()}, predicted {self.plan.predicted:.0f} s"
-                f"{note} from a calibration of {self.costs.describe()} on this machine")
+                f"{note} from a calibration of {self.costs.describe()}{cached} on this machine")
 
     def record(self, stopped_at_deadline: bool) -> dict:
         latest = [round(float(np.mean(self._intervals)), 5)] if self._intervals else []
@@ -764,6 +789,7 @@ class TimeBudget:
                             "first_level_points": self.calibration.get("first_level_points"),
                             "level_change": self.calibration.get("level_change"),
                             "cached": self.calibration["cached"], "file": self.calibration["file"],
+                            "slower_now": self.calibration.get("slower_now"),
                             "key": self.calibration["key"], "measured_in_seconds": self.calibration.get("seconds"),
                             "load_average": self.calibration.get("load_average"),
                             "when": self.calibration.get("when")},

@@ -92,7 +92,8 @@ def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(mon
     assert record["key"]["threads"] >= 1 and record["key"]["code"] and record["key"]["device"] == "cpu"
 
     again, record = budget.calibrate(options, cpu, None, small, first)
-    assert record["cached"] and len(measured) == 1 and again == costs
+    assert record["cached"] and len(measured) == 1
+    assert again.step_fixed == pytest.approx(record["slower_now"] * costs.step_fixed, rel=1e-3)
 
     budget.calibrate(config.build(fit.Settings, "fit", {"batch_size": 256, "sh_degree": 0}), cpu, None, small, first)
     assert len(measured) == 2  # other options that set a step's cost
@@ -111,6 +112,20 @@ def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(mon
     budget.calibrate(options, cpu, None, small, (8, 12))
     assert len(measured) == 7  # other first-level resolutions
     assert len(list(budget.cache_dir().glob("fit-cost-*.json"))) == 6
+
+    # A cached calibration's times follow the machine's speed now, timed again on the calibration's first step.
+    _, record = budget.calibrate(options, cpu, None, small, (8, 12))
+    fresh_costs, reference = CostModel(**record["costs"]), record["points"][0]
+    timed = []
+    monkeypatch.setattr(budget, "_time_steps", lambda fitter, device, steps=8: timed.append(
+        fitter.model.grid.num_occupied) or 2 * reference["step_seconds"])
+    slower, record = budget.calibrate(options, cpu, None, small, (8, 12))
+    assert record["cached"] and len(measured) == 7 and timed == [reference["voxels"]]
+    assert record["slower_now"] == pytest.approx(2.0)
+    assert slower.step_fixed == pytest.approx(2 * fresh_costs.step_fixed)
+    assert slower.step_seconds(1e5, dense=True) == pytest.approx(2 * fresh_costs.step_seconds(1e5, dense=True))
+    assert slower.pass_per_ray == pytest.approx(2 * fresh_costs.pass_per_ray)
+    assert slower.upsampled_ratio == fresh_costs.upsampled_ratio  # a ratio of two times, whatever the speed
 
 
 # ---- plans ---------------------------------------------------------------------------------------------------------
