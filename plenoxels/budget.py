@@ -414,7 +414,7 @@ def calibrate(options, device: torch.device, background: dict | None = None, res
             slower = _time_steps(fitter, device) / reference["step_seconds"]
             return (CostModel(**record["costs"]).scaled(slower),
                     {**record, "cached": True, "file": str(path), "slower_now": round(slower, 3)})
-    except (OSError, ValueError, TypeError, KeyError):
+    except (OSError, ValueError, TypeError, KeyError, ZeroDivisionError):
         pass  # none yet, or unreadable: measure
     if say is not None:
         say(f"measuring what the fit costs on this machine ({key['device']}, {key['threads']} threads; once, then "
