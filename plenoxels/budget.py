@@ -7,7 +7,8 @@ the fit on time.
   the whole box) at a few resolutions, on the device and with the threads the fit uses. The `CostModel` fitted to that
   is cached as JSON under `$XDG_CACHE_HOME/voxfield/` (else `~/.cache/voxfield/`), keyed by the CPU and GPU model,
   the thread counts, the device, the code of the native core and of this package, and the options that set what a
-  step costs; a changed key measures again (a few seconds).
+  step costs; a changed key measures again (a few seconds), and a cached one is timed again on its first grid and
+  its times scaled to the machine's speed now.
 - `TimeBudget`: picks the plan (levels, resolutions, steps) whose predicted time fits what is left of the budget;
   attached to the Fitter, it measures what the real scene costs as the fit goes, re-plans the steps of the levels
   under way and to come every few steps and at each level change, and says when the fit must stop to end on time.
