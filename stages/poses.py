@@ -50,6 +50,7 @@ class Settings(SfmOptions):
         require(self.sensor_width_mm >= 0, "poses.sensor_width_mm must be 0 (unknown) or the sensor width in mm")
         require(self.exhaustive_max_images >= 2, "poses.exhaustive_max_images must be at least 2")
         require(self.sequential_overlap >= 1, "poses.sequential_overlap must be at least 1")
+        require(self.threads >= 0, "poses.threads must be 0 (all cores) or a number of threads")
         require(0.0 < self.min_registered_share <= 1.0, "poses.min_registered_share must be in (0, 1]")
         require(not (self.path and self.source == "sfm"), "poses.path names pose files to import; it cannot be used with poses.source=sfm")
 

@@ -129,18 +129,22 @@ def pose_errors(out: Path, truth: dict, names: dict[str, str] | None = None) -> 
                          np.array([want[(names or {}).get(s, s)]["transform_matrix"] for s in stems]))
 
 
-def test_sequential_matching_matches_neighbours_only_and_poses_every_view(scene, truth, tmp_path):
-    manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.matching=sequential",
-                         "poses.sequential_overlap=4", "poses.loop_neighbours=0")
+def test_sequential_matching_matches_neighbours_only_and_poses_every_view_the_same_on_every_run(scene, truth, tmp_path):
+    # One COLMAP thread: with more, this model (no loop closure, its strict mapping split in two) varies with the
+    # threads' timing, and on a loaded machine it has failed the stage's checks and been repaired by exhaustive matching.
+    settings = ("poses.source=sfm", "poses.matching=sequential", "poses.sequential_overlap=4", "poses.loop_neighbours=0",
+                "poses.threads=1")
+    manifest = run_poses(scene / "images", tmp_path / "out", *settings)
     summary = manifest["summary"]
     assert summary["matching"] == "sequential" and summary["registered"] == N_VIEWS
     # Overlap 4 with quadratic overlap: each view is matched with the ones 1, 2, 4 and 8 after it.
     assert summary["pairs_matched"] <= sum(min(4, len([d for d in (1, 2, 4, 8) if n + d < N_VIEWS])) for n in range(N_VIEWS))
-    # Fewer pairs than exhaustive matching and no loop closure, so the error drifts along the orbit and varies from run
-    # to run with pycolmap's threads (1.09 degrees at worst in one full-suite run, under 1 in others): a looser bound
-    # than there. A wrong pose is off by tens of degrees.
+    # Fewer pairs than exhaustive matching and no loop closure, so the error drifts along the orbit: a looser bound than
+    # there. A wrong pose is off by tens of degrees.
     errors = pose_errors(tmp_path / "out", truth)
     assert errors["centre_error_share_max"] < 0.03 and errors["rotation_error_deg_max"] < 2.0, errors
+    run_poses(scene / "images", tmp_path / "again", *settings)
+    assert (tmp_path / "again" / "poses" / "transforms.json").read_bytes() == (tmp_path / "out" / "poses" / "transforms.json").read_bytes()
 
 
 def test_global_mapper_poses_that_contradict_their_matches_fall_back_to_incremental(scene, truth, tmp_path, monkeypatch):

@@ -74,6 +74,9 @@ class SfmOptions:
     """Extract and match SIFT on the GPU when pycolmap was built with CUDA."""
     seed: int = 0
     """Random seed for COLMAP's RANSAC and mappers."""
+    threads: int = 0
+    """CPU threads COLMAP uses; 0: all cores. 1 makes the same model on every run: with more, its matching and bundle
+    adjustment vary with the threads' timing, and a model near a check's limit can pass on one run and fail on the next."""
     max_contradicted_images: float = 0.1
     """Share of the images whose poses may contradict their verified matches before the model is made again with a
     safer configuration, or refused."""
@@ -100,6 +103,10 @@ def short_list(names: list[str]) -> str:
     return shown + (f" and {len(names) - NAMES_SHOWN} more" if len(names) > NAMES_SHOWN else "")
 
 
+def colmap_threads(s: SfmOptions) -> int:
+    return s.threads or -1
+
+
 def pycolmap_device(use_gpu: bool) -> pycolmap.Device:
     return pycolmap.Device.cuda if use_gpu and pycolmap.has_cuda else pycolmap.Device.cpu
 
@@ -113,6 +120,7 @@ def extract_features(db: Path, image_dir: Path, names: list[str], s: SfmOptions,
     options.sift.peak_threshold = peak_threshold
     options.max_image_size = s.feature_max_side or -1
     options.use_gpu = s.use_gpu and pycolmap.has_cuda
+    options.num_threads = colmap_threads(s)
     db.unlink(missing_ok=True)
     pycolmap.extract_features(db, image_dir, image_names=names,
                               camera_mode=pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE,
@@ -127,6 +135,7 @@ def median_features(db: Path) -> float:
 def match_features(db: Path, mode: str, s: SfmOptions) -> None:
     options = pycolmap.FeatureMatchingOptions()
     options.use_gpu = s.use_gpu and pycolmap.has_cuda
+    options.num_threads = colmap_threads(s)
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = s.seed
     device = pycolmap_device(s.use_gpu)
@@ -185,6 +194,7 @@ def match_loop_pairs(db: Path, s: SfmOptions, scratch: Path) -> int:
     listing.write_text("".join(f"{a} {b}\n" for a, b in pairs))
     options = pycolmap.FeatureMatchingOptions()
     options.use_gpu = s.use_gpu and pycolmap.has_cuda
+    options.num_threads = colmap_threads(s)
     pairing = pycolmap.ImportedPairingOptions()
     pairing.match_list_path = str(listing)
     verification = pycolmap.TwoViewGeometryOptions()
@@ -235,6 +245,7 @@ def _match_and_summarise(db: Path, mode: str, s: SfmOptions, n_images: int, repo
 
 def incremental_mapping(db: Path, image_dir: Path, out: Path, s: SfmOptions, relaxed: bool = False) -> list[pycolmap.Reconstruction]:
     options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = colmap_threads(s)
     options.random_seed = s.seed
     options.mapper.random_seed = s.seed
     options.triangulation.random_seed = s.seed
@@ -251,6 +262,7 @@ def incremental_mapping(db: Path, image_dir: Path, out: Path, s: SfmOptions, rel
 
 def global_mapping(db: Path, image_dir: Path, out: Path, s: SfmOptions) -> list[pycolmap.Reconstruction]:
     options = pycolmap.GlobalPipelineOptions()
+    options.num_threads = colmap_threads(s)
     options.random_seed = s.seed
     options.mapper.random_seed = s.seed
     options.mapper.bundle_adjustment.refine_principal_point = s.refine_principal_point
