@@ -43,11 +43,14 @@ def fitted(scene: dict, root: Path, settings, quiet: bool = True) -> tuple[dict,
 
 
 def budget_of(record: dict) -> dict:
-    """A budgeted fit's plan, re-plans and what it measured of the scene, from its fit.json (the calibration's points
-    left out), as a run's `budget`; nothing for a fit without a budget."""
+    """A budgeted fit's plan, re-plans and what it measured of the scene, from its fit.json (of the calibration, its
+    cost model and the scale it was timed at again, its points left out), as a run's `budget`; nothing for a fit
+    without a budget."""
     if "budget" not in record:
         return {}
-    return {"budget": {k: v for k, v in record["budget"].items() if k != "calibration"}}
+    calibration = record["budget"].get("calibration", {})
+    return {"budget": {**{k: v for k, v in record["budget"].items() if k != "calibration"},
+                       "calibration": {k: calibration.get(k) for k in ("costs", "cached", "slower_now", "when")}}}
 
 
 def run_child(module: str, spec: dict, what: str) -> dict | None:
