@@ -98,6 +98,11 @@ LEVEL_WARMUP = 3
 # Re-plans aim this share of the budget short of the deadline, so that noise in the step times ends the schedule
 # before the deadline's stop does (which would cut the last level's learning-rate decay short).
 SLACK = 0.02
+# A last level too dear for half its steps is lowered this many vertices at a time (see replan), in a scene whose
+# first prune kept more than FULL_BOX of its box: a room seen from inside (fox 91-97%, cup 78-89%, the synthetic
+# unbounded scene 67%), not an object on a backdrop (lego 15-20%, the demo object 10-25%).
+LOWER_BY = 16
+FULL_BOX = 0.5
 
 
 @dataclass(frozen=True)
@@ -571,9 +576,28 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     budget: 128->256->384 planned at half its steps, 256 of 1000 first-level steps run, then 384 dropped at the level
     change). A level is not dropped where the levels before it, at MAX_SHARE, would end the fit early: it stays, with
     what fits (lego, 30-second budget: 128 dropped at step 180 of 32->64->128, 64^3 at twice its steps, 25.42 dB in
-    21 s). When no schedule gets MIN_SHARE, the fewest levels allowed get what fits. The resolutions stay the plan's
-    otherwise: lowering a last level not yet started to the finest that still got MIN_SHARE of its steps lost on lego
-    at every budget tried (bench/README.md, "The time budget against the presets")."""
+    21 s). When no schedule gets MIN_SHARE, the fewest levels allowed get what fits.
+
+    In a scene whose first prune kept more than FULL_BOX of its box, a last level not yet started that would get less
+    than MIN_SHARE of its steps (and is not dropped) is lowered, by LOWER_BY, to the finest resolution that gets
+    MIN_SHARE: the rule the plan was chosen by, now on the scene's own costs. Such a scene's finer levels cost about
+    twice what the calibration's object predicts, and a finer grid short of steps loses to a coarser one with them
+    (fox, 2-minute budget, 112->112->224 planned: 25.79 dB at 224, 26.15 dB lowered to 160; on fox no grid past 192^3
+    wins at any time). On an object it is the other way round (lego, 2 minutes: 29.82 dB at 224 short of steps, 29.51
+    dB lowered to 208), so there the resolution stays the plan's (bench/README.md, "Session 22")."""
+    chosen = _replan_levels(seconds, costs, facts, now, rung, resolutions, steps, measured)
+    if (chosen[2] >= MIN_SHARE or len(chosen[0]) < len(resolutions) or now.level >= len(resolutions) - 1
+            or now.dense or now.first_keep <= FULL_BOX):
+        return chosen
+    for last in range(resolutions[-1] - LOWER_BY, resolutions[-2], -LOWER_BY):
+        lowered = _replan_levels(seconds, costs, facts, now, rung, resolutions[:-1] + [last], steps, measured)
+        if lowered[2] >= MIN_SHARE and len(lowered[0]) == len(resolutions):
+            return lowered
+    return chosen
+
+
+def _replan_levels(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung: Rung,
+                   resolutions: list[int], steps: list[int], measured: bool) -> tuple[list[int], list[int], float]:
     done = now.step - sum(steps[:now.level])
 
     def schedule(share: float, levels: int) -> list[int]:
@@ -732,12 +756,14 @@ class TimeBudget:
                  "steps": steps, "step_seconds": round(self.now.step_seconds or 0.0, 5)}
         if len(resolutions) < len(self.options.resolutions):
             entry["dropped_levels"] = self.options.resolutions[len(resolutions):]
+        elif resolutions[-1] != self.options.resolutions[-1]:
+            entry["lowered_last_level"] = [self.options.resolutions[-1], resolutions[-1]]
         # In place: the Fitter reads its schedule from these lists at every step (Fitter.run).
         self.options.resolutions[:] = resolutions
         self.options.steps[:] = steps
         # A steps-only re-plan replaces the one before it, unless either dropped a level (that stays in the record).
         if (why == "steps" and self.replans and self.replans[-1]["why"] == "steps"
-                and "dropped_levels" not in entry and "dropped_levels" not in self.replans[-1]):
+                and not {"dropped_levels", "lowered_last_level"} & (set(entry) | set(self.replans[-1]))):
             self.replans[-1] = entry
         else:
             self.replans.append(entry)

@@ -1,4 +1,5 @@
 """The fit's time budget: durations, the cached calibration, plans that fit, and budgeted fits that end on time."""
+import dataclasses
 import json
 import os
 import shutil
@@ -318,6 +319,37 @@ def test_a_replan_during_the_first_level_drops_a_third_level_but_keeps_two():
                                        measured=False)
     assert kept == [128, 128, 256] and 0 < share < budget.MIN_SHARE
     assert budget.predict(MEASURED, FACTS, now, kept, steps) <= tight
+
+
+def test_a_last_level_short_of_half_its_steps_is_lowered_in_a_scene_that_fills_its_box():
+    """Steps 2.5x dearer than modelled, measured after the first level's early prune kept 90% of the box (a room seen
+    from inside): the 256 level cannot get half its steps, so it is lowered by LOWER_BY to the finest resolution that
+    can; with the time for it, it stays at 256. In an object's scene (20% kept), or before the first prune has measured
+    what the scene keeps, it stays at 256, short."""
+    two = next(r for r in budget.LADDER if r.resolutions == (128, 128, 256))
+    voxels = int(0.9 * FACTS.box_voxels(128))
+    room = Outlook(level=1, step=two.steps[0] + 50, voxels=voxels, dense=False, step_ratio=2.5,
+                   step_seconds=2.5 * MEASURED.step_seconds(voxels), first_keep=0.9)
+    resolutions, planned = list(two.resolutions), two.scaled(1.0)
+
+    def at_half(now: Outlook, last: int) -> float:
+        return budget.predict(MEASURED, FACTS, now, resolutions[:2] + [last], two.scaled(budget.MIN_SHARE))
+
+    seconds = 0.6 * at_half(room, 256)
+    kept, steps, share = budget.replan(seconds, MEASURED, FACTS, room, two, resolutions, planned, measured=False)
+    assert kept[:2] == [128, 128] and 128 < kept[2] < 256 and (256 - kept[2]) % budget.LOWER_BY == 0
+    assert share >= budget.MIN_SHARE and steps[0] == planned[0]
+    assert budget.predict(MEASURED, FACTS, room, kept, steps) <= seconds
+    assert at_half(room, kept[2] + budget.LOWER_BY) > seconds  # the finest that fits: one rung finer does not
+
+    kept, steps, share = budget.replan(1.01 * at_half(room, 256), MEASURED, FACTS, room, two, resolutions, planned,
+                                       measured=False)
+    assert kept == resolutions and share >= budget.MIN_SHARE
+
+    for now in (dataclasses.replace(room, first_keep=0.2), dataclasses.replace(room, level=0, step=100, dense=True)):
+        seconds = 0.6 * at_half(now, 256)
+        kept, steps, share = budget.replan(seconds, MEASURED, FACTS, now, two, resolutions, planned, measured=False)
+        assert kept == resolutions and share < budget.MIN_SHARE
 
 
 def test_the_last_pruning_pass_is_predicted_at_the_held_out_renders_measured_ratio():
