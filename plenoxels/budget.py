@@ -11,7 +11,8 @@ the fit on time.
   its times scaled to the machine's speed now.
 - `TimeBudget`: picks the plan (levels, resolutions, steps) whose predicted time fits what is left of the budget;
   attached to the Fitter, it measures what the real scene costs as the fit goes, re-plans the steps of the levels
-  under way and to come every few steps and at each level change, and says when the fit must stop to end on time.
+  under way and to come every few steps and at each level change (in a scene that fills its box, lowering a last
+  level too dear for half its steps), and says when the fit must stop to end on time.
 
 What a prediction adds up, from where the fit stands to its end: steps times seconds per step (for the level under
 way, what its steps measure, or before they have, the first-level model at its box's voxels; for later levels, the
@@ -761,7 +762,8 @@ class TimeBudget:
         # In place: the Fitter reads its schedule from these lists at every step (Fitter.run).
         self.options.resolutions[:] = resolutions
         self.options.steps[:] = steps
-        # A steps-only re-plan replaces the one before it, unless either dropped a level (that stays in the record).
+        # A steps-only re-plan replaces the one before it, unless either dropped or lowered a level (that stays in the
+        # record).
         if (why == "steps" and self.replans and self.replans[-1]["why"] == "steps"
                 and not {"dropped_levels", "lowered_last_level"} & (set(entry) | set(self.replans[-1]))):
             self.replans[-1] = entry
