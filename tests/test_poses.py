@@ -461,6 +461,7 @@ def test_pose_file_changes_make_the_stage_stale(scene, truth, tmp_path):
     (["poses.source=llff"], "no such pose file"),
     (["poses.source=sfm", "poses.path=x.json"], "cannot be used"),
     (["poses.min_registered_share=0"], "min_registered_share"),
+    (["poses.threads=-1"], "poses.threads must be 0"),
     (["poses.source=colmap", "poses.path={photos}"], "holds no COLMAP model"),
 ])
 def test_bad_pose_settings_are_one_line_errors(scene, tmp_path, overrides, expected):
