@@ -678,13 +678,18 @@ class TimeBudget:
         return self.deadline - time.time()
 
     def attach(self, fitter: Fitter) -> None:
-        """Follows `fitter` from here; a resumed fit has already used `fitter.elapsed` of the budget."""
+        """Follows `fitter` from here; a resumed fit has already used `fitter.elapsed` of the budget, and its level
+        changes have measured what its prunes keep."""
         self.fitter = fitter
         self.deadline = self.started + self.seconds - fitter.elapsed
         start = sum(self.options.steps[:fitter.level])
         self.options.steps[fitter.level] = max(self.options.steps[fitter.level], fitter.step - start)
+        kept = [entry["kept"] / max(1, entry["pruned_from"]) for entry in fitter.levels]
+        measured = {"first_keep": kept[0]} if kept else {}
+        if len(kept) > 1:
+            measured["later_keep"] = kept[-1]
         self.now = self.facts.outlook(level=fitter.level, step=fitter.step, voxels=fitter.model.grid.num_occupied,
-                                      dense=not fitter.levels)
+                                      dense=not fitter.levels, **measured)
         self._last = time.perf_counter()
 
     def due(self) -> bool:

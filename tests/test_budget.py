@@ -430,7 +430,7 @@ def test_a_budgeted_fit_resumes_with_its_plan(fresh, monkeypatch):
     original = Fitter.train_step
 
     def interrupted(self):
-        if self.step == 50:
+        if self.step == 100:  # after the level change at step 80
             raise KeyboardInterrupt
         return original(self)
 
@@ -441,8 +441,12 @@ def test_a_budgeted_fit_resumes_with_its_plan(fresh, monkeypatch):
     monkeypatch.setattr(Fitter, "train_step", original)
     run_stage(fresh, fit, values)
     record = read_json(fresh / "fit" / "fit.json")
-    assert record["resumed_from_step"] == 50 and record["complete"]
+    assert record["resumed_from_step"] == 100 and record["complete"]
     assert record["resolutions"] == [16, 32] and record["steps"] == record["total_steps"] == 160  # the plan's 2x
+    # What the level change's prune kept, measured before the stop, not the scene type's prior.
+    first = record["levels"][0]
+    assert record["budget"]["kept_share"]["first_prune"] == pytest.approx(first["kept"] / first["pruned_from"], abs=1e-4)
+    assert first["kept"] / first["pruned_from"] != pytest.approx(record["budget"]["kept_share"]["first_prune_prior"])
 
 
 @pytest.mark.parametrize("scene_type", ["object", "unbounded"])
