@@ -684,7 +684,7 @@ class TimeBudget:
         self.deadline = self.started + self.seconds - fitter.elapsed
         start = sum(self.options.steps[:fitter.level])
         self.options.steps[fitter.level] = max(self.options.steps[fitter.level], fitter.step - start)
-        kept = [entry["kept"] / max(1, entry["pruned_from"]) for entry in fitter.levels]
+        kept = [_kept_share(entry) for entry in fitter.levels]
         measured = {"first_keep": kept[0]} if kept else {}
         if len(kept) > 1:
             measured["later_keep"] = kept[-1]
@@ -723,7 +723,7 @@ class TimeBudget:
         predicted = (self.costs.pass_seconds(self.facts.prune_rays(before), before)
                      + (self.costs.change_per_voxel + self.costs.checkpoint_per_voxel) * entry["occupied"])
         self.now.change_ratio = change / max(predicted, 1e-9)
-        kept = entry["kept"] / max(1, entry["pruned_from"])
+        kept = _kept_share(entry)
         if self.now.dense:
             self.now.first_keep = kept
         else:
@@ -828,6 +828,11 @@ class TimeBudget:
                             "load_average": self.calibration.get("load_average"),
                             "when": self.calibration.get("when")},
         }
+
+
+def _kept_share(level_change: dict) -> float:
+    """The share of the grid's voxels a level change's prune kept (one of Fitter.levels)."""
+    return level_change["kept"] / max(1, level_change["pruned_from"])
 
 
 def _duration(seconds: float) -> str:
