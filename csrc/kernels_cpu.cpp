@@ -92,6 +92,16 @@ inline void prefetch_row(const float* row, bool for_write) {
     }
 }
 
+// prefetch_row for a row length known only at run time.
+inline void prefetch_floats(const float* row, int count, bool for_write) {
+    for (int k = 0; k < count; k += 16) {
+        if (for_write)
+            __builtin_prefetch(row + k, 1, 3);
+        else
+            __builtin_prefetch(row + k, 0, 3);
+    }
+}
+
 // What an unallocated corner holds (rows are at most this long).
 alignas(64) constexpr float kZeroRow[row_stride(3)] = {};
 
@@ -713,6 +723,9 @@ std::vector<Tensor> build_occupancy(Tensor links, int64_t block) {
     return {cells, blocks};
 }
 
+// How many samples apart total variation loads each stage of a sample's reads ahead.
+constexpr int64_t kTvAhead = 4;
+
 // Total variation at sampled rows: for each channel with a non-zero weight,
 // weight * mean over samples of sqrt(dx^2 + dy^2 + dz^2 + eps), with d* the forward differences to
 // the allocated +x, +y, +z neighbours (a missing neighbour contributes no difference).
@@ -742,15 +755,45 @@ std::tuple<double, int64_t> tv_loss_and_grad(Tensor data, Tensor links, Tensor c
 #pragma omp parallel num_threads(threads) reduction(+ : loss)
     {
         GradSink sink = sink_for(omp_get_thread_num(), &target, &scratch);
-#pragma omp for schedule(static)
-        for (int64_t m = 0; m < M; ++m) {
-            const int32_t row = (int32_t)rows[m];
+        // The links of a row's +x, +y and +z neighbours (-1 past the grid's edge).
+        const auto neighbour_links = [&](int32_t row, int64_t* at) {
             const int32_t* p = xyz + 3 * (int64_t)row;
-            int32_t nb[3];
             for (int a = 0; a < 3; ++a) {
                 int q[3] = {p[0], p[1], p[2]};
                 q[a] += 1;
-                nb[a] = q[a] < res[a] ? l[((int64_t)q[0] * res[1] + q[1]) * res[2] + q[2]] : -1;
+                at[a] = q[a] < res[a] ? ((int64_t)q[0] * res[1] + q[1]) * res[2] + q[2] : -1;
+            }
+        };
+#pragma omp for schedule(static)
+        for (int64_t m = 0; m < M; ++m) {
+            // A sample's reads depend on each other (its coordinates, then its neighbours' links, then their rows), and
+            // samples are far apart in the tables: load each stage ahead, kTvAhead samples apart.
+            if (m + 3 * kTvAhead < M) __builtin_prefetch(xyz + 3 * rows[m + 3 * kTvAhead], 0, 3);
+            if (m + 2 * kTvAhead < M) {
+                const int32_t ahead = (int32_t)rows[m + 2 * kTvAhead];
+                int64_t at[3];
+                neighbour_links(ahead, at);
+                for (int a = 0; a < 3; ++a)
+                    if (at[a] >= 0) __builtin_prefetch(l + at[a], 0, 3);
+                prefetch_floats(d + (int64_t)ahead * S, S, false);
+                prefetch_floats(sink.buf + (int64_t)ahead * S, S, true);
+            }
+            if (m + kTvAhead < M) {
+                int64_t at[3];
+                neighbour_links((int32_t)rows[m + kTvAhead], at);
+                for (int a = 0; a < 3; ++a) {
+                    const int32_t n = at[a] >= 0 ? l[at[a]] : -1;
+                    if (n < 0) continue;
+                    prefetch_floats(d + (int64_t)n * S, S, false);
+                    prefetch_floats(sink.buf + (int64_t)n * S, S, true);
+                }
+            }
+            const int32_t row = (int32_t)rows[m];
+            int32_t nb[3];
+            {
+                int64_t at[3];
+                neighbour_links(row, at);
+                for (int a = 0; a < 3; ++a) nb[a] = at[a] >= 0 ? l[at[a]] : -1;
             }
             if (nb[0] < 0 && nb[1] < 0 && nb[2] < 0) continue;
             float* grad_self = sink.row(row);
@@ -777,6 +820,11 @@ std::tuple<double, int64_t> tv_loss_and_grad(Tensor data, Tensor links, Tensor c
     merge(&target, &scratch, threads);
     return {loss, target.count};
 }
+
+// How many rows ahead the optimiser step loads the rows it updates, and the share of a grid's rows (one in this many)
+// above which a step walks its touched rows in memory order.
+constexpr int64_t kRowsAhead = 16;
+constexpr int64_t kMemoryOrderShare = 16;
 
 // RMSProp on the touched rows only: v = beta v + (1 - beta) g^2; p -= lr g / (sqrt(v) + eps).
 // Clears the gradient of those rows afterwards. A zero gradient with zero v moves nothing.
@@ -816,20 +864,42 @@ void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor gr
         blocks = b.data_ptr<uint8_t>();
         for (int a = 0; a < 3; ++a) nb[a] = (int)n.size(a);
     }
-    // When a step touches a large share of the rows (a coarse level, a busy grid), walking the touch mask in memory
-    // order reads the three tables in sequence instead of at first-touch order's scattered rows; the same rows get
-    // the same update either way.
+    // Each thread updates its share of the touched rows: in memory order (the mask read in order) when the step
+    // touched more than one row in kMemoryOrderShare, as nearby rows then share pages; else in the list's first-touch
+    // order. Either way it loads rows kRowsAhead ahead of the one it updates: touched rows lie scattered over tables
+    // of hundreds of MB, and each would otherwise wait on its misses in turn. Any order gives the same update.
     const int64_t N = data.size(0);
-    const bool in_memory_order = num_touched * 4 > N;
-    const int64_t span = in_memory_order ? N : num_touched;
+    const bool in_memory_order = num_touched * kMemoryOrderShare > N;
 #pragma omp parallel
     {
         // Blocks whose live count this thread took across zero: only their flags can change.
         std::vector<int64_t> crossed;
-#pragma omp for schedule(static)
-        for (int64_t j = 0; j < span; ++j) {
-            if (in_memory_order && !mask[j]) continue;
-            const int64_t row = in_memory_order ? j : rows[j];
+        const int T = omp_get_num_threads(), t = omp_get_thread_num();
+        const int64_t span = in_memory_order ? N : num_touched;
+        const int64_t begin = span * t / T, end = span * (t + 1) / T;
+        thread_local std::vector<int32_t> mine;
+        mine.clear();
+        if (in_memory_order) {
+            mine.resize(end - begin + 1);
+            int64_t n = 0;
+            for (int64_t j = begin; j < end; ++j) {  // without a branch: which rows are touched is unpredictable
+                mine[n] = (int32_t)j;
+                n += mask[j] != 0;
+            }
+            mine.resize(n);
+        }
+        const int32_t* list = in_memory_order ? mine.data() : rows + begin;
+        const int64_t count = in_memory_order ? (int64_t)mine.size() : end - begin;
+        for (int64_t j = 0; j < count; ++j) {
+            if (j + kRowsAhead < count) {
+                const int64_t ahead = (int64_t)list[j + kRowsAhead] * S;
+                for (int64_t k = 0; k < columns; k += 16) {
+                    __builtin_prefetch(p + ahead + k, 1, 3);
+                    __builtin_prefetch(v + ahead + k, 1, 3);
+                    __builtin_prefetch(g + ahead + k, 1, 3);
+                }
+            }
+            const int64_t row = list[j];
             float* pr = p + row * S;
             const bool was_live = pr[0] > 0.0f;
             float* vr = v + row * S;
@@ -845,6 +915,7 @@ void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor gr
             const bool is_live = pr[0] > 0.0f;
             if (counts && is_live != was_live) add_live_vertex(xyz + 3 * row, block, nb, counts, is_live ? 1 : -1, &crossed);
         }
+#pragma omp barrier
         // After the loop's barrier every count is final; threads sharing a block write the same flag.
         for (const int64_t blk : crossed)
             __atomic_store_n(blocks + blk, (uint8_t)(__atomic_load_n(counts + blk, __ATOMIC_RELAXED) > 0), __ATOMIC_RELAXED);

@@ -228,8 +228,8 @@ def test_tv_twin_gradcheck_and_known_value():
 
 
 def bundle_of_rays(wide: bool) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rays along +x into random_grid's box: a thin bundle (a few rows touched) or a lattice across the whole
-    box (most rows touched, where the native step walks the rows in memory order instead of the touched list)."""
+    """Rays along +x into random_grid's box: a thin bundle (a few rows touched, which the native step updates in the
+    touched list's order) or a lattice across the whole box (most rows touched, which it walks in memory order)."""
     if not wide:
         origins = torch.tensor([[-3.0, 0.05, 0.1]]).repeat(4, 1)
         return origins, torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.01, 0.0], [1.0, 0.0, 0.01], [1.0, 0.01, 0.01]])
@@ -259,7 +259,7 @@ def test_rmsprop_updates_only_touched_rows_and_matches_twin(wide):
         if wide:
             assert grid.num_occupied // 4 < touched.shape[0] < grid.num_occupied  # some rows left untouched
         else:
-            assert 0 < touched.shape[0] < grid.num_occupied // 10
+            assert 0 < touched.shape[0] < grid.num_occupied // 16  # below the native step's share for memory order
         if backend == "native":
             opt.step(grad)
         else:
