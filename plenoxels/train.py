@@ -408,7 +408,12 @@ class Fitter:
 
     def check_finite(self) -> None:
         columns = 1 + 3 * sh_count(self.model.grid.sh_degree)
-        if not bool(torch.isfinite(self.model.grid.data[:, :columns]).all()):
+        data = self.model.grid.data
+        # The whole table's extremes first (a NaN or an infinity shows in them): on the CPU, aminmax over 2.3M rows
+        # takes 9 ms, isfinite().all() over the parameter columns 210. Only where they are not finite are the
+        # parameter columns read, so a row's padding never counts.
+        extremes_finite = data.numel() > 0 and all(math.isfinite(float(x)) for x in torch.aminmax(data))
+        if not extremes_finite and not bool(torch.isfinite(data[:, :columns]).all()):
             raise Diverged("a grid parameter became NaN or infinite")
         if self.model.background is not None and not all(bool(torch.isfinite(p).all())
                                                          for p in self.model.background.parameters()):

@@ -17,8 +17,8 @@ from plenoxels.optim import GridGrad
 from plenoxels.render import RenderOptions, loss_and_grad
 from plenoxels.regularizers import tv_scale_for_views, views_per_point
 from plenoxels.scene_model import ModelOptions, SceneModel, background_width_for
-from plenoxels.train import (Fitter, RaySet, TrainOptions, coherent_order, decayed_lr, prune_mask, pruning_rays,
-                             pruning_stride)
+from plenoxels.train import (Diverged, Fitter, RaySet, TrainOptions, coherent_order, decayed_lr, prune_mask,
+                             pruning_rays, pruning_stride)
 from test_fit import make_scene
 
 
@@ -248,3 +248,23 @@ def test_a_fit_stopped_between_the_early_prune_and_the_upsample_resumes_to_the_s
         torch.set_num_threads(before)
     assert resumed.levels == whole.levels
     assert torch.equal(resumed.model.grid.data, whole.model.grid.data)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_a_non_finite_parameter_is_found_wherever_it_is_and_padding_is_not_a_parameter(tmp_path, bad):
+    root = make_scene(tmp_path)
+    scene = read_json(root / "normalize" / "scene.json")
+    fitter = Fitter(SceneModel.create(scene, ModelOptions(), 16), TrainOptions(resolutions=[16], steps=[1]),
+                    training_rays(root, [f for f in scene["frames"] if f["split"] == "train"]))
+    data = fitter.model.grid.data
+    columns = 1 + 3 * (fitter.model.grid.sh_degree + 1) ** 2
+    assert data.shape[1] > columns  # rows are padded
+    fitter.check_finite()
+    for row, column in ((0, 0), (data.shape[0] // 2, columns - 1), (data.shape[0] - 1, 1)):
+        kept = float(data[row, column])
+        data[row, column] = bad
+        with pytest.raises(Diverged):
+            fitter.check_finite()
+        data[row, column] = kept
+    data[data.shape[0] // 2, columns] = bad  # padding: no parameter
+    fitter.check_finite()
