@@ -824,7 +824,7 @@ std::tuple<double, int64_t> tv_loss_and_grad(Tensor data, Tensor links, Tensor c
 // How many rows ahead the optimiser step loads the rows it updates, and the share of a grid's rows (one in this many)
 // above which a step walks its touched rows in memory order.
 constexpr int64_t kRowsAhead = 16;
-constexpr int64_t kMemoryOrderShare = 16;
+constexpr int64_t kMemoryOrderShare = 64;
 
 // RMSProp on the touched rows only: v = beta v + (1 - beta) g^2; p -= lr g / (sqrt(v) + eps).
 // Clears the gradient of those rows afterwards. A zero gradient with zero v moves nothing.
@@ -865,9 +865,10 @@ void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor gr
         for (int a = 0; a < 3; ++a) nb[a] = (int)n.size(a);
     }
     // Each thread updates its share of the touched rows: in memory order (the mask read in order) when the step
-    // touched more than one row in kMemoryOrderShare, as nearby rows then share pages; else in the list's first-touch
-    // order. Either way it loads rows kRowsAhead ahead of the one it updates: touched rows lie scattered over tables
-    // of hundreds of MB, and each would otherwise wait on its misses in turn. Any order gives the same update.
+    // touched more than one row in kMemoryOrderShare, as nearby rows then share pages and a fit's rows lie in
+    // clusters; else, where reading the whole mask would cost more than that saves, in the list's first-touch order.
+    // Either way it loads rows kRowsAhead ahead of the one it updates: touched rows lie scattered over tables of
+    // hundreds of MB, and each would otherwise wait on its misses in turn. Any order gives the same update.
     const int64_t N = data.size(0);
     const bool in_memory_order = num_touched * kMemoryOrderShare > N;
 #pragma omp parallel

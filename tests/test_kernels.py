@@ -241,7 +241,7 @@ def bundle_of_rays(wide: bool) -> tuple[torch.Tensor, torch.Tensor]:
 
 @pytest.mark.parametrize("wide", [False, True], ids=["few rows", "most rows"])
 def test_rmsprop_updates_only_touched_rows_and_matches_twin(wide):
-    grid = random_grid(res=(12, 12, 12), sh_degree=1, holes=0.2 if wide else 0.0, seed=15)
+    grid = random_grid(res=(12,) * 3 if wide else (24,) * 3, sh_degree=1, holes=0.2 if wide else 0.0, seed=15)
     origins, dirs = bundle_of_rays(wide)
     targets = torch.zeros(origins.shape[0], 3)
     # A moment from earlier steps: an untouched row's must not decay.
@@ -259,7 +259,7 @@ def test_rmsprop_updates_only_touched_rows_and_matches_twin(wide):
         if wide:
             assert grid.num_occupied // 4 < touched.shape[0] < grid.num_occupied  # some rows left untouched
         else:
-            assert 0 < touched.shape[0] < grid.num_occupied // 16  # below the native step's share for memory order
+            assert 0 < touched.shape[0] < grid.num_occupied // 64  # below the native step's share for memory order
         if backend == "native":
             opt.step(grad)
         else:
