@@ -12,8 +12,8 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-PARTS = ("kernels", "background", "poses", "normalize", "fit", "scaling", "scene_models", "real_scenes", "grid_ceiling",
-         "export", "cuda",
+PARTS = ("kernels", "step_parts", "background", "poses", "normalize", "fit", "scaling", "scene_models", "real_scenes",
+         "grid_ceiling", "export", "cuda",
          "lego_protocol", "lpips_reference", "peers")
 COMBINED = REPO / "bench" / "results.json"
 

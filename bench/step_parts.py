@@ -1,0 +1,131 @@
+"""Where a train step's time goes: milliseconds per step of each part at each level of lego's `default` fit, shortened
+to a few hundred steps a level (the levels, grids and batches of the full fit), on the CPU.
+
+The parts: the render's loss and gradient (the native kernel with its per-thread gradient merge), total variation,
+the optimiser step, drawing the batch, the guard that checks the parameters are finite, and the rest of the step.
+Each is timed around its call in plenoxels.train, so the times add up to the step's.
+
+    python -m bench.step_parts [--steps 200,300,300] [--label after] [--data ../shared/data]
+
+Adds the run to bench/results/step_parts.json (replacing one with the same label) and prints a table. To compare two
+versions of the code in one session, run the same file from a worktree of the other (`git worktree add`, build its
+core, copy this file into its bench/) with `--out` pointing here and another label.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+RESULTS = REPO / "bench" / "results" / "step_parts.json"
+PARTS = ("render", "tv", "optimiser", "batch", "guard")
+
+
+def timed_fit(data: Path, steps: list[int]) -> dict:
+    """Runs the shortened fit with each part's calls timed; per level: steps, grid rows, rows a step touched and
+    milliseconds per step of each part and of the whole step."""
+    from bench.common import fitted
+    from bench.fit import load_scene, resolve
+    from plenoxels import optim, train
+
+    seconds = collections.defaultdict(float)
+    touched = collections.defaultdict(float)
+    rows = collections.defaultdict(float)
+    counts = collections.Counter()
+    level = [0]
+
+    def wrap(owner, name: str, part: str) -> None:
+        original = getattr(owner, name)
+
+        def timed(*args, **kwargs):
+            started = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                seconds[(level[0], part)] += time.perf_counter() - started
+
+        setattr(owner, name, timed)
+
+    wrap(train, "loss_and_grad", "render")
+    wrap(train, "tv_loss_and_grad", "tv")
+    wrap(train.RaySet, "batch", "batch")
+    wrap(train.Fitter, "check_finite", "guard")
+    wrap(optim.SparseRMSProp, "step", "optimiser")
+    optimiser_step = optim.SparseRMSProp.step
+
+    def counted_step(self, grad):
+        touched[level[0]] += grad.num_touched
+        rows[level[0]] += self.grid.num_occupied
+        return optimiser_step(self, grad)
+
+    optim.SparseRMSProp.step = counted_step
+    train_step = train.Fitter.train_step
+
+    def step(self):
+        level[0] = self.level
+        counts[self.level] += 1
+        started = time.perf_counter()
+        try:
+            return train_step(self)
+        finally:
+            seconds[(self.level, "step")] += time.perf_counter() - started
+
+    train.Fitter.train_step = step
+    scene, root = load_scene("lego", data, 25)
+    settings = resolve("default", "object", {"steps": steps, "eval_every": 0})
+    started = time.time()
+    summary, wall, record, _ = fitted(scene, root, settings)
+    levels = []
+    for index, resolution in enumerate(settings.resolutions):
+        ms = {part: round(seconds[(index, part)] / max(1, counts[index]) * 1e3, 2) for part in (*PARTS, "step")}
+        ms["rest"] = round(ms["step"] - sum(ms[p] for p in PARTS), 2)
+        levels.append({"resolution": resolution, "steps": counts[index],
+                       "grid_rows": round(rows[index] / max(1, counts[index])),
+                       "rows_touched": round(touched[index] / max(1, counts[index])), "ms_per_step": ms})
+    return {"levels": levels, "fit_seconds": record["seconds"], "wall_seconds": round(time.time() - started, 1),
+            "summary": summary["line"]}
+
+
+def print_run(run: dict) -> None:
+    print(f"{run['label']}: {run['fit_seconds']} s fitting; ms per step")
+    print(f"{'level':>5} {'res':>4} {'rows':>9} {'touched':>8} " + " ".join(f"{p:>9}" for p in (*PARTS, "rest", "step")))
+    for i, lv in enumerate(run["levels"]):
+        ms = lv["ms_per_step"]
+        print(f"{i:>5} {lv['resolution']:>4} {lv['grid_rows']:>9} {lv['rows_touched']:>8} "
+              + " ".join(f"{ms[p]:>9.1f}" for p in (*PARTS, "rest", "step")))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--steps", default="200,300,300", help="steps of default's three levels, comma-separated")
+    parser.add_argument("--label", default="as is", help="names the run (a run replaces the same-labelled one)")
+    parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    import torch
+
+    from plenoxels.budget import processor_name
+
+    load_before = os.getloadavg()[0]
+    run = {"label": args.label, "commit": os.popen(f"git -C {REPO} rev-parse --short HEAD").read().strip(),
+           **timed_fit(args.data, [int(s) for s in args.steps.split(",")]),
+           "machine": {"cpu": processor_name(), "threads": torch.get_num_threads()},
+           "load_average": [round(load_before, 2), round(os.getloadavg()[0], 2)],
+           "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    results = json.loads(args.out.read_text()) if args.out.is_file() else {"runs": []}
+    results["runs"] = [r for r in results["runs"] if r["label"] != args.label] + [run]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(results, indent=1) + "\n")
+    print_run(run)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
