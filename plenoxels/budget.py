@@ -408,10 +408,11 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
 def calibrate(options, device: torch.device, background: dict | None = None, resolutions=CALIBRATION_RESOLUTIONS,
               dense_resolutions=DENSE_RESOLUTIONS, say: Callable[[str], None] | None = None) -> tuple[CostModel, dict]:
     """The cost model for these options on this machine: from the cache when its key matches, with its times scaled by
-    how much longer the calibration's first step takes now (the faster of RETIME_ROUNDS timings) than it did (a shared host's speed drifts: 1.2x within an
-    hour on the 2-core one the benches ran on, and a plan from a calibration made at a fast moment starves its last
-    level), else measured (a few seconds) and cached. Returns it and the calibration's record, with `cached`, `file`
-    and `slower_now` (that scale; 1 for a calibration just measured) added."""
+    how much longer the calibration's first step takes now (the faster of RETIME_ROUNDS timings) than it did (a shared
+    host's speed drifts: 1.2x within an hour on the 2-core one the benches ran on, and a plan from a calibration made
+    at a fast moment starves its last level), else measured (a few seconds) and cached. Returns it and the
+    calibration's record, with `cached`, `file` and `slower_now` (that scale; 1 for a calibration just measured)
+    added."""
     key = calibration_key(options, device, background, resolutions, dense_resolutions)
     path = cache_dir() / f"fit-cost-{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]}.json"
     try:
