@@ -1,15 +1,17 @@
-"""Where a train step's time goes: milliseconds per step of each part at each level of lego's `default` fit, shortened
-to a few hundred steps a level (the levels, grids and batches of the full fit), on the CPU.
+"""Where a train step's time goes: milliseconds per step of each part at each level of a scene's `default` fit
+(lego, or a real capture of bench/real_scenes.py), shortened to a few hundred steps a level (the levels, grids and
+batches of the full fit), on the CPU.
 
 The parts: the render's loss and gradient (the native kernel with its per-thread gradient merge), total variation,
-the optimiser step, drawing the batch, the guard that checks the parameters are finite, and the rest of the step.
-Each is timed around its call in plenoxels.train, so the times add up to the step's.
+the optimiser step, the background model (its render, gradient and step, in scenes that have one), drawing the batch,
+the guard that checks the parameters are finite, and the rest of the step. Each is timed around its call inside a
+train step, so the times add up to the step's.
 
-    python -m bench.step_parts [--steps 200,300,300] [--label after] [--data ../shared/data]
+    python -m bench.step_parts [--scene lego] [--steps 200,300,300] [--label after] [--data ../shared/data]
 
-Adds the run to bench/results/step_parts.json (replacing one with the same label) and prints a table. To compare two
-versions of the code in one session, run the same file from a worktree of the other (`git worktree add`, build its
-core, copy this file into its bench/) with `--out` pointing here and another label.
+Adds the run to bench/results/step_parts.json (replacing one of the same scene and label) and prints a table. To
+compare two versions of the code in one session, run the same file from a worktree of the other (`git worktree add`,
+build its core, copy this file into its bench/) with `--out` pointing here and another label.
 """
 from __future__ import annotations
 
@@ -25,21 +27,37 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 RESULTS = REPO / "bench" / "results" / "step_parts.json"
-PARTS = ("render", "tv", "optimiser", "batch", "guard")
+PARTS = ("render", "tv", "optimiser", "background", "batch", "guard")
 
 
-def timed_fit(data: Path, steps: list[int]) -> dict:
+def scene_of(name: str, data: Path) -> tuple[dict, Path, str]:
+    """(scene.json, the folder its paths resolve against, its scene type): lego as bench/fit.py loads it, a real
+    capture through the pipeline up to normalize as bench/real_scenes.py prepares it."""
+    if name == "lego":
+        from bench.fit import load_scene
+
+        scene, root = load_scene("lego", data, 25)
+        return scene, root, "object"
+    from bench.real_scenes import prepared
+
+    root = prepared(name, "default", data)
+    scene = json.loads((root / "normalize" / "scene.json").read_text())
+    return scene, root, scene["type"]
+
+
+def timed_fit(name: str, data: Path, steps: list[int]) -> dict:
     """Runs the shortened fit with each part's calls timed; per level: steps, grid rows, rows a step touched and
     milliseconds per step of each part and of the whole step."""
     from bench.common import fitted
-    from bench.fit import load_scene, resolve
-    from plenoxels import optim, train
+    from bench.fit import resolve
+    from plenoxels import background, optim, train
 
     seconds = collections.defaultdict(float)
     touched = collections.defaultdict(float)
     rows = collections.defaultdict(float)
     counts = collections.Counter()
     level = [0]
+    in_step = [False]  # parts count only inside a train step (the guard also runs at each checkpoint)
 
     def wrap(owner, name: str, part: str) -> None:
         original = getattr(owner, name)
@@ -49,7 +67,8 @@ def timed_fit(data: Path, steps: list[int]) -> dict:
             try:
                 return original(*args, **kwargs)
             finally:
-                seconds[(level[0], part)] += time.perf_counter() - started
+                if in_step[0]:
+                    seconds[(level[0], part)] += time.perf_counter() - started
 
         setattr(owner, name, timed)
 
@@ -58,6 +77,8 @@ def timed_fit(data: Path, steps: list[int]) -> dict:
     wrap(train.RaySet, "batch", "batch")
     wrap(train.Fitter, "check_finite", "guard")
     wrap(optim.SparseRMSProp, "step", "optimiser")
+    for method in ("forward", "backward", "step"):
+        wrap(background.BackgroundOptimiser, method, "background")
     optimiser_step = optim.SparseRMSProp.step
 
     def counted_step(self, grad):
@@ -71,15 +92,17 @@ def timed_fit(data: Path, steps: list[int]) -> dict:
     def step(self):
         level[0] = self.level
         counts[self.level] += 1
+        in_step[0] = True
         started = time.perf_counter()
         try:
             return train_step(self)
         finally:
             seconds[(self.level, "step")] += time.perf_counter() - started
+            in_step[0] = False
 
     train.Fitter.train_step = step
-    scene, root = load_scene("lego", data, 25)
-    settings = resolve("default", "object", {"steps": steps, "eval_every": 0})
+    scene, root, scene_type = scene_of(name, data)
+    settings = resolve("default", scene_type, {"steps": steps, "eval_every": 0})
     started = time.time()
     summary, wall, record, _ = fitted(scene, root, settings)
     levels = []
@@ -94,16 +117,18 @@ def timed_fit(data: Path, steps: list[int]) -> dict:
 
 
 def print_run(run: dict) -> None:
-    print(f"{run['label']}: {run['fit_seconds']} s fitting; ms per step")
-    print(f"{'level':>5} {'res':>4} {'rows':>9} {'touched':>8} " + " ".join(f"{p:>9}" for p in (*PARTS, "rest", "step")))
+    print(f"{run.get('scene', 'lego')}, {run['label']}: {run['fit_seconds']} s fitting; ms per step")
+    columns = (*PARTS, "rest", "step")
+    print(f"{'level':>5} {'res':>4} {'rows':>9} {'touched':>8} " + " ".join(f"{p:>9}" for p in columns))
     for i, lv in enumerate(run["levels"]):
-        ms = lv["ms_per_step"]
+        ms = {"background": 0.0, **lv["ms_per_step"]}
         print(f"{i:>5} {lv['resolution']:>4} {lv['grid_rows']:>9} {lv['rows_touched']:>8} "
-              + " ".join(f"{ms[p]:>9.1f}" for p in (*PARTS, "rest", "step")))
+              + " ".join(f"{ms[p]:>9.1f}" for p in columns))
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--scene", default="lego", help="lego or a scene of bench/real_scenes.py (fox, cup, ...)")
     parser.add_argument("--steps", default="200,300,300", help="steps of default's three levels, comma-separated")
     parser.add_argument("--label", default="as is", help="names the run (a run replaces the same-labelled one)")
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
@@ -114,13 +139,15 @@ def main(argv=None) -> int:
     from plenoxels.budget import processor_name
 
     load_before = os.getloadavg()[0]
-    run = {"label": args.label, "commit": os.popen(f"git -C {REPO} rev-parse --short HEAD").read().strip(),
-           **timed_fit(args.data, [int(s) for s in args.steps.split(",")]),
+    run = {"scene": args.scene, "label": args.label,
+           "commit": os.popen(f"git -C {REPO} rev-parse --short HEAD").read().strip(),
+           **timed_fit(args.scene, args.data, [int(s) for s in args.steps.split(",")]),
            "machine": {"cpu": processor_name(), "threads": torch.get_num_threads()},
            "load_average": [round(load_before, 2), round(os.getloadavg()[0], 2)],
            "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     results = json.loads(args.out.read_text()) if args.out.is_file() else {"runs": []}
-    results["runs"] = [r for r in results["runs"] if r["label"] != args.label] + [run]
+    results["runs"] = [r for r in results["runs"]
+                       if (r.get("scene", "lego"), r["label"]) != (args.scene, args.label)] + [run]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=1) + "\n")
     print_run(run)
