@@ -82,9 +82,9 @@ using plx::cell_of;
 // How many samples ahead the march prefetches rows (about two cells at the default step of 0.5).
 constexpr int kLookahead = 4;
 
-template <int S>
-inline void prefetch_row(const float* row, bool for_write) {
-    for (int k = 0; k < S; k += 16) {
+// Loads the cache lines of `count` floats from `row` ahead of their use (for writing: in a state that takes a write).
+inline void prefetch_floats(const float* row, int64_t count, bool for_write) {
+    for (int64_t k = 0; k < count; k += 16) {
         if (for_write)
             __builtin_prefetch(row + k, 1, 3);
         else
@@ -92,14 +92,9 @@ inline void prefetch_row(const float* row, bool for_write) {
     }
 }
 
-// prefetch_row for a row length known only at run time.
-inline void prefetch_floats(const float* row, int count, bool for_write) {
-    for (int k = 0; k < count; k += 16) {
-        if (for_write)
-            __builtin_prefetch(row + k, 1, 3);
-        else
-            __builtin_prefetch(row + k, 0, 3);
-    }
+template <int S>
+inline void prefetch_row(const float* row, bool for_write) {
+    prefetch_floats(row, S, for_write);
 }
 
 // What an unallocated corner holds (rows are at most this long).
