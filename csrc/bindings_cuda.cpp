@@ -23,6 +23,7 @@
 #include <vector>
 
 #include "cuda_kernels.h"
+#include "ops.h"
 #include "plenoxels_math.h"
 
 namespace {
@@ -390,19 +391,19 @@ int64_t background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor r
 }
 
 TORCH_LIBRARY_IMPL(voxfield, CUDA, m) {
-    m.impl("grad_scratch", &grad_scratch);
-    m.impl("build_occupancy", &build_occupancy);
-    m.impl("count_live_blocks", &count_live_blocks);
-    m.impl("row_coords", &row_coords);
-    m.impl("sample", &sample);
-    m.impl("render", &render);
-    m.impl("loss_and_grad", &loss_and_grad);
-    m.impl("max_weights", &max_weights);
-    m.impl("sample_counts", &sample_counts);
-    m.impl("tv_loss_and_grad", &tv_loss_and_grad);
-    m.impl("rmsprop_step", &rmsprop_step);
-    m.impl("background_render", &background_render);
-    m.impl("background_backward", &background_backward);
+    PLX_IMPL(m, grad_scratch);
+    PLX_IMPL(m, build_occupancy);
+    PLX_IMPL(m, count_live_blocks);
+    PLX_IMPL(m, row_coords);
+    PLX_IMPL(m, sample);
+    PLX_IMPL(m, render);
+    PLX_IMPL(m, loss_and_grad);
+    PLX_IMPL(m, max_weights);
+    PLX_IMPL(m, sample_counts);
+    PLX_IMPL(m, tv_loss_and_grad);
+    PLX_IMPL(m, rmsprop_step);
+    PLX_IMPL(m, background_render);
+    PLX_IMPL(m, background_backward);
 }
 
 #endif  // PLX_WITH_CUDA

@@ -23,6 +23,7 @@
 #include <tuple>
 #include <vector>
 
+#include "ops.h"
 #include "plenoxels_math.h"
 
 namespace {
@@ -244,7 +245,7 @@ class ThreadGrads {
 // Anonymous mappings are zero pages mapped lazily, so a thread's slot costs memory only for the rows it ever
 // touches, and they start on a page, so rows stay whole cache lines (calloc's large blocks start 16 bytes in,
 // which split every row across one more line).
-std::vector<at::Tensor> grad_scratch(const at::Tensor& grad_data, int64_t max_slots) {
+std::vector<at::Tensor> grad_scratch(at::Tensor grad_data, int64_t max_slots) {
     TORCH_CHECK(grad_data.device().is_cpu() && grad_data.dim() == 2, "grad data must be a CPU [N, S] table");
     TORCH_CHECK(max_slots >= 0, "max_slots must be >= 0");
     const int64_t slots = std::min<int64_t>(std::max(omp_get_max_threads() - 1, 0), max_slots);
@@ -1089,17 +1090,17 @@ TORCH_LIBRARY_IMPL(voxfield, CPU, m) {
         TORCH_CHECK(t.is_contiguous(), "advise_huge_pages needs a contiguous CPU tensor");
         return advise_huge_pages(t.data_ptr(), (size_t)t.nbytes());
     });
-    m.impl("grad_scratch", &grad_scratch);
-    m.impl("build_occupancy", &build_occupancy);
-    m.impl("count_live_blocks", &count_live_blocks);
-    m.impl("row_coords", &row_coords);
-    m.impl("sample", &sample);
-    m.impl("render", &render);
-    m.impl("loss_and_grad", &loss_and_grad);
-    m.impl("max_weights", &max_weights);
-    m.impl("sample_counts", &sample_counts);
-    m.impl("tv_loss_and_grad", &tv_loss_and_grad);
-    m.impl("rmsprop_step", &rmsprop_step);
-    m.impl("background_render", &background_render);
-    m.impl("background_backward", &background_backward);
+    PLX_IMPL(m, grad_scratch);
+    PLX_IMPL(m, build_occupancy);
+    PLX_IMPL(m, count_live_blocks);
+    PLX_IMPL(m, row_coords);
+    PLX_IMPL(m, sample);
+    PLX_IMPL(m, render);
+    PLX_IMPL(m, loss_and_grad);
+    PLX_IMPL(m, max_weights);
+    PLX_IMPL(m, sample_counts);
+    PLX_IMPL(m, tv_loss_and_grad);
+    PLX_IMPL(m, rmsprop_step);
+    PLX_IMPL(m, background_render);
+    PLX_IMPL(m, background_backward);
 }

@@ -1,0 +1,65 @@
+// The C++ signature of each operator of ops.cpp, stated once for both backends. Torch refuses, when
+// the library loads, a second kernel whose C++ signature differs from the first's in any way (a
+// `const Tensor&` against a `Tensor`), and that refusal aborts the process. Registering through
+// PLX_IMPL turns such a drift into a compile error in the backend that drifted.
+#pragma once
+
+#include <ATen/core/Tensor.h>
+#include <c10/util/ArrayRef.h>
+
+#include <cstdint>
+#include <optional>
+#include <tuple>
+#include <vector>
+
+namespace plx::op {
+
+using at::Tensor;
+using Doubles = c10::ArrayRef<double>;
+using MaybeTensor = std::optional<Tensor>;
+
+using grad_scratch = std::vector<Tensor>(Tensor grad_data, int64_t max_slots);
+using build_occupancy = std::vector<Tensor>(Tensor links, int64_t block);
+using count_live_blocks = void(Tensor data, Tensor coords, int64_t block, Tensor counts, Tensor blocks);
+using row_coords = Tensor(Tensor links, int64_t rows);
+using sample = Tensor(Tensor data, Tensor links, Tensor points);
+using render = std::vector<Tensor>(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
+                                   Doubles bmin, Doubles bmax, int64_t degree, Tensor origins, Tensor dirs,
+                                   MaybeTensor background, double step, double stop_transmittance, double near,
+                                   double sigma_threshold, int64_t max_samples, bool contract);
+using loss_and_grad = std::tuple<double, Tensor, int64_t>(
+    Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block, Doubles bmin, Doubles bmax,
+    int64_t degree, Tensor origins, Tensor dirs, Tensor targets, Tensor background, double step,
+    double stop_transmittance, double near, double sigma_threshold, int64_t max_samples, bool contract,
+    Tensor grad_data, Tensor grad_mask, Tensor grad_rows, int64_t num_touched, Tensor scratch_grad,
+    Tensor scratch_mask);
+using max_weights = void(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block, Doubles bmin,
+                         Doubles bmax, int64_t degree, Tensor origins, Tensor dirs, double step,
+                         double stop_transmittance, double near, double sigma_threshold, int64_t max_samples,
+                         bool contract, Tensor out);
+using sample_counts = std::tuple<int64_t, int64_t>(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ,
+                                                   int64_t block, Doubles bmin, Doubles bmax, int64_t degree,
+                                                   Tensor origins, Tensor dirs, double step,
+                                                   double stop_transmittance, double near, double sigma_threshold,
+                                                   int64_t max_samples, bool contract);
+using tv_loss_and_grad = std::tuple<double, int64_t>(Tensor data, Tensor links, Tensor coords, Tensor sample_rows,
+                                                     double weight_density, double weight_sh, int64_t degree,
+                                                     Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
+                                                     int64_t num_touched, Tensor scratch_grad, Tensor scratch_mask);
+using rmsprop_step = void(Tensor data, Tensor second_moment, Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
+                          int64_t num_touched, int64_t columns, double lr_density, double lr_sh, double beta,
+                          double eps, MaybeTensor live_coords, int64_t live_block, MaybeTensor live_counts,
+                          MaybeTensor live_blocks);
+using background_render = Tensor(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture,
+                                 Tensor far_colour, MaybeTensor layer_texels, MaybeTensor layer_weights);
+using background_backward = int64_t(Tensor origins, Tensor dirs, Tensor centre, Tensor radii, Tensor texture,
+                                    Tensor far_colour, Tensor rgb, Tensor grad_rgb, MaybeTensor layer_texels,
+                                    MaybeTensor layer_weights, Tensor grad_texture, Tensor grad_mask,
+                                    Tensor grad_rows, int64_t num_touched, Tensor scratch_grad,
+                                    Tensor scratch_mask);
+
+}  // namespace plx::op
+
+// Registers the function `name` of the current scope as the kernel of operator `name`; it must have
+// exactly the signature plx::op::name (a static_cast between function pointer types does not compile).
+#define PLX_IMPL(library, name) (library).impl(#name, static_cast<plx::op::name*>(&name))
