@@ -108,7 +108,7 @@ def test_every_op_has_a_cpu_and_a_cuda_implementation():
     device_bound = declared - DEVICE_FREE_OPS
     for name in sorted(device_bound):
         assert torch._C._dispatch_has_kernel_for_dispatch_key(f"voxfield::{name}", "CPU"), f"{name}: no CPU kernel"
-    glue = set(re.findall(r'm\.impl\("(\w+)"', (CSRC / "bindings_cuda.cpp").read_text()))
+    glue = set(re.findall(r'PLX_IMPL\(m, (\w+)\)', (CSRC / "bindings_cuda.cpp").read_text()))
     assert glue == device_bound - CPU_ONLY_OPS
     for name in sorted(DEVICE_FREE_OPS):
         getattr(native.ops, name)  # resolvable with no tensor to dispatch on
@@ -214,8 +214,8 @@ def _loss_grad_both(links, data, degree, origins, dirs, targets, background, mar
         args = [data, links, cells, blocks, BLOCK, *box, degree, origins, dirs, targets, background,
                 *_march_args(march), grad, mask, rows, 0]
         moved = move(args)
-        sse, grad_background, count = core.loss_and_grad(*moved, *native.ops.grad_scratch(moved[17], 64))
-        grad_out, mask_out, rows_out = moved[17], moved[18], moved[19]
+        grad_out, mask_out, rows_out = moved[-4:-1]  # counted from the end: the march's arguments vary
+        sse, grad_background, count = core.loss_and_grad(*moved, *native.ops.grad_scratch(grad_out, 64))
         grads[name] = (sse, grad_background.cpu(), grad_out.cpu(), mask_out.cpu(),
                        set(rows_out[:count].cpu().tolist()))
     return grads["cpu"], grads["cuda"]
