@@ -123,13 +123,14 @@ def test_a_fit_whose_per_thread_tables_would_pass_their_memory_share_adds_gradie
     torch.set_num_threads(2)  # a thread to leave out, on any machine
     try:
         monkeypatch.setattr(optim, "physical_memory", lambda: 1024)
-        summary = run_stage(fresh, fit, {**QUICK, "steps": [30, 30]})
+        # The per-thread tables are the CPU core's; on a GPU machine `auto` would fit on the GPU.
+        summary = run_stage(fresh, fit, {**QUICK, "steps": [30, 30], "device": "cpu"})
         record = read_json(fresh / "fit" / "fit.json")
         assert record["gradient_threads"] == {"used": 1, "available": 2}
         assert "gradients on 1 of 2 threads" in summary["line"]
         assert record["train_psnr"] > 12  # it still fits
         monkeypatch.undo()
-        summary = run_stage(fresh, fit, {**QUICK, "steps": [30, 30]})
+        summary = run_stage(fresh, fit, {**QUICK, "steps": [30, 30], "device": "cpu"})
         assert read_json(fresh / "fit" / "fit.json")["gradient_threads"] == {"used": 2, "available": 2}
         assert "gradients on" not in summary["line"]
     finally:

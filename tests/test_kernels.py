@@ -1,6 +1,7 @@
 """The native kernels against their PyTorch twin (values and gradients), and the twin against autograd."""
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -15,6 +16,7 @@ from plenoxels.render import COLOUR_OFFSET, SH_C0, loss_and_grad, max_weights, r
 from twin_checks import assert_loss_and_grad_match_twin
 
 ATOL = 2e-5
+REPO = Path(__file__).resolve().parent.parent
 
 
 def random_grid(res=(9, 7, 11), sh_degree=2, holes=0.3, seed=0, box=((-1.0, -1.0, -1.0), (1.0, 1.0, 1.5))):
@@ -135,15 +137,26 @@ def test_per_thread_tables_stop_at_their_memory_share_and_the_gradients_still_su
 
 
 def test_march_refuses_an_occupancy_block_that_is_not_a_power_of_two():
-    # The march finds a cell's block with a shift; any other block size would index the wrong block.
-    from plenoxels.render import _grid_args, _march_args
-
-    grid = random_grid(seed=41)
-    origins, dirs = random_rays(n=4, seed=42)
-    args = list(_grid_args(grid))
-    args[4] = 3
-    with pytest.raises(RuntimeError, match="power of two"):
-        native.ops.sample_counts(*args, origins, dirs, *_march_args(RenderOptions(), grid))
+    # The march finds a cell's block with a shift; any other block size would index the wrong block. In a
+    # child process: on one CUDA build (g++ 13, torch 2.11) this refusal crashed the process instead of
+    # raising, and a crash must fail this test, not end the whole run.
+    script = (
+        "import torch\n"
+        "from plenoxels import native\n"
+        "from plenoxels.grid import SparseGrid\n"
+        "from plenoxels.render import RenderOptions, _grid_args, _march_args\n"
+        "grid = SparseGrid.dense((5, 5, 5), (-1, -1, -1), (1, 1, 1), 1)\n"
+        "args = list(_grid_args(grid))\n"
+        "args[4] = 3\n"
+        "rays = torch.tensor([[0.0, 0.0, -3.0]]), torch.tensor([[0.0, 0.0, 1.0]])\n"
+        "try:\n"
+        "    native.ops.sample_counts(*args, *rays, *_march_args(RenderOptions(), grid))\n"
+        "except RuntimeError as exc:\n"
+        "    print(str(exc).splitlines()[0])\n"
+    )
+    child = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert child.returncode == 0, f"the child ended with {child.returncode}: {child.stderr[-2000:]}"
+    assert "the occupancy block must be a power of two, got 3" in child.stdout
 
 
 def test_twin_gradcheck_float64():
