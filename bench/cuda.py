@@ -216,12 +216,14 @@ def lego(torch, args) -> dict:
             sync()
             render_seconds += time.time() - t0
             scores.append(psnr(float(((rgb.cpu() - torch.from_numpy(image)) ** 2).mean())))
-    result = {"val_images": len(scores), "val_psnr": statistics.mean(scores), "fit_seconds": record.get("seconds"),
+    train_images = sum(1 for f in scene["frames"] if f.get("split") != "test")
+    result = {"train_images": train_images, "val_images": len(scores), "val_psnr": statistics.mean(scores),
+              "fit_seconds": record.get("seconds"),
               "fit_and_load_seconds": total, "render_seconds_per_image": render_seconds / len(scores),
               "settings": dataclasses.asdict(settings),
               "history": record.get("history"), "levels": record.get("levels"), "summary": summary.get("line")}
-    print(f"lego 800x800 on {device}: {result['val_psnr']:.2f} dB over {len(scores)} val images after "
-          f"{result['fit_seconds']} s of fitting ({total:.0f} s with image loading); "
+    print(f"lego 800x800 on {device}, {train_images} train images: {result['val_psnr']:.2f} dB over {len(scores)} "
+          f"val images after {result['fit_seconds']} s of fitting ({total:.0f} s with image loading); "
           f"{1 / result['render_seconds_per_image']:.1f} val images/s rendered", flush=True)
     return result
 
