@@ -391,19 +391,7 @@ int64_t background_backward(Tensor origins, Tensor dirs, Tensor centre, Tensor r
 }
 
 TORCH_LIBRARY_IMPL(voxfield, CUDA, m) {
-    PLX_IMPL(m, grad_scratch);
-    PLX_IMPL(m, build_occupancy);
-    PLX_IMPL(m, count_live_blocks);
-    PLX_IMPL(m, row_coords);
-    PLX_IMPL(m, sample);
-    PLX_IMPL(m, render);
-    PLX_IMPL(m, loss_and_grad);
-    PLX_IMPL(m, max_weights);
-    PLX_IMPL(m, sample_counts);
-    PLX_IMPL(m, tv_loss_and_grad);
-    PLX_IMPL(m, rmsprop_step);
-    PLX_IMPL(m, background_render);
-    PLX_IMPL(m, background_backward);
+    PLX_IMPL_DEVICE_OPS(m);
 }
 
 #endif  // PLX_WITH_CUDA

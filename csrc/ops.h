@@ -63,3 +63,21 @@ using background_backward = int64_t(Tensor origins, Tensor dirs, Tensor centre, 
 // Registers the function `name` of the current scope as the kernel of operator `name`; it must have
 // exactly the signature plx::op::name (a static_cast between function pointer types does not compile).
 #define PLX_IMPL(library, name) (library).impl(#name, static_cast<plx::op::name*>(&name))
+
+// Every operator that runs on a device, each backend's kernels registered with the functions of the same names
+// in the scope of its TORCH_LIBRARY_IMPL block: a backend that lacks one does not compile. (The CPU's block also
+// registers advise_huge_pages, a host-memory helper.)
+#define PLX_IMPL_DEVICE_OPS(library) \
+    PLX_IMPL(library, grad_scratch); \
+    PLX_IMPL(library, build_occupancy); \
+    PLX_IMPL(library, count_live_blocks); \
+    PLX_IMPL(library, row_coords); \
+    PLX_IMPL(library, sample); \
+    PLX_IMPL(library, render); \
+    PLX_IMPL(library, loss_and_grad); \
+    PLX_IMPL(library, max_weights); \
+    PLX_IMPL(library, sample_counts); \
+    PLX_IMPL(library, tv_loss_and_grad); \
+    PLX_IMPL(library, rmsprop_step); \
+    PLX_IMPL(library, background_render); \
+    PLX_IMPL(library, background_backward)
