@@ -63,7 +63,7 @@ from plenoxels import native
 from plenoxels.cameras import Intrinsics, look_at
 from plenoxels.grid import SparseGrid, sh_count
 from plenoxels.scene_model import SceneModel
-from plenoxels.train import Fitter, RaySet, pruning_rays
+from plenoxels.train import Fitter, RaySet, coarse_start, pruning_rays
 
 CACHE_VERSION = 3
 # Resolutions the calibration times steps at (grids as pruning leaves a fit: about 50k, 230k and 520k voxels).
@@ -648,8 +648,10 @@ class TimeBudget:
         """`new_model(resolution)` makes the fit's first model (its box and background are what a plan needs)."""
         self.seconds, self.started, self.plan_file = float(seconds), started, plan_file
         self.deadline = started + self.seconds
+        ladder = tuple(Rung(tuple(coarse_start(rung.resolutions, options.first_level_scale)), rung.steps, rung.fixed)
+                       for rung in ladder or LADDER)
         probe = new_model(8)  # an 8^3 grid: kept, as its shape at each resolution sets a pruning pass's rays
-        firsts = {rung.resolutions[0] for rung in ladder or LADDER}
+        firsts = {rung.resolutions[0] for rung in ladder}
         box_voxels = {r: int(np.prod(probe.resolution_for(r))) for r in firsts}
         background = probe.background.config() if probe.background is not None else None
         self.facts = FitFacts(box_voxels=box_voxels.__getitem__, eval_rays=eval_rays,
@@ -668,7 +670,7 @@ class TimeBudget:
             resolutions, steps = saved["resolutions"], saved["steps"]
         else:
             self.plan = choose(self.left(), self.costs, self.facts, ladder)
-            self.rung = next(r for r in ladder or LADDER if list(r.resolutions) == self.plan.resolutions)
+            self.rung = next(r for r in ladder if list(r.resolutions) == self.plan.resolutions)
             resolutions, steps = self.plan.resolutions, self.plan.steps
         self.options = dataclasses.replace(options, resolutions=list(resolutions), steps=list(steps))
         self.now = self.facts.outlook()

@@ -52,6 +52,11 @@ class TrainOptions:
     the same held-out PSNR)."""
     steps: list[int] = field(default_factory=lambda: [200, 800, 1500])
     """Optimiser steps per level."""
+    first_level_scale: float = 1.0
+    """The first level's resolution (its early-pruned rest too) as this share of the one set, or of a time budget's
+    plan (never below 32, or the level's own resolution if that is less). A scene that fills its box, a room seen
+    from inside, fits better from a coarser start, as its first prune keeps nearly all of the box; an object loses
+    thin parts there (fox `default` 25.72 -> 26.55 dB at 0.75, lego `default` 31.23 -> 30.60 dB)."""
     batch_size: int = 8192
     """Rays per step."""
     batch_mode: Literal["tiles", "rays"] = "rays"
@@ -115,6 +120,15 @@ class TrainOptions:
     @property
     def total_steps(self) -> int:
         return sum(self.steps)
+
+
+def coarse_start(resolutions: list[int] | tuple[int, ...], scale: float) -> list[int]:
+    """`resolutions` with the first level, and the levels after it at the same resolution (its early-pruned rest),
+    at `scale` of their resolution, rounded to a multiple of 8 and never below min(32, that resolution)."""
+    first = resolutions[0]
+    coarse = first if scale >= 1 else max(min(32, first), 8 * round(first * scale / 8))
+    leading = next((level for level, r in enumerate(resolutions) if r != first), len(resolutions))
+    return [coarse] * leading + list(resolutions[leading:])
 
 
 class RaySet:

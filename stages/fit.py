@@ -25,7 +25,7 @@ Interruptions:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -41,7 +41,7 @@ from plenoxels.budget import TimeBudget
 from plenoxels.errors import UserError
 from plenoxels.native import resolve_device
 from plenoxels.scene_model import ModelOptions, SceneModel, psnr
-from plenoxels.train import Diverged, Fitter, RaySet, TrainOptions
+from plenoxels.train import Diverged, Fitter, RaySet, TrainOptions, coarse_start
 
 NAME = "fit"
 DEPENDS: tuple[str, ...] = ("normalize",)
@@ -82,6 +82,7 @@ class Settings(TrainOptions, ModelOptions):
         require(all(b >= a for a, b in zip(self.resolutions, self.resolutions[1:])),
                 "fit.resolutions must not decrease from level to level (for example [128, 128, 256]: a repeated "
                 "resolution prunes the grid without upsampling it)")
+        require(0 < self.first_level_scale <= 1, "fit.first_level_scale must be in (0, 1] (1: the first level as set)")
         require(len(self.steps) == len(self.resolutions) and all(s >= 1 for s in self.steps),
                 f"fit.steps must list one positive step count per resolution ({len(self.resolutions)} here)")
         require(self.batch_size >= 1, "fit.batch_size must be at least 1")
@@ -177,7 +178,8 @@ def run(ctx) -> dict:
         budget = TimeBudget(s.budget_seconds, s, new_model, train, held_out.rays, device, started,
                             plan_file=ctx.scratch / BUDGET_PLAN, resume=checkpoint.is_file(), say=ctx.report.info)
         ctx.report.info(budget.line())
-    options = budget.options if budget is not None else s
+    options = budget.options if budget is not None else replace(
+        s, resolutions=coarse_start(s.resolutions, s.first_level_scale))
     fitter = Fitter(new_model(options.resolutions[0]), options, train, device)
 
     if checkpoint.is_file():

@@ -425,6 +425,14 @@ def test_ctrl_c_still_stops_a_budgeted_fit_with_a_usable_model(fresh, monkeypatc
     assert "stopped early at step 31" in summary["line"] and (fresh / "fit" / "grid.pt").is_file()
 
 
+def test_a_budget_plans_its_rungs_with_the_coarse_start_the_settings_ask_for(fresh, monkeypatch):
+    monkeypatch.setattr(budget, "LADDER", (Rung((64, 64, 96), (4, 16, 20), fixed=1),))
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
+    run_stage(fresh, fit, {**BUDGETED, "time_budget": "1m", "first_level_scale": 0.5})
+    plan = read_json(fresh / "fit" / "fit.json")["budget"]
+    assert plan["chosen"]["resolutions"] == [32, 32, 96] and plan["ran"]["resolutions"] == [32, 32, 96]
+
+
 def test_a_budgeted_fit_resumes_with_its_plan(fresh, monkeypatch):
     monkeypatch.setattr(budget, "LADDER", (Rung((16, 32), (40, 40)),))
     monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))

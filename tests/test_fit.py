@@ -137,6 +137,30 @@ def test_a_fit_whose_per_thread_tables_would_pass_their_memory_share_adds_gradie
         torch.set_num_threads(before)
 
 
+@pytest.mark.parametrize("resolutions, scale, expected", [
+    ([128, 128, 256], 0.75, [96, 96, 256]),
+    ([64, 64, 128], 0.75, [48, 48, 128]),
+    ([80, 80, 160], 0.75, [64, 64, 160]),
+    ([128, 128, 256], 1.0, [128, 128, 256]),
+    ([48, 96], 0.5, [32, 96]),   # never below 32
+    ([16, 32], 0.5, [16, 32]),   # nor below a first level already finer than that
+    ([128, 256, 384], 0.5, [64, 256, 384]),
+])
+def test_a_coarse_start_scales_the_first_level_and_its_early_pruned_rest(resolutions, scale, expected):
+    assert train.coarse_start(resolutions, scale) == expected
+
+
+def test_a_fit_with_a_coarse_start_fits_its_first_level_coarser(fresh):
+    def first_grid(scale: float) -> int:
+        run_stage(fresh, fit, {**QUICK, "resolutions": [64, 96], "steps": [5, 5], "first_level_scale": scale})
+        return read_json(fresh / "fit" / "fit.json")["levels"][0]["pruned_from"]  # the whole box at the first level
+
+    whole, coarse = first_grid(1.0), first_grid(0.5)
+    assert 6 < whole / coarse < 10  # 64^3 against 32^3 of the same box, up to rounding of its shorter sides
+    with pytest.raises(UserError, match="first_level_scale"):
+        config.build(fit.Settings, "fit", {"first_level_scale": 0.0})
+
+
 def test_resume_continues_from_the_checkpoint(fresh, monkeypatch):
     values = {**QUICK, "resolutions": [16], "steps": [60], "checkpoint_every": 1e-6}
     original = Fitter.train_step
