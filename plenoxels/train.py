@@ -124,9 +124,9 @@ class TrainOptions:
 
 def coarse_start(resolutions: list[int] | tuple[int, ...], scale: float) -> list[int]:
     """`resolutions` with the first level, and the levels after it at the same resolution (its early-pruned rest),
-    at `scale` of their resolution, rounded to a multiple of 8 and never below min(32, that resolution)."""
+    at `scale` of their resolution, rounded to a multiple of 8, never below min(32, that resolution) nor above it."""
     first = resolutions[0]
-    coarse = first if scale >= 1 else max(min(32, first), 8 * round(first * scale / 8))
+    coarse = first if scale >= 1 else min(first, max(min(32, first), 8 * round(first * scale / 8)))
     leading = next((level for level, r in enumerate(resolutions) if r != first), len(resolutions))
     return [coarse] * leading + list(resolutions[leading:])
 

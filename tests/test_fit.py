@@ -145,6 +145,7 @@ def test_a_fit_whose_per_thread_tables_would_pass_their_memory_share_adds_gradie
     ([48, 96], 0.5, [32, 96]),   # never below 32
     ([16, 32], 0.5, [16, 32]),   # nor below a first level already finer than that
     ([128, 256, 384], 0.5, [64, 256, 384]),
+    ([39, 39, 78], 0.99, [39, 39, 78]),  # rounding never makes it finer
 ])
 def test_a_coarse_start_scales_the_first_level_and_its_early_pruned_rest(resolutions, scale, expected):
     assert train.coarse_start(resolutions, scale) == expected
