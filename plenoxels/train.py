@@ -54,9 +54,9 @@ class TrainOptions:
     """Optimiser steps per level."""
     first_level_scale: float = 1.0
     """The first level's resolution (its early-pruned rest too) as this share of the one set, or of a time budget's
-    plan (never below 32, or the level's own resolution if that is less). A scene that fills its box, a room seen
-    from inside, fits better from a coarser start, as its first prune keeps nearly all of the box; an object loses
-    thin parts there (fox `default` 25.72 -> 26.55 dB at 0.75, lego `default` 31.23 -> 30.60 dB)."""
+    plan (never below 32, or the level's own resolution if that is less). Rooms seen from inside fitted as well or
+    better from a coarser start (fox `default` 25.72 -> 26.55 dB at 0.75; cup and the synthetic unbounded scene the
+    same); an object loses thin parts (lego `default` 31.23 -> 30.60 dB)."""
     batch_size: int = 8192
     """Rays per step."""
     batch_mode: Literal["tiles", "rays"] = "rays"
