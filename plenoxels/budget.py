@@ -648,7 +648,8 @@ class TimeBudget:
         """`new_model(resolution)` makes the fit's first model (its box and background are what a plan needs)."""
         self.seconds, self.started, self.plan_file = float(seconds), started, plan_file
         self.deadline = started + self.seconds
-        ladder = tuple(Rung(tuple(coarse_start(rung.resolutions, options.first_level_scale)), rung.steps, rung.fixed)
+        scale = options.first_level_scale
+        ladder = tuple(dataclasses.replace(rung, resolutions=tuple(coarse_start(rung.resolutions, scale)))
                        for rung in ladder or LADDER)
         probe = new_model(8)  # an 8^3 grid: kept, as its shape at each resolution sets a pruning pass's rays
         firsts = {rung.resolutions[0] for rung in ladder}
