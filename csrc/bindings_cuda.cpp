@@ -19,6 +19,7 @@
 
 #include <cstdint>
 #include <optional>
+#include <string>
 #include <tuple>
 #include <vector>
 
@@ -55,7 +56,7 @@ plx_cuda::Grid make_grid(const Tensor& data, const Tensor& links, const Tensor& 
     check_cuda(links, at::kInt, "links", data);
     check_cuda(cell_occ, at::kByte, "cell_occ", data);
     check_cuda(block_occ, at::kByte, "block_occ", data);
-    TORCH_CHECK(degree >= 0 && degree <= 3, "sh_degree must be 0..3, got ", degree);
+    TORCH_CHECK(degree >= 0 && degree <= 3, "sh_degree must be 0..3, got ", std::to_string(degree));
     TORCH_CHECK(data.dim() == 2 && data.size(1) == row_stride((int)degree),
                 "data must be [N, padded row] for this SH degree");
     TORCH_CHECK(links.dim() == 3 && links.size(0) >= 2 && links.size(1) >= 2 && links.size(2) >= 2,

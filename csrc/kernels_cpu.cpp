@@ -20,6 +20,7 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <string>
 #include <tuple>
 #include <vector>
 
@@ -56,7 +57,8 @@ using Ray = plx::RayMarch;
 
 GridView make_view(const at::Tensor& data, const at::Tensor& links, const at::Tensor& cell_occ,
                    const at::Tensor& block_occ, int block, c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax) {
-    TORCH_CHECK(block > 0 && (block & (block - 1)) == 0, "the occupancy block must be a power of two, got ", block);
+    TORCH_CHECK(block > 0 && (block & (block - 1)) == 0, "the occupancy block must be a power of two, got ",
+                std::to_string(block));
     GridView g;
     g.data = data.data_ptr<float>();
     g.links = links.data_ptr<int32_t>();
@@ -526,7 +528,7 @@ MarchOptions make_options(double step, double stop_transmittance, double near, d
         case 1: { constexpr int D = 1; __VA_ARGS__; break; }                 \
         case 2: { constexpr int D = 2; __VA_ARGS__; break; }                 \
         case 3: { constexpr int D = 3; __VA_ARGS__; break; }                 \
-        default: TORCH_CHECK(false, "sh_degree must be 0..3, got ", degree); \
+        default: TORCH_CHECK(false, "sh_degree must be 0..3, got ", std::to_string(degree)); \
     }
 
 void check_grid(const Tensor& data, const Tensor& links, const Tensor& cell_occ, const Tensor& block_occ, int degree) {

@@ -2,6 +2,11 @@
 // the library loads, a second kernel whose C++ signature differs from the first's in any way (a
 // `const Tensor&` against a `Tensor`), and that refusal aborts the process. Registering through
 // PLX_IMPL turns such a drift into a compile error in the backend that drifted.
+//
+// Both backends put numbers into their error messages as std::to_string(n), never as the number
+// itself: on one GPU machine (Ubuntu 24.04, g++ 13.3, torch 2.11+cu130) streaming an integer in any
+// extension's TORCH_CHECK message segfaulted (a three-line extension showed it), so a refusal
+// became a crash. Strings stream there as they should.
 #pragma once
 
 #include <ATen/core/Tensor.h>
