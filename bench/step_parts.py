@@ -1,13 +1,15 @@
 """Where a train step's time goes: milliseconds per step of each part at each level of a scene's `default` fit
 (lego, or a real capture of bench/real_scenes.py), shortened to a few hundred steps a level (the levels, grids and
-batches of the full fit), on the CPU.
+batches of the full fit), on the CPU unless `--set device=cuda` names the GPU.
 
 The parts: the render's loss and gradient (the native kernel with its per-thread gradient merge), total variation,
 the optimiser step, the background model (its render, gradient and step, in scenes that have one), drawing the batch,
 the guard that checks the parameters are finite, and the rest of the step. Each is timed around its call inside a
-train step, so the times add up to the step's.
+train step, so the times add up to the step's. On a GPU each part waits for the device before and after it (the
+kernels are asynchronous), so a part's time is its own, and the step loses what the parts would have overlapped.
 
     python -m bench.step_parts [--scene lego] [--steps 200,300,300] [--label after] [--data ../shared/data]
+        [--set key=value ...]   # a fit setting, e.g. device=cuda or batch_size=32768
 
 Adds the run to bench/results/step_parts.json (replacing one of the same scene and label) and prints a table. To
 compare two versions of the code in one session, run the same file from a worktree of the other (`git worktree add`,
@@ -45,12 +47,19 @@ def scene_of(name: str, data: Path) -> tuple[dict, Path, str]:
     return scene, root, scene["type"]
 
 
-def timed_fit(name: str, data: Path, steps: list[int]) -> dict:
+def timed_fit(name: str, data: Path, steps: list[int], overrides: dict) -> dict:
     """Runs the shortened fit with each part's calls timed; per level: steps, grid rows, rows a step touched and
     milliseconds per step of each part and of the whole step."""
+    import torch
+
     from bench.common import fitted
     from bench.fit import resolve
     from plenoxels import background, optim, train
+
+    scene, root, scene_type = scene_of(name, data)
+    settings = resolve("default", scene_type, {**overrides, "steps": steps, "eval_every": 0})
+    on_gpu = settings.device == "cuda" or (settings.device == "auto" and torch.cuda.is_available())
+    wait = torch.cuda.synchronize if on_gpu else (lambda: None)
 
     seconds = collections.defaultdict(float)
     touched = collections.defaultdict(float)
@@ -63,11 +72,14 @@ def timed_fit(name: str, data: Path, steps: list[int]) -> dict:
         original = getattr(owner, name)
 
         def timed(*args, **kwargs):
+            if in_step[0]:
+                wait()
             started = time.perf_counter()
             try:
                 return original(*args, **kwargs)
             finally:
                 if in_step[0]:
+                    wait()
                     seconds[(level[0], part)] += time.perf_counter() - started
 
         setattr(owner, name, timed)
@@ -92,17 +104,17 @@ def timed_fit(name: str, data: Path, steps: list[int]) -> dict:
     def step(self):
         level[0] = self.level
         counts[self.level] += 1
+        wait()
         in_step[0] = True
         started = time.perf_counter()
         try:
             return train_step(self)
         finally:
+            wait()
             seconds[(self.level, "step")] += time.perf_counter() - started
             in_step[0] = False
 
     train.Fitter.train_step = step
-    scene, root, scene_type = scene_of(name, data)
-    settings = resolve("default", scene_type, {"steps": steps, "eval_every": 0})
     started = time.time()
     summary, wall, record, _ = fitted(scene, root, settings)
     levels = []
@@ -113,11 +125,13 @@ def timed_fit(name: str, data: Path, steps: list[int]) -> dict:
                        "grid_rows": round(rows[index] / max(1, counts[index])),
                        "rows_touched": round(touched[index] / max(1, counts[index])), "ms_per_step": ms})
     return {"levels": levels, "fit_seconds": record["seconds"], "wall_seconds": round(time.time() - started, 1),
-            "summary": summary["line"]}
+            "device": torch.cuda.get_device_name() if on_gpu else "cpu", "overrides": overrides,
+            "batch_size": settings.batch_size, "summary": summary["line"]}
 
 
 def print_run(run: dict) -> None:
-    print(f"{run.get('scene', 'lego')}, {run['label']}: {run['fit_seconds']} s fitting; ms per step")
+    print(f"{run.get('scene', 'lego')}, {run['label']} ({run.get('device', 'cpu')}, batch {run.get('batch_size')}): "
+          f"{run['fit_seconds']} s fitting; ms per step")
     columns = (*PARTS, "rest", "step")
     print(f"{'level':>5} {'res':>4} {'rows':>9} {'touched':>8} " + " ".join(f"{p:>9}" for p in columns))
     for i, lv in enumerate(run["levels"]):
@@ -133,15 +147,17 @@ def main(argv=None) -> int:
     parser.add_argument("--label", default="as is", help="names the run (a run replaces the same-labelled one)")
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a fit setting")
     args = parser.parse_args(argv)
     import torch
 
+    from bench.common import fit_overrides
     from plenoxels.budget import processor_name
 
     load_before = os.getloadavg()[0]
     run = {"scene": args.scene, "label": args.label,
            "commit": os.popen(f"git -C {REPO} rev-parse --short HEAD").read().strip(),
-           **timed_fit(args.scene, args.data, [int(s) for s in args.steps.split(",")]),
+           **timed_fit(args.scene, args.data, [int(s) for s in args.steps.split(",")], fit_overrides(args.set)),
            "machine": {"cpu": processor_name(), "threads": torch.get_num_threads()},
            "load_average": [round(load_before, 2), round(os.getloadavg()[0], 2)],
            "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
