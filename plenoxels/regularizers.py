@@ -32,10 +32,11 @@ def tv_loss_and_grad(grid: SparseGrid, grad: GridGrad, weight_density: float, we
     rows = sample_rows(grid, sample_fraction, generator)
     if rows.shape[0] == 0 or (weight_density == 0 and weight_sh == 0):
         return 0.0
-    # In row order, each row's neighbours and gradients are read in the order the tables are laid out.
-    rows = rows.sort().values
+    # In row order, each row's neighbours and gradients are read in the order the tables are laid out (sorted where
+    # the grid is: on a GPU a launch, on the CPU as before).
+    rows = rows.to(grid.data.device).sort().values
     loss, grad.num_touched = native.ops.tv_loss_and_grad(
-        grid.data, grid.links, grid.coords(), rows.to(grid.data.device), float(weight_density), float(weight_sh),
+        grid.data, grid.links, grid.coords(), rows, float(weight_density), float(weight_sh),
         grid.sh_degree, grad.data, grad.touched_mask, grad.touched_rows, grad.num_touched, *grad.scratch())
     return float(loss)
 

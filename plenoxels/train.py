@@ -14,6 +14,7 @@ same batches. A loss or parameter that stops being finite raises `Diverged`.
 """
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Callable
@@ -145,10 +146,21 @@ class RaySet:
         self.c2w = torch.tensor(np.stack(c2ws), dtype=torch.float32)
         self.k = torch.tensor([[k.fl_x, k.fl_y, k.cx, k.cy] for k in intrinsics], dtype=torch.float32)
         self.intrinsics = intrinsics
+        self.num_pixels = int(self.offsets[-1])
+        self.image_pixels = counts.double()  # the tiles' draw weights, on the CPU with the generator
+
+    def to(self, device: torch.device) -> RaySet:
+        """The same rays with their tables on `device`, where a batch's rays and colours are then made: on a GPU a
+        few launches instead of milliseconds of small CPU operations. The random draws stay on the CPU generator
+        (a few thousand integers), so a fit draws the same batches on every device."""
+        moved = copy.copy(self)
+        for name in ("sizes", "offsets", "pixels", "c2w", "k"):  # not image_pixels
+            setattr(moved, name, getattr(self, name).to(device))
+        return moved
 
     @property
-    def num_pixels(self) -> int:
-        return int(self.offsets[-1])
+    def device(self) -> torch.device:
+        return self.pixels.device
 
     def mean_colour(self) -> list[float]:
         """The mean RGB in [0, 1] of every pixel, summed a slice at a time (no float copy of the whole set)."""
@@ -169,22 +181,22 @@ class RaySet:
 
     def batch(self, size: int, mode: str, tile: int, generator: torch.Generator, coherent: bool = False):
         """A training batch: world origins, directions [B, 3] and target colours [B, 3] in [0, 1]; with `coherent`,
-        random rays come ordered by coherent_order."""
+        random rays come ordered by coherent_order. `generator` is a CPU generator; the batch is on this set's device."""
+        device = self.device
         if mode == "rays":
-            flat = torch.randint(self.num_pixels, (size,), generator=generator)
+            flat = torch.randint(self.num_pixels, (size,), generator=generator).to(device)
             image = torch.searchsorted(self.offsets, flat, right=True) - 1
             local = flat - self.offsets[image]
             w = self.sizes[image, 1]
             row, col = local // w, local % w
         else:
             n_tiles = max(1, size // (tile * tile))
-            counts = (self.offsets[1:] - self.offsets[:-1]).double()
-            image = torch.multinomial(counts, n_tiles, replacement=True, generator=generator)
+            image = torch.multinomial(self.image_pixels, n_tiles, replacement=True, generator=generator).to(device)
             h, w = self.sizes[image, 0], self.sizes[image, 1]
             th, tw = torch.clamp(h, max=tile), torch.clamp(w, max=tile)
-            top = (torch.rand(n_tiles, generator=generator) * (h - th + 1)).long()
-            left = (torch.rand(n_tiles, generator=generator) * (w - tw + 1)).long()
-            dy, dx = torch.meshgrid(torch.arange(tile), torch.arange(tile), indexing="ij")
+            top = (torch.rand(n_tiles, generator=generator).to(device) * (h - th + 1)).long()
+            left = (torch.rand(n_tiles, generator=generator).to(device) * (w - tw + 1)).long()
+            dy, dx = torch.meshgrid(torch.arange(tile, device=device), torch.arange(tile, device=device), indexing="ij")
             dy, dx = dy.reshape(1, -1), dx.reshape(1, -1)
             inside = (dy < th[:, None]) & (dx < tw[:, None])
             image = image[:, None].expand(-1, tile * tile)[inside]
@@ -202,11 +214,11 @@ class RaySet:
     def strided_rays(self, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Rays through a regular subset of every image's pixels (every stride-th row and column)."""
         origins, dirs = [], []
-        for i in range(len(self)):
-            h, w = int(self.sizes[i, 0]), int(self.sizes[i, 1])
-            row, col = torch.meshgrid(torch.arange(stride // 2, h, stride), torch.arange(stride // 2, w, stride),
-                                      indexing="ij")
-            o, d = self.rays(torch.full((row.numel(),), i), row.reshape(-1), col.reshape(-1))
+        device = self.device
+        for i, (h, w) in enumerate(self.sizes.tolist()):
+            row, col = torch.meshgrid(torch.arange(stride // 2, h, stride, device=device),
+                                      torch.arange(stride // 2, w, stride, device=device), indexing="ij")
+            o, d = self.rays(torch.full((row.numel(),), i, device=device), row.reshape(-1), col.reshape(-1))
             origins.append(o)
             dirs.append(d)
         return torch.cat(origins), torch.cat(dirs)
@@ -284,9 +296,9 @@ class Fitter:
 
     def __init__(self, model: SceneModel, options: TrainOptions, train: RaySet,
                  device: torch.device = torch.device("cpu")):
-        self.options, self.train, self.device = options, train, device
+        self.options, self.train, self.device = options, train.to(device), device
         self.model = model.to(device)
-        self.generator = torch.Generator().manual_seed(options.seed)
+        self.generator = torch.Generator().manual_seed(options.seed)  # on the CPU for every device: one stream
         self.step = 0
         self.level = 0
         self.elapsed = 0.0                 # seconds of fitting so far, over every run that resumed it
@@ -319,7 +331,7 @@ class Fitter:
                   "sparsity": o.sparsity}
         if o.tv_views > 0 and self.model.fit_frame.ndc is None:
             lo, hi = self.model.region_box()
-            views = views_per_point(self.train.c2w.double().numpy(), self.train.intrinsics, lo, hi, seed=o.seed)
+            views = views_per_point(self.train.c2w.double().cpu().numpy(), self.train.intrinsics, lo, hi, seed=o.seed)
             scale = tv_scale_for_views(views, o.tv_views, o.tv_views_power, o.tv_views_max_scale)
             record.update(views_per_point=round(views, 2), tv_scale=scale, tv_density=o.tv_density * scale,
                           tv_sh=o.tv_sh * scale)

@@ -13,6 +13,7 @@ from pipeline.io import read_json
 from pipeline.metrics import image_psnr
 from plenoxels.cameras import Intrinsics, look_at, rays_from_camera
 from plenoxels.grid import SparseGrid
+from plenoxels.native import cuda_ready
 from plenoxels.optim import GridGrad
 from plenoxels.render import RenderOptions, loss_and_grad
 from plenoxels.regularizers import tv_scale_for_views, views_per_point
@@ -29,25 +30,38 @@ def training_rays(root, frames: list[dict]) -> RaySet:
                   [k for _, k in loaded])
 
 
-def test_batches_are_the_rays_and_colours_of_real_pixels(tmp_path):
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not cuda_ready(),
+                                                               reason="needs an NVIDIA GPU and a CUDA build"))]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_batches_are_the_rays_and_colours_of_real_pixels(tmp_path, device):
     root = make_scene(tmp_path)
     frames = [f for f in read_json(root / "normalize" / "scene.json")["frames"] if f["split"] == "train"]
     train = training_rays(root, frames)
-    generator = torch.Generator().manual_seed(3)
+    on_device = train.to(torch.device(device))
     for mode in ("tiles", "rays"):
-        o, d, colour = train.batch(1024, mode, 16, generator)
-        # Every ray of the batch is the ray of some pixel whose colour is the target.
-        c2w = train.c2w[0].double().numpy()
-        all_o, all_d = rays_from_camera(c2w, train.intrinsics[0])
-        first = (o - train.c2w[0, :3, 3]).norm(dim=1) < 1e-6
-        assert first.any()
+        drawn = on_device.batch(1024, mode, 16, torch.Generator().manual_seed(3))
+        assert all(t.device.type == device for t in drawn)  # made where the set lives
+        o, d, colour = (t.cpu() for t in drawn)
+        # The same batch on every device: the draws come from the CPU generator.
+        for got, want in zip((o, d, colour), train.batch(1024, mode, 16, torch.Generator().manual_seed(3))):
+            torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-6)
+        # Every ray of the batch is the ray of some pixel whose colour is the target (the camera of the first ray).
+        camera = int((train.c2w[:, :3, 3] - o[0]).norm(dim=1).argmin())
+        all_o, all_d = rays_from_camera(train.c2w[camera].double().numpy(), train.intrinsics[camera])
+        first = (o - train.c2w[camera, :3, 3]).norm(dim=1) < 1e-6
         match = torch.cdist(d[first].double(), all_d.reshape(-1, 3).double()).min(dim=1)
         assert float(match.values.max()) < 1e-5
-        pixels = train.pixels[: train.offsets[1]].float() / 255
+        pixels = train.pixels[train.offsets[camera]: train.offsets[camera + 1]].float() / 255
         np.testing.assert_allclose(colour[first].numpy(), pixels[match.indices].numpy(), atol=1e-6)
-    o, d, _ = train.batch(16 * 16, "tiles", 16, generator)
+    o, d, _ = on_device.batch(16 * 16, "tiles", 16, torch.Generator().manual_seed(3))
     # One tile: one camera, neighbouring pixels.
     assert (o == o[0]).all()
+    # A pruning pass's rays are the same wherever the set lives.
+    for got, want in zip(on_device.strided_rays(3), train.strided_rays(3)):
+        assert got.device.type == device
+        torch.testing.assert_close(got.cpu(), want, atol=1e-6, rtol=1e-6)
 
 
 def test_learning_rate_schedule():
