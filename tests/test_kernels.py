@@ -138,8 +138,8 @@ def test_per_thread_tables_stop_at_their_memory_share_and_the_gradients_still_su
 
 def test_march_refuses_an_occupancy_block_that_is_not_a_power_of_two():
     # The march finds a cell's block with a shift; any other block size would index the wrong block. In a
-    # child process: on one CUDA build (g++ 13, torch 2.11) this refusal crashed the process instead of
-    # raising, and a crash must fail this test, not end the whole run.
+    # child process: on one GPU machine's toolchain (g++ 13.3, torch 2.11) an integer streamed into the
+    # message crashed the process, and a crash must fail this test, not end the whole run.
     script = (
         "import torch\n"
         "from plenoxels import native\n"
