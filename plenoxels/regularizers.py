@@ -83,6 +83,14 @@ def views_per_point(c2w: Sequence[np.ndarray], intrinsics: Sequence[Intrinsics],
     return float(seen.mean())
 
 
+def tv_scale_for_resolution(resolution: int, reference: int) -> float:
+    """The TV multiplier of a level at `resolution`: (reference / resolution)^2 above the reference resolution, else
+    1 (and always 1 when reference is 0)."""
+    if reference <= 0 or resolution <= reference:
+        return 1.0
+    return (reference / resolution) ** 2
+
+
 def tv_scale_for_views(views: float, reference_views: float, power: float, most: float) -> float:
     """The TV multiplier for a capture whose points are seen by `views` photos: (reference_views / views)^power, at
     least 1 (captures seen by more photos keep the weights as set) and at most `most`; 1 when reference_views is 0."""

@@ -30,7 +30,8 @@ from plenoxels.cameras import Intrinsics
 from plenoxels.errors import UserError
 from plenoxels.grid import SparseGrid, sh_count
 from plenoxels.optim import GridGrad, SparseRMSProp
-from plenoxels.regularizers import sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_views, views_per_point
+from plenoxels.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution, tv_scale_for_views,
+                                    views_per_point)
 from plenoxels.render import loss_and_grad, max_weights
 from plenoxels.scene_model import SceneModel, psnr
 
@@ -96,6 +97,11 @@ class TrainOptions:
     """How fast TV grows as the views per point fall below tv_views."""
     tv_views_max_scale: float = 1000.0
     """The most that few views multiply the TV weights by."""
+    tv_reference_resolution: int = 0
+    """A level finer than this (vertices along the box's longest side) gets both TV weights times (this / its
+    resolution)^2: each vertex's share of a batch's samples falls with the square of the resolution while its TV
+    gradient does not, so weights set for a coarser grid outweigh the photos on a finer one (0: the weights as set on
+    every level)."""
     lr_background: float = 0.01
     """RMSProp rate of the background model's texels."""
     prune_weight: float = 0.002
@@ -416,7 +422,8 @@ class Fitter:
             raise Diverged(f"the loss became {mse}")
         tv_rows = max(1, round(o.tv_sample_fraction * self.model.grid.num_occupied))
         tv = self.regularisation
-        tv_loss_and_grad(self.model.grid, self.grad, tv["tv_density"] * tv_rows, tv["tv_sh"] * tv_rows,
+        weight = tv_rows * tv_scale_for_resolution(max(self.model.grid.resolution), o.tv_reference_resolution)
+        tv_loss_and_grad(self.model.grid, self.grad, tv["tv_density"] * weight, tv["tv_sh"] * weight,
                          o.tv_sample_fraction, self.generator)
         if o.resolutions[self.level] == o.resolutions[0]:
             sparsity_loss_and_grad(self.model.grid, self.grad, o.sparsity, o.tv_sample_fraction, self.generator)
@@ -493,7 +500,8 @@ class Fitter:
         grid = self.model.grid
         self.levels.append({"step": self.step, "pruned_from": pruned["before"], "kept": pruned["after"],
                             "resolution": list(grid.resolution), "occupied": grid.num_occupied,
-                            "memory_bytes": grid.memory_bytes()})
+                            "memory_bytes": grid.memory_bytes(),
+                            "tv_scale": tv_scale_for_resolution(max(grid.resolution), self.options.tv_reference_resolution)})
 
     # ---- checkpoints ----------------------------------------------------------------------------
     def state(self) -> dict:

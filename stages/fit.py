@@ -40,6 +40,7 @@ from pipeline.report import format_bytes, format_count, format_duration
 from plenoxels.budget import TimeBudget
 from plenoxels.errors import UserError
 from plenoxels.native import resolve_device
+from plenoxels.regularizers import tv_scale_for_resolution
 from plenoxels.scene_model import ModelOptions, SceneModel, psnr
 from plenoxels.train import Diverged, Fitter, RaySet, TrainOptions, coarse_start
 
@@ -95,6 +96,8 @@ class Settings(TrainOptions, ModelOptions):
         require(0 <= self.rmsprop_beta < 1, "fit.rmsprop_beta must be in [0, 1)")
         require(self.tv_density >= 0 and self.tv_sh >= 0, "fit.tv_density and fit.tv_sh must be >= 0")
         require(0 < self.tv_sample_fraction <= 1, "fit.tv_sample_fraction must be in (0, 1]")
+        require(self.tv_reference_resolution >= 0,
+                "fit.tv_reference_resolution must be >= 0 (0: the TV weights as set on every level)")
         require(self.sparsity >= 0, "fit.sparsity must be >= 0 (0: off)")
         require(self.step_size > 0, "fit.step_size must be positive (voxels)")
         require(0 <= self.stop_transmittance < 1, "fit.stop_transmittance must be in [0, 1)")
@@ -281,6 +284,9 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
     if fitter.regularisation["tv_scale"] > 1.0:
         line += (f", TV x{fitter.regularisation['tv_scale']:.3g} for few views "
                  f"({fitter.regularisation['views_per_point']:.1f} per point)")
+    finest = tv_scale_for_resolution(max(res), s.tv_reference_resolution)
+    if finest < 1.0:
+        line += f", TV x{finest:.3g} on the last level (finer than {s.tv_reference_resolution}^3)"
     if "gradient_threads" in record and record["gradient_threads"]["used"] < record["gradient_threads"]["available"]:
         line += (f", gradients on {record['gradient_threads']['used']} of {record['gradient_threads']['available']} "
                  f"threads (a gradient table per thread would pass their share of the memory)")

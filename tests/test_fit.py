@@ -115,6 +115,36 @@ def test_the_sparsity_prior_leaves_less_density_for_as_good_a_fit(fresh, monkeyp
         config.build(fit.Settings, "fit", {"sparsity": -1.0})
 
 
+def test_tv_weights_fall_with_the_square_of_the_resolution_above_the_reference(fresh, monkeypatch):
+    """A level finer than fit.tv_reference_resolution gets its TV weights times (reference / resolution)^2, per
+    sampled vertex; levels at or below it, and every level with the reference at 0, keep the weights as set."""
+    calls = []
+    original = train.tv_loss_and_grad
+
+    def recorded(grid, grad, weight_density, weight_sh, fraction, generator=None):
+        rows = max(1, round(fraction * grid.num_occupied))
+        calls.append((max(grid.resolution), weight_density / rows, weight_sh / rows))
+        return original(grid, grad, weight_density, weight_sh, fraction, generator)
+
+    monkeypatch.setattr(train, "tv_loss_and_grad", recorded)
+    per_level = {}
+    for reference in (0, 16):
+        calls.clear()
+        summary = run_stage(fresh, fit, {**QUICK, "steps": [5, 5], "tv_views": 0, "tv_reference_resolution": reference})
+        per_level[reference] = {res: (d, sh) for res, d, sh in calls}
+        record = read_json(fresh / "fit" / "fit.json")
+        assert [level["tv_scale"] for level in record["levels"]][-1] == (0.25 if reference else 1.0)
+        assert ("TV x0.25 on the last level (finer than 16^3)" in summary["line"]) == bool(reference)
+    assert sorted(per_level[16]) == [16, 32]
+    settings = config.build(fit.Settings, "fit", {"tv_views": 0})
+    for reference, ratio in ((0, 1.0), (16, 0.25)):
+        (d16, sh16), (d32, sh32) = per_level[reference][16], per_level[reference][32]
+        assert d16 == pytest.approx(settings.tv_density) and sh16 == pytest.approx(settings.tv_sh)
+        assert d32 == pytest.approx(ratio * d16) and sh32 == pytest.approx(ratio * sh16)
+    with pytest.raises(UserError, match="fit.tv_reference_resolution"):
+        config.build(fit.Settings, "fit", {"tv_reference_resolution": -1})
+
+
 def test_a_fit_whose_per_thread_tables_would_pass_their_memory_share_adds_gradients_on_fewer_threads(fresh,
                                                                                                    monkeypatch):
     import plenoxels.optim as optim
