@@ -30,8 +30,8 @@ from plenoxels.cameras import Intrinsics
 from plenoxels.errors import UserError
 from plenoxels.grid import SparseGrid, sh_count
 from plenoxels.optim import GridGrad, SparseRMSProp
-from plenoxels.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution, tv_scale_for_views,
-                                    views_per_point)
+from plenoxels.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution,
+                                    tv_scale_for_views, views_per_point)
 from plenoxels.render import loss_and_grad, max_weights
 from plenoxels.scene_model import SceneModel, psnr
 
@@ -187,7 +187,8 @@ class RaySet:
 
     def batch(self, size: int, mode: str, tile: int, generator: torch.Generator, coherent: bool = False):
         """A training batch: world origins, directions [B, 3] and target colours [B, 3] in [0, 1]; with `coherent`,
-        random rays come ordered by coherent_order. `generator` is a CPU generator; the batch is on this set's device."""
+        random rays come ordered by coherent_order. `generator` is a CPU generator; the batch is on this set's
+        device."""
         device = self.device
         if mode == "rays":
             flat = torch.randint(self.num_pixels, (size,), generator=generator).to(device)
@@ -498,10 +499,10 @@ class Fitter:
                 old_rows = old_rows[rows]
             self._replace_grid(grid, old_rows)
         grid = self.model.grid
+        tv_scale = tv_scale_for_resolution(max(grid.resolution), self.options.tv_reference_resolution)
         self.levels.append({"step": self.step, "pruned_from": pruned["before"], "kept": pruned["after"],
                             "resolution": list(grid.resolution), "occupied": grid.num_occupied,
-                            "memory_bytes": grid.memory_bytes(),
-                            "tv_scale": tv_scale_for_resolution(max(grid.resolution), self.options.tv_reference_resolution)})
+                            "memory_bytes": grid.memory_bytes(), "tv_scale": tv_scale})
 
     # ---- checkpoints ----------------------------------------------------------------------------
     def state(self) -> dict:
