@@ -423,7 +423,7 @@ class Fitter:
             raise Diverged(f"the loss became {mse}")
         tv_rows = max(1, round(o.tv_sample_fraction * self.model.grid.num_occupied))
         tv = self.regularisation
-        weight = tv_rows * tv_scale_for_resolution(max(self.model.grid.resolution), o.tv_reference_resolution)
+        weight = tv_rows * self.tv_level_scale()
         tv_loss_and_grad(self.model.grid, self.grad, tv["tv_density"] * weight, tv["tv_sh"] * weight,
                          o.tv_sample_fraction, self.generator)
         if o.resolutions[self.level] == o.resolutions[0]:
@@ -452,6 +452,20 @@ class Fitter:
         if self.model.background is not None and not all(bool(torch.isfinite(p).all())
                                                          for p in self.model.background.parameters()):
             raise Diverged("a background parameter became NaN or infinite")
+
+    def tv_level_scale(self) -> float:
+        """What the grid's resolution multiplies the TV weights by (tv_reference_resolution)."""
+        return tv_scale_for_resolution(max(self.model.grid.resolution), self.options.tv_reference_resolution)
+
+    def regularisation_summary(self) -> str:
+        """The fit summary's words on how TV was set for this capture ("" when as set)."""
+        words, record = "", self.regularisation
+        if record["tv_scale"] > 1.0:
+            words += f", TV x{record['tv_scale']:.3g} for few views ({record['views_per_point']:.1f} per point)"
+        if self.tv_level_scale() < 1.0:
+            words += (f", TV x{self.tv_level_scale():.3g} on the last level "
+                      f"(finer than {self.options.tv_reference_resolution}^3)")
+        return words
 
     def train_psnr(self) -> float:
         return psnr(sum(self.recent_mse) / len(self.recent_mse)) if self.recent_mse else float("nan")
@@ -499,10 +513,9 @@ class Fitter:
                 old_rows = old_rows[rows]
             self._replace_grid(grid, old_rows)
         grid = self.model.grid
-        tv_scale = tv_scale_for_resolution(max(grid.resolution), self.options.tv_reference_resolution)
         self.levels.append({"step": self.step, "pruned_from": pruned["before"], "kept": pruned["after"],
                             "resolution": list(grid.resolution), "occupied": grid.num_occupied,
-                            "memory_bytes": grid.memory_bytes(), "tv_scale": tv_scale})
+                            "memory_bytes": grid.memory_bytes(), "tv_scale": self.tv_level_scale()})
 
     # ---- checkpoints ----------------------------------------------------------------------------
     def state(self) -> dict:

@@ -40,7 +40,6 @@ from pipeline.report import format_bytes, format_count, format_duration
 from plenoxels.budget import TimeBudget
 from plenoxels.errors import UserError
 from plenoxels.native import resolve_device
-from plenoxels.regularizers import tv_scale_for_resolution
 from plenoxels.scene_model import ModelOptions, SceneModel, psnr
 from plenoxels.train import Diverged, Fitter, RaySet, TrainOptions, coarse_start
 
@@ -281,12 +280,7 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         cost = record["background_cost"]
         line += (f", background model {format_bytes(cost['model_bytes'] + cost['optimiser_bytes'])} with its optimiser, "
                  f"{cost['share_of_fitting']:.0%} of the fitting time")
-    if fitter.regularisation["tv_scale"] > 1.0:
-        line += (f", TV x{fitter.regularisation['tv_scale']:.3g} for few views "
-                 f"({fitter.regularisation['views_per_point']:.1f} per point)")
-    finest = tv_scale_for_resolution(max(res), s.tv_reference_resolution)
-    if finest < 1.0:
-        line += f", TV x{finest:.3g} on the last level (finer than {s.tv_reference_resolution}^3)"
+    line += fitter.regularisation_summary()
     if "gradient_threads" in record and record["gradient_threads"]["used"] < record["gradient_threads"]["available"]:
         line += (f", gradients on {record['gradient_threads']['used']} of {record['gradient_threads']['available']} "
                  f"threads (a gradient table per thread would pass their share of the memory)")
