@@ -1,5 +1,5 @@
-"""Real captures at every preset: fox, cup and the synthetic unbounded scene, with all their photos and with a
-quarter of them, scored on the same held-out views.
+"""Real captures at every preset: fox, cup, fern and the synthetic unbounded scene, with all their photos and with
+a quarter of them, scored on the same held-out views.
 
 Each scene goes through the pipeline as a user's folder would (ingest at the preset's size, poses imported from the
 files beside the photos, with points triangulated when they bring none, normalize), cached under
@@ -43,7 +43,7 @@ from plenoxels.errors import UserError  # noqa: E402
 RESULTS = REPO / "bench" / "results" / "real_scenes.json"
 RENDERS = REPO / "bench" / "results" / "real_scenes"
 CACHE = REPO / "bench" / "out" / "real_scenes"
-SCENES = ("fox", "cup", "synthetic_unbounded")
+SCENES = ("fox", "cup", "fern", "synthetic_unbounded")
 PRESETS = ("fast", "balanced", "default", "quality")
 SCORE_SIDE = 320
 VIEWS = {"all": 1, "quarter": 4}
