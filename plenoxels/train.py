@@ -98,10 +98,9 @@ class TrainOptions:
     tv_views_max_scale: float = 1000.0
     """The most that few views multiply the TV weights by."""
     tv_reference_resolution: int = 0
-    """A level finer than this (vertices along the box's longest side) gets both TV weights times (this / its
-    resolution)^2: each vertex's share of a batch's samples falls with the square of the resolution while its TV
-    gradient does not, so weights set for a coarser grid outweigh the photos on a finer one (0: the weights as set on
-    every level)."""
+    """A level finer than this (its entry in `resolutions`) gets both TV weights times (this / its resolution)^2: each
+    vertex's share of a batch's samples falls with the square of the resolution while its TV gradient does not, so
+    weights set for a coarser grid outweigh the photos on a finer one (0: the weights as set on every level)."""
     lr_background: float = 0.01
     """RMSProp rate of the background model's texels."""
     prune_weight: float = 0.002
@@ -454,8 +453,10 @@ class Fitter:
             raise Diverged("a background parameter became NaN or infinite")
 
     def tv_level_scale(self) -> float:
-        """What the grid's resolution multiplies the TV weights by (tv_reference_resolution)."""
-        return tv_scale_for_resolution(max(self.model.grid.resolution), self.options.tv_reference_resolution)
+        """What the level's resolution multiplies the TV weights by (tv_reference_resolution). The level's entry in
+        `resolutions`, not the grid's longest side: an NDC grid reaches past the reference image (up to twice as
+        many cells across) and caps its depth, while its cells stay the size that entry gives them."""
+        return tv_scale_for_resolution(self.options.resolutions[self.level], self.options.tv_reference_resolution)
 
     def regularisation_summary(self) -> str:
         """The fit summary's words on how TV was set for this capture ("" when as set)."""

@@ -166,6 +166,18 @@ def test_forward_scene_needs_ndc(forward_scene):
     assert ndc_whole > world_whole - 0.3, results
 
 
+def test_an_ndc_grid_scales_its_tv_by_its_level_resolution_not_by_its_wider_box(forward_scene):
+    """fit.tv_reference_resolution compares a level's entry in `resolutions` (the cells across the reference image),
+    not the NDC grid's longest side, which reaches past that image to what every training camera sees."""
+    scene, root, _ = forward_scene
+    fitter = _fit(scene, root, resolutions=[16, 32], steps=[2, 2], tv_density=1e-8, tv_sh=1e-6,
+                  tv_reference_resolution=16)
+    assert fitter.tv_level_scale() == 1.0 and max(fitter.model.grid.resolution) > 16, fitter.model.grid.resolution
+    fitter.next_level()
+    assert max(fitter.model.grid.resolution) > 32, fitter.model.grid.resolution
+    assert fitter.levels[-1]["tv_scale"] == 0.25 and fitter.tv_level_scale() == 0.25
+
+
 def test_far_content_fits_better_in_a_contracted_grid(unbounded_scene):
     """The synthetic unbounded scene's ground and sky reach far beyond its foreground: a contracted grid places them
     in depth, where the bounded grid and its background spheres can only paint them by direction."""
