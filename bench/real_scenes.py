@@ -21,8 +21,11 @@ ground inside a textured sphere, written under bench/out/ with its true poses as
     .venv/bin/python -m bench.real_scenes --scenes fox --presets default --views all --budgets 30s 1m 2m 5m 10m
 
 With --budgets each run is the preset's detail under fit.time_budget (labelled "budget 30s", ...); --table then says
-for each where it stands against the presets' runs labelled --front, and bench/results/real_scenes_budget.png draws
-them on the axes of the presets' Pareto plot (held-out PSNR against fit time).
+for each where it stands against the presets' runs labelled --front (one label or several, as scenes benched in
+different sessions have their own), and bench/results/real_scenes_budget.png draws them on the axes of the presets'
+Pareto plot (held-out PSNR against fit time).
+
+    .venv/bin/python -m bench.real_scenes --table --front "session 25" "session 26"
 """
 from __future__ import annotations
 
@@ -130,10 +133,10 @@ def is_budget(run: dict) -> bool:
     return "time_budget" in run["overrides"]
 
 
-def front_runs(run: dict, runs: list[dict], front: str) -> list[dict]:
+def front_runs(run: dict, runs: list[dict], front: list[str]) -> list[dict]:
     """The preset runs a budget run is compared with: its scene, photos and scoring size (PSNRs at two sizes do not
-    compare; runs before --score-side were scored at their fit's size), labelled `front`, no overrides."""
-    return [r for r in runs if (r["scene"], r["views"], r["label"]) == (run["scene"], run["views"], front)
+    compare; runs before --score-side were scored at their fit's size), labelled one of `front`, no overrides."""
+    return [r for r in runs if (r["scene"], r["views"]) == (run["scene"], run["views"]) and r["label"] in front
             and scored_size(r) == scored_size(run) and not r["overrides"]]
 
 
@@ -141,11 +144,11 @@ def scored_size(run: dict) -> list[int]:
     return run.get("score_size", run["image_size"])
 
 
-def budget_verdict(run: dict, runs: list[dict], front: str) -> str:
+def budget_verdict(run: dict, runs: list[dict], front: list[str]) -> str:
     """On or above the presets' front when no preset run reached a higher PSNR in as little fitting time."""
     presets = front_runs(run, runs, front)
     if not presets:
-        return f"no preset run labelled '{front}' to compare with"
+        return f"no preset run labelled {' or '.join(repr(f) for f in front)} to compare with"
     faster = [r for r in presets if r["fit_seconds"] <= run["fit_seconds"] and r["mean"]["psnr"] > run["mean"]["psnr"]]
     if not faster:
         return "on or above the presets' front"
@@ -153,7 +156,7 @@ def budget_verdict(run: dict, runs: list[dict], front: str) -> str:
     return f"below {best['preset']} ({best['mean']['psnr']:.2f} dB in {best['fit_seconds']:.0f} s)"
 
 
-def table(results: dict, front: str = "after") -> str:
+def table(results: dict, front: list[str]) -> str:
     lines = ["| scene | preset | photos | run | held-out PSNR | SSIM | fit time | peak memory | background's share |",
              "|---|---|---|---|---|---|---|---|---|"]
     runs = results.get("runs", [])
@@ -166,8 +169,9 @@ def table(results: dict, front: str = "after") -> str:
     return "\n".join(lines)
 
 
-def plot_budgets(results: dict, front: str, path: Path) -> None:
-    """Held-out PSNR against fit time: each scene's preset runs with their Pareto front, and its budget runs."""
+def plot_budgets(results: dict, front: list[str], path: Path) -> None:
+    """Held-out PSNR against fit time: each scene's preset runs with their Pareto front, and its budget sweep (the runs
+    labelled "budget ..."; probes of other settings under a budget stay in the table)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -176,7 +180,7 @@ def plot_budgets(results: dict, front: str, path: Path) -> None:
     from bench.fit import pareto
 
     runs = results.get("runs", [])
-    budgets = [r for r in runs if is_budget(r)]
+    budgets = [r for r in runs if is_budget(r) and r["label"] == f"budget {r['overrides']['time_budget']}"]
     groups = sorted({(r["scene"], r["views"]) for r in budgets})
     if not groups:
         return
@@ -221,7 +225,8 @@ def main(argv=None) -> int:
     parser.add_argument("--budgets", nargs="+", default=[], help="fit.time_budget values: one run each (30s 1m ...)")
     parser.add_argument("--score-side", type=int, default=SCORE_SIDE,
                         help="score held-out views with their longest side this many pixels (0: at the fit's size)")
-    parser.add_argument("--front", default="after", help="the label of the preset runs budget runs are compared with")
+    parser.add_argument("--front", nargs="+", default=["after"],
+                        help="the labels of the preset runs budget runs are compared with (a scene's runs under any)")
     parser.add_argument("--table", action="store_true", help="print the results as a Markdown table and exit")
     parser.add_argument("--verbose", action="store_true", help="show each fit's progress")
     args = parser.parse_args(argv)

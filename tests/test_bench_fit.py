@@ -164,9 +164,12 @@ def test_real_scenes_budget_runs_compare_with_the_front_label_at_their_own_scori
             record("default", "before", 100, 30.0)]
     budget = record("default", "budget 2m", 120, 25.0, overrides={"time_budget": "2m"})
     # fast was scored on smaller images, `before` is not the front's label: neither beats it.
-    assert budget_verdict(budget, runs, "after") == "on or above the presets' front"
-    assert budget_verdict({**budget, "fit_seconds": 450}, runs, "after") == "below default (26.00 dB in 400 s)"
-    assert "no preset run" in budget_verdict(budget, runs, "nothing")
+    assert budget_verdict(budget, runs, ["after"]) == "on or above the presets' front"
+    assert budget_verdict({**budget, "fit_seconds": 450}, runs, ["after"]) == "below default (26.00 dB in 400 s)"
+    assert "no preset run" in budget_verdict(budget, runs, ["nothing"])
+    assert "no preset run" in budget_verdict(budget, runs, ["aft"])  # a label, not a piece of one
+    # Several labels: each scene compares with its runs under any of them (scenes benched in different sessions).
+    assert budget_verdict(budget, runs, ["nothing", "before"]) == "below default (30.00 dB in 100 s)"
 
 
 def test_real_scenes_runs_scored_at_one_size_compare_whatever_size_they_fit_at():
@@ -180,5 +183,5 @@ def test_real_scenes_runs_scored_at_one_size_compare_whatever_size_they_fit_at()
     runs = [record("fast", "after", 80, 27.0, (178, 316)), record("default", "after", 400, 26.0, (266, 474))]
     budget = record("default", "budget 2m", 120, 26.5, (266, 474), overrides={"time_budget": "2m"})
     # Scored at the same size, fast's smaller photos no longer keep it off the budget's front.
-    assert budget_verdict(budget, runs, "after") == "below fast (27.00 dB in 80 s)"
-    assert budget_verdict({**budget, "mean": {"psnr": 27.5}}, runs, "after") == "on or above the presets' front"
+    assert budget_verdict(budget, runs, ["after"]) == "below fast (27.00 dB in 80 s)"
+    assert budget_verdict({**budget, "mean": {"psnr": 27.5}}, runs, ["after"]) == "on or above the presets' front"
