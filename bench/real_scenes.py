@@ -133,6 +133,11 @@ def is_budget(run: dict) -> bool:
     return "time_budget" in run["overrides"]
 
 
+def budget_label(budget: str) -> str:
+    """The label of a budget sweep's run (probes under a budget carry labels of their own)."""
+    return f"budget {budget}"
+
+
 def front_runs(run: dict, runs: list[dict], front: list[str]) -> list[dict]:
     """The preset runs a budget run is compared with: its scene, photos and scoring size (PSNRs at two sizes do not
     compare; runs before --score-side were scored at their fit's size), labelled one of `front`, no overrides."""
@@ -180,7 +185,7 @@ def plot_budgets(results: dict, front: list[str], path: Path) -> None:
     from bench.fit import pareto
 
     runs = results.get("runs", [])
-    budgets = [r for r in runs if is_budget(r) and r["label"] == f"budget {r['overrides']['time_budget']}"]
+    budgets = [r for r in runs if is_budget(r) and r["label"] == budget_label(r["overrides"]["time_budget"])]
     groups = sorted({(r["scene"], r["views"]) for r in budgets})
     if not groups:
         return
@@ -247,7 +252,7 @@ def run_all(args) -> int:
         plot_budgets(results, args.front, budget_plot)
         return 0
     overrides = fit_overrides(args.set)
-    variants = ([(f"budget {b}", {**overrides, "time_budget": b}) for b in args.budgets] if args.budgets
+    variants = ([(budget_label(b), {**overrides, "time_budget": b}) for b in args.budgets] if args.budgets
                 else [(args.label, overrides)])
     results["machine"] = machine()
     for name in args.scenes:
