@@ -13,7 +13,10 @@ Two parts, results in bench/results/cuda.json:
   The val images present on disk are used (a GPU machine may carry only some of them).
 
     python -m bench.cuda [--part throughput|lego|all] [--data ../shared/data] [--cpu-threads 2]
-        [--gpu-rays 262144] [--cpu-rays 8192] [--val-limit N] [--set fit_key=value ...]
+        [--gpu-rays 262144] [--cpu-rays 8192] [--val-limit N] [--set fit_key=value ...] [--lego-key lego]
+
+--lego-key names the entry of cuda.json the lego part writes (another key keeps the first run's beside it, e.g.
+`--set time_budget=60s --lego-key lego_budget_60s`).
 
 The throughput part needs only torch; the lego part also the fit stage's packages (numpy, PIL,
 OpenCV, imageio, PyYAML, tqdm). A GPU machine without ../shared/data can take lego/train, the
@@ -54,6 +57,7 @@ def parse_args(argv):
     parser.add_argument("--val-limit", type=int, default=None, help="score at most this many val images")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a fit setting for the lego part, e.g. steps=[1000,2000,4000]")
+    parser.add_argument("--lego-key", default="lego", help="the entry of cuda.json the lego part writes")
     # Internal: the CPU baseline runs in a child process so its thread count is set before OpenMP starts.
     parser.add_argument("--cpu-baseline", default=None, help=argparse.SUPPRESS)
     return parser.parse_args(argv)
@@ -221,7 +225,8 @@ def lego(torch, args) -> dict:
               "fit_seconds": record.get("seconds"),
               "fit_and_load_seconds": total, "render_seconds_per_image": render_seconds / len(scores),
               "settings": dataclasses.asdict(settings),
-              "history": record.get("history"), "levels": record.get("levels"), "summary": summary.get("line")}
+              "history": record.get("history"), "levels": record.get("levels"), "budget": record.get("budget"),
+              "summary": summary.get("line")}
     print(f"lego 800x800 on {device}, {train_images} train images: {result['val_psnr']:.2f} dB over {len(scores)} "
           f"val images after {result['fit_seconds']} s of fitting ({total:.0f} s with image loading); "
           f"{1 / result['render_seconds_per_image']:.1f} val images/s rendered", flush=True)
@@ -247,7 +252,7 @@ def main(argv=None) -> int:
     if args.part in ("throughput", "all"):
         results["throughput"] = throughput(torch, args)
     if args.part in ("lego", "all"):
-        results["lego"] = lego(torch, args)
+        results[args.lego_key] = lego(torch, args)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(results, indent=1) + "\n")
     print(f"wrote {RESULTS.relative_to(REPO)}")

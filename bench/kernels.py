@@ -6,7 +6,10 @@ cameras), the same in the fit's coherent order (sorted random), and tile batches
 (density above threshold, before early termination); marching empty space is part of the time.
 Both backends run in the same process on the same batches; medians of repeats.
 
-    python bench/kernels.py [--repeats 5] [--rays 8192] [--twin-rays 256] [--sizes 128 256]
+    python bench/kernels.py [--repeats 5] [--rays 8192] [--twin-rays 256] [--sizes 128 256] [--threads 1 2 4 8 16]
+        [--out bench/results/kernels.json]
+
+The thread scaling runs every count from 1 to the machine's threads unless --threads names the counts.
 
 Writes bench/results/kernels.json and prints a table.
 """
@@ -146,9 +149,10 @@ def time_backend(grid, batches, backend: str, opts: RenderOptions) -> tuple[list
     return wall, cpu
 
 
-def thread_scaling(grid, make, seed: int, repeats: int, rays: int, opts: RenderOptions) -> dict:
-    """Native samples/s with 1, 2, ... up to the machine's threads (the same batches for each count), and each
-    count's speed-up over one thread."""
+def thread_scaling(grid, make, seed: int, repeats: int, rays: int, opts: RenderOptions,
+                   thread_counts: list[int]) -> dict:
+    """Native samples/s at each of `thread_counts` (the same batches for each count), and each count's speed-up over
+    the first count's."""
     most = torch.get_num_threads()
     gen = torch.Generator().manual_seed(seed + 1)
     batches = []
@@ -158,16 +162,17 @@ def thread_scaling(grid, make, seed: int, repeats: int, rays: int, opts: RenderO
     counts = [sample_counts(grid, b[0], b[1], opts)[1] for b in batches[WARMUP:]]
     by_threads = {}
     try:
-        for threads in range(1, most + 1):
+        for threads in thread_counts:
             torch.set_num_threads(threads)  # also the native core's OpenMP team
             wall, _ = time_backend(grid, batches, "native", opts)
             by_threads[threads] = statistics.median(c / t for c, t in zip(counts, wall[WARMUP:]))
     finally:
         torch.set_num_threads(most)
-    return {str(t): {"samples_per_s": v, "speedup": v / by_threads[1]} for t, v in by_threads.items()}
+    first = by_threads[thread_counts[0]]
+    return {str(t): {"samples_per_s": v, "speedup": v / first} for t, v in by_threads.items()}
 
 
-def run(sizes, repeats: int, rays: int, twin_rays: int) -> dict:
+def run(sizes, repeats: int, rays: int, twin_rays: int, thread_counts: list[int]) -> dict:
     opts = RenderOptions(step_size=0.5)
     rows = []
     for size in sizes:
@@ -202,7 +207,7 @@ def run(sizes, repeats: int, rays: int, twin_rays: int) -> dict:
                     "samples_per_s_cpu_time_based": statistics.median(threads * c[1] / t for c, t in zip(counts, cpu)),
                 }
             result["speedup"] = result["native"]["samples_per_s"] / result["torch"]["samples_per_s"]
-            result["native_by_threads"] = thread_scaling(grid, make, size, repeats, rays, opts)
+            result["native_by_threads"] = thread_scaling(grid, make, size, repeats, rays, opts, thread_counts)
             rows.append(result)
             print_row(result)
         del grid
@@ -238,12 +243,15 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--rays", type=int, default=8192, help="rays per native batch")
     parser.add_argument("--twin-rays", type=int, default=256, help="rays per PyTorch-twin batch")
+    parser.add_argument("--threads", type=int, nargs="+", default=None,
+                        help="thread counts of the scaling columns (default: 1 up to the machine's threads)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
-    if math.prod(args.sizes) <= 0 or args.repeats < 1:
-        parser.error("sizes and repeats must be positive")
+    if math.prod(args.sizes) <= 0 or args.repeats < 1 or min(args.threads or [1]) < 1:
+        parser.error("sizes, repeats and thread counts must be positive")
     os.environ.setdefault("OMP_NUM_THREADS", str(os.cpu_count()))
-    report = run(args.sizes, args.repeats, args.rays, args.twin_rays)
+    thread_counts = sorted(set(args.threads or range(1, torch.get_num_threads() + 1)))
+    report = run(args.sizes, args.repeats, args.rays, args.twin_rays, thread_counts)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2))
     print(f"wrote {args.out}")
