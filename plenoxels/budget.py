@@ -65,7 +65,7 @@ from plenoxels.grid import SparseGrid, sh_count
 from plenoxels.scene_model import SceneModel
 from plenoxels.train import Fitter, RaySet, coarse_start, pruning_rays
 
-CACHE_VERSION = 3
+CACHE_VERSION = 4
 # Resolutions the calibration times steps at (grids as pruning leaves a fit: about 50k, 230k and 520k voxels).
 CALIBRATION_RESOLUTIONS = (64, 128, 192)
 # Resolutions it times a first level's steps at: the whole box allocated, as a fit starts (33k, 262k and 885k voxels).
@@ -170,6 +170,8 @@ class CostModel:
     """Seconds of one step of a first level (its whole box allocated) whatever the grid; None: as a pruned grid's."""
     dense_per_voxel: float | None = None
     """Seconds of one step of a first level per voxel of its box."""
+    pass_fixed: float = 0.0
+    """Seconds of a pass whatever its rays (the calls, the chunks' hand-offs: all of a GPU's pass at these sizes)."""
     upsampled_ratio: float = 1.0
     """A step on a grid just upsampled from a pruned one over the model's at its voxels: a fit's later levels start
     from such a grid, a thicker and softer shell than a converged one, whose rays march more samples per voxel."""
@@ -185,7 +187,7 @@ class CostModel:
         return self.step_fixed + self.step_per_voxel * voxels
 
     def pass_seconds(self, rays: float, resolution: int) -> float:
-        return self.pass_per_ray * rays * resolution
+        return self.pass_fixed + self.pass_per_ray * rays * resolution
 
     def describe(self) -> str:
         line = f"{1000 * self.step_fixed:.1f} ms per step plus {1e8 * self.step_per_voxel:.1f} ms per 100k voxels"
@@ -307,13 +309,19 @@ def _time_steps(fitter: Fitter, device: torch.device, steps: int = CALIBRATION_S
 
 
 def _line(points: list[tuple[int, float]]) -> tuple[float, float]:
-    """(fixed, per voxel) seconds of a step, fitted to (voxels, seconds) points; positive and not decreasing."""
+    """(fixed, per unit) seconds of a step or a pass, fitted to (voxels or rays times resolution, seconds) points;
+    positive and not decreasing.
+
+    Times that do not grow over the points cost what they measured, whatever the size: a GPU's steps at these sizes
+    are launches and read-backs (an H100: 4.0, 4.2 and 3.6 ms at 50k, 230k and 520k voxels). A line through the
+    origin, the fallback for a negative intercept, would call them all per-voxel cost: lego's 128^3 steps measured 3x
+    that line, a ratio the plan then applied to its 256^3 steps, predicted 5x slower than they ran."""
     voxels, seconds = np.array([p[0] for p in points], dtype=np.float64), np.array([p[1] for p in points])
     slope, fixed = np.polyfit(voxels, seconds, 1)
-    if fixed < 0 or slope <= 0:  # noise
-        slope, fixed = max(0.0, float((voxels * seconds).sum() / (voxels * voxels).sum())), 0.0
-        if slope == 0.0:
-            fixed = float(seconds.mean())
+    if slope <= 0:
+        return float(seconds.mean()), 0.0
+    if fixed < 0:
+        return 0.0, float((voxels * seconds).sum() / (voxels * voxels).sum())
     return float(fixed), float(slope)
 
 
@@ -369,7 +377,7 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
         dense_points.append((fitter.model.grid.num_occupied, _time_steps(fitter, device, DENSE_STEPS)))
         del fitter
     dense_fixed, dense_slope = _line(dense_points)
-    pass_per_ray = float(sum(a * t for a, t in passes) / sum(a * a for a, _ in passes))
+    pass_fixed, pass_per_ray = _line(passes)
 
     # One level change, from the coarsest grid to twice its resolution, then a checkpoint and a save of the model.
     fitter = fitter_at([resolutions[0], 2 * resolutions[0]])
@@ -388,8 +396,9 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
     new_voxels = fitter.model.grid.num_occupied
     upsampled = _time_steps(fitter, device)
     return {
-        "costs": {"step_fixed": fixed, "step_per_voxel": slope, "pass_per_ray": pass_per_ray,
-                  "change_per_voxel": max(0.0, change - pass_per_ray * rays[resolutions[0]] * resolutions[0]) / new_voxels,
+        "costs": {"step_fixed": fixed, "step_per_voxel": slope, "pass_per_ray": pass_per_ray, "pass_fixed": pass_fixed,
+                  "change_per_voxel": max(0.0, change - pass_fixed - pass_per_ray * rays[resolutions[0]] * resolutions[0])
+                  / new_voxels,
                   "checkpoint_per_voxel": checkpoint / new_voxels, "save_per_voxel": save / new_voxels,
                   "dense_fixed": dense_fixed, "dense_per_voxel": dense_slope,
                   "upsampled_ratio": upsampled / (fixed + slope * new_voxels)},
@@ -397,6 +406,7 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
                    for r, (n, t) in zip(resolutions, points)],
         "first_level_points": [{"resolution": r, "voxels": n, "step_seconds": round(t, 5)}
                                for r, (n, t) in zip(dense_resolutions, dense_points)],
+        "passes": [{"resolution": r, "rays": rays[r], "seconds": round(t, 5)} for r, (_, t) in zip(resolutions, passes)],
         "level_change": {"voxels": new_voxels, "seconds": round(float(change), 4), "step_seconds": round(upsampled, 5),
                          "checkpoint_seconds": round(float(checkpoint), 4), "save_seconds": round(float(save), 4)},
         "seconds": round(time.perf_counter() - started, 2),
@@ -830,7 +840,7 @@ class TimeBudget:
             "replans": self.replans,
             "calibration": {"costs": dataclasses.asdict(self.costs), "points": self.calibration.get("points"),
                             "first_level_points": self.calibration.get("first_level_points"),
-                            "level_change": self.calibration.get("level_change"),
+                            "passes": self.calibration.get("passes"), "level_change": self.calibration.get("level_change"),
                             "cached": self.calibration["cached"], "file": self.calibration["file"],
                             "slower_now": self.calibration.get("slower_now"),
                             "key": self.calibration["key"], "measured_in_seconds": self.calibration.get("seconds"),

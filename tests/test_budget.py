@@ -82,9 +82,10 @@ def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(mon
 
     costs, record = budget.calibrate(options, cpu, None, small, first)
     assert not record["cached"] and len(measured) == 1
-    assert costs.step_fixed + costs.step_per_voxel * 1e5 > 0 and costs.pass_per_ray > 0
+    assert costs.step_fixed + costs.step_per_voxel * 1e5 > 0 and costs.pass_seconds(1e5, 32) > 0
     assert costs.step_seconds(1e5, dense=True) > 0 and costs.dense_fixed is not None
     assert [p["voxels"] for p in record["first_level_points"]] == [8 ** 3, 16 ** 3]  # a new model's whole box
+    assert [p["resolution"] for p in record["passes"]] == list(small) and all(p["seconds"] > 0 for p in record["passes"])
     # The steps on the grid the level change upsampled, over the model at its voxels.
     change = record["level_change"]
     assert change["step_seconds"] > 0 and costs.upsampled_ratio == pytest.approx(
@@ -126,8 +127,25 @@ def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(mon
     assert record["slower_now"] == pytest.approx(2.0)
     assert slower.step_fixed == pytest.approx(2 * fresh_costs.step_fixed)
     assert slower.step_seconds(1e5, dense=True) == pytest.approx(2 * fresh_costs.step_seconds(1e5, dense=True))
-    assert slower.pass_per_ray == pytest.approx(2 * fresh_costs.pass_per_ray)
+    assert slower.pass_seconds(1e5, 32) == pytest.approx(2 * fresh_costs.pass_seconds(1e5, 32))
     assert slower.upsampled_ratio == fresh_costs.upsampled_ratio  # a ratio of two times, whatever the speed
+
+
+@pytest.mark.parametrize("points, grows", [
+    ([(49_671, 0.01340), (228_352, 0.01980), (515_119, 0.03060)], True),    # a CPU's steps: a line
+    ([(49_671, 0.00402), (228_352, 0.00423), (515_119, 0.00364)], False),   # an H100's: flat at these sizes
+    ([(49_671, 0.00100), (228_352, 0.00900), (515_119, 0.02400)], True),    # rising faster than a line: no intercept
+])
+def test_the_step_line_reads_the_calibration_points_within_a_fifth(points, grows):
+    """Steps that do not grow with the grid are a fixed cost: a line through the origin would put a GPU's 50k-voxel
+    step at an eighth of what it measured, and the plan would carry that ratio to its finer levels."""
+    fixed, per_voxel = budget._line(points)
+    model = CostModel(step_fixed=fixed, step_per_voxel=per_voxel, pass_per_ray=0, change_per_voxel=0,
+                      checkpoint_per_voxel=0, save_per_voxel=0)
+    assert fixed >= 0 and per_voxel >= 0 and (per_voxel > 0) == grows
+    # A line steeper than its points allow an intercept for is drawn through the origin: it reads the largest.
+    for voxels, seconds in points[-1:] if grows and fixed == 0 else points:
+        assert model.step_seconds(voxels) == pytest.approx(seconds, rel=0.2), (voxels, seconds, fixed, per_voxel)
 
 
 # ---- plans ---------------------------------------------------------------------------------------------------------
