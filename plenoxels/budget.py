@@ -396,9 +396,10 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
     new_voxels = fitter.model.grid.num_occupied
     upsampled = _time_steps(fitter, device)
     return {
-        "costs": {"step_fixed": fixed, "step_per_voxel": slope, "pass_per_ray": pass_per_ray, "pass_fixed": pass_fixed,
-                  "change_per_voxel": max(0.0, change - pass_fixed - pass_per_ray * rays[resolutions[0]] * resolutions[0])
-                  / new_voxels,
+        "costs": {"step_fixed": fixed, "step_per_voxel": slope,
+                  "pass_fixed": pass_fixed, "pass_per_ray": pass_per_ray,
+                  "change_per_voxel": max(0.0, change - pass_fixed
+                                          - pass_per_ray * rays[resolutions[0]] * resolutions[0]) / new_voxels,
                   "checkpoint_per_voxel": checkpoint / new_voxels, "save_per_voxel": save / new_voxels,
                   "dense_fixed": dense_fixed, "dense_per_voxel": dense_slope,
                   "upsampled_ratio": upsampled / (fixed + slope * new_voxels)},
@@ -406,7 +407,8 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
                    for r, (n, t) in zip(resolutions, points)],
         "first_level_points": [{"resolution": r, "voxels": n, "step_seconds": round(t, 5)}
                                for r, (n, t) in zip(dense_resolutions, dense_points)],
-        "passes": [{"resolution": r, "rays": rays[r], "seconds": round(t, 5)} for r, (_, t) in zip(resolutions, passes)],
+        "passes": [{"resolution": r, "rays": rays[r], "seconds": round(t, 5)}
+                   for r, (_, t) in zip(resolutions, passes)],
         "level_change": {"voxels": new_voxels, "seconds": round(float(change), 4), "step_seconds": round(upsampled, 5),
                          "checkpoint_seconds": round(float(checkpoint), 4), "save_seconds": round(float(save), 4)},
         "seconds": round(time.perf_counter() - started, 2),
@@ -840,7 +842,8 @@ class TimeBudget:
             "replans": self.replans,
             "calibration": {"costs": dataclasses.asdict(self.costs), "points": self.calibration.get("points"),
                             "first_level_points": self.calibration.get("first_level_points"),
-                            "passes": self.calibration.get("passes"), "level_change": self.calibration.get("level_change"),
+                            "passes": self.calibration.get("passes"),
+                            "level_change": self.calibration.get("level_change"),
                             "cached": self.calibration["cached"], "file": self.calibration["file"],
                             "slower_now": self.calibration.get("slower_now"),
                             "key": self.calibration["key"], "measured_in_seconds": self.calibration.get("seconds"),

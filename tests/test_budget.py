@@ -85,7 +85,8 @@ def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(mon
     assert costs.step_fixed + costs.step_per_voxel * 1e5 > 0 and costs.pass_seconds(1e5, 32) > 0
     assert costs.step_seconds(1e5, dense=True) > 0 and costs.dense_fixed is not None
     assert [p["voxels"] for p in record["first_level_points"]] == [8 ** 3, 16 ** 3]  # a new model's whole box
-    assert [p["resolution"] for p in record["passes"]] == list(small) and all(p["seconds"] > 0 for p in record["passes"])
+    assert [p["resolution"] for p in record["passes"]] == list(small)
+    assert all(p["seconds"] > 0 for p in record["passes"])
     # The steps on the grid the level change upsampled, over the model at its voxels.
     change = record["level_change"]
     assert change["step_seconds"] > 0 and costs.upsampled_ratio == pytest.approx(
@@ -95,7 +96,9 @@ def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(mon
 
     again, record = budget.calibrate(options, cpu, None, small, first)
     assert record["cached"] and len(measured) == 1
-    assert again.step_fixed == pytest.approx(record["slower_now"] * costs.step_fixed, rel=1e-3)
+    # The record's factor is rounded to 3 decimals: a factor far from 1 (a loaded machine's first timing) is off by
+    # more than a relative 1e-3 of itself.
+    assert again.step_fixed == pytest.approx(record["slower_now"] * costs.step_fixed, abs=5e-4 * costs.step_fixed)
 
     budget.calibrate(config.build(fit.Settings, "fit", {"batch_size": 256, "sh_degree": 0}), cpu, None, small, first)
     assert len(measured) == 2  # other options that set a step's cost
@@ -132,7 +135,7 @@ def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(mon
 
 
 @pytest.mark.parametrize("points, grows", [
-    ([(49_671, 0.01340), (228_352, 0.01980), (515_119, 0.03060)], True),    # a CPU's steps: a line
+    ([(49_671, 0.00853), (228_352, 0.01501), (515_119, 0.02129)], True),    # a 2-core CPU's steps: a line
     ([(49_671, 0.00402), (228_352, 0.00423), (515_119, 0.00364)], False),   # an H100's: flat at these sizes
     ([(49_671, 0.00100), (228_352, 0.00900), (515_119, 0.02400)], True),    # rising faster than a line: no intercept
 ])
