@@ -2,8 +2,10 @@
 
 SH degree 2 at 128^3 (dense, as the coarse stage starts) and 256^3 (the occupied region only, as
 after pruning), on a synthetic density field, with random-ray batches (random pixels of random
-cameras), the same in the fit's coherent order (sorted random), and tile batches (32x32-pixel tiles). Samples/s counts the samples that contribute
-(density above threshold, before early termination); marching empty space is part of the time.
+cameras), the same in the fit's coherent order (sorted random), tile batches (32x32-pixel tiles), and cached random
+rays (64 random rays repeated, so their rows stay in cache: what random rays would reach if memory cost nothing).
+Samples/s counts the samples that contribute (density above threshold, before early termination); marching empty
+space is part of the time.
 Both backends run in the same process on the same batches; medians of repeats.
 
     python bench/kernels.py [--repeats 5] [--rays 8192] [--twin-rays 256] [--sizes 128 256] [--threads 1 2 4 8 16]
@@ -117,6 +119,14 @@ def sorted_batch(n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tens
     return origins[order].contiguous(), dirs[order].contiguous()
 
 
+def cached_batch(n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """64 random rays repeated to n: random rays' mix of misses, hits and samples per ray, with every row they touch
+    in cache after its first use."""
+    origins, dirs = (t[:64] for t in random_batch(max(n, 64), gen))  # rays of many cameras, as random_batch's
+    repeats = max(1, n // 64)
+    return origins.repeat(repeats, 1).contiguous(), dirs.repeat(repeats, 1).contiguous()
+
+
 def tile_batch(n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """32x32-pixel tiles of random cameras, tiles kept contiguous; tiles overlap the object."""
     origins, dirs = [], []
@@ -181,7 +191,8 @@ def run(sizes, repeats: int, rays: int, twin_rays: int, thread_counts: list[int]
         grid = make_grid(size, sparse)
         grid.occupancy()
         build_s = time.perf_counter() - t0
-        for kind, make in (("random", random_batch), ("sorted random", sorted_batch), ("tiles", tile_batch)):
+        for kind, make in (("random", random_batch), ("sorted random", sorted_batch), ("tiles", tile_batch),
+                           ("cached random", cached_batch)):
             gen = torch.Generator().manual_seed(size)
             result = {"resolution": size, "grid": "occupied region" if sparse else "dense", "batch": kind,
                       "occupied_vertices": grid.num_occupied, "grid_mb": round(grid.memory_bytes() / 2**20, 1),
