@@ -313,9 +313,8 @@ def _line(points: list[tuple[int, float]]) -> tuple[float, float]:
     positive and not decreasing.
 
     Times that do not grow over the points cost what they measured, whatever the size: a GPU's steps at these sizes
-    are launches and read-backs (an H100: 4.0, 4.2 and 3.6 ms at 50k, 230k and 520k voxels). A line through the
-    origin, the fallback for a negative intercept, would call them all per-voxel cost: lego's 128^3 steps measured 3x
-    that line, a ratio the plan then applied to its 256^3 steps, predicted 5x slower than they ran."""
+    are launches and read-backs. A line through the origin, the fallback for a negative intercept, would call them all
+    per-voxel cost and predict a finer grid's steps many times slower than they run (bench/README.md, session 27)."""
     voxels, seconds = np.array([p[0] for p in points], dtype=np.float64), np.array([p[1] for p in points])
     slope, fixed = np.polyfit(voxels, seconds, 1)
     if slope <= 0:
