@@ -142,8 +142,9 @@ def blender_frames(folder: Path, split: str) -> list[dict]:
     focal = 0.5 * LEGO_SIZE / math.tan(0.5 * meta["camera_angle_x"])
     frames = []
     for f in meta["frames"]:
-        rel = f["file_path"].removeprefix("./") + ".png"
-        if (folder / rel).is_file():
+        stem = f["file_path"].removeprefix("./")
+        rel = next((stem + suffix for suffix in (".png", ".webp") if (folder / (stem + suffix)).is_file()), None)
+        if rel is not None:
             frames.append({"name": f"{split}_{Path(rel).stem}", "file_path": rel, "mask_path": rel,
                            "transform_matrix": f["transform_matrix"], "fl_x": focal, "fl_y": focal,
                            "cx": LEGO_SIZE / 2, "cy": LEGO_SIZE / 2, "w": LEGO_SIZE, "h": LEGO_SIZE})
