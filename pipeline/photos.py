@@ -2,7 +2,10 @@
 downscaling, sharpness scoring and picking the sharpest video frames."""
 from __future__ import annotations
 
+import json
+import os
 from pathlib import Path
+
 import cv2
 import numpy as np
 from PIL import Image, ImageOps
@@ -45,6 +48,50 @@ def is_split_dataset(folder: Path) -> bool:
     return folder.is_dir() and (folder / "transforms_train.json").is_file() and _has_photos(folder / "train")
 
 
+def lexical_path(path: Path) -> Path:
+    """`path` made absolute and normalised (`.` and `..` folded) without following symbolic links: how a pose file's
+    frame and a photo are compared, the same way on both sides (a split folder of links to the photos must not
+    turn one split's frame into another's)."""
+    return Path(os.path.normpath(os.path.abspath(path)))
+
+
+def frame_photo(base: Path, file_path: str) -> Path | None:
+    """The photo a pose file's `file_path` names, relative to the pose file's folder `base`: the file as written, or
+    with a photo suffix added (NeRF synthetic frames name `./train/r_0` for `train/r_0.png`); None when absent."""
+    named = base / file_path.replace("\\", "/")
+    if named.suffix.lower() in IMAGE_SUFFIXES and named.is_file():
+        return named
+    return next((named.with_name(named.name + suffix) for suffix in sorted(IMAGE_SUFFIXES)
+                 if named.with_name(named.name + suffix).is_file()), None)
+
+
+def split_photos(scene: Path, split: str) -> list[Path]:
+    """The photos of a split dataset's `split`: the frames its transforms_<split>.json lists, nothing else (the
+    published test/ folders also hold depth and normal renders beside each photo); every photo of the folder where
+    the split has no such file."""
+    listing = scene / f"transforms_{split}.json"
+    folder = scene / split
+    if not listing.is_file():
+        return sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith(".")) if folder.is_dir() else []
+    try:
+        frames = json.loads(listing.read_text())["frames"]
+        names = [str(frame["file_path"]) for frame in frames]
+    except (json.JSONDecodeError, KeyError, TypeError):
+        raise UserError(f"{listing} is not a transforms file with a 'frames' list, each with a file_path; fix it or "
+                        f"move it away from the photos") from None
+    photos, absent = [], []
+    for name in names:
+        photo = frame_photo(scene, name)
+        if photo is not None and not lexical_path(photo).is_relative_to(lexical_path(scene)):
+            raise UserError(f"{listing.name} names {name}, outside the dataset folder {scene}; a split dataset's "
+                            f"frames live in its own split folders")
+        (photos if photo is not None else absent).append(photo or name)
+    if absent:
+        raise UserError(f"{listing.name} lists {len(absent)} frame(s) with no photo in {scene} ({', '.join(absent[:3])}"
+                        f"{', ...' if len(absent) > 3 else ''}); restore them or remove those frames from the file")
+    return sorted(set(photos))
+
+
 def photo_folder(scene: Path) -> Path:
     """The folder the scene's photo paths are relative to: for a video, the folder it sits in; for a dataset
     folder, its images/ (a COLMAP project or a nerfstudio folder) or its largest images_N/ (LLFF), or the dataset
@@ -69,8 +116,7 @@ def scene_photos(scene: Path, holdout_split: str) -> list[tuple[Path, str | None
         if len(splits) > 1 and not _has_photos(scene / holdout_split):
             raise UserError(f"{scene} has no {holdout_split}/ photos to hold out; set ingest.holdout_split to one it "
                             f"has ({', '.join(d for d in DATASET_SPLITS[1:] if _has_photos(scene / d)) or 'none'})")
-        return [(p, split) for name, split in splits if (scene / name).is_dir()
-                for p in sorted(f for f in (scene / name).iterdir() if f.is_file() and not f.name.startswith("."))]
+        return [(p, split) for name, split in splits for p in split_photos(scene, name)]
     return [(p, None) for p in sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith("."))]
 
 

@@ -131,3 +131,52 @@ def test_nerf_synthetic_without_the_named_split_is_a_one_line_error(synthetic, t
     run(folder, tmp_path / "none", "normalize", "ingest.holdout_split=none", "normalize.holdout_every=2")
     scene = read_json(tmp_path / "none" / "normalize" / "scene.json")
     assert len(scene["frames"]) == 4 and sum(f["split"] == "test" for f in scene["frames"]) == 2
+
+
+def test_nerf_synthetic_as_published_takes_only_the_frames_its_transforms_list(synthetic, truth, tmp_path):
+    # The published test/ folders hold a depth and a normal render beside each photo; they are not frames.
+    folder = tmp_path / "blender"
+    names = nerf_synthetic(synthetic, truth, folder, {"train": [0, 1, 2, 3, 4], "test": [5, 6]})
+    for i in range(2):
+        for extra in ("depth", "normal"):
+            Image.new("RGBA", (truth["w"], truth["h"])).save(folder / "test" / f"r_{i}_{extra}_0001.png")
+    run(folder, tmp_path / "out", "normalize", "ingest.holdout_split=test")
+    assert sorted(r["name"] for r in read_json(tmp_path / "out" / "ingest" / "images.json")["images"]) == sorted(names)
+    scene = read_json(tmp_path / "out" / "normalize" / "scene.json")
+    assert sorted(f["name"] for f in scene["frames"]) == sorted(names)
+    assert_same_poses(tmp_path / "out", truth, names)
+
+
+def test_split_folders_of_links_pose_each_photo_with_its_own_split_camera(synthetic, truth, tmp_path):
+    # A common layout: the split folders hold links to photos kept elsewhere. r_0 is a name in train/ and test/, and
+    # each must get the camera of its own split's file.
+    published = tmp_path / "published"
+    names = nerf_synthetic(synthetic, truth, published, {"train": [0, 1, 2, 3, 4], "test": [5, 6]})
+    pool, linked = tmp_path / "pool", tmp_path / "linked"
+    pool.mkdir()
+    for split in ("train", "test"):
+        (linked / split).mkdir(parents=True)
+        shutil.copy(published / f"transforms_{split}.json", linked)
+        for photo in (published / split).iterdir():
+            shutil.copy(photo, pool / f"{split}_{photo.name}")
+            (linked / split / photo.name).symlink_to(pool / f"{split}_{photo.name}")
+    run(linked, tmp_path / "out", "poses", "ingest.holdout_split=test")
+    assert_same_poses(tmp_path / "out", truth, names)
+
+
+def test_photos_that_match_several_frames_only_by_name_are_refused(synthetic, truth, tmp_path):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    frames = sorted(truth["frames"], key=lambda f: f["file_path"])[:4]
+    for frame in frames:
+        shutil.copy(synthetic / frame["file_path"], folder / Path(frame["file_path"]).name)
+    # Written on another machine: no path matches, and two frames share the stem of the first photo.
+    stem = Path(frames[0]["file_path"]).stem
+    elsewhere = [{"file_path": f"/elsewhere/{split}/{stem}.png", "transform_matrix": frames[0]["transform_matrix"]}
+                 for split in ("train", "test")]
+    others = [{"file_path": f"/elsewhere/train/{Path(f['file_path']).name}", "transform_matrix": f["transform_matrix"]}
+              for f in frames[1:]]
+    intrinsics = {key: truth[key] for key in ("fl_x", "fl_y", "cx", "cy", "w", "h")}
+    (folder / "transforms.json").write_text(json.dumps({**intrinsics, "frames": elsewhere + others}))
+    with pytest.raises(UserError, match=f"several frames by name \\({stem}.png\\)"):
+        run(folder, tmp_path / "out", "poses")

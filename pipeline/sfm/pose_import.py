@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from pipeline.photos import DATASET_SPLITS, is_split_dataset, photo_folder
+from pipeline.photos import DATASET_SPLITS, frame_photo, is_split_dataset, lexical_path, photo_folder
 from plenoxels.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff
 from plenoxels.errors import UserError
 
@@ -274,36 +274,63 @@ def _read_transforms(path: Path) -> dict:
 
 def from_transforms(path: Path, records: list[dict], scene: Path, more: tuple[Path, ...] = ()) -> Imported:
     """Poses from a transforms.json, and from the `more` files beside it (a split dataset's transforms_<split>.json
-    files, read as one); a frame's own camera keys override its file's."""
+    files, read as one); a frame's own camera keys override its file's.
+
+    A photo takes the frame whose file_path names it: both paths compared as written, made absolute without
+    following links (pipeline.photos.lexical_path), then, where that finds none, both with their links followed,
+    where only one frame leads to the photo's file. A pose file written elsewhere (other folders, another machine)
+    matches by file stem, where only one frame has that stem; a stem several frames share (r_0 in train/, val/ and
+    test/) is refused, never guessed."""
     folder = photo_folder(scene)
-    by_path: dict[Path, tuple[dict, dict]] = {}
-    by_stem: dict[str, tuple[dict, dict]] = {}
+    frames: list[tuple[dict, dict]] = []
+    by_path: dict[Path, int] = {}
+    by_target: dict[Path, list[int]] = {}
+    by_stem: dict[str, list[int]] = {}
     for file in (path, *more):
         data = _read_transforms(file)
         for frame in data["frames"]:
+            index = len(frames)
+            frames.append((frame, data))
             file_path = str(frame.get("file_path", ""))
-            resolved = (file.parent / file_path).resolve()
-            by_path[resolved] = (frame, data)
-            by_path.setdefault(resolved.with_suffix(""), (frame, data))
-            by_stem.setdefault(_stem(file_path), (frame, data))
+            written = lexical_path(file.parent / file_path)
+            by_path.setdefault(written, index)
+            by_path.setdefault(written.with_suffix(""), index)
+            photo = frame_photo(file.parent, file_path)
+            if photo is not None:
+                by_target.setdefault(photo.resolve(), []).append(index)
+            by_stem.setdefault(_stem(file_path), []).append(index)
     reconstruction = pycolmap.Reconstruction()
     cameras = _CameraTable(reconstruction)
-    missing, path_matches = [], 0
+    missing, ambiguous, path_matches = [], [], 0
     for record in records:
-        photo = (folder / record["source"]).resolve()
-        entry = by_path.get(photo) or by_path.get(photo.with_suffix(""))
-        path_matches += entry is not None
-        entry = entry or by_stem.get(_stem(record["source"]))
-        if entry is None:
+        photo = folder / record["source"]
+        index = by_path.get(lexical_path(photo))
+        if index is None:
+            index = by_path.get(lexical_path(photo).with_suffix(""))
+        if index is None and len(by_target.get(photo.resolve(), [])) == 1:
+            index = by_target[photo.resolve()][0]
+        path_matches += index is not None
+        if index is None:
+            same_stem = by_stem.get(_stem(record["source"]), [])
+            if len(same_stem) > 1:
+                ambiguous.append(record["source"])
+                continue
+            index = same_stem[0] if same_stem else None
+        if index is None:
             missing.append(record["name"])
             continue
-        frame, data = entry
+        frame, data = frames[index]
         k, distortion = _intrinsics_from(frame, data, record)
         factor = _scale_factor(record, k.w, k.h, str(path))
         scaled = k.scaled(factor)
         scaled = Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
         c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
         _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(scaled, distortion), c2w)
+    if ambiguous:
+        raise UserError(f"{len(ambiguous)} photo(s) match no frame of {path.name if not more else 'the transforms files'}"
+                        f" by path, and several frames by name ({', '.join(ambiguous[:3])}"
+                        f"{', ...' if len(ambiguous) > 3 else ''}); make each frame's file_path name its photo, relative "
+                        f"to the pose file")
     return Imported(reconstruction, path.parent if more else path, missing, path_matches=path_matches)
 
 
