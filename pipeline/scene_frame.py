@@ -52,6 +52,9 @@ class SceneOptions:
     holdout_every: int = 8
     """Every Nth image by sorted name is held out for evaluation; 0: none. A dataset that names its splits
     (train/, val/, test/ folders) holds out the split ingest.holdout_split names instead."""
+    train_every: int = 1
+    """Train on every Nth of the training photos by sorted name and leave the rest unused (1: all): a few-views
+    study, as the papers' 25 of lego's 100 training views."""
     margin: float = 0.1
     """Space around the foreground: its largest half-size maps to 1/(1+margin), in [0, 1]."""
     forward_max_cone_deg: float = 30.0
@@ -449,19 +452,21 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
     order = sorted(range(n), key=lambda i: cams.names[i])
     # A dataset that names its splits (NeRF synthetic train/val/test) is scored on its own held-out split.
     dataset_splits = any(f.get("split") for f in cams.frames)
-    frames = []
+    frames, train_rank = [], 0
     for rank, i in enumerate(order):
         k, frame = cams.intrinsics[i], cams.frames[i]
         if dataset_splits:
             held_out = frame.get("split") == "test"
         else:
             held_out = options.holdout_every > 0 and rank % options.holdout_every == 0
+        split = "test" if held_out else "train" if train_rank % options.train_every == 0 else "unused"
+        train_rank += not held_out
         frames.append({
             "name": cams.names[i], "file_path": path_prefix + frame["file_path"],
             "mask_path": path_prefix + frame["mask_path"] if frame.get("mask_path") else None,
             "transform_matrix": c2w_world[i].tolist(), "fl_x": k.fl_x, "fl_y": k.fl_y, "cx": k.cx, "cy": k.cy,
             "w": k.w, "h": k.h, "near": near_far[i][0], "far": near_far[i][1],
-            "split": "test" if held_out else "train",
+            "split": split,
         })
 
     scene = {

@@ -23,6 +23,7 @@ class Settings(SceneOptions):
     def check(self) -> None:
         require(self.holdout_every == 0 or self.holdout_every >= 2,
                 "normalize.holdout_every must be 0 (hold none out) or at least 2")
+        require(self.train_every >= 1, "normalize.train_every must be at least 1 (1: every training photo)")
         require(0.0 <= self.margin <= 1.0, "normalize.margin must be in [0, 1]")
         require(0.0 < self.forward_max_cone_deg < 90.0, "normalize.forward_max_cone_deg must be in (0, 90)")
         require(self.beyond_factor > 1.0, "normalize.beyond_factor must be greater than 1")
@@ -49,8 +50,10 @@ def summary_line(scene: dict) -> str:
     if scene["overridden"]:
         why += f"; set by normalize.scene_type, detected {scene['detected']}"
     test = sum(f["split"] == "test" for f in scene["frames"])
+    train = sum(f["split"] == "train" for f in scene["frames"])
     n = len(scene["frames"])
-    return f"{scene['type']} scene ({why}); {n} frames, {n - test} train / {test} held out"
+    unused = f" / {n - train - test} unused (normalize.train_every)" if n - train - test else ""
+    return f"{scene['type']} scene ({why}); {n} frames, {train} train / {test} held out{unused}"
 
 
 def run(ctx) -> dict:

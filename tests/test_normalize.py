@@ -229,6 +229,17 @@ def test_split_holds_out_every_nth_by_sorted_name(scenes):
     assert all(f["split"] == "train" for f in scene["frames"])
 
 
+def test_train_every_trains_on_every_nth_training_photo_and_keeps_the_held_out_ones(scenes):
+    transforms, points = _load(scenes["object"])
+    names = sorted(f["name"] for f in transforms["frames"])
+    scene = normalize_scene(transforms, points, SceneOptions(holdout_every=8, train_every=4))
+    held_out = names[::8]
+    training = [n for n in names if n not in held_out]
+    assert [f["name"] for f in scene["frames"] if f["split"] == "test"] == held_out
+    assert [f["name"] for f in scene["frames"] if f["split"] == "train"] == training[::4]
+    assert sum(f["split"] == "unused" for f in scene["frames"]) == len(training) - len(training[::4])
+
+
 def test_without_points_masks_or_scenery_decide(tmp_path):
     masked = _poses_folder(tmp_path / "masked", "object", alpha=True, with_points=False)
     scene, _ = _run_stage(masked)
