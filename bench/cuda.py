@@ -58,6 +58,7 @@ def parse_args(argv):
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a fit setting for the lego part, e.g. steps=[1000,2000,4000]")
     parser.add_argument("--lego-key", default="lego", help="the entry of cuda.json the lego part writes")
+    parser.add_argument("--preset", default=None, help="fit lego with this preset's settings (default: LEGO_FIT)")
     # Internal: the CPU baseline runs in a child process so its thread count is set before OpenMP starts.
     parser.add_argument("--cpu-baseline", default=None, help=argparse.SUPPRESS)
     return parser.parse_args(argv)
@@ -172,23 +173,28 @@ def lego_scene(folder: Path, val_limit: int | None = None):
     return scene, val
 
 
-def fit_settings(overrides: list[str]):
+def fit_settings(overrides: list[str], preset: str | None = None):
+    """The lego fit's settings: bench.cuda's own schedule (LEGO_FIT), or a preset's as the pipeline resolves it for an
+    object scene (the GPU's live held-out PSNR as LEGO_FIT's), then the --set overrides."""
     import dataclasses
 
     import yaml
 
+    from pipeline import config
     from stages.fit import Settings
 
-    values = dict(LEGO_FIT)
+    if preset is None:
+        values = dict(LEGO_FIT)
+    else:
+        values = config.merge(config.load_preset(preset), config.load_scene_type_overlay("object")).get("fit", {})
+        values.update({k: LEGO_FIT[k] for k in ("device", "eval_every", "eval_views", "eval_scale", "checkpoint_every")})
     names = {f.name for f in dataclasses.fields(Settings)}
     for item in overrides:
         key, sep, raw = item.partition("=")
         if not sep or key not in names:
             raise SystemExit(f"bench.cuda: --set needs KEY=VALUE with KEY a fit setting; got {item!r}")
         values[key] = yaml.safe_load(raw)
-    settings = Settings(**values)
-    settings.check()
-    return settings
+    return config.build(Settings, "fit", values)
 
 
 def lego(torch, args) -> dict:
@@ -202,7 +208,7 @@ def lego(torch, args) -> dict:
     from pipeline.images import load_frame
 
     folder = args.data / "lego"
-    settings = fit_settings(args.set)
+    settings = fit_settings(args.set, args.preset)
     scene, val = lego_scene(folder, args.val_limit)
     device = resolve_device(settings.device)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
