@@ -152,7 +152,7 @@ def main(argv=None) -> int:
     import torch
 
     from bench.common import fit_overrides
-    from plenoxels.budget import processor_name
+    from plenoxels.fit_cost import processor_name
 
     load_before = os.getloadavg()[0]
     run = {"scene": args.scene, "label": args.label,
