@@ -85,7 +85,7 @@ def load_scene(name: str, data: Path, val_limit: int | None) -> tuple[dict, Path
 
 def synthetic_scene() -> tuple[dict, Path]:
     """The synthetic object scene, rendered once and kept under bench/out."""
-    from pipeline.io import read_json
+    from pipeline.json_files import read_json
     from pipeline.synthetic import write_scene
     from pipeline.scene_frame import Points, SceneOptions, normalize_scene
 

@@ -243,7 +243,7 @@ def main(argv=None) -> int:
 def run_all(args) -> int:
     from bench.common import fit_overrides
     from bench.fit import machine
-    from pipeline.io import write_json
+    from pipeline.json_files import write_json
 
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"runs": []}
     budget_plot = RESULTS.with_name("real_scenes_budget.png")

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline import config
-from pipeline.io import write_json
+from pipeline.json_files import write_json
 from pipeline.report import Reporter
 from pipeline.stage import StageContext, StageGraph, code_hash
 from plenoxels.errors import UserError

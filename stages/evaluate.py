@@ -25,7 +25,8 @@ import torch
 from pipeline.camera_paths import default_path, median_intrinsics
 from pipeline.config import require
 from pipeline.images import load_frame
-from pipeline.io import read_json, write_json, write_png
+from pipeline.io import write_png
+from pipeline.json_files import read_json, write_json
 from pipeline.lpips import weights_available
 from pipeline.metrics import image_scores, mean_scores, to_uint8
 from pipeline.visuals import colour_depth, contact_sheet, error_image

@@ -24,7 +24,8 @@ import numpy as np
 import trimesh
 
 from pipeline.config import require
-from pipeline.io import read_json, rgba8, write_json, write_mesh_files, write_points
+from pipeline.io import rgba8, write_mesh_files, write_points
+from pipeline.json_files import read_json, write_json
 from plenoxels.errors import UserError
 from plenoxels.fit_frame import FitFrame
 from plenoxels.mesh import (LEVEL_RAY_OPACITY, auto_level, clean_mesh, decimate, extract_surface, grid_lattice,

@@ -35,7 +35,7 @@ import torch
 from pipeline.config import parse_duration, require
 from pipeline.images import load_frames
 from pipeline.interrupts import StopRequest
-from pipeline.io import read_json, write_json
+from pipeline.json_files import read_json, write_json
 from pipeline.report import format_bytes, format_count, format_duration
 from plenoxels.budget import TimeBudget
 from plenoxels.errors import UserError

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import require
-from pipeline.io import write_json, write_png
+from pipeline.io import write_png
+from pipeline.json_files import write_json
 from pipeline.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, fit_max_side, load_photo, photo_folder, scene_files,
                              scene_photos, sharpness, video_frames)
 from plenoxels.errors import UserError

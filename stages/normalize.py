@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pipeline.config import require
-from pipeline.io import read_json, write_json
+from pipeline.json_files import read_json, write_json
 from pipeline.scene_frame import SceneOptions, normalize_scene, read_points
 from plenoxels.errors import UserError
 

@@ -18,7 +18,7 @@ from typing import Literal
 import pycolmap
 
 from pipeline.config import require
-from pipeline.io import read_json
+from pipeline.json_files import read_json
 from pipeline.photos import is_video, photo_folder
 from pipeline.sfm import pose_import
 from pipeline.sfm.outputs import write_poses

@@ -10,7 +10,7 @@ import pytest
 from test_fit import QUICK, make_scene, run_stage
 
 from pipeline import config
-from pipeline.io import read_json
+from pipeline.json_files import read_json
 from plenoxels import budget
 from plenoxels.fit_cost import CostModel
 from plenoxels.fit_plan import Rung

@@ -12,7 +12,8 @@ from scipy.special import expit
 
 from bench.export import training_cameras, visible_from
 from pipeline import config
-from pipeline.io import GLTF_FROM_ZUP, read_json, write_json, write_mesh_files, write_points
+from pipeline.io import GLTF_FROM_ZUP, write_mesh_files, write_points
+from pipeline.json_files import read_json, write_json
 from pipeline.metrics import mesh_scores, surface_distance
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from pipeline import config
-from pipeline.io import read_json, write_json
+from pipeline.json_files import read_json, write_json
 from pipeline.report import Reporter
 from pipeline.scene_frame import Points, SceneOptions, normalize_scene
 from pipeline.stage import StageContext
