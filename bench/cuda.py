@@ -177,7 +177,7 @@ def fit_settings(overrides: list[str]):
 
     import yaml
 
-    from stages.fit import Settings
+    from stages.settings.fit import Settings
 
     values = dict(LEGO_FIT)
     names = {f.name for f in dataclasses.fields(Settings)}

@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
             Viewer(out, ViewOptions(host=args.host, port=args.port, resolution=args.resolution)).serve_forever()
         elif args.command == "settings":
             graph = StageGraph()
-            print("\n\n".join(format_settings(name, describe(graph.load(name).Settings, name, args.preset), args.preset)
+            print("\n\n".join(format_settings(name, describe(graph.declaration(name).Settings, name, args.preset), args.preset)
                               for name in ([args.stage] if args.stage else STAGE_ORDER)))
         elif args.command == "status":
             pipe = _pipeline(args, args.scene)

@@ -32,7 +32,7 @@ from plenoxels.scene_model import SceneModel
 from plenoxels.surface import (Terminations, ViewRender, point_normals, ray_terminations, render_views, seen_vertices,
                                snap_to_level, surface_points)
 from stages import export
-from stages.export import Settings
+from stages.settings.export import Settings
 
 SH_K = 4  # SH degree 1: the export must read only the degree-0 term of each channel
 
