@@ -1,5 +1,6 @@
 """The command line: a table of commands whose modules load only when they run, so `--help`, `status` and `settings`
-import neither torch nor COLMAP."""
+import neither torch nor COLMAP; progress in a log is plain lines, not carriage-return redraws."""
+import io
 import json
 import subprocess
 import sys
@@ -7,8 +8,10 @@ import textwrap
 from pathlib import Path
 
 import pytest
+import tqdm.std
 
 from pipeline import cli
+from pipeline.report import PLAIN_SECONDS, Reporter
 from pipeline.stage import STAGE_ORDER
 
 REPO = Path(__file__).resolve().parent.parent
@@ -87,3 +90,31 @@ def test_a_commands_arguments_are_its_own(tmp_path, capsys):
     with pytest.raises(SystemExit) as end:
         cli.main(["status", str(tmp_path), "--until", "fit"])  # run's option, not status's
     assert end.value.code == 2 and "--until" in capsys.readouterr().err
+
+
+# ---- progress ------------------------------------------------------------------------------------------------------
+def ten_minutes_of_steps(monkeypatch, reporter: Reporter) -> str:
+    """What `reporter` writes for 600 steps a second apart (on a clock of the test's own)."""
+    clock = [1000.0]
+    monkeypatch.setattr(tqdm.std, "time", lambda: clock[0])
+    stream = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", stream)
+    with reporter.bar(total=600, desc="fitting") as bar:
+        for _ in range(600):
+            clock[0] += 1.0
+            bar.update(1)
+            bar.set_postfix(loss="0.0012", refresh=False)
+    return stream.getvalue()
+
+
+def test_progress_that_is_not_on_a_terminal_is_a_plain_line_a_few_times_a_minute(monkeypatch):
+    text = ten_minutes_of_steps(monkeypatch, Reporter())  # stderr is a StringIO: not a terminal
+    lines = text.splitlines()
+    assert "\r" not in text and text.endswith("\n")
+    assert 600 / PLAIN_SECONDS - 1 <= len(lines) <= 600 / PLAIN_SECONDS + 1, lines
+    assert lines[-1].startswith("  fitting: 600/600 (100%)") and "loss=0.0012" in lines[-1]
+
+
+def test_progress_on_a_terminal_redraws_one_line(monkeypatch):
+    text = ten_minutes_of_steps(monkeypatch, Reporter(plain=False))
+    assert text.count("\r") > 600 / PLAIN_SECONDS and text.count("\n") <= 1
