@@ -1,4 +1,4 @@
-"""Benchmark of the CUDA core against the C++ CPU core (issue 6). Needs an NVIDIA GPU and a CUDA build
+"""Benchmark of the CUDA core against the C++ CPU core. Needs an NVIDIA GPU and a CUDA build
 of plenoxels._C; elsewhere it says so in one line and exits 0.
 
 Two parts, results in bench/results/cuda.json:

@@ -231,7 +231,7 @@ def _line(points: list[tuple[int, float]]) -> tuple[float, float]:
     Times that do not grow over the points cost what they measured, whatever the size: a GPU's steps at these sizes
     are launches and read-backs. A line through the origin, the fallback for a negative intercept, would call them all
     per-voxel cost and predict a finer grid's steps many times slower than they run (bench/README.md, "The time
-    budget on a GPU")."""
+    budget")."""
     voxels, seconds = np.array([p[0] for p in points], dtype=np.float64), np.array([p[1] for p in points])
     slope, fixed = np.polyfit(voxels, seconds, 1)
     if slope <= 0:

@@ -107,7 +107,7 @@ def test_editing_an_unrelated_module_changes_nothing(package, tmp_path):
 
 
 def test_every_project_module_a_stage_imports_is_in_its_key():
-    # The bug this replaced: the camera convention was in no stage's key.
+    # The camera convention, imported only through the library, must be in every key that depends on it.
     for name in ("normalize", "fit", "evaluate", "export"):
         assert "plenoxels.cameras" in import_closure(f"stages.{name}")
 
