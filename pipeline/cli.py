@@ -11,6 +11,7 @@ import importlib
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 
 from pipeline.stage import STAGE_ORDER
 from plenoxels.errors import UserError
@@ -48,7 +49,8 @@ def _program_name() -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     """The commands and what each does; each command's own arguments are its module's."""
-    parser = argparse.ArgumentParser(prog=_program_name(), description="Photos to a radiance field, renders and meshes.",
+    parser = argparse.ArgumentParser(prog=_program_name(),
+                                     description="Photos to a radiance field, renders and meshes.",
                                      epilog=f"`{_program_name()} COMMAND --help` shows a command's options.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, command in COMMANDS.items():
@@ -56,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def command_parser(name: str) -> tuple[argparse.ArgumentParser, object]:
+def command_parser(name: str) -> tuple[argparse.ArgumentParser, ModuleType]:
     """The parser of one command's arguments, and its module (imported here)."""
     command = COMMANDS[name]
     module = importlib.import_module(command.module)
