@@ -28,7 +28,7 @@ COMMANDS: dict[str, Command] = {
     "run": Command("pipeline.commands.run", "run every stage (or up to --until) on a folder of photos"),
     "batch": Command("pipeline.commands.batch",
                      "run the pipeline on many scenes, N at a time here or on a Ray cluster"),
-    "demo": Command("pipeline.commands.run", "make the built-in synthetic scene and run every stage on it"),
+    "demo": Command("pipeline.commands.demo", "make the built-in synthetic scene and run every stage on it"),
     "status": Command("pipeline.commands.status", "which stages are done, stale or missing, and why"),
     **{name: Command("pipeline.commands.run", f"run the {name} stage (and anything it needs that is not done)")
        for name in STAGE_ORDER},
