@@ -78,7 +78,7 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=20, help="steps per timed repeat")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--results", type=Path, default=RESULTS)
-    parser.add_argument("--label", default="", help="a name for this code version in the results (e.g. before)")
+    parser.add_argument("--label", default="", help="a name for this code version in the results (e.g. its commit)")
     args = parser.parse_args(argv)
     rays = training_rays()
     # Rates of ~0: every variant keeps the same grid from step to step, so the timings compare the same work (with

@@ -5,6 +5,7 @@ import json
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -30,8 +31,6 @@ def fit_context(scene: dict, root: Path, settings, report: Reporter) -> Iterator
 def fitted(scene: dict, root: Path, settings, quiet: bool = True) -> tuple[dict, float, dict, object]:
     """Runs the fit stage on `scene` (see fit_context) and returns its summary, its wall seconds, its fit.json and the
     fitted model."""
-    import time
-
     from plenoxels.scene_model import SceneModel
     from stages import fit
 
@@ -40,6 +39,18 @@ def fitted(scene: dict, root: Path, settings, quiet: bool = True) -> tuple[dict,
         summary = fit.run(ctx)
         wall = time.time() - started
         return summary, wall, json.loads((ctx.work / "fit.json").read_text()), SceneModel.load(ctx.work)
+
+
+def recorded() -> str:
+    """When and on what code a result is measured: today's date and the commit checked out, with a + when tracked
+    files differ from it ('2026-11-26 94122cf')."""
+    repo = Path(__file__).resolve().parent.parent
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True).stdout.strip()
+
+    changed = git("status", "--porcelain", "--untracked-files=no")
+    return f"{time.strftime('%Y-%m-%d')} {git('rev-parse', '--short=7', 'HEAD') or 'unknown'}{'+' if changed else ''}"
 
 
 def budget_of(record: dict) -> dict:

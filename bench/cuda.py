@@ -1,4 +1,4 @@
-"""Benchmark of the CUDA core against the C++ CPU core (issue 6). Needs an NVIDIA GPU and a CUDA build
+"""Benchmark of the CUDA core against the C++ CPU core. Needs an NVIDIA GPU and a CUDA build
 of plenoxels._C; elsewhere it says so in one line and exits 0.
 
 Two parts, results in bench/results/cuda.json:
@@ -181,7 +181,7 @@ def fit_settings(overrides: list[str], preset: str | None = None):
     import yaml
 
     from pipeline import config
-    from stages.fit import Settings
+    from stages.settings.fit import Settings
 
     if preset is None:
         values = dict(LEGO_FIT)

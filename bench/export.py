@@ -34,7 +34,7 @@ import numpy as np
 import trimesh
 
 from pipeline import synthetic
-from pipeline.io import read_json, write_json
+from pipeline.json_files import read_json, write_json
 from pipeline.metrics import mesh_scores, surface_distance
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline

@@ -85,7 +85,7 @@ def load_scene(name: str, data: Path, val_limit: int | None) -> tuple[dict, Path
 
 def synthetic_scene() -> tuple[dict, Path]:
     """The synthetic object scene, rendered once and kept under bench/out."""
-    from pipeline.io import read_json
+    from pipeline.json_files import read_json
     from pipeline.synthetic import write_scene
     from pipeline.scene_frame import Points, SceneOptions, normalize_scene
 
@@ -207,13 +207,14 @@ def spawn(spec: dict) -> dict | None:
     """Runs one_run in a child process; None (after saying so) if it failed."""
     load_before = os.getloadavg()
     started = time.time()
-    from bench.common import run_child
+    from bench.common import recorded, run_child
 
     result = run_child("bench.fit", spec, f"{spec['scene']} {spec['label']}")
     if result is None:
         return None
     keep = ("key", "scene", "scene_type", "preset", "knob", "label", "common", "overrides", "scoring", "settings")
-    return {**{k: spec[k] for k in keep}, **result, "process_seconds": round(time.time() - started, 1),
+    return {**{k: spec[k] for k in keep}, "recorded": recorded(), **result,
+            "process_seconds": round(time.time() - started, 1),
             "threads": os.environ.get("OMP_NUM_THREADS"),
             "load_average": {"before": [round(x, 2) for x in load_before],
                              "after": [round(x, 2) for x in os.getloadavg()]},
@@ -228,8 +229,8 @@ BACKGROUND_SETTINGS = ("background_spheres", "background_width", "background_tex
 def still_valid(run: dict) -> bool:
     """Whether a stored run's settings are what its preset and overrides give today. A setting added since the run
     counts as the same when it sits at its default, and the background model's settings do not count for a fit
-    without one. (Most new settings' defaults keep the behaviour from before them; fit.prune_rays_per_cell's does not,
-    and bench/README.md says which session each number comes from.)"""
+    without one. (Most new settings' defaults keep the behaviour of the runs recorded without them;
+    fit.prune_rays_per_cell's does not, and each run's `recorded` says the date and commit it was measured at.)"""
     from pipeline import config
     from stages import fit
 

@@ -118,7 +118,7 @@ def table(results: dict) -> str:
 
 
 def main(argv=None) -> int:
-    from pipeline.io import write_json
+    from pipeline.json_files import write_json
     from plenoxels.errors import UserError
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -31,7 +31,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from plenoxels import native, reference  # noqa: E402
-from plenoxels.budget import processor_name  # noqa: E402
+from plenoxels.fit_cost import processor_name  # noqa: E402
 from plenoxels.grid import SparseGrid  # noqa: E402
 from plenoxels.optim import GridGrad  # noqa: E402
 from plenoxels.render import RenderOptions  # noqa: E402

@@ -19,7 +19,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 RESULTS = REPO / "bench" / "results" / "lpips_reference.json"
-# lpips v0.1, AlexNet: d(ex_ref, ex_p0) and d(ex_ref, ex_p1) to 3 decimals, as issue 19 records them.
+# lpips v0.1, AlexNet: d(ex_ref, ex_p0) and d(ex_ref, ex_p1) to 3 decimals, the published values for those images.
 EXPECTED = {"ex_p0": 0.722, "ex_p1": 0.138}
 
 

@@ -18,7 +18,7 @@ import numpy as np
 import pycolmap
 from PIL import Image
 
-from pipeline.io import write_json
+from pipeline.json_files import write_json
 from pipeline.scene_frame import Points, SceneOptions, normalize_scene
 from plenoxels.cameras import opengl_c2w_from_colmap_w2c, opengl_c2w_from_llff
 

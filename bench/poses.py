@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from pipeline.io import write_json
+from pipeline.json_files import write_json
 from pipeline.sfm.compare import compare_poses
 from pipeline.synthetic import write_scene
 from plenoxels.cameras import opengl_c2w_from_colmap_w2c

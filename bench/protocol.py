@@ -102,7 +102,7 @@ def capped_levels(resolutions: list[int], steps: list[int], cap: int) -> tuple[l
 def one_run(spec: dict) -> dict:
     """One pipeline run up to evaluate (or, for a few-views run, the fit and the evaluation of a reduced scene),
     and what it measured."""
-    from pipeline.io import read_json
+    from pipeline.json_files import read_json
     from pipeline.report import Reporter
     from pipeline.runner import Pipeline
 

@@ -20,12 +20,14 @@ ground inside a textured sphere, written under bench/out/ with its true poses as
     .venv/bin/python -m bench.real_scenes --table
     .venv/bin/python -m bench.real_scenes --scenes fox --presets default --views all --budgets 30s 1m 2m 5m 10m
 
-With --budgets each run is the preset's detail under fit.time_budget (labelled "budget 30s", ...); --table then says
-for each where it stands against the presets' runs labelled --front (one label or several, as scenes benched in
-different sessions have their own), and bench/results/real_scenes_budget.png draws them on the axes of the presets'
-Pareto plot (held-out PSNR against fit time).
+Each run records the date and the commit it measured (`recorded`); a sweep's runs are labelled with them unless
+--label names the sweep. With --budgets each run is the preset's detail under fit.time_budget (labelled "budget 30s",
+...); --table then says for each where it stands against the presets' runs labelled --front (one label or several, as
+scenes benched on different days have their own; by default each scene's newest preset runs), and
+bench/results/real_scenes_budget.png draws them on the axes of the presets' Pareto plot (held-out PSNR against fit
+time).
 
-    .venv/bin/python -m bench.real_scenes --table --front "session 25" "session 26"
+    .venv/bin/python -m bench.real_scenes --table --front "2026-11-26 94122cf" "2026-11-27 78d33b1"
 """
 from __future__ import annotations
 
@@ -113,7 +115,8 @@ def one_run(spec: dict) -> dict:
     write_png(RENDERS / f"{spec['scene']}-{spec['preset']}-{spec['views']}{spec['label_suffix']}.png",
               to_uint8(np.concatenate([first[0], gap, first[1]], axis=1)))
     return {"scene": spec["scene"], "preset": spec["preset"], "views": spec["views"], "label": spec["label"],
-            "overrides": spec["overrides"], "type": scene["type"], "mean": mean_scores(views), "held_out": views,
+            "recorded": spec["recorded"], "overrides": spec["overrides"], "type": scene["type"],
+            "mean": mean_scores(views), "held_out": views,
             "train_images": record["train_images"], "image_size": fit_size, "score_size": [k.w, k.h],
             "fit_seconds": record["seconds"], "wall_seconds": round(wall, 1),
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
@@ -136,6 +139,15 @@ def is_budget(run: dict) -> bool:
 def budget_label(budget: str) -> str:
     """The label of a budget sweep's run (probes under a budget carry labels of their own)."""
     return f"budget {budget}"
+
+
+def newest_front(runs: list[dict]) -> list[str]:
+    """The labels of each scene's newest sweep of the presets as set (labelled by its date and commit alone, no
+    overrides; a run replaces its same-labelled one at the end of the file): what a budget is compared with when
+    --front names none."""
+    newest = {(r["scene"], r["views"]): r["label"] for r in runs
+              if not r["overrides"] and r["label"] == r.get("recorded")}
+    return sorted(set(newest.values()))
 
 
 def front_runs(run: dict, runs: list[dict], front: list[str]) -> list[dict]:
@@ -226,12 +238,14 @@ def main(argv=None) -> int:
     parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=PRESETS)
     parser.add_argument("--views", nargs="+", default=list(VIEWS), choices=list(VIEWS))
     parser.add_argument("--set", action="append", default=[], help="key=value (a fit setting) for every run")
-    parser.add_argument("--label", default="as set", help="names the runs (a run replaces the same-labelled one)")
+    parser.add_argument("--label", help="names the runs (a run replaces the same-labelled one; default: the date and "
+                                         "the commit they measure)")
     parser.add_argument("--budgets", nargs="+", default=[], help="fit.time_budget values: one run each (30s 1m ...)")
     parser.add_argument("--score-side", type=int, default=SCORE_SIDE,
                         help="score held-out views with their longest side this many pixels (0: at the fit's size)")
-    parser.add_argument("--front", nargs="+", default=["after"],
-                        help="the labels of the preset runs budget runs are compared with (a scene's runs under any)")
+    parser.add_argument("--front", nargs="+",
+                        help="the labels of the preset runs budget runs are compared with (a scene's runs under any; "
+                             "default: each scene's newest)")
     parser.add_argument("--table", action="store_true", help="print the results as a Markdown table and exit")
     parser.add_argument("--verbose", action="store_true", help="show each fit's progress")
     args = parser.parse_args(argv)
@@ -241,26 +255,28 @@ def main(argv=None) -> int:
 
 
 def run_all(args) -> int:
-    from bench.common import fit_overrides
+    from bench.common import fit_overrides, recorded
     from bench.fit import machine
-    from pipeline.io import write_json
+    from pipeline.json_files import write_json
 
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"runs": []}
     budget_plot = RESULTS.with_name("real_scenes_budget.png")
     if args.table:
-        print(table(results, args.front))
-        plot_budgets(results, args.front, budget_plot)
+        front = args.front or newest_front(results["runs"])
+        print(table(results, front))
+        plot_budgets(results, front, budget_plot)
         return 0
     overrides = fit_overrides(args.set)
+    when = recorded()
     variants = ([(budget_label(b), {**overrides, "time_budget": b}) for b in args.budgets] if args.budgets
-                else [(args.label, overrides)])
+                else [(args.label or when, overrides)])
     results["machine"] = machine()
     for name in args.scenes:
         for preset in args.presets:
             out = prepared(name, preset, args.data)
             for views in args.views:
                 for label, run_overrides in variants:
-                    spec = {"scene": name, "preset": preset, "views": views, "label": label,
+                    spec = {"scene": name, "preset": preset, "views": views, "label": label, "recorded": when,
                             "overrides": run_overrides, "out": str(out), "verbose": args.verbose,
                             "score_side": args.score_side,
                             "label_suffix": "" if label == "as set" else "-" + re.sub(r"[^A-Za-z0-9._-]+", "_", label)}
@@ -274,8 +290,9 @@ def run_all(args) -> int:
                     print(f"{name} {preset} {views} ({label}): {record['mean']['psnr']:.2f} dB, SSIM "
                           f"{record['mean']['ssim']:.3f}, fit {record['fit_seconds']:.0f} s, {record['summary']}",
                           flush=True)
-    print(table(results, args.front))
-    plot_budgets(results, args.front, budget_plot)
+    front = args.front or newest_front(results["runs"])
+    print(table(results, front))
+    plot_budgets(results, front, budget_plot)
     return 0
 
 

@@ -74,7 +74,7 @@ def real_scene(name: str, data: Path) -> tuple[dict, Path]:
 def synthetic_scene(name: str) -> tuple[dict, Path]:
     """A synthetic scene of 40 views at 160x120 (made once under bench/out), normalised as its kind, with
     each view's true near/far depths standing in for the sparse points SfM would give."""
-    from pipeline.io import read_json
+    from pipeline.json_files import read_json
     from pipeline.synthetic import write_scene
     from pipeline.scene_frame import Points, SceneOptions, normalize_scene
 
@@ -190,7 +190,7 @@ def main(argv=None) -> int:
                         help="a fit setting for every run (as --set fit.KEY=VALUE in the CLI)")
     args = parser.parse_args(argv)
     from pipeline import config
-    from pipeline.io import write_json
+    from pipeline.json_files import write_json
 
     extra = config.parse_overrides([f"fit.{kv}" for kv in args.overrides]).get("fit", {})
     results = {"machine": machine(), "bench_fit": {**BENCH_FIT, **extra}, "train_side": TRAIN_SIDE,

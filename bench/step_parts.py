@@ -8,11 +8,11 @@ the guard that checks the parameters are finite, and the rest of the step. Each 
 train step, so the times add up to the step's. On a GPU each part waits for the device before and after it (the
 kernels are asynchronous), so a part's time is its own, and the step loses what the parts would have overlapped.
 
-    python -m bench.step_parts [--scene lego] [--steps 200,300,300] [--label after] [--data ../shared/data]
+    python -m bench.step_parts [--scene lego] [--steps 200,300,300] [--label NAME] [--data ../shared/data]
         [--set key=value ...]   # a fit setting, e.g. device=cuda or batch_size=32768
 
 Adds the run to bench/results/step_parts.json (replacing one of the same scene and label) and prints a table. To
-compare two versions of the code in one session, run the same file from a worktree of the other (`git worktree add`,
+compare two versions of the code back to back, run the same file from a worktree of the other (`git worktree add`,
 build its core, copy this file into its bench/) with `--out` pointing here and another label.
 """
 from __future__ import annotations
@@ -152,7 +152,7 @@ def main(argv=None) -> int:
     import torch
 
     from bench.common import fit_overrides
-    from plenoxels.budget import processor_name
+    from plenoxels.fit_cost import processor_name
 
     load_before = os.getloadavg()[0]
     run = {"scene": args.scene, "label": args.label,

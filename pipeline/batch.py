@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Protocol
 
 from pipeline import config
-from pipeline.io import read_json, write_json
+from pipeline.json_files import read_json, write_json
 from pipeline.report import format_bytes, format_duration
 from pipeline.runner import read_manifest
 from pipeline.scenes import output_names

@@ -1,37 +1,13 @@
-"""File reading and writing shared by the stages: JSON written atomically, 8-bit RGB images in and out, meshes and
-point clouds (PLY, OBJ, glTF binary)."""
+"""Media files shared by the stages: 8-bit RGB images in and out, meshes and point clouds (PLY, OBJ, glTF binary).
+The pipeline's own JSON records are pipeline/json_files.py's."""
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
-from typing import Any
 
 import imageio.v3 as iio
 import numpy as np
 import trimesh
 from trimesh.exchange.ply import export_ply
-
-
-def write_json(path: Path, data: Any) -> None:
-    """Writes beside the target and renames, so a reader never sees half a file."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=_jsonable))
-    os.replace(tmp, path)
-
-
-def read_json(path: Path) -> Any:
-    return json.loads(Path(path).read_text())
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"cannot write {type(value).__name__} to JSON")
 
 
 def read_rgb(path: Path) -> np.ndarray:

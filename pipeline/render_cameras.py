@@ -31,7 +31,8 @@ import torch
 
 from pipeline import camera_paths
 from pipeline.images import composited, read_alpha
-from pipeline.io import read_json, write_json, write_png
+from pipeline.io import write_png
+from pipeline.json_files import read_json, write_json
 from pipeline.lpips import weights_available
 from pipeline.metrics import image_scores, mean_scores, to_uint8
 from pipeline.visuals import colour_depth

@@ -5,8 +5,8 @@ On-disk protocol, under a scene's output root:
     .work/<stage>/           the output being written by a run in progress (wiped at the start of each run)
     .resume/<stage>/         checkpoints a stage may resume from when re-run with the same key
     .trash/<stage>/          the previous complete output during the swap; restored if a run dies mid-swap
-A stage's key hashes its upstream manifests, its resolved settings, its code (every project module it imports, see
-`pipeline.stage.code_hash`) and (for stages that read the input folder) a fingerprint of the input. Killing the process at any moment leaves the last complete output.
+A stage's key hashes its upstream manifests, its resolved settings, its code (every project module its work and its
+declaration import, see `pipeline.stage.code_hash`) and (for stages that read the input folder) a fingerprint of the input. Killing the process at any moment leaves the last complete output.
 """
 from __future__ import annotations
 
@@ -23,9 +23,9 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline import config
-from pipeline.io import write_json
+from pipeline.json_files import write_json
 from pipeline.report import Reporter
-from pipeline.stage import StageContext, StageGraph, code_hash
+from pipeline.stage import StageContext, StageGraph
 from plenoxels.errors import UserError
 
 
@@ -79,16 +79,17 @@ class Pipeline:
             return None
 
     def plan(self, name: str) -> Plan:
-        module = self.graph.load(name)
+        declared = self.graph.declaration(name)
         scene_type = self.scene_type() if "normalize" in self.graph.upstream(name) else None
         values = config.merge(*self.layers, config.load_scene_type_overlay(scene_type), self.overrides).get(name, {})
-        settings = config.build(module.Settings, name, values)
+        settings = config.build(declared.Settings, name, values)
         upstream_keys = {}
-        for dep in module.DEPENDS:
+        for dep in declared.DEPENDS:
             manifest = read_manifest(self.out / dep)
             upstream_keys[dep] = manifest_digest(manifest) if manifest else "missing"
-        fingerprint = module.fingerprint(self.scene) if hasattr(module, "fingerprint") else None
-        return Plan(name, settings, config.to_dict(settings), upstream_keys, code_hash(module), fingerprint, scene_type)
+        fingerprint = declared.fingerprint(self.scene) if hasattr(declared, "fingerprint") else None
+        return Plan(name, settings, config.to_dict(settings), upstream_keys, self.graph.code_hash(name), fingerprint,
+                    scene_type)
 
     def status(self, name: str) -> tuple[str, str]:
         """('done' | 'stale' | 'missing', why)."""
@@ -98,7 +99,7 @@ class Pipeline:
         plan = self.plan(name)
         if manifest.get("key") == plan.key:
             # Its own key still matches, but a stage it needs will re-run first and so rebuild it too.
-            rerun = [dep for dep in self.graph.load(name).DEPENDS if self.status(dep)[0] != "done"]
+            rerun = [dep for dep in self.graph.declaration(name).DEPENDS if self.status(dep)[0] != "done"]
             if rerun:
                 return "stale", f"{rerun[0]} will re-run"
             return "done", f"completed {manifest.get('finished', '?')}"
@@ -146,8 +147,8 @@ class Pipeline:
         (scratch / "KEY").write_text(plan.key)
 
         ctx = StageContext(scene=self.scene, out=self.out, work=work, scratch=scratch, settings=plan.settings,
-                           upstream={d: self.out / d for d in module.DEPENDS}, scene_type=plan.scene_type,
-                           report=self.report)
+                           upstream={d: self.out / d for d in self.graph.declaration(name).DEPENDS},
+                           scene_type=plan.scene_type, report=self.report)
         self.report.info(f"{name}: running")
         started = time.time()
         summary = module.run(ctx)

@@ -1,17 +1,21 @@
 """What a stage is, and what it is handed when it runs.
 
-A stage is a module in `stages/` that defines:
+A stage is declared by a module that defines
     NAME: str                      the stage's name and the folder it writes under the output
     DEPENDS: tuple[str, ...]       the stages whose outputs it reads
     VERSION: int                   bump when the output format changes without a code change being visible
     Settings                       a dataclass of its settings (defaults = the `default` preset)
+and optionally `fingerprint(scene: Path) -> object`, for stages that read the user's input folder directly, so that
+changed photos change the key; its work is a module that defines
     run(ctx: StageContext) -> dict the work; writes only into ctx.work; returns its summary, which must hold
                                    "line": one sentence a person can act on
-and optionally `fingerprint(scene: Path) -> object`, for stages that read the user's input folder directly, so that
-changed photos change the key.
+For the pipeline's stages the declaration is `stages/settings/<name>.py` and the work `stages/<name>.py`, so that
+planning a stage, its cache key, `status` and `settings` import no more than its settings need (no torch, no COLMAP);
+a graph without a declarations package finds both in the stage's one module.
 
-A stage's code enters its cache key through `code_hash`: the sources of every project module in its import closure
-(found by parsing imports, not listed by hand), plus the native core's sources when the closure loads it.
+A stage's code enters its cache key through `code_hash`: the sources of every project module in the import closure of
+its work and of its declaration (found by parsing imports, not listed by hand, and without importing them), plus the
+native core's sources when the closure loads it.
 """
 from __future__ import annotations
 
@@ -23,7 +27,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, Iterator
 
 from pipeline.report import Reporter
 
@@ -53,20 +57,40 @@ class StageGraph:
     """Where the stage modules live and the order they run in (tests use a graph of tiny stages)."""
     package: str = "stages"
     order: tuple[str, ...] = STAGE_ORDER
+    declarations: str | None = "stages.settings"
+    """The package of the stages' declarations (NAME, DEPENDS, VERSION, Settings, fingerprint); None: each stage's
+    module in `package` declares itself."""
+
+    def module_name(self, name: str) -> str:
+        """The module of the stage's work (its `run`)."""
+        return f"{self.package}.{name}"
+
+    def declaration_name(self, name: str) -> str:
+        return f"{self.declarations}.{name}" if self.declarations else self.module_name(name)
 
     def load(self, name: str) -> ModuleType:
-        return importlib.import_module(f"{self.package}.{name}")
+        """The stage's work: imported only to run it."""
+        return importlib.import_module(self.module_name(name))
+
+    def declaration(self, name: str) -> ModuleType:
+        """What the pipeline plans the stage by: its NAME, DEPENDS, VERSION, Settings and fingerprint."""
+        return importlib.import_module(self.declaration_name(name))
 
     def upstream(self, name: str) -> list[str]:
         """All stages `name` needs, transitively, in execution order (not including itself)."""
         needed: set[str] = set()
-        pending = list(self.load(name).DEPENDS)
+        pending = list(self.declaration(name).DEPENDS)
         while pending:
             dep = pending.pop()
             if dep not in needed:
                 needed.add(dep)
-                pending.extend(self.load(dep).DEPENDS)
+                pending.extend(self.declaration(dep).DEPENDS)
         return [s for s in self.order if s in needed]
+
+    def code_hash(self, name: str) -> str:
+        """The stage's code as its cache key sees it (see `code_hash`)."""
+        modules = dict.fromkeys([self.module_name(name), self.declaration_name(name)])
+        return code_hash(list(modules), self.declaration(name).VERSION)
 
 
 # Project packages whose modules are followed when computing a stage's import closure; anything else (numpy, torch)
@@ -96,12 +120,25 @@ def _module_file(name: str, roots: dict[str, Path]) -> Path | None:
     return None
 
 
+def _statements(tree: ast.AST) -> Iterator[ast.stmt]:
+    """Every statement in `tree`, at any depth (in functions, classes, branches, handlers), skipping expressions: an
+    import is a statement, and a module's expressions are most of its nodes."""
+    pending = [tree]
+    while pending:
+        node = pending.pop()
+        for field in ("body", "orelse", "finalbody", "handlers", "cases"):
+            for child in getattr(node, field, ()):
+                if isinstance(child, ast.stmt):
+                    yield child
+                pending.append(child)
+
+
 def _imported_names(tree: ast.AST, name: str, is_package: bool) -> set[str]:
     """Every module name an import statement in `tree` may load, with each parent package and, for
     `from X import Y`, the submodule X.Y in case Y is one."""
     package = name if is_package else name.rpartition(".")[0]
     found: set[str] = set()
-    for node in ast.walk(tree):
+    for node in _statements(tree):
         if isinstance(node, ast.Import):
             targets = [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -155,10 +192,13 @@ def _imports_of(name: str, path: Path) -> frozenset[str]:
     return _IMPORTS_SEEN[key]
 
 
-def code_hash(module: ModuleType) -> str:
-    """Hash of the sources of every project module the stage imports (see `import_closure`), of the native core's
-    sources when one of them loads it, and of the stage's VERSION."""
-    closure = import_closure(module.__name__)
+def code_hash(module_names: list[str], version: int = 0) -> str:
+    """Hash of the sources of `module_names` and every project module they import (see `import_closure`), read from
+    their files without importing them, of the native core's sources when one of them loads it, and of the stage's
+    VERSION."""
+    closure: dict[str, Path] = {}
+    for module_name in module_names:
+        closure.update(import_closure(module_name))
     if any(name in closure for name in NATIVE_MODULES):
         closure = {name: path for name, path in closure.items() if path != NATIVE_SOURCES}
         for path in sorted(p for p in NATIVE_SOURCES.rglob("*") if p.is_file()):
@@ -167,5 +207,5 @@ def code_hash(module: ModuleType) -> str:
     for name in sorted(closure):
         digest.update(name.encode() + b"\0")
         digest.update(closure[name].read_bytes())
-    digest.update(str(getattr(module, "VERSION", 0)).encode())
+    digest.update(str(version).encode())
     return digest.hexdigest()[:16]

@@ -37,7 +37,8 @@ import numpy as np
 import torch
 import trimesh
 
-from pipeline.io import read_json, write_json, write_png
+from pipeline.io import write_png
+from pipeline.json_files import read_json, write_json
 from pipeline.report import Reporter
 from plenoxels.cameras import Intrinsics, look_at, pixel_directions
 from plenoxels.errors import UserError

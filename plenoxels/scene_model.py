@@ -27,9 +27,9 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
@@ -40,6 +40,7 @@ from plenoxels.errors import UserError
 from plenoxels.fit_frame import CONTRACTED_BOX, Contraction, FitFrame
 from plenoxels.grid import SparseGrid
 from plenoxels.ndc import NDCMapping
+from plenoxels.options import ModelOptions
 from plenoxels.render import RenderOptions, RenderResult, render
 
 MODEL_FORMAT = "voxfield-scene-model"
@@ -50,44 +51,6 @@ RENDER_CHUNK = 1 << 16
 MIN_DEPTH_OPACITY = 1e-4
 # scene.json's transforms between the normalised world and the input frame, kept with the model.
 TRANSFORM_KEYS = ("world_from_input", "input_from_world", "scale")
-
-
-@dataclass
-class ModelOptions:
-    """What a new SceneModel is made of beyond the scene: its fit frame, colour model, background and sampling."""
-
-    ndc: Literal["auto", "on", "off"] = "auto"
-    """Fit in NDC of the average camera: auto (forward scenes), on or off."""
-    contract: Literal["auto", "on", "off"] = "auto"
-    """A contracted grid that holds all of space, the foreground box at its centre at full resolution and the world
-    around it ever more coarsely out to infinity (mip-NeRF 360): auto (unbounded scenes whose sparse points reach far
-    beyond the foreground: outdoors, streets, wide rooms), on or off."""
-    background: Literal["auto", "on", "off"] = "auto"
-    """Multi-sphere background model behind the grid: auto (unbounded scenes without a contracted grid), on or off."""
-    background_color: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])
-    """RGB in [0, 1] behind the grid and under image masks."""
-    sh_degree: int = 2
-    """Spherical-harmonic degree of the colour, 0-3."""
-    init_density: float = 0.1
-    """Raw density of every vertex at the start."""
-    box_padding: float = 0.05
-    """The grid box is the foreground box grown by this share of its size on each side."""
-    step_size: float = 0.5
-    """Ray sample spacing in voxels."""
-    stop_transmittance: float = 1e-4
-    """A ray stops once this little light gets through."""
-    near_share: float = 0.5
-    """Contracted grids: rays start this share of the nearest sparse point any camera saw (normalize's near) from their
-    camera, so that no haze hangs in front of the lenses (cup at `fast` with a contracted grid: +1.4 dB held-out)."""
-    background_spheres: int = 32
-    """Background model: number of spheres."""
-    background_width: int = 0
-    """Background model: texture width in texels (the height is half); 0: from the training photos, so that a texel
-    spans about background_texel_px of their pixels (between 64 and 2048 texels)."""
-    background_texel_px: float = 2.0
-    """Background model with background_width 0: how many training pixels one texel spans."""
-    tv_background: float = 1e-3
-    """Background model: TV weight of its density and colour."""
 
 
 def _uses(toggle: str, wanted: bool) -> bool:

@@ -18,9 +18,7 @@ import copy
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
@@ -30,6 +28,7 @@ from plenoxels.cameras import Intrinsics
 from plenoxels.errors import UserError
 from plenoxels.grid import SparseGrid, sh_count
 from plenoxels.optim import GridGrad, SparseRMSProp
+from plenoxels.options import TrainOptions
 from plenoxels.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution,
                                     tv_scale_for_views, views_per_point)
 from plenoxels.render import loss_and_grad, max_weights
@@ -41,91 +40,6 @@ LOSS_WINDOW = 50
 GUARD_EVERY = 25
 # Rays per call when measuring max weights for pruning.
 RAY_CHUNK = 1 << 16
-
-
-@dataclass
-class TrainOptions:
-    """How a SceneModel is fitted: the levels, the batches, the optimiser, the regularisers and the pruning."""
-
-    resolutions: list[int] = field(default_factory=lambda: [128, 128, 256])
-    """Grid vertices along the longest axis, one per level. A level at the resolution of the one before prunes the
-    grid without upsampling it: a first level's grid is the whole box, and until it is pruned every ray marches all of
-    it, so the presets prune it after a fifth of its steps (lego `default`: 1000 steps at 128^3 in 61 s instead of 97,
-    the same held-out PSNR)."""
-    steps: list[int] = field(default_factory=lambda: [200, 800, 1500])
-    """Optimiser steps per level."""
-    first_level_scale: float = 1.0
-    """The first level's resolution (its early-pruned rest too) as this share of the one set, or of a time budget's
-    plan (never below 32, or the level's own resolution if that is less). Rooms seen from inside fitted as well or
-    better from a coarser start (fox `default` 25.72 -> 26.55 dB at 0.75; cup and the synthetic unbounded scene the
-    same); an object loses thin parts (lego `default` 31.23 -> 30.60 dB)."""
-    batch_size: int = 8192
-    """Rays per step."""
-    batch_mode: Literal["tiles", "rays"] = "rays"
-    """rays: random pixels; tiles: random square tiles of pixels (faster kernel, less progress per step)."""
-    tile_size: int = 32
-    """Tile side in pixels (batch_mode tiles)."""
-    coherent_batches: bool = True
-    """Order each batch's rays so that rays passing near each other sit together (the same rays, in another order:
-    the kernel's threads then read neighbouring voxels: 7-19% more samples per second in the kernel bench)."""
-    lr_density: float = 30.0
-    """RMSProp rate of the density at the start, decayed exponentially to lr_density_final."""
-    lr_density_final: float = 3.0
-    """RMSProp rate of the density at the end."""
-    lr_density_delay: float = 0.1
-    """Share of the steps over which the density rate ramps up from 1% (0: none)."""
-    lr_sh: float = 0.05
-    """RMSProp rate of the SH coefficients at the start, decayed exponentially to lr_sh_final."""
-    lr_sh_final: float = 5e-3
-    """RMSProp rate of the SH coefficients at the end."""
-    rmsprop_beta: float = 0.95
-    """RMSProp decay of the squared-gradient average, in [0, 1)."""
-    tv_density: float = 1e-10
-    """TV weight of the density per sampled vertex (the MSE is a mean over the batch)."""
-    tv_sh: float = 1e-8
-    """TV weight of the SH coefficients per sampled vertex."""
-    tv_sample_fraction: float = 0.01
-    """Share of the occupied vertices the TV term looks at each step."""
-    sparsity: float = 0.0
-    """Weight of a Cauchy prior that density is zero, per vertex of a random sample as large as TV's, at the first
-    level's resolution: pulls faint haze, which no photo needs but pruning keeps wherever some ray sees it, off the
-    grid before the first upsampling builds the finer levels from it; they then fit detail without it (0: off)."""
-    tv_views: float = 32.0
-    """Few views: where the training photos see each point of the grid's box fewer than this many times on average,
-    both TV weights grow by (tv_views / views)^tv_views_power (0: the weights as set, whatever the capture)."""
-    tv_views_power: float = 2.0
-    """How fast TV grows as the views per point fall below tv_views."""
-    tv_views_max_scale: float = 1000.0
-    """The most that few views multiply the TV weights by."""
-    tv_reference_resolution: int = 0
-    """A level finer than this (its entry in `resolutions`) gets both TV weights times (this / its resolution)^2: each
-    vertex's share of a batch's samples falls with the square of the resolution while its TV gradient does not, so
-    weights set for a coarser grid outweigh the photos on a finer one (0: the weights as set on every level)."""
-    lr_background: float = 0.01
-    """RMSProp rate of the background model's texels."""
-    prune_weight: float = 0.002
-    """Pruning keeps only vertices that some training ray weighs by more than this (max rendering weight)."""
-    prune_density: float = 0.0
-    """Pruning keeps only vertices whose raw density is above this (fit-frame units)."""
-    prune_dilation: int = 2
-    """What pruning keeps is then grown by this many voxels."""
-    prune_ray_scale: float = 0.5
-    """The densest set of training rays that measure weights for pruning: images at this share of their size."""
-    prune_rays_per_cell: float = 16.0
-    """A pruning pass marches about this many rays per cell of the grid's largest face (resolution squared), through
-    an even lattice of every photo's pixels (never denser than prune_ray_scale; 0: always that dense). What it must
-    find, the voxels some photo sees, grows with the grid's faces, not with the photos: many large photos then
-    prune in a fraction of the time, and a voxel still meets rays from several photos."""
-    prune_final: bool = True
-    """Prune the same way after the last level too (smaller model, fewer floaters)."""
-    voxel_budget: int = 16_000_000
-    """Most occupied vertices after an upsample."""
-    seed: int = 0
-    """Seed of the batches and of the TV samples."""
-
-    @property
-    def total_steps(self) -> int:
-        return sum(self.steps)
 
 
 def coarse_start(resolutions: list[int] | tuple[int, ...], scale: float) -> list[int]:

@@ -1,1 +1,2 @@
-"""One module per stage; see pipeline/stage.py for what a stage module defines."""
+"""One module per stage's work (its `run`); what the pipeline plans each stage by (its settings, inputs and version)
+is in stages/settings/. pipeline/stage.py says what each defines."""

@@ -11,53 +11,18 @@ poses came from.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import pycolmap
 
-from pipeline.config import require
-from pipeline.io import read_json
+from pipeline.json_files import read_json
 from pipeline.photos import is_video, photo_folder
 from pipeline.sfm import pose_import
 from pipeline.sfm.outputs import write_poses
-from pipeline.sfm.reconstruct import SfmOptions, colmap_logging, reconstruct, short_list
+from pipeline.sfm.reconstruct import colmap_logging, reconstruct, short_list
 from plenoxels.errors import UserError
+from stages.settings.poses import Settings
 
-NAME = "poses"
-DEPENDS: tuple[str, ...] = ("ingest",)
-VERSION = 1
-
-
-@dataclass
-class Settings(SfmOptions):
-    """SfM's options (pipeline.sfm.reconstruct.SfmOptions), and where poses come from."""
-    source: Literal["auto", "sfm", "colmap", "transforms", "llff"] = "auto"
-    """Where poses come from: auto imports pose files found beside the photos, else runs SfM."""
-    path: str = ""
-    """An explicit pose file or COLMAP model folder to import (kind taken from source, or guessed)."""
-    min_registered_share: float = 0.5
-    """Fail when fewer than this share of the images get a pose, in (0, 1]."""
-    colmap_log: bool = False
-    """Show COLMAP's own log lines."""
-
-    def check(self) -> None:
-        require(self.max_features >= 64, "poses.max_features must be at least 64")
-        require(self.feature_max_side == 0 or self.feature_max_side >= 64,
-                "poses.feature_max_side must be 0 (the ingested size) or at least 64")
-        require(self.min_features >= 0, "poses.min_features must be 0 or more")
-        require(self.sensor_width_mm >= 0, "poses.sensor_width_mm must be 0 (unknown) or the sensor width in mm")
-        require(self.exhaustive_max_images >= 2, "poses.exhaustive_max_images must be at least 2")
-        require(self.sequential_overlap >= 1, "poses.sequential_overlap must be at least 1")
-        require(self.threads >= 0, "poses.threads must be 0 (all cores) or a number of threads")
-        require(0.0 < self.min_registered_share <= 1.0, "poses.min_registered_share must be in (0, 1]")
-        require(not (self.path and self.source == "sfm"), "poses.path names pose files to import; it cannot be used with poses.source=sfm")
-
-
-def fingerprint(scene: Path) -> list:
-    """Pose files beside the photos decide what this stage does, so they are part of its key."""
-    return [[str(p), p.stat().st_size, p.stat().st_mtime_ns] for p in pose_import.pose_files(scene)]
 
 
 def _check_registered(reconstruction: pycolmap.Reconstruction, records: list[dict], share: float, how: str) -> list[str]:

@@ -168,8 +168,23 @@ def test_real_scenes_budget_runs_compare_with_the_front_label_at_their_own_scori
     assert budget_verdict({**budget, "fit_seconds": 450}, runs, ["after"]) == "below default (26.00 dB in 400 s)"
     assert "no preset run" in budget_verdict(budget, runs, ["nothing"])
     assert "no preset run" in budget_verdict(budget, runs, ["aft"])  # a label, not a piece of one
-    # Several labels: each scene compares with its runs under any of them (scenes benched in different sessions).
+    # Several labels: each scene compares with its runs under any of them (scenes benched on different days).
     assert budget_verdict(budget, runs, ["nothing", "before"]) == "below default (30.00 dB in 100 s)"
+
+
+def test_real_scenes_budgets_compare_with_each_scenes_newest_sweep_of_the_presets_by_default():
+    from bench.real_scenes import newest_front
+
+    def record(scene, label, recorded, overrides=None):
+        return {"scene": scene, "views": "all", "label": label, "recorded": recorded, "overrides": overrides or {}}
+
+    runs = [record("fox", "2026-11-25 aaaaaaa", "2026-11-25 aaaaaaa"),
+            record("cup", "2026-11-25 aaaaaaa", "2026-11-25 aaaaaaa"),
+            record("fox", "2026-11-26 bbbbbbb", "2026-11-26 bbbbbbb"),
+            record("fox", "2026-11-27 ccccccc, probe, tv x4", "2026-11-27 ccccccc"),  # a named variant
+            record("fox", "budget 1m", "2026-11-27 ccccccc", {"time_budget": "1m"}),
+            record("fox", "2026-11-27 ddddddd", "2026-11-27 ddddddd", {"tv_density": 1e-9})]  # overridden
+    assert newest_front(runs) == ["2026-11-25 aaaaaaa", "2026-11-26 bbbbbbb"]
 
 
 def test_real_scenes_runs_scored_at_one_size_compare_whatever_size_they_fit_at():
@@ -182,6 +197,6 @@ def test_real_scenes_runs_scored_at_one_size_compare_whatever_size_they_fit_at()
 
     runs = [record("fast", "after", 80, 27.0, (178, 316)), record("default", "after", 400, 26.0, (266, 474))]
     budget = record("default", "budget 2m", 120, 26.5, (266, 474), overrides={"time_budget": "2m"})
-    # Scored at the same size, fast's smaller photos no longer keep it off the budget's front.
+    # Scored at the same size, fast's smaller photos do not keep it off the budget's front.
     assert budget_verdict(budget, runs, ["after"]) == "below fast (27.00 dB in 80 s)"
     assert budget_verdict({**budget, "mean": {"psnr": 27.5}}, runs, ["after"]) == "on or above the presets' front"

@@ -10,7 +10,7 @@ from PIL import Image
 
 from bench.protocol import capped_levels, protocol_settings, runs_to_do, scene_kind, table
 from pipeline import lpips
-from pipeline.io import read_json
+from pipeline.json_files import read_json
 from pipeline.synthetic import write_scene
 from plenoxels.errors import UserError
 from prerequisites import missing

@@ -43,7 +43,7 @@ def test_describe_gives_type_default_preset_value_and_help():
 
 @pytest.mark.parametrize("stage", STAGE_ORDER)
 def test_every_setting_of_every_stage_has_one_line_of_help(stage):
-    settings = StageGraph().load(stage).Settings
+    settings = StageGraph().declaration(stage).Settings
     helps = config.field_help(settings)
     missing = [f.name for f in fields(settings) if not helps.get(f.name)]
     assert missing == [], f"{stage}.Settings fields without a help line (a docstring on the next line): {missing}"
@@ -56,7 +56,7 @@ def test_settings_command_prints_every_stage_with_help_and_the_presets_values():
     for stage in STAGE_ORDER:
         assert f"\n{stage}:\n" in f"\n{result.stdout}"
     assert "ingest.max_side (int) = 960; preset fast: 640" in result.stdout
-    help_line = config.field_help(StageGraph().load("ingest").Settings)["max_side"]
+    help_line = config.field_help(StageGraph().declaration("ingest").Settings)["max_side"]
     assert help_line in result.stdout
 
     one = subprocess.run([sys.executable, "-m", "pipeline", "settings", "ingest"], capture_output=True, text=True, cwd=REPO)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pipeline.io import read_json
+from pipeline.json_files import read_json
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from pipeline.synthetic import write_scene

@@ -10,7 +10,7 @@ from skimage.metrics import structural_similarity
 from pipeline import lpips
 from pipeline.camera_paths import orbit_path, spiral_path
 from pipeline.images import load_frame
-from pipeline.io import read_json
+from pipeline.json_files import read_json
 from pipeline.visuals import colour_depth
 from plenoxels.scene_model import SceneModel
 from stages import evaluate, fit

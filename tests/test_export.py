@@ -12,7 +12,8 @@ from scipy.special import expit
 
 from bench.export import training_cameras, visible_from
 from pipeline import config
-from pipeline.io import GLTF_FROM_ZUP, read_json, write_json, write_mesh_files, write_points
+from pipeline.io import GLTF_FROM_ZUP, write_mesh_files, write_points
+from pipeline.json_files import read_json, write_json
 from pipeline.metrics import mesh_scores, surface_distance
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
@@ -31,7 +32,7 @@ from plenoxels.scene_model import SceneModel
 from plenoxels.surface import (Terminations, ViewRender, point_normals, ray_terminations, render_views, seen_vertices,
                                snap_to_level, surface_points)
 from stages import export
-from stages.export import Settings
+from stages.settings.export import Settings
 
 SH_K = 4  # SH degree 1: the export must read only the degree-0 term of each channel
 

@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from pipeline import config
-from pipeline.io import read_json, write_json
+from pipeline.json_files import read_json, write_json
 from pipeline.report import Reporter
 from pipeline.scene_frame import Points, SceneOptions, normalize_scene
-from pipeline.stage import StageContext
+from pipeline.stage import StageContext, StageGraph
 from pipeline.synthetic import write_scene
 from plenoxels.errors import UserError
 from plenoxels.native import cuda_ready
@@ -43,17 +43,18 @@ def make_scene(root: Path, views: int = 20, width: int = 48, alpha: bool = True)
 
 def run_stage(root: Path, module, values: dict) -> dict:
     """Runs one stage the way the runner does: into .work, checkpoints in .resume, swapped into place."""
-    settings = config.build(module.Settings, module.NAME, values)
-    work, scratch = root / ".work" / module.NAME, root / ".resume" / module.NAME
+    declared = StageGraph().declaration(module.__name__.rpartition(".")[2])
+    settings = config.build(declared.Settings, declared.NAME, values)
+    work, scratch = root / ".work" / declared.NAME, root / ".resume" / declared.NAME
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     scratch.mkdir(parents=True, exist_ok=True)
     ctx = StageContext(scene=root, out=root, work=work, scratch=scratch, settings=settings,
-                       upstream={d: root / d for d in module.DEPENDS}, scene_type="object", report=Reporter(quiet=True))
+                       upstream={d: root / d for d in declared.DEPENDS}, scene_type="object", report=Reporter(quiet=True))
     summary = module.run(ctx)
-    write_json(work / "manifest.json", {"stage": module.NAME, "summary": summary})
-    shutil.rmtree(root / module.NAME, ignore_errors=True)
-    work.rename(root / module.NAME)
+    write_json(work / "manifest.json", {"stage": declared.NAME, "summary": summary})
+    shutil.rmtree(root / declared.NAME, ignore_errors=True)
+    work.rename(root / declared.NAME)
     shutil.rmtree(scratch)
     return summary
 

@@ -20,7 +20,7 @@ from pipeline.synthetic import build_scene, trace, write_scene
 from plenoxels.cameras import Intrinsics, look_at, pixel_directions
 from plenoxels.errors import UserError
 from stages import normalize
-from stages.normalize import Settings
+from stages.settings.normalize import Settings
 
 N_VIEWS = 16
 WIDTH, HEIGHT = 48, 36

@@ -73,7 +73,7 @@ def fake_graph(tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(tmp_path / "pkg"))
     for mod in [m for m in sys.modules if m.startswith("fakestages")]:
         del sys.modules[mod]
-    return StageGraph(package="fakestages", order=("a", "b", "c"))
+    return StageGraph(package="fakestages", order=("a", "b", "c"), declarations=None)
 
 
 def make(graph, tmp_path, overrides=()):
@@ -138,7 +138,7 @@ def _run_in_subprocess(tmp_path, overrides):
         from pipeline.report import Reporter
         from pipeline.stage import StageGraph
         Pipeline(Path({str(tmp_path / "scene")!r}), Path({str(tmp_path / "out")!r}), overrides={overrides!r},
-                 reporter=Reporter(quiet=True), graph=StageGraph("fakestages", ("a", "b", "c"))).run(["a"])
+                 reporter=Reporter(quiet=True), graph=StageGraph("fakestages", ("a", "b", "c"), None)).run(["a"])
     ''')
     return subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
@@ -201,8 +201,8 @@ def test_overrides_parse_types():
 
 def test_word_settings_survive_yaml_reading_them_as_booleans():
     # YAML 1.1 reads no/off/yes/on as booleans; a setting whose allowed values are those words must get the word back.
-    from stages.fit import Settings as FitSettings
-    from stages.poses import Settings as PosesSettings
+    from stages.settings.fit import Settings as FitSettings
+    from stages.settings.poses import Settings as PosesSettings
 
     for word in ("no", "yes", "auto"):
         parsed = config.parse_overrides([f"poses.shared_camera={word}"])["poses"]
@@ -214,7 +214,7 @@ def test_word_settings_survive_yaml_reading_them_as_booleans():
 
 
 def test_settings_validation_names_the_key_and_what_is_allowed(fake_graph, tmp_path):
-    from stages.ingest import Settings
+    from stages.settings.ingest import Settings
 
     with pytest.raises(UserError, match=r"unknown setting 'ingest.max_sid'; allowed: .*max_side"):
         config.build(Settings, "ingest", {"max_sid": 5})
@@ -239,7 +239,7 @@ def test_every_preset_resolves_for_every_stage():
     for preset in config.preset_names():
         layers = config.load_preset(preset)
         for name in STAGE_ORDER:
-            config.build(graph.load(name).Settings, name, layers.get(name, {}))
+            config.build(graph.declaration(name).Settings, name, layers.get(name, {}))
     with pytest.raises(UserError, match="unknown preset 'nope'; choose one of: .*fast"):
         config.load_preset("nope")
 

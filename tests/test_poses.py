@@ -14,7 +14,8 @@ import pytest
 
 from PIL import Image
 
-from pipeline.io import read_json, read_rgb, write_png
+from pipeline.io import read_rgb, write_png
+from pipeline.json_files import read_json
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from pipeline.sfm import reconstruct

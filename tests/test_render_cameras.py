@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from pipeline import cli, lpips, render_cameras as rc
-from pipeline.io import read_json, write_json
+from pipeline.json_files import read_json, write_json
 from plenoxels.cameras import Intrinsics, look_at
 from plenoxels.errors import UserError
 from plenoxels.grid import SparseGrid

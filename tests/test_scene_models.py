@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from pipeline.images import load_frame
-from pipeline.io import read_json
+from pipeline.json_files import read_json
 from pipeline.scene_frame import Points, SceneOptions, normalize_scene
 from pipeline.synthetic import build_scene, render_view, write_scene
 from plenoxels.cameras import Intrinsics

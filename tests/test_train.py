@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from pipeline.images import load_frame
-from pipeline.io import read_json
+from pipeline.json_files import read_json
 from pipeline.metrics import image_psnr
 from plenoxels.cameras import Intrinsics, look_at, rays_from_camera
 from plenoxels.grid import SparseGrid

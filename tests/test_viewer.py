@@ -18,7 +18,8 @@ import trimesh
 from PIL import Image
 
 from pipeline import config
-from pipeline.io import read_json, read_rgb, write_json, write_png
+from pipeline.io import read_rgb, write_png
+from pipeline.json_files import read_json, write_json
 from pipeline.report import Reporter
 from pipeline.stage import StageContext
 from pipeline.viewer import Viewer, ViewOptions

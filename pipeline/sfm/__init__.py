@@ -1,9 +1,11 @@
 """Structure from motion and pose files: COLMAP through pycolmap, turned into the project's poses output.
 
-- `reconstruct`: feature extraction, matching and mapping (`SfmOptions`, `reconstruct`).
+- `options`: how SfM runs (`SfmOptions`, the poses stage's settings less where poses come from).
+- `reconstruct`: feature extraction, matching and mapping (`reconstruct`).
 - `exif`: focal length priors and camera grouping from the photos' EXIF.
 - `model_checks`: images a model placed without support (`detached_images`) or against their matches
   (`contradicted_images`).
+- `pose_files`: the pose files beside a scene's photos (`candidates`, `pose_files`).
 - `pose_import`: poses the user already has (COLMAP model, transforms.json, LLFF) as the same COLMAP model.
 - `outputs`: undistorting a model and writing transforms.json, images, masks, sparse/ and points.npz.
 - `compare`: two pose sets of the same images compared up to a similarity.

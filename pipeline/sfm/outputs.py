@@ -10,7 +10,8 @@ import numpy as np
 import pycolmap
 from PIL import Image
 
-from pipeline.io import write_json, write_png
+from pipeline.io import write_png
+from pipeline.json_files import write_json
 from pipeline.sfm.triangulate import triangulate
 from plenoxels.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
 

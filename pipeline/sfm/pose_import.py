@@ -18,10 +18,10 @@ import numpy as np
 import pycolmap
 
 from pipeline.photos import DATASET_SPLITS, frame_photo, is_split_dataset, lexical_path, photo_folder
+from pipeline.sfm.pose_files import KINDS, candidates, colmap_models, is_colmap_model
 from plenoxels.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff
 from plenoxels.errors import UserError
 
-KINDS = ("colmap", "transforms", "llff")
 # How far an image's size may be from the pose file's size after scaling before we call it a different image.
 SIZE_TOLERANCE_PX = 1.5
 
@@ -35,46 +35,9 @@ class Imported:
     path_matches: int = 0                         # images matched by their path rather than only their stem
 
 
-# ---- finding pose files -----------------------------------------------------------------------------------
-
-def _colmap_models(folder: Path) -> list[Path]:
-    """COLMAP model folders under `folder`: sparse/0, sparse/1, ... or sparse/ itself."""
-    sparse = folder / "sparse"
-    if not sparse.is_dir():
-        return []
-    found = [d for d in sorted(sparse.iterdir()) if d.is_dir() and _is_colmap_model(d)]
-    return found or ([sparse] if _is_colmap_model(sparse) else [])
-
-
-def _is_colmap_model(folder: Path) -> bool:
-    return all((folder / f"{part}.bin").is_file() or (folder / f"{part}.txt").is_file()
-               for part in ("cameras", "images"))
-
-
-def candidates(scene: Path) -> dict[str, list[Path]]:
-    """Pose files beside the photos (the photo folder first, then its parent), by kind."""
-    found: dict[str, list[Path]] = {kind: [] for kind in KINDS}
-    folder = photo_folder(scene)
-    for place in (folder, folder.parent) if not scene.is_file() else (folder,):
-        found["colmap"] += _colmap_models(place)
-        found["transforms"] += sorted(p for p in place.glob("transforms*.json") if p.is_file())
-        if (place / "poses_bounds.npy").is_file():
-            found["llff"].append(place / "poses_bounds.npy")
-    return found
-
-
-def pose_files(scene: Path) -> list[Path]:
-    """Every file the importers could read for this scene (for a cache key)."""
-    files: list[Path] = []
-    for kind, paths in candidates(scene).items():
-        for path in paths:
-            files += sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
-    return files
-
-
 def kind_of(path: Path) -> str:
     if path.is_dir():
-        if _is_colmap_model(path) or _colmap_models(path) or _colmap_models(path.parent):
+        if is_colmap_model(path) or colmap_models(path) or colmap_models(path.parent):
             return "colmap"
     elif path.suffix == ".json":
         return "transforms"
@@ -85,8 +48,8 @@ def kind_of(path: Path) -> str:
 
 def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
     if kind == "colmap":
-        if not _is_colmap_model(path):
-            models = (_colmap_models(path) or _colmap_models(path.parent)) if path.is_dir() else []
+        if not is_colmap_model(path):
+            models = (colmap_models(path) or colmap_models(path.parent)) if path.is_dir() else []
             if not models:
                 raise UserError(f"{path} holds no COLMAP model (cameras and images .bin/.txt, or sparse/0 with them); "
                                 "point poses.path at the model folder")

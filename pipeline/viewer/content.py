@@ -10,7 +10,7 @@ import numpy as np
 import trimesh
 from PIL import Image
 
-from pipeline.io import read_json
+from pipeline.json_files import read_json
 from plenoxels.cameras import Intrinsics
 from plenoxels.errors import UserError
 

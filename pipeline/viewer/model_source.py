@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from pipeline.io import read_json
+from pipeline.json_files import read_json
 from plenoxels.grid import SparseGrid
 from plenoxels.scene_model import ModelOptions, SceneModel
 

@@ -1,0 +1,51 @@
+"""How to run structure from motion: the options the poses stage's settings extend, free of pycolmap, so a
+settings listing and the pipeline's cache keys read them without loading COLMAP."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass
+class SfmOptions:
+    """How to run SfM (the poses stage's settings, less where poses come from)."""
+    camera_model: Literal["SIMPLE_RADIAL", "OPENCV", "RADIAL", "SIMPLE_PINHOLE", "PINHOLE"] = "SIMPLE_RADIAL"
+    """COLMAP camera model SfM fits (distortion is removed afterwards)."""
+    exif_focal: bool = True
+    """Start from the focal length in the photos' EXIF, when they carry one."""
+    sensor_width_mm: float = 0.0
+    """Sensor width in mm, for EXIF with a focal length in mm but no 35 mm equivalent; 0: unknown."""
+    shared_camera: Literal["auto", "yes", "no"] = "auto"
+    """One camera for all photos; auto: when sizes and EXIF camera models agree."""
+    max_features: int = 8192
+    """SIFT features per image (at least 64)."""
+    feature_max_side: int = 0
+    """Extract features on images downscaled to this side in pixels; 0: the ingested size."""
+    min_features: int = 1000
+    """Median features per image below this: extract again with a lower detection threshold."""
+    matching: Literal["auto", "exhaustive", "sequential"] = "auto"
+    """Image pairs to match; auto: exhaustive up to exhaustive_max_images photos, else (and for video) sequential."""
+    exhaustive_max_images: int = 100
+    """Auto matching is exhaustive up to this many images; above, sequential completed by exhaustive when needed."""
+    sequential_overlap: int = 10
+    """Neighbours each image is matched with in sequential matching."""
+    loop_neighbours: int = 5
+    """In sequential matching, each image is also matched with this many of the most alike images outside its
+    neighbours, and the first images with the last, so a walk around a scene closes its loop; 0: off."""
+    mapper: Literal["incremental", "global"] = "incremental"
+    """COLMAP mapper; a global model that contradicts its matches is mapped again incrementally."""
+    refine_principal_point: bool = False
+    """Let bundle adjustment move the principal point."""
+    use_gpu: bool = True
+    """Extract and match SIFT on the GPU when pycolmap was built with CUDA."""
+    seed: int = 0
+    """Random seed for COLMAP's RANSAC and mappers."""
+    threads: int = 0
+    """CPU threads COLMAP uses; 0: all cores. 1 makes the same model on every run: with more, its matching and bundle
+    adjustment vary with the threads' timing, and a model near a check's limit can pass on one run and fail on the next."""
+    max_contradicted_images: float = 0.1
+    """Share of the images whose poses may contradict their verified matches before the model is made again with a
+    safer configuration, or refused."""
+    repair: bool = True
+    """When a model contradicts its matches or splits in parts, try safer configurations (exhaustive matching, no EXIF
+    focal prior, more features, full-size images) and keep the first that holds; off: refuse at once."""
