@@ -85,7 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
     settings.add_argument("stage", nargs="?", choices=STAGE_ORDER, help="only this stage's settings")
     settings.add_argument("--preset", default="default", help=f"show this preset's values: {', '.join(preset_names())} (default: default)")
     synth = sub.add_parser("synth", help="write a synthetic scene: photos, true poses and true mesh")
-    synth.add_argument("kind", choices=("object", "forward", "unbounded"))
+    synth.add_argument("kind", choices=synthetic.KINDS)
     synth.add_argument("outdir", type=Path)
     synth.add_argument("--views", type=int, default=40)
     synth.add_argument("--width", type=int, default=320)
