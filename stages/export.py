@@ -1,9 +1,12 @@
-"""Export: the fitted radiance field -> a coloured mesh and a coloured point cloud, in the input frame.
+"""Export: the fitted radiance field -> a textured mesh and a coloured point cloud, in the input frame.
 
-Writes export/mesh.ply, mesh.obj and mesh.glb (one mesh: marching cubes over the fitted density,
-view-averaged colours, small pieces and floaters removed, cropped to the foreground, faces no
-training view sees dropped, optionally decimated), export/points.ply (points where the training views' rays terminate, with colours and
-normals) and export/export.json (the frame, counts, sizes, bounds, level and resolution).
+Writes export/mesh.ply (vertex colours), mesh.obj + mesh.mtl + mesh.png and mesh.glb (textured; with vertex colours
+when export.texture is off), points.ply (points where the training views' rays terminate, with colours and normals)
+and export.json (the frame, counts, sizes, bounds, level, resolution, what was cut away, the decimation and the
+texture). One mesh: marching cubes over the fitted density, small pieces and floaters removed, cropped to the
+foreground box (or export.crop), faces no training view sees dropped, the ground and the room cut away for object and
+unbounded scenes, decimated to export.max_faces, then unwrapped and its texture baked (plenoxels/mesh.py,
+plenoxels/ground.py, plenoxels/texture.py; files: pipeline/mesh_files.py).
 
 Seen faces: a fit only pins down density where rays stop, so its surfaces are shells whose insides
 (and the undersides no camera looks at) are guesses; marching cubes turns them into inner surfaces.
@@ -21,59 +24,41 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-import trimesh
 
 from pipeline.config import require
-from pipeline.io import read_json, rgba8, write_json, write_mesh_files, write_points
-from plenoxels.errors import UserError
-from plenoxels.fit_frame import FitFrame
-from plenoxels.mesh import (LEVEL_RAY_OPACITY, auto_level, clean_mesh, decimate, extract_surface, grid_lattice,
-                            grid_lattice_voxel, grid_lattice_voxel_world, mesh_to_world, refine, submesh,
-                            surface_colours, transform_normals, transform_points)
+from pipeline.io import read_json, write_json, write_points
+from pipeline.mesh_files import write_mesh_files
+from plenoxels.mesh import (LEVEL_RAY_OPACITY, MeshOptions, build_mesh, grid_lattice_voxel, surface_colours,
+                            transform_normals, transform_points)
 from plenoxels.scene_model import SceneModel
-from plenoxels.surface import (Terminations, ViewRender, point_normals, ray_terminations, render_views,
-                               seen_vertices, snap_to_level)
+from plenoxels.surface import point_normals, ray_terminations, render_views, snap_to_level
+from plenoxels.texture import texture_mesh
 
 NAME = "export"
 DEPENDS: tuple[str, ...] = ("normalize", "fit")
-VERSION = 1
+VERSION = 2
+
 
 @dataclass
-class Settings:
+class Settings(MeshOptions):
+    """The mesh's settings (plenoxels.mesh.MeshOptions), and the frame, box, texture and points."""
     frame: Literal["input", "normalized"] = "input"
     """Input: the poses' (COLMAP) frame; normalized: the fit's world."""
-    resolution: int | Literal["auto"] = "auto"
-    """Marching-cubes cells along the grid's longest axis; auto: the fit's own."""
-    level: float | Literal["auto"] = "auto"
-    """Density iso-level; auto: see level_share."""
-    level_share: float = 0.5
-    """Auto level: this share of the peak density the opaque training rays meet (auto_level)."""
-    level_opacity: float = 0.5
-    """Auto level without such points: the density at which one voxel is this opaque."""
-    crop_margin: float = 0.05
-    """The foreground box is grown by this share of its size before cropping."""
     crop: list[float] = field(default_factory=list)
     """Box [xmin, ymin, zmin, xmax, ymax, zmax] (normalised frame, e.g. from the viewer) instead of the foreground box."""
-    min_piece_fraction: float = 0.01
-    """Pieces with fewer faces than this share of the largest piece are dropped."""
-    max_gap: float = 0.05
-    """Pieces farther than this share of the foreground diagonal from the largest are dropped."""
-    target_faces: int = 0
-    """Decimate to this many faces; 0 keeps every face."""
+    texture: bool = True
+    """Unwrap the mesh (xatlas) and bake the field's colour into mesh.png for the OBJ and GLB; off: vertex colours."""
+    texture_size: int = 2048
+    """The texture's side, about (xatlas packs the atlas to it), in texels."""
+    texture_colour: Literal["normal", "mean"] = "normal"
+    """normal: the colour the field renders looking straight at the surface; mean: its view-independent SH degree-0
+    term (plenoxels/texture.py says why normal)."""
     points: int = 200_000
     """Points kept in points.ply (a random, seeded subset)."""
     point_scale: float = 0.5
     """Training views are rendered at this share of their size (points, seen faces)."""
     point_views: int = 0
     """Training views rendered for the points; 0: all."""
-    point_opacity: float = 0.5
-    """A pixel gives a point only where its ray is at least this opaque."""
-    unseen: Literal["drop", "keep"] = "drop"
-    """Faces no training view sees (insides of the fit's shells, undersides)."""
-    seen_tolerance: float = 1.0
-    """A vertex this many voxels behind what a view's pixel sees is still seen."""
-    seed: int = 0
-    """Seed of the random point subsets."""
 
     def check(self) -> None:
         require(self.resolution == "auto" or 8 <= self.resolution <= 2048,
@@ -86,7 +71,8 @@ class Settings:
                 "export.crop must be empty or [xmin, ymin, zmin, xmax, ymax, zmax] with each min below its max")
         require(0.0 <= self.min_piece_fraction <= 1.0, "export.min_piece_fraction must be in [0, 1]")
         require(self.max_gap > 0.0, "export.max_gap must be positive")
-        require(self.target_faces == 0 or self.target_faces >= 4, "export.target_faces must be 0 (keep all) or at least 4")
+        require(self.max_faces == 0 or self.max_faces >= 4, "export.max_faces must be 0 (keep all) or at least 4")
+        require(64 <= self.texture_size <= 16384, "export.texture_size must be between 64 and 16384 texels")
         require(self.points >= 0, "export.points must be 0 (no point cloud) or more")
         require(0.0 < self.point_scale <= 1.0, "export.point_scale must be in (0, 1]")
         require(self.point_views >= 0, "export.point_views must be 0 (all training views) or more")
@@ -116,60 +102,6 @@ def _bounds(points: np.ndarray) -> dict:
     return {"min": points.min(0).round(6).tolist(), "max": points.max(0).round(6).tolist()}
 
 
-def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, s: Settings, report,
-               level_rays: Terminations | None = None, views: list[ViewRender] | None = None) -> tuple[trimesh.Trimesh, dict]:
-    """The cleaned, coloured mesh in the normalised world, and what was decided on the way.
-    `level_rays`: the training views' opaque rays (fit frame), for the auto level;
-    `views`: the training views rendered, to drop the faces none of them sees (with unseen: drop)."""
-    lattice = grid_lattice(grid)
-    if s.level == "auto":
-        level, level_source = auto_level(grid, lattice, level_rays, s.level_share, s.level_opacity, s.seed)
-    else:
-        level, level_source = float(s.level), "set"
-    native = int(np.max(lattice.values.shape) - 1)
-    resolution = native if s.resolution == "auto" else int(s.resolution)
-    fine = refine(lattice, resolution, level)
-    report.info(f"marching cubes at density {level:.4g} on a {'x'.join(map(str, fine.values.shape))} lattice")
-    vertices, faces = extract_surface(fine, level)
-    world, faces = mesh_to_world(vertices, faces, frame)
-    mesh = trimesh.Trimesh(world, faces, process=False)
-
-    size = box_max - box_min
-    margin = s.crop_margin * size
-    mesh, cleaning = clean_mesh(mesh, box_min - margin, box_max + margin, s.min_piece_fraction,
-                                s.max_gap * float(np.linalg.norm(size)))
-    if len(mesh.faces) == 0:
-        raise UserError("the mesh is empty after cropping to the foreground box; check normalize's foreground "
-                        "or raise export.crop_margin")
-    unseen_faces = 0
-    if s.unseen == "drop" and views:
-        voxel_world = grid_lattice_voxel_world(grid, frame, mesh)
-        seen = seen_vertices(mesh, views, frame, voxel_world, s.seen_tolerance * voxel_world, s.point_opacity)
-        keep = seen[mesh.faces].any(axis=1)
-        unseen_faces = int((~keep).sum())
-        mesh, _ = clean_mesh(submesh(mesh, keep), box_min - margin, box_max + margin, s.min_piece_fraction,
-                             s.max_gap * float(np.linalg.norm(size)))
-        if len(mesh.faces) == 0:
-            raise UserError("no training view sees any part of the mesh; set export.unseen=keep")
-    faces_before_decimation = len(mesh.faces)
-    mesh = decimate(mesh, s.target_faces)
-    colours = surface_colours(grid, frame.from_world(np.asarray(mesh.vertices)), lattice.voxel)
-    mesh.visual.vertex_colors = rgba8(colours)
-    decisions = {
-        "level": level,
-        "level_source": level_source,
-        "resolution": resolution,
-        "fit_resolution": list(lattice.values.shape),
-        "lattice": list(fine.values.shape),
-        "voxel": fine.voxel,
-        "cleaning": vars(cleaning),
-        "unseen_faces_dropped": unseen_faces,
-        "faces_before_decimation": faces_before_decimation,
-        "decimated": len(mesh.faces) < faces_before_decimation,
-    }
-    return mesh, decisions
-
-
 def run(ctx) -> dict:
     s: Settings = ctx.settings
     scene = read_json(ctx.upstream["normalize"] / "scene.json")
@@ -190,7 +122,15 @@ def run(ctx) -> dict:
     terminations = terminations.subset(inside)
     # The level comes from nearly opaque rays only: a fainter one grazes an edge or crosses a thin part, whose peak is low.
     opaque = terminations.opacity >= LEVEL_RAY_OPACITY
-    mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, terminations.subset(opaque), views)
+    object_only = s.object_only == "on" or (s.object_only == "auto" and scene.get("type") != "forward")
+    mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, terminations.subset(opaque), views,
+                                 object_only=object_only, user_box=bool(s.crop))
+    texture = None
+    if s.texture:
+        ctx.report.info(f"unwrapping {_count(len(mesh.faces))} faces and baking a {s.texture_size}-texel texture")
+        texture = texture_mesh(grid, frame, mesh, s.texture_size, s.texture_colour)
+        decisions["texture"] = {"size": list(texture.atlas.size), "charts": texture.atlas.charts,
+                                "colour": texture.colour, "atlas_vertices": len(texture.atlas.uv)}
 
     voxel = grid_lattice_voxel(grid)
     if len(terminations.t) > 2 * s.points:  # the snap drops some rays: keep a margin, subsample after
@@ -199,6 +139,9 @@ def run(ctx) -> dict:
     points = snap_to_level(grid, terminations, decisions["level"], voxel).world(frame)
     # A ray that grazes the foreground can snap onto matter beyond it (the ground of an unbounded scene).
     points = points[_in_box(points, crop_min, crop_max)]
+    ground = decisions["object_only"].get("ground")
+    if decisions["object_only"].get("ground_faces_cut"):  # the ground the mesh lost goes from the points too
+        points = points[points @ np.asarray(ground["normal"]) - ground["offset"] >= ground["cut_height"]]
     if len(points) > s.points:
         points = points[np.sort(np.random.default_rng(s.seed).choice(len(points), s.points, replace=False))]
     colours = surface_colours(grid, frame.from_world(points), voxel)
@@ -213,7 +156,7 @@ def run(ctx) -> dict:
         points, normals = transform_points(to_output, points), transform_normals(to_output, normals)
     else:
         to_output = np.eye(4)
-    files = write_mesh_files(mesh, ctx.work)
+    files = write_mesh_files(mesh, ctx.work, texture)
     if s.points > 0:
         write_points(ctx.work / "points.ply", points, colours, normals)
         files["points"] = "points.ply"
@@ -231,7 +174,8 @@ def run(ctx) -> dict:
         "file_bytes": sizes,
         "mesh": {"vertices": len(mesh.vertices), "faces": len(mesh.faces), "bounds": _bounds(mesh.vertices)},
         "points": {"count": len(points), "bounds": _bounds(points)},
-        "glb_axes": "glTF y-up: (x, z, -y) of the frame; z-up importers such as Blender's restore the frame's coordinates",
+        "axes": "PLY: the frame's own; OBJ and GLB y-up, (x, z, -y) of the frame: z-up importers such as Blender's "
+                "restore the frame's coordinates",
         **decisions,
     }
     write_json(ctx.work / "export.json", record)
@@ -239,6 +183,9 @@ def run(ctx) -> dict:
     line = (f"mesh {_count(len(mesh.faces))} faces ({_size(sizes['ply'])} PLY), {_count(len(points))} points "
             f"({_size(sizes.get('points', 0))}) in the {s.frame} frame, bounds "
             f"[{', '.join(f'{v:.3g}' for v in lo)}] to [{', '.join(f'{v:.3g}' for v in hi)}], "
-            f"level {decisions['level']:.3g}{' (auto)' if s.level == 'auto' else ''}, resolution {decisions['resolution']}")
+            f"level {decisions['level']:.3g}{' (auto)' if s.level == 'auto' else ''}, resolution {decisions['resolution']}"
+            + (f", texture {'x'.join(map(str, texture.atlas.size))}" if texture is not None else ", vertex colours")
+            + f"; cut away: {decisions['object_only']['cut']}")
     return {"line": line, "frame": s.frame, "faces": len(mesh.faces), "vertices": len(mesh.vertices),
-            "points": len(points), "level": decisions["level"], "resolution": decisions["resolution"]}
+            "points": len(points), "level": decisions["level"], "resolution": decisions["resolution"],
+            "cut_away": decisions["object_only"]["cut"]}
