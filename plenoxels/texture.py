@@ -135,10 +135,11 @@ def _candidates(corners: np.ndarray, valid: np.ndarray, width: int, height: int,
     ends = np.cumsum(count)
     start = 0
     while start < len(count):
-        stop = max(int(np.searchsorted(ends, (ends[start - 1] if start else 0) + RASTER_CHUNK, side="right")), start + 1)
+        before = int(ends[start - 1]) if start else 0   # candidates of the triangles before this chunk
+        stop = max(int(np.searchsorted(ends, before + RASTER_CHUNK, side="right")), start + 1)
         tri = np.repeat(np.arange(start, stop), count[start:stop])
         start = stop
-        local = np.arange(len(tri)) - (ends[tri] - count[tri])
+        local = before + np.arange(len(tri)) - (ends[tri] - count[tri])   # index in the triangle's own box
         px = lo[tri, 0] + local % np.maximum(span[tri, 0], 1)
         py = lo[tri, 1] + local // np.maximum(span[tri, 0], 1)
         pixel = py * width + px

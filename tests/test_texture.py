@@ -11,6 +11,7 @@ from plenoxels.cameras import Intrinsics, rays_from_camera
 from plenoxels.fit_frame import FitFrame
 from plenoxels.mesh import build_mesh, transform_points
 from plenoxels.render import render
+from plenoxels import texture
 from plenoxels.texture import bake, rasterize, render_mesh, sample_texture, texel_surface, texture_mesh, unwrap
 from stages.export import Settings
 from test_export import BOX, SPHERE_CENTRE, _Quiet, look_at, sphere_field
@@ -25,6 +26,18 @@ def sphere():
     field = sphere_field(40)
     mesh, _ = build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet())
     return field, mesh, {colour: texture_mesh(field, FitFrame(), mesh, 256, colour) for colour in ("normal", "mean")}
+
+
+def test_rasterizer_gives_the_same_answer_in_chunks(monkeypatch):
+    rng = np.random.default_rng(3)
+    corners = rng.uniform(0, 40, (60, 1, 2)) + rng.uniform(-4, 4, (60, 3, 2))
+    depth = rng.uniform(1, 3, (60, 3))
+    whole = [rasterize(corners, 40, 30, reach=2.0), rasterize(corners, 40, 30, depth=depth)]
+    monkeypatch.setattr(texture, "RASTER_CHUNK", 37)  # a few triangles' boxes a chunk
+    for (face, weights), (chunked_face, chunked_weights) in zip(whole, [rasterize(corners, 40, 30, reach=2.0),
+                                                                        rasterize(corners, 40, 30, depth=depth)]):
+        assert (face >= 0).sum() > 150 and np.array_equal(face, chunked_face)
+        assert np.allclose(weights, chunked_weights)
 
 
 def test_rasterizer_covers_exactly_the_pixel_centres_inside_with_weights_that_rebuild_them():
