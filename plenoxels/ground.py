@@ -3,12 +3,12 @@ below it, and the pieces of the room the foreground box cut through.
 
 Evidence: the mesh is the field's opaque surface inside the foreground box (normalize's box of the sparse points most
 cameras see, or the viewer's crop box), seen by the training views. The ground is the plane that carries the most
-upward-facing surface (RANSAC over the faces, tilted at most MAX_TILT_DEG from the scene's up) when it also runs
-out of the box: a floor or a table continues past the foreground, so its surface reaches the box's sides along a
-good part of their length (RIM_SHARE), while a slab or base plate that belongs to the object ends inside the box and
-is kept. The cut takes every face within the plane's band (its measured roughness, at least CUT_VOXELS voxels) or
-below it. What then stands on the plane is the object; of the rest, pieces that run into the box's sides are the
-room (a wall, furniture, the floor beyond a step), which the box cut through, and go.
+upward-facing surface (RANSAC over the faces, tilted at most MAX_TILT_DEG from the scene's up) when something stands
+on it and it runs out of the box: a floor or a table continues past the foreground, so its surface reaches the
+box's sides along a good part of their length (RIM_SHARE), while a slab or base plate that belongs to the object ends
+inside the box and is kept. The cut takes every face within the plane's band (its measured roughness, at least
+CUT_VOXELS voxels) or below it. What then stands on the plane is the object; of the rest, pieces that run into the
+box's sides are the room (a wall, furniture, the floor beyond a step), which the box cut through, and go.
 """
 from __future__ import annotations
 
@@ -28,8 +28,10 @@ SEARCH_BAND_VOXELS = 2.0
 # Upward faces must carry at least this share of the mesh's area for a ground to be looked for.
 MIN_UPWARD_AREA = 0.05
 # The plane is the ground when its surface reaches the box's sides along at least this share of the rim where the
-# plane meets them (within RIM_REACH_VOXELS), and more of the rest of the mesh lies above it than below.
+# plane meets them (within RIM_REACH_VOXELS), and at least MIN_ABOVE_SHARE of the rest of the mesh stands above it
+# (what lies below is the ground's own underside and what its fit holds inside, or a table's legs and the floor).
 RIM_SHARE = 0.25
+MIN_ABOVE_SHARE = 0.1
 RIM_REACH_VOXELS = 4.0
 RIM_SAMPLES = 400
 # The cut: faces whose vertices all lie below this height over the plane (voxels; at least), or below the plane.
@@ -110,7 +112,7 @@ def find_ground(mesh: trimesh.Trimesh, up: np.ndarray, box_min: np.ndarray, box_
     cut = float(np.clip(CUT_SPREAD * roughness, CUT_VOXELS * voxel, MAX_CUT_VOXELS * voxel))
     tilt = math.degrees(math.acos(float(np.clip(normal @ up, -1.0, 1.0))))
     return Ground(normal, offset, tilt, float(area[inliers].sum() / area.sum()), rim, float(above),
-                  bool(rim >= RIM_SHARE and above > 0.5), cut)
+                  bool(rim >= RIM_SHARE and above >= MIN_ABOVE_SHARE), cut)
 
 
 def _rim_share(points: np.ndarray, normal: np.ndarray, offset: float, box_min: np.ndarray, box_max: np.ndarray,

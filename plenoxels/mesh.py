@@ -357,7 +357,7 @@ def isolate_object(mesh: trimesh.Trimesh, box_min: np.ndarray, box_max: np.ndarr
         record.update(faces_after=faces_in, cut="nothing: " + (
             "no plane under the object" if ground is None else
             f"the plane under the object reaches {ground.rim_share:.0%} of the box's edge, so it is part of the object"
-            if ground.rim_share < RIM_SHARE else "most of the mesh lies below the plane found"))
+            if ground.rim_share < RIM_SHARE else "nothing stands on the plane found"))
         return mesh, record
     keep, touching = cut_ground(mesh, ground)
     cut, anchored = submesh(mesh, keep, touching)

@@ -94,12 +94,17 @@ def test_the_users_box_decides_what_the_room_is():
     assert len(wall_top) > 10
 
 
-def test_no_ground_is_looked_for_without_upward_surface():
+def test_no_ground_without_upward_surface_or_with_nothing_standing_on_it():
+    up = np.array([0, 0, 1.0])
     ball = dense(trimesh.creation.icosphere(subdivisions=3, radius=0.4))
     standing = slab([-0.05, -0.05, -0.6], [0.05, 0.05, 0.6])
-    assert find_ground(trimesh.util.concatenate([standing]), np.array([0, 0, 1.0]), BOX_MIN, BOX_MAX, VOXEL) is None
-    ground = find_ground(ball, np.array([0, 0, 1.0]), BOX_MIN, BOX_MAX, VOXEL)
+    assert find_ground(standing, up, BOX_MIN, BOX_MAX, VOXEL) is None
+    ground = find_ground(ball, up, BOX_MIN, BOX_MAX, VOXEL)
     assert ground is None or not ground.is_ground
+    # A floor that runs out of the box with nothing on it is all there is: it stays.
+    floor = slab([-1.0, -1.0, FLOOR_Z - 0.05], [1.0, 1.0, FLOOR_Z])
+    ground = find_ground(floor, up, BOX_MIN, BOX_MAX, VOXEL)
+    assert ground.rim_share > 0.9 and ground.above_share < 0.1 and not ground.is_ground
 
 
 def test_the_export_cuts_the_floor_from_under_a_sphere_and_says_so(tmp_path):
