@@ -151,25 +151,30 @@ def topology(mesh: trimesh.Trimesh) -> dict:
             "pieces": len(pieces), "euler": int(mesh.euler_number)}
 
 
-def scene_paths(out: Path, kind: str, seed: int) -> tuple[Path, Path]:
-    """The synthetic scene's folder and the pipeline's output folder for one kind and seed."""
+def scene_paths(out: Path, kind: str, seed: int, run: str = "run") -> tuple[Path, Path]:
+    """The synthetic scene's folder and the pipeline's output folder (`run`) for one kind and seed."""
     spec = SCENES[kind]
     width, height = spec["size"]
     base = out / f"{kind}-{spec['views']}-{width}x{height}-seed{seed}"
-    return base / "photos", base / "run"
+    return base / "photos", base / run
 
 
-def score_scene(kind: str, seed: int, preset: str, overrides: list[str], out: Path) -> dict:
-    """The whole pipeline on one synthetic scene, and its export scored against the truth (module docstring)."""
+def score_scene(kind: str, seed: int, preset: str, overrides: list[str], out: Path, run: str = "run",
+                score_only: bool = False) -> dict:
+    """The whole pipeline on one synthetic scene (or, with `score_only`, what an earlier run left in its folder),
+    and its export scored against the truth (module docstring)."""
     spec_of_kind = SCENES[kind]
     width, height = spec_of_kind["size"]
-    scene_dir, run_dir = scene_paths(out, kind, seed)
+    scene_dir, run_dir = scene_paths(out, kind, seed, run)
     if not (scene_dir / "images").is_dir():
         synthetic.write_scene(kind, scene_dir, n_views=spec_of_kind["views"], width=width, height=height, seed=seed,
                               alpha=spec_of_kind["alpha"])
     started = time.time()
-    manifests = Pipeline(scene_dir / "images", run_dir, preset=preset, overrides=overrides,
-                         reporter=Reporter(quiet=True)).run(["export"])
+    if score_only:
+        manifests = {name: read_json(run_dir / name / "manifest.json") for name in ("normalize", "fit", "export")}
+    else:
+        manifests = Pipeline(scene_dir / "images", run_dir, preset=preset, overrides=overrides,
+                             reporter=Reporter(quiet=True)).run(["export"])
     pipeline_seconds = time.time() - started
     export_dir = run_dir / "export"
     record = read_json(export_dir / "export.json")
@@ -196,7 +201,8 @@ def score_scene(kind: str, seed: int, preset: str, overrides: list[str], out: Pa
                   "object_size": size, "tolerance": tolerance},
         "stage_summaries": {name: m["summary"]["line"] for name, m in manifests.items()},
         "fit_held_out_psnr": read_json(run_dir / "fit" / "fit.json").get("held_out_psnr"),
-        "pipeline_seconds": round(pipeline_seconds, 1),
+        "pipeline_seconds": None if score_only else round(pipeline_seconds, 1),
+        "export_code": manifests["export"]["code"],
         "export_seconds": read_json(export_dir / "manifest.json")["seconds"],
         "export": {k: record.get(k) for k in ("level", "level_source", "resolution", "lattice", "cleaning", "mesh",
                                                "points", "file_bytes", "object_only", "decimation", "texture")},
@@ -246,6 +252,9 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--set", dest="overrides", action="append", default=[])
     parser.add_argument("--label", default="", help="write bench/results/export-LABEL.json")
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "out" / "export")
+    parser.add_argument("--run", default="run", help="the pipeline's output folder in each scene's folder")
+    parser.add_argument("--score-only", action="store_true",
+                        help="score the export an earlier run left in --run, without running the pipeline")
     parser.add_argument("--real", choices=sorted(REAL_PHOTOS) + ["none"], default="lego",
                         help="a real scene whose files Blender must import (skipped when its data is absent)")
     parser.add_argument("--real-preset", default="fast")
@@ -256,7 +265,7 @@ def main(argv: list[str]) -> int:
     results = []
     for item in args.scenes.split(","):
         kind, seed = item.split(":")
-        result = score_scene(kind, int(seed), args.preset, args.overrides, args.out)
+        result = score_scene(kind, int(seed), args.preset, args.overrides, args.out, args.run, args.score_only)
         results.append(result)
         s, c = result["mesh_vs_truth"], result["colour_renders"]["psnr"]
         print(f"[bench export] {kind} seed {seed}: F-score@1% {s['f_score']:.3f} (precision {s['precision']:.3f}, "
