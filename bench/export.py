@@ -104,12 +104,10 @@ def colour_error(mesh: trimesh.Trimesh, spec: synthetic.SceneSpec) -> dict:
 
 
 def load_textured(obj: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """Vertices, faces, UV and the texture image [H, W, 3] in [0, 1] of a textured OBJ (None without a texture)."""
-    mesh = trimesh.load(obj, force="mesh", process=False)
-    if getattr(mesh.visual, "uv", None) is None or getattr(mesh.visual.material, "image", None) is None:
-        return None
-    image = np.asarray(mesh.visual.material.image.convert("RGB"), dtype=np.float64) / 255.0
-    return np.asarray(mesh.vertices), np.asarray(mesh.faces), np.asarray(mesh.visual.uv), image
+    """Vertices (the frame's own axes), faces, UV and the texture image [H, W, 3] in [0, 1] of a textured OBJ (None
+    without a texture)."""
+    mesh, uv, image = blender.as_written(obj)
+    return None if uv is None else (np.asarray(mesh.vertices), np.asarray(mesh.faces), uv, image)
 
 
 def colour_renders(export_dir: Path, run_dir: Path, transforms: dict, scene: dict, spec: synthetic.SceneSpec) -> dict:
