@@ -29,7 +29,7 @@ ray ?=
 until ?=
 extras ?=
 comma := ,
-# make install extras=cluster: also the optional extras named (comma-separated) in pyproject.toml.
+# make install extras=cluster,blender: also the optional extras named (comma-separated) in pyproject.toml.
 EXTRA_STAMPS := $(foreach e,$(subst $(comma), ,$(extras)),$(VENV)/.installed-$(e))
 export OMP_NUM_THREADS ?= $(shell nproc)
 
@@ -63,6 +63,11 @@ install: $(STAMP) $(LPIPS_WEIGHTS) $(EXTRA_STAMPS)
 
 $(VENV)/.installed-%: pyproject.toml | $(STAMP)
 	$(PY) -m pip install -q --no-build-isolation -e '.[$*]' && touch $@
+
+# The blender extra goes to its own folder, on the Blender session's path only (bench/blender.py): bpy needs NumPy 1.x.
+BLENDER_REQUIREMENT = $(shell sed -n 's/^blender = \["\(.*\)"\]/\1/p' pyproject.toml)
+$(VENV)/.installed-blender: pyproject.toml | $(STAMP)
+	$(PY) -m pip install -q --upgrade --target $(VENV)/blender "$(BLENDER_REQUIREMENT)" && touch $@
 
 $(LPIPS_WEIGHTS): | $(STAMP)
 	$(PY) -m pipeline.lpips install --dest $@

@@ -1,94 +1,68 @@
-"""Benchmark of the export stage on the synthetic object scene, and a Blender import of its GLB.
+"""Benchmark of the export stage against true surfaces, on the project's synthetic scenes, and in Blender.
 
-Runs the whole pipeline (ingest, imported poses, normalize, fit, export) on a synthetic object scene
-(RGBA photos, so the object is masked as lego's is), then scores the exported mesh (input frame)
-against the generator's true mesh: F-score and Chamfer distance at a tolerance of 1% of the object's
-size, the largest distance of any mesh vertex from the true surface (the goal: F-score >= 0.9, nothing
-farther than 5% of the object's size), and the vertex colours against the true surface colour.
+Scenes (`--scenes kind:seed,...`; other seeds vary the layout, sizes and textures):
+- `object`: a still life on a slab, photographed with alpha (an object on a backdrop); the truth is all of it;
+- `room`: the still life standing on the floor of a closed, textured room; the truth is the objects alone, so the
+  floor and walls count against the mesh wherever the export keeps them.
+Each runs the whole pipeline (ingest, imported true poses, normalize, fit, export) at the preset, then scores:
+- the mesh (input frame) against the true surface: F-score, precision, recall and Chamfer distance at 1% of the
+  objects' size, recall on the surface some training camera sees (VISIBLE_DEFINITION), precision over the whole
+  mesh, and the share of the mesh's area farther than 5% of the objects' size from the truth (GOAL_*);
+- the colours: the textured mesh (OBJ + MTL + PNG, as written) and the PLY's vertex colours rendered unlit from every
+  held-out camera (plenoxels.texture.render_mesh), against the photo on the pixels the true objects cover, beside the
+  radiance field's own render of the same pixels: the goal is the texture within GOAL_TEXTURE_DB of the field;
+- Blender 5.0.1 (bench/blender.py, when its `bpy` environment is installed): the GLB, OBJ and PLY imported, their
+  frame, scale, materials and a render from a training camera against render_mesh's.
+Writes bench/results/export.json (or export-<label>.json with --label).
 
-Completeness (recall) is reported twice: against the whole true surface, and against its visible part,
-VISIBLE_DEFINITION below (the slab's underside, for one, is in no photo, so no method can recover it).
-Precision always counts every piece of the exported mesh against the whole true surface. The goal is
-judged on the visible-surface F-score (seed 0's scene; other seeds vary the layout, sizes and textures, and
-write export-seed<N>.json). Then, when Blender is
-installed, imports mesh.glb headless with its glTF importer and checks the vertex and face counts,
-the vertex colours and the frame. Writes bench/results/export.json.
-
-Last, the whole pipeline on a real scene (lego by default, `fast` preset) and Blender's import of its GLB.
-
-    .venv/bin/python -m bench.export [--views 48] [--size 320x240] [--preset default] [--set fit.steps=[...]]
-                                     [--seed 0] [--real lego|fox|none] [--real-preset fast]
+    .venv/bin/python -m bench.export [--scenes object:0,room:0] [--preset default] [--set export.texture=off]
+                                     [--label NAME] [--real lego|fox|none] [--real-preset fast]
 """
 from __future__ import annotations
 
 import argparse
-import json
-import shutil
+import os
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
+from bench import blender
+from bench.fit import machine
 from pipeline import synthetic
 from pipeline.json_files import read_json, write_json
 from pipeline.metrics import mesh_scores, surface_distance
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from plenoxels.cameras import Intrinsics, project
+from plenoxels.scene_model import SceneModel
+from plenoxels.texture import render_mesh
 
 REPO = Path(__file__).resolve().parent.parent
-RESULTS = REPO / "bench" / "results" / "export.json"
+RESULTS = REPO / "bench" / "results"
 TOLERANCE_SHARE = 0.01
+FAR_SHARE = 0.05
 VISIBLE_DEFINITION = ("the true-mesh sample points that at least one training camera sees: inside its image and "
                       "not hidden, by more than the tolerance, behind another surface along the ray from the camera "
-                      "(rays cast against the generator's exact shapes, which the true mesh triangulates)")
-GOAL_F_SCORE = 0.9
-GOAL_MAX_DISTANCE_SHARE = 0.05
+                      "(rays cast against the generator's exact shapes, floor and walls included)")
+GOAL_F_SCORE = 0.93
+GOAL_FAR_AREA = 0.01
+GOAL_TEXTURE_DB = 2.0
+# Views, size and alpha of each kind's photos.
+SCENES = {"object": {"views": 48, "size": (320, 240), "alpha": True},
+          "room": {"views": 60, "size": (400, 300), "alpha": False}}
 # The real scenes' photo folders (../shared/data/<scene>/...), whose poses files sit beside them.
 REAL_PHOTOS = {"lego": "train", "fox": "images"}
 
-# Blender's script: import the GLB, write what it holds as JSON. Debian's Blender 3.4 glTF importer
-# still uses numpy's removed `np.bool` alias, so the script restores it before importing.
-BLENDER_SCRIPT = """
-import json, sys
-import numpy
-if not hasattr(numpy, "bool"):
-    numpy.bool = bool
-import bpy
-glb, out = sys.argv[sys.argv.index("--") + 1:]
-bpy.ops.wm.read_factory_settings(use_empty=True)
-bpy.ops.import_scene.gltf(filepath=glb)
-meshes = [o for o in bpy.context.scene.objects if o.type == "MESH"]
-report = {"objects": len(meshes), "vertices": 0, "faces": 0, "colour_attributes": [], "colours": [], "positions": []}
-for o in meshes:
-    m = o.data
-    world = o.matrix_world
-    report["vertices"] += len(m.vertices)
-    report["faces"] += len(m.polygons)
-    report["colour_attributes"] += [(c.name, c.domain, c.data_type) for c in m.color_attributes]
-    if m.color_attributes:
-        colours = m.color_attributes[0]
-        per_vertex = {}
-        for loop in m.loops:
-            per_vertex[loop.vertex_index] = tuple(colours.data[loop.index].color)[:3] if colours.domain == "CORNER" else None
-        if colours.domain == "POINT":
-            per_vertex = {i: tuple(c.color)[:3] for i, c in enumerate(colours.data)}
-        for i in sorted(per_vertex)[:: max(1, len(per_vertex) // 2000)]:
-            report["colours"].append(per_vertex[i])
-            report["positions"].append(tuple(world @ m.vertices[i].co))
-json.dump(report, open(out, "w"))
-"""
 
-
-def training_cameras(transforms: dict, scene: dict) -> list[tuple[np.ndarray, Intrinsics]]:
-    """The generator-frame cameras of the views the fit trained on (normalize's train split)."""
+def training_cameras(transforms: dict, scene: dict, split: str = "train") -> list[tuple[np.ndarray, Intrinsics]]:
+    """The generator-frame cameras of normalize's `split` ("train": the views the fit trained on; "test": held out)."""
     k = Intrinsics(transforms["fl_x"], transforms["fl_y"], transforms["cx"], transforms["cy"], transforms["w"], transforms["h"])
-    train = {f["name"] for f in scene["frames"] if f.get("split", "train") == "train"}
-    return [(np.asarray(f["transform_matrix"]), k) for f in transforms["frames"] if Path(f["file_path"]).stem in train]
+    names = {f["name"] for f in scene["frames"] if f.get("split", "train") == split}
+    return [(np.asarray(f["transform_matrix"]), k) for f in transforms["frames"] if Path(f["file_path"]).stem in names]
 
 
 def visible_from(cameras: list[tuple[np.ndarray, Intrinsics]], spec: synthetic.SceneSpec, tolerance: float):
@@ -129,46 +103,125 @@ def colour_error(mesh: trimesh.Trimesh, spec: synthetic.SceneSpec) -> dict:
             "baseline_mean_colour": float(np.median(np.abs(truth.mean(axis=0) - truth).mean(axis=1)))}
 
 
-def blender_check(glb: Path, mesh_ply: Path) -> dict:
-    blender = shutil.which("blender")
-    if blender is None:
-        return {"ran": False, "why": "blender is not installed (apt-get install -y blender python3-numpy)"}
-    with tempfile.TemporaryDirectory() as tmp:
-        script, out = Path(tmp) / "check.py", Path(tmp) / "out.json"
-        script.write_text(BLENDER_SCRIPT)
-        started = time.time()
-        proc = subprocess.run([blender, "-b", "--factory-startup", "--python", str(script), "--", str(glb), str(out)],
-                              capture_output=True, text=True, timeout=600)
-        if not out.is_file():
-            return {"ran": False, "why": "blender did not write its report", "log_tail": (proc.stdout + proc.stderr)[-2000:]}
-        seen = json.loads(out.read_text())
-    reference = trimesh.load(mesh_ply, force="mesh", process=False)
-    colours = np.asarray(seen["colours"], dtype=np.float64)
-    positions = np.asarray(seen["positions"], dtype=np.float64)
-    # Blender converts glTF's y-up to its z-up, which undoes GLTF_FROM_ZUP: positions are the PLY's.
-    from scipy.spatial import cKDTree
+def load_textured(obj: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Vertices (the frame's own axes), faces, UV and the texture image [H, W, 3] in [0, 1] of a textured OBJ (None
+    without a texture)."""
+    mesh, uv, image = blender.as_written(obj)
+    return None if uv is None else (np.asarray(mesh.vertices), np.asarray(mesh.faces), uv, image)
 
-    gap, nearest = cKDTree(reference.vertices).query(positions)
-    expected = reference.visual.vertex_colors[nearest, :3] / 255.0
+
+def colour_renders(export_dir: Path, run_dir: Path, transforms: dict, scene: dict, spec: synthetic.SceneSpec) -> dict:
+    """PSNR against the held-out photos, on the pixels the true objects wholly cover: the textured OBJ and the PLY's
+    vertex colours rendered unlit (render_mesh), and the radiance field's own render of the same pixels."""
+    model = SceneModel.load(run_dir / "fit")
+    textured = load_textured(export_dir / "mesh.obj")
+    ply = trimesh.load(export_dir / "mesh.ply", force="mesh", process=False)
+    held_out = {f["name"]: f for f in scene["frames"] if f.get("split") == "test"}
+    squared = {"field": 0.0, "texture": 0.0, "vertex_colours": 0.0}
+    pixels = 0
+    for frame in transforms["frames"]:
+        record = held_out.get(Path(frame["file_path"]).stem)
+        if record is None:
+            continue
+        c2w, k = np.asarray(frame["transform_matrix"]), Intrinsics.from_frame(record)
+        photo, _, coverage = synthetic.render_view(spec, c2w, k)
+        photo = photo / 255.0
+        mask = coverage >= 1.0
+        renders = {"field": model.render_camera(np.asarray(record["transform_matrix"]), k)["rgb"].numpy(),
+                   "vertex_colours": render_mesh(ply.vertices, ply.faces, c2w, k,
+                                                 vertex_colours=ply.visual.vertex_colors[:, :3] / 255.0)[0]}
+        if textured is not None:
+            renders["texture"] = render_mesh(textured[0], textured[1], c2w, k, uv=textured[2], image=textured[3])[0]
+        for key, image in renders.items():
+            squared[key] += float(((image - photo)[mask] ** 2).sum())
+        pixels += int(mask.sum())
+    result = {key: (-10 * np.log10(max(value / max(3 * pixels, 1), 1e-12)) if pixels and (key != "texture" or textured)
+                    else None) for key, value in squared.items()}
+    return {"psnr": result, "views": len(held_out), "pixels": pixels,
+            "texture_below_field_db": result["field"] - result["texture"] if result["texture"] is not None else None}
+
+
+def topology(mesh: trimesh.Trimesh) -> dict:
+    """Boundary edges (one face), non-manifold edges (more than two), connected pieces and the Euler number."""
+    _, counts = np.unique(np.sort(mesh.edges, axis=1), axis=0, return_counts=True)
+    pieces = trimesh.graph.connected_components(mesh.face_adjacency, nodes=np.arange(len(mesh.faces)))
+    return {"boundary_edges": int((counts == 1).sum()), "non_manifold_edges": int((counts > 2).sum()),
+            "pieces": len(pieces), "euler": int(mesh.euler_number)}
+
+
+def scene_paths(out: Path, kind: str, seed: int, run: str = "run") -> tuple[Path, Path]:
+    """The synthetic scene's folder and the pipeline's output folder (`run`) for one kind and seed."""
+    spec = SCENES[kind]
+    width, height = spec["size"]
+    base = out / f"{kind}-{spec['views']}-{width}x{height}-seed{seed}"
+    return base / "photos", base / run
+
+
+def score_scene(kind: str, seed: int, preset: str, overrides: list[str], out: Path, run: str = "run",
+                score_only: bool = False) -> dict:
+    """The whole pipeline on one synthetic scene (or, with `score_only`, what an earlier run left in its folder),
+    and its export scored against the truth (module docstring)."""
+    spec_of_kind = SCENES[kind]
+    width, height = spec_of_kind["size"]
+    scene_dir, run_dir = scene_paths(out, kind, seed, run)
+    if not (scene_dir / "images").is_dir():
+        synthetic.write_scene(kind, scene_dir, n_views=spec_of_kind["views"], width=width, height=height, seed=seed,
+                              alpha=spec_of_kind["alpha"])
+    started = time.time()
+    if score_only:
+        manifests = {name: read_json(run_dir / name / "manifest.json") for name in ("normalize", "fit", "export")}
+    else:
+        manifests = Pipeline(scene_dir / "images", run_dir, preset=preset, overrides=overrides,
+                             reporter=Reporter(quiet=True)).run(["export"])
+    pipeline_seconds = time.time() - started
+    export_dir = run_dir / "export"
+    record = read_json(export_dir / "export.json")
+    if record["frame"] != "input":
+        raise SystemExit("the benchmark scores the input frame; drop export.frame from --set")
+
+    truth = trimesh.load(scene_dir / "ground_truth" / "mesh.ply", force="mesh", process=False)
+    size = float(np.max(truth.bounds[1] - truth.bounds[0]))
+    tolerance = TOLERANCE_SHARE * size
+    transforms = read_json(scene_dir / "transforms.json")
+    scene = read_json(run_dir / "normalize" / "scene.json")
+    cameras = training_cameras(transforms, scene)
+    spec = synthetic.build_scene(kind, seed)
+    mesh = trimesh.load(export_dir / "mesh.ply", force="mesh", process=False)
+    scores = mesh_scores(mesh, truth, tolerance, reference_visible=visible_from(cameras, spec, tolerance),
+                         far=FAR_SHARE * size)
+    all_surface = mesh_scores(mesh, truth, tolerance)
+    points = np.asarray(trimesh.load(export_dir / "points.ply").vertices)
+    point_distance = surface_distance(truth, points, np.random.default_rng(0)) if len(points) else np.zeros(0)
+    colours = colour_renders(export_dir, run_dir, transforms, scene, spec)
+    texture_gap = colours["texture_below_field_db"]
     return {
-        "ran": True,
-        "seconds": round(time.time() - started, 1),
-        "objects": seen["objects"],
-        "vertices": seen["vertices"],
-        "faces": seen["faces"],
-        "ply_vertices": len(reference.vertices),
-        "ply_faces": len(reference.faces),
-        "colour_attributes": seen["colour_attributes"],
-        "colours_checked": len(colours),
-        "colour_max_error": float(np.abs(colours - expected).max()) if len(colours) else None,
-        "position_max_error": float(gap.max()) if len(gap) else None,
-        "ok": bool(seen["faces"] == len(reference.faces) and seen["colour_attributes"] and len(colours)
-                   and np.abs(colours - expected).max() < 2 / 255 and gap.max() < 1e-4),
+        "scene": {"kind": kind, "seed": seed, "views": spec_of_kind["views"], "size": [width, height],
+                  "object_size": size, "tolerance": tolerance},
+        "stage_summaries": {name: m["summary"]["line"] for name, m in manifests.items()},
+        "fit_held_out_psnr": read_json(run_dir / "fit" / "fit.json").get("held_out_psnr"),
+        "pipeline_seconds": None if score_only else round(pipeline_seconds, 1),
+        "export_code": manifests["export"]["code"],
+        "export_seconds": read_json(export_dir / "manifest.json")["seconds"],
+        "export": {k: record.get(k) for k in ("level", "level_source", "resolution", "lattice", "cleaning", "mesh",
+                                               "points", "file_bytes", "object_only", "decimation", "texture")},
+        "training_cameras": len(cameras),
+        "visible_share_of_true_surface": scores["reference_samples_used"] / all_surface["reference_samples_used"],
+        "mesh_vs_truth": scores,
+        "mesh_vs_all_true_surface": all_surface,
+        "topology": topology(mesh),
+        "vertex_colours": colour_error(mesh, spec),
+        "colour_renders": colours,
+        "goal": {"f_score": scores["f_score"] >= GOAL_F_SCORE, "far_area": scores["far_share"] <= GOAL_FAR_AREA,
+                 "texture": texture_gap is not None and texture_gap <= GOAL_TEXTURE_DB},
+        "points_vs_truth": {"count": len(points),
+                            "within_tolerance": float((point_distance < tolerance).mean()) if len(points) else None,
+                            "median_distance": float(np.median(point_distance)) if len(points) else None},
+        "blender": blender.check_export(export_dir, cameras[0]),
     }
 
 
 def real_scene(name: str, data: Path, preset: str, out: Path) -> dict:
-    """The whole pipeline on a real scene's photos (imported poses), and Blender's import of its GLB."""
+    """The whole pipeline on a real scene's photos (imported poses), and Blender's import of its files."""
     if name == "none":
         return {"ran": False, "why": "--real none"}
     photos = data / name / REAL_PHOTOS[name]
@@ -180,85 +233,55 @@ def real_scene(name: str, data: Path, preset: str, out: Path) -> dict:
     record = read_json(export_dir / "export.json")
     return {"ran": True, "scene": name, "preset": preset, "pipeline_seconds": round(time.time() - started, 1),
             "export": manifests["export"]["summary"]["line"], "level_source": record["level_source"],
-            "blender": blender_check(export_dir / "mesh.glb", export_dir / "mesh.ply")}
+            "blender": blender.check_export(export_dir, None)}
+
+
+def commit() -> str:
+    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    dirty = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "--untracked-files=no"],
+                           capture_output=True, text=True)
+    return head.stdout.strip() + ("+uncommitted changes" if dirty.stdout.strip() else "")
 
 
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--views", type=int, default=48)
-    parser.add_argument("--size", default="320x240")
+    parser.add_argument("--scenes", default="object:0,room:0", help="kind:seed, comma-separated")
     parser.add_argument("--preset", default="default")
     parser.add_argument("--set", dest="overrides", action="append", default=[])
+    parser.add_argument("--label", default="", help="write bench/results/export-LABEL.json")
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "out" / "export")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--run", default="run", help="the pipeline's output folder in each scene's folder")
+    parser.add_argument("--score-only", action="store_true",
+                        help="score the export an earlier run left in --run, without running the pipeline")
     parser.add_argument("--real", choices=sorted(REAL_PHOTOS) + ["none"], default="lego",
-                        help="a real scene whose GLB Blender must import (skipped when its data is absent)")
+                        help="a real scene whose files Blender must import (skipped when its data is absent)")
     parser.add_argument("--real-preset", default="fast")
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     args = parser.parse_args(argv)
-    width, height = (int(v) for v in args.size.split("x"))
-
-    scene_dir = args.out / f"synthetic-object-{args.views}-{width}x{height}-{args.seed}-alpha"
-    if not (scene_dir / "images").is_dir():
-        synthetic.write_scene("object", scene_dir, n_views=args.views, width=width, height=height, seed=args.seed,
-                              alpha=True)
-    started = time.time()
-    run_dir = args.out / ("run" if args.seed == 0 else f"run-seed{args.seed}")
-    pipeline = Pipeline(scene_dir / "images", run_dir, preset=args.preset, overrides=args.overrides,
-                        reporter=Reporter(quiet=True))
-    manifests = pipeline.run(["export"])
-    pipeline_seconds = time.time() - started
-    export_dir = run_dir / "export"
-    record = read_json(export_dir / "export.json")
-
-    truth = trimesh.load(scene_dir / "ground_truth" / "mesh.ply", force="mesh", process=False)
-    size = float(np.max(truth.bounds[1] - truth.bounds[0]))
-    tolerance = TOLERANCE_SHARE * size
-    transforms = read_json(scene_dir / "transforms.json")
-    cameras = training_cameras(transforms, read_json(run_dir / "normalize" / "scene.json"))
-    spec = synthetic.build_scene("object", args.seed)
-    mesh = trimesh.load(export_dir / "mesh.ply", force="mesh", process=False)
-    if record["frame"] != "input":
-        raise SystemExit("the benchmark scores the input frame; drop export.frame from --set")
-    scores = mesh_scores(mesh, truth, tolerance, reference_visible=visible_from(cameras, spec, tolerance))
-    all_surface = mesh_scores(mesh, truth, tolerance)
-    points = np.asarray(trimesh.load(export_dir / "points.ply").vertices)
-    point_distance = surface_distance(truth, points, np.random.default_rng(0)) if len(points) else np.zeros(0)
-    result = {
-        "scene": {"kind": "object", "views": args.views, "size": [width, height], "seed": args.seed,
-                  "object_size": size, "tolerance": tolerance},
-        "preset": args.preset, "overrides": args.overrides,
-        "stage_summaries": {name: m["summary"]["line"] for name, m in manifests.items()},
-        "fit": read_json(run_dir / "fit" / "fit.json").get("held_out_psnr"),
-        "pipeline_seconds": round(pipeline_seconds, 1),
-        "export_seconds": read_json(export_dir / "manifest.json")["seconds"],
-        "export": {k: record[k] for k in ("frame", "level", "level_source", "resolution", "lattice", "cleaning",
-                                           "mesh", "points", "file_bytes")},
-        "visible_definition": VISIBLE_DEFINITION,
-        "training_cameras": len(cameras),
-        "visible_share_of_true_surface": scores["reference_samples_used"] / all_surface["reference_samples_used"],
-        "mesh_vs_truth": scores,
-        "mesh_vs_all_true_surface": all_surface,
-        "max_vertex_distance_share": scores["max_vertex_distance"] / size,
-        "vertex_colours": colour_error(mesh, spec),
-        "goal_met": bool(scores["f_score"] >= GOAL_F_SCORE and scores["max_vertex_distance"] / size <= GOAL_MAX_DISTANCE_SHARE),
-        "points_vs_truth": {"count": len(points),
-                            "within_tolerance": float((point_distance < tolerance).mean()) if len(points) else None,
-                            "median_distance": float(np.median(point_distance)) if len(points) else None},
-        "blender": blender_check(export_dir / "mesh.glb", export_dir / "mesh.ply"),
-        "real_scene": real_scene(args.real, args.data, args.real_preset, args.out),
-    }
-    results = RESULTS if args.seed == 0 else RESULTS.with_name(f"export-seed{args.seed}.json")
-    results.parent.mkdir(parents=True, exist_ok=True)
-    write_json(results, result)
-    print(f"[bench export] F-score@1% on the visible true surface {scores['f_score']:.3f} (precision "
-          f"{scores['precision']:.3f}, recall {scores['recall']:.3f}; whole surface: F {all_surface['f_score']:.3f}, recall "
-          f"{all_surface['recall']:.3f}, {result['visible_share_of_true_surface']:.1%} of it visible), Chamfer "
-          f"{scores['chamfer'] / size:.2%} of the object, farthest vertex {result['max_vertex_distance_share']:.1%} "
-          f"of the object, colour error {result['vertex_colours']['median_abs_error']:.3f}; goal {'met' if result['goal_met'] else 'not met'}; points within 1%: "
-          f"{result['points_vs_truth']['within_tolerance']}; blender: "
-          f"{'ok' if result['blender'].get('ok') else result['blender'].get('why', 'check failed')}")
-    real = result["real_scene"]
+    load_before = os.getloadavg()
+    started = time.strftime("%Y-%m-%d %H:%M")
+    results = []
+    for item in args.scenes.split(","):
+        kind, seed = item.split(":")
+        result = score_scene(kind, int(seed), args.preset, args.overrides, args.out, args.run, args.score_only)
+        results.append(result)
+        s, c = result["mesh_vs_truth"], result["colour_renders"]["psnr"]
+        print(f"[bench export] {kind} seed {seed}: F-score@1% {s['f_score']:.3f} (precision {s['precision']:.3f}, "
+              f"recall {s['recall']:.3f}), Chamfer {s['chamfer'] / result['scene']['object_size']:.2%} of the objects' "
+              f"size, {s['far_share']:.1%} of the mesh farther than 5%; PSNR on the objects: field {c['field']:.2f}, "
+              f"texture {c['texture'] if c['texture'] is None else round(c['texture'], 2)}, vertex colours "
+              f"{c['vertex_colours']:.2f} dB; goal {result['goal']}; blender: "
+              f"{'ok' if result['blender'].get('ok') else result['blender'].get('why', 'check failed')}", flush=True)
+    real = real_scene(args.real, args.data, args.real_preset, args.out)
+    document = {"machine": machine(), "commit": commit(), "started": started,
+                "load_average": {"before": [round(x, 2) for x in load_before],
+                                 "after": [round(x, 2) for x in os.getloadavg()]},
+                "preset": args.preset, "overrides": args.overrides, "visible_definition": VISIBLE_DEFINITION,
+                "goal": {"f_score_at_1_percent": GOAL_F_SCORE, "far_area_share_at_5_percent": GOAL_FAR_AREA,
+                         "texture_within_db_of_field": GOAL_TEXTURE_DB},
+                "scenes": results, "real_scene": real}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    write_json(RESULTS / (f"export-{args.label}.json" if args.label else "export.json"), document)
     if real.get("ran"):
         print(f"[bench export] {real['scene']} ({real['preset']}): {real['export']}; blender: "
               f"{'ok' if real['blender'].get('ok') else real['blender'].get('why', 'check failed')}")

@@ -1,5 +1,5 @@
-"""Media files shared by the stages: 8-bit RGB images in and out, meshes and point clouds (PLY, OBJ, glTF binary).
-The pipeline's own JSON records are pipeline/json_files.py's."""
+"""Media files shared by the stages: 8-bit RGB images in and out, point clouds (PLY). Meshes: pipeline/mesh_files.py;
+the pipeline's own JSON records: pipeline/json_files.py."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -29,17 +29,6 @@ def write_png(path: Path, image: np.ndarray) -> None:
 # glTF is y-up; these axes make a z-up frame stand upright in glTF viewers, and importers that convert
 # glTF to z-up (Blender) get the frame's own coordinates back.
 GLTF_FROM_ZUP = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
-
-
-def write_mesh_files(mesh: trimesh.Trimesh, folder: Path) -> dict[str, str]:
-    """mesh.ply (binary, with normals and colours), mesh.obj (vertex colours) and mesh.glb (y-up axes)."""
-    paths = {"ply": folder / "mesh.ply", "obj": folder / "mesh.obj", "glb": folder / "mesh.glb"}
-    paths["ply"].write_bytes(export_ply(mesh, encoding="binary", vertex_normal=True))
-    mesh.export(paths["obj"], include_normals=True)
-    gltf = mesh.copy()
-    gltf.apply_transform(GLTF_FROM_ZUP)
-    gltf.export(paths["glb"])
-    return {k: str(p.name) for k, p in paths.items()}
 
 
 def write_points(path: Path, points: np.ndarray, colours: np.ndarray, normals: np.ndarray) -> None:

@@ -44,14 +44,14 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
 
 
 def mesh_scores(mesh: trimesh.Trimesh, reference: trimesh.Trimesh, tolerance: float, samples: int = 200_000,
-                reference_visible=None, seed: int = 0) -> dict:
+                reference_visible=None, seed: int = 0, far: float | None = None) -> dict:
     """Accuracy and completeness of `mesh` against `reference`, both sampled uniformly by area.
 
     accuracy: distances from the mesh's samples to the reference surface; completeness: from the
     reference's samples to the mesh surface, counting only reference samples for which
     `reference_visible(points) -> bool mask` holds (the surface some camera saw) when it is given.
-    F-score at `tolerance`, Chamfer (mean of the two mean distances), and the largest distance from
-    any mesh vertex to the reference."""
+    F-score at `tolerance`, Chamfer (mean of the two mean distances), the largest distance from
+    any mesh vertex to the reference and, with `far`, the share of the mesh's area farther than that from it."""
     rng = np.random.default_rng(seed)
     mesh_points = _area_samples(mesh, samples, rng)[0]
     reference_points = _area_samples(reference, samples, rng)[0]
@@ -71,6 +71,7 @@ def mesh_scores(mesh: trimesh.Trimesh, reference: trimesh.Trimesh, tolerance: fl
         "completeness_mean": float(to_mesh.mean()),
         "max_vertex_distance": float(surface_distance(reference, np.asarray(mesh.vertices), rng).max()),
         "reference_samples_used": len(reference_points),
+        **({"far": far, "far_share": float((to_reference > far).mean())} if far is not None else {}),
     }
 
 

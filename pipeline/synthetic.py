@@ -1,6 +1,6 @@
 """Synthetic scenes with exact cameras: ray-cast textured analytic shapes, for the demo and the tests.
 
-Three kinds, matching the scene types the pipeline handles:
+Four kinds, matching the scene types the pipeline handles:
 - `object`: a still life (spheres and boxes on a slab) seen by an inward orbit; nothing else in the
   scene, so rays that miss it see a plain background colour (or are transparent, with `alpha=True`).
 - `forward`: objects at several depths in front of a textured floor and back wall, seen by cameras
@@ -8,6 +8,10 @@ Three kinds, matching the scene types the pipeline handles:
 - `unbounded`: the `object` still life (without its slab) on an endless textured ground, inside a
   textured environment sphere of radius 24 (12 times the object's width), seen by an inward orbit:
   a bounded grid around the object cannot hold it.
+- `room`: the `object` still life (without its slab) standing on the floor of a closed, textured room
+  (four walls and a ceiling a few units away), seen by an inward orbit inside the room: what a capture of
+  things on a floor indoors looks like. Only the objects are foreground (the true mesh); floor and walls
+  are the room around them.
 
 The world frame is deliberately not normalised (z up, the object about 2 units wide, centred at
 OBJECT_CENTRE, off the origin) so the normalize stage has real work to do.
@@ -43,11 +47,11 @@ from pipeline.report import Reporter
 from plenoxels.cameras import Intrinsics, look_at, pixel_directions
 from plenoxels.errors import UserError
 
-KINDS = ("object", "forward", "unbounded")
+KINDS = ("object", "forward", "unbounded", "room")
 WORLD_UP = (0.0, 0.0, 1.0)
 OBJECT_CENTRE = np.array([0.3, -0.2, 0.5])
 ENVIRONMENT_RADIUS = 24.0
-HORIZONTAL_FOV_DEG = {"object": 55.0, "forward": 60.0, "unbounded": 60.0}
+HORIZONTAL_FOV_DEG = {"object": 55.0, "forward": 60.0, "unbounded": 60.0, "room": 60.0}
 # Hits closer than this along a ray are ignored, so a ray never hits the surface it starts on.
 MIN_HIT_DISTANCE = 1e-6
 
@@ -325,6 +329,8 @@ def build_scene(kind: str, seed: int = 0) -> SceneSpec:
                 Sphere(tuple(OBJECT_CENTRE), ENVIRONMENT_RADIUS, _texture(rng, 0.4),
                        foreground=False, inward=True, shaded=False),
             ]
+        elif kind == "room":
+            shapes += _room(rng)
     return SceneSpec(kind=kind, seed=seed, shapes=tuple(shapes), background=(1.0, 1.0, 1.0),
                      light=tuple(light / np.linalg.norm(light)), ambient=0.5, look_at=tuple(OBJECT_CENTRE))
 
@@ -355,6 +361,31 @@ def _still_life(rng: np.random.Generator, with_slab: bool) -> list[Shape]:
         Box((x3, y3, floor + box_b[2]), box_b, rng.uniform(0, math.pi), _texture(rng, 4.5)),
     ]
     return shapes
+
+
+def _room(rng: np.random.Generator) -> list[Shape]:
+    """A closed room around OBJECT_CENTRE: the floor the still life stands on, four walls ROOM_HALF_WIDTH
+    sideways (varied per seed) and a ceiling ROOM_HEIGHT above the floor, each plane facing inwards.
+    A camera inside a convex room meets one of its planes first along every ray, so endless planes
+    draw its walls."""
+    cx, cy, cz = OBJECT_CENTRE
+    floor = cz - 0.5
+    half_x, half_y = rng.uniform(*ROOM_HALF_WIDTH, size=2)
+    height = rng.uniform(*ROOM_HEIGHT)
+    walls = _texture(rng, 1.5)
+    return [
+        Plane((cx, cy, floor), (0.0, 0.0, 1.0), _texture(rng, 3.0)),
+        Plane((cx, cy, floor + height), (0.0, 0.0, -1.0), _texture(rng, 1.0)),
+        Plane((cx - half_x, cy, floor), (1.0, 0.0, 0.0), walls),
+        Plane((cx + half_x, cy, floor), (-1.0, 0.0, 0.0), walls),
+        Plane((cx, cy - half_y, floor), (0.0, 1.0, 0.0), _texture(rng, 1.5)),
+        Plane((cx, cy + half_y, floor), (0.0, -1.0, 0.0), _texture(rng, 1.5)),
+    ]
+
+
+# The room kind: its walls' distance from OBJECT_CENTRE sideways and its ceiling's height above the floor (ranges).
+ROOM_HALF_WIDTH = (3.6, 4.6)
+ROOM_HEIGHT = (3.2, 3.8)
 
 
 # The forward-facing rig: camera grid centre, the direction every camera faces, and where the back wall stands.
@@ -408,7 +439,7 @@ def camera_poses(scene: SceneSpec, n_views: int) -> np.ndarray:
     # A two-turn spiral up the upper hemisphere: neighbours are 720/n degrees apart, and each
     # azimuth is seen from two elevations.
     s = (np.arange(n_views) + 0.5) / n_views
-    low, high, radius = (12.0, 65.0, 4.0) if scene.kind == "object" else (6.0, 40.0, 3.5)
+    low, high, radius = {"object": (12.0, 65.0, 4.0), "room": (10.0, 45.0, 3.0)}.get(scene.kind, (6.0, 40.0, 3.5))
     azimuth = rng.uniform(0, 2 * math.pi) + 4 * math.pi * s
     elevation = np.radians(low + (high - low) * s)
     offsets = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], -1)

@@ -7,17 +7,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
 import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from plenoxels.errors import UserError
 from plenoxels.fit_frame import FitFrame
+from plenoxels.options import MeshOptions
+from plenoxels.ground import RIM_SHARE, cut_ground, find_ground, reaches_box_sides
 from plenoxels.render import COLOUR_OFFSET, SH_C0, RenderOptions, ray_samples
-from plenoxels.surface import Terminations, as_numpy, density_gradient, sample_field
+from plenoxels.surface import Terminations, ViewRender, as_numpy, density_gradient, sample_field, seen_vertices
 
 # Where along the inward normal a vertex's colour is gathered, in voxels (negative: outside the surface).
 COLOUR_PROBE_VOXELS = np.arange(-1.0, 3.01, 0.5)
@@ -192,42 +197,60 @@ class CleanReport:
     pieces: int
     dropped_small: int
     dropped_far: int
+    dropped_room: int = 0
 
 
 def clean_mesh(mesh: trimesh.Trimesh, box_min: np.ndarray, box_max: np.ndarray, min_piece_fraction: float,
-               max_gap: float) -> tuple[trimesh.Trimesh, CleanReport]:
-    """Crops to the box (faces with a vertex outside go), then keeps the largest connected piece and
-    every piece that is both big enough and close enough to it. `max_gap` is in the mesh's units."""
+               max_gap: float, anchored: np.ndarray | None = None, room_reach: float | None = None
+               ) -> tuple[trimesh.Trimesh, CleanReport]:
+    """Crops to the box (faces with a vertex outside go), then keeps the largest connected piece and every piece
+    that is big enough and either close enough to it (`max_gap`, the mesh's units) or holds an `anchored` vertex
+    [V] (one that stood on the ground that was cut away). With `room_reach`, a piece that comes that close to one
+    of the box's vertical sides is the room the box cut through, and goes (plenoxels.ground.reaches_box_sides)."""
     faces_in = len(mesh.faces)
     inside = np.all((mesh.vertices >= box_min) & (mesh.vertices <= box_max), axis=1)
     keep_faces = inside[mesh.faces].all(axis=1)
-    mesh = submesh(mesh, keep_faces)
+    if anchored is not None:
+        anchored = anchored & inside
+    mesh, anchored = submesh(mesh, keep_faces, anchored)
     cropped = faces_in - len(mesh.faces)
     if len(mesh.faces) == 0:
         return mesh, CleanReport(faces_in, cropped, 0, 0, 0)
 
     labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
     sizes = np.bincount(labels)
-    main = int(np.argmax(sizes))
+    room = (reaches_box_sides(mesh, labels, box_min, box_max, room_reach) if room_reach is not None
+            else np.zeros(len(sizes), dtype=bool))
+    if room.all():  # the box cuts through everything: nothing tells the object from the room
+        room[:] = False
+    main = int(np.argmax(np.where(room, -1, sizes)))
+    on_ground = (np.bincount(labels[anchored[mesh.faces].any(axis=1)], minlength=len(sizes)) > 0
+                 if anchored is not None else np.zeros(len(sizes), dtype=bool))
     main_tree = cKDTree(mesh.vertices[np.unique(mesh.faces[labels == main])])
-    kept, small, far = {main}, 0, 0
+    kept, small, far, room_pieces = {main}, 0, 0, 0
     for label in np.argsort(-sizes):
         if label == main:
+            continue
+        if room[label]:
+            room_pieces += 1
             continue
         if sizes[label] < min_piece_fraction * sizes[main]:
             small += 1
             continue
-        gap, _ = main_tree.query(mesh.vertices[np.unique(mesh.faces[labels == label])], k=1)
-        if gap.min() > max_gap:
-            far += 1
-            continue
+        if not on_ground[label]:
+            gap, _ = main_tree.query(mesh.vertices[np.unique(mesh.faces[labels == label])], k=1)
+            if gap.min() > max_gap:
+                far += 1
+                continue
         kept.add(int(label))
-    mesh = submesh(mesh, np.isin(labels, list(kept)))
-    return mesh, CleanReport(faces_in, cropped, len(sizes), small, far)
+    mesh, _ = submesh(mesh, np.isin(labels, list(kept)))
+    return mesh, CleanReport(faces_in, cropped, len(sizes), small, far, room_pieces)
 
 
-def submesh(mesh: trimesh.Trimesh, face_mask: np.ndarray) -> trimesh.Trimesh:
-    """The faces in face_mask, with unreferenced vertices removed and vertex colours carried along."""
+def submesh(mesh: trimesh.Trimesh, face_mask: np.ndarray, vertex_mask: np.ndarray | None = None
+            ) -> tuple[trimesh.Trimesh, np.ndarray | None]:
+    """The faces in face_mask, with unreferenced vertices removed and vertex colours carried along, and
+    `vertex_mask` [V] (if any) for the vertices that stay."""
     faces = mesh.faces[face_mask]
     used = np.unique(faces)
     remap = np.full(len(mesh.vertices), -1, dtype=np.int64)
@@ -235,14 +258,35 @@ def submesh(mesh: trimesh.Trimesh, face_mask: np.ndarray) -> trimesh.Trimesh:
     out = trimesh.Trimesh(mesh.vertices[used], remap[faces], process=False)
     if mesh.visual.kind == "vertex":
         out.visual.vertex_colors = mesh.visual.vertex_colors[used]
-    return out
+    return out, (vertex_mask[used] if vertex_mask is not None else None)
 
 
-def decimate(mesh: trimesh.Trimesh, target_faces: int) -> trimesh.Trimesh:
-    """Quadric decimation (fast-simplification through trimesh) to about target_faces."""
-    if target_faces <= 0 or len(mesh.faces) <= target_faces:
-        return mesh
-    return mesh.simplify_quadric_decimation(face_count=target_faces)
+def topology(mesh: trimesh.Trimesh) -> dict:
+    """What decimation must not change: boundary loops (the edges of holes and of open surfaces), the Euler number
+    and the connected pieces; and the non-manifold edges (more than two faces), which it must not add."""
+    edges = np.sort(np.asarray(mesh.edges), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    boundary = unique[counts == 1]
+    loops = 0
+    if len(boundary):
+        graph = coo_matrix((np.ones(len(boundary)), (boundary[:, 0], boundary[:, 1])), shape=(len(mesh.vertices),) * 2)
+        _, labels = connected_components(graph, directed=False)
+        loops = len(np.unique(labels[boundary[:, 0]]))
+    pieces = len(np.unique(trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))))
+    return {"faces": len(mesh.faces), "boundary_loops": loops, "boundary_edges": len(boundary),
+            "non_manifold_edges": int((counts > 2).sum()), "euler": int(mesh.euler_number), "pieces": pieces}
+
+
+def decimate(mesh: trimesh.Trimesh, max_faces: int) -> tuple[trimesh.Trimesh, dict]:
+    """Quadric decimation (fast-simplification through trimesh) to at most about `max_faces` faces (0: every face
+    kept), and the topology before and after. Its collapses keep boundary vertices on the boundary, so open edges
+    stay where they were and no hole opens; the record lets a test and the summary say so."""
+    before = topology(mesh)
+    if max_faces <= 0 or len(mesh.faces) <= max_faces:
+        return mesh, {"decimated": False, "before": before, "after": before}
+    simplified = mesh.simplify_quadric_decimation(face_count=max_faces)
+    simplified.remove_unreferenced_vertices()
+    return simplified, {"decimated": True, "before": before, "after": topology(simplified)}
 
 
 def transform_points(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -259,3 +303,107 @@ def mesh_to_world(vertices: np.ndarray, faces: np.ndarray, frame: FitFrame) -> t
     if len(vertices) and frame.flips_orientation(vertices.mean(0)):
         faces = faces[:, ::-1]
     return world, np.ascontiguousarray(faces)
+
+
+# normalize's world frame is z up: the direction the ground's normal is looked for around.
+WORLD_UP = np.array([0.0, 0.0, 1.0])
+# A piece the box cut through comes within this many voxels of the box's vertical sides.
+ROOM_REACH_VOXELS = 2.0
+
+
+def isolate_object(mesh: trimesh.Trimesh, box_min: np.ndarray, box_max: np.ndarray, voxel: float, options: MeshOptions,
+                   user_box: bool) -> tuple[trimesh.Trimesh, dict]:
+    """The mesh without the ground it stands on and the room around it (plenoxels/ground.py), and what was cut.
+    `voxel`: world units; `user_box`: the box is the user's crop, which may cut through the object on purpose, so no
+    piece goes for reaching its sides."""
+    faces_in = len(mesh.faces)
+    ground = find_ground(mesh, WORLD_UP, box_min, box_max, voxel, options.seed)
+    record = {"ground": ground.describe() if ground is not None else None, "ground_faces_cut": 0,
+              "room_pieces_dropped": 0, "faces_before": faces_in}
+    if ground is None or not ground.is_ground:
+        record.update(faces_after=faces_in, cut="nothing: " + (
+            "no plane under the object" if ground is None else
+            f"the plane under the object reaches {ground.rim_share:.0%} of the box's edge, so it is part of the object"
+            if ground.rim_share < RIM_SHARE else "nothing stands on the plane found"))
+        return mesh, record
+    keep, touching = cut_ground(mesh, ground)
+    cut, anchored = submesh(mesh, keep, touching)
+    size = box_max - box_min
+    cleaned, report = clean_mesh(cut, box_min, box_max, options.min_piece_fraction,
+                                 options.max_gap * float(np.linalg.norm(size)), anchored=anchored,
+                                 room_reach=None if user_box else ROOM_REACH_VOXELS * voxel)
+    if len(cleaned.faces) == 0:
+        record.update(faces_after=faces_in, cut="nothing: cutting the ground left no object")
+        return mesh, record
+    record.update(ground_faces_cut=int((~keep).sum()), room_pieces_dropped=report.dropped_room,
+                  small_pieces_dropped=report.dropped_small, far_pieces_dropped=report.dropped_far,
+                  faces_after=len(cleaned.faces))
+    share = 1.0 - len(cleaned.faces) / max(faces_in, 1)
+    record["cut"] = (f"the ground (a plane tilted {ground.tilt_deg:.1f} deg from up, reaching {ground.rim_share:.0%} of "
+                     f"the box's edge) and what lies below it" +
+                     (f", {report.dropped_room} piece{'s' * (report.dropped_room != 1)} of the room at the box's edge"
+                      if report.dropped_room else "") + f": {share:.0%} of the faces")
+    return cleaned, record
+
+
+def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, options: MeshOptions, report,
+               level_rays: Terminations | None = None, views: list[ViewRender] | None = None,
+               object_only: bool = False, user_box: bool = False) -> tuple[trimesh.Trimesh, dict]:
+    """The cleaned, coloured, decimated mesh in the normalised world, and what was decided on the way.
+    `level_rays`: the training views' opaque rays (fit frame), for the auto level; `views`: the training views
+    rendered, to drop the faces none of them sees (with unseen: drop); `object_only`: cut the ground and the room
+    away (isolate_object); `user_box`: the box is the user's crop."""
+    lattice = grid_lattice(grid)
+    if options.level == "auto":
+        level, level_source = auto_level(grid, lattice, level_rays, options.level_share, options.level_opacity,
+                                         options.seed)
+    else:
+        level, level_source = float(options.level), "set"
+    native = int(np.max(lattice.values.shape) - 1)
+    resolution = native if options.resolution == "auto" else int(options.resolution)
+    fine = refine(lattice, resolution, level)
+    report.info(f"marching cubes at density {level:.4g} on a {'x'.join(map(str, fine.values.shape))} lattice")
+    vertices, faces = extract_surface(fine, level)
+    world, faces = mesh_to_world(vertices, faces, frame)
+    mesh = trimesh.Trimesh(world, faces, process=False)
+
+    size = box_max - box_min
+    crop_min, crop_max = box_min - options.crop_margin * size, box_max + options.crop_margin * size
+    max_gap = options.max_gap * float(np.linalg.norm(size))
+    mesh, cleaning = clean_mesh(mesh, crop_min, crop_max, options.min_piece_fraction, max_gap)
+    if len(mesh.faces) == 0:
+        raise UserError("the mesh is empty after cropping to the foreground box; check normalize's foreground "
+                        "or raise export.crop_margin")
+    voxel_world = grid_lattice_voxel_world(grid, frame, mesh)
+    unseen_faces = 0
+    if options.unseen == "drop" and views:
+        seen = seen_vertices(mesh, views, frame, voxel_world, options.seen_tolerance * voxel_world,
+                             options.point_opacity)
+        keep = seen[mesh.faces].any(axis=1)
+        unseen_faces = int((~keep).sum())
+        mesh, _ = clean_mesh(submesh(mesh, keep)[0], crop_min, crop_max, options.min_piece_fraction, max_gap)
+        if len(mesh.faces) == 0:
+            raise UserError("no training view sees any part of the mesh; set export.unseen=keep")
+    isolation = {"on": False, "cut": "nothing: export.object_only is off"}
+    if object_only:
+        mesh, isolation = isolate_object(mesh, crop_min, crop_max, voxel_world, options, user_box)
+        isolation["on"] = True
+    mesh, decimation = decimate(mesh, options.max_faces)
+    colours = surface_colours(grid, frame.from_world(np.asarray(mesh.vertices)), lattice.voxel)
+    mesh.visual.vertex_colors = colours  # trimesh rounds [0, 1] floats to 8 bits
+    decisions = {
+        "level": level,
+        "level_source": level_source,
+        "resolution": resolution,
+        "fit_resolution": list(lattice.values.shape),
+        "lattice": list(fine.values.shape),
+        "voxel": fine.voxel,
+        "voxel_world": voxel_world,
+        "cleaning": vars(cleaning),
+        "unseen_faces_dropped": unseen_faces,
+        "object_only": isolation,
+        "decimation": decimation,
+        "faces_before_decimation": decimation["before"]["faces"],
+        "decimated": decimation["decimated"],
+    }
+    return mesh, decisions

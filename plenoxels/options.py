@@ -1,6 +1,6 @@
-"""The options of a fit, free of torch: what a new SceneModel is made of (`ModelOptions`) and how it is fitted
-(`TrainOptions`). The fit stage's settings extend both (stages/settings/fit.py), so a settings listing and the
-pipeline's cache keys read them without loading the model."""
+"""The options of the model's machinery, free of torch: what a new SceneModel is made of (`ModelOptions`), how it is
+fitted (`TrainOptions`) and how a mesh is drawn from it (`MeshOptions`). The fit and export stages' settings extend
+them (stages/settings/), so a settings listing and the pipeline's cache keys read them without loading the model."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -128,3 +128,37 @@ class TrainOptions:
     @property
     def total_steps(self) -> int:
         return sum(self.steps)
+
+
+@dataclass
+class MeshOptions:
+    """How the mesh is extracted from the fitted density, cleaned and simplified (the export stage's settings)."""
+    resolution: int | Literal["auto"] = "auto"
+    """Marching-cubes cells along the grid's longest axis; auto: the fit's own."""
+    level: float | Literal["auto"] = "auto"
+    """Density iso-level; auto: see level_share."""
+    level_share: float = 0.5
+    """Auto level: this share of the peak density the opaque training rays meet (auto_level)."""
+    level_opacity: float = 0.5
+    """Auto level without such points: the density at which one voxel is this opaque."""
+    crop_margin: float = 0.05
+    """The foreground box is grown by this share of its size before cropping."""
+    min_piece_fraction: float = 0.01
+    """Pieces with fewer faces than this share of the largest piece are dropped."""
+    max_gap: float = 0.05
+    """Pieces farther than this share of the foreground diagonal from the largest are dropped (unless they stood on
+    the ground that object_only cut away)."""
+    unseen: Literal["drop", "keep"] = "drop"
+    """Faces no training view sees (insides of the fit's shells, undersides)."""
+    seen_tolerance: float = 1.0
+    """A vertex this many voxels behind what a view's pixel sees is still seen."""
+    object_only: Literal["auto", "on", "off"] = "auto"
+    """The object alone: cut away the ground or table it stands on and the room the box cuts through
+    (plenoxels/ground.py); auto: on for object and unbounded scenes, off for forward ones. export.crop, when set, is
+    the box."""
+    max_faces: int = 200_000
+    """Decimate to at most this many faces (quadric, keeping boundaries and topology); 0 keeps every face."""
+    point_opacity: float = 0.5
+    """A pixel gives a point only where its ray is at least this opaque (points, seen faces)."""
+    seed: int = 0
+    """Seed of the random subsets (points, the auto level's rays, the ground's RANSAC)."""

@@ -1,9 +1,12 @@
-"""Export: the fitted radiance field -> a coloured mesh and a coloured point cloud, in the input frame.
+"""Export: the fitted radiance field -> a textured mesh and a coloured point cloud, in the input frame.
 
-Writes export/mesh.ply, mesh.obj and mesh.glb (one mesh: marching cubes over the fitted density,
-view-averaged colours, small pieces and floaters removed, cropped to the foreground, faces no
-training view sees dropped, optionally decimated), export/points.ply (points where the training views' rays terminate, with colours and
-normals) and export/export.json (the frame, counts, sizes, bounds, level and resolution).
+Writes export/mesh.ply (vertex colours), mesh.obj + mesh.mtl + mesh.png and mesh.glb (textured; with vertex colours
+when export.texture is off), points.ply (points where the training views' rays terminate, with colours and normals)
+and export.json (the frame, counts, sizes, bounds, level, resolution, what was cut away, the decimation and the
+texture). One mesh: marching cubes over the fitted density, small pieces and floaters removed, cropped to the
+foreground box (or export.crop), faces no training view sees dropped, the ground and the room cut away for object and
+unbounded scenes, decimated to export.max_faces, then unwrapped and its texture baked (plenoxels/mesh.py,
+plenoxels/ground.py, plenoxels/texture.py; files: pipeline/mesh_files.py).
 
 Seen faces: a fit only pins down density where rays stop, so its surfaces are shells whose insides
 (and the undersides no camera looks at) are guesses; marching cubes turns them into inner surfaces.
@@ -17,20 +20,16 @@ scene.json's `input_from_world`, or left in the normalised frame with `frame: no
 """
 from __future__ import annotations
 
-
 import numpy as np
-import trimesh
 
-from pipeline.io import rgba8, write_mesh_files, write_points
+from pipeline.io import write_points
 from pipeline.json_files import read_json, write_json
-from plenoxels.errors import UserError
-from plenoxels.fit_frame import FitFrame
-from plenoxels.mesh import (LEVEL_RAY_OPACITY, auto_level, clean_mesh, decimate, extract_surface, grid_lattice,
-                            grid_lattice_voxel, grid_lattice_voxel_world, mesh_to_world, refine, submesh,
-                            surface_colours, transform_normals, transform_points)
+from pipeline.mesh_files import write_mesh_files
+from plenoxels.mesh import (LEVEL_RAY_OPACITY, build_mesh, grid_lattice_voxel, surface_colours, transform_normals,
+                            transform_points)
 from plenoxels.scene_model import SceneModel
-from plenoxels.surface import (Terminations, ViewRender, point_normals, ray_terminations, render_views,
-                               seen_vertices, snap_to_level)
+from plenoxels.surface import point_normals, ray_terminations, render_views, snap_to_level
+from plenoxels.texture import texture_mesh
 from stages.settings.export import Settings
 
 
@@ -56,60 +55,6 @@ def _bounds(points: np.ndarray) -> dict:
     return {"min": points.min(0).round(6).tolist(), "max": points.max(0).round(6).tolist()}
 
 
-def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, s: Settings, report,
-               level_rays: Terminations | None = None, views: list[ViewRender] | None = None) -> tuple[trimesh.Trimesh, dict]:
-    """The cleaned, coloured mesh in the normalised world, and what was decided on the way.
-    `level_rays`: the training views' opaque rays (fit frame), for the auto level;
-    `views`: the training views rendered, to drop the faces none of them sees (with unseen: drop)."""
-    lattice = grid_lattice(grid)
-    if s.level == "auto":
-        level, level_source = auto_level(grid, lattice, level_rays, s.level_share, s.level_opacity, s.seed)
-    else:
-        level, level_source = float(s.level), "set"
-    native = int(np.max(lattice.values.shape) - 1)
-    resolution = native if s.resolution == "auto" else int(s.resolution)
-    fine = refine(lattice, resolution, level)
-    report.info(f"marching cubes at density {level:.4g} on a {'x'.join(map(str, fine.values.shape))} lattice")
-    vertices, faces = extract_surface(fine, level)
-    world, faces = mesh_to_world(vertices, faces, frame)
-    mesh = trimesh.Trimesh(world, faces, process=False)
-
-    size = box_max - box_min
-    margin = s.crop_margin * size
-    mesh, cleaning = clean_mesh(mesh, box_min - margin, box_max + margin, s.min_piece_fraction,
-                                s.max_gap * float(np.linalg.norm(size)))
-    if len(mesh.faces) == 0:
-        raise UserError("the mesh is empty after cropping to the foreground box; check normalize's foreground "
-                        "or raise export.crop_margin")
-    unseen_faces = 0
-    if s.unseen == "drop" and views:
-        voxel_world = grid_lattice_voxel_world(grid, frame, mesh)
-        seen = seen_vertices(mesh, views, frame, voxel_world, s.seen_tolerance * voxel_world, s.point_opacity)
-        keep = seen[mesh.faces].any(axis=1)
-        unseen_faces = int((~keep).sum())
-        mesh, _ = clean_mesh(submesh(mesh, keep), box_min - margin, box_max + margin, s.min_piece_fraction,
-                             s.max_gap * float(np.linalg.norm(size)))
-        if len(mesh.faces) == 0:
-            raise UserError("no training view sees any part of the mesh; set export.unseen=keep")
-    faces_before_decimation = len(mesh.faces)
-    mesh = decimate(mesh, s.target_faces)
-    colours = surface_colours(grid, frame.from_world(np.asarray(mesh.vertices)), lattice.voxel)
-    mesh.visual.vertex_colors = rgba8(colours)
-    decisions = {
-        "level": level,
-        "level_source": level_source,
-        "resolution": resolution,
-        "fit_resolution": list(lattice.values.shape),
-        "lattice": list(fine.values.shape),
-        "voxel": fine.voxel,
-        "cleaning": vars(cleaning),
-        "unseen_faces_dropped": unseen_faces,
-        "faces_before_decimation": faces_before_decimation,
-        "decimated": len(mesh.faces) < faces_before_decimation,
-    }
-    return mesh, decisions
-
-
 def run(ctx) -> dict:
     s: Settings = ctx.settings
     scene = read_json(ctx.upstream["normalize"] / "scene.json")
@@ -130,7 +75,15 @@ def run(ctx) -> dict:
     terminations = terminations.subset(inside)
     # The level comes from nearly opaque rays only: a fainter one grazes an edge or crosses a thin part, whose peak is low.
     opaque = terminations.opacity >= LEVEL_RAY_OPACITY
-    mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, terminations.subset(opaque), views)
+    object_only = s.object_only == "on" or (s.object_only == "auto" and scene.get("type") != "forward")
+    mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, terminations.subset(opaque), views,
+                                 object_only=object_only, user_box=bool(s.crop))
+    texture = None
+    if s.texture:
+        ctx.report.info(f"unwrapping {_count(len(mesh.faces))} faces and baking a {s.texture_size}-texel texture")
+        texture = texture_mesh(grid, frame, mesh, s.texture_size, s.texture_colour)
+        decisions["texture"] = {"size": list(texture.atlas.size), "charts": texture.atlas.charts,
+                                "colour": texture.colour, "atlas_vertices": len(texture.atlas.uv)}
 
     voxel = grid_lattice_voxel(grid)
     if len(terminations.t) > 2 * s.points:  # the snap drops some rays: keep a margin, subsample after
@@ -139,6 +92,9 @@ def run(ctx) -> dict:
     points = snap_to_level(grid, terminations, decisions["level"], voxel).world(frame)
     # A ray that grazes the foreground can snap onto matter beyond it (the ground of an unbounded scene).
     points = points[_in_box(points, crop_min, crop_max)]
+    ground = decisions["object_only"].get("ground")
+    if decisions["object_only"].get("ground_faces_cut"):  # the ground the mesh lost goes from the points too
+        points = points[points @ np.asarray(ground["normal"]) - ground["offset"] >= ground["cut_height"]]
     if len(points) > s.points:
         points = points[np.sort(np.random.default_rng(s.seed).choice(len(points), s.points, replace=False))]
     colours = surface_colours(grid, frame.from_world(points), voxel)
@@ -153,7 +109,7 @@ def run(ctx) -> dict:
         points, normals = transform_points(to_output, points), transform_normals(to_output, normals)
     else:
         to_output = np.eye(4)
-    files = write_mesh_files(mesh, ctx.work)
+    files = write_mesh_files(mesh, ctx.work, texture)
     if s.points > 0:
         write_points(ctx.work / "points.ply", points, colours, normals)
         files["points"] = "points.ply"
@@ -171,7 +127,8 @@ def run(ctx) -> dict:
         "file_bytes": sizes,
         "mesh": {"vertices": len(mesh.vertices), "faces": len(mesh.faces), "bounds": _bounds(mesh.vertices)},
         "points": {"count": len(points), "bounds": _bounds(points)},
-        "glb_axes": "glTF y-up: (x, z, -y) of the frame; z-up importers such as Blender's restore the frame's coordinates",
+        "axes": "PLY: the frame's own; OBJ and GLB y-up, (x, z, -y) of the frame: z-up importers such as Blender's "
+                "restore the frame's coordinates",
         **decisions,
     }
     write_json(ctx.work / "export.json", record)
@@ -179,6 +136,9 @@ def run(ctx) -> dict:
     line = (f"mesh {_count(len(mesh.faces))} faces ({_size(sizes['ply'])} PLY), {_count(len(points))} points "
             f"({_size(sizes.get('points', 0))}) in the {s.frame} frame, bounds "
             f"[{', '.join(f'{v:.3g}' for v in lo)}] to [{', '.join(f'{v:.3g}' for v in hi)}], "
-            f"level {decisions['level']:.3g}{' (auto)' if s.level == 'auto' else ''}, resolution {decisions['resolution']}")
+            f"level {decisions['level']:.3g}{' (auto)' if s.level == 'auto' else ''}, resolution {decisions['resolution']}"
+            + (f", texture {'x'.join(map(str, texture.atlas.size))}" if texture is not None else ", vertex colours")
+            + f"; cut away: {decisions['object_only']['cut']}")
     return {"line": line, "frame": s.frame, "faces": len(mesh.faces), "vertices": len(mesh.vertices),
-            "points": len(points), "level": decisions["level"], "resolution": decisions["resolution"]}
+            "points": len(points), "level": decisions["level"], "resolution": decisions["resolution"],
+            "cut_away": decisions["object_only"]["cut"]}

@@ -4,16 +4,19 @@ frame round trip, and the whole pipeline on a tiny synthetic object against its 
 import math
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 import pytest
 import torch
 import trimesh
 from scipy.special import expit
 
+from bench import blender
 from bench.export import training_cameras, visible_from
 from pipeline import config
-from pipeline.io import GLTF_FROM_ZUP, write_mesh_files, write_points
+from pipeline.io import GLTF_FROM_ZUP, write_points
 from pipeline.json_files import read_json, write_json
+from pipeline.mesh_files import write_mesh_files
 from pipeline.metrics import mesh_scores, surface_distance
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
@@ -23,14 +26,16 @@ from plenoxels.cameras import Intrinsics
 from plenoxels.errors import UserError
 from plenoxels.fit_frame import CONTRACTED_BOX, Contraction, FitFrame
 from plenoxels.grid import SparseGrid
-from plenoxels.mesh import (LEVEL_RAY_OPACITY, MARCH_STEP_VOXELS, PEAK_OPTICAL_DEPTH, auto_level, clean_mesh,
-                            grid_lattice, grid_lattice_voxel, ray_peaks, surface_colours, transform_normals,
-                            transform_points)
+from plenoxels.mesh import (LEVEL_RAY_OPACITY, MARCH_STEP_VOXELS, PEAK_OPTICAL_DEPTH, auto_level, build_mesh,
+                            clean_mesh, grid_lattice, grid_lattice_voxel, ray_peaks, surface_colours, topology,
+                            transform_normals, transform_points)
 from plenoxels.ndc import NDCMapping
 from plenoxels.render import COLOUR_OFFSET, SH_C0
 from plenoxels.scene_model import SceneModel
 from plenoxels.surface import (Terminations, ViewRender, point_normals, ray_terminations, render_views, seen_vertices,
                                snap_to_level, surface_points)
+from plenoxels.texture import render_mesh
+from prerequisites import missing
 from stages import export
 from stages.settings.export import Settings
 
@@ -86,7 +91,7 @@ BOX = (np.full(3, -1.0), np.full(3, 1.0))
 
 def test_sphere_surface_sits_where_the_auto_level_says_with_outward_normals_and_colours(tmp_path):
     field = sphere_field(48)
-    mesh, decisions = export.build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet())
+    mesh, decisions = build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet())
     voxel = 2 / 47
     assert decisions["level"] == pytest.approx(math.log(2) / voxel, rel=1e-6)
     assert radial_error(mesh.vertices).max() < 0.15 * voxel
@@ -112,12 +117,12 @@ def test_a_different_level_moves_the_surface_and_finer_resolution_follows_the_tr
     field = sphere_field(32)
     voxel = 2 / 31
     expected_level = math.log(2) / voxel
-    higher, _ = export.build_mesh(field, FitFrame(), *BOX, Settings(level=1.6 * expected_level), _Quiet())
+    higher, _ = build_mesh(field, FitFrame(), *BOX, Settings(level=1.6 * expected_level), _Quiet())
     # density = 2L sigmoid((r - d) / w) = 1.6 L  ->  d = r - w * logit(0.8)
     expected = SPHERE_RADIUS - 0.03 * math.log(4)
     radii = np.linalg.norm(higher.vertices - SPHERE_CENTRE, axis=1)
     assert abs(np.median(radii) - expected) < 0.1 * voxel
-    fine, decisions = export.build_mesh(field, FitFrame(), *BOX, Settings(resolution=93), _Quiet())
+    fine, decisions = build_mesh(field, FitFrame(), *BOX, Settings(resolution=93), _Quiet())
     assert decisions["resolution"] == 93 and max(decisions["lattice"]) < 94
     assert len(fine.faces) > 5 * len(higher.faces)
     assert radial_error(fine.vertices).max() < 0.3 * voxel
@@ -132,8 +137,8 @@ def test_faces_no_training_view_sees_are_dropped_such_as_the_inner_wall_of_a_hol
     density = peak * expit((SPHERE_RADIUS - dist) / 0.03) * expit((dist - (SPHERE_RADIUS - 0.12)) / 0.03)
     field = dense_grid(density, colour_sh(p), (-1, -1, -1), (1, 1, 1))
     views = render_views(field, FitFrame(), orbit_frames(8), 1.0, 0, _Quiet())
-    kept, _ = export.build_mesh(field, FitFrame(), *BOX, Settings(unseen="keep"), _Quiet(), views=views)
-    dropped, decisions = export.build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet(), views=views)
+    kept, _ = build_mesh(field, FitFrame(), *BOX, Settings(unseen="keep"), _Quiet(), views=views)
+    dropped, decisions = build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet(), views=views)
     inner = lambda mesh: np.linalg.norm(mesh.vertices - SPHERE_CENTRE, axis=1) < SPHERE_RADIUS - 0.07
     assert inner(kept).mean() > 0.3 and inner(dropped).mean() < 0.02
     assert decisions["unseen_faces_dropped"] > 0
@@ -168,13 +173,14 @@ def test_a_mesh_layer_behind_a_nearer_one_is_unseen_even_where_the_render_hides_
 def test_level_above_all_density_is_a_user_error():
     field = sphere_field(16)
     with pytest.raises(UserError, match="export.level"):
-        export.build_mesh(field, FitFrame(), *BOX, Settings(level=1e6), _Quiet())
+        build_mesh(field, FitFrame(), *BOX, Settings(level=1e6), _Quiet())
 
 
 def test_bad_settings_are_one_line_errors_naming_the_key():
     for values, key in (({"frame": "colmap"}, "export.frame"), ({"level": -1.0}, "export.level"),
                         ({"resolution": 4}, "export.resolution"), ({"level_opacity": 1.0}, "export.level_opacity"),
-                        ({"target_faces": 2}, "export.target_faces"), ({"points": -5}, "export.points")):
+                        ({"max_faces": 2}, "export.max_faces"), ({"points": -5}, "export.points"),
+                        ({"texture_size": 16}, "export.texture_size"), ({"object_only": "maybe"}, "export.object_only")):
         with pytest.raises(UserError, match=key.replace(".", r"\.")):
             config.build(Settings, "export", values)
     assert config.build(Settings, "export", {"level": "auto", "resolution": 200}).resolution == 200
@@ -193,12 +199,24 @@ def test_cleaning_drops_floaters_far_pieces_and_what_lies_outside_the_box():
     assert (report.pieces, report.dropped_small, report.dropped_far) == (4, 1, 1)
 
 
-def test_decimation_reaches_the_target_and_keeps_the_shape():
+def test_decimation_reaches_the_target_keeps_the_shape_and_opens_no_hole():
+    # The box cuts the sphere's top off: an open surface with one boundary loop, as unseen faces leave a real mesh.
     field = sphere_field(40)
-    mesh, decisions = export.build_mesh(field, FitFrame(), *BOX, Settings(target_faces=800), _Quiet())
+    top = SPHERE_CENTRE[2] + 0.3
+    box = (np.full(3, -1.0), np.array([1.0, 1.0, top]))
+    mesh, decisions = build_mesh(field, FitFrame(), *box, Settings(max_faces=800, crop_margin=0.0), _Quiet())
     assert 700 <= len(mesh.faces) <= 800 < decisions["faces_before_decimation"]
     assert radial_error(mesh.vertices).max() < 0.02
     assert len(mesh.visual.vertex_colors) == len(mesh.vertices)
+    before, after = decisions["decimation"]["before"], decisions["decimation"]["after"]
+    assert before["boundary_loops"] == 1 and before["non_manifold_edges"] == 0
+    for key in ("boundary_loops", "euler", "pieces", "non_manifold_edges"):
+        assert after[key] == before[key], (key, before, after)
+    assert after == topology(mesh)
+    # The rim stays on the cut: no boundary vertex moved down into the sphere's side.
+    edges, counts = np.unique(np.sort(mesh.edges, axis=1), axis=0, return_counts=True)
+    rim = np.unique(edges[counts == 1])
+    assert np.abs(mesh.vertices[rim, 2] - top).max() < 2 * (2 / 39)
 
 
 def forward_rig() -> tuple[np.ndarray, NDCMapping, dict]:
@@ -221,7 +239,7 @@ def test_ndc_grid_maps_back_to_the_world_sphere():
     frame = FitFrame(ndc)
     lo, hi = (-1.0, -1.0, -1.0), (1.0, 1.0, 0.5)
     field = sphere_field(56, frame.to_world, lo, hi)
-    mesh, _ = export.build_mesh(field, frame, *BOX, Settings(), _Quiet())
+    mesh, _ = build_mesh(field, frame, *BOX, Settings(), _Quiet())
     # Only the side facing the camera has samples dense enough; it must lie on the world sphere.
     seen = mesh.vertices[(mesh.vertices - SPHERE_CENTRE) @ -forward > 0.3 * SPHERE_RADIUS]
     assert len(seen) > 100
@@ -240,7 +258,7 @@ def test_ndc_grid_maps_back_to_the_world_sphere():
 
 def test_files_reload_with_the_same_counts_and_the_frame_round_trips(tmp_path):
     field = sphere_field(24)
-    mesh, _ = export.build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet())
+    mesh, _ = build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet())
     rotation = trimesh.transformations.rotation_matrix(0.7, [0.3, -0.5, 0.8])
     input_from_world = rotation * 2.5
     input_from_world[3] = [0, 0, 0, 1]
@@ -252,13 +270,14 @@ def test_files_reload_with_the_same_counts_and_the_frame_round_trips(tmp_path):
     assert mesh.volume > 0
 
     files = write_mesh_files(mesh, tmp_path)
+    assert set(files) == {"ply", "obj", "glb"}
     for kind, name in files.items():
         loaded = trimesh.load(tmp_path / name, force="mesh", process=False)
         assert (len(loaded.vertices), len(loaded.faces)) == (len(mesh.vertices), len(mesh.faces)), kind
         assert loaded.visual.kind == "vertex" and np.array_equal(loaded.visual.vertex_colors[:, :3],
                                                                  mesh.visual.vertex_colors[:, :3]), kind
         vertices = loaded.vertices
-        if kind == "glb":
+        if kind in ("glb", "obj"):  # y-up, as their importers expect
             vertices = transform_points(np.linalg.inv(GLTF_FROM_ZUP), vertices)
         assert np.allclose(vertices, mesh.vertices, atol=1e-4), kind
 
@@ -315,7 +334,7 @@ def test_points_lie_on_the_surface_with_its_colours_and_normals_and_set_the_auto
     # so a ray is 95% opaque before it meets all of D; the level is a little under D / 2, the mesh a little outside.
     terminations = ray_terminations(render_views(field, FitFrame(), orbit_frames(6), 1.0, 0, _Quiet()), FitFrame(), 0.5)
     opaque = terminations.subset(terminations.opacity >= LEVEL_RAY_OPACITY)
-    mesh, decisions = export.build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet(), level_rays=opaque)
+    mesh, decisions = build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet(), level_rays=opaque)
     assert "median peak density" in decisions["level_source"]
     peak = 2 * math.log(2) / voxel
     assert 0.4 * peak < decisions["level"] < 0.5 * peak
@@ -379,7 +398,8 @@ def test_stage_writes_every_file_in_the_input_frame_or_the_normalized_one(tmp_pa
              "foreground": {"min": [-0.8] * 3, "max": [0.8] * 3}, "frames": orbit_frames(4, size=32)}
     summaries, folders = {}, {}
     for frame in ("input", "normalized"):
-        summaries[frame], folders[frame] = run_stage(tmp_path, field, scene, Settings(frame=frame, points=500, point_scale=1.0), frame)
+        settings = Settings(frame=frame, points=500, point_scale=1.0, texture_size=256)
+        summaries[frame], folders[frame] = run_stage(tmp_path, field, scene, settings, frame)
     for frame, folder in folders.items():
         record = read_json(folder / "export.json")
         assert record["frame"] == frame and f"{frame} frame" in summaries[frame]["line"]
@@ -389,9 +409,12 @@ def test_stage_writes_every_file_in_the_input_frame_or_the_normalized_one(tmp_pa
         assert np.allclose(mesh.bounds, [record["mesh"]["bounds"]["min"], record["mesh"]["bounds"]["max"]], atol=1e-5)
         assert radial_error(transform_points(to_normalized, mesh.vertices)).max() < 0.25 * 2 / 31
         assert mesh.volume > 0
-        for name in ("mesh.obj", "mesh.glb"):
+        for name in ("mesh.obj", "mesh.glb"):  # textured: the same faces, vertices split along the atlas's seams
             other = trimesh.load(folder / name, force="mesh", process=False)
-            assert (len(other.vertices), len(other.faces)) == (len(mesh.vertices), len(mesh.faces))
+            assert len(other.faces) == len(mesh.faces) and len(other.vertices) >= len(mesh.vertices)
+            assert record["texture"]["atlas_vertices"] == len(other.vertices)
+            other.apply_transform(np.linalg.inv(GLTF_FROM_ZUP))
+            assert np.allclose(other.bounds, mesh.bounds, atol=1e-5), name
         cloud = trimesh.load(folder / "points.ply")
         assert len(cloud.vertices) == record["points"]["count"] == 500
         assert np.median(radial_error(transform_points(to_normalized, cloud.vertices))) < 0.02
@@ -453,7 +476,7 @@ def test_unbounded_scene_exports_the_foreground_only_not_the_ground_or_the_backg
     with torch.no_grad():
         background.density.fill_(50.0)
         background.colour.fill_(1.0)
-    settings = Settings(frame="normalized", points=2000, point_scale=1.0)
+    settings = Settings(frame="normalized", points=2000, point_scale=1.0, texture_size=256)
     run_stage(tmp_path, field, identity_scene("unbounded", orbit_frames(6, size=32)), settings, "unbounded",
               background=background)
     folder = tmp_path / "unbounded" / "export"
@@ -470,7 +493,7 @@ def test_contracted_scene_exports_its_inner_cube_only_not_the_far_world(tmp_path
     field = cluttered_sphere_field(97, clutter, contraction.to_world, *CONTRACTED_BOX)
     field.contracted = True
     # Every face kept: the ring of views sees little of the sphere's underside at this grid's finer voxels.
-    settings = Settings(frame="normalized", points=2000, point_scale=1.0, unseen="keep")
+    settings = Settings(frame="normalized", points=2000, point_scale=1.0, unseen="keep", texture_size=256)
     run_stage(tmp_path, field, identity_scene("unbounded", orbit_frames(6, size=32)), settings, "contracted",
               contraction=contraction)
     folder = tmp_path / "contracted" / "export"
@@ -485,7 +508,7 @@ def test_forward_scene_exports_the_foreground_only_not_the_far_wall(tmp_path):
     frame = FitFrame(ndc)
     behind = lambda p: ((p - c2w[:3, 3]) @ forward > 9.0) & ((p - c2w[:3, 3]) @ forward < 15.0)
     field = cluttered_sphere_field(56, behind, frame.to_world, (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
-    settings = Settings(frame="normalized", points=2000, point_scale=1.0)
+    settings = Settings(frame="normalized", points=2000, point_scale=1.0, texture_size=256)
     run_stage(tmp_path, field, identity_scene("forward", [{**view, "split": "train"}]), settings, "forward", ndc=ndc)
     folder = tmp_path / "forward" / "export"
     assert read_json(folder / "export.json")["fit_frame"] == "ndc"
@@ -503,7 +526,7 @@ def test_forward_scene_exports_the_foreground_only_not_the_far_wall(tmp_path):
 E2E_FIT = ["fit.resolutions=[24,48]", "fit.steps=[150,150]", "fit.batch_size=2048", "fit.tile_size=16",
            "fit.image_scale=1.0", "fit.eval_every=0", "fit.lr_density=30", "fit.lr_density_final=0.05",
            "fit.lr_density_delay=0.2", "fit.lr_sh=0.01", "fit.lr_sh_final=0.000005", "fit.sh_degree=1",
-           "fit.prune_ray_scale=1.0", "export.points=3000", "export.point_scale=1.0"]
+           "fit.prune_ray_scale=1.0", "export.points=3000", "export.point_scale=1.0", "export.texture_size=256"]
 
 
 @pytest.fixture(scope="module")
@@ -538,6 +561,32 @@ def test_full_pipeline_mesh_and_points_match_the_true_object_in_the_input_frame(
     scene = read_json(out / "normalize" / "scene.json")
     wrong = mesh.copy().apply_transform(np.asarray(scene["world_from_input"]))
     assert mesh_scores(wrong, truth, 0.05 * size, samples=5_000, reference_visible=seen)["f_score"] < 0.3
+
+
+def test_blender_opens_the_glb_obj_and_ply_in_the_input_frame_with_their_colours_showing(pipeline_export, tmp_path):
+    # Blender's own importers, their defaults, one Blender session for the three files (bench/blender.py says what is
+    # checked and within what). Then a control: the same render against ours with the texture upside down.
+    if blender.missing():
+        missing(blender.missing())
+    out, truth, cameras = pipeline_export
+    c2w, k = cameras[0]
+    result = blender.check_export(out / "export", (c2w, k), tmp_path)
+    for kind in ("glb", "obj", "ply"):
+        entry = result["files"][kind]
+        assert entry["ok"], (kind, entry)
+        assert entry["render"]["pixels"] > 200, (kind, entry["render"])
+        size = float(np.max(truth.bounds[1] - truth.bounds[0]))
+        assert np.abs(np.asarray(entry["bounds"]) - truth.bounds).max() < 0.1 * size, kind
+    textured = [m for kind in ("glb", "obj") for m in result["files"][kind]["materials"]]
+    assert len(textured) == 2 and all(m["base_color_from"] == "TEX_IMAGE" for m in textured)
+    assert result["files"]["obj"]["materials"][0]["image"]["filepath"].endswith("mesh.png")
+    assert result["files"]["glb"]["materials"][0]["image"]["packed"]
+
+    mesh, uv, image = blender.as_written(out / "export" / "mesh.glb")
+    wrong, covered = render_mesh(mesh.vertices, mesh.faces, c2w, k, uv=uv, image=image[::-1])
+    theirs = iio.imread(tmp_path / "glb.png").astype(np.float64) / 255.0
+    both = covered & (theirs[..., 3] > 0.5)
+    assert np.abs(theirs[..., :3] - wrong)[both].mean() > 5 * blender.RENDER_MEAN_TOLERANCE
 
 
 class _Quiet:
