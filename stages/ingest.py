@@ -1,19 +1,23 @@
-"""Ingest: a folder of photos (or a video) -> 8-bit RGB PNGs, upright, downscaled, scored for sharpness.
+"""Ingest: a folder of photos (or a video) -> 8-bit RGB PNGs, upright, downscaled, scored for sharpness, with the
+object's mask where the photos carry one (an alpha channel, or a masks/ or mask/ folder beside them: pipeline/masks.py).
 
-Writes ingest/images/<name>.png, ingest/masks/<name>.png (only for images with alpha) and
-ingest/images.json listing every kept image with its original size, scale and sharpness.
+Writes ingest/images/<name>.png, ingest/masks/<name>.png (only for images with a mask, at the image's size) and
+ingest/images.json listing every kept image with its original size, scale, sharpness and mask.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
 from pipeline.config import require
 from pipeline.io import write_json, write_png
+from pipeline.masks import mask_folder, match_masks, read_mask
 from pipeline.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, fit_max_side, load_photo, photo_folder, scene_files,
                              scene_photos, sharpness, video_frames)
+from pipeline.report import short_list
 from plenoxels.errors import UserError
 
 NAME = "ingest"
@@ -36,6 +40,11 @@ class Settings:
     """Fail when fewer usable images than this remain (at least 3)."""
     holdout_split: str = "val"
     """A NeRF synthetic dataset folder (train/, val/, test/): the split held out for scoring (val, test or none)."""
+    masks: bool = True
+    """Read the object's masks from a masks/ (or mask/) folder beside the photos, one per photo by name: poses come
+    from features inside them and the fit models the object alone. Off: ignore the folder (alpha channels still count)."""
+    mask_threshold: int | Literal["auto"] = "auto"
+    """A mask's value above this (0-254) marks the object; auto: above 0, or above 127 in JPEG and WebP masks."""
 
     def check(self) -> None:
         require(self.max_side == 0 or self.max_side >= 32, "ingest.max_side must be 0 (full size) or at least 32")
@@ -44,10 +53,18 @@ class Settings:
         require(0 < self.video_motion < 1, "ingest.video_motion must be in (0, 1): a share of the frame's diagonal")
         require(self.min_images >= 3, "ingest.min_images must be at least 3 (fewer cannot be posed)")
         require(self.holdout_split in ("val", "test", "none"), "ingest.holdout_split must be val, test or none")
+        require(self.mask_threshold == "auto" or 0 <= int(self.mask_threshold) <= 254,
+                "ingest.mask_threshold must be auto or a value from 0 to 254")
 
 
 def fingerprint(scene: Path) -> list:
-    return [[str(p.relative_to(photo_folder(scene))), p.stat().st_size, p.stat().st_mtime_ns] for p in scene_files(scene)]
+    folder = photo_folder(scene)
+    listed = [[str(p.relative_to(folder)), p.stat().st_size, p.stat().st_mtime_ns] for p in scene_files(scene)]
+    masks = mask_folder(folder) if not scene.is_file() else None
+    if masks is not None:
+        listed += [[str(p.relative_to(masks.parent)), p.stat().st_size, p.stat().st_mtime_ns]
+                   for p in sorted(masks.iterdir()) if p.is_file()]
+    return listed
 
 
 def run(ctx) -> dict:
@@ -58,7 +75,12 @@ def run(ctx) -> dict:
     records, unreadable = [], []
 
     def keep(name: str, source: str, rgb: np.ndarray, alpha: np.ndarray | None, original: tuple[int, int],
-             split: str | None = None) -> None:
+             split: str | None = None, mask_file: Path | None = None) -> None:
+        mask_from = "alpha" if alpha is not None else None
+        if mask_file is not None:
+            given = read_mask(mask_file, original, s.mask_threshold)
+            alpha = given if alpha is None else np.minimum(alpha, given)
+            mask_from = mask_file.relative_to(mask_file.parent.parent).as_posix()
         rgb = fit_max_side(rgb, s.max_side)
         record = {"name": name, "file": f"images/{name}.png", "source": source, "width": rgb.shape[1],
                   "height": rgb.shape[0], "original_width": original[0], "original_height": original[1],
@@ -69,7 +91,7 @@ def run(ctx) -> dict:
         if alpha is not None:
             masks_dir.mkdir(exist_ok=True)
             write_png(masks_dir / f"{name}.png", fit_max_side(alpha, s.max_side))
-            record["mask"] = f"masks/{name}.png"
+            record["mask"], record["mask_from"] = f"masks/{name}.png", mask_from
         records.append(record)
 
     if ctx.scene.is_file():
@@ -92,13 +114,23 @@ def run(ctx) -> dict:
                 break
             names = [naming(p) for p, _ in photos]
         name_of = {p: name for (p, _), name in zip(photos, names)}
+        masks_given = mask_folder(folder) if s.masks else None
+        mask_of = match_masks([folder / p for p, _ in photos], masks_given) if masks_given is not None else {}
+        if masks_given is not None and not mask_of:
+            ctx.report.warn(f"{masks_given} holds no mask named like any photo, so it is not used")
+        elif masks_given is not None:
+            unmasked = [name_of[p] for p, _ in photos if folder / p not in mask_of]
+            if unmasked:
+                ctx.report.warn(f"{len(unmasked)} of {len(photos)} photos have no mask in {masks_given} (by name): "
+                                f"{short_list(unmasked)}; they are posed from the whole photo and left out of the fit")
         for relative, split in ctx.report.track(photos, desc="reading photos"):
             try:
                 rgb, alpha = load_photo(folder / relative)
             except Exception as e:  # any decoder failure means the same thing to the user: this file is skipped
                 unreadable.append(f"{relative.as_posix()} ({str(e).splitlines()[0][:60] or type(e).__name__})")
                 continue
-            keep(name_of[relative], relative.as_posix(), rgb, alpha, (rgb.shape[1], rgb.shape[0]), split)
+            keep(name_of[relative], relative.as_posix(), rgb, alpha, (rgb.shape[1], rgb.shape[0]), split,
+                 mask_of.get(folder / relative))
     if unreadable:
         ctx.report.warn(f"skipped {len(unreadable)} file(s) that are not readable photos: {'; '.join(unreadable)}")
 
@@ -117,8 +149,13 @@ def run(ctx) -> dict:
     write_json(ctx.work / "images.json", {"images": records, "skipped": unreadable, "dropped_blurry": dropped})
     w, h = records[0]["width"], records[0]["height"]
     line = f"{len(records)} images at {w}x{h}"
+    masked = sum(r["mask"] is not None for r in records)
+    if masked:
+        given = sum(r.get("mask_from") not in (None, "alpha") for r in records)
+        line += f", {masked} with masks ({f'{given} from the masks folder' if given else 'their alpha'})"
     if dropped:
         line += f", dropped {len(dropped)} blurriest"
     if unreadable:
         line += f", skipped {len(unreadable)} unreadable"
-    return {"line": line, "images": len(records), "skipped": len(unreadable), "dropped_blurry": len(dropped)}
+    return {"line": line, "images": len(records), "skipped": len(unreadable), "dropped_blurry": len(dropped),
+            "masked": masked}
