@@ -22,7 +22,8 @@ from pipeline.io import read_json
 from pipeline.photos import is_video, photo_folder
 from pipeline.sfm import pose_import
 from pipeline.sfm.outputs import write_poses
-from pipeline.sfm.reconstruct import SfmOptions, colmap_logging, reconstruct, short_list
+from pipeline.report import short_list
+from pipeline.sfm.reconstruct import SfmOptions, colmap_logging, reconstruct
 from plenoxels.errors import UserError
 
 NAME = "poses"
@@ -33,8 +34,9 @@ VERSION = 1
 @dataclass
 class Settings(SfmOptions):
     """SfM's options (pipeline.sfm.reconstruct.SfmOptions), and where poses come from."""
-    source: Literal["auto", "sfm", "colmap", "transforms", "llff"] = "auto"
-    """Where poses come from: auto imports pose files found beside the photos, else runs SfM."""
+    source: Literal["auto", "sfm", "colmap", "transforms", "llff", "idr"] = "auto"
+    """Where poses come from: auto imports pose files found beside the photos (a COLMAP model, a transforms.json,
+    LLFF's poses_bounds.npy, IDR/NeuS's cameras_sphere.npz), else runs SfM."""
     path: str = ""
     """An explicit pose file or COLMAP model folder to import (kind taken from source, or guessed)."""
     min_registered_share: float = 0.5
@@ -108,6 +110,8 @@ def run(ctx) -> dict:
         line += f", {points} points triangulated from {written['triangulated']['pairs']} pairs of nearby photos"
     if source == "sfm":
         line += f" ({info['matching']} matching: {info['pairs_verified']}/{info['pairs_matched']} pairs verified)"
+        if info.get("masked_images"):
+            line += f", features only inside the masks of {info['masked_images']} images"
     if info.get("attempt_why"):
         line += f"; as set, {info['attempt_why']}, so these poses come from the attempt with {info['attempt']}"
     if info.get("mapper_fallback"):
