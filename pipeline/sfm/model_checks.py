@@ -35,6 +35,8 @@ MAX_CONTRADICTED_SHARE = 0.2
 STILL_SHARE_OF_DIAGONAL = 0.004
 STILL_MIN_SHARE = 0.25
 STILL_MIN_MIXED_PAIRS = 2
+# At most about this many image pairs are read to count still matches (an even sample of them where there are more).
+STILL_MAX_PAIRS = 3000
 # Below STILL_MIN_SHARE, a refusal still names this share of still matches as a cause to look at.
 STILL_HINT_SHARE = 0.1
 
@@ -109,23 +111,25 @@ def drop_images(model: pycolmap.Reconstruction, stems: list[str]) -> None:
 
 def still_matches(db: Path) -> dict:
     """How many of the matches between photos sit at the same pixels in both (`still`, of `matches`), and in how many
-    pairs still matches lie beside moving ones (`mixed_pairs`, of `pairs`); `still_background`: whether together they
-    show a still background behind something that moved (see STILL_MIN_SHARE)."""
+    pairs still matches lie beside moving ones (`mixed_pairs`, of `pairs`: every matched pair, or an even sample of
+    STILL_MAX_PAIRS); `still_background`: whether together they show a still background behind something that moved
+    (see STILL_MIN_SHARE)."""
+    total = still = mixed = pairs = 0
     with pycolmap.Database.open(db) as database:
         images = {image.image_id: image for image in database.read_all_images()}
         cameras = {camera.camera_id: camera for camera in database.read_all_cameras()}
         keypoints = {i: database.read_keypoints(i)[:, :2] for i in images}
-        pair_ids, matches = database.read_all_matches()
-    total = still = mixed = pairs = 0
-    for pair_id, pair in zip(pair_ids, matches):
-        if not len(pair):
-            continue
-        a, b = pycolmap.pair_id_to_image_pair(pair_id)
-        camera = cameras[images[a].camera_id]
-        moved = np.linalg.norm(keypoints[a][pair[:, 0]] - keypoints[b][pair[:, 1]], axis=1)
-        sitting = int((moved < STILL_SHARE_OF_DIAGONAL * np.hypot(camera.width, camera.height)).sum())
-        total, still, pairs = total + len(pair), still + sitting, pairs + 1
-        mixed += sitting >= MIN_VERIFIED_INLIERS and len(pair) - sitting >= MIN_VERIFIED_INLIERS
+        pair_ids, counts = database.read_num_matches()
+        matched = [pair_id for pair_id, count in zip(pair_ids, counts) if count]
+        # An even sample of the pairs where there are many: their matches are read one pair at a time.
+        for pair_id in matched[::max(1, len(matched) // STILL_MAX_PAIRS)]:
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            pair = database.read_matches(a, b)
+            camera = cameras[images[a].camera_id]
+            moved = np.linalg.norm(keypoints[a][pair[:, 0]] - keypoints[b][pair[:, 1]], axis=1)
+            sitting = int((moved < STILL_SHARE_OF_DIAGONAL * np.hypot(camera.width, camera.height)).sum())
+            total, still, pairs = total + len(pair), still + sitting, pairs + 1
+            mixed += sitting >= MIN_VERIFIED_INLIERS and len(pair) - sitting >= MIN_VERIFIED_INLIERS
     share = still / total if total else 0.0
     return {"matches": total, "still": still, "share": round(share, 4), "pairs": pairs, "mixed_pairs": mixed,
             "still_background": share >= STILL_MIN_SHARE and mixed >= STILL_MIN_MIXED_PAIRS}
