@@ -37,6 +37,7 @@ from pipeline.metrics import mesh_scores
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from pipeline.sfm.compare import compare_poses, umeyama
+from pipeline.stage import STAGE_ORDER
 from pipeline.synthetic import write_scene
 from plenoxels.cameras import colmap_w2c_from_opengl_c2w
 from plenoxels.errors import UserError
@@ -59,7 +60,8 @@ def run_pipeline(scene: Path, out: Path, preset: str, overrides: list[str]) -> d
     started = time.time()
     record: dict = {"overrides": overrides, "load_average_before": os.getloadavg()[0]}
     try:
-        manifests = Pipeline(scene, out, preset=preset, overrides=overrides, reporter=Reporter(quiet=True)).run()
+        manifests = Pipeline(scene, out, preset=preset, overrides=overrides,
+                             reporter=Reporter(quiet=True)).run(list(STAGE_ORDER))
         record["summaries"] = {stage: m["summary"]["line"] for stage, m in manifests.items()}
     except UserError as e:
         record["refused"] = str(e)
