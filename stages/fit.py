@@ -1,7 +1,10 @@
 """Fit: the training photos of normalize/scene.json -> a Plenoxels sparse voxel grid, coarse to fine.
 
 Reads the train split only (held-out frames are used for the live held-out PSNR, never for fitting).
-Images with a mask are composited onto `background_color`. The model is made by
+Images with a mask are composited onto `background_color`, so what lies outside the masks is fitted as empty (a
+masked capture's photos without a mask are left out: pipeline/training_views.py). An object fit with nothing but that
+colour behind its grid that cannot reproduce its own photos by the end of its coarsest resolution starts again with a
+background model, and its summary says why. The model is made by
 plenoxels.scene_model.SceneModel.create and trained by plenoxels.train.Fitter (batches, schedules,
 pruning and upsampling between levels are described there).
 
