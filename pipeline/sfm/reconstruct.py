@@ -433,10 +433,10 @@ def refuse_still(still: dict, masked: bool) -> None:
         return
     where = "even inside the masks given: the masks take in the background" if masked else "as on a turntable"
     raise UserError(f"the photos show a still background behind a turning object: {still['share']:.0%} of "
-                    f"{still['matches']} matched features sit at the same pixels in both photos of a pair, beside "
-                    f"others that move in {still['mixed_pairs']} pairs ({where}), and no model of one rigid scene "
-                    "holds both; give a mask of the object for each photo (a masks/ folder beside the photos, white "
-                    "on the object, each named like its photo)")
+                    f"{still['matches']} matched features sit at the same pixels in both photos of a pair, and in "
+                    f"{still['split_pairs']} pairs they and the others, which move, fit no one rigid scene ({where}); "
+                    "give a mask of the object for each photo (a masks/ folder beside the photos, white on the "
+                    "object, each named like its photo)")
 
 
 def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: bool, scratch: Path,
