@@ -38,6 +38,14 @@ def load_frame(root: Path, frame: dict, scale: float, background_color) -> tuple
     return composited(rgb.astype(np.float32), 255.0, alpha, k, background_color), k
 
 
+def load_mask(root: Path, frame: dict, k: Intrinsics) -> np.ndarray | None:
+    """A frame's mask as float32 [h, w] in [0, 1] at k's size (area resampling), or None where it has none."""
+    mask_path = frame.get("mask_path")
+    if not mask_path:
+        return None
+    return np.clip(resized(read_alpha(root / mask_path), k), 0.0, 1.0)
+
+
 def composited(colour: np.ndarray, peak: float, alpha: np.ndarray | None, k: Intrinsics,
                background_color) -> np.ndarray:
     """`colour` (float32 [h, w, 3] in [0, peak]; weighted in place) with `alpha` ([h, w] in [0, 1], or None)

@@ -30,9 +30,23 @@ def image_scores(render: np.ndarray, truth: np.ndarray, with_lpips: bool) -> dic
     return scores
 
 
+def masked_scores(render: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
+    """PSNR and SSIM inside a mask (float [h, w] in [0, 1]; a pixel counts where it is at least half the object), as
+    the DTU protocol scores object captures: the squared error's mean, and the SSIM map's, over those pixels only.
+    Empty where the mask marks no pixel."""
+    inside = mask >= 0.5
+    if not inside.any():
+        return {}
+    error = (render.astype(np.float64) - truth.astype(np.float64)) ** 2
+    ssim_map = structural_similarity(truth, render, channel_axis=-1, data_range=1.0, gaussian_weights=True, sigma=1.5,
+                                     use_sample_covariance=False, full=True)[1]
+    return {"psnr_masked": round(psnr(float(error[inside].mean())), 4),
+            "ssim_masked": round(float(ssim_map[inside].mean()), 5)}
+
+
 def mean_scores(views: list[dict]) -> dict | None:
     """Each score's mean over the views that have it; None when no view has any."""
-    keys = [k for k in ("psnr", "ssim", "lpips") if any(k in v for v in views)]
+    keys = [k for k in ("psnr", "ssim", "lpips", "psnr_masked", "ssim_masked") if any(k in v for v in views)]
     if not keys:
         return None
     return {k: round(float(np.mean([v[k] for v in views if k in v])), 5) for k in keys}

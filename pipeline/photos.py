@@ -100,8 +100,9 @@ def photo_folder(scene: Path) -> Path:
         return scene.parent
     if _has_photos(scene) or is_split_dataset(scene):
         return scene
-    if _has_photos(scene / "images"):
-        return scene / "images"
+    for name in ("images", "image"):  # image/: the NeuS/IDR layout (beside mask/ and cameras_sphere.npz)
+        if _has_photos(scene / name):
+            return scene / name
     downscaled = [d for d in scene.glob("images_*") if d.name[7:].isdigit() and _has_photos(d)]
     return min(downscaled, key=lambda d: int(d.name[7:])) if downscaled else scene
 

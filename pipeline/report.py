@@ -29,6 +29,10 @@ class LogLines(tqdm):
         return True
 
 
+# A list of names in a message shows this many, then says how many more.
+NAMES_SHOWN = 8
+
+
 class Reporter:
     """Prints to stderr (progress, warnings) and stdout (stage summary lines).
 
@@ -62,6 +66,12 @@ class Reporter:
 
     def track(self, iterable: Iterable[T], total: int | None = None, desc: str = "") -> Iterator[T]:
         yield from self.bar(iterable, total=total, desc=desc)
+
+
+def short_list(names: list[str]) -> str:
+    """The first NAMES_SHOWN names, comma-separated, and how many more there are."""
+    shown = ", ".join(names[:NAMES_SHOWN])
+    return shown + (f" and {len(names) - NAMES_SHOWN} more" if len(names) > NAMES_SHOWN else "")
 
 
 def format_duration(seconds: float) -> str:

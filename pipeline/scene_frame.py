@@ -16,10 +16,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+import cv2
 import numpy as np
 from PIL import Image
 
 from pipeline.scene_options import SceneOptions
+from pipeline.visual_hull import DISAGREEING_SHARE, carve, cut_photos, read_silhouettes
 from plenoxels.cameras import Intrinsics, project
 from plenoxels.errors import UserError
 
@@ -39,6 +41,21 @@ NEAR_FAR_MARGIN = 0.1
 BACKDROP_SAMPLES = 12
 BACKDROP_SIDE = 96
 BACKDROP_TOLERANCE = 6  # 8-bit levels from the backdrop colour that still count as backdrop
+# A still background behind a turning object: textured pixels (a local contrast of STILL_TEXTURE_LEVELS) that look the
+# same in every sampled photo, on this share of the pixels. Measured: the synthetic turntable without masks 39% (at
+# 480x360) and 57% (320x240, the object smaller); fox, cup, ball and fern 0%.
+STILL_TEXTURE_LEVELS = 24
+STILL_TEXTURED_SHARE = 0.1
+# One backdrop behind the whole capture: at least BACKDROP_MIN_PHOTOS of the sampled photos show its colour on at least
+# BACKDROP_BORDER_SHARE of their borders (an object in front of a flat backdrop leaves most of every border to it).
+BACKDROP_BORDER_SHARE = 0.5
+BACKDROP_MIN_PHOTOS = 0.8
+# The box from the training photos' silhouettes (pipeline/visual_hull.py): at least this many photos, the hull grown
+# by a voxel and this share of its size on each side; on a flat backdrop a tenth of the photos may disagree with a
+# voxel before it goes (the colour test is rougher than a mask).
+MIN_SILHOUETTES = 4
+HULL_MARGIN = 0.02
+BACKDROP_DISAGREEING_SHARE = 0.1
 # Up from the camera x axes needs them to spread: the middle eigenvalue (per camera) must exceed this.
 RIGHT_AXES_MIN_SPREAD = 0.01
 
@@ -243,27 +260,53 @@ def _thumbnail(path: Path, mode: str) -> np.ndarray:
         return np.asarray(im)
 
 
-def empty_pixel_fraction(cams: Cameras, poses_dir: Path) -> float | None:
-    """Share of the pixels of a few evenly spread photos (small copies) that show an empty backdrop:
-    transparent where the images came with alpha masks, otherwise the one flat colour that dominates
-    the image borders. None when the images cannot be read."""
+@dataclass
+class Backdrop:
+    """How much of the photos shows nothing: from masks (transparent or masked-out pixels), or from one flat colour."""
+    empty_fraction: float               # share of sampled pixels that show the empty backdrop
+    from_masks: bool
+    colour: np.ndarray | None           # the flat backdrop's RGB (0-255) where no masks say it
+    photos_showing: float               # share of the sampled photos whose borders mostly show that colour
+    still_textured: float = 0.0         # share of pixels with texture that is the same in every sampled photo
+
+
+def measure_backdrop(cams: Cameras, poses_dir: Path) -> Backdrop | None:
+    """The empty backdrop of a few evenly spread photos (small copies): where every one has a mask, its masked-out
+    pixels; otherwise the one flat colour that dominates the image borders, and how many of the photos show it around
+    their own borders (a white table in some photos and a dark room in others is no one colour). None when the
+    images cannot be read."""
     picks = np.unique(np.linspace(0, len(cams.frames) - 1, min(BACKDROP_SAMPLES, len(cams.frames))).round().astype(int))
     frames = [cams.frames[i] for i in picks]
     try:
         if all(f.get("mask_path") for f in frames):
             empty = [_thumbnail(poses_dir / f["mask_path"], "L") < 128 for f in frames]
-        else:
-            images = [_thumbnail(poses_dir / f["file_path"], "RGB").astype(np.int32) for f in frames]
-            borders = np.concatenate([np.concatenate([im[:2].reshape(-1, 3), im[-2:].reshape(-1, 3),
-                                                      im[:, :2].reshape(-1, 3), im[:, -2:].reshape(-1, 3)])
-                                      for im in images])
-            bins = borders // 32
-            keys, counts = np.unique(bins, axis=0, return_counts=True)
-            backdrop = np.median(borders[(bins == keys[counts.argmax()]).all(axis=1)], axis=0)
-            empty = [np.abs(im - backdrop).max(axis=-1) <= BACKDROP_TOLERANCE for im in images]
+            return Backdrop(float(np.mean(np.concatenate([e.ravel() for e in empty]))), True, None, 1.0)
+        images = [_thumbnail(poses_dir / f["file_path"], "RGB").astype(np.int32) for f in frames]
     except (OSError, ValueError):
         return None
-    return float(np.mean(np.concatenate([e.ravel() for e in empty])))
+    borders = [np.concatenate([im[:2].reshape(-1, 3), im[-2:].reshape(-1, 3), im[:, :2].reshape(-1, 3),
+                               im[:, -2:].reshape(-1, 3)]) for im in images]
+    every_border = np.concatenate(borders)
+    bins = every_border // 32
+    keys, counts = np.unique(bins, axis=0, return_counts=True)
+    colour = np.median(every_border[(bins == keys[counts.argmax()]).all(axis=1)], axis=0)
+    empty = [np.abs(im - colour).max(axis=-1) <= BACKDROP_TOLERANCE for im in images]
+    showing = [np.mean(np.abs(b - colour).max(axis=-1) <= BACKDROP_TOLERANCE) >= BACKDROP_BORDER_SHARE for b in borders]
+    return Backdrop(float(np.mean(np.concatenate([e.ravel() for e in empty]))), False, colour, float(np.mean(showing)),
+                    still_textured_share(images))
+
+
+def still_textured_share(images: list[np.ndarray]) -> float:
+    """The share of pixels that show texture (a local contrast of STILL_TEXTURE_LEVELS or more) and look the same
+    (within BACKDROP_TOLERANCE) in every one of these photos, taken from around the scene: a still background behind
+    an object that turned, not the scene the cameras moved around. 0 where the photos differ in size."""
+    if len(images) < 3 or len({im.shape for im in images}) > 1:
+        return 0.0
+    stack = np.stack(images).astype(np.int16)
+    still = (stack.max(axis=0) - stack.min(axis=0)).max(axis=-1) <= BACKDROP_TOLERANCE
+    grey = np.median(stack, axis=0).mean(axis=-1).astype(np.float32)
+    contrast = cv2.dilate(grey, np.ones((3, 3), np.uint8)) - cv2.erode(grey, np.ones((3, 3), np.uint8))
+    return float(np.mean(still & (contrast >= STILL_TEXTURE_LEVELS)))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -372,6 +415,19 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
         centre_rot = rotation @ axes_point
         box_rot = np.stack([centre_rot - half, centre_rot + half])
         box_from = "cameras: the view of the narrowest camera where the optical axes meet"
+    backdrop = measure_backdrop(cams, poses_dir) if poses_dir is not None and not looks_forward else None
+    if backdrop is not None:
+        measured["still_textured_pixels"] = round(backdrop.still_textured, 4)
+        if backdrop.still_textured >= STILL_TEXTURED_SHARE:
+            raise UserError(f"{backdrop.still_textured:.0%} of the photos' pixels show the same texture at the same "
+                            "place in every sampled photo: a still background behind a turning object (a turntable in "
+                            "a room), which no model of one scene shows; give a mask of the object for each photo (a "
+                            "masks/ folder beside the photos, white on the object, each named like its photo)")
+    held_out = held_out_frames(cams, options)
+    if not family_forward and poses_dir is not None and options.silhouette_box:
+        box_rot, box_from = _silhouette_box(cams, [i for i in range(n) if i not in held_out], poses_dir, backdrop,
+                                            rotation, axes_point, camera_distance, (box_rot, box_from), options,
+                                            measured)
     measured["foreground_from"] = box_from
 
     # Centre on the box rather than on the axes' meeting point: the box was found around that point, and
@@ -400,7 +456,7 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
     if looks_forward:
         detected: SceneType = "forward"
     else:
-        detected = _inward_type(xyz_world, has_points, cams, poses_dir, options, measured, reasons)
+        detected = _inward_type(xyz_world, has_points, backdrop, options, measured, reasons)
     overridden = options.scene_type != "auto"
     scene_type = options.scene_type if overridden else detected
     if overridden:
@@ -424,18 +480,11 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
     measured["near_far_from"] = {k: v for k, v in near_far_from.items() if v}
 
     # ---- frames and split -----------------------------------------------------------------------------
-    order = sorted(range(n), key=lambda i: cams.names[i])
-    # A dataset that names its splits (NeRF synthetic train/val/test) is scored on its own held-out split.
-    dataset_splits = any(f.get("split") for f in cams.frames)
     frames, train_rank = [], 0
-    for rank, i in enumerate(order):
+    for i in sorted(range(n), key=lambda i: cams.names[i]):
         k, frame = cams.intrinsics[i], cams.frames[i]
-        if dataset_splits:
-            held_out = frame.get("split") == "test"
-        else:
-            held_out = options.holdout_every > 0 and rank % options.holdout_every == 0
-        split = "test" if held_out else "train" if train_rank % options.train_every == 0 else "unused"
-        train_rank += not held_out
+        split = "test" if i in held_out else "train" if train_rank % options.train_every == 0 else "unused"
+        train_rank += i not in held_out
         frames.append({
             "name": cams.names[i], "file_path": path_prefix + frame["file_path"],
             "mask_path": path_prefix + frame["mask_path"] if frame.get("mask_path") else None,
@@ -459,6 +508,58 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
         scene["forward"] = {"reference_c2w": reference.tolist(),
                             **_forward_depths(xyz_world if has_points else None, reference, cams, scale, foreground_box)}
     return scene
+
+
+def held_out_frames(cams: Cameras, options: SceneOptions) -> set[int]:
+    """The frames held out for scoring: a dataset's own held-out split where it names its splits (NeRF synthetic
+    train/val/test), else every holdout_every-th by sorted name."""
+    if any(f.get("split") for f in cams.frames):
+        return {i for i, f in enumerate(cams.frames) if f.get("split") == "test"}
+    order = sorted(range(len(cams.names)), key=lambda i: cams.names[i])
+    return {i for rank, i in enumerate(order) if options.holdout_every > 0 and rank % options.holdout_every == 0}
+
+
+def _silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: Backdrop | None,
+                    rotation: np.ndarray, axes_point: np.ndarray, camera_distance: float,
+                    found: tuple[np.ndarray, str], options: SceneOptions, measured: dict) -> tuple[np.ndarray, str]:
+    """The box (rotated frame) the training photos' silhouettes give (pipeline/visual_hull.py) and what it came from:
+    their masks' visual hull, or on a flat backdrop the hull of what is not the backdrop joined with the box `found`
+    otherwise (colour alone may miss a part of the backdrop's colour, so the points keep their say); `found` where
+    the photos carry neither, or their silhouettes do not bound the object (cut by the photos' edges). A box from
+    masks that cuts what a photo's mask shows can only come from wrong masks or poses: that stops here."""
+    flat = (backdrop is not None and not backdrop.from_masks and backdrop.empty_fraction >= options.object_min_empty_fraction
+            and backdrop.photos_showing >= BACKDROP_MIN_PHOTOS)
+    silhouettes = read_silhouettes([cams.names[i] for i in train], [cams.frames[i] for i in train], cams.c2w[train],
+                                   [cams.intrinsics[i] for i in train], poses_dir, backdrop.colour if flat else None)
+    if silhouettes is None or len(silhouettes) < MIN_SILHOUETTES:
+        return found
+    from_masks = silhouettes.source == "masks"
+    hull = carve(silhouettes, rotation, rotation @ axes_point, camera_distance,
+                 DISAGREEING_SHARE if from_masks else BACKDROP_DISAGREEING_SHARE)
+    if hull is None:
+        if from_masks:
+            raise UserError(f"the masks of the {len(silhouettes)} training photos share no region of space: their poses "
+                            "or their masks are wrong (check that each mask belongs to its photo, white on the object)")
+        return found
+    measured["visual_hull"] = {"photos": len(silhouettes), "source": silhouettes.source, "voxel": round(hull.voxel, 6),
+                               "voxels": hull.voxels, "levels": hull.levels, "bounded": hull.bounded,
+                               "box": hull.box.round(6).tolist()}
+    if not hull.bounded:
+        return found  # the photos' edges cut the silhouettes, so they do not say where the object ends
+    grow = hull.voxel + HULL_MARGIN * (hull.box[1] - hull.box[0])
+    box = np.stack([hull.box[0] - grow, hull.box[1] + grow])
+    if not from_masks:
+        box = np.stack([np.minimum(box[0], found[0][0]), np.maximum(box[1], found[0][1])])
+        return box, (f"visual hull of {len(silhouettes)} training photos' silhouettes on their flat backdrop, joined "
+                     f"with the box of the {found[1]}")
+    cut = cut_photos(silhouettes, box, rotation)
+    if cut:
+        names = sorted(cut, key=lambda name: -cut[name])
+        raise UserError(f"the object box the training photos' masks agree on cuts what {len(cut)} photo(s) show "
+                        f"({', '.join(f'{name}: {cut[name]:.0%} of its mask' for name in names[:5])}"
+                        f"{' and more' if len(names) > 5 else ''}); their masks or poses are wrong: fix those masks, "
+                        "or leave those photos out")
+    return box, f"visual hull of {len(silhouettes)} training photos' masks"
 
 
 def _reference_camera(cams: Cameras, dirs: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -498,10 +599,12 @@ def _forward_depths(xyz_world: np.ndarray | None, reference: np.ndarray, cams: C
     return {"near": near, "far": far, "from": "foreground box"}
 
 
-def _inward_type(xyz_world: np.ndarray, has_points: bool, cams: Cameras, poses_dir: Path | None,
-                 options: SceneOptions, measured: dict, reasons: list[str]) -> SceneType:
-    """Object or unbounded: is there a real background beyond the foreground? Unbounded when either the
-    points or the pixels say so; object only when what can be measured says the surroundings are empty."""
+def _inward_type(xyz_world: np.ndarray, has_points: bool, backdrop: Backdrop | None, options: SceneOptions,
+                 measured: dict, reasons: list[str]) -> SceneType:
+    """Object or unbounded: is there a real background beyond the foreground? Masks of the object on every photo say
+    there is none the fit should model. Otherwise unbounded when either the points or the pixels say so (a flat
+    backdrop must be one colour behind most photos); object only when what can be measured says the surroundings
+    are empty."""
     background = []
     if has_points:
         beyond = float(np.mean(np.abs(xyz_world).max(axis=1) > options.beyond_factor))
@@ -512,14 +615,26 @@ def _inward_type(xyz_world: np.ndarray, has_points: bool, cams: Cameras, poses_d
                        f"({'>=' if far_away else '<'} {options.unbounded_min_beyond_fraction:.0%})")
     else:
         reasons.append("no sparse points to measure what lies beyond the foreground")
-    empty = empty_pixel_fraction(cams, poses_dir) if poses_dir is not None else None
-    if empty is not None:
+    if backdrop is not None:
+        empty = backdrop.empty_fraction
         measured["empty_pixel_fraction"] = round(empty, 4)
         scenery = empty < options.object_min_empty_fraction
-        background.append(scenery)
+        if backdrop.from_masks and not scenery:
+            measured["masked"] = True
+            reasons.append(f"every photo has a mask of the object ({empty:.0%} of sampled pixels outside it): what "
+                           "lies outside the masks is trained as empty, so the grid holds the object alone")
+            return "object"
         reasons.append(f"{empty:.0%} of sampled pixels show an empty backdrop, transparent or one flat colour "
                        f"({'<' if scenery else '>='} {options.object_min_empty_fraction:.0%}"
                        f"{': real surroundings fill the photos' if scenery else ''})")
+        if not backdrop.from_masks:
+            measured["backdrop_photos_showing"] = round(backdrop.photos_showing, 3)
+            if not scenery and backdrop.photos_showing < BACKDROP_MIN_PHOTOS:
+                scenery = True
+                reasons.append(f"but only {backdrop.photos_showing:.0%} of the sampled photos show that colour around "
+                               f"most of their borders (< {BACKDROP_MIN_PHOTOS:.0%}): the backdrop differs between "
+                               "photos, so it is not empty and a background model shows it")
+        background.append(scenery)
     if not background:
         reasons.append("nothing shows the surroundings are empty, so a background is assumed")
         return "unbounded"

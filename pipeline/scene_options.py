@@ -30,3 +30,6 @@ class SceneOptions:
     """Unbounded when at least this share of the sparse points lies beyond the foreground."""
     object_min_empty_fraction: float = 0.2
     """Object needs at least this share of sampled pixels to show an empty backdrop."""
+    silhouette_box: bool = True
+    """Box the foreground by the visual hull of the training photos' silhouettes where they carry masks (or alpha) or
+    stand on a flat backdrop, so thin parts the sparse points miss stay inside; off: the box of the points' bulk."""

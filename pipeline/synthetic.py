@@ -1,6 +1,6 @@
 """Synthetic scenes with exact cameras: ray-cast textured analytic shapes, for the demo and the tests.
 
-Four kinds, matching the scene types the pipeline handles:
+Five kinds, matching the scene types the pipeline handles and the captures it must refuse or mask:
 - `object`: a still life (spheres and boxes on a slab) seen by an inward orbit; nothing else in the
   scene, so rays that miss it see a plain background colour (or are transparent, with `alpha=True`).
 - `forward`: objects at several depths in front of a textured floor and back wall, seen by cameras
@@ -12,6 +12,13 @@ Four kinds, matching the scene types the pipeline handles:
   (four walls and a ceiling a few units away), seen by an inward orbit inside the room: what a capture of
   things on a floor indoors looks like. Only the objects are foreground (the true mesh); floor and walls
   are the room around them.
+- `turntable`: the still life (without its slab) on a turntable's plate, turning one revolution in front of a
+  still, textured room (floor and walls) while the camera stays put. In the object's frame the cameras orbit it and
+  the room turns with them, so only the object's pixels agree with one rigid scene; the masks (`masks=True`) mark
+  the object alone (not its plate).
+
+`mast=True` adds a thin mast (a few pixels wide) rising well above the still life: a part the sparse points
+barely see, which the photos' silhouettes show.
 
 The world frame is deliberately not normalised (z up, the object about 2 units wide, centred at
 OBJECT_CENTRE, off the origin) so the normalize stage has real work to do.
@@ -23,6 +30,7 @@ fine texture from aliasing differently in each view; depth and coverage come fro
 
 Written to disk by `write_scene`:
     images/NNNN.png              8-bit RGB (RGBA with alpha=True, object kind only)
+    masks/NNNN.png               with masks=True: 8-bit grey, the share of each pixel the object covers
     transforms.json              shared PINHOLE camera + OpenGL camera-to-world per frame, as the poses stage writes it
     ground_truth/mesh.ply        the foreground shapes, triangulated, in the same world frame
     ground_truth/scene.json      kind, object bounds, world up, the shapes, and each view's near/far hit depths
@@ -47,11 +55,14 @@ from pipeline.report import Reporter
 from plenoxels.cameras import Intrinsics, look_at, pixel_directions
 from plenoxels.errors import UserError
 
-KINDS = ("object", "forward", "unbounded", "room")
+KINDS = ("object", "forward", "unbounded", "room", "turntable")
 WORLD_UP = (0.0, 0.0, 1.0)
 OBJECT_CENTRE = np.array([0.3, -0.2, 0.5])
 ENVIRONMENT_RADIUS = 24.0
-HORIZONTAL_FOV_DEG = {"object": 55.0, "forward": 60.0, "unbounded": 60.0, "room": 60.0}
+HORIZONTAL_FOV_DEG = {"object": 55.0, "forward": 60.0, "unbounded": 60.0, "room": 60.0, "turntable": 50.0}
+# The turntable rig: the still camera's distance from the object's centre and its elevation (degrees), and the
+# radius of the room around them.
+TURNTABLE_DISTANCE, TURNTABLE_ELEVATION_DEG, ROOM_RADIUS = 3.2, 28.0, 7.0
 # Hits closer than this along a ray are ignored, so a ray never hits the surface it starts on.
 MIN_HIT_DISTANCE = 1e-6
 
@@ -190,7 +201,62 @@ class Plane:
         return np.broadcast_to(np.asarray(self.normal, dtype=np.float64), points.shape)
 
 
-Shape = Sphere | Box | Plane
+@dataclass(frozen=True)
+class TurnedTexture:
+    """A texture turned with its shape: the colour at a point is the inner texture's at the point turned back."""
+    texture: Texture
+    angle: float
+    pivot: tuple[float, float, float]
+
+    def albedo(self, points: np.ndarray) -> np.ndarray:
+        return self.texture.albedo(_turn(points, -self.angle, self.pivot))
+
+
+@dataclass(frozen=True)
+class Turned:
+    """A shape turned by `angle` (radians) about the vertical axis through `pivot`, its texture with it."""
+    shape: Sphere | Box | Plane
+    angle: float
+    pivot: tuple[float, float, float]
+
+    @property
+    def foreground(self) -> bool:
+        return self.shape.foreground
+
+    @property
+    def shaded(self) -> bool:
+        return self.shape.shaded
+
+    @property
+    def texture(self) -> TurnedTexture:
+        return TurnedTexture(self.shape.texture, self.angle, self.pivot)
+
+    def intersect(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        back = _z_rotation(-self.angle)
+        return self.shape.intersect(_turn(origin[None], -self.angle, self.pivot)[0], _rotate(dirs, back))
+
+    def normals(self, points: np.ndarray) -> np.ndarray:
+        return _rotate(self.shape.normals(_turn(points, -self.angle, self.pivot)), _z_rotation(self.angle))
+
+    def mesh(self) -> trimesh.Trimesh:
+        transform = np.eye(4)
+        transform[:3, :3] = _z_rotation(self.angle)
+        transform[:3, 3] = np.asarray(self.pivot) - transform[:3, :3] @ np.asarray(self.pivot)
+        return self.shape.mesh().apply_transform(transform)
+
+
+def _z_rotation(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _turn(points: np.ndarray, angle: float, pivot) -> np.ndarray:
+    """Points [N,3] turned by `angle` about the vertical axis through `pivot`."""
+    pivot = np.asarray(pivot, dtype=np.float64)
+    return _rotate(points - pivot, _z_rotation(angle)) + pivot
+
+
+Shape = Sphere | Box | Plane | Turned
 
 
 @dataclass(frozen=True)
@@ -203,6 +269,9 @@ class SceneSpec:
     light: tuple[float, float, float]        # unit vector towards the light
     ambient: float                           # share of the light that reaches surfaces facing away from it
     look_at: tuple[float, float, float]      # where the orbit cameras point (the object's centre)
+    # Turntable kind: what stays still in the room while the object turns; in the object's frame each view sees it
+    # turned with the camera (`view_scene`).
+    room: tuple[Shape, ...] = ()
 
     def foreground(self) -> list[Shape]:
         return [s for s in self.shapes if s.foreground]
@@ -311,16 +380,33 @@ def _to_uint8(values: np.ndarray) -> np.ndarray:
 # Scene layouts
 
 
-def build_scene(kind: str, seed: int = 0) -> SceneSpec:
-    """The shapes, light and background of one kind of scene; the seed varies layout, sizes and textures."""
+def build_scene(kind: str, seed: int = 0, mast: bool = False) -> SceneSpec:
+    """The shapes, light and background of one kind of scene; the seed varies layout, sizes and textures. `mast`
+    adds a thin mast to the still life (not the forward kind)."""
     if kind not in KINDS:
         raise UserError(f"unknown synthetic scene kind {kind!r}; choose one of {', '.join(KINDS)}")
+    if mast and kind == "forward":
+        raise UserError("a mast only stands on the still life (object, unbounded and turntable kinds)")
     rng = np.random.default_rng([seed, KINDS.index(kind)])
     light = np.array([0.45, -0.35, 0.82])
+    room: tuple[Shape, ...] = ()
     if kind == "forward":
         shapes = _forward_shapes(rng)
     else:
         shapes = _still_life(rng, with_slab=kind == "object")
+        if mast:
+            # Rising from the still life's middle to 1.6 units above its base (the rest stands at most 1.1 high):
+            # about 2 pixels wide in the object kind's photos at 320 pixels.
+            cx, cy, cz = OBJECT_CENTRE
+            shapes.append(Box((cx, cy, cz - 0.5 + 0.8), (0.012, 0.012, 0.8), 0.3, _texture(rng, 6.0)))
+        if kind == "turntable":
+            # The plate turns with the object but is not part of it (the masks leave it out); the room stands still.
+            floor = float(OBJECT_CENTRE[2] - 0.5)
+            shapes.append(Box((OBJECT_CENTRE[0], OBJECT_CENTRE[1], floor - 0.04), (0.95, 0.95, 0.04), 0.0,
+                              _texture(rng, 3.0), foreground=False))
+            room = (Plane((0.0, 0.0, floor - 0.7), (0.0, 0.0, 1.0), _texture(rng, 2.0)),
+                    Sphere(tuple(OBJECT_CENTRE), ROOM_RADIUS, _texture(rng, 1.0), foreground=False, inward=True,
+                           shaded=False))
         if kind == "unbounded":
             ground_z = float(OBJECT_CENTRE[2] - 0.5)
             shapes += [
@@ -332,7 +418,22 @@ def build_scene(kind: str, seed: int = 0) -> SceneSpec:
         elif kind == "room":
             shapes += _room(rng)
     return SceneSpec(kind=kind, seed=seed, shapes=tuple(shapes), background=(1.0, 1.0, 1.0),
-                     light=tuple(light / np.linalg.norm(light)), ambient=0.5, look_at=tuple(OBJECT_CENTRE))
+                     light=tuple(light / np.linalg.norm(light)), ambient=0.5, look_at=tuple(OBJECT_CENTRE), room=room)
+
+
+def turn_angles(n_views: int) -> np.ndarray:
+    """Turntable kind: how far (radians) the object has turned at each view, one revolution in all."""
+    return 2 * math.pi * np.arange(n_views) / n_views
+
+
+def view_scene(scene: SceneSpec, angle: float) -> SceneSpec:
+    """What the camera sees with the object turned by `angle`, in the object's frame: the room turned back by it.
+    Scenes without a room are the same at every view."""
+    if not scene.room:
+        return scene
+    turned = tuple(Turned(shape, -angle, scene.look_at) for shape in scene.room)
+    return SceneSpec(scene.kind, scene.seed, scene.shapes + turned, scene.background, scene.light, scene.ambient,
+                     scene.look_at)
 
 
 def _still_life(rng: np.random.Generator, with_slab: bool) -> list[Shape]:
@@ -436,6 +537,20 @@ def camera_poses(scene: SceneSpec, n_views: int) -> np.ndarray:
     centre = np.asarray(scene.look_at)
     if scene.kind == "forward":
         return _forward_grid(rng, n_views)
+    if scene.kind == "turntable":
+        # The still camera, and in the object's frame the object's turn undone: an orbit at one elevation.
+        elevation = math.radians(TURNTABLE_ELEVATION_DEG)
+        azimuth = rng.uniform(0, 2 * math.pi)
+        eye = centre + TURNTABLE_DISTANCE * np.array([math.cos(elevation) * math.cos(azimuth),
+                                                      math.cos(elevation) * math.sin(azimuth), math.sin(elevation)])
+        still = look_at(eye, centre)
+        poses = []
+        for angle in turn_angles(n_views):
+            c2w = still.copy()
+            c2w[:3, :3] = _z_rotation(-angle) @ still[:3, :3]
+            c2w[:3, 3] = _turn(still[None, :3, 3], -angle, centre)[0]
+            poses.append(c2w)
+        return np.stack(poses)
     # A two-turn spiral up the upper hemisphere: neighbours are 720/n degrees apart, and each
     # azimuth is seen from two elevations.
     s = (np.arange(n_views) + 0.5) / n_views
@@ -476,14 +591,15 @@ def intrinsics_for(kind: str, width: int, height: int) -> Intrinsics:
 
 
 def write_scene(kind: str, out_dir: Path | str, n_views: int = 40, width: int = 320, height: int = 240,
-                seed: int = 0, alpha: bool = False, supersample: int = 2,
+                seed: int = 0, alpha: bool = False, supersample: int = 2, masks: bool = False, mast: bool = False,
                 reporter: Reporter | None = None) -> Path:
     """Renders a synthetic scene into out_dir (replacing an earlier synthetic scene there) and returns out_dir.
+    `masks` writes a mask per photo into masks/ (the object's coverage of each pixel); `mast` adds a thin mast.
 
     The scene is assembled in a sibling folder and renamed into place, so out_dir is either the old
     scene or the complete new one. Same arguments, same bytes.
     """
-    scene = build_scene(kind, seed)
+    scene = build_scene(kind, seed, mast=mast)
     _check_arguments(kind, n_views, width, height, alpha, supersample)
     out_dir = Path(out_dir)
     _check_replaceable(out_dir)
@@ -493,12 +609,18 @@ def write_scene(kind: str, out_dir: Path | str, n_views: int = 40, width: int = 
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "images").mkdir(parents=True)
     (tmp / "ground_truth").mkdir()
+    if masks:
+        (tmp / "masks").mkdir()
     k = intrinsics_for(kind, width, height)
     poses = camera_poses(scene, n_views)
+    angles = turn_angles(n_views) if scene.room else np.zeros(n_views)
     frames, views = [], []
-    for n, c2w in enumerate(reporter.track(poses, total=n_views, desc=f"rendering {kind} scene")):
-        rgb, depth, coverage = _render_float(scene, c2w, k, supersample)
+    for n, (c2w, angle) in enumerate(reporter.track(list(zip(poses, angles)), total=n_views,
+                                                     desc=f"rendering {kind} scene")):
+        rgb, depth, coverage = _render_float(view_scene(scene, angle), c2w, k, supersample)
         name = f"images/{n:04d}.png"
+        if masks:
+            write_png(tmp / "masks" / f"{n:04d}.png", _to_uint8(coverage))
         if alpha:
             # Unpremultiplied colour: compositing the PNG over the background gives the RGB render back.
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -508,14 +630,18 @@ def write_scene(kind: str, out_dir: Path | str, n_views: int = 40, width: int = 
         else:
             write_png(tmp / name, _to_uint8(rgb))
         frames.append({"file_path": name, "transform_matrix": c2w.tolist()})
-        views.append({"file_path": name, **_depth_range(depth, k)})
+        view = {"file_path": name, **_depth_range(depth, k)}
+        if scene.room:
+            view["turn_deg"] = math.degrees(angle)
+        views.append(view)
 
     write_json(tmp / "transforms.json", {
         "camera_model": "PINHOLE",
         "fl_x": k.fl_x, "fl_y": k.fl_y, "cx": k.cx, "cy": k.cy, "w": k.w, "h": k.h,
         "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
         "frames": frames,
-        "synthetic": {"kind": kind, "seed": seed, "n_views": n_views, "alpha": alpha, "supersample": supersample},
+        "synthetic": {"kind": kind, "seed": seed, "n_views": n_views, "alpha": alpha, "supersample": supersample,
+                      "masks": masks, "mast": mast},
     })
     scene.mesh().export(tmp / "ground_truth" / "mesh.ply")
     bounds = scene.object_bounds()

@@ -57,6 +57,21 @@ def colmap_w2c_from_opengl_c2w(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return w2c[:3, :3], w2c[:3, 3]
 
 
+def opengl_c2w_from_projection(projection: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A 3x4 projection P = K [R | t] (OpenCV's camera axes, any scale or sign) -> (K 3x3 with K[2, 2] = 1, our 4x4
+    camera-to-world). K comes out of an RQ decomposition of P's left 3x3 with a positive diagonal."""
+    projection = np.asarray(projection, dtype=np.float64)[:3, :4]
+    flip = np.flipud(np.eye(3))
+    q, r = np.linalg.qr((flip @ projection[:, :3]).T)
+    k, rotation = flip @ r.T @ flip, flip @ q.T
+    signs = np.diag(np.sign(np.diag(k)))
+    k, rotation = k @ signs, signs @ rotation
+    if np.linalg.det(rotation) < 0:  # P's overall sign was negative
+        k, rotation = -k, -rotation
+    centre = -np.linalg.solve(projection[:, :3], projection[:, 3])
+    return k / k[2, 2], opengl_c2w_from_colmap_w2c(rotation, -rotation @ centre)
+
+
 def opengl_c2w_from_llff(pose_3x4: np.ndarray) -> np.ndarray:
     """LLFF's camera-to-world with columns [down, right, back] -> ours ([right, up, back])."""
     down, right, back, centre = pose_3x4[:, 0], pose_3x4[:, 1], pose_3x4[:, 2], pose_3x4[:, 3]

@@ -8,7 +8,9 @@ where they do not, a spiral for forward scenes; pipeline/camera_paths.py) and ev
 (ground truth | render | error, one row per held-out view, captioned with its scores).
 
 Ground truth is the held-out photo resized to the evaluation scale, its mask (if any) composited onto
-the fit's background colour exactly as the fit saw its training photos. SSIM is scikit-image's
+the fit's background colour exactly as the fit saw its training photos. Views with a mask are scored inside it too
+(`psnr_masked`, `ssim_masked`: over the mask's pixels only, as the DTU protocol scores object captures), since the
+whole image's score counts a backdrop any empty render matches. SSIM is scikit-image's
 structural_similarity (Gaussian-weighted, as in Wang et al. 2004) on RGB in [0, 1]; LPIPS is v0.1 with
 AlexNet (pipeline/lpips.py), left out with a warning when its weights are not installed.
 """
@@ -21,11 +23,11 @@ import numpy as np
 import torch
 
 from pipeline.camera_paths import default_path, median_intrinsics
-from pipeline.images import load_frame
+from pipeline.images import load_frame, load_mask
 from pipeline.io import write_png
 from pipeline.json_files import read_json, write_json
 from pipeline.lpips import weights_available
-from pipeline.metrics import image_scores, mean_scores, to_uint8
+from pipeline.metrics import image_scores, masked_scores, mean_scores, to_uint8
 from pipeline.visuals import colour_depth, contact_sheet, error_image
 from plenoxels.cameras import Intrinsics
 from plenoxels.scene_model import SceneModel
@@ -62,7 +64,9 @@ def run(ctx) -> dict:
         with torch.no_grad():
             out = model.render_camera(np.asarray(frame["transform_matrix"], dtype=np.float64), k)
         render = out["rgb"].cpu().numpy().astype(np.float32)
-        views.append({"name": frame["name"], "width": k.w, "height": k.h, **image_scores(render, truth, with_lpips)})
+        mask = load_mask(ctx.out, frame, k)
+        views.append({"name": frame["name"], "width": k.w, "height": k.h, **image_scores(render, truth, with_lpips),
+                      **(masked_scores(render, truth, mask) if mask is not None else {})})
         write_png(ctx.work / "renders" / f"{frame['name']}.png", to_uint8(render))
         write_png(ctx.work / "gt" / f"{frame['name']}.png", to_uint8(truth))
         write_png(ctx.work / "depth" / f"{frame['name']}.png",
@@ -97,12 +101,15 @@ def run(ctx) -> dict:
         lpips = f", LPIPS {mean['lpips']:.3f}" if "lpips" in mean else ""
         line = (f"PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.3f}{lpips} on {len(views)} held-out views "
                 f"at {views[0]['width']}x{views[0]['height']}")
+        if "psnr_masked" in mean:
+            line += f"; inside their masks PSNR {mean['psnr_masked']:.2f} dB, SSIM {mean['ssim_masked']:.3f}"
     else:
         line = "no held-out views to score (normalize.holdout_every=0)"
     if video:
         line += f"; {video['path']} video of {video['frames']} frames"
     return {"line": line, "views": len(views), "psnr": mean["psnr"] if mean else None,
-            "ssim": mean["ssim"] if mean else None, "lpips": mean.get("lpips") if mean else None}
+            "ssim": mean["ssim"] if mean else None, "lpips": mean.get("lpips") if mean else None,
+            "psnr_masked": mean.get("psnr_masked") if mean else None}
 
 
 def _caption(view: dict) -> str:

@@ -1,7 +1,10 @@
 """Fit: the training photos of normalize/scene.json -> a Plenoxels sparse voxel grid, coarse to fine.
 
 Reads the train split only (held-out frames are used for the live held-out PSNR, never for fitting).
-Images with a mask are composited onto `background_color`. The model is made by
+Images with a mask are composited onto `background_color`, so what lies outside the masks is fitted as empty (a
+masked capture's photos without a mask are left out: pipeline/training_views.py). An object fit with nothing but that
+colour behind its grid that cannot reproduce its own photos by the end of its coarsest resolution starts again with a
+background model, and its summary says why. The model is made by
 plenoxels.scene_model.SceneModel.create and trained by plenoxels.train.Fitter (batches, schedules,
 pruning and upsampling between levels are described there).
 
@@ -26,66 +29,21 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from pathlib import Path
 
-import numpy as np
-import torch
-
-from pipeline.images import load_frames
 from pipeline.interrupts import StopRequest
 from pipeline.json_files import read_json, write_json
 from pipeline.report import format_bytes, format_count, format_duration
+from pipeline.training_views import HeldOut, load_training, training_frames
 from plenoxels.budget import TimeBudget
 from plenoxels.errors import UserError
 from plenoxels.native import resolve_device
-from plenoxels.scene_model import SceneModel, psnr
+from plenoxels.scene_model import BACKDROP_MIN_TRAIN_PSNR, SceneModel, backdrop_check_step
 from plenoxels.train import Diverged, Fitter, RaySet, coarse_start
 from stages.settings.fit import Settings
 
-
 CHECKPOINT = "checkpoint.pt"
 BUDGET_PLAN = "budget_plan.json"
-
-
-class HeldOut:
-    """A few held-out views, small, to report held-out PSNR while fitting."""
-
-    def __init__(self, root: Path, frames: list[dict], s: Settings):
-        pick = frames if len(frames) <= s.eval_views else [frames[i] for i in
-                                                             np.linspace(0, len(frames) - 1, s.eval_views).round().astype(int)]
-        self.views = [(np.asarray(frame["transform_matrix"], dtype=np.float64), k, torch.from_numpy(image))
-                      for frame, (image, k) in zip(pick, load_frames(root, pick, s.eval_scale, s.background_color))]
-
-    def __bool__(self) -> bool:
-        return bool(self.views)
-
-    @property
-    def rays(self) -> int:
-        """Rays of one evaluation."""
-        return sum(k.w * k.h for _, k, _ in self.views)
-
-    def psnr(self, model: SceneModel) -> float:
-        errors = []
-        for c2w, k, image in self.views:
-            rgb = model.render_camera(c2w, k)["rgb"].cpu()
-            errors.append(float(((rgb - image) ** 2).mean()))
-        return float(np.mean([psnr(e) for e in errors]))
-
-
-def load_training(ctx, scene: dict, s: Settings) -> tuple[RaySet, list[dict]]:
-    """The training split's pixels and cameras, and the held-out frames."""
-    frames = scene.get("frames") or []
-    train = [f for f in frames if f.get("split", "train") == "train"]
-    held_out = [f for f in frames if f.get("split") == "test"]
-    if not train:
-        raise UserError("scene.json has no training frames; re-run normalize with fewer held out (normalize.holdout_every)")
-    images, c2ws, ks = [], [], []
-    loaded = load_frames(ctx.out, train, s.image_scale, s.background_color)
-    for frame, (image, k) in zip(train, ctx.report.track(loaded, total=len(train), desc="loading training images")):
-        images.append(image)
-        c2ws.append(np.asarray(frame["transform_matrix"], dtype=np.float64))
-        ks.append(k)
-    return RaySet(images, c2ws, ks), held_out
+BACKGROUND_ADDED = "background_added.json"
 
 
 def run(ctx) -> dict:
@@ -95,10 +53,24 @@ def run(ctx) -> dict:
     if device.type != "cpu":
         ctx.report.info(f"fitting on {device}")
     scene = read_json(ctx.upstream["normalize"] / "scene.json")
-    train, held_out_frames = load_training(ctx, scene, s)
-    held_out = HeldOut(ctx.out, held_out_frames, s)
-    checkpoint = ctx.scratch / CHECKPOINT
+    train_frames, held_out_frames = training_frames(scene, ctx.report)
+    train = load_training(ctx.out, train_frames, s.image_scale, s.background_color, ctx.report)
+    held_out = HeldOut(ctx.out, held_out_frames, s.eval_views, s.eval_scale, s.background_color)
+    added = ctx.scratch / BACKGROUND_ADDED
+    while True:
+        # An object fit whose photos' backdrop is no one colour starts again with a background model (see fit()).
+        fitted = fit(ctx, scene, train, held_out, device, started, read_json(added)["why"] if added.is_file() else "")
+        if fitted is not None:
+            return fitted
 
+
+def fit(ctx, scene: dict, train: RaySet, held_out: HeldOut, device, started: float, background_why: str) -> dict | None:
+    """Fits the model and finishes the stage; None where an object fit with one colour behind its grid cannot
+    reproduce its own photos at the end of its coarsest resolution (scene_model.backdrop_check_step): what surrounds
+    the object is not that colour, so the reason is kept in the scratch folder and the caller fits again with a
+    background model."""
+    s: Settings = replace(ctx.settings, background="on") if background_why else ctx.settings
+    checkpoint = ctx.scratch / CHECKPOINT
     mean_colour = train.mean_colour()
 
     def new_model(resolution: int) -> SceneModel:
@@ -112,6 +84,10 @@ def run(ctx) -> dict:
     options = budget.options if budget is not None else replace(
         s, resolutions=coarse_start(s.resolutions, s.first_level_scale))
     fitter = Fitter(new_model(options.resolutions[0]), options, train, device)
+    masked = any(f.get("mask_path") for f in scene.get("frames", []))
+    check_step = None if masked or s.background != "auto" else backdrop_check_step(fitter.model, options.resolutions,
+                                                                                   options.steps)
+    backdrop_psnr: list[float] = []
 
     if checkpoint.is_file():
         fitter.load_checkpoint(checkpoint)
@@ -142,6 +118,9 @@ def run(ctx) -> dict:
                 bar.set_postfix(loss=f"{mse:.4f}", psnr=f"{fitter.train_psnr():.2f}", refresh=False)
 
             def stop_requested() -> bool:
+                if fitter.step == check_step and fitter.train_psnr() < BACKDROP_MIN_TRAIN_PSNR:
+                    backdrop_psnr.append(fitter.train_psnr())
+                    return True
                 return stop.requested or (budget is not None and budget.due())
 
             stopped = fitter.run(checkpoint, s.checkpoint_every, stop_requested=stop_requested,
@@ -152,6 +131,14 @@ def run(ctx) -> dict:
                 if fitter.checkpoint_step is not None else "no checkpoint was written yet")
         raise UserError(f"the fit diverged at step {fitter.step} ({exc}); lower fit.lr_density (now {s.lr_density:g}) "
                         f"or fit.lr_sh (now {s.lr_sh:g}) and run again; {kept}") from None
+    if backdrop_psnr:
+        why = (f"train PSNR {backdrop_psnr[0]:.1f} dB at step {fitter.step} (below {BACKDROP_MIN_TRAIN_PSNR:g} dB): what "
+               "surrounds the object is not the one colour behind the grid, so a background model shows it")
+        ctx.report.warn(f"{why}; fitting again with it")
+        checkpoint.unlink(missing_ok=True)
+        (ctx.scratch / BUDGET_PLAN).unlink(missing_ok=True)
+        write_json(ctx.scratch / BACKGROUND_ADDED, {"why": why})
+        return None
     stopped_early = stopped and stop.requested
     at_deadline = stopped and not stop.requested
     if stopped_early:
@@ -159,11 +146,11 @@ def run(ctx) -> dict:
                         f"it stands")
     elif at_deadline and options.prune_final:
         fitter.prune()  # the time budget's deadline: the end of the fit, pruned as a complete schedule is
-    return finish(ctx, fitter, held_out, resumed_from, stopped_early, device, budget, at_deadline)
+    return finish(ctx, fitter, held_out, resumed_from, stopped_early, device, budget, at_deadline, background_why)
 
 
 def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_early: bool, device,
-           budget: TimeBudget | None = None, at_deadline: bool = False) -> dict:
+           budget: TimeBudget | None = None, at_deadline: bool = False, background_why: str = "") -> dict:
     s: Settings = fitter.options
     model = fitter.model
     final_psnr = held_out.psnr(model) if held_out else None
@@ -184,6 +171,7 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         "model": model.describe(),
         "memory_bytes": memory,
         "regularisation": fitter.regularisation,
+        "background_added": background_why or None,
     }
     if device.type == "cpu":
         used, available = fitter.grad.threads()
@@ -209,6 +197,8 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         cost = record["background_cost"]
         line += (f", background model {format_bytes(cost['model_bytes'] + cost['optimiser_bytes'])} with its optimiser, "
                  f"{cost['share_of_fitting']:.0%} of the fitting time")
+        if background_why:
+            line += f" (added: {background_why})"
     line += fitter.regularisation_summary()
     if "gradient_threads" in record and record["gradient_threads"]["used"] < record["gradient_threads"]["available"]:
         line += (f", gradients on {record['gradient_threads']['used']} of {record['gradient_threads']['available']} "

@@ -1,17 +1,21 @@
-"""Ingest: a folder of photos (or a video) -> 8-bit RGB PNGs, upright, downscaled, scored for sharpness.
+"""Ingest: a folder of photos (or a video) -> 8-bit RGB PNGs, upright, downscaled, scored for sharpness, with the
+object's mask where the photos carry one (an alpha channel, or a masks/ or mask/ folder beside them: pipeline/masks.py).
 
-Writes ingest/images/<name>.png, ingest/masks/<name>.png (only for images with alpha) and
-ingest/images.json listing every kept image with its original size, scale and sharpness.
+Writes ingest/images/<name>.png, ingest/masks/<name>.png (only for images with a mask, at the image's size) and
+ingest/images.json listing every kept image with its original size, scale, sharpness and mask.
 """
 from __future__ import annotations
 
+from pathlib import Path
 
 import numpy as np
 
 from pipeline.io import write_png
 from pipeline.json_files import write_json
+from pipeline.masks import mask_folder, match_masks, read_mask
 from pipeline.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, fit_max_side, load_photo, photo_folder, scene_photos,
                              sharpness, video_frames)
+from pipeline.report import short_list
 from plenoxels.errors import UserError
 from stages.settings.ingest import Settings
 
@@ -25,7 +29,12 @@ def run(ctx) -> dict:
     records, unreadable = [], []
 
     def keep(name: str, source: str, rgb: np.ndarray, alpha: np.ndarray | None, original: tuple[int, int],
-             split: str | None = None) -> None:
+             split: str | None = None, mask_file: Path | None = None) -> None:
+        mask_from = "alpha" if alpha is not None else None
+        if mask_file is not None:
+            given = read_mask(mask_file, original, s.mask_threshold)
+            alpha = given if alpha is None else np.minimum(alpha, given)
+            mask_from = mask_file.relative_to(mask_file.parent.parent).as_posix()
         rgb = fit_max_side(rgb, s.max_side)
         record = {"name": name, "file": f"images/{name}.png", "source": source, "width": rgb.shape[1],
                   "height": rgb.shape[0], "original_width": original[0], "original_height": original[1],
@@ -36,7 +45,7 @@ def run(ctx) -> dict:
         if alpha is not None:
             masks_dir.mkdir(exist_ok=True)
             write_png(masks_dir / f"{name}.png", fit_max_side(alpha, s.max_side))
-            record["mask"] = f"masks/{name}.png"
+            record["mask"], record["mask_from"] = f"masks/{name}.png", mask_from
         records.append(record)
 
     if ctx.scene.is_file():
@@ -59,13 +68,23 @@ def run(ctx) -> dict:
                 break
             names = [naming(p) for p, _ in photos]
         name_of = {p: name for (p, _), name in zip(photos, names)}
+        masks_given = mask_folder(folder) if s.masks else None
+        mask_of = match_masks([folder / p for p, _ in photos], masks_given) if masks_given is not None else {}
+        if masks_given is not None and not mask_of:
+            ctx.report.warn(f"{masks_given} holds no mask named like any photo, so it is not used")
+        elif masks_given is not None:
+            unmasked = [name_of[p] for p, _ in photos if folder / p not in mask_of]
+            if unmasked:
+                ctx.report.warn(f"{len(unmasked)} of {len(photos)} photos have no mask in {masks_given} (by name): "
+                                f"{short_list(unmasked)}; they are posed from the whole photo and left out of the fit")
         for relative, split in ctx.report.track(photos, desc="reading photos"):
             try:
                 rgb, alpha = load_photo(folder / relative)
             except Exception as e:  # any decoder failure means the same thing to the user: this file is skipped
                 unreadable.append(f"{relative.as_posix()} ({str(e).splitlines()[0][:60] or type(e).__name__})")
                 continue
-            keep(name_of[relative], relative.as_posix(), rgb, alpha, (rgb.shape[1], rgb.shape[0]), split)
+            keep(name_of[relative], relative.as_posix(), rgb, alpha, (rgb.shape[1], rgb.shape[0]), split,
+                 mask_of.get(folder / relative))
     if unreadable:
         ctx.report.warn(f"skipped {len(unreadable)} file(s) that are not readable photos: {'; '.join(unreadable)}")
 
@@ -84,8 +103,13 @@ def run(ctx) -> dict:
     write_json(ctx.work / "images.json", {"images": records, "skipped": unreadable, "dropped_blurry": dropped})
     w, h = records[0]["width"], records[0]["height"]
     line = f"{len(records)} images at {w}x{h}"
+    masked = sum(r["mask"] is not None for r in records)
+    if masked:
+        given = sum(r.get("mask_from") not in (None, "alpha") for r in records)
+        line += f", {masked} with masks ({f'{given} from the masks folder' if given else 'their alpha'})"
     if dropped:
         line += f", dropped {len(dropped)} blurriest"
     if unreadable:
         line += f", skipped {len(unreadable)} unreadable"
-    return {"line": line, "images": len(records), "skipped": len(unreadable), "dropped_blurry": len(dropped)}
+    return {"line": line, "images": len(records), "skipped": len(unreadable), "dropped_blurry": len(dropped),
+            "masked": masked}

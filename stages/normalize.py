@@ -14,6 +14,8 @@ def summary_line(scene: dict) -> str:
     m = scene["measured"]
     if scene["type"] == "forward":
         why = f"viewing directions within {m['view_cone_deg']:.0f} deg"
+    elif m.get("masked"):
+        why = f"cameras inward, every photo masked ({m['empty_pixel_fraction']:.0%} of pixels outside the masks)"
     elif "beyond_fraction" in m:
         why = f"cameras inward, {m['beyond_fraction']:.0%} of points beyond the foreground"
         if "empty_pixel_fraction" in m:
@@ -22,6 +24,9 @@ def summary_line(scene: dict) -> str:
         why = f"cameras inward, no points, {m['empty_pixel_fraction']:.0%} of pixels empty backdrop"
     else:
         why = "cameras inward, no points"
+    if m.get("foreground_from", "").startswith("visual hull"):
+        silhouettes = "masks" if m["visual_hull"]["source"] == "masks" else "silhouettes on a flat backdrop"
+        why += f"; box from the visual hull of {m['visual_hull']['photos']} photos' {silhouettes}"
     if m.get("borderline") and not scene["overridden"]:
         why += f"; borderline: views spread {m['view_cone_deg']:.0f} deg, near the forward limit"
     if scene["overridden"]:

@@ -19,7 +19,8 @@ from pipeline.json_files import read_json
 from pipeline.photos import is_video, photo_folder
 from pipeline.sfm import pose_import
 from pipeline.sfm.outputs import write_poses
-from pipeline.sfm.reconstruct import colmap_logging, reconstruct, short_list
+from pipeline.report import short_list
+from pipeline.sfm.reconstruct import colmap_logging, reconstruct
 from plenoxels.errors import UserError
 from stages.settings.poses import Settings
 
@@ -73,6 +74,8 @@ def run(ctx) -> dict:
         line += f", {points} points triangulated from {written['triangulated']['pairs']} pairs of nearby photos"
     if source == "sfm":
         line += f" ({info['matching']} matching: {info['pairs_verified']}/{info['pairs_matched']} pairs verified)"
+        if info.get("masked_images"):
+            line += f", features only inside the masks of {info['masked_images']} images"
     if info.get("attempt_why"):
         line += f"; as set, {info['attempt_why']}, so these poses come from the attempt with {info['attempt']}"
     if info.get("mapper_fallback"):

@@ -9,7 +9,7 @@ from pipeline.metrics import surface_distance
 from plenoxels.ground import find_ground
 from plenoxels.mesh import isolate_object
 from pipeline.json_files import read_json
-from stages.export import Settings
+from stages.settings.export import Settings
 from test_export import (SPHERE_CENTRE, SPHERE_RADIUS, cluttered_sphere_field, identity_scene, orbit_frames,
                          radial_error, run_stage)
 

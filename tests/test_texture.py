@@ -13,7 +13,7 @@ from plenoxels.mesh import build_mesh, transform_points
 from plenoxels.render import render
 from plenoxels import texture
 from plenoxels.texture import bake, rasterize, render_mesh, sample_texture, texel_surface, texture_mesh, unwrap
-from stages.export import Settings
+from stages.settings.export import Settings
 from test_export import BOX, SPHERE_CENTRE, _Quiet, look_at, sphere_field
 
 RED, BLUE = np.array([0.9, 0.1, 0.1]), np.array([0.1, 0.1, 0.9])

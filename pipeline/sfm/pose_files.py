@@ -1,4 +1,4 @@
-"""Pose files beside a scene's photos: the COLMAP models, transforms*.json and poses_bounds.npy the importers
+"""Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy and IDR/NeuS cameras the importers
 (pose_import.py) could read. Finding them reads no pose, so a cache key lists them without loading COLMAP."""
 from __future__ import annotations
 
@@ -6,7 +6,9 @@ from pathlib import Path
 
 from pipeline.photos import photo_folder
 
-KINDS = ("colmap", "transforms", "llff")
+KINDS = ("colmap", "transforms", "llff", "idr")
+# IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
+IDR_FILES = ("cameras_sphere.npz", "cameras.npz")
 
 
 def colmap_models(folder: Path) -> list[Path]:
@@ -32,6 +34,7 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
         found["transforms"] += sorted(p for p in place.glob("transforms*.json") if p.is_file())
         if (place / "poses_bounds.npy").is_file():
             found["llff"].append(place / "poses_bounds.npy")
+        found["idr"] += [place / name for name in IDR_FILES if (place / name).is_file()]
     return found
 
 

@@ -1,11 +1,12 @@
 """Poses a user already has: a COLMAP sparse model, a NeRF / instant-ngp / nerfstudio / Blender
-transforms.json, or LLFF poses_bounds.npy, turned into the same distorted COLMAP model that SfM makes.
+transforms.json, LLFF poses_bounds.npy, or IDR/NeuS cameras_sphere.npz (DTU-style sets), turned into the same
+distorted COLMAP model that SfM makes.
 
 Every importer returns an `Imported`: a `pycolmap.Reconstruction` whose image names are the ingested
 PNGs (`<name>.png`) and whose cameras are scaled to the ingested image size, so it is undistorted and
 written exactly as an SfM result is (pipeline/sfm/outputs.py). Pose files describe images by their own
 names and sizes; images are matched to pose entries by path first, then by file stem (LLFF, which has
-no names, by sorted file order), and the ones without a pose are listed.
+no names, and IDR/NeuS, which number them, by sorted file order), and the ones without a pose are listed.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import pycolmap
 
 from pipeline.photos import DATASET_SPLITS, frame_photo, is_split_dataset, lexical_path, photo_folder
 from pipeline.sfm.pose_files import KINDS, candidates, colmap_models, is_colmap_model
-from plenoxels.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff
+from plenoxels.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, opengl_c2w_from_projection
 from plenoxels.errors import UserError
 
 # How far an image's size may be from the pose file's size after scaling before we call it a different image.
@@ -43,7 +44,10 @@ def kind_of(path: Path) -> str:
         return "transforms"
     elif path.suffix == ".npy":
         return "llff"
-    raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json or a poses_bounds.npy")
+    elif path.suffix == ".npz":
+        return "idr"
+    raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json, a poses_bounds.npy or an "
+                    "IDR/NeuS cameras*.npz")
 
 
 def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
@@ -57,6 +61,8 @@ def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
         return from_colmap(path, records)
     if kind == "transforms":
         return from_transforms(path, records, scene)
+    if kind == "idr":
+        return from_idr(path, records, scene)
     return from_llff(path, records)
 
 
@@ -325,3 +331,43 @@ def from_llff(path: Path, records: list[dict]) -> Imported:
                    opengl_c2w_from_llff(pose[:, :4]))
         bounds[record["name"]] = (float(row[15]), float(row[16]))
     return Imported(reconstruction, path, [], bounds)
+
+
+# ---- IDR / NeuS cameras_sphere.npz ------------------------------------------------------------------------
+
+def from_idr(path: Path, records: list[dict], scene: Path) -> Imported:
+    """IDR's and NeuS's cameras (their DTU and BlendedMVS releases): `world_mat_i`, the projection K [R | t] of the
+    i-th photo in sorted file order (the number in its name, where every name is one), and `scale_mat_i`, which takes the unit sphere around the object to the world;
+    the poses are kept in the sphere's frame (world_mat @ scale_mat), as those methods use them. Their K puts pixel
+    centres at whole numbers, ours at +0.5."""
+    try:
+        with np.load(path) as data:
+            projections = {int(key[len("world_mat_"):]): data[key] @ data.get(f"scale_mat_{key[len('world_mat_'):]}",
+                                                                                 np.eye(4))
+                           for key in data.files if key.startswith("world_mat_") and key[len("world_mat_"):].isdigit()}
+    except (ValueError, OSError, KeyError, TypeError):
+        raise UserError(f"cannot read {path} as IDR/NeuS cameras (world_mat_N, scale_mat_N); fix it or set "
+                        "poses.source=sfm") from None
+    if not projections:
+        raise UserError(f"{path} holds no world_mat_N projections; it is not an IDR/NeuS camera file (set poses.source)")
+    # Photos numbered by their names (000000.png) take those numbers, so a photo ingest skipped shifts no other.
+    numbered = all(_stem(r["source"]).isdigit() for r in records)
+    ordered = sorted(records, key=lambda r: r["source"])
+    if not numbered and len(ordered) != len(projections):
+        raise UserError(f"{path} has {len(projections)} cameras but the folder has {len(ordered)} photos; its cameras "
+                        "follow the photos' sorted order, so the counts must match (or set poses.source=sfm)")
+    reconstruction = pycolmap.Reconstruction()
+    cameras = _CameraTable(reconstruction)
+    missing = []
+    for position, record in enumerate(ordered):
+        index = int(_stem(record["source"])) if numbered else position
+        if index not in projections:
+            missing.append(record["name"])
+            continue
+        matrix, c2w = opengl_c2w_from_projection(projections[index])
+        w, h = record["original_width"], record["original_height"]
+        factor = _scale_factor(record, w, h, str(path))
+        k = Intrinsics(matrix[0, 0], matrix[1, 1], matrix[0, 2] + 0.5, matrix[1, 2] + 0.5, w, h).scaled(factor)
+        k = Intrinsics(k.fl_x, k.fl_y, k.cx, k.cy, record["width"], record["height"])
+        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k, (0.0, 0.0, 0.0, 0.0)), c2w)
+    return Imported(reconstruction, path, missing)

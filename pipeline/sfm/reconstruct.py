@@ -3,7 +3,10 @@ the camera recorded), exhaustive or sequential matching, incremental or global m
 wrong or partial model from being used: a global model that contradicts its matches is mapped again incrementally,
 sequential matching that leaves photos out is completed by exhaustive matching, images left out are retried with
 looser registration thresholds, and a model that contradicts its own matches or splits in parts is made again in
-safer configurations (`attempt_plan`) or refused with what the user can do."""
+safer configurations (`attempt_plan`) or refused with what the user can do. Where the photos carry masks of the
+object, features come from inside them only, so a turntable's still background can neither hold a model together
+nor tear it apart; without masks, matches that sit at the same pixels across photos while others move (a still
+background behind a turning object) stop SfM with that reason before any model is made of them."""
 from __future__ import annotations
 
 import shutil
@@ -19,9 +22,11 @@ import cv2
 import numpy as np
 import pycolmap
 
+from pipeline.report import short_list
 from pipeline.sfm.exif import one_camera, resized_since_capture, set_focal_priors
 from pipeline.sfm.model_checks import (GLOBAL_MAX_CONTRADICTED_SHARE, MAX_CONTRADICTED_SHARE, MIN_VERIFIED_INLIERS,
-                                       contradicted_images, detached_images, drop_images)
+                                       STILL_HINT_SHARE, contradicted_images, detached_images, drop_images,
+                                       still_matches)
 from pipeline.sfm.options import SfmOptions
 from plenoxels.errors import UserError
 
@@ -32,7 +37,6 @@ LOW_FEATURE_PEAK_DIVISOR = 3.0
 RELAXED_ABS_POSE_MIN_INLIERS = 15
 RELAXED_ABS_POSE_MIN_INLIER_RATIO = 0.15
 RELAXED_INIT_MIN_INLIERS = 50
-NAMES_SHOWN = 8
 # Loop closure's visual words: descriptors sampled per image, the share of them that trains the vocabulary, its size.
 LOOP_WORD_SAMPLES = 2000
 LOOP_TRAINING_PER_IMAGE = 300
@@ -54,11 +58,6 @@ def colmap_logging(verbose: bool) -> Iterator[None]:
         pycolmap.logging.minloglevel, pycolmap.logging.stderrthreshold = previous
 
 
-def short_list(names: list[str]) -> str:
-    shown = ", ".join(names[:NAMES_SHOWN])
-    return shown + (f" and {len(names) - NAMES_SHOWN} more" if len(names) > NAMES_SHOWN else "")
-
-
 def colmap_threads(s: SfmOptions) -> int:
     return s.threads or -1
 
@@ -67,10 +66,26 @@ def pycolmap_device(use_gpu: bool) -> pycolmap.Device:
     return pycolmap.Device.cuda if use_gpu and pycolmap.has_cuda else pycolmap.Device.cpu
 
 
+def feature_masks(records: list[dict], ingest_dir: Path, folder: Path) -> Path | None:
+    """The ingested masks as COLMAP reads them (`<image name>.png` in `folder`: black where no feature may be
+    extracted, the pixels under half the object's weight), or None when no image has a mask."""
+    masked = [r for r in records if r.get("mask")]
+    if not masked:
+        return None
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    for record in masked:
+        mask = cv2.imread(str(ingest_dir / record["mask"]), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(folder / f"{record['name']}.png.png"), np.where(mask >= 128, 255, 0).astype(np.uint8))
+    return folder
+
+
 def extract_features(db: Path, image_dir: Path, names: list[str], s: SfmOptions, single_camera: bool,
-             peak_threshold: float) -> None:
+                     peak_threshold: float, masks: Path | None = None) -> None:
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = s.camera_model
+    if masks is not None:
+        reader.mask_path = str(masks)
     options = pycolmap.FeatureExtractionOptions()
     options.sift.max_num_features = s.max_features
     options.sift.peak_threshold = peak_threshold
@@ -324,6 +339,9 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
     are dropped from it; with no such model the stage stops with what the user can do. Returns the model and what
     happened on the way (attempts, counts, fallbacks, timings). `scratch` holds the databases and models."""
     plan = attempt_plan(s, len(records), from_video)
+    masks = feature_masks(records, image_dir.parent, scratch / "feature_masks")
+    if masks is not None:
+        report.info(f"features only inside the masks of {sum(bool(r.get('mask')) for r in records)} images")
     resized = resized_since_capture(records, photos) if s.exif_focal else []
     if resized:
         report.info(f"{len(resized)} photo(s) are not the size their EXIF says the camera recorded (cropped or resized), "
@@ -331,7 +349,7 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
     tried = []
     for number, attempt in enumerate(plan):
         best, info, models = sfm_attempt(records, image_dir, photos, from_video, scratch / f"attempt_{number}",
-                                         attempt, report)
+                                         attempt, report, masks)
         problems, contradicted = model_problems(info.pop("db"), best, models, len(records), attempt.options)
         tried.append({"attempt": attempt.label, "registered": best.num_reg_images() if best else 0,
                       "contradicted": len(contradicted), "models": len(models), "problems": problems})
@@ -340,17 +358,22 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
         following = f"; trying {plan[number + 1].label}" if number + 1 < len(plan) else ""
         report.warn(f"SfM ({attempt.label}): {'; '.join(problems)}{following}")
     else:
+        still = info["still_matches"]
+        hint = (f"; {still['share']:.0%} of the matched features sit at the same pixels in both photos of a pair, as a "
+                "still background behind a turning object leaves them: if the object turned, give a mask of it for "
+                "each photo (a masks/ folder beside the photos)" if still["share"] >= STILL_HINT_SHARE else "")
         if all(t["problems"] == ["no model formed"] for t in tried):
             raise UserError(f"SfM formed no model from {len(records)} images ({info['pairs_verified']} verified pairs); "
-                            "the photos need more overlap and texture, or give poses with poses.source/poses.path")
+                            f"the photos need more overlap and texture, or give poses with poses.source/poses.path{hint}")
         raise UserError(f"no pose model of these photos holds together after {len(tried)} attempt(s) "
                         f"({', '.join(t['attempt'] for t in tried)}): {tried[-1]['problems'][0]}; take sharper, "
                         "more overlapping photos (or drop those named), or try poses.matching, poses.camera_model or "
-                        "poses.exif_focal=false")
+                        f"poses.exif_focal=false{hint}")
     info["attempts"], info["attempt"] = tried, attempt.label
     if number:
         info["attempt_why"] = tried[0]["problems"][0]
     info["exif_resized"] = resized
+    info["masked_images"] = sum(bool(r.get("mask")) for r in records) if masks is not None else 0
     if contradicted:
         drop_images(best, sorted(contradicted))
         info["contradicted"] = contradicted
@@ -359,10 +382,25 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
     return best, info
 
 
+def refuse_still(still: dict, masked: bool) -> None:
+    """Stops SfM where its matches show a still background behind something that moved (model_checks.still_matches):
+    photos of an object turning in front of a room it does not turn with, which no rigid model holds and no fit shows."""
+    if not still["still_background"]:
+        return
+    where = "even inside the masks given: the masks take in the background" if masked else "as on a turntable"
+    raise UserError(f"the photos show a still background behind a turning object: {still['share']:.0%} of "
+                    f"{still['matches']} matched features sit at the same pixels in both photos of a pair, and in "
+                    f"{still['split_pairs']} pairs they and the others, which move, fit no one rigid scene ({where}); "
+                    "give a mask of the object for each photo (a masks/ folder beside the photos, white on the "
+                    "object, each named like its photo)")
+
+
 def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: bool, scratch: Path,
-                attempt: Attempt, report) -> tuple[pycolmap.Reconstruction | None, dict, list[pycolmap.Reconstruction]]:
-    """One SfM run in one configuration: the largest model with detached images dropped, what happened on the way
-    (with the database's path under "db") and every model the mapper made."""
+                attempt: Attempt, report, masks: Path | None = None
+                ) -> tuple[pycolmap.Reconstruction | None, dict, list[pycolmap.Reconstruction]]:
+    """One SfM run in one configuration, features only inside `masks` (COLMAP's mask folder) when given: the largest
+    model with detached images dropped, what happened on the way (with the database's path under "db") and every
+    model the mapper made. Matches that show a still background behind a moving object stop it (`refuse_still`)."""
     s = attempt.options
     scratch.mkdir(parents=True, exist_ok=True)
     db = scratch / "database.db"
@@ -376,11 +414,11 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
     device = "GPU" if pycolmap_device(s.use_gpu) == pycolmap.Device.cuda else "CPU"
     report.info(f"extracting SIFT features from {len(names)} images ({device}, {'one shared camera' if single else 'one camera per image'}, {s.camera_model})")
     peak = attempt.peak_threshold
-    extract_features(db, image_dir, names, s, single, peak)
+    extract_features(db, image_dir, names, s, single, peak, masks)
     median = median_features(db)
     if median < s.min_features:
         report.info(f"only {median:.0f} features per image (median); extracting again with a lower detection threshold")
-        extract_features(db, image_dir, names, s, single, peak / LOW_FEATURE_PEAK_DIVISOR)
+        extract_features(db, image_dir, names, s, single, peak / LOW_FEATURE_PEAK_DIVISOR, masks)
         median = median_features(db)
     info["median_features"] = median
     info["focal_prior"] = set_focal_priors(db, records, photos, s.sensor_width_mm) if attempt.focal_prior else None
@@ -394,6 +432,8 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
     seconds["match"], seconds["map"] = 0.0, 0.0
     while True:
         matching = _match_and_summarise(db, mode, s, len(names), report, seconds)
+        info["still_matches"] = still_matches(db)
+        refuse_still(info["still_matches"], masks is not None)
         started = time.perf_counter()
         models, best, fallback = map_images(db, image_dir, scratch, s, report)
         seconds["map"] += time.perf_counter() - started

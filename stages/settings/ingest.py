@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from pipeline.config import require
+from pipeline.masks import mask_folder
 from pipeline.photos import photo_folder, scene_files
 
 NAME = "ingest"
@@ -28,6 +30,11 @@ class Settings:
     """Fail when fewer usable images than this remain (at least 3)."""
     holdout_split: str = "val"
     """A NeRF synthetic dataset folder (train/, val/, test/): the split held out for scoring (val, test or none)."""
+    masks: bool = True
+    """Read the object's masks from a masks/ (or mask/) folder beside the photos, one per photo by name: poses come
+    from features inside them and the fit models the object alone. Off: ignore the folder (alpha channels still count)."""
+    mask_threshold: int | Literal["auto"] = "auto"
+    """A mask's value above this (0-254) marks the object; auto: above 0, or above 127 in JPEG and WebP masks."""
 
     def check(self) -> None:
         require(self.max_side == 0 or self.max_side >= 32, "ingest.max_side must be 0 (full size) or at least 32")
@@ -36,7 +43,15 @@ class Settings:
         require(0 < self.video_motion < 1, "ingest.video_motion must be in (0, 1): a share of the frame's diagonal")
         require(self.min_images >= 3, "ingest.min_images must be at least 3 (fewer cannot be posed)")
         require(self.holdout_split in ("val", "test", "none"), "ingest.holdout_split must be val, test or none")
+        require(self.mask_threshold == "auto" or 0 <= int(self.mask_threshold) <= 254,
+                "ingest.mask_threshold must be auto or a value from 0 to 254")
 
 
 def fingerprint(scene: Path) -> list:
-    return [[str(p.relative_to(photo_folder(scene))), p.stat().st_size, p.stat().st_mtime_ns] for p in scene_files(scene)]
+    folder = photo_folder(scene)
+    listed = [[str(p.relative_to(folder)), p.stat().st_size, p.stat().st_mtime_ns] for p in scene_files(scene)]
+    masks = mask_folder(folder) if not scene.is_file() else None
+    if masks is not None:
+        listed += [[str(p.relative_to(masks.parent)), p.stat().st_size, p.stat().st_mtime_ns]
+                   for p in sorted(masks.iterdir()) if p.is_file()]
+    return listed

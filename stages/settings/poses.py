@@ -18,8 +18,9 @@ VERSION = 1
 @dataclass
 class Settings(SfmOptions):
     """SfM's options (pipeline.sfm.options.SfmOptions), and where poses come from."""
-    source: Literal["auto", "sfm", "colmap", "transforms", "llff"] = "auto"
-    """Where poses come from: auto imports pose files found beside the photos, else runs SfM."""
+    source: Literal["auto", "sfm", "colmap", "transforms", "llff", "idr"] = "auto"
+    """Where poses come from: auto imports pose files found beside the photos (a COLMAP model, a transforms.json,
+    LLFF's poses_bounds.npy, IDR/NeuS's cameras_sphere.npz), else runs SfM."""
     path: str = ""
     """An explicit pose file or COLMAP model folder to import (kind taken from source, or guessed)."""
     min_registered_share: float = 0.5
