@@ -43,6 +43,8 @@ from plenoxels.errors import UserError  # noqa: E402
 
 RESULTS = REPO / "bench" / "results" / "protocol.json"
 CACHE = REPO / "bench" / "out" / "protocol"
+# Run without --scene (as `make bench` does): the project's shared scenes that follow a protocol, where present.
+DEFAULT_SCENES = {"lego": REPO.parent / "shared" / "data" / "lego", "fern": REPO.parent / "shared" / "data" / "fern"}
 ABLATION_RESOLUTIONS = (32, 64, 128, 256, 512)
 FEW_VIEWS_EVERY = 4
 
@@ -127,11 +129,17 @@ def one_run(spec: dict) -> dict:
             "regularisation": fit.get("regularisation")}
 
 
-def runs_to_do(args, kind: str, name: str) -> list[dict]:
+def runs_to_do(args, kind: str, name: str, folder: Path) -> list[dict]:
     """(label, preset, settings) of every run the arguments ask for on one scene."""
     from pipeline import config
 
-    base = protocol_settings(kind, args.split) + [f"fit.{s.removeprefix('fit.')}" for s in args.set]
+    split = "every 8th"
+    if kind == "nerf_synthetic":
+        split = args.split
+        if split == "test" and not (folder / "transforms_test.json").is_file():
+            split = "val"  # a copy without the release's test split is scored on val, and its results say so
+            print(f"[protocol] {name}: no test split in {folder}; scoring its val split", flush=True)
+    base = protocol_settings(kind, split) + [f"fit.{s.removeprefix('fit.')}" for s in args.set]
     runs = []
     for preset in args.presets:
         if args.ablation == "resolution":
@@ -156,7 +164,7 @@ def runs_to_do(args, kind: str, name: str) -> list[dict]:
                 runs.append({"label": label, "preset": preset, "budget": budget,
                              "settings": base + ([f"fit.time_budget={budget}"] if budget else [])})
     for run in runs:
-        run.update(scene=name, kind=kind, split=args.split if kind == "nerf_synthetic" else "every 8th")
+        run.update(scene=name, kind=kind, split=split)
     return runs
 
 
@@ -234,19 +242,20 @@ def run_all(args) -> int:
             raise UserError(f"no results at {args.results}; run the benchmark first")
         print(table(json.loads(args.results.read_text())))
         return 0
-    if not args.scene:
+    scenes = args.scene or [f"{name}={folder}" for name, folder in DEFAULT_SCENES.items() if folder.is_dir()]
+    if not scenes:
         raise UserError("name a scene: --scene lego=FOLDER (a NeRF-synthetic folder) or --scene fern=FOLDER (LLFF)")
     unknown = [p for p in args.presets if p not in config.preset_names()]
     if unknown:
         raise UserError(f"unknown preset {unknown[0]}; presets are {', '.join(config.preset_names())}")
     read_weights()  # missing LPIPS weights stop here, not after a fit
     todo = []
-    for item in args.scene:
+    for item in scenes:
         name, sep, folder = item.partition("=")
         if not sep or not Path(folder).is_dir():
             raise UserError(f"--scene {item}: give NAME=FOLDER with an existing folder")
         todo += [{**run, "folder": str(Path(folder).resolve())}
-                 for run in runs_to_do(args, scene_kind(Path(folder)), name)]
+                 for run in runs_to_do(args, scene_kind(Path(folder)), name, Path(folder))]
     results = json.loads(args.results.read_text()) if args.results.is_file() else {"runs": []}
     failed = 0
     for run in todo:

@@ -62,12 +62,20 @@ def test_a_capped_schedule_keeps_the_total_steps_and_the_levels_under_the_cap():
     assert capped_levels(resolutions, steps, 64) == ([64], [6000])
 
 
-def test_the_views_ablation_trains_a_quarter_with_low_and_high_tv():
+def test_the_views_ablation_trains_a_quarter_with_low_and_high_tv(tmp_path):
     args = Namespace(split="test", set=[], presets=["fast"], ablation="views", budgets=[])
-    runs = runs_to_do(args, "nerf_synthetic", "lego")
+    runs = runs_to_do(args, "nerf_synthetic", "lego", blender_folder(tmp_path, {"train": [0, 1, 2], "test": [3]}))
     few = [r for r in runs if "normalize.train_every=4" in r["settings"]]
     assert len(runs) == 3 and len(few) == 2
     assert sum("fit.tv_views=0" in r["settings"] for r in few) == 1
+    assert all(r["split"] == "test" and "ingest.holdout_split=test" in r["settings"] for r in runs)
+
+
+def test_a_copy_without_the_test_split_is_scored_on_val_and_says_so(tmp_path):
+    args = Namespace(split="test", set=[], presets=["paper"], ablation=None, budgets=[])
+    runs = runs_to_do(args, "nerf_synthetic", "lego", blender_folder(tmp_path, {"train": [0, 1, 2], "val": [3]}))
+    assert [r["split"] for r in runs] == ["val"]
+    assert "ingest.holdout_split=val" in runs[0]["settings"] and "ingest.holdout_split=test" not in runs[0]["settings"]
 
 
 def test_a_run_scores_the_test_split_and_its_table_names_the_machine_and_commit(tmp_path, monkeypatch):
