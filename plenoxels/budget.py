@@ -22,6 +22,7 @@ import torch
 from plenoxels.fit_cost import calibrate
 from plenoxels.fit_plan import (FIRST_KEEP_PRIOR, LADDER, MAX_SHARE, MIN_SHARE, FitFacts, Plan, Rung, choose,
                                 finish_seconds, replan)
+from plenoxels.memory import voxels_that_fit
 from plenoxels.scene_model import SceneModel
 from plenoxels.train import Fitter, RaySet, coarse_start, pruning_rays
 
@@ -61,7 +62,8 @@ class TimeBudget:
                               prune_rays=functools.lru_cache(maxsize=None)(
                                   lambda r: pruning_rays(train.sizes, max(probe.resolution_for(r)), options)),
                               eval_every=options.eval_every, checkpoint_every=options.checkpoint_every,
-                              voxel_budget=options.voxel_budget, max_resolution=int(train.sizes.max()),
+                              voxel_budget=min(options.voxel_budget, voxels_that_fit(options.sh_degree)),
+                              max_resolution=int(train.sizes.max()),
                               first_keep=FIRST_KEEP_PRIOR[probe.scene_type])
         background = background and {"n_spheres": background["n_spheres"], "width": background["width"]}
         self.costs, self.calibration = calibrate(options, device, background, say=say)

@@ -6,23 +6,17 @@ ever zeroes or scans the whole grid.
 """
 from __future__ import annotations
 
-import os
-
 import torch
 
 from plenoxels import native
 from plenoxels.grid import OCCUPANCY_BLOCK, SparseGrid, large_zeros, sh_count
+from plenoxels.memory import physical_memory
 
 
 # The share of physical memory the per-thread gradient tables may take together. Each thread past the first adds a
 # table the size of the grid's (random rays touch every page of it within a few batches), so on many cores a fine
 # grid would otherwise take a table per core: 15 x 1.5 GB for 12 M voxels on 16 cores.
 SCRATCH_MEMORY_SHARE = 0.25
-
-
-def physical_memory() -> int:
-    """Bytes of physical memory on this machine."""
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
 def scratch_slots(table_bytes: int, memory: int | None = None) -> int:

@@ -39,6 +39,7 @@ from plenoxels.cameras import Intrinsics, rays_from_camera
 from plenoxels.errors import UserError
 from plenoxels.fit_frame import CONTRACTED_BOX, Contraction, FitFrame
 from plenoxels.grid import SparseGrid
+from plenoxels.memory import check_dense_level
 from plenoxels.ndc import NDCMapping
 from plenoxels.options import ModelOptions
 from plenoxels.render import RenderOptions, RenderResult, render
@@ -108,6 +109,7 @@ class SceneModel:
             if contraction is not None:
                 lo, hi = CONTRACTED_BOX
             shape = grid_shape(np.asarray(hi) - np.asarray(lo), resolution)
+        check_dense_level(shape, options.sh_degree)
         grid = SparseGrid.dense(shape, lo, hi, options.sh_degree, init_density=options.init_density,
                                 contracted=contraction is not None)
         render_options = RenderOptions(step_size=options.step_size, stop_transmittance=options.stop_transmittance)

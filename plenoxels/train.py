@@ -27,6 +27,7 @@ from plenoxels.background import BackgroundOptimiser
 from plenoxels.cameras import Intrinsics
 from plenoxels.errors import UserError
 from plenoxels.grid import SparseGrid, sh_count
+from plenoxels.memory import voxels_that_fit
 from plenoxels.optim import GridGrad, SparseRMSProp
 from plenoxels.options import TrainOptions
 from plenoxels.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution,
@@ -412,7 +413,7 @@ class Fitter:
     def next_level(self) -> None:
         """Prune, upsample to the next resolution within the voxel budget (at the same resolution: prune only), carry
         the optimiser state."""
-        budget = self.options.voxel_budget
+        budget = min(self.options.voxel_budget, voxels_that_fit(self.model.grid.sh_degree))
         old_res = max(self.model.grid.resolution)
         self.level += 1
         new_shape = self.model.resolution_for(self.options.resolutions[self.level])

@@ -274,3 +274,28 @@ def test_cuda_without_a_gpu_is_a_user_error(fresh):
     else:
         with pytest.raises(UserError, match="fit.device=cpu"):
             run_stage(fresh, fit, {**QUICK, "device": "cuda"})
+
+
+def test_a_first_level_that_would_not_fit_in_memory_stops_with_what_to_do(fresh, monkeypatch):
+    import plenoxels.memory as memory
+
+    dense_16 = 16 * 16 * 12 * memory.fit_bytes_per_voxel(2)  # about the synthetic object's first level at 16^3
+    monkeypatch.setattr(memory, "physical_memory", lambda: int(dense_16 / memory.GRID_MEMORY_SHARE / 4))
+    with pytest.raises(UserError, match="start coarser"):
+        run_stage(fresh, fit, {**QUICK, "device": "cpu"})
+    assert not (fresh / "fit" / "grid.pt").exists()  # nothing half-written
+
+
+def test_later_levels_hold_as_many_voxels_as_fit_in_memory(fresh, monkeypatch):
+    import plenoxels.memory as memory
+
+    run_stage(fresh, fit, {**QUICK, "steps": [60, 60], "device": "cpu"})
+    unlimited = read_json(fresh / "fit" / "fit.json")["model"]["occupied"]
+    limit = unlimited // 2
+    monkeypatch.setattr(memory, "physical_memory",
+                        lambda: int(limit * memory.fit_bytes_per_voxel(2) / memory.GRID_MEMORY_SHARE) + 1)
+    shutil.rmtree(fresh / "fit")
+    run_stage(fresh, fit, {**QUICK, "steps": [60, 60], "device": "cpu"})
+    record = read_json(fresh / "fit" / "fit.json")
+    assert record["model"]["occupied"] <= limit < unlimited
+    assert record["train_psnr"] > 12  # it still fits
