@@ -278,16 +278,19 @@ def reaches_far(scene: dict) -> bool:
 # that colour (a white table in some photos, a dark room in others). Object fits with a flat backdrop stood at 23.8-28.6
 # dB there in the fit bench (lego, the synthetic object); a room smeared into an object's grid stays near 15 dB.
 BACKDROP_MIN_TRAIN_PSNR = 20.0
+# A coarsest resolution of fewer steps has not converged far enough for its PSNR to say anything of the backdrop (a
+# quick look at 16^3 in 40 steps stands near 12 dB on a white backdrop).
+BACKDROP_CHECK_MIN_STEPS = 100
 
 
 def backdrop_check_step(model: "SceneModel", resolutions: list[int], steps: list[int]) -> int | None:
     """The step at which an object fit must reproduce its photos to BACKDROP_MIN_TRAIN_PSNR (the end of its first,
     coarsest resolution, its early-pruned rest included); None where something other than one colour lies behind
-    the grid (a background model, NDC, a contracted grid)."""
+    the grid (a background model, NDC, a contracted grid), or where that resolution has too few steps to tell."""
     if model.background is not None or model.fit_frame.ndc is not None or model.fit_frame.contraction is not None:
         return None
     leading = next((level for level, r in enumerate(resolutions) if r != resolutions[0]), len(resolutions))
-    return sum(steps[:leading])
+    return sum(steps[:leading]) if sum(steps[:leading]) >= BACKDROP_CHECK_MIN_STEPS else None
 
 
 def background_width_for(focal_px: float | None, texel_px: float) -> int:

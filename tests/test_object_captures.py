@@ -205,3 +205,16 @@ def test_an_object_fit_that_cannot_reproduce_its_photos_gets_a_background_model(
     run(scene, tmp_path / "object_out", ["fit"], *fit)
     record = read_json(tmp_path / "object_out" / "fit" / "fit.json")
     assert record["background_added"] is None and not record["model"]["background_model"]
+
+
+def test_the_backdrop_check_waits_for_a_coarsest_level_long_enough_to_tell():
+    from types import SimpleNamespace
+
+    from plenoxels.scene_model import BACKDROP_CHECK_MIN_STEPS, backdrop_check_step
+
+    plain = SimpleNamespace(background=None, fit_frame=SimpleNamespace(ndc=None, contraction=None))
+    assert backdrop_check_step(plain, [128, 128, 256], [200, 800, 1500]) == 1000  # the early-pruned rest counts
+    assert backdrop_check_step(plain, [16], [BACKDROP_CHECK_MIN_STEPS - 1]) is None  # a quick look: too few to tell
+    assert backdrop_check_step(plain, [16, 32], [BACKDROP_CHECK_MIN_STEPS, 40]) == BACKDROP_CHECK_MIN_STEPS
+    behind = SimpleNamespace(background=object(), fit_frame=plain.fit_frame)
+    assert backdrop_check_step(behind, [128, 256], [1000, 1000]) is None
