@@ -267,12 +267,12 @@ def run_all(args) -> int:
                 if (first / stage).is_dir():
                     shutil.copytree(first / stage, out / stage)
         print(f"[protocol] {run['scene']}: {run['label']}", flush=True)
-        load_before = os.getloadavg()
+        load_before, measured_at = os.getloadavg(), commit()  # the code the run measures, whatever HEAD is by its end
         result = run_child("bench.protocol", {**run, "out": str(out), "verbose": args.verbose}, run["label"])
         if result is None:
             failed += 1
             continue
-        record = {**run, **result, "machine": machine(), "commit": commit(),
+        record = {**run, **result, "machine": machine(), "commit": measured_at,
                   "threads": os.environ.get("OMP_NUM_THREADS"), "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                   "load_average": {"before": list(load_before), "after": list(os.getloadavg())}}
         m = result["mean"]
