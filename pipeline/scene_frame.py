@@ -21,7 +21,7 @@ import numpy as np
 from PIL import Image
 
 from pipeline.scene_options import SceneOptions
-from pipeline.visual_hull import DISAGREEING_SHARE, carve, cut_photos, read_silhouettes
+from pipeline.visual_hull import DISAGREEING_SHARE, carve, cut_photos, read_silhouettes, shown_box
 from plenoxels.cameras import Intrinsics, project
 from plenoxels.errors import UserError
 
@@ -546,8 +546,10 @@ def _silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: 
                                "box": hull.box.round(6).tolist()}
     if not hull.bounded:
         return found  # the photos' edges cut the silhouettes, so they do not say where the object ends
-    grow = hull.voxel + HULL_MARGIN * (hull.box[1] - hull.box[0])
-    box = np.stack([hull.box[0] - grow, hull.box[1] + grow])
+    shown = shown_box(silhouettes, hull, rotation)
+    measured["visual_hull"]["box_shown"] = shown.round(6).tolist()
+    grow = hull.voxel + HULL_MARGIN * (shown[1] - shown[0])
+    box = np.stack([shown[0] - grow, shown[1] + grow])
     if not from_masks:
         box = np.stack([np.minimum(box[0], found[0][0]), np.maximum(box[1], found[0][1])])
         return box, (f"visual hull of {len(silhouettes)} training photos' silhouettes on their flat backdrop, joined "
