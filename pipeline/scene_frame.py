@@ -523,10 +523,11 @@ def _silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: 
                     rotation: np.ndarray, axes_point: np.ndarray, camera_distance: float,
                     found: tuple[np.ndarray, str], options: SceneOptions, measured: dict) -> tuple[np.ndarray, str]:
     """The box (rotated frame) the training photos' silhouettes give (pipeline/visual_hull.py) and what it came from:
-    their masks' visual hull, or on a flat backdrop the hull of what is not the backdrop joined with the box `found`
-    otherwise (colour alone may miss a part of the backdrop's colour, so the points keep their say); `found` where
-    the photos carry neither, or their silhouettes do not bound the object (cut by the photos' edges). A box from
-    masks that cuts what a photo's mask shows can only come from wrong masks or poses: that stops here."""
+    the box of what some photo sees of their masks' visual hull, or on a flat backdrop the same of what is not the
+    backdrop, joined with the box `found` otherwise (colour alone may miss a part of the backdrop's colour, so the
+    points keep their say); `found` where the photos carry neither, or their silhouettes do not bound the object (cut
+    by the photos' edges). A box from masks that cuts what a photo's mask shows can only come from wrong masks or
+    poses: that stops here."""
     flat = (backdrop is not None and not backdrop.from_masks and backdrop.empty_fraction >= options.object_min_empty_fraction
             and backdrop.photos_showing >= BACKDROP_MIN_PHOTOS)
     silhouettes = read_silhouettes([cams.names[i] for i in train], [cams.frames[i] for i in train], cams.c2w[train],
