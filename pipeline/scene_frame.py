@@ -21,7 +21,7 @@ import numpy as np
 from PIL import Image
 
 from pipeline.scene_options import SceneOptions
-from pipeline.visual_hull import DISAGREEING_SHARE, carve, cut_photos, read_silhouettes
+from pipeline.visual_hull import DISAGREEING_SHARE, carve, cut_photos, read_silhouettes, shown_box
 from plenoxels.cameras import Intrinsics, project
 from plenoxels.errors import UserError
 
@@ -523,10 +523,11 @@ def _silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: 
                     rotation: np.ndarray, axes_point: np.ndarray, camera_distance: float,
                     found: tuple[np.ndarray, str], options: SceneOptions, measured: dict) -> tuple[np.ndarray, str]:
     """The box (rotated frame) the training photos' silhouettes give (pipeline/visual_hull.py) and what it came from:
-    their masks' visual hull, or on a flat backdrop the hull of what is not the backdrop joined with the box `found`
-    otherwise (colour alone may miss a part of the backdrop's colour, so the points keep their say); `found` where
-    the photos carry neither, or their silhouettes do not bound the object (cut by the photos' edges). A box from
-    masks that cuts what a photo's mask shows can only come from wrong masks or poses: that stops here."""
+    the box of what some photo sees of their masks' visual hull, or on a flat backdrop the same of what is not the
+    backdrop, joined with the box `found` otherwise (colour alone may miss a part of the backdrop's colour, so the
+    points keep their say); `found` where the photos carry neither, or their silhouettes do not bound the object (cut
+    by the photos' edges). A box from masks that cuts what a photo's mask shows can only come from wrong masks or
+    poses: that stops here."""
     flat = (backdrop is not None and not backdrop.from_masks and backdrop.empty_fraction >= options.object_min_empty_fraction
             and backdrop.photos_showing >= BACKDROP_MIN_PHOTOS)
     silhouettes = read_silhouettes([cams.names[i] for i in train], [cams.frames[i] for i in train], cams.c2w[train],
@@ -546,8 +547,10 @@ def _silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: 
                                "box": hull.box.round(6).tolist()}
     if not hull.bounded:
         return found  # the photos' edges cut the silhouettes, so they do not say where the object ends
-    grow = hull.voxel + HULL_MARGIN * (hull.box[1] - hull.box[0])
-    box = np.stack([hull.box[0] - grow, hull.box[1] + grow])
+    shown = shown_box(silhouettes, hull, rotation)
+    measured["visual_hull"]["box_shown"] = shown.round(6).tolist()
+    grow = hull.voxel + HULL_MARGIN * (shown[1] - shown[0])
+    box = np.stack([shown[0] - grow, shown[1] + grow])
     if not from_masks:
         box = np.stack([np.minimum(box[0], found[0][0]), np.maximum(box[1], found[0][1])])
         return box, (f"visual hull of {len(silhouettes)} training photos' silhouettes on their flat backdrop, joined "

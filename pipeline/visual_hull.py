@@ -10,6 +10,10 @@ pixels count as object where any pixel they cover does; a voxel's footprint is a
 diagonal, so carving never cuts what a silhouette shows. A few photos may disagree with a voxel (a mask that misses
 a part) before it goes.
 
+The hull still holds whatever every photo sees only through the object (under a base that all the cameras look
+down on, a cone as deep as the base is wide). The box is the box of the hull's voxels that some photo sees in front of
+the others, grown only as far as its outline must to hold every silhouette: what the photos show, and no more.
+
 The box that frames the scene is then checked against every silhouette: a photo whose silhouette reaches past the
 box's outline shows object that the box would cut, which only a wrong mask or a wrong pose can explain.
 """
@@ -95,6 +99,9 @@ def read_silhouettes(names: list[str], frames: list[dict], c2w: np.ndarray, intr
                        "masks" if from_masks else "backdrop")
 
 
+# A voxel counts as seen by a photo within this many voxel sides behind the nearest voxel in its cell of the photo's
+# depth buffer (neighbours on a surface a photo sees aslant lie a little behind one another).
+SEEN_DEPTH_VOXELS = 2.0
 # 8-bit levels a pixel must differ from a flat backdrop's colour (in some channel) to show the object.
 BACKDROP_OBJECT_LEVELS = 12
 
@@ -106,6 +113,7 @@ class Hull:
     voxels: int              # voxels kept at the finest level
     levels: int
     bounded: bool            # False where the hull reaches the region's edge (silhouettes cut by the photos' edges)
+    centres: np.ndarray      # [M, 3] the kept voxels' centres, rotated frame
 
 
 def carve(silhouettes: Silhouettes, rotation: np.ndarray, centre_rot: np.ndarray, half: float,
@@ -139,7 +147,7 @@ def carve(silhouettes: Silhouettes, rotation: np.ndarray, centre_rot: np.ndarray
     lo, hi = corner + index.min(0) * size, corner + (index.max(0) + 1) * size
     reach = np.round(2 * half / size).astype(int)
     bounded = bool((index.min(0) > 0).all() and (index.max(0) < reach - 1).all())
-    return Hull(np.stack([lo, hi]), size, len(index), levels, bounded)
+    return Hull(np.stack([lo, hi]), size, len(index), levels, bounded, corner + (index + 0.5) * size)
 
 
 def _consistent(centres: np.ndarray, size: float, c2w: np.ndarray, intrinsics: list[Intrinsics],
@@ -177,21 +185,108 @@ def _consistent(centres: np.ndarray, size: float, c2w: np.ndarray, intrinsics: l
     return keep
 
 
-def cut_photos(silhouettes: Silhouettes, box_rot: np.ndarray, rotation: np.ndarray) -> dict[str, float]:
-    """The photos whose silhouettes reach past the outline of the box (in the rotated frame), with the share of their
-    silhouette pixels outside it (see CUT_SHARE)."""
+def _beyond_outline(silhouettes: Silhouettes, box_rot: np.ndarray, rotation: np.ndarray) -> list[int | None]:
+    """Per photo, how many of its silhouette's pixels lie farther than CUT_TOLERANCE_PX outside the outline of the box
+    (in the rotated frame); None where the photo's camera is inside the box, which it sees all around it, or where its
+    silhouette is empty."""
     corners = np.array([[box_rot[i][0], box_rot[j][1], box_rot[l][2]] for i in (0, 1) for j in (0, 1) for l in (0, 1)])
     corners = corners @ rotation  # back to the input frame
-    cut = {}
-    for name, pose, k, shown in zip(silhouettes.names, silhouettes.c2w, silhouettes.intrinsics, silhouettes.object):
+    counts: list[int | None] = []
+    for pose, k, shown in zip(silhouettes.c2w, silhouettes.intrinsics, silhouettes.object):
         uv, depth = project(corners, pose, k)
         if (depth <= 0).any() or not shown.any():
-            continue  # a camera inside the box sees the box all around it
+            counts.append(None)
+            continue
         outline = np.zeros(shown.shape, dtype=np.uint8)
         cv2.fillConvexPoly(outline, cv2.convexHull(np.round((uv - 0.5) * 16).astype(np.int32)), 1, shift=4)
         beyond = cv2.distanceTransform(np.where(outline > 0, 0, 255).astype(np.uint8), cv2.DIST_L2, 3)
-        outside = int((shown & (beyond > CUT_TOLERANCE_PX)).sum())
+        counts.append(int((shown & (beyond > CUT_TOLERANCE_PX)).sum()))
+    return counts
+
+
+def cut_photos(silhouettes: Silhouettes, box_rot: np.ndarray, rotation: np.ndarray) -> dict[str, float]:
+    """The photos whose silhouettes reach past the outline of the box (in the rotated frame), with the share of their
+    silhouette pixels outside it (see CUT_SHARE)."""
+    cut = {}
+    for name, shown, outside in zip(silhouettes.names, silhouettes.object, _beyond_outline(silhouettes, box_rot, rotation)):
+        if outside is None:
+            continue
         share = outside / int(shown.sum())
         if outside >= MIN_CUT_PIXELS and share > CUT_SHARE:
             cut[name] = round(share, 4)
     return cut
+
+
+def _surface(centres: np.ndarray, size: float) -> np.ndarray:
+    """Which voxels (centres on one grid of side `size`) have a face on empty space: only they can be seen."""
+    index = np.round((centres - centres.min(0)) / size).astype(np.int64) + 1
+    solid = np.zeros(index.max(0) + 2, dtype=bool)
+    solid[tuple(index.T)] = True
+    inner = np.ones(len(index), dtype=bool)
+    for axis in range(3):
+        for step in (-1, 1):
+            neighbour = index.copy()
+            neighbour[:, axis] += step
+            inner &= solid[tuple(neighbour.T)]
+    return ~inner
+
+
+def _seen(centres_in: np.ndarray, size: float, silhouettes: Silhouettes) -> np.ndarray:
+    """Which voxels (centres in the input frame) some photo sees in front of the others: each photo's depth buffer of
+    the voxels, on cells as wide as a voxel looks, each voxel covering its cell's neighbours too so that none slips
+    between them; a voxel counts as seen within SEEN_DEPTH_VOXELS of the nearest depth in its cell."""
+    seen = np.zeros(len(centres_in), dtype=bool)
+    radius = size * np.sqrt(3) / 2
+    offsets = np.stack(np.meshgrid(np.arange(-1, 2), np.arange(-1, 2), indexing="ij"), -1).reshape(-1, 2)
+    for pose, k in zip(silhouettes.c2w, silhouettes.intrinsics):
+        uv, depth = project(centres_in, pose, k)
+        front = np.flatnonzero(depth > radius)
+        if not len(front):
+            continue
+        uv, depth = uv[front], depth[front]
+        cell = float(np.median(2 * radius * max(k.fl_x, k.fl_y) / depth))
+        grid = np.floor(uv / cell).astype(np.int64)
+        grid -= grid.min(0) - 1
+        width = int(grid[:, 0].max()) + 2
+        own = grid[:, 1] * width + grid[:, 0]
+        keys = (own[None] + offsets[:, 1:2] * width + offsets[:, 0:1]).ravel()
+        depths = np.tile(depth, len(offsets))
+        order = np.argsort(keys, kind="stable")
+        cells, first = np.unique(keys[order], return_index=True)
+        nearest = np.minimum.reduceat(depths[order], first)
+        seen[front] |= depth <= nearest[np.searchsorted(cells, own)] + SEEN_DEPTH_VOXELS * size
+    return seen
+
+
+def shown_box(silhouettes: Silhouettes, hull: Hull, rotation: np.ndarray) -> np.ndarray:
+    """The box (rotated frame) of what the photos show of the hull: the box of the hull's voxels that some photo sees
+    in front of the rest, grown toward the hull's box only as far as its outline must to hold every silhouette pixel
+    that the hull box's outline holds.
+
+    The hull keeps every region that all the photos see only through the object: under a base that the cameras look
+    down on, a cone as deep as the base is wide. Nothing there shows in any photo, so the box leaves it out; a part
+    some photo shows, however thin, is seen in front of the rest and stays. The growing step puts back what a depth
+    buffer of voxels misses where a surface turns away from a camera at the silhouette's edge."""
+    surface = hull.centres[_surface(hull.centres, hull.voxel)]
+    seen = surface[_seen(surface @ rotation, hull.voxel, silhouettes)]
+    if not len(seen):
+        return hull.box
+    box = np.stack([np.maximum(seen.min(0) - hull.voxel / 2, hull.box[0]), np.minimum(seen.max(0) + hull.voxel / 2, hull.box[1])])
+    held = _beyond_outline(silhouettes, hull.box, rotation)
+
+    def holds(candidate: np.ndarray) -> bool:
+        return all(before is None or (now is not None and now <= before)
+                   for before, now in zip(held, _beyond_outline(silhouettes, candidate, rotation)))
+
+    if holds(box):
+        return box
+    # Every face moves the same share of its way out to the hull's box; bisect that share to within a voxel's move.
+    gap = float(np.abs(hull.box - box).max())
+    grown, short = 1.0, 0.0
+    while (grown - short) * gap > hull.voxel:
+        middle = 0.5 * (grown + short)
+        if holds(box + middle * (hull.box - box)):
+            grown = middle
+        else:
+            short = middle
+    return box + grown * (hull.box - box)

@@ -245,7 +245,9 @@ def test_without_points_masks_or_scenery_decide(tmp_path):
     scene, _ = _run_stage(masked)
     assert scene["type"] == "object", scene["reasons"]
     assert scene["frames"][0]["mask_path"] == f"poses/masks/{scene['frames'][0]['name']}.png"
-    assert scene["measured"]["foreground_from"].startswith("cameras")
+    # No points: the masks' visual hull frames the object.
+    assert scene["measured"]["foreground_from"].startswith("visual hull of")
+    assert scene["measured"]["visual_hull"]["source"] == "masks"
     for frame in scene["frames"]:
         # Near/far from the foreground box: every camera is outside it, and the box lies between near and far.
         origin = np.asarray(frame["transform_matrix"])[:3, 3]

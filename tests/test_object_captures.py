@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 from PIL import Image
 
@@ -18,6 +19,8 @@ from pipeline.runner import Pipeline
 from pipeline.scene_frame import SceneOptions, normalize_scene, read_points
 from pipeline.sfm.compare import compare_poses, umeyama
 from pipeline.synthetic import OBJECT_CENTRE, write_scene
+from pipeline.visual_hull import Silhouettes, carve, cut_photos, shown_box
+from plenoxels.cameras import Intrinsics, look_at, rays_from_camera
 from plenoxels.errors import UserError
 
 TURNTABLE_VIEWS, WIDTH, HEIGHT = 24, 480, 360
@@ -144,6 +147,36 @@ def test_the_box_from_the_silhouettes_holds_a_thin_part_the_points_cut(mast_scen
     from_points = normalize_scene(read_json(out / "poses" / "transforms.json"), read_points(out / "poses" / "points.npz"),
                                   SceneOptions(), poses_dir=None)
     assert not inside_box(top, from_points)
+
+
+def plate_silhouettes(half_extents: np.ndarray, elevations_deg: np.ndarray) -> Silhouettes:
+    """A box centred at the origin seen from a ring of cameras 4 units away, all above it: the pixels whose rays hit it."""
+    k = Intrinsics(110.0, 110.0, 64.0, 48.0, 128, 96)
+    poses, shown = [], []
+    for i, elevation in enumerate(np.radians(elevations_deg)):
+        azimuth = 2.4 * i
+        pose = look_at(4 * np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                                     np.sin(elevation)]), (0.0, 0.0, 0.0))
+        origins, directions = (t.numpy() for t in rays_from_camera(pose, k, dtype=torch.float64))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            near, far = (-half_extents - origins) / directions, (half_extents - origins) / directions
+        enter, leave = np.minimum(near, far).max(-1), np.maximum(near, far).min(-1)
+        poses.append(pose)
+        shown.append(enter < leave)
+    return Silhouettes([f"{i:03d}" for i in range(len(poses))], np.stack(poses), [k] * len(poses), shown, "masks")
+
+
+def test_the_box_leaves_out_what_every_photo_sees_only_through_the_object():
+    # Seen only from above, the hull of a plate goes on below it in a cone that every photo sees through the plate; the
+    # box leaves the cone out, holds the whole plate (its sides show) and every silhouette.
+    half = np.array([0.6, 0.45, 0.05])
+    silhouettes = plate_silhouettes(half, np.linspace(15, 60, 16))
+    hull = carve(silhouettes, np.eye(3), np.zeros(3), 2.0)
+    assert hull is not None and hull.box[0][2] < -half[2] - 0.2
+    box = shown_box(silhouettes, hull, np.eye(3))
+    assert not cut_photos(silhouettes, box, np.eye(3))
+    assert np.all(box[0] <= -half + hull.voxel / 2) and np.all(box[1] >= half - hull.voxel / 2)
+    assert box[0][2] > -half[2] - 4 * hull.voxel
 
 
 def test_a_box_that_cuts_what_a_mask_shows_stops_normalize(mast_scene, tmp_path):
