@@ -11,9 +11,11 @@ from plenoxels.errors import UserError
 # The share of physical memory a fit's grid may take at its peak; the rest is the training photos' pixels and rays,
 # the per-thread gradient tables (plenoxels/optim.py, at most a quarter), the renders and the system.
 GRID_MEMORY_SHARE = 0.5
-# Copies of a voxel's row a fit holds at its peak: the parameters, RMSProp's running mean square, the gradient, and,
-# during an upsampling, the old grid's rows beside the new grid's with their optimiser state carried over.
-ROW_COPIES = 5
+# Copies of a voxel's row a fit holds at its peak, as measured: the parameters, RMSProp's running mean square, the
+# gradient tables, and during an upsampling the old grid's rows beside the new grid's with their optimiser state
+# (lego at `paper`, 7.47 M voxels at 512^3 at SH degree 2, peaked at 10.0 GiB, about 1.2 kB a voxel past its photos:
+# bench/README.md, "The papers' protocol").
+ROW_COPIES = 10
 
 
 def physical_memory() -> int:
