@@ -7,9 +7,9 @@ the surface towards it, along the direction from that view's camera, its composi
 views see a texel comes from its face's vertices (plenoxels.surface.view_cosines: in the image, facing the camera,
 not hidden). Only directions some photo saw are pinned down by the fit: its higher SH degrees are free elsewhere, so
 the colour along the normal (`colour="normal"`, the fallback where no view sees a texel) strays on any surface no
-photo looked at head-on (the undersides of a still life seen from above: 9 dB below the field's own render on the
-room scene, against 5 dB along the facing view, bench/README.md), and the SH degree-0 term (`colour="mean"`, the
-mean over all directions, as the PLY's vertex colours are) averages in every unseen direction.
+photo looked at head-on (the lower half of a ball seen from above: on the synthetic room scene the texture's render
+fell 7.3 dB below the field's own, against 4.4 dB along the facing view, bench/README.md), and the SH degree-0 term
+(`colour="mean"`, the mean over all directions, as the PLY's vertex colours are) averages in every unseen direction.
 
 Seams: every texel a triangle covers, and every texel within GUTTER_TEXELS of one, is baked at the nearest point of
 that triangle, so bilinear filtering at a chart's edge reads surface colour; the rest of the atlas is filled by
