@@ -112,13 +112,16 @@ def load_textured(obj: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
 
 def colour_renders(export_dir: Path, run_dir: Path, transforms: dict, scene: dict, spec: synthetic.SceneSpec) -> dict:
     """PSNR against the held-out photos, on the pixels the true objects wholly cover: the textured OBJ and the PLY's
-    vertex colours rendered unlit (render_mesh), and the radiance field's own render of the same pixels."""
+    vertex colours rendered unlit (render_mesh; black where the mesh is missing), and the radiance field's own render
+    of the same pixels; and the same on the part of those pixels the mesh covers (the colours apart from the holes)."""
     model = SceneModel.load(run_dir / "fit")
     textured = load_textured(export_dir / "mesh.obj")
     ply = trimesh.load(export_dir / "mesh.ply", force="mesh", process=False)
     held_out = {f["name"]: f for f in scene["frames"] if f.get("split") == "test"}
-    squared = {"field": 0.0, "texture": 0.0, "vertex_colours": 0.0}
-    pixels = 0
+    keys = ("field", "texture", "vertex_colours")
+    squared = {key: 0.0 for key in keys}
+    squared_covered = {key: 0.0 for key in keys}
+    pixels = pixels_covered = 0
     for frame in transforms["frames"]:
         record = held_out.get(Path(frame["file_path"]).stem)
         if record is None:
@@ -127,18 +130,26 @@ def colour_renders(export_dir: Path, run_dir: Path, transforms: dict, scene: dic
         photo, _, coverage = synthetic.render_view(spec, c2w, k)
         photo = photo / 255.0
         mask = coverage >= 1.0
+        vertex_render, covered = render_mesh(ply.vertices, ply.faces, c2w, k,
+                                             vertex_colours=ply.visual.vertex_colors[:, :3] / 255.0)
         renders = {"field": model.render_camera(np.asarray(record["transform_matrix"]), k)["rgb"].numpy(),
-                   "vertex_colours": render_mesh(ply.vertices, ply.faces, c2w, k,
-                                                 vertex_colours=ply.visual.vertex_colors[:, :3] / 255.0)[0]}
+                   "vertex_colours": vertex_render}
         if textured is not None:
             renders["texture"] = render_mesh(textured[0], textured[1], c2w, k, uv=textured[2], image=textured[3])[0]
         for key, image in renders.items():
             squared[key] += float(((image - photo)[mask] ** 2).sum())
+            squared_covered[key] += float(((image - photo)[mask & covered] ** 2).sum())
         pixels += int(mask.sum())
-    result = {key: (-10 * np.log10(max(value / max(3 * pixels, 1), 1e-12)) if pixels and (key != "texture" or textured)
-                    else None) for key, value in squared.items()}
+        pixels_covered += int((mask & covered).sum())
+
+    def psnr(errors: dict, count: int) -> dict:
+        return {key: (-10 * np.log10(max(value / max(3 * count, 1), 1e-12)) if count and (key != "texture" or textured)
+                      else None) for key, value in errors.items()}
+
+    result, on_mesh = psnr(squared, pixels), psnr(squared_covered, pixels_covered)
     return {"psnr": result, "views": len(held_out), "pixels": pixels,
-            "texture_below_field_db": result["field"] - result["texture"] if result["texture"] is not None else None}
+            "texture_below_field_db": result["field"] - result["texture"] if result["texture"] is not None else None,
+            "psnr_where_the_mesh_covers": on_mesh, "mesh_covers_share": pixels_covered / max(pixels, 1)}
 
 
 def topology(mesh: trimesh.Trimesh) -> dict:

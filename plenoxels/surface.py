@@ -3,7 +3,7 @@
 Rendering training views from the grid alone (`render_views`), the rays' expected termination points
 (`ray_terminations`), sampling the field at points (`sample_field`, `density_gradient`), snapping points onto a
 density level (`snap_to_level`), their normals (`point_normals`) and the mesh's own z-buffer per view
-(`seen_vertices`).
+(`seen_vertices`, `view_cosines`).
 """
 from __future__ import annotations
 
@@ -154,9 +154,16 @@ def _nearest_vertex_distance(vertices: np.ndarray, distance: np.ndarray, view: V
 
 def seen_vertices(mesh: trimesh.Trimesh, views: list[ViewRender], frame: FitFrame, voxel: float, tolerance: float,
                   opacity: float) -> np.ndarray:
-    """Which vertices [V] (normalised world) some training view sees: in its image, on the side of the
-    surface facing the camera, not behind what the view's pixel sees by more than `tolerance` (world
-    units), and not behind a nearer layer of the mesh itself.
+    """Which vertices [V] (normalised world) some training view sees (view_cosines)."""
+    return (view_cosines(mesh, views, frame, voxel, tolerance, opacity) > 0).any(axis=1)
+
+
+def view_cosines(mesh: trimesh.Trimesh, views: list[ViewRender], frame: FitFrame, voxel: float, tolerance: float,
+                 opacity: float) -> np.ndarray:
+    """Per vertex and training view [V, len(views)]: the cosine between the vertex normal and the direction to the
+    camera where the view sees the vertex, 0 where it does not. A view sees a vertex in its image, on the side of the
+    surface facing the camera, not behind what the view's pixel sees by more than `tolerance` (world units), and not
+    behind a nearer layer of the mesh itself.
 
     The rendered view: a pixel less than `opacity` opaque hides nothing. Elsewhere the pixel's termination
     distance is the largest of the opaque ones in its 3x3 neighbourhood, so a vertex on a silhouette is
@@ -168,8 +175,8 @@ def seen_vertices(mesh: trimesh.Trimesh, views: list[ViewRender], frame: FitFram
     tolerance nearer, plus what the surface's slant spreads over one pixel, up to GRAZING_VOXELS."""
     vertices = np.asarray(mesh.vertices)
     normals = np.asarray(mesh.vertex_normals)
-    seen = np.zeros(len(vertices), dtype=bool)
-    for view in views:
+    cosines = np.zeros((len(vertices), len(views)), dtype=np.float32)
+    for index, view in enumerate(views):
         centre = view.c2w[:3, 3]
         origins, directions = view.rays(frame)
         ends = frame.to_world(origins + view.t[:, None].astype(np.float64) * directions)
@@ -187,10 +194,10 @@ def seen_vertices(mesh: trimesh.Trimesh, views: list[ViewRender], frame: FitFram
         uv, depth = project(vertices, view.c2w, view.k)
         col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
         candidates = np.flatnonzero((depth > 0) & (col >= 0) & (col < view.k.w) & (row >= 0) & (row < view.k.h)
-                                    & (cosine > 0) & unhidden_by_mesh & ~seen)
-        visible = distance[candidates] <= reach[row[candidates], col[candidates]] + tolerance
-        seen[candidates[visible]] = True
-    return seen
+                                    & (cosine > 0) & unhidden_by_mesh)
+        visible = candidates[distance[candidates] <= reach[row[candidates], col[candidates]] + tolerance]
+        cosines[visible, index] = cosine[visible]
+    return cosines
 
 
 def surface_points(grid, frame: FitFrame, frames: list[dict], scale: float, min_opacity: float, report) -> np.ndarray:

@@ -81,7 +81,8 @@ def run(ctx) -> dict:
     texture = None
     if s.texture:
         ctx.report.info(f"unwrapping {_count(len(mesh.faces))} faces and baking a {s.texture_size}-texel texture")
-        texture = texture_mesh(grid, frame, mesh, s.texture_size, s.texture_colour)
+        texture = texture_mesh(grid, frame, mesh, s.texture_size, s.texture_colour, views, s.seen_tolerance,
+                               s.point_opacity)
         decisions["texture"] = {"size": list(texture.atlas.size), "charts": texture.atlas.charts,
                                 "colour": texture.colour, "atlas_vertices": len(texture.atlas.uv)}
 

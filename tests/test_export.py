@@ -557,10 +557,11 @@ def test_full_pipeline_mesh_and_points_match_the_true_object_in_the_input_frame(
     assert np.median(distance) < 0.02 * size and (distance < 0.05 * size).mean() > 0.8, (
         np.median(distance) / size, (distance < 0.05 * size).mean())
 
-    # The same mesh left in the normalised frame is nowhere near the object: the thresholds can tell.
+    # The same mesh left in the normalised frame misses the object: the strict threshold can tell. (That frame can be
+    # the input one turned about the vertical and scaled, where the still life overlaps itself at 5%.)
     scene = read_json(out / "normalize" / "scene.json")
     wrong = mesh.copy().apply_transform(np.asarray(scene["world_from_input"]))
-    assert mesh_scores(wrong, truth, 0.05 * size, samples=5_000, reference_visible=seen)["f_score"] < 0.3
+    assert mesh_scores(wrong, truth, 0.01 * size, samples=5_000, reference_visible=seen)["f_score"] < 0.25
 
 
 def test_blender_opens_the_glb_obj_and_ply_in_the_input_frame_with_their_colours_showing(pipeline_export, tmp_path):

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from scipy.ndimage import binary_erosion
 from scipy.spatial import cKDTree
 
 from pipeline.io import GLTF_FROM_ZUP
@@ -11,6 +12,7 @@ from plenoxels.cameras import Intrinsics, rays_from_camera
 from plenoxels.fit_frame import FitFrame
 from plenoxels.mesh import build_mesh, transform_points
 from plenoxels.render import render
+from plenoxels.surface import render_views
 from plenoxels import texture
 from plenoxels.texture import bake, rasterize, render_mesh, sample_texture, texel_surface, texture_mesh, unwrap
 from stages.settings.export import Settings
@@ -135,6 +137,39 @@ def test_the_texture_shows_what_a_camera_looking_straight_at_the_surface_sees(sp
     normal_error = np.abs(renders["normal"] - field_rgb)[facing].mean()
     mean_error = np.abs(renders["mean"] - field_rgb)[facing].mean()
     assert normal_error < 0.035 and mean_error > 0.07, (normal_error, mean_error)
+
+
+def test_the_texture_shows_what_the_training_view_facing_the_surface_saw(sphere):
+    # The field's colour depends on the view (SH degree 1). Baked along the direction from the training camera that
+    # faces each texel, the texture rendered from that camera matches the field's own render on everything the camera
+    # sees, its oblique parts included; baked along the normal, it strays there.
+    field, mesh, textures = sphere
+    k = Intrinsics(120.0, 120.0, 64.0, 64.0, 128, 128)
+    c2w = look_at(SPHERE_CENTRE + np.array([2.2, -1.0, 0.6]), SPHERE_CENTRE)
+    record = {"transform_matrix": c2w.tolist(), "fl_x": k.fl_x, "fl_y": k.fl_y, "cx": k.cx, "cy": k.cy, "w": k.w,
+              "h": k.h, "split": "train"}
+    views = render_views(field, FitFrame(), [record], 1.0, 0, _Quiet())
+    facing = texture_mesh(field, FitFrame(), mesh, 256, "view", views)
+    origins, directions = rays_from_camera(c2w, k)
+    with torch.no_grad():
+        out = render(field, origins.reshape(-1, 3), directions.reshape(-1, 3))
+    field_rgb = (out.rgb / out.opacity.clamp_min(1e-6)[:, None]).numpy().reshape(128, 128, 3)
+    renders = {}
+    for colour, baked in (("view", facing), ("normal", textures["normal"])):
+        vertices = mesh.vertices[baked.atlas.vertex_map]
+        renders[colour], covered = render_mesh(vertices, baked.atlas.faces, c2w, k, uv=baked.atlas.uv,
+                                               image=baked.image)
+    # Pixels two in from the silhouette, off the red/blue seam, where the surface turns 25 degrees or more away.
+    normals, _ = render_mesh(mesh.vertices, mesh.faces, c2w, k, vertex_colours=mesh.vertex_normals)
+    points, _ = render_mesh(mesh.vertices, mesh.faces, c2w, k, vertex_colours=mesh.vertices)
+    to_camera = c2w[:3, 3] - points
+    cosine = (normals * to_camera).sum(axis=-1) / np.linalg.norm(to_camera, axis=-1)
+    oblique = binary_erosion(covered, iterations=2) & (np.abs(points[..., 0] - 0.1) > 0.05) & (cosine < 0.9)
+    assert oblique.sum() > 200
+    view_error = np.abs(renders["view"] - field_rgb)[oblique].mean()
+    normal_error = np.abs(renders["normal"] - field_rgb)[oblique].mean()
+    assert view_error < 0.03 and normal_error > 0.08, (view_error, normal_error)
+    assert facing.colour == "view"
 
 
 def test_textured_files_carry_uvs_a_matte_material_and_the_png_in_the_input_frame(sphere, tmp_path):

@@ -24,9 +24,9 @@ class Settings(MeshOptions):
     """Unwrap the mesh (xatlas) and bake the field's colour into mesh.png for the OBJ and GLB; off: vertex colours."""
     texture_size: int = 2048
     """The texture's side, about (xatlas packs the atlas to it), in texels."""
-    texture_colour: Literal["normal", "mean"] = "normal"
-    """normal: the colour the field renders looking straight at the surface; mean: its view-independent SH degree-0
-    term (plenoxels/texture.py says why normal)."""
+    texture_colour: Literal["view", "normal", "mean"] = "view"
+    """view: the colour the field renders from the training view that faces the surface most squarely; normal: looking
+    straight at the surface; mean: its view-independent SH degree-0 term (plenoxels/texture.py says why view)."""
     points: int = 200_000
     """Points kept in points.ply (a random, seeded subset)."""
     point_scale: float = 0.5
