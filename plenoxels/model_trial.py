@@ -17,7 +17,8 @@ The questions, each a pair of models (MODELS):
 - one colour behind a bounded grid (an object) or background spheres: either backdrop proxy (points beyond, empty
   pixels) within BACKDROP_BAND times its threshold, photos without masks.
 A capture none of them asks about is clear-cut and costs nothing. A model set by hand (fit.ndc, fit.contract,
-fit.background, normalize.scene_type) is never second-guessed.
+fit.background, normalize.scene_type) is never second-guessed. The winner is fitted with the settings of the scene
+type normalize gave (its configs/scene_types overlay: TV, the first level's scale, the voxel cap), as the trial was.
 """
 from __future__ import annotations
 

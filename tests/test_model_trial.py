@@ -185,6 +185,20 @@ def test_a_resumed_fit_keeps_the_model_its_trial_chose(tmp_path, monkeypatch):
     assert record["chosen"] == "bounded + background"
 
 
+def test_a_trial_under_a_time_budget_takes_its_share_of_it(tmp_path, monkeypatch):
+    given = {}
+
+    def trial(scene, options, train, device, asked, seconds=None, say=None):
+        given["seconds"] = seconds
+        return model_trial.Outcome("contracted", "why", {"chosen": "contracted", "tried": []})
+
+    monkeypatch.setattr(model_trial, "run", trial)
+    options, record = model_trial.choose(_typed("unbounded", beyond_fraction=0.23), Options(), None,
+                                         torch.device("cpu"), 60.0, tmp_path / "model_trial.json")
+    assert given["seconds"] == pytest.approx(60.0 * model_trial.BUDGET_SHARE)
+    assert options.contract == "on" and json.loads((tmp_path / "model_trial.json").read_text()) == record
+
+
 # ---- a held-out PSNR far below the train PSNR ------------------------------------------------------------------
 def test_a_held_out_psnr_far_below_the_train_psnr_says_what_to_try():
     choice = {"tried": [{"model": "contracted", "held_out_psnr": 18.0}, {"model": "bounded + background",
