@@ -1,5 +1,6 @@
-"""Real captures at every preset: fox, cup, fern and the synthetic unbounded scene, with all their photos and with
-a quarter of them, scored on the same held-out views.
+"""Real captures at every preset: fox, cup, fern, the synthetic unbounded scene and two phone captures (ball: 127
+frames of a portrait video with their own poses; apple: a 5 s clip, posed by SfM from the frames ingest keeps), with
+all their photos and with a quarter of them, scored on the same held-out views.
 
 Each scene goes through the pipeline as a user's folder would (ingest at the preset's size, poses imported from the
 files beside the photos, with points triangulated when they bring none, normalize), cached under
@@ -19,6 +20,12 @@ ground inside a textured sphere, written under bench/out/ with its true poses as
     .venv/bin/python -m bench.real_scenes --set tv_density=1e-9 --label tv10  # a variant, kept beside the others
     .venv/bin/python -m bench.real_scenes --table
     .venv/bin/python -m bench.real_scenes --scenes fox --presets default --views all --budgets 30s 1m 2m 5m 10m
+    .venv/bin/python -m bench.real_scenes --scenes ball apple --presets fast --views all --models auto contracted background
+
+With --models each run is the fit's own choice of scene model (auto: where normalize's measures are not clear-cut, a
+trial on a coarse level, plenoxels/model_trial.py) or one model forced (labelled with the model's name); each run
+records the model fitted and the trial's record, and the CPU seconds of the fit stage (its trial included) beside its
+wall time, which on a machine other jobs share measures the cost better.
 
 Each run records the date and the commit it measured (`recorded`); a sweep's runs are labelled with them unless
 --label names the sweep. With --budgets each run is the preset's detail under fit.time_budget (labelled "budget 30s",
@@ -44,14 +51,20 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from plenoxels.errors import UserError  # noqa: E402
+from plenoxels.model_trial import MODELS  # noqa: E402
 
 RESULTS = REPO / "bench" / "results" / "real_scenes.json"
 RENDERS = REPO / "bench" / "results" / "real_scenes"
 CACHE = REPO / "bench" / "out" / "real_scenes"
-SCENES = ("fox", "cup", "fern", "synthetic_unbounded")
+SCENES = ("fox", "cup", "fern", "synthetic_unbounded", "ball", "apple")
+# Scenes given as one file (a phone's video) rather than a folder of photos.
+FILES = {"apple": "apple.mp4"}
 PRESETS = ("fast", "balanced", "default", "quality")
 SCORE_SIDE = 320
 VIEWS = {"all": 1, "quarter": 4}
+# --models: the fit's own choice, or each scene model forced (plenoxels/model_trial.py MODELS).
+MODEL_FLAGS = {"auto": None, "ndc": "ndc", "contracted": "contracted", "background": "bounded + background",
+               "bounded": "bounded"}
 
 
 def scene_folder(name: str, data: Path) -> Path:
@@ -60,7 +73,7 @@ def scene_folder(name: str, data: Path) -> Path:
         folder = data / name
         if not folder.is_dir():
             raise UserError(f"no {name} scene under {data}; pass --data (the folder that holds {name}/)")
-        return folder
+        return folder / FILES[name] if name in FILES else folder
     from pipeline.synthetic import write_scene
 
     folder = CACHE / "synthetic_unbounded-photos"
@@ -100,7 +113,9 @@ def one_run(spec: dict) -> dict:
     scene = with_views(json.loads((out / "normalize" / "scene.json").read_text()), VIEWS[spec["views"]])
     settings = resolve(spec["preset"], scene["type"], spec["overrides"])
     load_before = os.getloadavg()[0]
+    cpu_before = _cpu_seconds()
     summary, wall, record, model = fitted(scene, out, settings, quiet=not spec.get("verbose"))
+    cpu = _cpu_seconds() - cpu_before
     views, first, fit_size = [], None, None
     for frame in [f for f in scene["frames"] if f["split"] == "test"]:
         fit_size = [round(frame["w"] * settings.image_scale), round(frame["h"] * settings.image_scale)]
@@ -118,12 +133,19 @@ def one_run(spec: dict) -> dict:
             "recorded": spec["recorded"], "overrides": spec["overrides"], "type": scene["type"],
             "mean": mean_scores(views), "held_out": views,
             "train_images": record["train_images"], "image_size": fit_size, "score_size": [k.w, k.h],
-            "fit_seconds": record["seconds"], "wall_seconds": round(wall, 1),
+            "fit_seconds": record["seconds"], "wall_seconds": round(wall, 1), "cpu_seconds": round(cpu, 1),
+            "scene_model": record.get("scene_model"), "model_choice": record.get("model_choice"),
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
             "load_average": [round(load_before, 2), round(os.getloadavg()[0], 2)],
             "threads": os.environ.get("OMP_NUM_THREADS"), "regularisation": record.get("regularisation"),
             "background_cost": record.get("background_cost"), "resolution": record["model"]["resolution"],
             "occupied": record["model"]["occupied"], "summary": summary["line"], **budget_of(record)}
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds this process has used (its threads together): a fit's cost on a machine other jobs share."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
 
 
 def spawn(spec: dict) -> dict | None:
@@ -240,6 +262,9 @@ def main(argv=None) -> int:
     parser.add_argument("--set", action="append", default=[], help="key=value (a fit setting) for every run")
     parser.add_argument("--label", help="names the runs (a run replaces the same-labelled one; default: the date and "
                                          "the commit they measure)")
+    parser.add_argument("--models", nargs="+", default=[], choices=list(MODEL_FLAGS),
+                        help="one run each: auto (the fit's choice, with its trial) or a scene model forced (its label "
+                             "then names it)")
     parser.add_argument("--budgets", nargs="+", default=[], help="fit.time_budget values: one run each (30s 1m ...)")
     parser.add_argument("--score-side", type=int, default=SCORE_SIDE,
                         help="score held-out views with their longest side this many pixels (0: at the fit's size)")
@@ -270,6 +295,10 @@ def run_all(args) -> int:
     when = recorded()
     variants = ([(budget_label(b), {**overrides, "time_budget": b}) for b in args.budgets] if args.budgets
                 else [(args.label or when, overrides)])
+    if args.models:
+        variants = [(label if flag == "auto" else f"{label} {MODEL_FLAGS[flag]}",
+                     {**run_overrides, **(MODELS[MODEL_FLAGS[flag]] if flag != "auto" else {})})
+                    for label, run_overrides in variants for flag in args.models]
     results["machine"] = machine()
     for name in args.scenes:
         for preset in args.presets:

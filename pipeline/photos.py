@@ -20,6 +20,10 @@ SHARPNESS_SIDE = 512  # score every image at the same size so scores compare acr
 TRACKING_SIDE = 480
 TRACKS_KEPT_SHARE = 0.5
 CANDIDATE_SHARE = 0.6
+# A clip that gives too few frames at the motion set is read again at most VIDEO_RETRIES times, with frames at least
+# MIN_MOTION_SHARE of that motion apart (closer, neighbours differ by less than SfM can triangulate from).
+VIDEO_RETRIES = 3
+MIN_MOTION_SHARE = 0.25
 EXIF_ORIENTATION = 0x0112
 
 try:  # HEIC support comes from pillow-heif when it is installed
@@ -202,10 +206,31 @@ def _corners(grey: np.ndarray) -> np.ndarray | None:
     return cv2.goodFeaturesToTrack(grey, maxCorners=400, qualityLevel=0.01, minDistance=max(4, max(grey.shape) // 60))
 
 
-def video_frames(path: Path, max_side: int, motion: float, max_per_second: float,
-                 report) -> list[tuple[str, np.ndarray]]:
+def video_frames(path: Path, max_side: int, motion: float, max_per_second: float, report,
+                 min_frames: int = 0) -> tuple[list[tuple[str, np.ndarray]], dict]:
+    """(name, RGB) of the frames to pose from a video (see frames_by_motion), and what the clip gave: its `seconds`,
+    the `motion` the frames were kept at and `total_motion` (diagonals the view moved in all). A clip whose motion
+    gives fewer than `min_frames` at `motion` (a short clip, or a camera that moved little) is read again with frames
+    closer together, as close as the motion allows for `min_frames` but never below MIN_MOTION_SHARE of `motion`, nor
+    more than `max_per_second` a second; where it still gives fewer, the caller says it is too short."""
+    kept, clip = frames_by_motion(path, max_side, motion, max_per_second, report)
+    used = motion
+    for _ in range(VIDEO_RETRIES):
+        if not min_frames or len(kept) >= min_frames or len(kept) >= clip["most_frames"]:
+            break
+        denser = max(motion * MIN_MOTION_SHARE, min(used * 0.7, clip["total_motion"] / min_frames))
+        if denser >= used:
+            break
+        used = denser
+        kept, clip = frames_by_motion(path, max_side, used, max_per_second, report)
+    return kept, {**clip, "motion": used}
+
+
+def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: float,
+                     report) -> tuple[list[tuple[str, np.ndarray]], dict]:
     """(name, RGB) of the frames to pose from a video, upright (its rotation metadata applied), downscaled to
-    `max_side`. A frame is due each time the view has moved by `motion` of the frame's diagonal since the last kept
+    `max_side`, and the clip's `seconds`, `total_motion` and `most_frames` (what `max_per_second` allows). A frame is
+    due each time the view has moved by `motion` of the frame's diagonal since the last kept
     frame (the median motion of corners tracked from it by optical flow), or when fewer than half of those corners
     can still be followed, so neighbours keep overlapping however fast or slowly the camera moved; of the frames
     in the last stretch before that point, the sharpest is kept. At most `max_per_second` frames per second of video."""
@@ -220,6 +245,7 @@ def video_frames(path: Path, max_side: int, motion: float, max_per_second: float
     candidates: list[tuple[float, int, np.ndarray]] = []   # (sharpness, index, rgb) since the stretch began
     previous = points = start = None
     index, last_kept, tracked = 0, -min_gap, 0
+    total_motion, counted = 0.0, 0.0  # diagonals moved in all: the stretches ended, and the current one so far
 
     def keep(best: tuple[float, int, np.ndarray]) -> None:
         nonlocal last_kept
@@ -240,7 +266,9 @@ def video_frames(path: Path, max_side: int, motion: float, max_per_second: float
                 lost = len(points) < TRACKS_KEPT_SHARE * tracked
                 if len(points):
                     moved = float(np.median(np.linalg.norm((points - start).reshape(-1, 2), axis=1))) / np.hypot(*grey.shape)
+                    counted = max(counted, moved)
             if previous is None or points is None or not len(points):
+                total_motion, counted = total_motion + counted, 0.0
                 points = _corners(grey)
                 start, tracked = points, len(points) if points is not None else 0
                 if not kept:  # the first frame anchors the sequence
@@ -253,6 +281,7 @@ def video_frames(path: Path, max_side: int, motion: float, max_per_second: float
                 keep(max(candidates, key=lambda c: c[0]))
                 candidates = []
                 # Track again from this frame: the next stretch is measured from (about) the frame just kept.
+                total_motion, counted = total_motion + counted, 0.0
                 points = _corners(grey)
                 start, tracked = points, len(points) if points is not None else 0
             previous = grey
@@ -261,4 +290,5 @@ def video_frames(path: Path, max_side: int, motion: float, max_per_second: float
     if candidates and max(candidates, key=lambda c: c[0])[1] - last_kept >= min_gap:
         keep(max(candidates, key=lambda c: c[0]))
     capture.release()
-    return kept
+    return kept, {"seconds": round(index / fps, 2), "total_motion": round(total_motion + counted, 4),
+                  "most_frames": index // min_gap + 1}

@@ -369,7 +369,8 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
     cone = view_cone_deg(dirs)
     # Near the threshold a few degrees of pose noise or one more photo would flip the model, and a capture that
     # is only almost forward (a facade shot from an arc) puts views where NDC's frustum has nothing: so the band
-    # around it decides for the inward model, which holds any spread, and says it did.
+    # around it types the scene for the inward model, which holds any spread, says it did, and keeps the forward
+    # block so that the fit can try NDC against it (plenoxels/model_trial.py).
     borderline = abs(cone - options.forward_max_cone_deg) <= options.borderline_deg
     looks_forward = cone <= options.forward_max_cone_deg - (options.borderline_deg if borderline else 0.0)
     measured: dict = {"frames": n, "points": int(len(xyz)), "view_cone_deg": round(cone, 2), "borderline": borderline}
@@ -379,7 +380,7 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
                   if not borderline else
                   f"(within {options.borderline_deg:g} of {options.forward_max_cone_deg:g}, borderline): modelled as "
                   "seen from around the scene, which holds where the forward model's single frustum would not "
-                  "(set normalize.scene_type=forward to choose it)")]
+                  "(the fit tries NDC against it; normalize.scene_type=forward sets NDC)")]
     family_forward = options.scene_type == "forward" or (options.scene_type == "auto" and looks_forward)
 
     up, up_rule = camera_up(cams.c2w, inward=not looks_forward)
@@ -500,7 +501,9 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
         "scale": scale, "foreground": {"min": foreground_box[0].tolist(), "max": foreground_box[1].tolist()},
         "frames": frames,
     }
-    if scene_type == "forward":
+    if scene_type == "forward" or (borderline and not overridden):
+        # A borderline spread keeps the forward block too, so that the fit can try NDC against the inward model
+        # (plenoxels/model_trial.py).
         if reference_input is None:
             reference_input = _reference_camera(cams, dirs, up)
         reference = world_from_input @ reference_input

@@ -22,8 +22,9 @@ class SceneOptions:
     forward_max_cone_deg: float = 30.0
     """Forward when 90% of viewing directions lie within this many degrees of their mean."""
     borderline_deg: float = 8.0
-    """Spreads within this many degrees of forward_max_cone_deg are borderline: they get the inward model (grid and
-    background), which degrades gracefully where NDC's single frustum cannot hold the views, and the summary says so."""
+    """Spreads within this many degrees of forward_max_cone_deg are borderline: typed for the inward model (grid and
+    background), which degrades gracefully where NDC's single frustum cannot hold the views, and the fit tries NDC
+    against it on a short coarse level (plenoxels/model_trial.py); the summary says so."""
     beyond_factor: float = 2.0
     """A point is beyond the foreground outside [-f, f]^3 in the normalised frame (f > 1)."""
     unbounded_min_beyond_fraction: float = 0.1

@@ -90,6 +90,17 @@ class RaySet:
     def __len__(self) -> int:
         return self.sizes.shape[0]
 
+    def image(self, index: int) -> torch.Tensor:
+        """Image `index` as float RGB [h, w, 3] in [0, 1], on this set's device."""
+        h, w = self.sizes[index].tolist()
+        start = int(self.offsets[index])
+        return self.pixels[start:start + h * w].reshape(h, w, 3).float() / 255.0
+
+    def subset(self, indices: list[int]) -> RaySet:
+        """The images at `indices` (in that order) as a RaySet of their own, on the CPU."""
+        return RaySet([self.image(i).cpu().numpy() for i in indices], [self.c2w[i].double().cpu().numpy() for i in indices],
+                      [self.intrinsics[i] for i in indices])
+
     def rays(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """World origins and unit directions [B, 3] through pixel centres (plenoxels.cameras convention)."""
         k = self.k[image]

@@ -35,6 +35,7 @@ from pipeline.json_files import read_json, write_json
 from pipeline.report import format_bytes, format_count, format_duration
 from pipeline.training_views import HeldOut, load_training, training_frames
 from plenoxels.budget import TimeBudget
+from plenoxels import model_trial
 from plenoxels.errors import UserError
 from plenoxels.native import resolve_device
 from plenoxels.scene_model import BACKDROP_MIN_TRAIN_PSNR, SceneModel, backdrop_check_step
@@ -44,6 +45,7 @@ from stages.settings.fit import Settings
 CHECKPOINT = "checkpoint.pt"
 BUDGET_PLAN = "budget_plan.json"
 BACKGROUND_ADDED = "background_added.json"
+MODEL_TRIAL = "model_trial.json"
 
 
 def run(ctx) -> dict:
@@ -56,20 +58,25 @@ def run(ctx) -> dict:
     train_frames, held_out_frames = training_frames(scene, ctx.report)
     train = load_training(ctx.out, train_frames, s.image_scale, s.background_color, ctx.report)
     held_out = HeldOut(ctx.out, held_out_frames, s.eval_views, s.eval_scale, s.background_color)
+    # Where normalize's measures leave the model open, short coarse fits of each plausible one choose it (inside the
+    # time budget, which counts from `started`).
+    s, choice = model_trial.choose(scene, s, train, device, s.budget_seconds, ctx.scratch / MODEL_TRIAL, ctx.report.info)
     added = ctx.scratch / BACKGROUND_ADDED
     while True:
         # An object fit whose photos' backdrop is no one colour starts again with a background model (see fit()).
-        fitted = fit(ctx, scene, train, held_out, device, started, read_json(added)["why"] if added.is_file() else "")
+        fitted = fit(ctx, s, scene, train, held_out, device, started, read_json(added)["why"] if added.is_file() else "",
+                     choice)
         if fitted is not None:
             return fitted
 
 
-def fit(ctx, scene: dict, train: RaySet, held_out: HeldOut, device, started: float, background_why: str) -> dict | None:
+def fit(ctx, settings: Settings, scene: dict, train: RaySet, held_out: HeldOut, device, started: float,
+        background_why: str, choice: dict) -> dict | None:
     """Fits the model and finishes the stage; None where an object fit with one colour behind its grid cannot
     reproduce its own photos at the end of its coarsest resolution (scene_model.backdrop_check_step): what surrounds
     the object is not that colour, so the reason is kept in the scratch folder and the caller fits again with a
     background model."""
-    s: Settings = replace(ctx.settings, background="on") if background_why else ctx.settings
+    s: Settings = replace(settings, background="on") if background_why else settings
     checkpoint = ctx.scratch / CHECKPOINT
     mean_colour = train.mean_colour()
 
@@ -146,11 +153,13 @@ def fit(ctx, scene: dict, train: RaySet, held_out: HeldOut, device, started: flo
                         f"it stands")
     elif at_deadline and options.prune_final:
         fitter.prune()  # the time budget's deadline: the end of the fit, pruned as a complete schedule is
-    return finish(ctx, fitter, held_out, resumed_from, stopped_early, device, budget, at_deadline, background_why)
+    return finish(ctx, fitter, held_out, resumed_from, stopped_early, device, budget, at_deadline, background_why,
+                  choice)
 
 
 def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_early: bool, device,
-           budget: TimeBudget | None = None, at_deadline: bool = False, background_why: str = "") -> dict:
+           budget: TimeBudget | None = None, at_deadline: bool = False, background_why: str = "",
+           choice: dict | None = None) -> dict:
     s: Settings = fitter.options
     model = fitter.model
     final_psnr = held_out.psnr(model) if held_out else None
@@ -172,6 +181,7 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         "memory_bytes": memory,
         "regularisation": fitter.regularisation,
         "background_added": background_why or None,
+        "scene_model": model_trial.model_name(model), "model_choice": choice or {},
     }
     if device.type == "cpu":
         used, available = fitter.grad.threads()
@@ -199,6 +209,8 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
                  f"{cost['share_of_fitting']:.0%} of the fitting time")
         if background_why:
             line += f" (added: {background_why})"
+    if (choice or {}).get("chosen"):
+        line += "; " + model_trial.summary(choice)
     line += fitter.regularisation_summary()
     if "gradient_threads" in record and record["gradient_threads"]["used"] < record["gradient_threads"]["available"]:
         line += (f", gradients on {record['gradient_threads']['used']} of {record['gradient_threads']['available']} "
@@ -207,6 +219,12 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         line += ", in NDC"
     if model.fit_frame.contraction is not None:
         line += ", contracted (all of space)"
+    if not stopped_early:
+        advice = model_trial.gap_advice(record["train_psnr"], final_psnr, record["scene_model"], choice or {},
+                                        record["regularisation"].get("views_per_point"))
+        if advice:
+            ctx.report.warn(advice.removeprefix("; "))
+            line += advice
     if stopped_early:
         line += f"; stopped early at step {fitter.step}/{s.total_steps} (Ctrl-C)"
     if budget is not None:

@@ -27,6 +27,7 @@ def run(ctx) -> dict:
     masks_dir = ctx.work / "masks"
     images_dir.mkdir()
     records, unreadable = [], []
+    clip = None
 
     def keep(name: str, source: str, rgb: np.ndarray, alpha: np.ndarray | None, original: tuple[int, int],
              split: str | None = None, mask_file: Path | None = None) -> None:
@@ -51,7 +52,8 @@ def run(ctx) -> dict:
     if ctx.scene.is_file():
         if ctx.scene.suffix.lower() not in VIDEO_SUFFIXES:
             raise UserError(f"{ctx.scene.name} is neither a folder of photos nor a video ({', '.join(sorted(VIDEO_SUFFIXES))})")
-        for name, rgb in video_frames(ctx.scene, s.max_side, s.video_motion, s.video_fps, ctx.report):
+        frames, clip = video_frames(ctx.scene, s.max_side, s.video_motion, s.video_fps, ctx.report, s.video_min_frames)
+        for name, rgb in frames:
             keep(name, ctx.scene.name, rgb, None, (rgb.shape[1], rgb.shape[0]))
     else:
         folder = photo_folder(ctx.scene)
@@ -100,9 +102,16 @@ def run(ctx) -> dict:
 
     if len(records) < s.min_images:
         raise UserError(f"only {len(records)} usable image(s) in {ctx.scene}; at least {s.min_images} overlapping photos are needed")
-    write_json(ctx.work / "images.json", {"images": records, "skipped": unreadable, "dropped_blurry": dropped})
+    write_json(ctx.work / "images.json", {"images": records, "skipped": unreadable, "dropped_blurry": dropped,
+                                          **({"video": clip} if clip is not None else {})})
     w, h = records[0]["width"], records[0]["height"]
     line = f"{len(records)} images at {w}x{h}"
+    if clip is not None:
+        line += video_words(clip, s)
+        if len(records) < s.video_min_frames:
+            short = too_short(clip, len(records), s)
+            ctx.report.warn(short)
+            line += f"; {short}"
     masked = sum(r["mask"] is not None for r in records)
     if masked:
         given = sum(r.get("mask_from") not in (None, "alpha") for r in records)
@@ -112,4 +121,20 @@ def run(ctx) -> dict:
     if unreadable:
         line += f", skipped {len(unreadable)} unreadable"
     return {"line": line, "images": len(records), "skipped": len(unreadable), "dropped_blurry": len(dropped),
-            "masked": masked}
+            "masked": masked, **({"video": clip} if clip is not None else {})}
+
+
+def video_words(clip: dict, s: Settings) -> str:
+    """The summary's words on a video: its length and the spacing its frames were kept at."""
+    words = f" from a {clip['seconds']:.1f} s video, a frame each {clip['motion']:.1%} of the view's diagonal"
+    if clip["motion"] < s.video_motion:
+        words += f" (closer than ingest.video_motion's {s.video_motion:.0%}: at that spacing the clip gave too few)"
+    return words
+
+
+def too_short(clip: dict, frames: int, s: Settings) -> str:
+    """Why a clip's frames are too few for a good fit, and what to do."""
+    limit = (f"at most ingest.video_fps={s.video_fps:g} a second" if frames >= 0.9 * clip["most_frames"]
+             else f"the view moved {clip['total_motion']:.2f} of its diagonal in all")
+    return (f"the clip is too short for a good fit: {frames} frames where ingest.video_min_frames asks "
+            f"{s.video_min_frames} ({limit}); film longer and further around the object, or add photos")

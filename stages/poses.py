@@ -66,7 +66,9 @@ def run(ctx) -> dict:
     if left_out:
         ctx.report.warn(f"{len(left_out)} image(s) have no pose and are left out: {short_list(left_out)}")
     how = "registered" if source == "sfm" else f"imported ({source}) for"
-    line = f"{how} {registered}/{len(records)} images at {written['width']}x{written['height']}"
+    line = f"{how} {registered}/{len(records)} images ({registered / len(records):.0%}) at {written['width']}x{written['height']}"
+    if left_out:
+        line += f" (no pose: {short_list(left_out)})"
     if points:
         line += f", {points} points, mean reprojection error {error:.2f} px, mean track length {track:.1f}"
     elif written.get("triangulated"):

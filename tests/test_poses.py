@@ -325,6 +325,8 @@ def test_transforms_import_scales_intrinsics_and_undistorts(scene, truth, tmp_pa
     transforms = read_json(out / "transforms.json")
     assert transforms["source"] == "transforms"
     assert manifest["summary"]["left_out"] == [stems[0]]
+    assert f"{(len(stems) - 1) / len(stems):.0%}" in manifest["summary"]["line"]
+    assert f"no pose: {stems[0]}" in manifest["summary"]["line"]
     assert_poses_equal(transforms, truth, stems[1:])
     original = transforms["original_camera"]
     assert original["model"] == "OPENCV" and (original["width"], original["height"]) == (WIDTH, HEIGHT)

@@ -26,6 +26,10 @@ class Settings:
     the frames near that point), so neighbouring frames overlap."""
     video_fps: float = 5.0
     """From a video, keep at most this many frames per second."""
+    video_min_frames: int = 30
+    """From a video, aim for at least this many frames: a clip whose motion gives fewer at video_motion is read again
+    with frames closer together (down to a quarter of video_motion, at most video_fps a second), and one that still
+    gives fewer is too short for a good fit, which the summary says (0: keep video_motion whatever the clip gives)."""
     min_images: int = 3
     """Fail when fewer usable images than this remain (at least 3)."""
     holdout_split: str = "val"
@@ -41,6 +45,7 @@ class Settings:
         require(0.0 <= self.drop_blurry_fraction < 1.0, "ingest.drop_blurry_fraction must be in [0, 1)")
         require(self.video_fps > 0, "ingest.video_fps must be positive")
         require(0 < self.video_motion < 1, "ingest.video_motion must be in (0, 1): a share of the frame's diagonal")
+        require(self.video_min_frames >= 0, "ingest.video_min_frames must be >= 0 (0: off)")
         require(self.min_images >= 3, "ingest.min_images must be at least 3 (fewer cannot be posed)")
         require(self.holdout_split in ("val", "test", "none"), "ingest.holdout_split must be val, test or none")
         require(self.mask_threshold == "auto" or 0 <= int(self.mask_threshold) <= 254,
