@@ -81,7 +81,10 @@ def test_fit_reaches_quality_and_writes_outputs(scene):
     assert record["held_out_psnr"] > 15.0, record
     assert record["train_psnr"] > 15.0, record
     assert record["complete"] and record["steps"] == 240
-    assert summary["line"].startswith("32^3 grid") and "held-out" in summary["line"]
+    resolution = record["model"]["resolution"]
+    assert max(resolution) == 32  # the last level's 32 vertices along the box's longest side
+    shape = "32^3" if len(set(resolution)) == 1 else "x".join(map(str, resolution))
+    assert summary["line"].startswith(f"{shape} grid") and "held-out" in summary["line"]
     level = record["levels"][0]
     assert level["kept"] < level["pruned_from"]  # empty space around the object was pruned
     model = read_json(scene / "fit" / "model.json")
