@@ -29,16 +29,21 @@ QUICK = {"resolutions": [16, 32], "steps": [120, 120], "batch_size": 2048, "tile
 def make_scene(root: Path, views: int = 20, width: int = 48, alpha: bool = True) -> Path:
     """A synthetic object scene under root/synth and its normalize/scene.json (every 5th view held out)."""
     write_scene("object", root / "synth", n_views=views, width=width, height=width * 3 // 4, alpha=alpha, supersample=1)
+    frame_scene(root, alpha)
+    return root
+
+
+def frame_scene(root: Path, alpha: bool = True, **options) -> None:
+    """root/normalize/scene.json for the synthetic scene under root/synth (every 5th view held out)."""
     transforms = read_json(root / "synth" / "transforms.json")
     if alpha:
         for frame in transforms["frames"]:
             frame["mask_path"] = frame["file_path"]  # the RGBA photo's alpha is its mask, as for lego
-    scene = normalize_scene(transforms, Points.empty(), SceneOptions(scene_type="object", holdout_every=5),
+    scene = normalize_scene(transforms, Points.empty(), SceneOptions(scene_type="object", holdout_every=5, **options),
                             poses_dir=root / "synth", path_prefix="synth/")
     (root / "normalize").mkdir(exist_ok=True)
     write_json(root / "normalize" / "scene.json", scene)
     write_json(root / "normalize" / "manifest.json", {"stage": "normalize", "summary": {"line": "test scene"}})
-    return root
 
 
 def run_stage(root: Path, module, values: dict) -> dict:
@@ -95,7 +100,9 @@ def test_fit_reaches_quality_and_writes_outputs(scene):
 def test_the_sparsity_prior_leaves_less_density_for_as_good_a_fit(fresh, monkeypatch):
     """One level with and without the Cauchy prior on density: with it, fewer vertices hold any density (the faint
     ones it pulls to zero), the pruning keeps fewer, and the held-out views are as good. It acts at the first level's
-    resolution only."""
+    resolution only. The box is the cameras' rather than the masks' visual hull, as in the scenes whose overlay sets the
+    prior (unbounded ones, framed by their points)."""
+    frame_scene(fresh, silhouette_box=False)
     live, kept, held_out = {}, {}, {}
     for weight in (0.0, 1e-4):
         run_stage(fresh, fit, {**QUICK, "resolutions": [32], "steps": [200], "sparsity": weight})
