@@ -58,19 +58,21 @@ def run(ctx) -> dict:
     train_frames, held_out_frames = training_frames(scene, ctx.report)
     train = load_training(ctx.out, train_frames, s.image_scale, s.background_color, ctx.report)
     held_out = HeldOut(ctx.out, held_out_frames, s.eval_views, s.eval_scale, s.background_color)
+    # Training views rendered as the held-out ones are, so that the gap between the two compares like with like.
+    seen = HeldOut(ctx.out, train_frames, s.eval_views, s.eval_scale, s.background_color)
     # Where normalize's measures leave the model open, short coarse fits of each plausible one choose it (inside the
     # time budget, which counts from `started`).
     s, choice = model_trial.choose(scene, s, train, device, s.budget_seconds, ctx.scratch / MODEL_TRIAL, ctx.report.info)
     added = ctx.scratch / BACKGROUND_ADDED
     while True:
         # An object fit whose photos' backdrop is no one colour starts again with a background model (see fit()).
-        fitted = fit(ctx, s, scene, train, held_out, device, started, read_json(added)["why"] if added.is_file() else "",
-                     choice)
+        fitted = fit(ctx, s, scene, train, held_out, seen, device, started,
+                     read_json(added)["why"] if added.is_file() else "", choice)
         if fitted is not None:
             return fitted
 
 
-def fit(ctx, settings: Settings, scene: dict, train: RaySet, held_out: HeldOut, device, started: float,
+def fit(ctx, settings: Settings, scene: dict, train: RaySet, held_out: HeldOut, seen: HeldOut, device, started: float,
         background_why: str, choice: dict) -> dict | None:
     """Fits the model and finishes the stage; None where an object fit with one colour behind its grid cannot
     reproduce its own photos at the end of its coarsest resolution (scene_model.backdrop_check_step): what surrounds
@@ -154,12 +156,12 @@ def fit(ctx, settings: Settings, scene: dict, train: RaySet, held_out: HeldOut, 
     elif at_deadline and options.prune_final:
         fitter.prune()  # the time budget's deadline: the end of the fit, pruned as a complete schedule is
     return finish(ctx, fitter, held_out, resumed_from, stopped_early, device, budget, at_deadline, background_why,
-                  choice)
+                  choice, seen)
 
 
 def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_early: bool, device,
            budget: TimeBudget | None = None, at_deadline: bool = False, background_why: str = "",
-           choice: dict | None = None) -> dict:
+           choice: dict | None = None, seen: HeldOut | None = None) -> dict:
     s: Settings = fitter.options
     model = fitter.model
     final_psnr = held_out.psnr(model) if held_out else None
@@ -219,8 +221,8 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         line += ", in NDC"
     if model.fit_frame.contraction is not None:
         line += ", contracted (all of space)"
-    if not stopped_early:
-        advice = model_trial.gap_advice(record["train_psnr"], final_psnr, record["scene_model"], choice or {},
+    if not stopped_early and seen and final_psnr is not None:
+        advice = model_trial.gap_advice(seen.psnr(model), final_psnr, record["scene_model"], choice or {},
                                         record["regularisation"].get("views_per_point"))
         if advice:
             ctx.report.warn(advice.removeprefix("; "))
