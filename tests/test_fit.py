@@ -309,3 +309,24 @@ def test_later_levels_hold_as_many_voxels_as_fit_in_memory(fresh, monkeypatch):
     record = read_json(fresh / "fit" / "fit.json")
     assert record["model"]["occupied"] <= limit < unlimited
     assert record["train_psnr"] > 12  # it still fits
+
+
+def test_the_held_out_gap_compares_training_views_rendered_as_the_held_out_ones(fresh, monkeypatch):
+    """Train PSNR comes from full-size training rays, the live held-out PSNR from a few views at fit.eval_scale: the
+    gap the summary warns of is taken between like and like, the training views rendered as the held-out ones are."""
+    from pipeline.training_views import HeldOut
+    from plenoxels import model_trial
+
+    compared = []
+    original = model_trial.gap_advice
+    monkeypatch.setattr(model_trial, "gap_advice", lambda train_psnr, held_out_psnr, *a: compared.append(
+        (train_psnr, held_out_psnr)) or original(train_psnr, held_out_psnr, *a))
+    run_stage(fresh, fit, {**QUICK, "device": "cpu", "eval_views": 2})
+    record = read_json(fresh / "fit" / "fit.json")
+    scene = read_json(fresh / "normalize" / "scene.json")
+    train_frames = [f for f in scene["frames"] if f["split"] == "train"]
+    seen = HeldOut(fresh, train_frames, 2, QUICK["eval_scale"], [1.0, 1.0, 1.0])
+    (train_psnr, held_out_psnr), = compared
+    assert held_out_psnr == pytest.approx(record["held_out_psnr"], abs=1e-3)
+    # The training views as the held-out ones are rendered, not the full-size training rays' PSNR (24.8 dB here).
+    assert train_psnr == pytest.approx(seen.psnr(SceneModel.load(fresh / "fit")), abs=1e-4)
