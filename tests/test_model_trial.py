@@ -102,17 +102,23 @@ def test_a_model_set_by_hand_is_never_tried():
 
 
 # ---- what a trial picks ----------------------------------------------------------------------------------------
+def _trial(scene: dict, photos):
+    """The questions normalize's measures leave open for `scene`, the trial's outcome on them, and its scores."""
+    asked = model_trial.questions(scene, Options(**TRIAL))
+    outcome = model_trial.run(scene, Options(**TRIAL), _training(scene, photos), torch.device("cpu"), asked)
+    scores = {t["model"]: t["held_out_psnr"] for t in outcome.record["tried"]}
+    print(f"trial: {scores}")
+    return asked, outcome, scores
+
+
 def test_the_trial_overrules_the_proxies_where_far_content_needs_a_contracted_grid(unbounded, monkeypatch):
     """Points just short of the threshold make the proxies pick a bounded grid with background spheres; the scene's
     ground and sky reach far, and a contracted grid shows them better on photos the trial did not fit."""
     monkeypatch.setattr(model_trial, "STEPS", 250)
     scene = _auto(unbounded[0], beyond_fraction=0.04)
     assert model_trial.proxies_pick(scene) == "bounded + background"
-    asked = model_trial.questions(scene, Options(**TRIAL))
+    asked, outcome, scores = _trial(scene, unbounded[1])
     assert [q.models for q in asked] == [("contracted", "bounded + background")]
-    outcome = model_trial.run(scene, Options(**TRIAL), _training(scene, unbounded[1]), torch.device("cpu"), asked)
-    scores = {t["model"]: t["held_out_psnr"] for t in outcome.record["tried"]}
-    print(f"trial: {scores}")
     assert set(scores) == {"contracted", "bounded + background"}
     assert outcome.model == "contracted", outcome.why
     assert scores["contracted"] >= scores["bounded + background"] + model_trial.MARGIN_DB
@@ -125,11 +131,8 @@ def test_the_trial_gives_scenery_its_background_model(unbounded, monkeypatch):
     monkeypatch.setattr(model_trial, "STEPS", 250)
     scene = _auto({**unbounded[0], "type": "object"}, empty_pixel_fraction=0.25)
     assert model_trial.proxies_pick(scene) == "bounded"
-    asked = model_trial.questions(scene, Options(**TRIAL))
+    asked, outcome, scores = _trial(scene, unbounded[1])
     assert [q.models for q in asked] == [("bounded", "bounded + background")]
-    outcome = model_trial.run(scene, Options(**TRIAL), _training(scene, unbounded[1]), torch.device("cpu"), asked)
-    scores = {t["model"]: t["held_out_psnr"] for t in outcome.record["tried"]}
-    print(f"trial: {scores}")
     assert outcome.model == "bounded + background", outcome.why
     assert "by trial" in model_trial.summary(outcome.record) and "bounded + background" in model_trial.summary(outcome.record)
 
