@@ -223,7 +223,7 @@ def video_frames(path: Path, max_side: int, motion: float, max_per_second: float
             break
         used = denser
         kept, clip = frames_by_motion(path, max_side, used, max_per_second, report)
-    return kept, {**clip, "motion": used}
+    return kept, {**clip, "motion": used, "max_per_second": max_per_second}
 
 
 def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: float,

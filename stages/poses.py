@@ -15,8 +15,9 @@ from pathlib import Path
 
 import pycolmap
 
+from pipeline.io import write_png
 from pipeline.json_files import read_json
-from pipeline.photos import is_video, photo_folder
+from pipeline.photos import is_video, photo_folder, video_frames
 from pipeline.sfm import pose_import
 from pipeline.sfm.outputs import write_poses
 from pipeline.report import short_list
@@ -35,19 +36,56 @@ def _check_registered(reconstruction: pycolmap.Reconstruction, records: list[dic
     return left_out
 
 
+def _sfm(ctx, s: Settings, folder: Path, records: list[dict]) -> tuple[pycolmap.Reconstruction, dict, list[str]]:
+    reconstruction, info = reconstruct(records, folder / "images", photo_folder(ctx.scene), is_video(ctx.scene),
+                                       ctx.scratch / f"sfm_{folder.name}", s, ctx.report)
+    return reconstruction, info, _check_registered(reconstruction, records, s.min_registered_share, "SfM")
+
+
+def _denser_frames(ctx, clip: dict, records: list[dict]) -> tuple[Path, list[dict], dict]:
+    """The clip read again with frames twice as close (and up to twice as many a second), at the ingested size, into
+    a folder laid out as ingest's: a clip whose frames do not hold together often does once neighbours overlap more."""
+    folder = ctx.scratch / "denser"
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    side = max(records[0]["width"], records[0]["height"])
+    frames, denser = video_frames(ctx.scene, side, clip["motion"] / 2, 2 * clip["max_per_second"], ctx.report)
+    kept = []
+    for name, rgb in frames:
+        write_png(folder / "images" / f"{name}.png", rgb)
+        kept.append({"name": name, "file": f"images/{name}.png", "source": ctx.scene.name, "width": rgb.shape[1],
+                     "height": rgb.shape[0], "mask": None})
+    return folder, kept, denser
+
+
 def run(ctx) -> dict:
     s: Settings = ctx.settings
     ingest = ctx.upstream["ingest"]
-    records = read_json(ingest / "images.json")["images"]
+    ingested = read_json(ingest / "images.json")
+    records = ingested["images"]
     started = time.perf_counter()
     with colmap_logging(s.colmap_log):
         pycolmap.set_random_seed(s.seed)
         found = pose_import.find(s.source, s.path, records, ctx.scene)
         if found is None:
-            reconstruction, info = reconstruct(records, ingest / "images", photo_folder(ctx.scene), is_video(ctx.scene),
-                                               ctx.scratch, s, ctx.report)
             source, source_path, bounds = "sfm", None, {}
-            left_out = _check_registered(reconstruction, records, s.min_registered_share, "SfM")
+            try:
+                reconstruction, info, left_out = _sfm(ctx, s, ingest, records)
+            except UserError as refused:
+                clip = ingested.get("video")
+                if clip is None or "max_per_second" not in clip:
+                    raise
+                ctx.report.warn(f"{refused}; reading the clip again with frames closer together")
+                ingest, retried, denser = _denser_frames(ctx, clip, records)
+                if len(retried) <= len(records):
+                    raise
+                try:
+                    reconstruction, info, left_out = _sfm(ctx, s, ingest, retried)
+                except UserError as again:
+                    raise UserError(f"{again} (read again with frames twice as close: {len(records)} -> "
+                                    f"{len(retried)} frames; the first read: {refused})") from None
+                info["denser"] = {"first_frames": len(records), "first_refusal": str(refused),
+                                  "frames": len(retried), "motion": denser["motion"]}
+                records = retried
         else:
             source, imported = found
             reconstruction, info = imported.reconstruction, {"seconds": {}}
@@ -78,6 +116,9 @@ def run(ctx) -> dict:
         line += f" ({info['matching']} matching: {info['pairs_verified']}/{info['pairs_matched']} pairs verified)"
         if info.get("masked_images"):
             line += f", features only inside the masks of {info['masked_images']} images"
+    if info.get("denser"):
+        line += (f"; the ingested {info['denser']['first_frames']} frames did not hold together, so these poses come "
+                 f"from the clip read again with a frame each {info['denser']['motion']:.1%} of the view's diagonal")
     if info.get("attempt_why"):
         line += f"; as set, {info['attempt_why']}, so these poses come from the attempt with {info['attempt']}"
     if info.get("mapper_fallback"):

@@ -585,9 +585,9 @@ def test_sequential_matching_closes_the_loop_of_an_orbit(scene, truth, tmp_path,
     assert errors["rotation_error_deg_max"] < 0.5 and errors["centre_error_share_max"] < 0.01
 
 
-def test_orbit_video_through_ingest_registers_every_kept_frame(tmp_path):
-    # A synthetic orbit rendered as a video, each view held for three frames (the camera moving slowly): ingest keeps
-    # frames by motion, and every one of them gets a pose matching the view it shows.
+def orbit_video(tmp_path: Path) -> tuple[Path, dict, list[str]]:
+    """A synthetic orbit rendered as a video at 24 frames a second, each of its 48 views held for three frames (the
+    camera moving slowly); its truth and the views' names in order."""
     views = write_scene("object", tmp_path / "orbit", n_views=48, width=384, height=288, seed=4, supersample=1)
     truth = read_json(views / "transforms.json")
     stems = sorted(frames_by_name(truth))
@@ -600,7 +600,13 @@ def test_orbit_video_through_ingest_registers_every_kept_frame(tmp_path):
         for _ in range(3):
             writer.write(bgr)
     writer.release()
-    manifest = Pipeline(folder / "orbit.avi", tmp_path / "out", reporter=Reporter(quiet=True)).run(["ingest", "poses"])
+    return folder / "orbit.avi", truth, stems
+
+
+def test_orbit_video_through_ingest_registers_every_kept_frame(tmp_path):
+    # Ingest keeps the orbit's frames by motion, and every one of them gets a pose matching the view it shows.
+    video, truth, stems = orbit_video(tmp_path)
+    manifest = Pipeline(video, tmp_path / "out", reporter=Reporter(quiet=True)).run(["ingest", "poses"])
     kept = manifest["ingest"]["summary"]["images"]
     assert 8 <= kept <= 48
     assert manifest["poses"]["summary"]["registered"] == kept
@@ -609,6 +615,41 @@ def test_orbit_video_through_ingest_registers_every_kept_frame(tmp_path):
     # Views 15 degrees apart at 384x288 pin most poses to about 0.35 degrees; the first frame, matched on one side
     # only, has come out 3.6 degrees off: a looser bound on the worst than on the median.
     assert errors["rotation_error_deg_median"] < 0.6 and errors["rotation_error_deg_max"] < 5.0
+
+
+def test_a_clip_whose_frames_do_not_hold_together_is_posed_from_frames_read_closer(tmp_path, monkeypatch):
+    # SfM refuses the frames ingest kept (as a real clip's can: 7 of 20 posed), so the stage reads the clip again with
+    # frames twice as close, poses those, and says so; where those fail too, the refusal names both reads.
+    import stages.poses
+
+    video, truth, stems = orbit_video(tmp_path)
+    real = stages.poses.reconstruct
+    calls = []
+
+    def refuse_first(records, image_dir, *args):
+        calls.append(len(records))
+        if len(calls) == 1:
+            raise UserError(f"SfM posed only 3/{len(records)} images")
+        return real(records, image_dir, *args)
+
+    monkeypatch.setattr(stages.poses, "reconstruct", refuse_first)
+    manifest = Pipeline(video, tmp_path / "out", reporter=Reporter(quiet=True)).run(["ingest", "poses"])
+    ingested, summary = manifest["ingest"]["summary"]["images"], manifest["poses"]["summary"]
+    assert len(calls) == 2 and calls[0] == ingested and calls[1] > ingested
+    assert summary["registered"] == summary["images"] == calls[1]
+    assert summary["denser"]["first_frames"] == ingested and "read again" in summary["line"]
+    frames = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    names = {Path(f["file_path"]).stem: stems[int(Path(f["file_path"]).stem.split("_")[1]) // 3] for f in frames["frames"]}
+    assert len(names) == calls[1] and all((tmp_path / "out" / "poses" / f"images/{n}.png").is_file() for n in names)
+    assert pose_errors(tmp_path / "out", truth, names)["rotation_error_deg_median"] < 0.6
+
+    def refuse_all(records, *args):
+        raise UserError(f"SfM posed only 3/{len(records)} images")
+
+    monkeypatch.setattr(stages.poses, "reconstruct", refuse_all)
+    with pytest.raises(UserError, match=r"posed only 3/\d+ images \(read again with frames twice as close: "
+                                        rf"{ingested} -> \d+ frames; the first read: SfM posed only 3/{ingested}"):
+        Pipeline(video, tmp_path / "out2", reporter=Reporter(quiet=True)).run(["ingest", "poses"])
 
 
 def test_imported_poses_without_points_get_points_triangulated_on_the_true_surface(scene, truth, tmp_path):
