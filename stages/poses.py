@@ -17,7 +17,7 @@ import pycolmap
 
 from pipeline.io import write_png
 from pipeline.json_files import read_json
-from pipeline.photos import is_video, photo_folder, video_frames
+from pipeline.photos import fit_max_side, is_video, photo_folder, video_frames
 from pipeline.sfm import pose_import
 from pipeline.sfm.outputs import write_poses
 from pipeline.report import short_list
@@ -42,19 +42,35 @@ def _sfm(ctx, s: Settings, folder: Path, records: list[dict]) -> tuple[pycolmap.
     return reconstruction, info, _check_registered(reconstruction, records, s.min_registered_share, "SfM")
 
 
-def _denser_frames(ctx, clip: dict, records: list[dict]) -> tuple[Path, list[dict], dict]:
-    """The clip read again with frames twice as close (and up to twice as many a second), at the ingested size, into
-    a folder laid out as ingest's: a clip whose frames do not hold together often does once neighbours overlap more."""
-    folder = ctx.scratch / "denser"
-    (folder / "images").mkdir(parents=True, exist_ok=True)
+def _denser_frames(ctx, clip: dict, records: list[dict]) -> tuple[Path, list[dict], Path, list[dict], dict]:
+    """The clip read again with frames twice as close (and up to twice as many a second) and at full size, where a clip
+    whose frames do not hold together often does: neighbours overlap more, and a downscaled frame's finer texture is
+    back for SfM. Two folders laid out as ingest's: the frames at full size (to pose) and at the ingested size (the
+    output), with their records."""
     side = max(records[0]["width"], records[0]["height"])
-    frames, denser = video_frames(ctx.scene, side, clip["motion"] / 2, 2 * clip["max_per_second"], ctx.report)
-    kept = []
+    frames, denser = video_frames(ctx.scene, 0, clip["motion"] / 2, 2 * clip["max_per_second"], ctx.report)
+    full, ingested = ctx.scratch / "denser_full", ctx.scratch / "denser"
+    full_records, ingested_records = [], []
     for name, rgb in frames:
-        write_png(folder / "images" / f"{name}.png", rgb)
-        kept.append({"name": name, "file": f"images/{name}.png", "source": ctx.scene.name, "width": rgb.shape[1],
-                     "height": rgb.shape[0], "mask": None})
-    return folder, kept, denser
+        for folder, image, kept in ((full, rgb, full_records), (ingested, fit_max_side(rgb, side), ingested_records)):
+            (folder / "images").mkdir(parents=True, exist_ok=True)
+            write_png(folder / "images" / f"{name}.png", image)
+            kept.append({"name": name, "file": f"images/{name}.png", "source": ctx.scene.name,
+                         "width": image.shape[1], "height": image.shape[0], "mask": None})
+    return full, full_records, ingested, ingested_records, denser
+
+
+def _rescale(reconstruction: pycolmap.Reconstruction, width: int, height: int) -> None:
+    """A model of full-size frames made the model of the same frames at width x height: its cameras and every
+    observation scaled (COLMAP's pixel coordinates start at the image's corner, so a scale keeps pixel centres)."""
+    for camera in reconstruction.cameras.values():
+        sx, sy = width / camera.width, height / camera.height
+        camera.rescale(new_width=width, new_height=height)
+        for image in reconstruction.images.values():
+            if image.camera_id == camera.camera_id:
+                for point in image.points2D:
+                    point.xy = point.xy * (sx, sy)
+    reconstruction.update_point_3d_errors()
 
 
 def run(ctx) -> dict:
@@ -75,16 +91,16 @@ def run(ctx) -> dict:
                 if clip is None or "max_per_second" not in clip:
                     raise
                 ctx.report.warn(f"{refused}; reading the clip again with frames closer together")
-                ingest, retried, denser = _denser_frames(ctx, clip, records)
-                if len(retried) <= len(records):
-                    raise
+                full, full_records, ingest, retried, denser = _denser_frames(ctx, clip, records)
                 try:
-                    reconstruction, info, left_out = _sfm(ctx, s, ingest, retried)
+                    reconstruction, info, left_out = _sfm(ctx, s, full, full_records)
                 except UserError as again:
-                    raise UserError(f"{again} (read again with frames twice as close: {len(records)} -> "
+                    raise UserError(f"{again} (read again at full size with frames twice as close: {len(records)} -> "
                                     f"{len(retried)} frames; the first read: {refused})") from None
-                info["denser"] = {"first_frames": len(records), "first_refusal": str(refused),
-                                  "frames": len(retried), "motion": denser["motion"]}
+                _rescale(reconstruction, retried[0]["width"], retried[0]["height"])
+                info["denser"] = {"first_frames": len(records), "first_refusal": str(refused), "frames": len(retried),
+                                  "motion": denser["motion"],
+                                  "posed_at": [full_records[0]["width"], full_records[0]["height"]]}
                 records = retried
         else:
             source, imported = found
@@ -118,7 +134,8 @@ def run(ctx) -> dict:
             line += f", features only inside the masks of {info['masked_images']} images"
     if info.get("denser"):
         line += (f"; the ingested {info['denser']['first_frames']} frames did not hold together, so these poses come "
-                 f"from the clip read again with a frame each {info['denser']['motion']:.1%} of the view's diagonal")
+                 f"from the clip read again with a frame each {info['denser']['motion']:.1%} of the view's diagonal, "
+                 f"posed at {info['denser']['posed_at'][0]}x{info['denser']['posed_at'][1]}")
     if info.get("attempt_why"):
         line += f"; as set, {info['attempt_why']}, so these poses come from the attempt with {info['attempt']}"
     if info.get("mapper_fallback"):

@@ -618,8 +618,9 @@ def test_orbit_video_through_ingest_registers_every_kept_frame(tmp_path):
 
 
 def test_a_clip_whose_frames_do_not_hold_together_is_posed_from_frames_read_closer(tmp_path, monkeypatch):
-    # SfM refuses the frames ingest kept (as a real clip's can: 7 of 20 posed), so the stage reads the clip again with
-    # frames twice as close, poses those, and says so; where those fail too, the refusal names both reads.
+    # SfM refuses the frames ingest kept at half size (as a real clip's can: 7 of 20 posed), so the stage reads the
+    # clip again with frames twice as close and at full size, poses those, scales the model to the ingested size and
+    # says so; where those fail too, the refusal names both reads.
     import stages.poses
 
     video, truth, stems = orbit_video(tmp_path)
@@ -627,27 +628,32 @@ def test_a_clip_whose_frames_do_not_hold_together_is_posed_from_frames_read_clos
     calls = []
 
     def refuse_first(records, image_dir, *args):
-        calls.append(len(records))
+        calls.append((len(records), (records[0]["width"], records[0]["height"])))
         if len(calls) == 1:
             raise UserError(f"SfM posed only 3/{len(records)} images")
         return real(records, image_dir, *args)
 
     monkeypatch.setattr(stages.poses, "reconstruct", refuse_first)
-    manifest = Pipeline(video, tmp_path / "out", reporter=Reporter(quiet=True)).run(["ingest", "poses"])
+    manifest = Pipeline(video, tmp_path / "out", overrides=["ingest.max_side=192"],
+                        reporter=Reporter(quiet=True)).run(["ingest", "poses"])
     ingested, summary = manifest["ingest"]["summary"]["images"], manifest["poses"]["summary"]
-    assert len(calls) == 2 and calls[0] == ingested and calls[1] > ingested
-    assert summary["registered"] == summary["images"] == calls[1]
+    assert len(calls) == 2 and calls[0][0] == ingested and calls[1][0] > ingested
+    assert calls[0][1] == (192, 144) and calls[1][1] == (384, 288)
+    assert summary["registered"] == summary["images"] == calls[1][0]
     assert summary["denser"]["first_frames"] == ingested and "read again" in summary["line"]
+    assert summary["mean_reprojection_error"] < 0.5  # the observations scaled with the cameras
     frames = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    sizes = {iio.imread(tmp_path / "out" / "poses" / f["file_path"]).shape[1::-1] for f in frames["frames"]}
+    assert len(sizes) == 1 and abs(sizes.pop()[0] - 192) <= 1  # the ingested size (undistortion may trim a pixel)
     names = {Path(f["file_path"]).stem: stems[int(Path(f["file_path"]).stem.split("_")[1]) // 3] for f in frames["frames"]}
-    assert len(names) == calls[1] and all((tmp_path / "out" / "poses" / f"images/{n}.png").is_file() for n in names)
+    assert len(names) == calls[1][0] and all((tmp_path / "out" / "poses" / f"images/{n}.png").is_file() for n in names)
     assert pose_errors(tmp_path / "out", truth, names)["rotation_error_deg_median"] < 0.6
 
     def refuse_all(records, *args):
         raise UserError(f"SfM posed only 3/{len(records)} images")
 
     monkeypatch.setattr(stages.poses, "reconstruct", refuse_all)
-    with pytest.raises(UserError, match=r"posed only 3/\d+ images \(read again with frames twice as close: "
+    with pytest.raises(UserError, match=r"posed only 3/\d+ images \(read again at full size with frames twice as close: "
                                         rf"{ingested} -> \d+ frames; the first read: SfM posed only 3/{ingested}"):
         Pipeline(video, tmp_path / "out2", reporter=Reporter(quiet=True)).run(["ingest", "poses"])
 
