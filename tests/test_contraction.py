@@ -175,6 +175,13 @@ def test_far_content_gets_a_contracted_grid_and_no_background_model(tmp_path):
                              mean_colour=(0.3, 0.4, 0.5)).background_color == (1.0, 1.0, 1.0)
     bounded = SceneModel.create({**unbounded_scene(0.0), "frames": frames}, ModelOptions(), 16, mean_colour=(0.3, 0.4, 0.5))
     assert bounded.background_color == (1.0, 1.0, 1.0) and bounded.render_options.near == 0.0
+    # A room's bounded grid with its background model off shows the photos' mean colour past it too, an object's the
+    # colour set (its backdrop).
+    alone = dict(mean_colour=(0.3, 0.4, 0.5))
+    assert SceneModel.create({**unbounded_scene(0.0), "frames": frames}, ModelOptions(background="off"), 16,
+                             **alone).background_color == (0.3, 0.4, 0.5)
+    assert SceneModel.create({**unbounded_scene(0.0), "type": "object", "frames": frames},
+                             ModelOptions(background="off"), 16, **alone).background_color == (1.0, 1.0, 1.0)
     # Saved and loaded, it renders the same; world depth is in world units.
     gen = torch.Generator().manual_seed(0)
     model.grid.density.copy_(torch.rand(model.grid.num_occupied, generator=gen) * 3)
