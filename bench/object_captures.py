@@ -133,13 +133,17 @@ def neus_layout(synthetic: Path, folder: Path) -> None:
 
 
 def backdrop_photos(synthetic: Path, folder: Path) -> None:
-    """The RGBA synthetic object on white, and on near-black every second photo, as plain photos with true poses."""
+    """The RGBA synthetic object as plain photos with true poses, on white from one half of the orbit and on near-black
+    from the other (a white table seen from one side, a dark room from the other): a backdrop that differs between
+    photos the way a place's surroundings do, by where the camera stands."""
     truth = read_json(synthetic / "transforms.json")
     shutil.rmtree(folder, ignore_errors=True)
     (folder / "images").mkdir(parents=True)
+    centres = np.array([np.asarray(f["transform_matrix"])[:3, 3] for f in truth["frames"]])
+    side = centres[:, 0] - centres[:, 0].mean()
     for i, frame in enumerate(truth["frames"]):
         rgba = np.asarray(Image.open(synthetic / frame["file_path"])).astype(float) / 255
-        backdrop = 0.05 if i % 2 == 0 else 1.0
+        backdrop = 0.05 if side[i] < 0 else 1.0
         rgb = rgba[..., :3] * rgba[..., 3:] + backdrop * (1 - rgba[..., 3:])
         Image.fromarray(np.round(rgb * 255).astype(np.uint8)).save(folder / frame["file_path"])
     write_json(folder / "transforms.json", truth)
