@@ -227,6 +227,22 @@ def facing_directions(points: np.ndarray, normals: np.ndarray, faces: np.ndarray
     return directions
 
 
+def surface_normals(vertices: np.ndarray, faces: np.ndarray, weights: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Unit normals [N, 3] at points on `faces` [N, 3] (vertex indices) at barycentric `weights` [N, 3]: the vertex
+    `normals` blended. Where they cancel (a sheet of the mesh folded onto itself, whose vertices' normals point both
+    ways) or are not numbers (a degenerate face's), the face's own normal stands in, and up where that has no length."""
+    blended = (normals[faces] * weights[..., None]).sum(axis=1)
+    length = np.linalg.norm(blended, axis=1)
+    flat = ~(length > 1e-9)
+    if flat.any():
+        corner = vertices[faces[flat]]
+        face = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
+        face_length = np.linalg.norm(face, axis=1)
+        face[~(face_length > 1e-12)] = (0.0, 0.0, 1.0)
+        blended[flat], length[flat] = face, np.where(face_length > 1e-12, face_length, 1.0)
+    return blended / length[:, None]
+
+
 def surface_colour_texels(grid, frame: FitFrame, points: np.ndarray, directions: np.ndarray, voxel_world: float,
                           colour: Literal["view", "normal", "mean"]) -> np.ndarray:
     """The colour [N, 3] of the field at world surface `points`: with "view" or "normal", what the field renders along
@@ -275,8 +291,7 @@ def texture_mesh(grid, frame: FitFrame, mesh: trimesh.Trimesh, resolution: int,
     atlas = unwrap(vertices, np.asarray(mesh.faces), resolution)
     texels, faces, weights = texel_faces(atlas)
     points = (vertices[faces] * weights[..., None]).sum(axis=1)
-    directions = (normals[faces] * weights[..., None]).sum(axis=1)
-    directions /= np.maximum(np.linalg.norm(directions, axis=1, keepdims=True), 1e-12)
+    directions = surface_normals(vertices, faces, weights, normals)
     if colour == "view":
         cosines = view_cosines(mesh, list(views), frame, voxel_world, seen_tolerance * voxel_world, opacity)
         centres = np.stack([view.c2w[:3, 3] for view in views])

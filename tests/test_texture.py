@@ -14,7 +14,8 @@ from plenoxels.mesh import build_mesh, transform_points
 from plenoxels.render import render
 from plenoxels.surface import render_views
 from plenoxels import texture
-from plenoxels.texture import bake, rasterize, render_mesh, sample_texture, texel_surface, texture_mesh, unwrap
+from plenoxels.texture import (bake, rasterize, render_mesh, sample_texture, surface_normals, texel_surface,
+                               texture_mesh, unwrap)
 from stages.settings.export import Settings
 from test_export import BOX, SPHERE_CENTRE, _Quiet, look_at, sphere_field
 
@@ -170,6 +171,23 @@ def test_the_texture_shows_what_the_training_view_facing_the_surface_saw(sphere)
     normal_error = np.abs(renders["normal"] - field_rgb)[oblique].mean()
     assert view_error < 0.03 and normal_error > 0.08, (view_error, normal_error)
     assert facing.colour == "view"
+
+
+def test_a_sheet_folded_onto_itself_bakes_with_every_texel_facing_somewhere(sphere):
+    # Two faces on the same three vertices with opposite windings (a thin wall the marching cubes closed on itself):
+    # their vertices' normals cancel, so each texel's ray takes its face's normal; a degenerate face takes up. Baking
+    # such a mesh once stopped with "ray directions must be non-zero".
+    vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [2.0, 2.0, 2.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 1], [3, 3, 3]])
+    weights = np.full((3, 3), 1 / 3)
+    zero = np.zeros((4, 3))
+    zero[3] = np.nan
+    unit = surface_normals(vertices, faces, weights, zero)
+    np.testing.assert_allclose(unit, [[0, 0, 1], [0, 0, -1], [0, 0, 1]], atol=1e-12)
+    field, mesh, _ = sphere
+    folded = trimesh.Trimesh(vertices=SPHERE_CENTRE + 0.3 * vertices[:3], faces=faces[:2], process=False)
+    baked = texture_mesh(field, FitFrame(), folded, 32, "normal")
+    assert np.isfinite(baked.image).all()
 
 
 def test_textured_files_carry_uvs_a_matte_material_and_the_png_in_the_input_frame(sphere, tmp_path):
