@@ -194,7 +194,7 @@ def table(results: dict) -> str:
                   "|---|---|---|---|---|---|---|---|---|"]
         for r in runs:
             m = r["mean"]
-            grid = f"{max(r['resolution'])}^3, {r['occupied'] / 1e6:.2f} M voxels"
+            grid = f"{'x'.join(str(n) for n in r['resolution'])}, {r['occupied'] / 1e6:.2f} M voxels"
             lines.append(f"| {r['label']} | {m['psnr']:.2f} | {m['ssim']:.3f} | {m.get('lpips', float('nan')):.3f} | "
                          f"{r['fit_seconds']:.0f} s | {r['wall_seconds']:.0f} s | {r['peak_rss_mb'] / 1024:.1f} GiB | "
                          f"{grid} | {cpu_name(r['machine'])}, {r['machine']['cores']} cores, {r['finished'][:10]}, "
