@@ -175,8 +175,8 @@ def test_the_texture_shows_what_the_training_view_facing_the_surface_saw(sphere)
 
 def test_a_sheet_folded_onto_itself_bakes_with_every_texel_facing_somewhere(sphere):
     # Two faces on the same three vertices with opposite windings (a thin wall the marching cubes closed on itself):
-    # their vertices' normals cancel, so each texel's ray takes its face's normal; a degenerate face takes up. Baking
-    # such a mesh once stopped with "ray directions must be non-zero".
+    # their vertices' normals cancel, so each texel's ray takes its face's normal (a zero direction is no ray to
+    # render); a degenerate face takes up.
     vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [2.0, 2.0, 2.0]])
     faces = np.array([[0, 1, 2], [0, 2, 1], [3, 3, 3]])
     weights = np.full((3, 3), 1 / 3)
