@@ -15,13 +15,13 @@ from pathlib import Path
 
 import pycolmap
 
-from pipeline.io import write_png
 from pipeline.json_files import read_json
-from pipeline.photos import fit_max_side, is_video, photo_folder, video_frames
+from pipeline.photos import is_video, photo_folder
 from pipeline.sfm import pose_import
 from pipeline.sfm.outputs import write_poses
 from pipeline.report import short_list
 from pipeline.sfm.reconstruct import colmap_logging, reconstruct
+from pipeline.sfm.video_again import denser_frames, rescale_model
 from plenoxels.errors import UserError
 from stages.settings.poses import Settings
 
@@ -42,37 +42,6 @@ def _sfm(ctx, s: Settings, folder: Path, records: list[dict]) -> tuple[pycolmap.
     return reconstruction, info, _check_registered(reconstruction, records, s.min_registered_share, "SfM")
 
 
-def _denser_frames(ctx, clip: dict, records: list[dict]) -> tuple[Path, list[dict], Path, list[dict], dict]:
-    """The clip read again with frames twice as close (and up to twice as many a second) and at full size, where a clip
-    whose frames do not hold together often does: neighbours overlap more, and a downscaled frame's finer texture is
-    back for SfM. Two folders laid out as ingest's: the frames at full size (to pose) and at the ingested size (the
-    output), with their records."""
-    side = max(records[0]["width"], records[0]["height"])
-    frames, denser = video_frames(ctx.scene, 0, clip["motion"] / 2, 2 * clip["max_per_second"], ctx.report)
-    full, ingested = ctx.scratch / "denser_full", ctx.scratch / "denser"
-    full_records, ingested_records = [], []
-    for name, rgb in frames:
-        for folder, image, kept in ((full, rgb, full_records), (ingested, fit_max_side(rgb, side), ingested_records)):
-            (folder / "images").mkdir(parents=True, exist_ok=True)
-            write_png(folder / "images" / f"{name}.png", image)
-            kept.append({"name": name, "file": f"images/{name}.png", "source": ctx.scene.name,
-                         "width": image.shape[1], "height": image.shape[0], "mask": None})
-    return full, full_records, ingested, ingested_records, denser
-
-
-def _rescale(reconstruction: pycolmap.Reconstruction, width: int, height: int) -> None:
-    """A model of full-size frames made the model of the same frames at width x height: its cameras and every
-    observation scaled (COLMAP's pixel coordinates start at the image's corner, so a scale keeps pixel centres)."""
-    for camera in reconstruction.cameras.values():
-        sx, sy = width / camera.width, height / camera.height
-        camera.rescale(new_width=width, new_height=height)
-        for image in reconstruction.images.values():
-            if image.camera_id == camera.camera_id:
-                for point in image.points2D:
-                    point.xy = point.xy * (sx, sy)
-    reconstruction.update_point_3d_errors()
-
-
 def run(ctx) -> dict:
     s: Settings = ctx.settings
     ingest = ctx.upstream["ingest"]
@@ -91,13 +60,14 @@ def run(ctx) -> dict:
                 if clip is None or "max_per_second" not in clip:
                     raise
                 ctx.report.warn(f"{refused}; reading the clip again with frames closer together")
-                full, full_records, ingest, retried, denser = _denser_frames(ctx, clip, records)
+                full, full_records, ingest, retried, denser = denser_frames(ctx.scene, clip, records, ctx.scratch,
+                                                                             ctx.report)
                 try:
                     reconstruction, info, left_out = _sfm(ctx, s, full, full_records)
                 except UserError as again:
                     raise UserError(f"{again} (read again at full size with frames twice as close: {len(records)} -> "
                                     f"{len(retried)} frames; the first read: {refused})") from None
-                _rescale(reconstruction, retried[0]["width"], retried[0]["height"])
+                rescale_model(reconstruction, retried[0]["width"], retried[0]["height"])
                 info["denser"] = {"first_frames": len(records), "first_refusal": str(refused), "frames": len(retried),
                                   "motion": denser["motion"],
                                   "posed_at": [full_records[0]["width"], full_records[0]["height"]]}
