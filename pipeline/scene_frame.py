@@ -37,6 +37,8 @@ BOX_REACH = 0.2
 # Near/far per image: these percentiles of the depths of the points seen there, widened by NEAR_FAR_MARGIN.
 NEAR_FAR_PERCENTILES = (1.0, 99.0)
 NEAR_FAR_MARGIN = 0.1
+# The surroundings box grows toward the points around the foreground in steps of this share (surroundings_box).
+SURROUNDINGS_STEP = 0.05
 # Sampled images and their size when measuring how much of the photos show an empty backdrop.
 BACKDROP_SAMPLES = 12
 BACKDROP_SIDE = 96
@@ -501,6 +503,10 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
         "scale": scale, "foreground": {"min": foreground_box[0].tolist(), "max": foreground_box[1].tolist()},
         "frames": frames,
     }
+    if not family_forward and has_points:
+        surroundings, growth = surroundings_box(xyz_world, foreground_box, c2w_world[:, :3, 3], options.beyond_factor)
+        scene["surroundings"] = {"min": surroundings[0].tolist(), "max": surroundings[1].tolist()}
+        measured["surroundings_growth"] = growth
     if scene_type == "forward" or (borderline and not overridden):
         # A borderline spread keeps the forward block too, so that the fit can try NDC against the inward model
         # (plenoxels/model_trial.py).
@@ -511,6 +517,28 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
         scene["forward"] = {"reference_c2w": reference.tolist(),
                             **_forward_depths(xyz_world if has_points else None, reference, cams, scale, foreground_box)}
     return scene
+
+
+def surroundings_box(xyz_world: np.ndarray, foreground_box: np.ndarray, camera_origins: np.ndarray,
+                     beyond_factor: float) -> tuple[np.ndarray, float]:
+    """([2,3] box, growth): what a bounded grid of a room holds. The foreground box is what most cameras see; the
+    walls and floor around it, seen by fewer, lie outside it, and a background sphere shows them without the parallax
+    the cameras see between them (fox: the wall beside the head, 4.7 dB lost in one held-out view). So the box grows
+    from the foreground's toward the robust box of the sparse points within `beyond_factor` of it, by the largest
+    share (in steps of SURROUNDINGS_STEP) that leaves every camera outside: a grid around its cameras fills with
+    floaters in front of them. Growth 0: the foreground box as it is (a camera stands at its edge, or no points lie
+    around it)."""
+    near = xyz_world[np.abs(xyz_world).max(axis=1) < beyond_factor]
+    if len(near) < MIN_POINTS:
+        return foreground_box, 0.0
+    reach = robust_box(near)
+    reach = np.stack([np.minimum(reach[0], foreground_box[0]), np.maximum(reach[1], foreground_box[1])])
+    for growth in np.arange(1.0, 0.0, -SURROUNDINGS_STEP):
+        box = foreground_box + growth * (reach - foreground_box)
+        inside = np.all((camera_origins > box[0]) & (camera_origins < box[1]), axis=1)
+        if not inside.any():
+            return box, round(float(growth), 3)
+    return foreground_box, 0.0
 
 
 def held_out_frames(cams: Cameras, options: SceneOptions) -> set[int]:

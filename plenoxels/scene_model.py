@@ -95,6 +95,9 @@ class SceneModel:
         contraction = None
         if ndc is None and _uses(options.contract, scene_type == "unbounded" and reaches_far(scene)):
             contraction = Contraction.around_box(lo, hi)
+        if ndc is None and contraction is None and scene_type == "unbounded":
+            # A room's bounded grid holds the walls and floor near the foreground too (normalize's surroundings box).
+            lo, hi = foreground_box(scene, options.box_padding, "surroundings")
         background = None
         if _uses(options.background, scene_type == "unbounded" and contraction is None):
             width = options.background_width or background_width_for(focal_px, options.background_texel_px)
@@ -305,9 +308,10 @@ def background_width_for(focal_px: float | None, texel_px: float) -> int:
     return int(min(max(round(width / 8) * 8, 64), 2048))
 
 
-def foreground_box(scene: dict, padding: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    """scene.json's foreground box grown by `padding` of its size on each side ([-1, 1]^3 if absent)."""
-    fg = scene.get("foreground") or {}
+def foreground_box(scene: dict, padding: float, key: str = "foreground") -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """scene.json's foreground box (or another of its boxes: `key`, falling back to the foreground's where the scene
+    has none) grown by `padding` of its size on each side ([-1, 1]^3 if absent)."""
+    fg = scene.get(key) or scene.get("foreground") or {}
     lo = np.asarray(fg.get("min", (-1.0, -1.0, -1.0)), dtype=np.float64)
     hi = np.asarray(fg.get("max", (1.0, 1.0, 1.0)), dtype=np.float64)
     if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(lo)) or not np.all(np.isfinite(hi)) \

@@ -14,7 +14,7 @@ from PIL import Image
 from pipeline import config
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
-from pipeline.scene_frame import Points, SceneOptions, normalize_scene, read_points
+from pipeline.scene_frame import Points, SceneOptions, normalize_scene, read_points, surroundings_box
 from pipeline.stage import StageContext
 from pipeline.synthetic import build_scene, trace, write_scene
 from plenoxels.cameras import Intrinsics, look_at, pixel_directions
@@ -203,6 +203,40 @@ def test_rotated_scaled_shifted_input_normalises_the_same(scenes, kind):
     assert np.allclose(a["foreground"]["min"], b["foreground"]["min"], atol=1e-6)
     # Both map the same physical point to the same normalised point.
     assert np.allclose(np.asarray(b["world_from_input"]) @ similarity, a["world_from_input"], atol=1e-6)
+
+
+def test_a_rooms_surroundings_box_holds_the_wall_beside_the_foreground_but_no_camera():
+    rng = np.random.default_rng(0)
+    foreground = np.array([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
+    object_points = rng.uniform(-0.5, 0.5, size=(2000, 3))
+    wall = np.column_stack([np.full(1000, 1.2), rng.uniform(-1.0, 1.0, size=(1000, 2))])
+    far_away = rng.uniform(5.0, 9.0, size=(50, 3))  # beyond 2x the foreground: the background model's, not the grid's
+    xyz = np.concatenate([object_points, wall, far_away])
+    angles = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    circle = np.column_stack([3 * np.cos(angles), 3 * np.sin(angles), np.zeros_like(angles)])
+
+    box, growth = surroundings_box(xyz, foreground, circle, beyond_factor=2.0)
+    assert growth == 1.0
+    assert np.allclose(box[1], [1.2, 1.0, 1.0], atol=0.01) and np.allclose(box[0], [-0.5, -1.0, -1.0], atol=0.01)
+
+    # A camera between the foreground and the wall stops the growth before it stands inside the box.
+    cameras = np.concatenate([circle, [[0.9, 0.0, 0.0]]])
+    box, growth = surroundings_box(xyz, foreground, cameras, beyond_factor=2.0)
+    assert 0 < growth < 0.6
+    assert box[1][0] < 0.9 and np.all(box[0] <= foreground[0]) and np.all(box[1] >= foreground[1])
+    assert not np.any(np.all((cameras > box[0]) & (cameras < box[1]), axis=1))
+
+    # A camera inside the foreground box leaves it as it is.
+    box, growth = surroundings_box(xyz, foreground, np.array([[0.0, 0.0, 0.0]]), beyond_factor=2.0)
+    assert growth == 0.0 and np.array_equal(box, foreground)
+
+
+def test_an_unbounded_scene_writes_a_surroundings_box_around_its_foreground(scenes):
+    scene, _ = _run_stage(scenes["unbounded"])
+    lo, hi = np.asarray(scene["surroundings"]["min"]), np.asarray(scene["surroundings"]["max"])
+    assert np.all(lo <= np.asarray(scene["foreground"]["min"])) and np.all(hi >= np.asarray(scene["foreground"]["max"]))
+    origins = np.array([np.asarray(f["transform_matrix"])[:3, 3] for f in scene["frames"]])
+    assert not np.any(np.all((origins > lo) & (origins < hi), axis=1))
 
 
 def test_up_survives_a_few_tilted_shots(scenes):

@@ -40,6 +40,25 @@ def _synthetic(kind: str, folder: Path) -> tuple[dict, Path, dict]:
     return scene, root, transforms
 
 
+@pytest.mark.parametrize("contract", ["off", "on"])
+def test_a_rooms_bounded_grid_spans_its_surroundings_box_and_a_contracted_one_its_foreground(contract):
+    frame = {"fl_x": 40.0, "fl_y": 40.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48, "split": "train",
+             "transform_matrix": np.eye(4).tolist(), "near": 1.0, "far": 20.0}
+    scene = {"type": "unbounded", "foreground": {"min": [-1, -1, -1], "max": [1, 1, 1]},
+             "surroundings": {"min": [-1.5, -1, -1.2], "max": [2, 1, 1]}, "frames": [frame],
+             "world_from_input": np.eye(4).tolist(), "input_from_world": np.eye(4).tolist()}
+    model = SceneModel.create(scene, ModelOptions(sh_degree=0, contract=contract, box_padding=0.0), 32)
+    if contract == "off":
+        assert np.allclose(model.grid.bbox_min, [-1.5, -1, -1.2]) and np.allclose(model.grid.bbox_max, [2, 1, 1])
+        # The background's first sphere lies outside the grown box's corners.
+        assert float(model.background.r_min) >= float(np.linalg.norm([3.5, 2, 2.2])) / 2
+    else:
+        assert model.fit_frame.contraction.half_size == pytest.approx(1.0)
+    # An object's grid keeps to its foreground whatever the scene says of its surroundings.
+    model = SceneModel.create({**scene, "type": "object"}, ModelOptions(sh_degree=0, box_padding=0.0), 32)
+    assert np.allclose(model.grid.bbox_min, [-1, -1, -1]) and np.allclose(model.grid.bbox_max, [1, 1, 1])
+
+
 @pytest.mark.parametrize("scene_type", ["object", "forward", "unbounded"])
 def test_scene_model_follows_the_scene_type_and_survives_save_and_load(scene_type, tmp_path):
     frame = {"fl_x": 40.0, "fl_y": 40.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48, "split": "train",
