@@ -37,6 +37,10 @@ BOX_REACH = 0.2
 # Near/far per image: these percentiles of the depths of the points seen there, widened by NEAR_FAR_MARGIN.
 NEAR_FAR_PERCENTILES = (1.0, 99.0)
 NEAR_FAR_MARGIN = 0.1
+# What a camera is aimed at: the sparse points it sees in the middle AIM_SHARE of its image's width and height
+# (aimed_points); one outside the foreground box grows the box to AIM_MARGIN of its size beyond the point.
+AIM_SHARE = 0.2
+AIM_MARGIN = 0.1
 # The surroundings box grows toward the points around the foreground in steps of this share (surroundings_box).
 SURROUNDINGS_STEP = 0.05
 # Sampled images and their size when measuring how much of the photos show an empty backdrop.
@@ -412,6 +416,8 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
             box_rot = frustum_box(reference_input, cams.intrinsics[0], near, far, rotation)
     elif foreground.sum() >= MIN_POINTS:
         box_rot, box_from = robust_box(xyz[foreground] @ rotation.T), "sparse points seen by most cameras"
+        box_rot, box_from = _hold_what_cameras_aim_at(box_rot, box_from, xyz, cams, points, rotation, axes_point,
+                                                      camera_distance, measured)
     else:
         # What every camera sees at the point the axes meet: the region the capture was aimed at.
         half = camera_distance * math.tan(min_half_fov(cams))
@@ -539,6 +545,40 @@ def surroundings_box(xyz_world: np.ndarray, foreground_box: np.ndarray, camera_o
         if not inside.any():
             return box, round(float(growth), 3)
     return foreground_box, 0.0
+
+
+def aimed_points(xyz: np.ndarray, seen: list[np.ndarray], cams: Cameras) -> np.ndarray:
+    """[M,3] what each camera is aimed at: the point on its optical axis at the median depth of the sparse points it
+    sees in the middle AIM_SHARE of its image's width and height (cameras with fewer than MIN_POINTS_PER_IMAGE such
+    points are left out)."""
+    aimed = []
+    for i, (c2w, k) in enumerate(zip(cams.c2w, cams.intrinsics)):
+        uv, depth = project(xyz[seen[i]], c2w, k)
+        central = ((depth > 0) & (np.abs(uv[:, 0] - k.cx) <= AIM_SHARE * k.w / 2)
+                   & (np.abs(uv[:, 1] - k.cy) <= AIM_SHARE * k.h / 2))
+        if central.sum() >= MIN_POINTS_PER_IMAGE:
+            aimed.append(cams.origins[i] + float(np.median(depth[central])) * cams.view_dirs[i])
+    return np.asarray(aimed, dtype=np.float64).reshape(-1, 3)
+
+
+def _hold_what_cameras_aim_at(box_rot: np.ndarray, box_from: str, xyz: np.ndarray, cams: Cameras, points: Points,
+                              rotation: np.ndarray, axes_point: np.ndarray, camera_distance: float,
+                              measured: dict) -> tuple[np.ndarray, str]:
+    """The foreground box grown to hold what each camera circling an object is aimed at. The box of the points most
+    cameras see keeps their bulk: a floor's many points outvote the few on a can standing on it, the can falls partly
+    outside the box, and a grid there cannot show it in the views aimed at it. What a camera is aimed at within
+    camera_distance of where the optical axes meet is the object (aimed_points); each such point outside the box
+    grows it to AIM_MARGIN of the box's size beyond the point."""
+    aimed = aimed_points(xyz, points_seen_by_frame(points, cams), cams)
+    aimed = aimed[np.linalg.norm(aimed - axes_point, axis=1) < camera_distance] @ rotation.T
+    outside = ~np.all((aimed >= box_rot[0]) & (aimed <= box_rot[1]), axis=1)
+    measured["aimed_outside_box"] = f"{int(outside.sum())}/{len(aimed)}"
+    if not outside.any():
+        return box_rot, box_from
+    margin = AIM_MARGIN * (box_rot[1] - box_rot[0]).max()
+    grown = np.stack([np.minimum(box_rot[0], aimed[outside].min(axis=0) - margin),
+                      np.maximum(box_rot[1], aimed[outside].max(axis=0) + margin)])
+    return grown, f"{box_from}, grown to hold what {int(outside.sum())} of {len(aimed)} cameras are aimed at"
 
 
 def held_out_frames(cams: Cameras, options: SceneOptions) -> set[int]:

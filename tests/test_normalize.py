@@ -239,6 +239,32 @@ def test_an_unbounded_scene_writes_a_surroundings_box_around_its_foreground(scen
     assert not np.any(np.all((origins > lo) & (origins < hi), axis=1))
 
 
+def test_a_can_on_a_wide_floor_stays_in_the_foreground_box():
+    # The floor's many points outvote the can's few in the box of the points most cameras see; the cameras circling
+    # the can are aimed at it, and the box must hold what they are aimed at, or no grid there can show the can.
+    rng = np.random.default_rng(1)
+    r = np.sqrt(rng.uniform(0, 1.5 ** 2, 6000))
+    a = rng.uniform(0, 2 * np.pi, 6000)
+    floor = np.column_stack([r * np.cos(a), r * np.sin(a), rng.normal(0, 0.003, 6000)])
+    a, z = rng.uniform(0, 2 * np.pi, 120), rng.uniform(0.0, 0.8, 120)
+    can = np.column_stack([0.15 * np.cos(a), 0.15 * np.sin(a), z])
+    frames = []
+    for i, angle in enumerate(np.linspace(0, 2 * np.pi, 24, endpoint=False)):
+        eye = (2.0 * np.cos(angle), 2.0 * np.sin(angle), 0.6)
+        frames.append({"file_path": f"images/{i:03d}.png", "name": f"{i:03d}",
+                       "transform_matrix": look_at(eye, (0.0, 0.0, 0.4)).tolist()})
+    transforms = {"fl_x": 60.0, "fl_y": 60.0, "cx": 48.0, "cy": 36.0, "w": 96, "h": 72, "frames": frames}
+    scene = normalize_scene(transforms, Points(np.concatenate([floor, can]), np.zeros(0, int), np.zeros(0, int)),
+                            SceneOptions())
+    outside, aimed = map(int, scene["measured"]["aimed_outside_box"].split("/"))
+    assert aimed == 24 and outside > 0
+    lo, hi = np.asarray(scene["foreground"]["min"]), np.asarray(scene["foreground"]["max"])
+    # Every camera's view of the can's middle, where it is aimed, crosses the box: the can is in the grid there.
+    aimed_at = _to_world(scene, np.array([[0.0, 0.0, 0.4], [0.0, 0.0, 0.5], [0.15, 0.0, 0.4], [0.0, -0.15, 0.4]]))
+    assert np.all((aimed_at >= lo) & (aimed_at <= hi)), (aimed_at, lo, hi)
+    assert "aimed at" in scene["measured"]["foreground_from"]
+
+
 def test_up_survives_a_few_tilted_shots(scenes):
     transforms, points = _load(scenes["object"])
     for index, roll in ((2, 35.0), (9, -50.0)):
