@@ -122,7 +122,7 @@ def one_run(spec: dict) -> dict:
         scale = spec["score_side"] / max(frame["w"], frame["h"]) if spec.get("score_side") else settings.image_scale
         truth, k = load_frame(out, frame, scale, settings.background_color)
         with torch.no_grad():
-            render = model.render_camera(np.asarray(frame["transform_matrix"]), k)["rgb"].numpy()
+            render = model.render_camera(np.asarray(frame["transform_matrix"]), k, backdrop=frame.get("backdrop"))["rgb"].numpy()
         views.append({"name": frame["name"], **image_scores(render, truth, with_lpips=False)})
         first = first if first is not None else (truth, render)
     RENDERS.mkdir(parents=True, exist_ok=True)

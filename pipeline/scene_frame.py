@@ -293,16 +293,42 @@ def measure_backdrop(cams: Cameras, poses_dir: Path) -> Backdrop | None:
         images = [_thumbnail(poses_dir / f["file_path"], "RGB").astype(np.int32) for f in frames]
     except (OSError, ValueError):
         return None
-    borders = [np.concatenate([im[:2].reshape(-1, 3), im[-2:].reshape(-1, 3), im[:, :2].reshape(-1, 3),
-                               im[:, -2:].reshape(-1, 3)]) for im in images]
-    every_border = np.concatenate(borders)
-    bins = every_border // 32
-    keys, counts = np.unique(bins, axis=0, return_counts=True)
-    colour = np.median(every_border[(bins == keys[counts.argmax()]).all(axis=1)], axis=0)
+    borders = [_border(im) for im in images]
+    colour = _flat_colour(np.concatenate(borders))
     empty = [np.abs(im - colour).max(axis=-1) <= BACKDROP_TOLERANCE for im in images]
     showing = [np.mean(np.abs(b - colour).max(axis=-1) <= BACKDROP_TOLERANCE) >= BACKDROP_BORDER_SHARE for b in borders]
     return Backdrop(float(np.mean(np.concatenate([e.ravel() for e in empty]))), False, colour, float(np.mean(showing)),
                     still_textured_share(images))
+
+
+def _border(image: np.ndarray) -> np.ndarray:
+    """[M,3] the pixels of an image's outer two rows and columns."""
+    return np.concatenate([image[:2].reshape(-1, 3), image[-2:].reshape(-1, 3), image[:, :2].reshape(-1, 3),
+                           image[:, -2:].reshape(-1, 3)])
+
+
+def _flat_colour(pixels: np.ndarray) -> np.ndarray:
+    """The colour that dominates these pixels: the median of the most common 32-level bin."""
+    bins = pixels // 32
+    keys, counts = np.unique(bins, axis=0, return_counts=True)
+    return np.median(pixels[(bins == keys[counts.argmax()]).all(axis=1)], axis=0)
+
+
+def own_backdrops(cams: Cameras, poses_dir: Path) -> tuple[np.ndarray, float] | None:
+    """([N,3] RGB in [0, 1], share): each photo's own backdrop colour, the flat colour that dominates its border, and
+    the share of the photos whose border shows it on at least BACKDROP_BORDER_SHARE of its pixels: an object
+    photographed on a white table from one side and before a dark room from the other, each photo on one flat colour
+    of its own. None when the images cannot be read."""
+    colours, flat = [], []
+    try:
+        for frame in cams.frames:
+            border = _border(_thumbnail(poses_dir / frame["file_path"], "RGB").astype(np.int32))
+            colour = _flat_colour(border)
+            colours.append(colour / 255.0)
+            flat.append(np.mean(np.abs(border - colour).max(axis=-1) <= BACKDROP_TOLERANCE) >= BACKDROP_BORDER_SHARE)
+    except (OSError, ValueError):
+        return None
+    return np.asarray(colours), float(np.mean(flat))
 
 
 def still_textured_share(images: list[np.ndarray]) -> float:
@@ -465,10 +491,15 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
                   "unbounded_min_beyond_fraction": options.unbounded_min_beyond_fraction,
                   "object_min_empty_fraction": options.object_min_empty_fraction,
                   "min_points": MIN_POINTS}
+    own = None  # each photo's own backdrop colour, where the photos show no one colour (own_backdrops)
     if looks_forward:
         detected: SceneType = "forward"
     else:
-        detected = _inward_type(xyz_world, has_points, backdrop, options, measured, reasons)
+        if (backdrop is not None and not backdrop.from_masks and backdrop.photos_showing < BACKDROP_MIN_PHOTOS
+                and backdrop.empty_fraction >= options.object_min_empty_fraction):
+            own = own_backdrops(cams, poses_dir)
+        detected = _inward_type(xyz_world, has_points, backdrop, options, measured, reasons,
+                                own[1] if own is not None else None)
     overridden = options.scene_type != "auto"
     scene_type = options.scene_type if overridden else detected
     if overridden:
@@ -504,6 +535,8 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
             "w": k.w, "h": k.h, "near": near_far[i][0], "far": near_far[i][1],
             "split": split,
         })
+        if measured.get("own_backdrops") and scene_type == "object":
+            frames[-1]["backdrop"] = [round(float(c), 4) for c in own[0][i]]
 
     scene = {
         "type": scene_type, "detected": detected, "reasons": reasons, "measured": measured,
@@ -677,7 +710,7 @@ def _forward_depths(xyz_world: np.ndarray | None, reference: np.ndarray, cams: C
 
 
 def _inward_type(xyz_world: np.ndarray, has_points: bool, backdrop: Backdrop | None, options: SceneOptions,
-                 measured: dict, reasons: list[str]) -> SceneType:
+                 measured: dict, reasons: list[str], own_flat: float | None = None) -> SceneType:
     """Object or unbounded: is there a real background beyond the foreground? Masks of the object on every photo say
     there is none the fit should model. Otherwise unbounded when either the points or the pixels say so (a flat
     backdrop must be one colour behind most photos); object only when what can be measured says the surroundings
@@ -707,10 +740,17 @@ def _inward_type(xyz_world: np.ndarray, has_points: bool, backdrop: Backdrop | N
         if not backdrop.from_masks:
             measured["backdrop_photos_showing"] = round(backdrop.photos_showing, 3)
             if not scenery and backdrop.photos_showing < BACKDROP_MIN_PHOTOS:
-                scenery = True
-                reasons.append(f"but only {backdrop.photos_showing:.0%} of the sampled photos show that colour around "
-                               f"most of their borders (< {BACKDROP_MIN_PHOTOS:.0%}): the backdrop differs between "
-                               "photos, so it is not empty and a background model shows it")
+                if own_flat is not None and own_flat >= BACKDROP_MIN_PHOTOS:
+                    measured["own_backdrops"] = round(own_flat, 3)
+                    reasons.append(f"only {backdrop.photos_showing:.0%} of the sampled photos show that colour around "
+                                   f"most of their borders, but {own_flat:.0%} of the photos show one flat colour of "
+                                   "their own there: each photo's own colour is trained behind the grid (scene.json's "
+                                   "frame `backdrop`)")
+                else:
+                    scenery = True
+                    reasons.append(f"but only {backdrop.photos_showing:.0%} of the sampled photos show that colour "
+                                   f"around most of their borders (< {BACKDROP_MIN_PHOTOS:.0%}): the backdrop differs "
+                                   "between photos, so it is not empty and a background model shows it")
         background.append(scenery)
     if not background:
         reasons.append("nothing shows the surroundings are empty, so a background is assumed")

@@ -20,8 +20,9 @@ class HeldOut:
     def __init__(self, root: Path, frames: list[dict], views: int, scale: float, background_color):
         pick = frames if len(frames) <= views else [frames[i] for i in
                                                     np.linspace(0, len(frames) - 1, views).round().astype(int)]
-        self.views = [(np.asarray(frame["transform_matrix"], dtype=np.float64), k, torch.from_numpy(image))
-                      for frame, (image, k) in zip(pick, load_frames(root, pick, scale, background_color))]
+        self.views = [(np.asarray(frame["transform_matrix"], dtype=np.float64), k, torch.from_numpy(image),
+                       frame.get("backdrop")) for frame, (image, k) in zip(pick, load_frames(root, pick, scale,
+                                                                                           background_color))]
 
     def __bool__(self) -> bool:
         return bool(self.views)
@@ -29,12 +30,12 @@ class HeldOut:
     @property
     def rays(self) -> int:
         """Rays of one evaluation."""
-        return sum(k.w * k.h for _, k, _ in self.views)
+        return sum(k.w * k.h for _, k, _, _ in self.views)
 
     def psnr(self, model: SceneModel) -> float:
         errors = []
-        for c2w, k, image in self.views:
-            rgb = model.render_camera(c2w, k)["rgb"].cpu()
+        for c2w, k, image, backdrop in self.views:
+            rgb = model.render_camera(c2w, k, backdrop=backdrop)["rgb"].cpu()
             errors.append(float(((rgb - image) ** 2).mean()))
         return float(np.mean([psnr(e) for e in errors]))
 
@@ -57,11 +58,13 @@ def training_frames(scene: dict, report) -> tuple[list[dict], list[dict]]:
 
 
 def load_training(root: Path, frames: list[dict], scale: float, background_color, report) -> RaySet:
-    """The training frames' pixels (masks composited onto `background_color`) and cameras."""
+    """The training frames' pixels (masks composited onto `background_color`), cameras and, where normalize found
+    each photo's own backdrop colour, those."""
     images, c2ws, ks = [], [], []
     loaded = load_frames(root, frames, scale, background_color)
     for frame, (image, k) in zip(frames, report.track(loaded, total=len(frames), desc="loading training images")):
         images.append(image)
         c2ws.append(np.asarray(frame["transform_matrix"], dtype=np.float64))
         ks.append(k)
-    return RaySet(images, c2ws, ks)
+    backdrops = [frame.get("backdrop") for frame in frames]
+    return RaySet(images, c2ws, ks, backdrops if all(b is not None for b in backdrops) else None)

@@ -239,7 +239,8 @@ def _try(scene: dict, options, name: str, fitted: RaySet, scored: RaySet, device
     per_view = []
     with torch.no_grad():
         for i in range(len(scored)):
-            rgb = fitter.model.render_camera(scored.c2w[i].double().cpu().numpy(), scored.intrinsics[i])["rgb"]
+            rgb = fitter.model.render_camera(scored.c2w[i].double().cpu().numpy(), scored.intrinsics[i],
+                                             backdrop=scored.backdrop(i))["rgb"]
             per_view.append(psnr(float(((rgb.cpu() - scored.image(i).cpu()) ** 2).mean())))
     return Tried(name, float(np.mean(per_view)), fitter.train_psnr(), time.time() - started, fitter.step, per_view)
 

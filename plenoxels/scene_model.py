@@ -186,16 +186,24 @@ class SceneModel:
         return torch.where(hit, world, torch.zeros_like(world))
 
     def render_camera(self, c2w, intrinsics: Intrinsics, opts: RenderOptions | None = None,
-                      chunk: int = RENDER_CHUNK) -> dict[str, torch.Tensor]:
+                      chunk: int = RENDER_CHUNK, backdrop=None) -> dict[str, torch.Tensor]:
         """One pinhole view (world camera-to-world, OpenGL convention) -> {"rgb" [h,w,3] in [0,1],
-        "depth" [h,w] world distance (see world_depth), "opacity" [h,w]}."""
+        "depth" [h,w] world distance (see world_depth), "opacity" [h,w]}. `backdrop`: an RGB colour to show past the
+        grid in place of the model's own (a photo's own backdrop, scene.json's frame `backdrop`); a background model
+        keeps its colours."""
         origins, dirs = rays_from_camera(c2w, intrinsics)
         origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+        swap = None
+        if backdrop is not None and self.background is None:
+            swap = torch.tensor(backdrop, dtype=torch.float32) - torch.tensor(self.background_color, dtype=torch.float32)
         rgb, depth, opacity = [], [], []
         for start in range(0, origins.shape[0], chunk):
             o, d = origins[start:start + chunk], dirs[start:start + chunk]
             result = self.render_rays(o, d, opts)
-            rgb.append(result.rgb.clamp(0.0, 1.0))
+            colour = result.rgb
+            if swap is not None:
+                colour = colour + (1.0 - result.opacity)[:, None] * swap.to(colour.device)
+            rgb.append(colour.clamp(0.0, 1.0))
             depth.append(self.world_depth(o, d, result))
             opacity.append(result.opacity)
         h, w = intrinsics.h, intrinsics.w

@@ -58,7 +58,11 @@ class RaySet:
     Pixels are stored flat (uint8 [P, 3]) so images of different sizes sit side by side.
     """
 
-    def __init__(self, images: list[np.ndarray], c2ws: list[np.ndarray], intrinsics: list[Intrinsics]):
+    def __init__(self, images: list[np.ndarray], c2ws: list[np.ndarray], intrinsics: list[Intrinsics],
+                 backdrops: list | None = None):
+        # Each photo's own backdrop colour (RGB in [0, 1]) where the photos of an object show it on backdrops of
+        # different colours: what a ray of that photo sees past the grid. None: the model's one colour or background.
+        self.backdrops = torch.tensor(np.asarray(backdrops, dtype=np.float32).reshape(-1, 3)) if backdrops else None
         self.sizes = torch.tensor([[k.h, k.w] for k in intrinsics], dtype=torch.int64)
         counts = self.sizes[:, 0] * self.sizes[:, 1]
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.int64), counts.cumsum(0)])
@@ -76,6 +80,8 @@ class RaySet:
         moved = copy.copy(self)
         for name in ("sizes", "offsets", "pixels", "c2w", "k"):  # not image_pixels
             setattr(moved, name, getattr(self, name).to(device))
+        if self.backdrops is not None:
+            moved.backdrops = self.backdrops.to(device)
         return moved
 
     @property
@@ -99,7 +105,12 @@ class RaySet:
     def subset(self, indices: list[int]) -> RaySet:
         """The images at `indices` (in that order) as a RaySet of their own, on the CPU."""
         return RaySet([self.image(i).cpu().numpy() for i in indices], [self.c2w[i].double().cpu().numpy() for i in indices],
-                      [self.intrinsics[i] for i in indices])
+                      [self.intrinsics[i] for i in indices],
+                      None if self.backdrops is None else self.backdrops[indices].cpu().tolist())
+
+    def backdrop(self, index: int) -> list[float] | None:
+        """Photo `index`'s own backdrop colour (None where the photos have none of their own)."""
+        return None if self.backdrops is None else self.backdrops[index].tolist()
 
     def rays(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """World origins and unit directions [B, 3] through pixel centres (plenoxels.cameras convention)."""
@@ -110,10 +121,11 @@ class RaySet:
         d = torch.einsum("bij,bj->bi", c2w[:, :3, :3], d_cam)
         return c2w[:, :3, 3].contiguous(), (d / d.norm(dim=-1, keepdim=True)).contiguous()
 
-    def batch(self, size: int, mode: str, tile: int, generator: torch.Generator, coherent: bool = False):
-        """A training batch: world origins, directions [B, 3] and target colours [B, 3] in [0, 1]; with `coherent`,
-        random rays come ordered by coherent_order. `generator` is a CPU generator; the batch is on this set's
-        device."""
+    def batch(self, size: int, mode: str, tile: int, generator: torch.Generator, coherent: bool = False,
+              with_backdrops: bool = False):
+        """A training batch: world origins, directions [B, 3] and target colours [B, 3] in [0, 1], and with
+        `with_backdrops` each ray's photo's backdrop colour [B, 3] after them; with `coherent`, random rays come ordered
+        by coherent_order. `generator` is a CPU generator; the batch is on this set's device."""
         device = self.device
         if mode == "rays":
             flat = torch.randint(self.num_pixels, (size,), generator=generator).to(device)
@@ -137,11 +149,13 @@ class RaySet:
             w = self.sizes[image, 1]
             flat = self.offsets[image] + row * w + col
         o, d = self.rays(image, row, col)
-        target = self.pixels[flat].float() / 255.0
+        drawn = [o, d, self.pixels[flat].float() / 255.0]
+        if with_backdrops:
+            drawn.append(self.backdrops[image])
         if coherent and mode == "rays":
             order = coherent_order(o, d)
-            return o[order], d[order], target[order]
-        return o, d, target
+            drawn = [t[order] for t in drawn]
+        return tuple(drawn)
 
     def strided_rays(self, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Rays through a regular subset of every image's pixels (every stride-th row and column)."""
@@ -335,12 +349,17 @@ class Fitter:
         progress = self.step / max(1, o.total_steps)
         self.optim.set_lr(decayed_lr(o.lr_density, o.lr_density_final, progress, o.lr_density_delay),
                           decayed_lr(o.lr_sh, o.lr_sh_final, progress))
-        o_w, d_w, target = (t.to(self.device) for t in self.train.batch(o.batch_size, o.batch_mode, o.tile_size,
-                                                                          self.generator, o.coherent_batches))
+        own_backdrops = self.train.backdrops is not None and self.bg_optim is None
+        drawn = [t.to(self.device) for t in self.train.batch(o.batch_size, o.batch_mode, o.tile_size, self.generator,
+                                                             o.coherent_batches, with_backdrops=own_backdrops)]
+        o_w, d_w, target = drawn[:3]
         o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
         started = time.perf_counter()
         # The background's optimiser renders the batch itself, keeping where each ray met each sphere for its backward.
-        background = self.bg_optim.forward(o_w, d_w) if self.bg_optim is not None else self.model.background_rgb(o_w, d_w)
+        if own_backdrops:
+            background = drawn[3]
+        else:
+            background = self.bg_optim.forward(o_w, d_w) if self.bg_optim is not None else self.model.background_rgb(o_w, d_w)
         self.background_seconds += time.perf_counter() - started
         mse, grad_background = loss_and_grad(self.model.grid, o_fit, d_fit, target, background,
                                              self.model.render_options, self.grad)

@@ -62,7 +62,9 @@ def run(ctx) -> dict:
     for frame in ctx.report.track(held_out, desc="rendering held-out views"):
         truth, k = load_frame(ctx.out, frame, scale, model.background_color)
         with torch.no_grad():
-            out = model.render_camera(np.asarray(frame["transform_matrix"], dtype=np.float64), k)
+            # A photo with a backdrop of its own colour is scored with that colour past the grid, as it was fitted.
+            out = model.render_camera(np.asarray(frame["transform_matrix"], dtype=np.float64), k,
+                                      backdrop=frame.get("backdrop"))
         render = out["rgb"].cpu().numpy().astype(np.float32)
         mask = load_mask(ctx.out, frame, k)
         views.append({"name": frame["name"], "width": k.w, "height": k.h, **image_scores(render, truth, with_lpips),

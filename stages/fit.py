@@ -184,6 +184,7 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
         "regularisation": fitter.regularisation,
         "background_added": background_why or None,
         "scene_model": model_trial.model_name(model), "model_choice": choice or {},
+        "own_backdrops": fitter.train.backdrops is not None and model.background is None,
     }
     if device.type == "cpu":
         used, available = fitter.grad.threads()
@@ -217,6 +218,8 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
     if "gradient_threads" in record and record["gradient_threads"]["used"] < record["gradient_threads"]["available"]:
         line += (f", gradients on {record['gradient_threads']['used']} of {record['gradient_threads']['available']} "
                  f"threads (a gradient table per thread would pass their share of the memory)")
+    if record["own_backdrops"]:
+        line += ", each photo's own backdrop colour past the grid"
     if model.fit_frame.ndc is not None:
         line += ", in NDC"
     if model.fit_frame.contraction is not None:

@@ -15,7 +15,7 @@ from pipeline.images import load_frame
 from pipeline.json_files import read_json
 from pipeline.scene_frame import Points, SceneOptions, normalize_scene
 from pipeline.synthetic import build_scene, render_view, write_scene
-from plenoxels.cameras import Intrinsics
+from plenoxels.cameras import Intrinsics, look_at
 from plenoxels.scene_model import ModelOptions, SceneModel, psnr
 from plenoxels.train import Fitter, RaySet, TrainOptions
 
@@ -38,6 +38,23 @@ def _synthetic(kind: str, folder: Path) -> tuple[dict, Path, dict]:
     scene = normalize_scene(transforms, Points.empty(), SceneOptions(scene_type=kind, holdout_every=4),
                             poses_dir=root, path_prefix="")
     return scene, root, transforms
+
+
+def test_a_photos_own_backdrop_shows_past_the_grid_as_the_models_colour_would():
+    frame = {"fl_x": 40.0, "fl_y": 40.0, "cx": 16.0, "cy": 12.0, "w": 32, "h": 24, "split": "train",
+             "transform_matrix": np.eye(4).tolist(), "near": 1.0, "far": 20.0}
+    scene = {"type": "object", "foreground": {"min": [-1, -1, -1], "max": [1, 1, 1]}, "frames": [frame],
+             "world_from_input": np.eye(4).tolist(), "input_from_world": np.eye(4).tolist()}
+    model = SceneModel.create(scene, ModelOptions(sh_degree=0, background_color=(1.0, 1.0, 1.0)), 16)
+    generator = torch.Generator().manual_seed(0)
+    model.grid.data.copy_(torch.rand(model.grid.data.shape, generator=generator) * 0.5)  # half see through
+    camera = look_at((0.3, -3.0, 0.4), (0.0, 0.0, 0.0))
+    k = Intrinsics.from_frame(frame)
+    own = model.render_camera(camera, k, backdrop=[0.1, 0.3, 0.0])
+    model.background_color = (0.1, 0.3, 0.0)
+    plain = model.render_camera(camera, k)
+    assert 0.05 < float(own["opacity"].mean()) < 0.95
+    torch.testing.assert_close(own["rgb"], plain["rgb"], atol=1e-5, rtol=0)
 
 
 @pytest.mark.parametrize("contract", ["off", "on"])

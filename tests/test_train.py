@@ -64,6 +64,25 @@ def test_batches_are_the_rays_and_colours_of_real_pixels(tmp_path, device):
         torch.testing.assert_close(got.cpu(), want, atol=1e-6, rtol=1e-6)
 
 
+@pytest.mark.parametrize("coherent", [False, True])
+def test_a_batch_carries_each_rays_photos_own_backdrop(coherent):
+    # Three flat photos, each of its own backdrop colour: a ray's backdrop is then its own target colour.
+    colours = [[1.0, 1.0, 1.0], [0.05, 0.05, 0.05], [0.2, 0.6, 0.9]]
+    k = Intrinsics(fl_x=20.0, fl_y=20.0, cx=8.0, cy=6.0, w=16, h=12)
+    c2ws = [look_at((3 * math.cos(a), 3 * math.sin(a), 0.5), (0, 0, 0)) for a in (0.0, 2.0, 4.0)]
+    images = [np.broadcast_to(np.asarray(c, dtype=np.float32), (12, 16, 3)).copy() for c in colours]
+    train = RaySet(images, c2ws, [k] * 3, colours)
+    for mode in ("rays", "tiles"):
+        o, d, target, backdrop = train.batch(512, mode, 8, torch.Generator().manual_seed(1), coherent,
+                                             with_backdrops=True)
+        assert backdrop.shape == target.shape == (len(o), 3)
+        torch.testing.assert_close(backdrop, target, atol=1 / 255, rtol=0)
+        assert len({tuple(c) for c in backdrop.round(decimals=2).tolist()}) > 1  # the photos' colours, not one
+    picked = train.subset([2, 0])
+    assert picked.backdrop(0) == pytest.approx(colours[2]) and picked.backdrop(1) == pytest.approx(colours[0])
+    assert RaySet(images, c2ws, [k] * 3).backdrop(0) is None
+
+
 def test_learning_rate_schedule():
     assert math.isclose(decayed_lr(30.0, 0.05, 0.0), 30.0)  # svox2's density rates, as plain numbers
     assert math.isclose(decayed_lr(30.0, 0.05, 1.0), 0.05)
