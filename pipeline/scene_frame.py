@@ -461,11 +461,16 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
                             "place in every sampled photo: a still background behind a turning object (a turntable in "
                             "a room), which no model of one scene shows; give a mask of the object for each photo (a "
                             "masks/ folder beside the photos, white on the object, each named like its photo)")
+    # Each photo's own backdrop colour, where the photos show no one colour but might each show one of their own.
+    own = None
+    if (not looks_forward and backdrop is not None and not backdrop.from_masks
+            and backdrop.photos_showing < BACKDROP_MIN_PHOTOS and backdrop.empty_fraction >= options.object_min_empty_fraction):
+        own = own_backdrops(cams, poses_dir)
     held_out = held_out_frames(cams, options)
     if not family_forward and poses_dir is not None and options.silhouette_box:
         box_rot, box_from = _silhouette_box(cams, [i for i in range(n) if i not in held_out], poses_dir, backdrop,
                                             rotation, axes_point, camera_distance, (box_rot, box_from), options,
-                                            measured)
+                                            measured, own)
     measured["foreground_from"] = box_from
 
     # Centre on the box rather than on the axes' meeting point: the box was found around that point, and
@@ -491,13 +496,9 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
                   "unbounded_min_beyond_fraction": options.unbounded_min_beyond_fraction,
                   "object_min_empty_fraction": options.object_min_empty_fraction,
                   "min_points": MIN_POINTS}
-    own = None  # each photo's own backdrop colour, where the photos show no one colour (own_backdrops)
     if looks_forward:
         detected: SceneType = "forward"
     else:
-        if (backdrop is not None and not backdrop.from_masks and backdrop.photos_showing < BACKDROP_MIN_PHOTOS
-                and backdrop.empty_fraction >= options.object_min_empty_fraction):
-            own = own_backdrops(cams, poses_dir)
         detected = _inward_type(xyz_world, has_points, backdrop, options, measured, reasons,
                                 own[1] if own is not None else None)
     overridden = options.scene_type != "auto"
@@ -628,7 +629,8 @@ def held_out_frames(cams: Cameras, options: SceneOptions) -> set[int]:
 
 def _silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: Backdrop | None,
                     rotation: np.ndarray, axes_point: np.ndarray, camera_distance: float,
-                    found: tuple[np.ndarray, str], options: SceneOptions, measured: dict) -> tuple[np.ndarray, str]:
+                    found: tuple[np.ndarray, str], options: SceneOptions, measured: dict,
+                    own: tuple[np.ndarray, float] | None = None) -> tuple[np.ndarray, str]:
     """The box (rotated frame) the training photos' silhouettes give (pipeline/visual_hull.py) and what it came from:
     the box of what some photo sees of their masks' visual hull, or on a flat backdrop the same of what is not the
     backdrop, joined with the box `found` otherwise (colour alone may miss a part of the backdrop's colour, so the
@@ -637,8 +639,11 @@ def _silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: 
     poses: that stops here."""
     flat = (backdrop is not None and not backdrop.from_masks and backdrop.empty_fraction >= options.object_min_empty_fraction
             and backdrop.photos_showing >= BACKDROP_MIN_PHOTOS)
+    colours = backdrop.colour if flat else None
+    if own is not None and own[1] >= BACKDROP_MIN_PHOTOS:  # each photo on a flat colour of its own
+        colours = np.round(own[0][train] * 255)
     silhouettes = read_silhouettes([cams.names[i] for i in train], [cams.frames[i] for i in train], cams.c2w[train],
-                                   [cams.intrinsics[i] for i in train], poses_dir, backdrop.colour if flat else None)
+                                   [cams.intrinsics[i] for i in train], poses_dir, colours)
     if silhouettes is None or len(silhouettes) < MIN_SILHOUETTES:
         return found
     from_masks = silhouettes.source == "masks"

@@ -74,20 +74,22 @@ def _small(image: np.ndarray, k: Intrinsics) -> tuple[np.ndarray, Intrinsics]:
 def read_silhouettes(names: list[str], frames: list[dict], c2w: np.ndarray, intrinsics: list[Intrinsics],
                      poses_dir: Path, backdrop: np.ndarray | None = None) -> Silhouettes | None:
     """The silhouettes of these frames: their masks where every one has a mask, else (with `backdrop`, an RGB colour
-    0-255) the pixels that are not the backdrop's colour; None where neither is known or an image is unreadable."""
+    0-255, or one per frame [N, 3]) the pixels that are not the backdrop's colour; None where neither is known or an
+    image is unreadable."""
     from_masks = all(f.get("mask_path") for f in frames)
     if not from_masks and backdrop is None:
         return None
     objects, ks = [], []
     try:
-        for frame, k in zip(frames, intrinsics):
+        for i, (frame, k) in enumerate(zip(frames, intrinsics)):
             if from_masks:
                 with Image.open(poses_dir / frame["mask_path"]) as im:
                     shown = np.asarray(im.getchannel("A") if "A" in im.getbands() else im.convert("L")) > MASK_OBJECT_LEVEL
             else:
                 with Image.open(poses_dir / frame["file_path"]) as im:
                     rgb = np.asarray(im.convert("RGB")).astype(np.int16)
-                shown = np.abs(rgb - backdrop).max(axis=-1) > BACKDROP_OBJECT_LEVELS
+                colour = backdrop[i] if np.ndim(backdrop) == 2 else backdrop
+                shown = np.abs(rgb - colour).max(axis=-1) > BACKDROP_OBJECT_LEVELS
             if shown.shape != (k.h, k.w):
                 return None
             small, small_k = _small(shown, k)

@@ -221,6 +221,8 @@ def test_a_backdrop_that_differs_between_photos_is_each_photos_own(tmp_path):
             assert framed["measured"]["backdrop_photos_showing"] <= 0.6
             assert framed["measured"]["own_backdrops"] >= 0.8
             assert any("one flat colour of their own" in reason for reason in framed["reasons"])
+            # Each photo's silhouette on its own colour frames the object, as one colour's do.
+            assert framed["measured"]["visual_hull"]["source"] == "backdrop"
             for i, frame in enumerate(sorted(framed["frames"], key=lambda f: f["name"])):
                 expected = 0.05 if i % dark_every == 0 else 1.0
                 assert np.allclose(frame["backdrop"], expected, atol=2 / 255), (frame["name"], frame["backdrop"])
