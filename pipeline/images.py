@@ -17,7 +17,8 @@ from plenoxels.errors import UserError
 
 def load_frame(root: Path, frame: dict, scale: float, background_color) -> tuple[np.ndarray, Intrinsics]:
     """A frame's image as float32 RGB [h,w,3] in [0,1], resized by `scale`, its mask (if any) composited
-    onto `background_color`; and the intrinsics of the resized image."""
+    onto the frame's own `backdrop` colour where normalize gave it one, else onto `background_color`; and the
+    intrinsics of the resized image."""
     path = root / frame["file_path"]
     if not path.is_file():
         raise UserError(f"image {path} listed in scene.json is missing; re-run the stages before fit")
@@ -35,7 +36,7 @@ def load_frame(root: Path, frame: dict, scale: float, background_color) -> tuple
     if alpha is not None and alpha.shape != rgb.shape[:2]:
         raise UserError(f"mask {mask_path} is not the size of its image; re-run ingest")
     k = k.scaled(scale) if scale != 1 else k
-    return composited(rgb.astype(np.float32), 255.0, alpha, k, background_color), k
+    return composited(rgb.astype(np.float32), 255.0, alpha, k, frame.get("backdrop") or background_color), k
 
 
 def load_mask(root: Path, frame: dict, k: Intrinsics) -> np.ndarray | None:

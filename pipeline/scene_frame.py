@@ -331,6 +331,23 @@ def own_backdrops(cams: Cameras, poses_dir: Path) -> tuple[np.ndarray, float] | 
     return np.asarray(colours), float(np.mean(flat))
 
 
+def masked_out_colours(cams: Cameras, poses_dir: Path) -> np.ndarray | None:
+    """[N,3] RGB in [0, 1]: each masked photo's median colour outside its mask (small copies; where a mask leaves no
+    pixel out, its border's median). None when an image or mask cannot be read."""
+    colours = []
+    try:
+        for frame in cams.frames:
+            image = _thumbnail(poses_dir / frame["file_path"], "RGB").astype(np.float64)
+            mask = _thumbnail(poses_dir / frame["mask_path"], "L")
+            if mask.shape != image.shape[:2]:
+                mask = np.asarray(Image.fromarray(mask).resize((image.shape[1], image.shape[0]), Image.Resampling.BOX))
+            outside = image[mask < 128]
+            colours.append(np.median(outside if len(outside) else _border(image), axis=0) / 255.0)
+    except (OSError, ValueError):
+        return None
+    return np.asarray(colours)
+
+
 def still_textured_share(images: list[np.ndarray]) -> float:
     """The share of pixels that show texture (a local contrast of STILL_TEXTURE_LEVELS or more) and look the same
     (within BACKDROP_TOLERANCE) in every one of these photos, taken from around the scene: a still background behind
@@ -524,6 +541,10 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
     measured["near_far_from"] = {k: v for k, v in near_far_from.items() if v}
 
     # ---- frames and split -----------------------------------------------------------------------------
+    masked_out = None
+    if (options.masked_backdrop == "own" and poses_dir is not None and cams.frames
+            and all(f.get("mask_path") for f in cams.frames)):
+        masked_out = masked_out_colours(cams, poses_dir)
     frames, train_rank = [], 0
     for i in sorted(range(n), key=lambda i: cams.names[i]):
         k, frame = cams.intrinsics[i], cams.frames[i]
@@ -538,6 +559,8 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
         })
         if measured.get("own_backdrops") and scene_type == "object":
             frames[-1]["backdrop"] = [round(float(c), 4) for c in own[0][i]]
+        elif masked_out is not None:
+            frames[-1]["backdrop"] = [round(float(c), 4) for c in masked_out[i]]
 
     scene = {
         "type": scene_type, "detected": detected, "reasons": reasons, "measured": measured,

@@ -34,3 +34,7 @@ class SceneOptions:
     silhouette_box: bool = True
     """Box the foreground by the visual hull of the training photos' silhouettes where they carry masks (or alpha) or
     stand on a flat backdrop, so thin parts the sparse points miss stay inside; off: the box of the points' bulk."""
+    masked_backdrop: Literal["fit", "own"] = "fit"
+    """What a masked photo's pixels outside its mask are trained as: empty space on fit.background_color (fit), or on
+    the photo's own colour there, the median outside its mask (own: renders of the photos' views then look like the
+    photos around the object; held-out views are scored on theirs)."""

@@ -24,8 +24,10 @@ def summary_line(scene: dict) -> str:
         why = f"cameras inward, no points, {m['empty_pixel_fraction']:.0%} of pixels empty backdrop"
     else:
         why = "cameras inward, no points"
-    if any("backdrop" in f for f in scene["frames"]):
+    if m.get("own_backdrops"):
         why += f"; each photo on a flat backdrop of its own colour ({m['own_backdrops']:.0%} of them)"
+    elif any("backdrop" in f for f in scene["frames"]):
+        why += "; each photo's own colour outside its mask trained as empty"
     if m.get("foreground_from", "").startswith("visual hull"):
         silhouettes = "masks" if m["visual_hull"]["source"] == "masks" else "silhouettes on a flat backdrop"
         why += f"; box from the visual hull of {m['visual_hull']['photos']} photos' {silhouettes}"

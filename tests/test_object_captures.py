@@ -252,6 +252,44 @@ def test_photos_on_backdrops_of_their_own_colours_fit_as_the_object_alone(tmp_pa
         assert np.allclose(render[0, 0], frame["backdrop"], atol=0.1)
 
 
+def test_masked_photos_can_be_trained_on_their_own_colour_outside_the_masks(tmp_path):
+    synthetic = write_scene("object", tmp_path / "synth", n_views=16, width=64, height=48, seed=0, alpha=True,
+                            supersample=1)
+    truth = read_json(synthetic / "transforms.json")
+    folder = tmp_path / "scan"
+    (folder / "images").mkdir(parents=True)
+    (folder / "masks").mkdir()
+    cloth = {}
+    for i, frame in enumerate(truth["frames"]):
+        rgba = np.asarray(Image.open(synthetic / frame["file_path"])).astype(float) / 255
+        colour = np.array([0.2 + 0.04 * i, 0.5, 0.8 - 0.03 * i])  # a cloth lit a little differently in each photo
+        name = Path(frame["file_path"]).stem
+        cloth[name] = colour
+        rgb = rgba[..., :3] * rgba[..., 3:] + colour * (1 - rgba[..., 3:])
+        Image.fromarray(np.round(rgb * 255).astype(np.uint8)).save(folder / frame["file_path"])
+        Image.fromarray(np.round(rgba[..., 3] * 255).astype(np.uint8)).save(folder / "masks" / f"{name}.png")
+    write_json(folder / "transforms.json", truth)
+    fit = ["fit.resolutions=[24,32]", "fit.steps=[150,50]", "fit.batch_size=2048", "fit.image_scale=1",
+           "fit.eval_every=0", "fit.sh_degree=0"]
+    for choice in ("fit", "own"):
+        out = tmp_path / f"out_{choice}"
+        run(folder, out, ["evaluate"], f"normalize.masked_backdrop={choice}", *fit)
+        scene = read_json(out / "normalize" / "scene.json")
+        assert scene["type"] == "object" and all(f["mask_path"] for f in scene["frames"])
+        said = read_json(out / "normalize" / "manifest.json")["summary"]["line"]
+        assert ("own colour outside its mask" in said) == (choice == "own"), said
+        for frame in [f for f in scene["frames"] if f["split"] == "test"]:
+            expected = cloth[frame["name"]] if choice == "own" else np.ones(3)
+            truth_image = np.asarray(Image.open(out / "evaluate" / "gt" / f"{frame['name']}.png")) / 255
+            render = np.asarray(Image.open(out / "evaluate" / "renders" / f"{frame['name']}.png")) / 255
+            assert np.allclose(truth_image[0, 0], expected, atol=0.02), (choice, truth_image[0, 0], expected)
+            assert np.allclose(render[0, 0], expected, atol=0.1), (choice, render[0, 0], expected)
+            if choice == "own":
+                assert np.allclose(frame["backdrop"], expected, atol=0.02)
+            else:
+                assert "backdrop" not in frame
+
+
 def test_an_object_fit_that_cannot_reproduce_its_photos_gets_a_background_model(tmp_path):
     # The synthetic unbounded scene typed as an object: one colour behind its grid cannot show its ground and sky.
     scene = write_scene("unbounded", tmp_path / "synth", n_views=16, width=64, height=48, seed=0, supersample=1)
