@@ -417,6 +417,8 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
     n = len(cams.names)
     xyz = points.xyz
     has_points = len(xyz) >= MIN_POINTS
+    # Which points each camera sees, found once in the input frame (where the cameras are): the box and near/far use it.
+    seen = points_seen_by_frame(points, cams) if has_points else None
     dirs = cams.view_dirs
     cone = view_cone_deg(dirs)
     # Near the threshold a few degrees of pose noise or one more photo would flip the model, and a capture that
@@ -462,7 +464,7 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
             box_rot = frustum_box(reference_input, cams.intrinsics[0], near, far, rotation)
     elif foreground.sum() >= MIN_POINTS:
         box_rot, box_from = robust_box(xyz[foreground] @ rotation.T), "sparse points seen by most cameras"
-        box_rot, box_from = _hold_what_cameras_aim_at(box_rot, box_from, xyz, cams, points, rotation, axes_point,
+        box_rot, box_from = _hold_what_cameras_aim_at(box_rot, box_from, xyz, cams, seen, rotation, axes_point,
                                                       camera_distance, measured)
     else:
         # What every camera sees at the point the axes meet: the region the capture was aimed at.
@@ -524,7 +526,6 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
         reasons.append(f"scene type set to {scene_type} by normalize.scene_type (detected: {detected})")
 
     # ---- near / far ------------------------------------------------------------------------------------
-    seen = points_seen_by_frame(Points(xyz_world, points.obs_frame, points.obs_point), cams) if has_points else None
     near_far, near_far_from = [], {"points": 0, "llff bounds": 0, "foreground box": 0}
     for i in range(n):
         k = cams.intrinsics[i]
@@ -621,7 +622,7 @@ def aimed_points(xyz: np.ndarray, seen: list[np.ndarray], cams: Cameras) -> np.n
     return np.asarray(aimed, dtype=np.float64).reshape(-1, 3)
 
 
-def _hold_what_cameras_aim_at(box_rot: np.ndarray, box_from: str, xyz: np.ndarray, cams: Cameras, points: Points,
+def _hold_what_cameras_aim_at(box_rot: np.ndarray, box_from: str, xyz: np.ndarray, cams: Cameras, seen: list[np.ndarray],
                               rotation: np.ndarray, axes_point: np.ndarray, camera_distance: float,
                               measured: dict) -> tuple[np.ndarray, str]:
     """The foreground box grown to hold what each camera circling an object is aimed at. The box of the points most
@@ -629,7 +630,7 @@ def _hold_what_cameras_aim_at(box_rot: np.ndarray, box_from: str, xyz: np.ndarra
     outside the box, and a grid there cannot show it in the views aimed at it. What a camera is aimed at within
     camera_distance of where the optical axes meet is the object (aimed_points); where AIM_MIN_SHARE of the cameras
     or more are aimed outside the box, it grows to AIM_MARGIN of its size beyond each of their points."""
-    aimed = aimed_points(xyz, points_seen_by_frame(points, cams), cams)
+    aimed = aimed_points(xyz, seen, cams)
     aimed = aimed[np.linalg.norm(aimed - axes_point, axis=1) < camera_distance] @ rotation.T
     outside = ~np.all((aimed >= box_rot[0]) & (aimed <= box_rot[1]), axis=1)
     measured["aimed_outside_box"] = f"{int(outside.sum())}/{len(aimed)}"
