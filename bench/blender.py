@@ -7,8 +7,9 @@ runs there, in a child process; this side compares what it reports with the file
 - frame and scale: every sampled vertex Blender places lies on a vertex of the PLY (input frame), within
   FRAME_TOLERANCE of the mesh's size, and the bounds agree;
 - the material shows the colours with no manual step: GLB and OBJ arrive with the Principled BSDF's Base Color fed by
-  an Image Texture holding mesh.png (matte: metallic 0); the PLY (which holds no material) with its vertex colours as
-  the mesh's render colour attribute, equal to the file's within COLOUR_TOLERANCE;
+  an Image Texture holding mesh.png (matte: metallic 0); the PLY (which holds no material), and all three without a
+  texture, with the file's vertex colours as the mesh's render colour attribute, equal within COLOUR_TOLERANCE (in
+  sRGB: the glTF's COLOR_0 is linear light);
 - a Cycles render from a training camera of what each material's Base Color shows against
   plenoxels.texture.render_mesh's render of the same file: on the pixels both cover (one pixel in from either's
   silhouette) the mean absolute difference is below RENDER_MEAN_TOLERANCE, and the covered pixels agree (IoU at least
@@ -75,6 +76,10 @@ def as_written(path: Path) -> tuple[trimesh.Trimesh, np.ndarray | None, np.ndarr
     if path.suffix in (".obj", ".glb"):
         mesh.apply_transform(np.linalg.inv(GLTF_FROM_ZUP))
     visual = mesh.visual
+    if path.suffix == ".glb" and visual.kind == "vertex":
+        # glTF's COLOR_0 is linear light (trimesh writes it so, and reads it back as stored); Blender shows sRGB.
+        linear = visual.vertex_colors[:, :3] / 255.0
+        visual.vertex_colors[:, :3] = np.round(linear_to_srgb(linear) * 255.0).astype(np.uint8)
     if visual.kind == "texture" and getattr(visual, "uv", None) is not None:
         material = visual.material
         image = getattr(material, "baseColorTexture", None) or getattr(material, "image", None)
@@ -145,7 +150,9 @@ def check_export(export_dir: Path, camera: tuple[np.ndarray, Intrinsics] | None,
             if kind == "ply" or texture_size is None:
                 active = [a for a in seen["colour_attributes"] if a.get("render_active") and "sample_srgb" in a]
                 if active:
-                    error = np.abs(np.asarray(active[0]["sample_srgb"]) - ply.visual.vertex_colors[nearest, :3] / 255.0)
+                    written = as_written(files[kind])[0]
+                    _, at = cKDTree(written.vertices).query(np.asarray(seen["positions"]))
+                    error = np.abs(np.asarray(active[0]["sample_srgb"]) - written.visual.vertex_colors[at, :3] / 255.0)
                     entry["colour_max_error"] = float(error.max())
                 checks["colours"] = bool(active) and entry.get("colour_max_error", 1.0) <= COLOUR_TOLERANCE
             else:

@@ -1,7 +1,7 @@
 """Runs inside Blender's Python (the `bpy` module in its own environment, bench/blender.py starts it): imports each
 exported file as a Blender user's File > Import does, with the importer's defaults, and writes what arrived as JSON:
 objects, counts, world-space bounds and a sample of vertex positions, the materials' node wiring (what feeds the
-Principled BSDF's Base Color, the image it reads), the colour attributes and a sample of their values; and, given a
+Principled BSDF's Base Color, the image it reads), the colour attributes and a sample of their values per vertex; and, given a
 camera, a Cycles render of what the material's Base Color shows (its source wired into an Emission shader, no lights,
 the Standard view transform, so pixels are the texture's or the vertex colours' own sRGB values).
 
@@ -59,10 +59,17 @@ def colour_report(mesh, sample: np.ndarray) -> list[dict]:
     for index, attribute in enumerate(mesh.color_attributes):
         entry = {"name": attribute.name, "domain": attribute.domain, "data_type": attribute.data_type,
                  "render_active": index == mesh.color_attributes.render_color_index}
-        if attribute.domain == "POINT":
+        if attribute.domain in ("POINT", "CORNER"):
             srgb = np.zeros(len(attribute.data) * 4)
             attribute.data.foreach_get("color_srgb", srgb)
-            entry["sample_srgb"] = srgb.reshape(-1, 4)[sample, :3].tolist()
+            srgb = srgb.reshape(-1, 4)
+            if attribute.domain == "CORNER":  # glTF's importer: each vertex's colour on every corner it is
+                vertex_of_corner = np.zeros(len(mesh.loops), dtype=np.int64)
+                mesh.loops.foreach_get("vertex_index", vertex_of_corner)
+                per_vertex = np.zeros((len(mesh.vertices), 4))
+                per_vertex[vertex_of_corner] = srgb
+                srgb = per_vertex
+            entry["sample_srgb"] = srgb[sample, :3].tolist()
         found.append(entry)
     return found
 

@@ -8,6 +8,10 @@ the frame, and such an importer gets the frame's own coordinates back (a y-up vi
 Materials: unlit-friendly and matte (no metal, no specular highlight: the texture already holds the light the photos
 saw), two-sided (the surface is open where no photo saw it). glTF: metallicFactor 0, roughnessFactor 1, the PNG as
 baseColorTexture; MTL: Kd 1 with map_Kd, no Ks.
+
+Vertex colours: sRGB in the PLY and OBJ (as MeshLab and Blender read them); linear light in the glTF's COLOR_0, as
+glTF specifies and its importers (Blender's included) read it. trimesh writes COLOR_0 as the bytes it is given, so
+the glTF gets the colours converted to linear first (8 bits: the darkest shades step more coarsely than in sRGB).
 """
 from __future__ import annotations
 
@@ -66,5 +70,8 @@ def write_mesh_files(mesh: trimesh.Trimesh, folder: Path, texture: Texture | Non
         (folder / files["png"]).write_bytes(buffer.getvalue())
     else:
         (folder / files["obj"]).write_text(export_obj(styled, include_normals=True, include_color=True))
+        srgb = styled.visual.vertex_colors[:, :3] / 255.0
+        linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+        styled.visual.vertex_colors[:, :3] = np.round(linear * 255.0).astype(np.uint8)
     styled.export(folder / files["glb"])
     return files

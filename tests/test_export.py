@@ -274,8 +274,12 @@ def test_files_reload_with_the_same_counts_and_the_frame_round_trips(tmp_path):
     for kind, name in files.items():
         loaded = trimesh.load(tmp_path / name, force="mesh", process=False)
         assert (len(loaded.vertices), len(loaded.faces)) == (len(mesh.vertices), len(mesh.faces)), kind
-        assert loaded.visual.kind == "vertex" and np.array_equal(loaded.visual.vertex_colors[:, :3],
-                                                                 mesh.visual.vertex_colors[:, :3]), kind
+        srgb = mesh.visual.vertex_colors[:, :3].astype(np.float64)
+        # glTF's COLOR_0 holds linear light; the PLY and OBJ hold the colours' own sRGB bytes.
+        expected = np.round(255 * (srgb / 255) ** 2.2) if kind == "glb" else srgb
+        tolerance = 2 if kind == "glb" else 0   # the sRGB curve is only near a 2.2 power
+        assert loaded.visual.kind == "vertex", kind
+        assert np.abs(loaded.visual.vertex_colors[:, :3] - expected).max() <= tolerance, kind
         vertices = loaded.vertices
         if kind in ("glb", "obj"):  # y-up, as their importers expect
             vertices = transform_points(np.linalg.inv(GLTF_FROM_ZUP), vertices)
@@ -588,6 +592,40 @@ def test_blender_opens_the_glb_obj_and_ply_in_the_input_frame_with_their_colours
     theirs = iio.imread(tmp_path / "glb.png").astype(np.float64) / 255.0
     both = covered & (theirs[..., 3] > 0.5)
     assert np.abs(theirs[..., :3] - wrong)[both].mean() > 5 * blender.RENDER_MEAN_TOLERANCE
+
+
+def test_blender_shows_the_vertex_colours_of_all_three_files_without_a_texture(tmp_path):
+    # Without a texture, every file carries vertex colours: Blender must show the same colours from each (the glTF's
+    # in linear light, the others in sRGB). A control: a glTF holding the sRGB bytes renders visibly brighter.
+    if blender.missing():
+        missing(blender.missing())
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    unit = (mesh.vertices + 1.0) / 2.0
+    mesh.visual.vertex_colors = np.round(255 * np.stack([unit[:, 0], 0.15 + 0.7 * unit[:, 1], 1 - unit[:, 2]], -1)
+                                         ** 1.5).astype(np.uint8)
+    export = tmp_path / "export"
+    export.mkdir()
+    write_mesh_files(mesh, export)
+    k = Intrinsics(100.0, 100.0, 80.0, 60.0, 160, 120)
+    c2w = np.eye(4)
+    c2w[:3, 3] = (0.0, 0.0, 4.0)   # looking down -z at the sphere
+    result = blender.check_export(export, (c2w, k), tmp_path / "blender")
+    for kind in ("glb", "obj", "ply"):
+        entry = result["files"][kind]
+        assert entry["ok"], (kind, entry)
+        assert entry["render"]["pixels"] > 1000, kind
+    glb = iio.imread(tmp_path / "blender" / "glb.png").astype(np.float64) / 255.0
+    ply = iio.imread(tmp_path / "blender" / "ply.png").astype(np.float64) / 255.0
+    both = (glb[..., 3] > 0.5) & (ply[..., 3] > 0.5)
+    assert np.abs(glb - ply)[both][:, :3].mean() < blender.RENDER_MEAN_TOLERANCE
+
+    mesh.apply_transform(GLTF_FROM_ZUP)
+    (tmp_path / "srgb").mkdir()
+    mesh.export(tmp_path / "srgb" / "mesh.glb")
+    blender.run_session({"glb": tmp_path / "srgb" / "mesh.glb"}, blender.camera_spec(c2w, k), tmp_path / "srgb")
+    wrong = iio.imread(tmp_path / "srgb" / "glb.png").astype(np.float64) / 255.0
+    both &= wrong[..., 3] > 0.5
+    assert (wrong - ply)[both][:, :3].mean() > 5 * blender.RENDER_MEAN_TOLERANCE
 
 
 class _Quiet:
