@@ -7,8 +7,9 @@ upward-facing surface (RANSAC over the faces, tilted at most MAX_TILT_DEG from t
 on it and it runs out of the box: a floor or a table continues past the foreground, so its surface reaches the
 box's sides along a good part of their length (RIM_SHARE), while a slab or base plate that belongs to the object ends
 inside the box and is kept. The cut takes every face within the plane's band (its measured roughness, at least
-CUT_VOXELS voxels) or below it. What then stands on the plane is the object; of the rest, pieces that run into the
-box's sides are the room (a wall, furniture, the floor beyond a step), which the box cut through, and go.
+CUT_VOXELS voxels) or below it, but for the walls of what stands on the ground, which run down through the band.
+What then stands on the plane is the object; of the rest, pieces that run into the box's sides are the room (a wall,
+furniture, the floor beyond a step), which the box cut through, and go.
 """
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 # The ground's normal is at most this far from the scene's up.
@@ -40,6 +43,8 @@ CUT_VOXELS = 2.0
 CUT_QUANTILE = 0.9
 CUT_SPREAD = 1.5
 MAX_CUT_VOXELS = 8.0
+# A face in the band this far or more from level (either way up) is a wall: the side of what stands on the ground.
+WALL_DEG = 45.0
 
 
 @dataclass
@@ -142,10 +147,23 @@ def _rim_share(points: np.ndarray, normal: np.ndarray, offset: float, box_min: n
 
 def cut_ground(mesh: trimesh.Trimesh, ground: Ground) -> tuple[np.ndarray, np.ndarray]:
     """Which faces [F] stay once the ground's band and everything below it go, and which vertices [V] of the faces
-    that stay touch the cut (the object's footprint on the ground)."""
+    that stay touch the cut (the object's footprint on the ground).
+
+    An object's walls run down through the band to the ground: the steep faces in the band (more than WALL_DEG from
+    facing up or down) stay where they join, face to face through steep faces, what stands above the band. So the
+    object keeps its sides down to the ground; the ground's own bumps, joined to nothing above the band, go."""
     heights = ground.heights(np.asarray(mesh.vertices))
     face_heights = heights[mesh.faces]
-    keep = (face_heights.max(axis=1) >= ground.cut_height) & (face_heights.min(axis=1) >= -ground.cut_height)
+    above = (face_heights.max(axis=1) >= ground.cut_height) & (face_heights.min(axis=1) >= -ground.cut_height)
+    steep = np.abs(np.asarray(mesh.face_normals) @ ground.normal) < math.cos(math.radians(WALL_DEG))
+    wall = steep & (face_heights.min(axis=1) >= -ground.cut_height) & ~above
+    allowed = above | wall
+    pairs = np.asarray(mesh.face_adjacency).reshape(-1, 2)
+    pairs = pairs[allowed[pairs].all(axis=1)]
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(mesh.faces),) * 2)
+    _, labels = connected_components(graph, directed=False)
+    joined = np.bincount(labels[above], minlength=labels.max(initial=-1) + 1) > 0
+    keep = allowed & joined[labels]
     touching = np.zeros(len(mesh.vertices), dtype=bool)
     kept_vertices = np.unique(mesh.faces[keep])
     touching[kept_vertices] = heights[kept_vertices] < 2 * ground.cut_height

@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import trimesh
+from skimage.measure import marching_cubes
 
 from pipeline.metrics import surface_distance
 from plenoxels.ground import find_ground
@@ -72,6 +73,39 @@ def test_the_floor_and_the_room_go_and_the_objects_standing_on_the_floor_stay():
             heights = (thing.vertices @ rotation[:3, :3]) [:, 2] - FLOOR_Z
             above = thing.vertices[heights > 3 * VOXEL]
             assert near(trimesh.Trimesh(above, np.zeros((0, 3), int)), kept, 2 * VOXEL).mean() > 0.99
+
+
+def test_what_stands_on_a_rough_floor_keeps_its_walls_down_to_the_floor():
+    # Marching cubes joins an object to the floor it stands on in one surface, and the cut band over the floor is a few
+    # voxels tall (more where the fitted floor is rough): the object's walls stay down through it to the floor; the
+    # floor's bumps go.
+    rng = np.random.default_rng(3)
+    axes = [np.arange(lo, hi + 1e-9, VOXEL) for lo, hi in ((-1.0, 1.0), (-1.0, 1.0), (FLOOR_Z - 0.1, 0.2))]
+    x, y, z = np.meshgrid(*axes, indexing="ij")
+    bumps = sum(0.6 * VOXEL * np.sin(f1 * x + p1) * np.sin(f2 * y + p2)
+                for f1, f2, p1, p2 in rng.uniform([4, 4, 0, 0], [12, 12, 6, 6], size=(3, 4)))
+    floor = FLOOR_Z + bumps / 3 - z
+    lo, hi = np.array([-0.4, -0.3, FLOOR_Z - 0.1]), np.array([0.4, 0.3, FLOOR_Z + 0.5])
+    inside_box = np.minimum.reduce([np.stack([x, y, z])[i] - lo[i] for i in range(3)]
+                                   + [hi[i] - np.stack([x, y, z])[i] for i in range(3)])
+    values = np.maximum(floor, inside_box)
+    vertices, faces, _, _ = marching_cubes(values, level=0.0, spacing=(VOXEL,) * 3)
+    mesh = trimesh.Trimesh(vertices + [a[0] for a in axes], faces[:, ::-1])
+    kept, record = isolate_object(mesh, BOX_MIN, BOX_MAX, VOXEL, Settings(), user_box=False)
+    ground = record["ground"]
+    assert ground["is_ground"] and ground["cut_height"] >= 2 * VOXEL, record
+    # The box's walls, from a voxel above the floor up through the band, are all in the mesh kept.
+    t = np.linspace(0.0, 1.0, 200)
+    heights = np.linspace(FLOOR_Z + VOXEL, FLOOR_Z + ground["cut_height"], 4)
+    walls = np.concatenate([np.stack([lo[0] + t * (hi[0] - lo[0]), np.full_like(t, side), np.full_like(t, h)], -1)
+                            for side in (lo[1], hi[1]) for h in heights]
+                           + [np.stack([np.full_like(t, side), lo[1] + t * (hi[1] - lo[1]), np.full_like(t, h)], -1)
+                              for side in (lo[0], hi[0]) for h in heights])
+    # (Marching cubes bevels the box's edges: the samples on them lie up to 0.7 voxels off its surface.)
+    assert (surface_distance(kept, walls, rng) < 0.25 * VOXEL).mean() > 0.95
+    # Nothing of the floor stays but where it meets the walls.
+    box = trimesh.creation.box(extents=hi - lo).apply_translation((lo + hi) / 2)
+    assert (surface_distance(box, kept.vertices, rng) < 2 * VOXEL).mean() > 0.995
 
 
 def test_a_base_that_ends_inside_the_box_is_part_of_the_object():
