@@ -1,15 +1,20 @@
 """A texture for a mesh: a UV atlas (xatlas), the fitted field's colour baked into it with its seams padded, and a
 z-buffer renderer of a textured or vertex-coloured mesh (to hold a texture against the field's own render).
 
-Colour baked (`colour="view"`, the default): what the training view that faces the surface most squarely saw there,
-i.e. a ray rendered by the field itself (`plenoxels.render.render`, every SH degree) from a couple of voxels outside
-the surface towards it, along the direction from that view's camera, its composite divided by its opacity. Which
-views see a texel comes from its face's vertices (plenoxels.surface.view_cosines: in the image, facing the camera,
-not hidden). Only directions some photo saw are pinned down by the fit: its higher SH degrees are free elsewhere, so
-the colour along the normal (`colour="normal"`, the fallback where no view sees a texel) strays on any surface no
-photo looked at head-on (the lower half of a ball seen from above: on the synthetic room scene the texture's render
-fell 7.3 dB below the field's own, against 4.4 dB along the facing view, bench/README.md), and the SH degree-0 term
-(`colour="mean"`, the mean over all directions, as the PLY's vertex colours are) averages in every unseen direction.
+Colour baked (`colour="view"`, the default): what the training views that face the surface most squarely saw there,
+i.e. rays rendered by the field itself (`plenoxels.render.render`, every SH degree) from a couple of voxels outside
+the surface towards it, along the directions from those views' cameras, each composite divided by its opacity; the
+texel takes their mean weighted by the squared cosine between the surface's normal and each view (up to `views` of
+them). Which views see a texel comes from its face's vertices (plenoxels.surface.view_cosines: in the image, facing
+the camera, not hidden). A texture holds one colour for every viewer, while the field's colour turns with the view
+even on a matte surface (its SH fits each photo): rendered from a held-out camera, the field's colour there matches
+the texture's only as well as the directions baked stand for that camera's. The mean over several views does that
+better than the one view facing most squarely (on the synthetic room scene 0.3 dB nearer the field's own render,
+bench/README.md). Only directions some photo saw are pinned down by the fit: its higher SH degrees are free elsewhere,
+so the colour along the normal (`colour="normal"`, the fallback where no view sees a texel) strays on any surface no
+photo looked at head-on (the lower half of a ball seen from above), and the SH degree-0 term (`colour="mean"`, the
+mean over all directions, as the PLY's vertex colours are) averages in every unseen direction (on the room scene its
+texture falls 10 dB below the field's render).
 
 Seams: every texel a triangle covers, and every texel within GUTTER_TEXELS of one, is baked at the nearest point of
 that triangle, so bilinear filtering at a chart's edge reads surface colour; the rest of the atlas is filled by
@@ -210,21 +215,20 @@ def texel_surface(vertices: np.ndarray, normals: np.ndarray, atlas: Atlas) -> tu
     return texels, points, n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
-def facing_directions(points: np.ndarray, normals: np.ndarray, faces: np.ndarray, weights: np.ndarray,
-                      cosines: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """Per surface point [N, 3] (on `faces` [N, 3] at barycentric `weights` [N, 3]), the unit direction [N, 3] from
-    it to the camera (`centres` [C, 3]) of the view that faces it most squarely: the largest of its face's vertices'
-    `cosines` [V, C] (0: unseen) blended by the weights. Its `normals` where no view sees any of the face's vertices."""
-    directions = normals.copy()
-    for start in range(0, len(points), VIEW_CHUNK):
+def facing_views(faces: np.ndarray, weights: np.ndarray, cosines: np.ndarray, count: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Per surface point (on `faces` [N, 3] at barycentric `weights` [N, 3]), the `count` views that face it most
+    squarely, best first [N, count], and their cosines [N, count]: its face's vertices' `cosines` [V, C] (0: unseen)
+    blended by the weights."""
+    count = min(count, cosines.shape[1])
+    best = np.zeros((len(faces), count), dtype=np.int64)
+    score = np.zeros((len(faces), count), dtype=np.float32)
+    for start in range(0, len(faces), VIEW_CHUNK):
         part = slice(start, start + VIEW_CHUNK)
-        score = np.einsum("nk,nkc->nc", weights[part], cosines[faces[part]])
-        best = score.argmax(axis=1)
-        seen = score[np.arange(len(best)), best] > 0
-        towards = centres[best[seen]] - points[part][seen]
-        directions[start + np.flatnonzero(seen)] = towards / np.maximum(np.linalg.norm(towards, axis=1, keepdims=True),
-                                                                        1e-12)
-    return directions
+        blended = np.einsum("nk,nkc->nc", weights[part], cosines[faces[part]])
+        top = np.argsort(-blended, axis=1, kind="stable")[:, :count]
+        best[part], score[part] = top, np.take_along_axis(blended, top, axis=1)
+    return best, score
 
 
 def surface_normals(vertices: np.ndarray, faces: np.ndarray, weights: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -243,29 +247,61 @@ def surface_normals(vertices: np.ndarray, faces: np.ndarray, weights: np.ndarray
     return blended / length[:, None]
 
 
-def surface_colour_texels(grid, frame: FitFrame, points: np.ndarray, directions: np.ndarray, voxel_world: float,
-                          colour: Literal["view", "normal", "mean"]) -> np.ndarray:
-    """The colour [N, 3] of the field at world surface `points`: with "view" or "normal", what the field renders along
-    a ray that starts BAKE_START_VOXELS voxels (`voxel_world`: world units) out along the unit `directions` (towards
-    the viewer: the facing view's camera, or the outward normal) and looks back along them, divided by the ray's
-    opacity (the degree-0 colour where the ray stays fainter than BAKE_MIN_OPACITY); with "mean", the degree-0 colour
-    (plenoxels.mesh.surface_colours). In chunks."""
-    voxel_fit = grid_lattice_voxel(grid)
+def seen_colours(grid, frame: FitFrame, points: np.ndarray, directions: np.ndarray, voxel_world: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """What the field renders [N, 3] at world surface `points` along rays that start BAKE_START_VOXELS voxels
+    (`voxel_world`: world units) out along the unit `directions` (towards the viewer) and look back along them, each
+    divided by its opacity, and whether the ray was at least BAKE_MIN_OPACITY opaque [N]. In chunks."""
     colours = np.zeros((len(points), 3))
+    opaque = np.zeros(len(points), dtype=bool)
     for start in range(0, len(points), BAKE_CHUNK):
         part = slice(start, start + BAKE_CHUNK)
         p, u = points[part], directions[part]
-        faint = np.ones(len(p), dtype=bool)
-        if colour != "mean":
-            origins, rays = frame.rays(torch.as_tensor(p + BAKE_START_VOXELS * voxel_world * u), torch.as_tensor(-u))
-            with torch.no_grad():
-                out = render(grid, origins.float(), rays.float())
-            opacity = out.opacity.detach().cpu().numpy().astype(np.float64)
-            rgb = out.rgb.detach().cpu().numpy().astype(np.float64)
-            faint = opacity < BAKE_MIN_OPACITY
-            colours[part] = np.clip(rgb / np.maximum(opacity, BAKE_MIN_OPACITY)[:, None], 0.0, 1.0)
-        if faint.any():
-            colours[start + np.flatnonzero(faint)] = surface_colours(grid, frame.from_world(p[faint]), voxel_fit)
+        origins, rays = frame.rays(torch.as_tensor(p + BAKE_START_VOXELS * voxel_world * u), torch.as_tensor(-u))
+        with torch.no_grad():
+            out = render(grid, origins.float(), rays.float())
+        opacity = out.opacity.detach().cpu().numpy().astype(np.float64)
+        rgb = out.rgb.detach().cpu().numpy().astype(np.float64)
+        opaque[part] = opacity >= BAKE_MIN_OPACITY
+        colours[part] = np.clip(rgb / np.maximum(opacity, BAKE_MIN_OPACITY)[:, None], 0.0, 1.0)
+    return colours, opaque
+
+
+def surface_colour_texels(grid, frame: FitFrame, points: np.ndarray, directions: np.ndarray, voxel_world: float,
+                          colour: Literal["view", "normal", "mean"]) -> np.ndarray:
+    """The colour [N, 3] of the field at world surface `points`: with "view" or "normal", what the field renders
+    looking back along the unit `directions` [N, 3] (towards the viewer: a training view's camera, or the outward
+    normal; seen_colours); with "mean", and where that ray stays fainter than BAKE_MIN_OPACITY, the degree-0 colour
+    (plenoxels.mesh.surface_colours)."""
+    faint = np.ones(len(points), dtype=bool)
+    colours = np.zeros((len(points), 3))
+    if colour != "mean":
+        colours, opaque = seen_colours(grid, frame, points, directions, voxel_world)
+        faint = ~opaque
+    if faint.any():
+        colours[faint] = surface_colours(grid, frame.from_world(points[faint]), grid_lattice_voxel(grid))
+    return colours
+
+
+def view_colour_texels(grid, frame: FitFrame, points: np.ndarray, normals: np.ndarray, best: np.ndarray,
+                       cosines: np.ndarray, centres: np.ndarray, voxel_world: float) -> np.ndarray:
+    """The colour [N, 3] of the field at world surface `points` as the training views `best` [N, K] (cameras at
+    `centres` [C, 3]) saw it, their mean weighted by their squared `cosines` [N, K] (0: not seen) with the surface
+    (seen_colours); along the unit `normals` [N, 3] where no view sees a point or every ray there is faint."""
+    total = np.zeros((len(points), 3))
+    weight = np.zeros(len(points))
+    for k in range(best.shape[1]):
+        wanted = np.flatnonzero(cosines[:, k] > 0)
+        towards = centres[best[wanted, k]] - points[wanted]
+        towards /= np.maximum(np.linalg.norm(towards, axis=1, keepdims=True), 1e-12)
+        seen, opaque = seen_colours(grid, frame, points[wanted], towards, voxel_world)
+        w = cosines[wanted, k].astype(np.float64) ** 2 * opaque
+        total[wanted] += w[:, None] * seen
+        weight[wanted] += w
+    colours = total / np.maximum(weight, 1e-30)[:, None]
+    unseen = ~(weight > 0)
+    if unseen.any():
+        colours[unseen] = surface_colour_texels(grid, frame, points[unseen], normals[unseen], voxel_world, "normal")
     return colours
 
 
@@ -279,10 +315,11 @@ class Texture:
 
 def texture_mesh(grid, frame: FitFrame, mesh: trimesh.Trimesh, resolution: int,
                  colour: Literal["view", "normal", "mean"], views: list[ViewRender] = (), seen_tolerance: float = 1.0,
-                 opacity: float = 0.5) -> Texture:
+                 opacity: float = 0.5, view_count: int = 1) -> Texture:
     """Unwraps the mesh (world frame) into an atlas of about `resolution` texels on a side and bakes the field's
-    colour into it (module docstring). "view" needs the training `views` (plenoxels.surface.render_views); a vertex
-    `seen_tolerance` voxels behind what a view's pixel at least `opacity` opaque sees is still seen (view_cosines)."""
+    colour into it (module docstring). "view" needs the training `views` (plenoxels.surface.render_views) and blends
+    up to `view_count` of them per texel; a vertex `seen_tolerance` voxels behind what a view's pixel at least
+    `opacity` opaque sees is still seen (view_cosines)."""
     if colour == "view" and not views:
         raise ValueError('texture colour "view" needs the training views')
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
@@ -291,12 +328,14 @@ def texture_mesh(grid, frame: FitFrame, mesh: trimesh.Trimesh, resolution: int,
     atlas = unwrap(vertices, np.asarray(mesh.faces), resolution)
     texels, faces, weights = texel_faces(atlas)
     points = (vertices[faces] * weights[..., None]).sum(axis=1)
-    directions = surface_normals(vertices, faces, weights, normals)
+    outward = surface_normals(vertices, faces, weights, normals)
     if colour == "view":
         cosines = view_cosines(mesh, list(views), frame, voxel_world, seen_tolerance * voxel_world, opacity)
+        best, facing = facing_views(faces, weights, cosines, view_count)
         centres = np.stack([view.c2w[:3, 3] for view in views])
-        directions = facing_directions(points, directions, faces, weights, cosines, centres)
-    colours = surface_colour_texels(grid, frame, points, directions, voxel_world, colour)
+        colours = view_colour_texels(grid, frame, points, outward, best, facing, centres, voxel_world)
+    else:
+        colours = surface_colour_texels(grid, frame, points, outward, voxel_world, colour)
     return Texture(atlas, bake(texels, colours, atlas.size), colour)
 
 

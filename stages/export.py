@@ -82,7 +82,7 @@ def run(ctx) -> dict:
     if s.texture:
         ctx.report.info(f"unwrapping {_count(len(mesh.faces))} faces and baking a {s.texture_size}-texel texture")
         texture = texture_mesh(grid, frame, mesh, s.texture_size, s.texture_colour, views, s.seen_tolerance,
-                               s.point_opacity)
+                               s.point_opacity, s.texture_views)
         decisions["texture"] = {"size": list(texture.atlas.size), "charts": texture.atlas.charts,
                                 "colour": texture.colour, "atlas_vertices": len(texture.atlas.uv)}
 

@@ -173,6 +173,41 @@ def test_the_texture_shows_what_the_training_view_facing_the_surface_saw(sphere)
     assert facing.colour == "view"
 
 
+def test_the_mean_of_several_views_stands_for_a_view_between_them(sphere):
+    # The field's colour turns with the view. Two training cameras 30 degrees either side of a held-out one: the
+    # texture baked as their mean (cos^2-weighted) renders nearer the field's own render from the held-out camera
+    # than one baked from whichever faces each texel most squarely.
+    field, mesh, _ = sphere
+    k = Intrinsics(120.0, 120.0, 64.0, 64.0, 128, 128)
+
+    def camera(degrees: float) -> np.ndarray:
+        angle = np.radians(degrees)
+        return look_at(SPHERE_CENTRE + 2.5 * np.array([np.cos(angle), np.sin(angle), 0.3]), SPHERE_CENTRE)
+
+    records = [{"transform_matrix": camera(d).tolist(), "fl_x": k.fl_x, "fl_y": k.fl_y, "cx": k.cx, "cy": k.cy,
+                "w": k.w, "h": k.h, "split": "train"} for d in (-30.0, 30.0)]
+    views = render_views(field, FitFrame(), records, 1.0, 0, _Quiet())
+    held_out = camera(0.0)
+    origins, directions = rays_from_camera(held_out, k)
+    with torch.no_grad():
+        out = render(field, origins.reshape(-1, 3), directions.reshape(-1, 3))
+    field_rgb = (out.rgb / out.opacity.clamp_min(1e-6)[:, None]).numpy().reshape(128, 128, 3)
+    errors = {}
+    for count in (1, 2):
+        baked = texture_mesh(field, FitFrame(), mesh, 256, "view", views, view_count=count)
+        vertices = mesh.vertices[baked.atlas.vertex_map]
+        rgb, covered = render_mesh(vertices, baked.atlas.faces, held_out, k, uv=baked.atlas.uv, image=baked.image)
+        points, _ = render_mesh(mesh.vertices, mesh.faces, held_out, k, vertex_colours=mesh.vertices)
+        normals, _ = render_mesh(mesh.vertices, mesh.faces, held_out, k, vertex_colours=mesh.vertex_normals)
+        to_camera = held_out[:3, 3] - points
+        cosine = (normals * to_camera).sum(axis=-1) / np.linalg.norm(to_camera, axis=-1)
+        # Where the surface faces the held-out camera (so both training cameras see it), off the red/blue seam.
+        facing = binary_erosion(covered, iterations=2) & (np.abs(points[..., 0] - 0.1) > 0.05) & (cosine > 0.9)
+        errors[count] = np.abs(rgb - field_rgb)[facing].mean()
+    assert facing.sum() > 300
+    assert errors[2] < 0.7 * errors[1], errors
+
+
 def test_a_sheet_folded_onto_itself_bakes_with_every_texel_facing_somewhere(sphere):
     # Two faces on the same three vertices with opposite windings (a thin wall the marching cubes closed on itself):
     # their vertices' normals cancel, so each texel's ray takes its face's normal (a zero direction is no ray to

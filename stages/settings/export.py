@@ -27,6 +27,9 @@ class Settings(MeshOptions):
     texture_colour: Literal["view", "normal", "mean"] = "view"
     """view: the colour the field renders from the training view that faces the surface most squarely; normal: looking
     straight at the surface; mean: its view-independent SH degree-0 term (plenoxels/texture.py says why view)."""
+    texture_views: int = 8
+    """With texture_colour view: each texel takes the mean of what up to this many of the training views that see it
+    most squarely saw, weighted by their squared cosine with the surface; 1: the one facing it most squarely."""
     points: int = 200_000
     """Points kept in points.ply (a random, seeded subset)."""
     point_scale: float = 0.5
@@ -47,6 +50,7 @@ class Settings(MeshOptions):
         require(self.max_gap > 0.0, "export.max_gap must be positive")
         require(self.max_faces == 0 or self.max_faces >= 4, "export.max_faces must be 0 (keep all) or at least 4")
         require(64 <= self.texture_size <= 16384, "export.texture_size must be between 64 and 16384 texels")
+        require(self.texture_views >= 1, "export.texture_views must be 1 or more")
         require(self.points >= 0, "export.points must be 0 (no point cloud) or more")
         require(0.0 < self.point_scale <= 1.0, "export.point_scale must be in (0, 1]")
         require(self.point_views >= 0, "export.point_views must be 0 (all training views) or more")
