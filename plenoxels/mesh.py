@@ -279,11 +279,14 @@ def topology(mesh: trimesh.Trimesh) -> dict:
 def decimate(mesh: trimesh.Trimesh, max_faces: int) -> tuple[trimesh.Trimesh, dict]:
     """Quadric decimation (fast-simplification through trimesh) to at most about `max_faces` faces (0: every face
     kept), and the topology before and after. Its collapses keep boundary vertices on the boundary, so open edges
-    stay where they were and no hole opens; the record lets a test and the summary say so."""
+    stay where they were and no hole opens; the record lets a test and the summary say so. No face it leaves repeats
+    another's three vertices."""
     before = topology(mesh)
     if max_faces <= 0 or len(mesh.faces) <= max_faces:
         return mesh, {"decimated": False, "before": before, "after": before}
     simplified = mesh.simplify_quadric_decimation(face_count=max_faces)
+    # Its collapses can leave two faces on the same three vertices, which importers (Blender's) merge into one.
+    simplified.update_faces(simplified.unique_faces() & simplified.nondegenerate_faces())
     simplified.remove_unreferenced_vertices()
     return simplified, {"decimated": True, "before": before, "after": topology(simplified)}
 

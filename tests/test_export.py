@@ -27,7 +27,7 @@ from plenoxels.errors import UserError
 from plenoxels.fit_frame import CONTRACTED_BOX, Contraction, FitFrame
 from plenoxels.grid import SparseGrid
 from plenoxels.mesh import (LEVEL_RAY_OPACITY, MARCH_STEP_VOXELS, PEAK_OPTICAL_DEPTH, auto_level, build_mesh,
-                            clean_mesh, grid_lattice, grid_lattice_voxel, ray_peaks, surface_colours, topology,
+                            clean_mesh, decimate, grid_lattice, grid_lattice_voxel, ray_peaks, surface_colours, topology,
                             transform_normals, transform_points)
 from plenoxels.ndc import NDCMapping
 from plenoxels.render import COLOUR_OFFSET, SH_C0
@@ -217,6 +217,17 @@ def test_decimation_reaches_the_target_keeps_the_shape_and_opens_no_hole():
     edges, counts = np.unique(np.sort(mesh.edges, axis=1), axis=0, return_counts=True)
     rim = np.unique(edges[counts == 1])
     assert np.abs(mesh.vertices[rim, 2] - top).max() < 2 * (2 / 39)
+
+
+def test_decimation_leaves_no_two_faces_on_the_same_three_vertices():
+    # A fin (a face and its reverse on the same vertices, as a thin wall closes on itself) and a repeated face: the
+    # decimated mesh holds each triangle once, as DCC importers count them.
+    mesh = trimesh.creation.icosphere(subdivisions=4)
+    faces = np.concatenate([mesh.faces, mesh.faces[:40, ::-1], mesh.faces[40:80]])
+    doubled = trimesh.Trimesh(mesh.vertices, faces, process=False)
+    decimated, record = decimate(doubled, int(0.95 * len(faces)))
+    assert record["decimated"] and len(decimated.faces) > 0.8 * len(mesh.faces)
+    assert len(np.unique(np.sort(decimated.faces, axis=1), axis=0)) == len(decimated.faces)
 
 
 def forward_rig() -> tuple[np.ndarray, NDCMapping, dict]:
