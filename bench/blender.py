@@ -32,6 +32,7 @@ from scipy.ndimage import binary_erosion
 from scipy.spatial import cKDTree
 
 from pipeline.io import GLTF_FROM_ZUP
+from pipeline.mesh_files import linear_to_srgb, srgb_to_linear
 from plenoxels.cameras import Intrinsics
 from plenoxels.texture import render_mesh
 
@@ -86,14 +87,6 @@ def as_written(path: Path) -> tuple[trimesh.Trimesh, np.ndarray | None, np.ndarr
         if image is not None:
             return mesh, np.asarray(visual.uv), np.asarray(image.convert("RGB"), dtype=np.float64) / 255.0
     return mesh, None, None
-
-
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(c: np.ndarray) -> np.ndarray:
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.maximum(c, 0.0031308) ** (1 / 2.4) - 0.055)
 
 
 def compare_render(blender_png: Path, path: Path, c2w: np.ndarray, k: Intrinsics) -> dict:

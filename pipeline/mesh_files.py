@@ -40,6 +40,16 @@ map_Kd {texture}
 """
 
 
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] -> linear light."""
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    """Linear light in [0, 1] -> sRGB-encoded values."""
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.maximum(c, 0.0031308) ** (1 / 2.4) - 0.055)
+
+
 def textured(mesh: trimesh.Trimesh, texture: Texture) -> trimesh.Trimesh:
     """The mesh split along the atlas's seams, with its UVs, normals and a matte PBR material using the texture."""
     atlas = texture.atlas
@@ -70,8 +80,7 @@ def write_mesh_files(mesh: trimesh.Trimesh, folder: Path, texture: Texture | Non
         (folder / files["png"]).write_bytes(buffer.getvalue())
     else:
         (folder / files["obj"]).write_text(export_obj(styled, include_normals=True, include_color=True))
-        srgb = styled.visual.vertex_colors[:, :3] / 255.0
-        linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+        linear = srgb_to_linear(styled.visual.vertex_colors[:, :3] / 255.0)
         styled.visual.vertex_colors[:, :3] = np.round(linear * 255.0).astype(np.uint8)
     styled.export(folder / files["glb"])
     return files
