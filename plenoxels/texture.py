@@ -4,12 +4,12 @@ z-buffer renderer of a textured or vertex-coloured mesh (to hold a texture again
 Colour baked (`colour="view"`, the default): what the training views that face the surface most squarely saw there,
 i.e. rays rendered by the field itself (`plenoxels.render.render`, every SH degree) from a couple of voxels outside
 the surface towards it, along the directions from those views' cameras, each composite divided by its opacity; the
-texel takes their mean weighted by the squared cosine between the surface's normal and each view (up to `views` of
+texel takes their mean weighted by the squared cosine between the surface's normal and each view (up to `view_count` of
 them). Which views see a texel comes from its face's vertices (plenoxels.surface.view_cosines: in the image, facing
 the camera, not hidden). A texture holds one colour for every viewer, while the field's colour turns with the view
 even on a matte surface (its SH fits each photo): rendered from a held-out camera, the field's colour there matches
 the texture's only as well as the directions baked stand for that camera's. The mean over several views does that
-better than the one view facing most squarely (on the synthetic room scene 0.3 dB nearer the field's own render,
+better than the one view facing most squarely (on the synthetic room scene 0.2-0.3 dB nearer the field's own render,
 bench/README.md). Only directions some photo saw are pinned down by the fit: its higher SH degrees are free elsewhere,
 so the colour along the normal (`colour="normal"`, the fallback where no view sees a texel) strays on any surface no
 photo looked at head-on (the lower half of a ball seen from above), and the SH degree-0 term (`colour="mean"`, the
