@@ -221,7 +221,7 @@ def facing_views(faces: np.ndarray, weights: np.ndarray, cosines: np.ndarray, co
     squarely, best first [N, count], and their cosines [N, count]: its face's vertices' `cosines` [V, C] (0: unseen)
     blended by the weights."""
     count = min(count, cosines.shape[1])
-    best = np.zeros((len(faces), count), dtype=np.int64)
+    best = np.zeros((len(faces), count), dtype=np.int32)   # millions of texels by `count` views: keep it small
     score = np.zeros((len(faces), count), dtype=np.float32)
     for start in range(0, len(faces), VIEW_CHUNK):
         part = slice(start, start + VIEW_CHUNK)
