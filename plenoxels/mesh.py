@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import trimesh
+from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -33,6 +34,8 @@ LEVEL_RAY_OPACITY = 0.95
 LEVEL_RAYS = 20_000
 MARCH_STEP_VOXELS = 0.5
 PEAK_OPTICAL_DEPTH = -math.log(0.05)
+# Free space is where the opaque training rays pass: these shares of the way to where each ends.
+FREE_SPACE_SHARES = (0.25, 0.5, 0.75)
 
 
 @dataclass
@@ -147,6 +150,49 @@ def auto_level(grid, lattice: Lattice, opaque_rays: Terminations | None, share: 
                                             f"{len(peaks)} opaque training rays meet before they are 95% opaque")
     level = -math.log(1.0 - opacity) / lattice.voxel
     return level, f"auto: one voxel ({lattice.voxel:.4g} fit units) at this density is {opacity:.0%} opaque"
+
+
+def fill_unreached(lattice: Lattice, level: float, rays: Terminations | None, close_voxels: int
+                   ) -> tuple[Lattice, dict]:
+    """The lattice with the free space that no training ray reaches raised above `level`, and what was filled.
+
+    A fit of a few small photos makes its solids soft shells over an empty foam, their skins pierced by openings
+    a voxel or two across; marching cubes meshes the foam's walls too, and a camera then sees through an opening
+    onto walls inside the object, and through it where those walls go as unseen. Free space here: the cells below
+    the level, after a closing of the solid by `close_voxels` (which seals openings up to twice that across), that
+    connect to the lattice's border or to where the opaque training `rays` (fit frame) pass on their way to their
+    ends (FREE_SPACE_SHARES of the way), grown back through the free space by the closing's reach. Every other cell
+    below the level is filled, so the surface is the solids' outside alone. A gap narrower than the closing between
+    two solids is filled as well."""
+    solid = lattice.values > level
+    if close_voxels <= 0 or not solid.any():
+        return lattice, {"voxels": 0, "pieces": 0}
+    pad = close_voxels
+    closed = ndimage.binary_closing(np.pad(solid, pad), iterations=close_voxels)[pad:-pad, pad:-pad, pad:-pad]
+    labels, count = ndimage.label(~closed)
+    reached = np.zeros(count + 1, dtype=bool)
+    for axis in range(3):
+        for end in (0, -1):
+            reached[np.unique(np.take(labels, end, axis=axis))] = True
+    if rays is not None and len(rays.t):
+        shape = np.array(labels.shape)
+        for share in FREE_SPACE_SHARES:
+            points = rays.origins + (share * rays.t)[:, None] * rays.directions
+            index = np.round((points - lattice.origin) / lattice.spacing).astype(np.int64)
+            index = index[((index >= 0) & (index < shape)).all(axis=1)]
+            reached[np.unique(labels[index[:, 0], index[:, 1], index[:, 2]])] = True
+    reached[0] = False   # label 0: the closed solid
+    # The closing also rounds the free space's own concave edges (a room's corners); growing what is reached back
+    # through the free space by as much restores them, while a sealed opening reopens only to that depth.
+    outside = ndimage.binary_dilation(reached[labels], structure=np.ones((3, 3, 3), dtype=bool),
+                                      iterations=close_voxels, mask=~solid)
+    filled = ~solid & ~outside
+    if not filled.any():
+        return lattice, {"voxels": 0, "pieces": 0}
+    values = lattice.values.copy()
+    values[filled] = np.maximum(values[filled], 2.0 * level if level > 0 else level + 1.0)
+    unreached = int((~reached[1:]).sum())
+    return Lattice(values, lattice.origin, lattice.spacing), {"voxels": int(filled.sum()), "pieces": unreached}
 
 
 def extract_surface(lattice: Lattice, level: float) -> tuple[np.ndarray, np.ndarray]:
@@ -363,6 +409,7 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
         level, level_source = float(options.level), "set"
     native = int(np.max(lattice.values.shape) - 1)
     resolution = native if options.resolution == "auto" else int(options.resolution)
+    lattice, filled = fill_unreached(lattice, level, level_rays, options.fill_voxels)
     fine = refine(lattice, resolution, level)
     report.info(f"marching cubes at density {level:.4g} on a {'x'.join(map(str, fine.values.shape))} lattice")
     vertices, faces = extract_surface(fine, level)
@@ -401,6 +448,7 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
         "lattice": list(fine.values.shape),
         "voxel": fine.voxel,
         "voxel_world": voxel_world,
+        "filled": filled,
         "cleaning": vars(cleaning),
         "unseen_faces_dropped": unseen_faces,
         "object_only": isolation,

@@ -26,9 +26,9 @@ from plenoxels.cameras import Intrinsics
 from plenoxels.errors import UserError
 from plenoxels.fit_frame import CONTRACTED_BOX, Contraction, FitFrame
 from plenoxels.grid import SparseGrid
-from plenoxels.mesh import (LEVEL_RAY_OPACITY, MARCH_STEP_VOXELS, PEAK_OPTICAL_DEPTH, auto_level, build_mesh,
-                            clean_mesh, decimate, grid_lattice, grid_lattice_voxel, ray_peaks, surface_colours, topology,
-                            transform_normals, transform_points)
+from plenoxels.mesh import (LEVEL_RAY_OPACITY, MARCH_STEP_VOXELS, PEAK_OPTICAL_DEPTH, Lattice, auto_level, build_mesh,
+                            clean_mesh, decimate, fill_unreached, grid_lattice, grid_lattice_voxel, ray_peaks,
+                            surface_colours, topology, transform_normals, transform_points)
 from plenoxels.ndc import NDCMapping
 from plenoxels.render import COLOUR_OFFSET, SH_C0
 from plenoxels.scene_model import SceneModel
@@ -130,15 +130,15 @@ def test_a_different_level_moves_the_surface_and_finer_resolution_follows_the_tr
 
 def test_faces_no_training_view_sees_are_dropped_such_as_the_inner_wall_of_a_hollow_shell():
     # A fit pins density down only where rays stop, so a solid comes out as a hollow shell; marching
-    # cubes gives its inner wall too, which no camera can see.
+    # cubes gives its inner wall too, which no camera can see. (Unfilled: filling would close the cavity first.)
     p = lattice_points(40, (-1, -1, -1), (1, 1, 1))
     dist = np.linalg.norm(p - SPHERE_CENTRE, axis=-1)
     peak = 2 * math.log(2) / (2 / 39)
     density = peak * expit((SPHERE_RADIUS - dist) / 0.03) * expit((dist - (SPHERE_RADIUS - 0.12)) / 0.03)
     field = dense_grid(density, colour_sh(p), (-1, -1, -1), (1, 1, 1))
     views = render_views(field, FitFrame(), orbit_frames(8), 1.0, 0, _Quiet())
-    kept, _ = build_mesh(field, FitFrame(), *BOX, Settings(unseen="keep"), _Quiet(), views=views)
-    dropped, decisions = build_mesh(field, FitFrame(), *BOX, Settings(), _Quiet(), views=views)
+    kept, _ = build_mesh(field, FitFrame(), *BOX, Settings(unseen="keep", fill_voxels=0), _Quiet(), views=views)
+    dropped, decisions = build_mesh(field, FitFrame(), *BOX, Settings(fill_voxels=0), _Quiet(), views=views)
     inner = lambda mesh: np.linalg.norm(mesh.vertices - SPHERE_CENTRE, axis=1) < SPHERE_RADIUS - 0.07
     assert inner(kept).mean() > 0.3 and inner(dropped).mean() < 0.02
     assert decisions["unseen_faces_dropped"] > 0
@@ -147,6 +147,49 @@ def test_faces_no_training_view_sees_are_dropped_such_as_the_inner_wall_of_a_hol
     upper = lambda q: q[:, 2] > SPHERE_CENTRE[2] - 0.5 * SPHERE_RADIUS
     assert mesh_scores(dropped, truth, 0.02, samples=20_000, reference_visible=upper)["f_score"] > 0.95
     assert len(dropped.visual.vertex_colors) == len(dropped.vertices)
+
+
+def test_a_shell_pierced_by_small_openings_meshes_as_its_outside_alone_without_holes():
+    # A fit of few small photos leaves its solids as shells over an empty foam, their skins pierced here and there:
+    # marching cubes then meshes the inside wall too, seen through each opening, and dropping it as unseen leaves a hole.
+    res = 48
+    voxel = 2 / (res - 1)
+    p = lattice_points(res, (-1, -1, -1), (1, 1, 1))
+    dist = np.linalg.norm(p - SPHERE_CENTRE, axis=-1)
+    peak = 2 * math.log(2) / voxel
+    density = peak * expit((SPHERE_RADIUS - dist) / 0.03) * expit((dist - (SPHERE_RADIUS - 0.15)) / 0.03)
+    direction = (p - SPHERE_CENTRE) / np.maximum(dist[..., None], 1e-9)
+    for axis in np.eye(3):   # openings about two voxels across, through the skin along three axes
+        density[np.linalg.norm(direction - axis, axis=-1) < 1.2 * voxel / SPHERE_RADIUS] = 0.0
+    field = dense_grid(density, colour_sh(p), (-1, -1, -1), (1, 1, 1))
+    inner = lambda mesh: np.linalg.norm(mesh.vertices - SPHERE_CENTRE, axis=1) < SPHERE_RADIUS - 0.1
+    as_fitted, _ = build_mesh(field, FitFrame(), *BOX, Settings(unseen="keep", fill_voxels=0), _Quiet())
+    assert inner(as_fitted).mean() > 0.3 and topology(as_fitted)["pieces"] == 1   # the walls join at the openings
+    filled, decisions = build_mesh(field, FitFrame(), *BOX, Settings(unseen="keep", fill_voxels=1), _Quiet())
+    assert decisions["filled"]["voxels"] > 0
+    assert inner(filled).mean() < 0.01
+    shape = topology(filled)
+    assert shape["pieces"] == 1 and shape["boundary_edges"] == 0 and shape["euler"] == 2   # a closed sphere
+    assert np.median(np.linalg.norm(filled.vertices - SPHERE_CENTRE, axis=1)) == pytest.approx(SPHERE_RADIUS,
+                                                                                               abs=voxel)
+
+
+def test_free_space_the_training_rays_cross_is_never_filled_even_where_walls_enclose_it():
+    # A room seen from inside: its walls close the air off from the lattice's border, and only the rays say it is
+    # free space, not a cavity inside a solid.
+    res = 32
+    values = np.zeros((res, res, res), dtype=np.float32)
+    values[2:-2, 2:-2, 2:-2] = 10.0
+    values[4:-4, 4:-4, 4:-4] = 0.0
+    lattice = Lattice(values, np.full(3, -1.0), np.full(3, 2 / (res - 1)))
+    enclosed = int((values[4:-4, 4:-4, 4:-4] == 0).sum())
+    _, without_rays = fill_unreached(lattice, 5.0, None, 1)
+    assert without_rays["voxels"] == enclosed and without_rays["pieces"] == 1
+    directions = np.random.default_rng(0).normal(size=(200, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    rays = Terminations(np.zeros((200, 3)), directions, np.full(200, 0.7), np.ones(200))
+    unfilled, with_rays = fill_unreached(lattice, 5.0, rays, 1)
+    assert with_rays["voxels"] == 0 and np.array_equal(unfilled.values, values)
 
 
 def test_a_mesh_layer_behind_a_nearer_one_is_unseen_even_where_the_render_hides_nothing():

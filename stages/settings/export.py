@@ -25,8 +25,9 @@ class Settings(MeshOptions):
     texture_size: int = 2048
     """The texture's side, about (xatlas packs the atlas to it), in texels."""
     texture_colour: Literal["view", "normal", "mean"] = "view"
-    """view: the colour the field renders from the training view that faces the surface most squarely; normal: looking
-    straight at the surface; mean: its view-independent SH degree-0 term (plenoxels/texture.py says why view)."""
+    """view: the colour the field renders from the training views that face the surface most squarely (texture_views);
+    normal: looking straight at the surface; mean: its view-independent SH degree-0 term (plenoxels/texture.py says
+    why view)."""
     texture_views: int = 8
     """With texture_colour view: each texel takes the mean of what up to this many of the training views that see it
     most squarely saw, weighted by their squared cosine with the surface; 1: the one facing it most squarely."""
@@ -55,4 +56,5 @@ class Settings(MeshOptions):
         require(0.0 < self.point_scale <= 1.0, "export.point_scale must be in (0, 1]")
         require(self.point_views >= 0, "export.point_views must be 0 (all training views) or more")
         require(0.0 < self.point_opacity < 1.0, "export.point_opacity must be in (0, 1)")
+        require(self.fill_voxels >= 0, "export.fill_voxels must be 0 (no filling) or more voxels")
         require(self.seen_tolerance >= 0.0, "export.seen_tolerance must be 0 or more voxels")
