@@ -191,8 +191,8 @@ def fill_unreached(lattice: Lattice, level: float, rays: Terminations | None, cl
         return lattice, {"voxels": 0, "pieces": 0}
     values = lattice.values.copy()
     values[filled] = np.maximum(values[filled], 2.0 * level if level > 0 else level + 1.0)
-    unreached = int((~reached[1:]).sum())
-    return Lattice(values, lattice.origin, lattice.spacing), {"voxels": int(filled.sum()), "pieces": unreached}
+    return Lattice(values, lattice.origin, lattice.spacing), {"voxels": int(filled.sum()),
+                                                              "pieces": int(ndimage.label(filled)[1])}
 
 
 def extract_surface(lattice: Lattice, level: float) -> tuple[np.ndarray, np.ndarray]:
