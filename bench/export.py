@@ -214,7 +214,7 @@ def score_scene(kind: str, seed: int, preset: str, overrides: list[str], out: Pa
         "export_code": manifests["export"]["code"],
         "export_seconds": read_json(export_dir / "manifest.json")["seconds"],
         "export": {k: record.get(k) for k in ("level", "level_source", "resolution", "lattice", "cleaning", "mesh",
-                                               "points", "file_bytes", "object_only", "decimation", "texture")},
+                                               "points", "file_bytes", "object_only", "aligned", "decimation", "texture")},
         "training_cameras": len(cameras),
         "visible_share_of_true_surface": scores["reference_samples_used"] / all_surface["reference_samples_used"],
         "mesh_vs_truth": scores,

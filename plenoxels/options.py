@@ -157,6 +157,9 @@ class MeshOptions:
     """Faces no training view sees (insides of the fit's shells, undersides)."""
     seen_tolerance: float = 1.0
     """A vertex this many voxels behind what a view's pixel sees is still seen."""
+    align_voxels: float = 2.5
+    """Move each vertex along its normal, up to this many voxels, to where the training views that see it agree best
+    on its colour (plenoxels/view_alignment.py); 0: the fitted density's level set as it is."""
     object_only: Literal["auto", "on", "off"] = "auto"
     """The object alone: cut away the ground or table it stands on and the room the box cuts through
     (plenoxels/ground.py); auto: on for object and unbounded scenes, off for forward ones. export.crop, when set, is

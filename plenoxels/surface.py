@@ -28,6 +28,8 @@ SNAP_VOXELS = 6.0
 ZBUFFER_PIXEL_VOXELS = 2.0
 MAX_ZBUFFER_PIXELS = 4096
 GRAZING_VOXELS = 3.0
+# A rendered view's colour is divided by its opacity, at least this much (fainter pixels stay dark).
+MIN_COLOUR_OPACITY = 0.05
 
 
 def as_numpy(x: Any) -> np.ndarray:
@@ -81,12 +83,13 @@ class Terminations:
 class ViewRender:
     """One training view rendered from the fitted grid alone: its camera (normalised world, at the
     rendered size) and, per pixel [h*w], the distance t along its fit-frame ray (`rays`) to the
-    expected termination point (opacity-normalised) and the ray's opacity. The rays themselves are
+    expected termination point (opacity-normalised), the ray's opacity and its colour. The rays themselves are
     recomputed when needed, so a hundred large views stay small in memory."""
     c2w: np.ndarray
     k: Intrinsics
     t: np.ndarray         # float32
     opacity: np.ndarray   # float32
+    rgb: np.ndarray | None = None   # uint8 [h*w, 3]: the grid's colour, divided by the opacity
 
     def rays(self, frame: FitFrame) -> tuple[np.ndarray, np.ndarray]:
         """Fit-frame origins and unit directions [h*w, 3]."""
@@ -118,7 +121,10 @@ def render_views(grid, frame: FitFrame, frames: list[dict], scale: float, max_vi
         opacity = as_numpy(out.opacity).astype(np.float64)
         # The renderer's depth (along the unit direction) is a sum of weights that total the opacity: divide it out.
         t = as_numpy(out.depth).astype(np.float64) / np.maximum(opacity, 1e-12)
-        views.append(ViewRender(c2w, k, t.astype(np.float32), opacity.astype(np.float32)))
+        # The surface's own colour: a pixel the grid only partly covers is darkened by the black behind it.
+        rgb = as_numpy(out.rgb).astype(np.float64) / np.maximum(opacity, MIN_COLOUR_OPACITY)[:, None]
+        rgb = np.rint(np.clip(rgb, 0.0, 1.0) * 255).astype(np.uint8)
+        views.append(ViewRender(c2w, k, t.astype(np.float32), opacity.astype(np.float32), rgb))
     return views
 
 

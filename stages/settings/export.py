@@ -58,3 +58,4 @@ class Settings(MeshOptions):
         require(0.0 < self.point_opacity < 1.0, "export.point_opacity must be in (0, 1)")
         require(self.fill_voxels >= 0, "export.fill_voxels must be 0 (no filling) or more voxels")
         require(self.seen_tolerance >= 0.0, "export.seen_tolerance must be 0 or more voxels")
+        require(self.align_voxels >= 0.0, "export.align_voxels must be 0 (no alignment) or more voxels")
