@@ -23,7 +23,6 @@ from plenoxels.options import MeshOptions
 from plenoxels.ground import RIM_SHARE, cut_ground, find_ground, reaches_box_sides
 from plenoxels.render import COLOUR_OFFSET, SH_C0, RenderOptions, ray_samples
 from plenoxels.surface import Terminations, ViewRender, as_numpy, density_gradient, sample_field, seen_vertices
-from plenoxels.view_alignment import align_to_views
 
 # Where along the inward normal a vertex's colour is gathered, in voxels (negative: outside the surface).
 COLOUR_PROBE_VOXELS = np.arange(-1.0, 3.01, 0.5)
@@ -400,9 +399,8 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
                object_only: bool = False, user_box: bool = False) -> tuple[trimesh.Trimesh, dict]:
     """The cleaned, coloured, decimated mesh in the normalised world, and what was decided on the way.
     `level_rays`: the training views' opaque rays (fit frame), for the auto level; `views`: the training views
-    rendered, to drop the faces none of them sees (with unseen: drop) and to align the vertices to their colours
-    (align_voxels; plenoxels/view_alignment.py); `object_only`: cut the ground and the room away (isolate_object);
-    `user_box`: the box is the user's crop."""
+    rendered, to drop the faces none of them sees (with unseen: drop); `object_only`: cut the ground and the room
+    away (isolate_object); `user_box`: the box is the user's crop."""
     lattice = grid_lattice(grid)
     if options.level == "auto":
         level, level_source = auto_level(grid, lattice, level_rays, options.level_share, options.level_opacity,
@@ -439,11 +437,6 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
     if object_only:
         mesh, isolation = isolate_object(mesh, crop_min, crop_max, voxel_world, options, user_box)
         isolation["on"] = True
-    alignment = {"reach_voxels": 0.0}
-    if options.align_voxels > 0 and views:
-        report.info(f"aligning {len(mesh.vertices)} vertices to the training views' colours")
-        mesh, alignment = align_to_views(mesh, views, frame, voxel_world, options.seen_tolerance * voxel_world,
-                                         options.point_opacity, options.align_voxels)
     mesh, decimation = decimate(mesh, options.max_faces)
     colours = surface_colours(grid, frame.from_world(np.asarray(mesh.vertices)), lattice.voxel)
     mesh.visual.vertex_colors = colours  # trimesh rounds [0, 1] floats to 8 bits
@@ -459,7 +452,6 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
         "cleaning": vars(cleaning),
         "unseen_faces_dropped": unseen_faces,
         "object_only": isolation,
-        "aligned": alignment,
         "decimation": decimation,
         "faces_before_decimation": decimation["before"]["faces"],
         "decimated": decimation["decimated"],

@@ -315,17 +315,18 @@ class Texture:
 
 def texture_mesh(grid, frame: FitFrame, mesh: trimesh.Trimesh, resolution: int,
                  colour: Literal["view", "normal", "mean"], views: list[ViewRender] = (), seen_tolerance: float = 1.0,
-                 opacity: float = 0.5, view_count: int = 1) -> Texture:
+                 opacity: float = 0.5, view_count: int = 1, layout_vertices: np.ndarray | None = None) -> Texture:
     """Unwraps the mesh (world frame) into an atlas of about `resolution` texels on a side and bakes the field's
     colour into it (module docstring). "view" needs the training `views` (plenoxels.surface.render_views) and blends
     up to `view_count` of them per texel; a vertex `seen_tolerance` voxels behind what a view's pixel at least
-    `opacity` opaque sees is still seen (view_cosines)."""
+    `opacity` opaque sees is still seen (view_cosines). `layout_vertices` [V, 3]: where the atlas is charted, if not
+    at the mesh's own vertices (the same faces a little elsewhere); the colour is baked at the mesh's own."""
     if colour == "view" and not views:
         raise ValueError('texture colour "view" needs the training views')
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
     voxel_world = grid_lattice_voxel_world(grid, frame, mesh)
-    atlas = unwrap(vertices, np.asarray(mesh.faces), resolution)
+    atlas = unwrap(vertices if layout_vertices is None else layout_vertices, np.asarray(mesh.faces), resolution)
     texels, faces, weights = texel_faces(atlas)
     points = (vertices[faces] * weights[..., None]).sum(axis=1)
     outward = surface_normals(vertices, faces, weights, normals)

@@ -5,8 +5,8 @@ when export.texture is off), points.ply (points where the training views' rays t
 and export.json (the frame, counts, sizes, bounds, level, resolution, what was cut away, the decimation and the
 texture). One mesh: marching cubes over the fitted density, small pieces and floaters removed, cropped to the
 foreground box (or export.crop), faces no training view sees dropped, the ground and the room cut away for object and
-unbounded scenes, its vertices moved onto where the training views agree on the colour (export.align_voxels),
-decimated to export.max_faces, then unwrapped and its texture baked (plenoxels/mesh.py, plenoxels/ground.py,
+unbounded scenes, decimated to export.max_faces, its vertices moved onto where the training views agree on the colour
+(export.align_voxels), then unwrapped and its texture baked (plenoxels/mesh.py, plenoxels/ground.py,
 plenoxels/view_alignment.py, plenoxels/texture.py; files: pipeline/mesh_files.py).
 
 Seen faces: a fit only pins down density where rays stop, so its surfaces are shells whose insides
@@ -31,6 +31,7 @@ from plenoxels.mesh import (LEVEL_RAY_OPACITY, build_mesh, grid_lattice_voxel, s
 from plenoxels.scene_model import SceneModel
 from plenoxels.surface import point_normals, ray_terminations, render_views, snap_to_level
 from plenoxels.texture import texture_mesh
+from plenoxels.view_alignment import align_to_views
 from stages.settings.export import Settings
 
 
@@ -79,11 +80,22 @@ def run(ctx) -> dict:
     object_only = s.object_only == "on" or (s.object_only == "auto" and scene.get("type") != "forward")
     mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, terminations.subset(opaque), views,
                                  object_only=object_only, user_box=bool(s.crop))
+    # The atlas is charted on the level set as it came (the same faces): xatlas charts the aligned surface, rougher by
+    # a fraction of a voxel, several times slower (bench/README.md), and a shift that small does not stretch the UVs.
+    layout = np.asarray(mesh.vertices).copy()
+    decisions["aligned"] = {"reach_voxels": 0.0}
+    if s.align_voxels > 0:
+        ctx.report.info(f"aligning {_count(len(mesh.vertices))} vertices to the training views' colours")
+        voxel_world = decisions["voxel_world"]
+        mesh, decisions["aligned"] = align_to_views(mesh, views, frame, voxel_world, s.seen_tolerance * voxel_world,
+                                                    s.point_opacity, s.align_voxels)
+        mesh.visual.vertex_colors = surface_colours(grid, frame.from_world(np.asarray(mesh.vertices)),
+                                                    grid_lattice_voxel(grid))
     texture = None
     if s.texture:
         ctx.report.info(f"unwrapping {_count(len(mesh.faces))} faces and baking a {s.texture_size}-texel texture")
         texture = texture_mesh(grid, frame, mesh, s.texture_size, s.texture_colour, views, s.seen_tolerance,
-                               s.point_opacity, s.texture_views)
+                               s.point_opacity, s.texture_views, layout)
         decisions["texture"] = {"size": list(texture.atlas.size), "charts": texture.atlas.charts,
                                 "colour": texture.colour, "atlas_vertices": len(texture.atlas.uv)}
 

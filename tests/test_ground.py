@@ -147,8 +147,9 @@ def test_the_export_cuts_the_floor_from_under_a_sphere_and_says_so(tmp_path):
     floor_top = SPHERE_CENTRE[2] - SPHERE_RADIUS
     field = cluttered_sphere_field(40, lambda p: (p[..., 2] < floor_top) & (p[..., 2] > floor_top - 0.2))
     scene = identity_scene("object", orbit_frames(6, size=32))
+    # The level set's own place is scored (align_voxels 0), as in test_export's frame and cropping tests.
     options = {"frame": "normalized", "points": 2000, "point_scale": 1.0, "texture": False,
-               "level": math.log(2) / (2 / 39)}
+               "level": math.log(2) / (2 / 39), "align_voxels": 0}
     cut, folder = run_stage(tmp_path, field, scene, Settings(**options), "cut")
     kept, kept_folder = run_stage(tmp_path, field, scene, Settings(**options, object_only="off"), "kept")
     assert "the ground" in cut["cut_away"] and "cut away: the ground" in cut["line"]
