@@ -7,7 +7,7 @@ import numpy as np
 import torch
 import trimesh
 
-from plenoxels.cameras import Intrinsics
+from plenoxels.cameras import Intrinsics, look_at
 from plenoxels.fit_frame import FitFrame
 from plenoxels.grid import SparseGrid
 from plenoxels.render import COLOUR_OFFSET, SH_C0
@@ -45,22 +45,13 @@ def sphere_grid(pattern: bool) -> SparseGrid:
                                   torch.as_tensor(sh, dtype=torch.float32), (-1, -1, -1), (1, 1, 1), sh_degree=0)
 
 
-def look_at(eye: np.ndarray) -> np.ndarray:
-    forward = (CENTRE - eye) / np.linalg.norm(CENTRE - eye)
-    right = np.cross(forward, [0, 0, 1.0])
-    right /= np.linalg.norm(right)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(right, forward), -forward, eye
-    return c2w
-
-
 def frames(size: int = 128) -> list[dict]:
     """Twelve views on two rings around the sphere, a pixel about a voxel wide on its near side."""
     records = []
     for i in range(12):
         angle, height = 2 * math.pi * i / 6 + (0.5 if i >= 6 else 0.0), (0.5 if i < 6 else -0.4)
         eye = CENTRE + 2.4 * np.array([math.cos(angle), math.sin(angle), height])
-        records.append({"transform_matrix": look_at(eye).tolist(), "fl_x": size * 1.1, "fl_y": size * 1.1,
+        records.append({"transform_matrix": look_at(eye, CENTRE).tolist(), "fl_x": size * 1.1, "fl_y": size * 1.1,
                         "cx": size / 2, "cy": size / 2, "w": size, "h": size, "split": "train"})
     return records
 
