@@ -306,11 +306,18 @@ def submesh(mesh: trimesh.Trimesh, face_mask: np.ndarray, vertex_mask: np.ndarra
     return out, (vertex_mask[used] if vertex_mask is not None else None)
 
 
+def boundary_vertices(mesh: trimesh.Trimesh) -> np.ndarray:
+    """The vertices [V] on an edge that only one face has (the edges of holes and of open surfaces)."""
+    unique, counts = np.unique(np.sort(np.asarray(mesh.edges), axis=1), axis=0, return_counts=True)
+    on_boundary = np.zeros(len(mesh.vertices), dtype=bool)
+    on_boundary[unique[counts == 1].ravel()] = True
+    return on_boundary
+
+
 def topology(mesh: trimesh.Trimesh) -> dict:
     """What decimation must not change: boundary loops (the edges of holes and of open surfaces), the Euler number
     and the connected pieces; and the non-manifold edges (more than two faces), which it must not add."""
-    edges = np.sort(np.asarray(mesh.edges), axis=1)
-    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    unique, counts = np.unique(np.sort(np.asarray(mesh.edges), axis=1), axis=0, return_counts=True)
     boundary = unique[counts == 1]
     loops = 0
     if len(boundary):

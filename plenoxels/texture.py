@@ -375,7 +375,14 @@ def bake(texels: np.ndarray, colours: np.ndarray, size: tuple[int, int]) -> np.n
 def sample_texture(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear lookup [N, C] of `image` [H, W, C] at UV [N, 2] (edges clamped)."""
     height, width = image.shape[:2]
-    xy = uv_to_pixels(uv, (width, height)) - 0.5
+    return sample_pixels(image, uv_to_pixels(uv, (width, height)))
+
+
+def sample_pixels(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """Bilinear lookup [N, C] (float64) of `image` [H, W, C] at continuous pixel coordinates [N, 2] (x, y; pixel
+    centres at +0.5, edges clamped)."""
+    height, width = image.shape[:2]
+    xy = pixels - 0.5
     x0, y0 = np.floor(xy[:, 0]).astype(np.int64), np.floor(xy[:, 1]).astype(np.int64)
     fx, fy = (xy[:, 0] - x0)[:, None], (xy[:, 1] - y0)[:, None]
 

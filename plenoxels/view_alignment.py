@@ -16,9 +16,13 @@ fitted surface unless the views clearly agree better elsewhere (PRIOR_PER_VOXEL,
 at least COST_FLOOR: a uniform colour gives no reason to move). A vertex stays where it is when fewer than MIN_VIEWS
 views see it, or when even their best agreement is poor (colours more than AGREEMENT apart, a standard deviation):
 a surface whose colour turns with the view (a highlight, a sheen) gives no depth, and on a strongly view-dependent
-field the depth of least disagreement drifts off the surface. The chosen offsets are smoothed over the mesh's edges
-(SMOOTHING passes, each vertex with the mean of its neighbours), so one noisy vertex does not tear the surface. One
-pass only: repeated passes roughen the surface more than they help (bench/README.md).
+field the depth of least disagreement drifts off the surface. A view that meets the vertex on its silhouette (a pixel
+around it not opaque) leaves its set: what lies behind mixes in there. The mesh's open edges, where it was cut or no
+view saw on, and BOUNDARY_RINGS rings inside them stay: the colour places a surface, not where it ends (on the
+synthetic rooms, free edges at the ground's cut moved inwards and lost pixels the objects cover). The chosen offsets
+are smoothed over the mesh's edges (SMOOTHING passes, each vertex with the mean of its neighbours), so one noisy
+vertex does not tear the surface. One pass only: repeated passes roughen the surface more than they help
+(bench/README.md).
 """
 from __future__ import annotations
 
@@ -27,7 +31,9 @@ import trimesh
 
 from plenoxels.cameras import project
 from plenoxels.fit_frame import FitFrame
+from plenoxels.mesh import boundary_vertices
 from plenoxels.surface import ViewRender, view_cosines
+from plenoxels.texture import sample_pixels
 
 # Candidate offsets along the normal are this many voxels apart.
 STEP_VOXELS = 0.5
@@ -104,9 +110,7 @@ def align_to_views(mesh: trimesh.Trimesh, views: list[ViewRender], frame: FitFra
     # Agreement gained over the fitted surface (any, where some view sees through the fitted surface itself).
     gain = np.where(np.isnan(cost[steps]), np.inf, cost[steps] - cost[choice, np.arange(len(vertices))])
     shift[~known | (views_per_vertex < MIN_VIEWS) | (agreement > AGREEMENT) | (gain < COST_FLOOR)] = 0.0
-    # The mesh's open edges (where it was cut, or no view saw on) and BOUNDARY_RINGS rings of vertices inside them stay:
-    # the colour places a surface, not where it ends.
-    boundary = _boundary_vertices(mesh)
+    boundary = boundary_vertices(mesh)
     shift[_grow(boundary, mesh.edges_unique, BOUNDARY_RINGS)] = 0.0
     shift = _smooth(shift, mesh.edges_unique, SMOOTHING)
     shift[boundary] = 0.0
@@ -122,27 +126,13 @@ def _sample(view: ViewRender, points: np.ndarray) -> tuple[np.ndarray, np.ndarra
     """The view's colour [N, 3] in [0, 1] where world `points` project, bilinear (clamped at the image's edge), and
     whether all four pixels read are at least OPAQUE [N]."""
     pixels, _ = project(points, view.c2w, view.k)
-    image = view.rgb.reshape(view.k.h, view.k.w, 3)
-    opacity = view.opacity.reshape(view.k.h, view.k.w)
-    x, y = pixels[:, 0] - 0.5, pixels[:, 1] - 0.5
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-
-    def at(col, row):
-        row, col = np.clip(row, 0, view.k.h - 1), np.clip(col, 0, view.k.w - 1)
-        return image[row, col].astype(np.float64) / 255.0, opacity[row, col] >= OPAQUE
-
-    (c00, o00), (c10, o10), (c01, o01), (c11, o11) = at(x0, y0), at(x0 + 1, y0), at(x0, y0 + 1), at(x0 + 1, y0 + 1)
-    colour = (1 - fy) * ((1 - fx) * c00 + fx * c10) + fy * ((1 - fx) * c01 + fx * c11)
-    return colour, o00 & o10 & o01 & o11
-
-
-def _boundary_vertices(mesh: trimesh.Trimesh) -> np.ndarray:
-    """The vertices [V] on an edge that only one face has."""
-    edges, counts = np.unique(np.sort(mesh.edges, axis=1), axis=0, return_counts=True)
-    boundary = np.zeros(len(mesh.vertices), dtype=bool)
-    boundary[edges[counts == 1].ravel()] = True
-    return boundary
+    colour = sample_pixels(view.rgb.reshape(view.k.h, view.k.w, 3), pixels) / 255.0
+    opaque = (view.opacity >= OPAQUE).reshape(view.k.h, view.k.w)
+    x0, y0 = (np.floor(pixels - 0.5).astype(np.int64)[:, axis] for axis in (0, 1))
+    all_opaque = np.ones(len(points), dtype=bool)
+    for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        all_opaque &= opaque[np.clip(y0 + dy, 0, view.k.h - 1), np.clip(x0 + dx, 0, view.k.w - 1)]
+    return colour, all_opaque
 
 
 def _grow(marked: np.ndarray, edges: np.ndarray, rings: int) -> np.ndarray:
