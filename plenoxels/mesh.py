@@ -5,6 +5,7 @@ Geometry is extracted in the fit frame (`plenoxels.fit_frame.FitFrame`) and mapp
 """
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -152,25 +153,64 @@ def auto_level(grid, lattice: Lattice, opaque_rays: Terminations | None, share: 
     return level, f"auto: one voxel ({lattice.voxel:.4g} fit units) at this density is {opacity:.0%} opaque"
 
 
-def fill_unreached(lattice: Lattice, level: float, rays: Terminations | None, close_voxels: int
-                   ) -> tuple[Lattice, dict]:
-    """The lattice with the free space that no training ray reaches raised above `level`, and what was filled.
+# The 13 lines through a lattice cell (each direction up to its sign): an opening is ringed by solid along every
+# line of some plane through it.
+LATTICE_LINES = tuple(d for d in itertools.product((-1, 0, 1), repeat=3) if d > (0, 0, 0))
+PLANE_LINES = tuple(tuple(d for d in LATTICE_LINES if np.dot(d, normal) == 0) for normal in LATTICE_LINES)
+# Slabs of the lattice sealed at a time (planes along its first axis), to bound the memory on large lattices.
+SEAL_SLAB = 32
+
+
+def _ringed(solid: np.ndarray, reach: int) -> np.ndarray:
+    """Free cells with solid within `reach` cells on both sides along every line of some plane through them."""
+    padded = np.pad(solid, reach)
+    n = solid.shape
+
+    def solid_at(d, k):   # solid at cell + k * d, for every cell
+        return padded[tuple(slice(reach + k * c, reach + k * c + n[i]) for i, c in enumerate(d))]
+
+    bracketed = {}
+    for d in LATTICE_LINES:
+        ahead, behind = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+        for k in range(1, reach + 1):
+            ahead |= solid_at(d, k)
+            behind |= solid_at(d, -k)
+        bracketed[d] = ahead & behind
+    ringed = np.zeros(n, dtype=bool)
+    for lines in PLANE_LINES:
+        ringed |= np.logical_and.reduce([bracketed[d] for d in lines])
+    return ringed & ~solid
+
+
+def seal_openings(lattice: Lattice, level: float, rays: Terminations | None, reach: int) -> tuple[Lattice, dict]:
+    """The lattice with the fitted solids' small openings sealed and their enclosed cavities filled (raised above
+    `level`), and what was filled.
 
     A fit of a few small photos makes its solids soft shells over an empty foam, their skins pierced by openings
-    a voxel or two across; marching cubes meshes the foam's walls too, and a camera then sees through an opening
-    onto walls inside the object, and through it where those walls go as unseen. Free space here: the cells below
-    the level, after a closing of the solid by `close_voxels` (which seals openings up to twice that across), that
-    connect to the lattice's border or to where the opaque training `rays` (fit frame) pass on their way to their
-    ends (FREE_SPACE_SHARES of the way), grown back through the free space by the closing's reach. Every other cell
-    below the level is filled, so the surface is the solids' outside alone. A gap narrower than the closing between
-    two solids is filled as well."""
+    a voxel or a few across. Marching cubes meshes the foam's walls too; the unseen faces go, and a camera then
+    sees through each opening into the object, and out of it where no view saw the far side. A cell is sealed when
+    solid rings it within `reach` cells along every line of some plane through it (repeated until nothing changes),
+    which closes an opening in a sheet up to 2 * reach - 1 cells across but leaves open what solid brackets along
+    one line only (a slot, the gap between two solids) or meets along an edge (where an object stands on the
+    ground); a corner where three faces meet inwards (a room's) is rounded by up to `reach` cells. Then every region of free space that neither reaches the lattice's border nor holds
+    the opaque training `rays` (fit frame) on their way to their ends (FREE_SPACE_SHARES of the way) is a cavity
+    inside a solid and is filled, so its walls are not meshed."""
     solid = lattice.values > level
-    if close_voxels <= 0 or not solid.any():
-        return lattice, {"voxels": 0, "pieces": 0}
-    pad = close_voxels
-    closed = ndimage.binary_closing(np.pad(solid, pad), iterations=close_voxels)[pad:-pad, pad:-pad, pad:-pad]
-    labels, count = ndimage.label(~closed)
+    if reach <= 0 or not solid.any():
+        return lattice, {"voxels": 0, "sealed": 0, "cavities": 0}
+    sealed = np.zeros_like(solid)
+    for _ in range(2 * reach):
+        new = np.zeros_like(solid)
+        for start in range(0, solid.shape[0], SEAL_SLAB):
+            lo, hi = max(start - reach, 0), min(start + SEAL_SLAB + reach, solid.shape[0])
+            ringed = _ringed(solid[lo:hi] | sealed[lo:hi], reach)
+            new[start:start + SEAL_SLAB] = ringed[start - lo:start - lo + SEAL_SLAB]
+        if not new.any():
+            break
+        sealed |= new
+    labels, count = ndimage.label(~(solid | sealed))
     reached = np.zeros(count + 1, dtype=bool)
+    reached[0] = True   # label 0: the solid and the sealed cells
     for axis in range(3):
         for end in (0, -1):
             reached[np.unique(np.take(labels, end, axis=axis))] = True
@@ -181,18 +221,14 @@ def fill_unreached(lattice: Lattice, level: float, rays: Terminations | None, cl
             index = np.round((points - lattice.origin) / lattice.spacing).astype(np.int64)
             index = index[((index >= 0) & (index < shape)).all(axis=1)]
             reached[np.unique(labels[index[:, 0], index[:, 1], index[:, 2]])] = True
-    reached[0] = False   # label 0: the closed solid
-    # The closing also rounds the free space's own concave edges (a room's corners); growing what is reached back
-    # through the free space by as much restores them, while a sealed opening reopens only to that depth.
-    outside = ndimage.binary_dilation(reached[labels], structure=np.ones((3, 3, 3), dtype=bool),
-                                      iterations=close_voxels, mask=~solid)
-    filled = ~solid & ~outside
+    cavities = ~reached[labels]
+    filled = sealed | cavities
     if not filled.any():
-        return lattice, {"voxels": 0, "pieces": 0}
+        return lattice, {"voxels": 0, "sealed": 0, "cavities": 0}
     values = lattice.values.copy()
     values[filled] = np.maximum(values[filled], 2.0 * level if level > 0 else level + 1.0)
-    return Lattice(values, lattice.origin, lattice.spacing), {"voxels": int(filled.sum()),
-                                                              "pieces": int(ndimage.label(filled)[1])}
+    return Lattice(values, lattice.origin, lattice.spacing), {"voxels": int(filled.sum()), "sealed": int(sealed.sum()),
+                                                              "cavities": int((~reached[1:]).sum())}
 
 
 def extract_surface(lattice: Lattice, level: float) -> tuple[np.ndarray, np.ndarray]:
@@ -416,7 +452,7 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
         level, level_source = float(options.level), "set"
     native = int(np.max(lattice.values.shape) - 1)
     resolution = native if options.resolution == "auto" else int(options.resolution)
-    lattice, filled = fill_unreached(lattice, level, level_rays, options.fill_voxels)
+    lattice, filled = seal_openings(lattice, level, level_rays, options.fill_voxels)
     fine = refine(lattice, resolution, level)
     report.info(f"marching cubes at density {level:.4g} on a {'x'.join(map(str, fine.values.shape))} lattice")
     vertices, faces = extract_surface(fine, level)

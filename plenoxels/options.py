@@ -148,11 +148,11 @@ class MeshOptions:
     max_gap: float = 0.05
     """Pieces farther than this share of the foreground diagonal from the largest are dropped (unless they stood on
     the ground that object_only cut away)."""
-    fill_voxels: int = 0
-    """Before marching cubes, fill the free space no training ray reaches: cavities inside the fitted solids (their
-    foam) and openings in their skins up to twice this many voxels across, so the mesh is the solids' outer surface
-    alone, with fewer holes; gaps that narrow between solids fill too (0: the density as fitted; bench/README.md
-    measures 1 and 2)."""
+    fill_voxels: int = 4
+    """Before marching cubes, seal openings in the fitted solids' skins up to 2 x this - 1 voxels across (those
+    solid rings in some plane; slots, gaps between solids and the edges where they meet the ground stay open) and
+    fill the cavities they close off, so the mesh is the solids' outside without the holes the fit's foam leaves
+    (0: the density as fitted; bench/README.md measures it)."""
     unseen: Literal["drop", "keep"] = "drop"
     """Faces no training view sees (insides of the fit's shells, undersides)."""
     seen_tolerance: float = 1.0

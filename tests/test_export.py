@@ -1,6 +1,7 @@
 """Export: marching cubes level and frame on analytic density fields, colours, cleaning, decimation,
 NDC mapping back to the world, points and the auto level, files that reload with the same counts, the
 frame round trip, and the whole pipeline on a tiny synthetic object against its true mesh."""
+import itertools
 import math
 from pathlib import Path
 
@@ -27,7 +28,7 @@ from plenoxels.errors import UserError
 from plenoxels.fit_frame import CONTRACTED_BOX, Contraction, FitFrame
 from plenoxels.grid import SparseGrid
 from plenoxels.mesh import (LEVEL_RAY_OPACITY, MARCH_STEP_VOXELS, PEAK_OPTICAL_DEPTH, Lattice, auto_level, build_mesh,
-                            clean_mesh, decimate, fill_unreached, grid_lattice, grid_lattice_voxel, ray_peaks,
+                            clean_mesh, decimate, grid_lattice, grid_lattice_voxel, ray_peaks, seal_openings,
                             surface_colours, topology, transform_normals, transform_points)
 from plenoxels.ndc import NDCMapping
 from plenoxels.render import COLOUR_OFFSET, SH_C0
@@ -165,8 +166,8 @@ def test_a_shell_pierced_by_small_openings_meshes_as_its_outside_alone_without_h
     inner = lambda mesh: np.linalg.norm(mesh.vertices - SPHERE_CENTRE, axis=1) < SPHERE_RADIUS - 0.1
     as_fitted, _ = build_mesh(field, FitFrame(), *BOX, Settings(unseen="keep", fill_voxels=0), _Quiet())
     assert inner(as_fitted).mean() > 0.3 and topology(as_fitted)["pieces"] == 1   # the walls join at the openings
-    filled, decisions = build_mesh(field, FitFrame(), *BOX, Settings(unseen="keep", fill_voxels=1), _Quiet())
-    assert decisions["filled"]["voxels"] > 0
+    filled, decisions = build_mesh(field, FitFrame(), *BOX, Settings(unseen="keep"), _Quiet())
+    assert decisions["filled"]["sealed"] > 0 and decisions["filled"]["cavities"] >= 1
     assert inner(filled).mean() < 0.01
     shape = topology(filled)
     assert shape["pieces"] == 1 and shape["boundary_edges"] == 0 and shape["euler"] == 2   # a closed sphere
@@ -174,22 +175,51 @@ def test_a_shell_pierced_by_small_openings_meshes_as_its_outside_alone_without_h
                                                                                                abs=voxel)
 
 
+def _sealed(solid: np.ndarray, reach: int) -> np.ndarray:
+    """The cells seal_openings raises above the level of a 0 / 10 lattice, with every free region reaching a ray."""
+    lattice = Lattice(np.where(solid, 10.0, 0.0).astype(np.float32), np.zeros(3), np.ones(3))
+    free = np.argwhere(~solid).astype(np.float64)
+    rays = Terminations(free - 0.25, np.tile([[1.0, 0.0, 0.0]], (len(free), 1)), np.ones(len(free)), np.ones(len(free)))
+    sealed, _ = seal_openings(lattice, 5.0, rays, reach)
+    return (sealed.values > 5.0) & ~solid
+
+
+def test_seal_closes_an_opening_in_a_sheet_up_to_its_reach_and_leaves_slots_and_corners_open():
+    sheet = np.zeros((24, 24, 12), dtype=bool)
+    sheet[:, :, 5] = True
+    sheet[9:14, 9:14, 5] = False   # an opening five cells across
+    assert not _sealed(sheet, 2).any()   # up to three across
+    assert _sealed(sheet, 3).sum() == 25
+    assert _sealed(sheet, 3)[9:14, 9:14, 5].all()
+
+    slot = np.zeros((24, 24, 24), dtype=bool)   # two solids three cells apart: the gap between objects
+    slot[2:10], slot[13:21] = True, True
+    assert not _sealed(slot, 4).any()
+    standing = np.zeros((24, 24, 24), dtype=bool)   # a box standing on the ground, against a wall
+    standing[:, :, :4] = True
+    standing[:3] = True
+    standing[8:14, 8:14, 4:12] = True
+    assert not _sealed(standing, 4).any()
+
+
 def test_free_space_the_training_rays_cross_is_never_filled_even_where_walls_enclose_it():
     # A room seen from inside: its walls close the air off from the lattice's border, and only the rays say it is
-    # free space, not a cavity inside a solid.
+    # free space, not a cavity inside a solid. Its corners, where three walls meet, are rounded by the seal's reach.
     res = 32
     values = np.zeros((res, res, res), dtype=np.float32)
     values[2:-2, 2:-2, 2:-2] = 10.0
     values[4:-4, 4:-4, 4:-4] = 0.0
     lattice = Lattice(values, np.full(3, -1.0), np.full(3, 2 / (res - 1)))
     enclosed = int((values[4:-4, 4:-4, 4:-4] == 0).sum())
-    _, without_rays = fill_unreached(lattice, 5.0, None, 1)
-    assert without_rays["voxels"] == enclosed and without_rays["pieces"] == 1
+    _, without_rays = seal_openings(lattice, 5.0, None, 1)
+    assert without_rays["voxels"] == enclosed and without_rays["cavities"] == 1
     directions = np.random.default_rng(0).normal(size=(200, 3))
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     rays = Terminations(np.zeros((200, 3)), directions, np.full(200, 0.7), np.ones(200))
-    unfilled, with_rays = fill_unreached(lattice, 5.0, rays, 1)
-    assert with_rays["voxels"] == 0 and np.array_equal(unfilled.values, values)
+    unfilled, with_rays = seal_openings(lattice, 5.0, rays, 1)
+    assert with_rays["cavities"] == 0 and with_rays["voxels"] == with_rays["sealed"]
+    corners = np.array(list(itertools.product((4, res - 5), repeat=3)))
+    assert np.array_equal(np.argwhere(unfilled.values != values), corners)
 
 
 def test_a_mesh_layer_behind_a_nearer_one_is_unseen_even_where_the_render_hides_nothing():
