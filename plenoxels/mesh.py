@@ -199,15 +199,18 @@ def seal_openings(lattice: Lattice, level: float, rays: Terminations | None, rea
     if reach <= 0 or not solid.any():
         return lattice, {"voxels": 0, "sealed": 0, "cavities": 0}
     sealed = np.zeros_like(solid)
+    changed = solid   # a cell's ring can only close where something within the reach changed
     for _ in range(2 * reach):
         new = np.zeros_like(solid)
         for start in range(0, solid.shape[0], SEAL_SLAB):
             lo, hi = max(start - reach, 0), min(start + SEAL_SLAB + reach, solid.shape[0])
-            ringed = _ringed(solid[lo:hi] | sealed[lo:hi], reach)
-            new[start:start + SEAL_SLAB] = ringed[start - lo:start - lo + SEAL_SLAB]
+            if changed[lo:hi].any():
+                ringed = _ringed(solid[lo:hi] | sealed[lo:hi], reach)
+                new[start:start + SEAL_SLAB] = ringed[start - lo:start - lo + SEAL_SLAB]
         if not new.any():
             break
         sealed |= new
+        changed = new
     labels, count = ndimage.label(~(solid | sealed))
     reached = np.zeros(count + 1, dtype=bool)
     reached[0] = True   # label 0: the solid and the sealed cells
