@@ -192,9 +192,10 @@ def seal_openings(lattice: Lattice, level: float, rays: Terminations | None, rea
     solid rings it within `reach` cells along every line of some plane through it (repeated until nothing changes),
     which closes an opening in a sheet up to 2 * reach - 1 cells across but leaves open what solid brackets along
     one line only (a slot, the gap between two solids) or meets along an edge (where an object stands on the
-    ground); a corner where three faces meet inwards (a room's) is rounded by up to `reach` cells. Then every region of free space that neither reaches the lattice's border nor holds
-    the opaque training `rays` (fit frame) on their way to their ends (FREE_SPACE_SHARES of the way) is a cavity
-    inside a solid and is filled, so its walls are not meshed."""
+    ground); a corner where three faces meet inwards (a room's) is rounded by up to `reach` cells. Then every region
+    of free space that neither reaches the lattice's border nor holds the opaque training `rays` (fit frame) on
+    their way to their ends (FREE_SPACE_SHARES of the way) is a cavity inside a solid and is filled, so its walls
+    are not meshed."""
     solid = lattice.values > level
     if reach <= 0 or not solid.any():
         return lattice, {"voxels": 0, "sealed": 0, "cavities": 0}
