@@ -3,10 +3,11 @@
 Writes export/mesh.ply (vertex colours), mesh.obj + mesh.mtl + mesh.png and mesh.glb (textured; with vertex colours
 when export.texture is off), points.ply (points where the training views' rays terminate, with colours and normals)
 and export.json (the frame, counts, sizes, bounds, level, resolution, what was cut away, the decimation and the
-texture). One mesh: marching cubes over the fitted density, small pieces and floaters removed, cropped to the
-foreground box (or export.crop), faces no training view sees dropped, the ground and the room cut away for object and
-unbounded scenes, decimated to export.max_faces, its vertices moved onto where the training views agree on the colour
-(export.align_voxels), then unwrapped and its texture baked (plenoxels/mesh.py, plenoxels/ground.py,
+texture). One mesh: marching cubes over the fitted density (the solids' small openings sealed first,
+export.fill_voxels), small pieces and floaters removed, cropped to the foreground box (or export.crop), faces no
+training view sees dropped, the ground and the room cut away for object and unbounded scenes, decimated to
+export.max_faces, its vertices moved onto where the training views agree on the colour (export.align_voxels), then
+unwrapped and its texture baked (plenoxels/mesh.py, plenoxels/ground.py,
 plenoxels/view_alignment.py, plenoxels/texture.py; files: pipeline/mesh_files.py).
 
 Seen faces: a fit only pins down density where rays stop, so its surfaces are shells whose insides
