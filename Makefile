@@ -70,7 +70,7 @@ $(VENV)/.installed-blender: pyproject.toml | $(STAMP)
 	$(PY) -m pip install -q --upgrade --target $(VENV)/blender "$(BLENDER_REQUIREMENT)" && touch $@
 
 $(LPIPS_WEIGHTS): | $(STAMP)
-	$(PY) -m pipeline.lpips install --dest $@
+	$(PY) -m stages.scoring.lpips install --dest $@
 
 # torch is installed on its own first, pinned, so that no other package can pull a newer (CUDA) build.
 $(STAMP): pyproject.toml setup.py $(wildcard csrc/*)
@@ -79,7 +79,7 @@ $(STAMP): pyproject.toml setup.py $(wildcard csrc/*)
 	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q --no-build-isolation -e '.[test]'
 	$(PY) setup.py -q build_ext --inplace
-	$(PY) -m pipeline.lpips install --dest $(LPIPS_WEIGHTS)
+	$(PY) -m stages.scoring.lpips install --dest $(LPIPS_WEIGHTS)
 	$(PY) -c "import torch, plenoxels._C" && touch $(STAMP)
 
 # make render [scene=PATH | out=DIR] [cameras=FILE|auto|orbit|spiral] [size=640|640x480] [frames=N]: renders the

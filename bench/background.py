@@ -27,11 +27,11 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from bench.kernels import make_grid  # noqa: E402
-from plenoxels.background import MultiSphereBackground  # noqa: E402
-from plenoxels.cameras import Intrinsics, look_at  # noqa: E402
-from plenoxels.render import RenderOptions  # noqa: E402
-from plenoxels.scene_model import ModelOptions, SceneModel, background_width_for  # noqa: E402
-from plenoxels.train import Fitter, RaySet, TrainOptions  # noqa: E402
+from plenoxels.core.background import MultiSphereBackground  # noqa: E402
+from plenoxels.core.cameras import Intrinsics, look_at  # noqa: E402
+from plenoxels.core.render import RenderOptions  # noqa: E402
+from plenoxels.core.scene_model import ModelOptions, SceneModel, background_width_for  # noqa: E402
+from plenoxels.core.train import Fitter, RaySet, TrainOptions  # noqa: E402
 
 RESULTS = REPO / "bench" / "results" / "background.json"
 

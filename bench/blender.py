@@ -11,7 +11,7 @@ runs there, in a child process; this side compares what it reports with the file
   texture, with the file's vertex colours as the mesh's render colour attribute, equal within COLOUR_TOLERANCE (in
   sRGB: the glTF's COLOR_0 is linear light);
 - a Cycles render from a training camera of what each material's Base Color shows against
-  plenoxels.texture.render_mesh's render of the same file: on the pixels both cover (one pixel in from either's
+  plenoxels.surface.texture.render_mesh's render of the same file: on the pixels both cover (one pixel in from either's
   silhouette) the mean absolute difference is below RENDER_MEAN_TOLERANCE, and the covered pixels agree (IoU at least
   RENDER_MIN_IOU).
 """
@@ -31,10 +31,10 @@ import trimesh
 from scipy.ndimage import binary_erosion
 from scipy.spatial import cKDTree
 
-from pipeline.io import GLTF_FROM_ZUP
-from pipeline.mesh_files import linear_to_srgb, srgb_to_linear
-from plenoxels.cameras import Intrinsics
-from plenoxels.texture import render_mesh
+from stages.common.media import GLTF_FROM_ZUP
+from stages.interchange.mesh_files import linear_to_srgb, srgb_to_linear
+from plenoxels.core.cameras import Intrinsics
+from plenoxels.surface.texture import render_mesh
 
 REPO = Path(__file__).resolve().parent.parent
 ENVIRONMENT = REPO / ".venv" / "blender"

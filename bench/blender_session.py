@@ -108,7 +108,7 @@ def render(camera: dict, path: Path) -> None:
     scene.cycles.device = "CPU"
     scene.cycles.samples = camera.get("samples", 4)
     scene.cycles.use_denoising = False
-    scene.cycles.filter_width = 0.01  # each pixel its centre's colour, as plenoxels.texture.render_mesh draws it
+    scene.cycles.filter_width = 0.01  # each pixel its centre's colour, as plenoxels.surface.texture.render_mesh draws it
     scene.render.resolution_x, scene.render.resolution_y = camera["w"], camera["h"]
     scene.render.resolution_percentage = 100
     scene.render.film_transparent = True

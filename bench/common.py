@@ -31,7 +31,7 @@ def fit_context(scene: dict, root: Path, settings, report: Reporter) -> Iterator
 def fitted(scene: dict, root: Path, settings, quiet: bool = True) -> tuple[dict, float, dict, object]:
     """Runs the fit stage on `scene` (see fit_context) and returns its summary, its wall seconds, its fit.json and the
     fitted model."""
-    from plenoxels.scene_model import SceneModel
+    from plenoxels.core.scene_model import SceneModel
     from stages import fit
 
     with fit_context(scene, root, settings, Reporter(quiet=quiet)) as ctx:
@@ -80,7 +80,7 @@ def run_part(args, one_run, whole_run) -> int:
     """A benchmark part's entry: with --one, one measurement whose spec arrives as JSON on stdin (so each run has
     a process, and a peak memory, of its own) and whose result leaves as JSON on stdout; else the whole part.
     A bad argument or input is a one-line error."""
-    from plenoxels.errors import UserError
+    from plenoxels.core.errors import UserError
 
     try:
         if args.one:
@@ -96,7 +96,7 @@ def fit_overrides(items: list[str]) -> dict:
     """`--set key=value` items (fit settings, `fit.` prefix optional) as a dict of YAML-parsed values."""
     import yaml
 
-    from plenoxels.errors import UserError
+    from plenoxels.core.errors import UserError
 
     overrides = {}
     for item in items:

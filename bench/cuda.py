@@ -69,8 +69,8 @@ def measure(torch, resolution: int, device, rays: int, reps: int, kind: str) -> 
     """Median samples/s of loss_and_grad and of render over `reps` batches (after a warm-up batch), on
     bench/kernels.py's grid and batches, so the CPU figures compare with that benchmark's."""
     from bench.kernels import make_grid, random_batch, tile_batch
-    from plenoxels.optim import GridGrad
-    from plenoxels.render import RenderOptions, loss_and_grad, render, sample_counts
+    from plenoxels.core.optim import GridGrad
+    from plenoxels.core.render import RenderOptions, loss_and_grad, render, sample_counts
 
     opts = RenderOptions(step_size=0.5)
     grid = make_grid(resolution, sparse=resolution > 128).to(device)
@@ -159,7 +159,7 @@ def lego_scene(folder: Path, val_limit: int | None = None):
     the val frames mapped into the same frame with split "test"."""
     import numpy as np
 
-    from pipeline.scene_frame import Points, SceneOptions, normalize_scene
+    from stages.framing.scene_frame import Points, SceneOptions, normalize_scene
 
     transforms = {"frames": blender_frames(folder, "train")}  # intrinsics are per frame
     scene = normalize_scene(transforms, Points.empty(), SceneOptions(holdout_every=0), poses_dir=folder, path_prefix="")
@@ -202,10 +202,10 @@ def lego(torch, args) -> dict:
 
     from pipeline.report import Reporter
     from bench.common import fit_context
-    from plenoxels.native import resolve_device
-    from plenoxels.scene_model import SceneModel, psnr
+    from plenoxels.core.native import resolve_device
+    from plenoxels.core.scene_model import SceneModel, psnr
     from stages import fit
-    from pipeline.images import load_frame
+    from stages.common.frames import load_frame
 
     folder = args.data / "lego"
     settings = fit_settings(args.set, args.preset)
@@ -244,7 +244,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     import torch
 
-    from plenoxels.native import cuda_ready
+    from plenoxels.core.native import cuda_ready
 
     if args.cpu_baseline is not None:
         resolution, kind = args.cpu_baseline.split(",")

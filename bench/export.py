@@ -9,7 +9,7 @@ Each runs the whole pipeline (ingest, imported true poses, normalize, fit, expor
   objects' size, recall on the surface some training camera sees (VISIBLE_DEFINITION), precision over the whole
   mesh, and the share of the mesh's area farther than 5% of the objects' size from the truth (GOAL_*);
 - the colours: the textured mesh (OBJ + MTL + PNG, as written) and the PLY's vertex colours rendered unlit from every
-  held-out camera (plenoxels.texture.render_mesh), against the photo on the pixels the true objects cover, beside the
+  held-out camera (plenoxels.surface.texture.render_mesh), against the photo on the pixels the true objects cover, beside the
   radiance field's own render of the same pixels: the goal is the texture within GOAL_TEXTURE_DB of the field;
 - Blender 5.0.1 (bench/blender.py, when its `bpy` environment is installed): the GLB, OBJ and PLY imported, their
   frame, scale, materials and a render from a training camera against render_mesh's.
@@ -32,14 +32,14 @@ import trimesh
 
 from bench import blender
 from bench.fit import machine
-from pipeline import synthetic
-from pipeline.json_files import read_json, write_json
-from pipeline.metrics import mesh_scores, surface_distance
+from stages.capture import synthetic
+from stages.common.json_files import read_json, write_json
+from stages.scoring.metrics import mesh_scores, surface_distance
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
-from plenoxels.cameras import Intrinsics, project
-from plenoxels.scene_model import SceneModel
-from plenoxels.texture import render_mesh
+from plenoxels.core.cameras import Intrinsics, project
+from plenoxels.core.scene_model import SceneModel
+from plenoxels.surface.texture import render_mesh
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "bench" / "results"

@@ -1,7 +1,7 @@
 """Benchmark of the fit: held-out quality against wall time and peak memory, per preset and per single knob.
 
 Scenes: lego from ../shared/data (all 100 train images fitted, the first --val-limit val images held out)
-and a synthetic object scene (pipeline/synthetic.py, 48 views at 400x300, every 8th held out). Each run
+and a synthetic object scene (stages/capture/synthetic.py, 48 views at 400x300, every 8th held out). Each run
 is the fit stage as the pipeline runs it (preset, scene-type overlay, overrides), in its own process so
 its peak memory (max RSS) is its own. Every run is scored at one size per scene, --eval-scale of the
 photos (lego 400x400, the synthetic scene 200x150), whatever size it trained at, so runs of different
@@ -40,7 +40,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from plenoxels.errors import UserError  # noqa: E402
+from plenoxels.core.errors import UserError  # noqa: E402
 
 RESULTS = REPO / "bench" / "results" / "fit.json"
 CACHE = REPO / "bench" / "out"
@@ -85,9 +85,9 @@ def load_scene(name: str, data: Path, val_limit: int | None) -> tuple[dict, Path
 
 def synthetic_scene() -> tuple[dict, Path]:
     """The synthetic object scene, rendered once and kept under bench/out."""
-    from pipeline.json_files import read_json
-    from pipeline.synthetic import write_scene
-    from pipeline.scene_frame import Points, SceneOptions, normalize_scene
+    from stages.common.json_files import read_json
+    from stages.capture.synthetic import write_scene
+    from stages.framing.scene_frame import Points, SceneOptions, normalize_scene
 
     s = SYNTHETIC
     root = CACHE / f"synthetic_{s['kind']}_{s['n_views']}_{s['width']}x{s['height']}"
@@ -175,8 +175,8 @@ def one_run(spec: dict) -> dict:
     import torch
 
     from bench.common import budget_of, fitted
-    from pipeline.images import load_frame
-    from pipeline.metrics import image_psnr, image_ssim
+    from stages.common.frames import load_frame
+    from stages.scoring.metrics import image_psnr, image_ssim
 
     scene, root = load_scene(spec["scene"], Path(spec["data"]), spec["scoring"]["val_limit"])
     settings = resolve(spec["preset"], spec["scene_type"], spec["overrides"])
@@ -458,7 +458,7 @@ def sweep(args) -> int:
     args.presets = parse_list(args.presets, tuple(config.preset_names()), "preset")
     args.knobs = parse_list(args.knobs, KNOBS, "knob")
     args.budgets = [b.strip() for b in args.budgets.split(",") if b.strip()]
-    from pipeline.config import parse_duration
+    from stages.common.text import parse_duration
 
     for budget in args.budgets:
         parse_duration(budget, "--budgets")  # a bad one stops here, not in a child

@@ -1,7 +1,7 @@
 """The synthetic unbounded scene's resolution ceiling: how well each preset's grid could show the scene if it knew the
 true surfaces, next to what its fit scores (bench/results/real_scenes.json).
 
-The scene (pipeline/synthetic.py) is Lambertian with exact surfaces, so for each pixel centre the surface it sees is
+The scene (stages/capture/synthetic.py) is Lambertian with exact surfaces, so for each pixel centre the surface it sees is
 known. Each preset's grid (its final resolution, in the fit's own frame: the contraction around the foreground box,
 SceneModel.create) then gets one colour per vertex, chosen by least squares over every training pixel, each pixel
 the trilinear blend of the eight vertices around the point its ray hits. That is the best a grid of this resolution
@@ -46,10 +46,10 @@ def ceiling(preset: str, data: Path, iterations: int) -> dict:
     from scipy.sparse.linalg import lsqr
 
     from bench.fit import resolve
-    from pipeline.images import load_frame
-    from pipeline.synthetic import build_scene, surface_points
-    from plenoxels.reference import corners
-    from plenoxels.scene_model import SceneModel
+    from stages.common.frames import load_frame
+    from stages.capture.synthetic import build_scene, surface_points
+    from plenoxels.core.reference import corners
+    from plenoxels.core.scene_model import SceneModel
 
     started = time.time()
     out = prepared(SCENE, preset, data)
@@ -118,8 +118,8 @@ def table(results: dict) -> str:
 
 
 def main(argv=None) -> int:
-    from pipeline.json_files import write_json
-    from plenoxels.errors import UserError
+    from stages.common.json_files import write_json
+    from plenoxels.core.errors import UserError
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")

@@ -30,13 +30,13 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from plenoxels import native, reference  # noqa: E402
-from plenoxels.fit_cost import processor_name  # noqa: E402
-from plenoxels.grid import SparseGrid  # noqa: E402
-from plenoxels.optim import GridGrad  # noqa: E402
-from plenoxels.render import RenderOptions  # noqa: E402
-from plenoxels.render import loss_and_grad, sample_counts  # noqa: E402
-from plenoxels.train import coherent_order  # noqa: E402
+from plenoxels.core import native, reference  # noqa: E402
+from plenoxels.planning.fit_cost import processor_name  # noqa: E402
+from plenoxels.core.grid import SparseGrid  # noqa: E402
+from plenoxels.core.optim import GridGrad  # noqa: E402
+from plenoxels.core.render import RenderOptions  # noqa: E402
+from plenoxels.core.render import loss_and_grad, sample_counts  # noqa: E402
+from plenoxels.core.train import coherent_order  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "kernels.json"
 TILE = 32
@@ -113,7 +113,7 @@ def random_batch(n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tens
 
 
 def sorted_batch(n: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """random_batch's rays in the fit's coherent order (plenoxels.train.coherent_order)."""
+    """random_batch's rays in the fit's coherent order (plenoxels.core.train.coherent_order)."""
     origins, dirs = random_batch(n, gen)
     order = coherent_order(origins, dirs)
     return origins[order].contiguous(), dirs[order].contiguous()

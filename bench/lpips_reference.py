@@ -1,4 +1,4 @@
-"""LPIPS against its reference: pipeline/lpips.py on the LPIPS repository's example images, beside the values
+"""LPIPS against its reference: stages/scoring/lpips.py on the LPIPS repository's example images, beside the values
 lpips v0.1 (AlexNet) gives for them, and the installed linear heads beside the repository's own v0.1 `alex.pth`.
 
 Needs a checkout of github.com/richzhang/PerceptualSimilarity (--repo: imgs/ex_ref.png, ex_p0.png, ex_p1.png
@@ -27,7 +27,7 @@ def main(argv=None) -> int:
     import imageio.v3 as iio
     import torch
 
-    from pipeline import lpips
+    from stages.scoring import lpips
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repo", type=Path, help="a checkout of richzhang/PerceptualSimilarity")

@@ -1,7 +1,7 @@
 """Benchmark of the normalize stage on the real scenes in ../shared/data, from the poses they come with.
 
 Each scene's own pose files are read into the poses stage's layout (transforms dict + sparse points)
-here, then `pipeline.scene_frame.normalize_scene` decides the frame and the scene type. Writes
+here, then `stages.framing.scene_frame.normalize_scene` decides the frame and the scene type. Writes
 bench/results/normalize.json and prints one line per scene.
 
     .venv/bin/python -m bench.normalize [--data ../shared/data]
@@ -18,9 +18,9 @@ import numpy as np
 import pycolmap
 from PIL import Image
 
-from pipeline.json_files import write_json
-from pipeline.scene_frame import Points, SceneOptions, normalize_scene
-from plenoxels.cameras import opengl_c2w_from_colmap_w2c, opengl_c2w_from_llff
+from stages.common.json_files import write_json
+from stages.framing.scene_frame import Points, SceneOptions, normalize_scene
+from plenoxels.core.cameras import opengl_c2w_from_colmap_w2c, opengl_c2w_from_llff
 
 REPO = Path(__file__).resolve().parent.parent
 EXPECTED = {"lego": "object", "fern": "forward", "cup": "unbounded", "fox": "unbounded"}

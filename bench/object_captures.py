@@ -32,15 +32,15 @@ import trimesh
 from PIL import Image
 
 from bench.fit import machine
-from pipeline.json_files import read_json, write_json
-from pipeline.metrics import mesh_scores
+from stages.common.json_files import read_json, write_json
+from stages.scoring.metrics import mesh_scores
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
-from pipeline.sfm.compare import compare_poses, umeyama
+from stages.sfm.compare import compare_poses, umeyama
 from pipeline.stage import STAGE_ORDER
-from pipeline.synthetic import write_scene
-from plenoxels.cameras import colmap_w2c_from_opengl_c2w
-from plenoxels.errors import UserError
+from stages.capture.synthetic import write_scene
+from plenoxels.core.cameras import colmap_w2c_from_opengl_c2w
+from plenoxels.core.errors import UserError
 
 REPO = Path(__file__).resolve().parent.parent
 CASES = ("turntable_masks", "turntable_no_masks", "idr_layout", "mast_hull", "mast_points", "backdrop_varies",

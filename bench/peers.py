@@ -38,7 +38,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from plenoxels.errors import UserError  # noqa: E402
+from plenoxels.core.errors import UserError  # noqa: E402
 
 RESULTS = REPO / "bench" / "results" / "peers.json"
 WORK = REPO / "bench" / "out" / "peers"
@@ -63,7 +63,7 @@ def protocol_data(lego: Path, folder: Path) -> Path:
     import numpy as np
 
     from bench.cuda import blender_frames
-    from pipeline.images import load_frame
+    from stages.common.frames import load_frame
 
     if folder.is_symlink() or folder.is_file():
         folder.unlink()
@@ -124,8 +124,8 @@ def tensorf_run(spec: dict) -> dict:
     import torch
 
     from bench.cuda import blender_frames
-    from pipeline.images import load_frame
-    from pipeline.metrics import image_psnr
+    from stages.common.frames import load_frame
+    from stages.scoring.metrics import image_psnr
 
     checkout, lego = Path(spec["checkout"]), Path(spec["lego"])
     val = blender_frames(lego, "val")[:VIEWS]  # the views protocol_data wrote as TensoRF's test split
@@ -245,7 +245,7 @@ def summary(results: dict) -> str:
 def run_both(args) -> int:
     from bench.common import run_child
     from bench.fit import machine
-    from pipeline.config import parse_duration
+    from stages.common.text import parse_duration
 
     checkout = args.tensorf.resolve()
     if not (checkout / "train.py").is_file() or not (checkout / "configs" / "lego.txt").is_file():

@@ -36,10 +36,10 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from pipeline.json_files import write_json
-from pipeline.sfm.compare import compare_poses
-from pipeline.synthetic import write_scene
-from plenoxels.cameras import opengl_c2w_from_colmap_w2c
+from stages.common.json_files import write_json
+from stages.sfm.compare import compare_poses
+from stages.capture.synthetic import write_scene
+from plenoxels.core.cameras import opengl_c2w_from_colmap_w2c
 
 REPO = Path(__file__).resolve().parent.parent
 # The CLI's exhaustive matching of fox at full size ran past 30 minutes on the loaded 2-core machine; it now gets the

@@ -14,7 +14,7 @@ stages (ingest, poses, normalize) of the first.
 Ablations (the paper's Tables 3 and 4, on the scene named): `--ablation resolution` fits the preset with its levels
 capped at 32, 64, 128, 256 and 512 vertices (the capped levels' steps go to the last level kept); `--ablation views`
 fits a quarter of the training views (every 4th: lego's 25) with the TV weights as set (low) and with the few-views
-TV the fit sets itself (high; plenoxels.regularizers.tv_scale_for_views).
+TV the fit sets itself (high; plenoxels.core.regularizers.tv_scale_for_views).
 
     .venv/bin/python -m bench.protocol --scene lego=/data/nerf_synthetic/lego --presets paper
     .venv/bin/python -m bench.protocol --scene lego=../shared/data/lego --split val --presets paper --budgets 30m
@@ -39,7 +39,7 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from plenoxels.errors import UserError  # noqa: E402
+from plenoxels.core.errors import UserError  # noqa: E402
 
 RESULTS = REPO / "bench" / "results" / "protocol.json"
 CACHE = REPO / "bench" / "out" / "protocol"
@@ -72,7 +72,7 @@ REPRODUCTION = {
 
 def scene_kind(folder: Path) -> str:
     """"nerf_synthetic" or "llff", from the folder's layout; anything else is a one-line error."""
-    from pipeline.photos import is_split_dataset
+    from stages.capture.photos import is_split_dataset
 
     if is_split_dataset(folder):
         return "nerf_synthetic"
@@ -104,7 +104,7 @@ def capped_levels(resolutions: list[int], steps: list[int], cap: int) -> tuple[l
 def one_run(spec: dict) -> dict:
     """One pipeline run up to evaluate (or, for a few-views run, the fit and the evaluation of a reduced scene),
     and what it measured."""
-    from pipeline.json_files import read_json
+    from stages.common.json_files import read_json
     from pipeline.report import Reporter
     from pipeline.runner import Pipeline
 
@@ -235,7 +235,7 @@ def run_all(args) -> int:
     from bench.common import run_child
     from bench.fit import machine
     from pipeline import config
-    from pipeline.lpips import read_weights
+    from stages.scoring.lpips import read_weights
 
     if args.table:
         if not args.results.is_file():

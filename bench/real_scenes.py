@@ -12,7 +12,7 @@ presets ingest and fit photos of different sizes, and PSNRs at two sizes do not 
 photos, so the comparison never favours the larger ones). The first held-out view is written beside its truth to
 bench/results/real_scenes/<scene>-<preset>-<views>.png.
 
-The synthetic unbounded scene (pipeline/synthetic.py) is 40 views at 320x240 of an object on an endless textured
+The synthetic unbounded scene (stages/capture/synthetic.py) is 40 views at 320x240 of an object on an endless textured
 ground inside a textured sphere, written under bench/out/ with its true poses as a transforms.json.
 
     .venv/bin/python -m bench.real_scenes                                     # every scene, preset and view count
@@ -23,7 +23,7 @@ ground inside a textured sphere, written under bench/out/ with its true poses as
     .venv/bin/python -m bench.real_scenes --scenes ball apple --presets fast --views all --models auto contracted background
 
 With --models each run is the fit's own choice of scene model (auto: where normalize's measures are not clear-cut, a
-trial on a coarse level, plenoxels/model_trial.py) or one model forced (labelled with the model's name); each run
+trial on a coarse level, plenoxels/planning/model_trial.py) or one model forced (labelled with the model's name); each run
 records the model fitted and the trial's record, and the CPU seconds of the fit stage (its trial included) beside its
 wall time, which on a machine other jobs share measures the cost better.
 
@@ -50,8 +50,8 @@ REPO = Path(__file__).resolve().parent.parent
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from plenoxels.errors import UserError  # noqa: E402
-from plenoxels.model_trial import MODELS  # noqa: E402
+from plenoxels.core.errors import UserError  # noqa: E402
+from plenoxels.planning.model_trial import MODELS  # noqa: E402
 
 RESULTS = REPO / "bench" / "results" / "real_scenes.json"
 RENDERS = REPO / "bench" / "results" / "real_scenes"
@@ -62,7 +62,7 @@ FILES = {"apple": "apple.mp4"}
 PRESETS = ("fast", "balanced", "default", "quality")
 SCORE_SIDE = 320
 VIEWS = {"all": 1, "quarter": 4}
-# --models: the fit's own choice, or each scene model forced (plenoxels/model_trial.py MODELS).
+# --models: the fit's own choice, or each scene model forced (plenoxels/planning/model_trial.py MODELS).
 MODEL_FLAGS = {"auto": None, "ndc": "ndc", "contracted": "contracted", "background": "bounded + background",
                "bounded": "bounded"}
 
@@ -74,7 +74,7 @@ def scene_folder(name: str, data: Path) -> Path:
         if not folder.is_dir():
             raise UserError(f"no {name} scene under {data}; pass --data (the folder that holds {name}/)")
         return folder / FILES[name] if name in FILES else folder
-    from pipeline.synthetic import write_scene
+    from stages.capture.synthetic import write_scene
 
     folder = CACHE / "synthetic_unbounded-photos"
     if not (folder / "transforms.json").is_file():
@@ -105,9 +105,9 @@ def one_run(spec: dict) -> dict:
 
     from bench.common import budget_of, fitted
     from bench.fit import resolve
-    from pipeline.images import load_frame
-    from pipeline.io import write_png
-    from pipeline.metrics import image_scores, mean_scores, to_uint8
+    from stages.common.frames import load_frame
+    from stages.common.media import write_png
+    from stages.scoring.metrics import image_scores, mean_scores, to_uint8
 
     out = Path(spec["out"])
     scene = with_views(json.loads((out / "normalize" / "scene.json").read_text()), VIEWS[spec["views"]])
@@ -282,7 +282,7 @@ def main(argv=None) -> int:
 def run_all(args) -> int:
     from bench.common import fit_overrides, recorded
     from bench.fit import machine
-    from pipeline.json_files import write_json
+    from stages.common.json_files import write_json
 
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"runs": []}
     budget_plot = RESULTS.with_name("real_scenes_budget.png")

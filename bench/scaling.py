@@ -30,7 +30,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from bench.fit import cpu_name, load_scene, machine, resolve, synthetic_scene  # noqa: E402
-from plenoxels.errors import UserError  # noqa: E402
+from plenoxels.core.errors import UserError  # noqa: E402
 
 RESULTS = REPO / "bench" / "results" / "scaling.json"
 
@@ -49,9 +49,9 @@ def training_frames(scene: dict, count: int | None) -> list[dict]:
 def one_point(spec: dict) -> dict:
     import numpy as np
 
-    from pipeline.images import load_frame
-    from plenoxels.scene_model import SceneModel
-    from plenoxels.train import Fitter, RaySet
+    from stages.common.frames import load_frame
+    from plenoxels.core.scene_model import SceneModel
+    from plenoxels.core.train import Fitter, RaySet
 
     scene, root = load_scene(spec["scene"], Path(spec["data"]), 0)
     resolution, coarse = spec["resolution"], spec["coarse_steps"]

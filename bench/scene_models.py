@@ -11,7 +11,7 @@ scenes the first held-out view is rendered by both models side by side with the 
 blur of a world grid on a forward scene's near objects.
 
 Scenes: fern (LLFF, forward, every 8th image held out), cup and fox (inward with a room behind) from
-../shared/data, and the synthetic forward, unbounded and object scenes (pipeline/synthetic.py).
+../shared/data, and the synthetic forward, unbounded and object scenes (stages/capture/synthetic.py).
 Results are written to bench/results/scene_models.json after every run, so a partial benchmark keeps
 what it measured.
 
@@ -63,7 +63,7 @@ def machine() -> dict:
 def real_scene(name: str, data: Path) -> tuple[dict, Path]:
     """A real scene normalised from the poses it comes with (bench/normalize.py's readers)."""
     from bench.normalize import LOADERS
-    from pipeline.scene_frame import SceneOptions, normalize_scene
+    from stages.framing.scene_frame import SceneOptions, normalize_scene
 
     folder = data / name
     transforms, points = LOADERS[name](folder)
@@ -74,9 +74,9 @@ def real_scene(name: str, data: Path) -> tuple[dict, Path]:
 def synthetic_scene(name: str) -> tuple[dict, Path]:
     """A synthetic scene of 40 views at 160x120 (made once under bench/out), normalised as its kind, with
     each view's true near/far depths standing in for the sparse points SfM would give."""
-    from pipeline.json_files import read_json
-    from pipeline.synthetic import write_scene
-    from pipeline.scene_frame import Points, SceneOptions, normalize_scene
+    from stages.common.json_files import read_json
+    from stages.capture.synthetic import write_scene
+    from stages.framing.scene_frame import Points, SceneOptions, normalize_scene
 
     kind = name.removeprefix("synthetic_")
     root = CACHE / name
@@ -102,10 +102,10 @@ def one_run(name: str, scene: dict, root: Path, label: str, overrides: dict, pre
     from pipeline import config
     from pipeline.report import Reporter
     from bench.common import fit_context
-    from pipeline.images import load_frame
-    from plenoxels.scene_model import SceneModel
+    from stages.common.frames import load_frame
+    from plenoxels.core.scene_model import SceneModel
     from stages import fit
-    from pipeline.metrics import image_psnr, image_ssim
+    from stages.scoring.metrics import image_psnr, image_ssim
 
     values = config.merge(config.load_preset(preset), config.load_scene_type_overlay(scene["type"]),
                           {"fit": overrides})["fit"]
@@ -150,8 +150,8 @@ def side_by_side(path: Path, truth, appropriate, alternative) -> None:
     """truth | appropriate model | alternative, with a 4-pixel white gap."""
     import numpy as np
 
-    from pipeline.io import write_png
-    from pipeline.metrics import to_uint8
+    from stages.common.media import write_png
+    from stages.scoring.metrics import to_uint8
 
     gap = np.ones((truth.shape[0], 4, 3), dtype=np.float32)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -190,7 +190,7 @@ def main(argv=None) -> int:
                         help="a fit setting for every run (as --set fit.KEY=VALUE in the CLI)")
     args = parser.parse_args(argv)
     from pipeline import config
-    from pipeline.json_files import write_json
+    from stages.common.json_files import write_json
 
     extra = config.parse_overrides([f"fit.{kv}" for kv in args.overrides]).get("fit", {})
     results = {"machine": machine(), "bench_fit": {**BENCH_FIT, **extra}, "train_side": TRAIN_SIDE,

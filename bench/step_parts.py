@@ -54,7 +54,9 @@ def timed_fit(name: str, data: Path, steps: list[int], overrides: dict) -> dict:
 
     from bench.common import fitted
     from bench.fit import resolve
-    from plenoxels import background, optim, train
+    from plenoxels.core import background
+    from plenoxels.core import optim
+    from plenoxels.core import train
 
     scene, root, scene_type = scene_of(name, data)
     settings = resolve("default", scene_type, {**overrides, "steps": steps, "eval_every": 0})
@@ -152,7 +154,7 @@ def main(argv=None) -> int:
     import torch
 
     from bench.common import fit_overrides
-    from plenoxels.fit_cost import processor_name
+    from plenoxels.planning.fit_cost import processor_name
 
     load_before = os.getloadavg()[0]
     run = {"scene": args.scene, "label": args.label,

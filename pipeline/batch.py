@@ -31,12 +31,12 @@ from pathlib import Path
 from typing import Protocol
 
 from pipeline import config
-from pipeline.json_files import read_json, write_json
-from pipeline.report import format_bytes, format_duration
+from stages.common.json_files import read_json, write_json
+from stages.common.text import format_bytes, format_duration
 from pipeline.runner import read_manifest
 from pipeline.scenes import output_names
 from pipeline.stage import STAGE_ORDER
-from plenoxels.errors import UserError
+from plenoxels.core.errors import UserError
 
 PR_SET_PDEATHSIG = 1
 RECORD_FIELDS = ("name", "status", "stages_done", "stages_ran", "registered", "images", "scene_type", "psnr", "ssim",

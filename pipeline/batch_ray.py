@@ -13,7 +13,7 @@ import math
 
 from pipeline import config
 from pipeline.batch import BatchOptions, SceneJob, run_scene, scene_record, stage_run_ids
-from plenoxels.errors import UserError
+from plenoxels.core.errors import UserError
 
 try:
     import ray

@@ -14,7 +14,7 @@ from pathlib import Path
 from types import ModuleType
 
 from pipeline.stage import STAGE_ORDER
-from plenoxels.errors import UserError
+from plenoxels.core.errors import UserError
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ from typing import Any, Literal
 
 import yaml
 
-from plenoxels.errors import UserError
+from plenoxels.core.errors import UserError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 
@@ -166,41 +166,6 @@ def build(cls: type, section: str, values: dict[str, Any]):
 
 def to_dict(settings) -> dict[str, Any]:
     return dataclasses.asdict(settings)
-
-
-def require(condition: bool, message: str) -> None:
-    """For `check()` methods: one line that names the key and the allowed values."""
-    if not condition:
-        raise UserError(message)
-
-
-_DURATION_PART = re.compile(r"(\d+(?:\.\d*)?|\.\d+)([hms])")
-_DURATION_UNITS = {"h": 3600.0, "m": 60.0, "s": 1.0}
-
-
-def parse_duration(value: Any, key: str) -> float:
-    """Seconds in a duration setting: a number of seconds (90, 12.5), or hours, minutes and seconds written as
-    '1h', '5m', '90s', '2m30s' (units in that order, each at most once); 0 or '' is 0 (off). A bad value is a
-    UserError naming `key`."""
-    bad = UserError(f"bad value {value!r} for '{key}': expected a duration such as 90s, 5m, 2m30s or a number of "
-                    f"seconds (0: off)")
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        seconds = float(value)
-    elif isinstance(value, str):
-        text = value.strip().lower().replace(" ", "")
-        try:
-            seconds = float(text) if text else 0.0
-        except ValueError:
-            parts = list(_DURATION_PART.finditer(text))
-            units = [p.group(2) for p in parts]
-            if not parts or "".join(p.group(0) for p in parts) != text or units != sorted(set(units), key="hms".index):
-                raise bad from None
-            seconds = sum(float(p.group(1)) * _DURATION_UNITS[p.group(2)] for p in parts)
-    else:
-        raise bad
-    if not math.isfinite(seconds) or seconds < 0:
-        raise UserError(f"bad value {value!r} for '{key}': a duration must be a finite number of seconds >= 0")
-    return seconds
 
 
 def field_help(cls: type) -> dict[str, str]:

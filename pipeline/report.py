@@ -30,7 +30,7 @@ class LogLines(tqdm):
 
 
 # A list of names in a message shows this many, then says how many more.
-NAMES_SHOWN = 8
+
 
 
 class Reporter:
@@ -66,25 +66,3 @@ class Reporter:
 
     def track(self, iterable: Iterable[T], total: int | None = None, desc: str = "") -> Iterator[T]:
         yield from self.bar(iterable, total=total, desc=desc)
-
-
-def short_list(names: list[str]) -> str:
-    """The first NAMES_SHOWN names, comma-separated, and how many more there are."""
-    shown = ", ".join(names[:NAMES_SHOWN])
-    return shown + (f" and {len(names) - NAMES_SHOWN} more" if len(names) > NAMES_SHOWN else "")
-
-
-def format_duration(seconds: float) -> str:
-    """'2m05s', or '45s' under a minute."""
-    minutes, sec = divmod(int(round(seconds)), 60)
-    return f"{minutes}m{sec:02d}s" if minutes else f"{sec}s"
-
-
-def format_bytes(n: int) -> str:
-    """A byte count as '22 MB', or '640 kB' under a megabyte."""
-    return f"{n / 1e6:.0f} MB" if n >= 1e6 else f"{n / 1e3:.0f} kB"
-
-
-def format_count(n: int) -> str:
-    """A large count as '1.25M', or '146.9k' under a million."""
-    return f"{n / 1e6:.2f}M" if n >= 1e6 else f"{n / 1e3:.1f}k"

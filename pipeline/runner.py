@@ -23,10 +23,10 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline import config
-from pipeline.json_files import write_json
+from stages.common.json_files import write_json
 from pipeline.report import Reporter
 from pipeline.stage import StageContext, StageGraph
-from plenoxels.errors import UserError
+from plenoxels.core.errors import UserError
 
 
 @dataclass

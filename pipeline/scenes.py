@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from plenoxels.errors import UserError
+from plenoxels.core.errors import UserError
 
 GENERIC_FOLDER_NAMES = {"images", "photos", "frames", "input", "rgb"}
 SCENE_LIST_SUFFIXES = {".txt", ".list"}

@@ -97,7 +97,7 @@ class StageGraph:
 # is a dependency pinned by the install, not project code.
 PROJECT_PACKAGES = ("pipeline", "plenoxels", "stages")
 # The native core is built from these sources; a module that loads it depends on them as much as on Python code.
-NATIVE_MODULES = ("plenoxels.native", "plenoxels._C")
+NATIVE_MODULES = ("plenoxels.core.native", "plenoxels._C")
 NATIVE_SOURCES = REPO_ROOT / "csrc"
 
 

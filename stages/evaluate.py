@@ -4,7 +4,7 @@ Writes evaluate/metrics.json (PSNR, SSIM and LPIPS per held-out view and their m
 evaluate/gt/ and evaluate/depth/ (PNG per held-out view; depth colour-mapped between its 2nd and 98th
 percentile over the pixels the model covers, black where it covers nothing), evaluate/video.mp4 (the
 path that suits the capture: an orbit where the cameras surround the foreground, an arc through them
-where they do not, a spiral for forward scenes; pipeline/camera_paths.py) and evaluate/contact_sheet.png
+where they do not, a spiral for forward scenes; stages/scoring/camera_paths.py) and evaluate/contact_sheet.png
 (ground truth | render | error, one row per held-out view, captioned with its scores).
 
 Ground truth is the held-out photo resized to the evaluation scale, its mask (if any) composited onto
@@ -12,7 +12,7 @@ the fit's background colour exactly as the fit saw its training photos. Views wi
 (`psnr_masked`, `ssim_masked`: over the mask's pixels only, as the DTU protocol scores object captures), since the
 whole image's score counts a backdrop any empty render matches. SSIM is scikit-image's
 structural_similarity (Gaussian-weighted, as in Wang et al. 2004) on RGB in [0, 1]; LPIPS is v0.1 with
-AlexNet (pipeline/lpips.py), left out with a warning when its weights are not installed.
+AlexNet (stages/scoring/lpips.py), left out with a warning when its weights are not installed.
 """
 from __future__ import annotations
 
@@ -22,15 +22,15 @@ import imageio.v2 as imageio
 import numpy as np
 import torch
 
-from pipeline.camera_paths import default_path, median_intrinsics
-from pipeline.images import load_frame, load_mask
-from pipeline.io import write_png
-from pipeline.json_files import read_json, write_json
-from pipeline.lpips import weights_available
-from pipeline.metrics import image_scores, masked_scores, mean_scores, to_uint8
-from pipeline.visuals import colour_depth, contact_sheet, error_image
-from plenoxels.cameras import Intrinsics
-from plenoxels.scene_model import SceneModel
+from stages.scoring.camera_paths import default_path, median_intrinsics
+from stages.common.frames import load_frame, load_mask
+from stages.common.media import write_png
+from stages.common.json_files import read_json, write_json
+from stages.scoring.lpips import weights_available
+from stages.scoring.metrics import image_scores, masked_scores, mean_scores, to_uint8
+from stages.scoring.visuals import colour_depth, contact_sheet, error_image
+from plenoxels.core.cameras import Intrinsics
+from plenoxels.core.scene_model import SceneModel
 from stages.settings.evaluate import Settings
 
 
@@ -98,7 +98,7 @@ def run(ctx) -> dict:
     write_json(ctx.work / "metrics.json", {"views": views, "mean": mean, "scale": scale, "count": len(views),
                                            "render_seconds": round(render_seconds, 2), "video": video,
                                            "ssim": "skimage.metrics.structural_similarity, gaussian, data_range 1",
-                                           "lpips": "AlexNet, v0.1 (pipeline/lpips.py)" if with_lpips else None})
+                                           "lpips": "AlexNet, v0.1 (stages/scoring/lpips.py)" if with_lpips else None})
     if mean:
         lpips = f", LPIPS {mean['lpips']:.3f}" if "lpips" in mean else ""
         line = (f"PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.3f}{lpips} on {len(views)} held-out views "

@@ -7,8 +7,8 @@ texture). One mesh: marching cubes over the fitted density (the solids' small op
 export.fill_voxels), small pieces and floaters removed, cropped to the foreground box (or export.crop), faces no
 training view sees dropped, the ground and the room cut away for object and unbounded scenes, decimated to
 export.max_faces, its vertices moved onto where the training views agree on the colour (export.align_voxels), then
-unwrapped and its texture baked (plenoxels/mesh.py, plenoxels/ground.py,
-plenoxels/view_alignment.py, plenoxels/texture.py; files: pipeline/mesh_files.py).
+unwrapped and its texture baked (plenoxels/surface/mesh.py, plenoxels/surface/ground.py,
+plenoxels/surface/view_alignment.py, plenoxels/surface/texture.py; files: stages/interchange/mesh_files.py).
 
 Seen faces: a fit only pins down density where rays stop, so its surfaces are shells whose insides
 (and the undersides no camera looks at) are guesses; marching cubes turns them into inner surfaces.
@@ -24,15 +24,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.io import write_points
-from pipeline.json_files import read_json, write_json
-from pipeline.mesh_files import write_mesh_files
-from plenoxels.mesh import (LEVEL_RAY_OPACITY, build_mesh, grid_lattice_voxel, surface_colours, transform_normals,
+from stages.common.media import write_points
+from stages.common.json_files import read_json, write_json
+from stages.interchange.mesh_files import write_mesh_files
+from plenoxels.surface.mesh import (LEVEL_RAY_OPACITY, build_mesh, grid_lattice_voxel, surface_colours, transform_normals,
                             transform_points)
-from plenoxels.scene_model import SceneModel
-from plenoxels.surface import point_normals, ray_terminations, render_views, snap_to_level
-from plenoxels.texture import texture_mesh
-from plenoxels.view_alignment import align_to_views
+from plenoxels.core.scene_model import SceneModel
+from plenoxels.surface.views import point_normals, ray_terminations, render_views, snap_to_level
+from plenoxels.surface.texture import texture_mesh
+from plenoxels.surface.view_alignment import align_to_views
 from stages.settings.export import Settings
 
 

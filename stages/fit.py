@@ -2,17 +2,17 @@
 
 Reads the train split only (held-out frames are used for the live held-out PSNR, never for fitting).
 Images with a mask are composited onto `background_color`, so what lies outside the masks is fitted as empty (a
-masked capture's photos without a mask are left out: pipeline/training_views.py). An object fit with nothing but that
+masked capture's photos without a mask are left out: stages/training/views.py). An object fit with nothing but that
 colour behind its grid that cannot reproduce its own photos by the end of its coarsest resolution starts again with a
 background model, and its summary says why. The model is made by
-plenoxels.scene_model.SceneModel.create and trained by plenoxels.train.Fitter (batches, schedules,
+plenoxels.core.scene_model.SceneModel.create and trained by plenoxels.core.train.Fitter (batches, schedules,
 pruning and upsampling between levels are described there).
 
 Writes fit/grid.pt and fit/model.json (SceneModel.save) and fit/fit.json (the levels, occupied voxels,
 memory, losses and held-out PSNR over time, timings).
 
 With `time_budget` the levels, resolutions and steps are not the settings' but a plan made by
-plenoxels.budget.TimeBudget to end the stage within the budget (from a cost model measured on this
+plenoxels.planning.budget.TimeBudget to end the stage within the budget (from a cost model measured on this
 machine, then the fit's own measured cost); a stop at its deadline is a normal end (`complete: true`).
 
 Interruptions:
@@ -30,16 +30,16 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 
-from pipeline.interrupts import StopRequest
-from pipeline.json_files import read_json, write_json
-from pipeline.report import format_bytes, format_count, format_duration
-from pipeline.training_views import HeldOut, load_training, training_frames
-from plenoxels.budget import TimeBudget
-from plenoxels import model_trial
-from plenoxels.errors import UserError
-from plenoxels.native import resolve_device
-from plenoxels.scene_model import BACKDROP_MIN_TRAIN_PSNR, SceneModel, backdrop_check_step
-from plenoxels.train import Diverged, Fitter, RaySet, coarse_start
+from stages.common.interrupts import StopRequest
+from stages.common.json_files import read_json, write_json
+from stages.common.text import format_bytes, format_count, format_duration
+from stages.training.views import HeldOut, load_training, training_frames
+from plenoxels.planning.budget import TimeBudget
+from plenoxels.planning import model_trial
+from plenoxels.core.errors import UserError
+from plenoxels.core.native import resolve_device
+from plenoxels.core.scene_model import BACKDROP_MIN_TRAIN_PSNR, SceneModel, backdrop_check_step
+from plenoxels.core.train import Diverged, Fitter, RaySet, coarse_start
 from stages.settings.fit import Settings
 
 CHECKPOINT = "checkpoint.pt"

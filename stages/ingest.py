@@ -1,5 +1,5 @@
 """Ingest: a folder of photos (or a video) -> 8-bit RGB PNGs, upright, downscaled, scored for sharpness, with the
-object's mask where the photos carry one (an alpha channel, or a masks/ or mask/ folder beside them: pipeline/masks.py).
+object's mask where the photos carry one (an alpha channel, or a masks/ or mask/ folder beside them: stages/capture/masks.py).
 
 Writes ingest/images/<name>.png, ingest/masks/<name>.png (only for images with a mask, at the image's size) and
 ingest/images.json listing every kept image with its original size, scale, sharpness and mask.
@@ -10,13 +10,13 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.io import write_png
-from pipeline.json_files import write_json
-from pipeline.masks import mask_folder, match_masks, read_mask
-from pipeline.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, fit_max_side, load_photo, photo_folder, scene_photos,
+from stages.common.media import write_png
+from stages.common.json_files import write_json
+from stages.capture.masks import mask_folder, match_masks, read_mask
+from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, fit_max_side, load_photo, photo_folder, scene_photos,
                              sharpness, video_frames)
-from pipeline.report import short_list
-from plenoxels.errors import UserError
+from stages.common.text import short_list
+from plenoxels.core.errors import UserError
 from stages.settings.ingest import Settings
 
 

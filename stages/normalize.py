@@ -1,13 +1,13 @@
 """Normalize: one scene frame (z up, foreground in the unit cube), the scene type, near/far per image,
-and the train/held-out split, decided by pipeline/scene_frame.py (which also says what each scene type means).
+and the train/held-out split, decided by stages/framing/scene_frame.py (which also says what each scene type means).
 
 Reads poses/transforms.json and poses/points.npz; writes normalize/scene.json (see README.md).
 """
 from __future__ import annotations
 
-from pipeline.json_files import read_json, write_json
-from pipeline.scene_frame import normalize_scene, read_points
-from plenoxels.errors import UserError
+from stages.common.json_files import read_json, write_json
+from stages.framing.scene_frame import normalize_scene, read_points
+from plenoxels.core.errors import UserError
 
 
 def summary_line(scene: dict) -> str:

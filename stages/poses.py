@@ -1,11 +1,11 @@
 """Poses: camera poses and pinhole intrinsics for every ingested image, by COLMAP SfM through pycolmap
-(pipeline/sfm/reconstruct.py) or imported from pose files the user already has (pipeline/sfm/pose_import.py).
+(stages/sfm/reconstruct.py) or imported from pose files the user already has (stages/sfm/pose_import.py).
 
 Writes poses/transforms.json (nerfstudio layout, OpenGL camera-to-world in the frame the poses came
 in), poses/images/ (undistorted pinhole PNGs, the ingested names), poses/masks/ (when ingest kept
 masks), poses/sparse/ (the undistorted COLMAP model, binary) and poses/points.npz (sparse points and
 their observations). SfM and imports both end as a distorted COLMAP model at the ingested image size,
-and one path (pipeline/sfm/outputs.py) undistorts and writes it, so later stages never know where the
+and one path (stages/sfm/outputs.py) undistorts and writes it, so later stages never know where the
 poses came from.
 """
 from __future__ import annotations
@@ -15,14 +15,14 @@ from pathlib import Path
 
 import pycolmap
 
-from pipeline.json_files import read_json
-from pipeline.photos import is_video, photo_folder
-from pipeline.sfm import pose_import
-from pipeline.sfm.outputs import write_poses
-from pipeline.report import short_list
-from pipeline.sfm.reconstruct import colmap_logging, reconstruct
-from pipeline.sfm.video_again import denser_frames, rescale_model
-from plenoxels.errors import UserError
+from stages.common.json_files import read_json
+from stages.capture.photos import is_video, photo_folder
+from stages.sfm import pose_import
+from stages.sfm.outputs import write_poses
+from stages.common.text import short_list
+from stages.sfm.reconstruct import colmap_logging, reconstruct
+from stages.sfm.video_again import denser_frames, rescale_model
+from plenoxels.core.errors import UserError
 from stages.settings.poses import Settings
 
 

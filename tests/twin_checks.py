@@ -2,9 +2,9 @@
 import pytest
 import torch
 
-from plenoxels import reference
-from plenoxels.optim import GridGrad
-from plenoxels.render import loss_and_grad
+from plenoxels.core import reference
+from plenoxels.core.optim import GridGrad
+from plenoxels.core.render import loss_and_grad
 
 
 def assert_loss_and_grad_match_twin(grid, origins, dirs, targets, background, opts) -> tuple[GridGrad, GridGrad]:

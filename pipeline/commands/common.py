@@ -9,7 +9,7 @@ from pipeline.config import preset_names
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from pipeline.scenes import scene_name
-from plenoxels.errors import UserError
+from plenoxels.core.errors import UserError
 
 DEMO_SCENE = "demo"
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pipeline import synthetic
+from stages.capture import synthetic
 from pipeline.commands.common import DEMO_SCENE, add_scene_arguments, open_pipeline
 from pipeline.commands.run import run_until
 from pipeline.report import Reporter

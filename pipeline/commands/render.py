@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from pipeline.commands.common import add_output_arguments, output_folder
-from pipeline.render_cameras import render_scene, summary_line
+from stages.scoring.camera_renders import render_scene, summary_line
 from pipeline.report import Reporter
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pipeline import synthetic
+from stages.capture import synthetic
 
 
 def add_arguments(parser: argparse.ArgumentParser, command: str) -> None:

@@ -10,9 +10,9 @@ import numpy as np
 import trimesh
 from PIL import Image
 
-from pipeline.json_files import read_json
-from plenoxels.cameras import Intrinsics
-from plenoxels.errors import UserError
+from stages.common.json_files import read_json
+from plenoxels.core.cameras import Intrinsics
+from plenoxels.core.errors import UserError
 
 # Longest side of the photo thumbnails drawn inside the camera frustums.
 THUMBNAIL_SIDE = 160

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.json_files import read_json, write_json
+from stages.common.json_files import read_json, write_json
 
 CROP_FILE = Path("view") / "crop.json"
 

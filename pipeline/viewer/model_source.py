@@ -1,5 +1,5 @@
 """The newest radiance field of a scene: the fit stage's output (fit/) or, while a fit runs, its latest
-checkpoint (.resume/fit/checkpoint.pt, written by plenoxels.train.Fitter.save_checkpoint)."""
+checkpoint (.resume/fit/checkpoint.pt, written by plenoxels.core.train.Fitter.save_checkpoint)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -7,9 +7,9 @@ from pathlib import Path
 
 import torch
 
-from pipeline.json_files import read_json
-from plenoxels.grid import SparseGrid
-from plenoxels.scene_model import ModelOptions, SceneModel
+from stages.common.json_files import read_json
+from plenoxels.core.grid import SparseGrid
+from plenoxels.core.scene_model import ModelOptions, SceneModel
 
 CHECKPOINT = Path(".resume") / "fit" / "checkpoint.pt"
 

@@ -11,9 +11,9 @@ from typing import Callable
 
 import numpy as np
 
-from pipeline.visuals import colour_depth, to_uint8
-from plenoxels.cameras import Intrinsics
-from plenoxels.scene_model import SceneModel
+from stages.scoring.visuals import colour_depth, to_uint8
+from plenoxels.core.cameras import Intrinsics
+from plenoxels.core.scene_model import SceneModel
 
 MODES = ("rgb", "depth", "opacity")
 # viser's cameras follow OpenCV (looking along +z, y down); ours follow OpenGL (looking along -z, y up).

@@ -20,8 +20,8 @@ from pipeline.viewer.content import SceneContent, load_content
 from pipeline.viewer.crop import crop_setting, read_crop, write_crop
 from pipeline.viewer.model_source import ModelSource, ModelVersion
 from pipeline.viewer.rendering import MODES, Frame, RenderLoop, ViewRequest, opencv_pose, render_view
-from plenoxels.errors import UserError
-from plenoxels.scene_model import SceneModel
+from plenoxels.core.errors import UserError
+from plenoxels.core.scene_model import SceneModel
 
 TRAIN_COLOUR = (0, 170, 60)
 HELD_OUT_COLOUR = (220, 120, 0)

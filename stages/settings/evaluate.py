@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from pipeline.config import require
+from plenoxels.core.errors import require
 
 NAME = "evaluate"
 DEPENDS: tuple[str, ...] = ("normalize", "fit")

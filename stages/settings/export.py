@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from pipeline.config import require
-from plenoxels.options import MeshOptions
+from plenoxels.core.errors import require
+from plenoxels.core.options import MeshOptions
 
 NAME = "export"
 DEPENDS: tuple[str, ...] = ("normalize", "fit")
@@ -15,7 +15,7 @@ VERSION = 2
 
 @dataclass
 class Settings(MeshOptions):
-    """The mesh's settings (plenoxels.options.MeshOptions), and the frame, box, texture and points."""
+    """The mesh's settings (plenoxels.core.options.MeshOptions), and the frame, box, texture and points."""
     frame: Literal["input", "normalized"] = "input"
     """Input: the poses' (COLMAP) frame; normalized: the fit's world."""
     crop: list[float] = field(default_factory=list)
@@ -26,7 +26,7 @@ class Settings(MeshOptions):
     """The texture's side, about (xatlas packs the atlas to it), in texels."""
     texture_colour: Literal["view", "normal", "mean"] = "view"
     """view: the colour the field renders from the training views that face the surface most squarely (texture_views);
-    normal: looking straight at the surface; mean: its view-independent SH degree-0 term (plenoxels/texture.py says
+    normal: looking straight at the surface; mean: its view-independent SH degree-0 term (plenoxels/surface/texture.py says
     why view)."""
     texture_views: int = 8
     """With texture_colour view: each texel takes the mean of what up to this many of the training views that see it

@@ -5,8 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from pipeline.config import parse_duration, require
-from plenoxels.options import ModelOptions, TrainOptions
+from stages.common.text import parse_duration
+from plenoxels.core.errors import require
+from plenoxels.core.options import ModelOptions, TrainOptions
 
 NAME = "fit"
 DEPENDS: tuple[str, ...] = ("normalize",)
@@ -15,7 +16,7 @@ VERSION = 1
 
 @dataclass
 class Settings(TrainOptions, ModelOptions):
-    """The model's options and the trainer's (plenoxels.options: ModelOptions, TrainOptions)
+    """The model's options and the trainer's (plenoxels.core.options: ModelOptions, TrainOptions)
     and what only this stage decides: the device, the images, the live held-out PSNR, checkpoints."""
 
     device: Literal["auto", "cpu", "cuda"] = "auto"

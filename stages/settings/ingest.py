@@ -6,9 +6,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from pipeline.config import require
-from pipeline.masks import mask_folder
-from pipeline.photos import photo_folder, scene_files
+from plenoxels.core.errors import require
+from stages.capture.masks import mask_folder
+from stages.capture.photos import photo_folder, scene_files
 
 NAME = "ingest"
 DEPENDS: tuple[str, ...] = ()

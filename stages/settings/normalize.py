@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pipeline.config import require
-from pipeline.scene_options import SceneOptions
+from plenoxels.core.errors import require
+from stages.framing.options import SceneOptions
 
 NAME = "normalize"
 DEPENDS: tuple[str, ...] = ("poses",)
@@ -14,7 +14,7 @@ VERSION = 1
 
 @dataclass
 class Settings(SceneOptions):
-    """The scene frame's options (pipeline.scene_options.SceneOptions), checked."""
+    """The scene frame's options (stages.framing.options.SceneOptions), checked."""
 
     def check(self) -> None:
         require(self.holdout_every == 0 or self.holdout_every >= 2,

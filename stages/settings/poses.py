@@ -6,9 +6,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from pipeline.config import require
-from pipeline.sfm.options import SfmOptions
-from pipeline.sfm.pose_files import pose_files
+from plenoxels.core.errors import require
+from stages.sfm.options import SfmOptions
+from stages.sfm.pose_files import pose_files
 
 NAME = "poses"
 DEPENDS: tuple[str, ...] = ("ingest",)
@@ -17,7 +17,7 @@ VERSION = 1
 
 @dataclass
 class Settings(SfmOptions):
-    """SfM's options (pipeline.sfm.options.SfmOptions), and where poses come from."""
+    """SfM's options (stages.sfm.options.SfmOptions), and where poses come from."""
     source: Literal["auto", "sfm", "colmap", "transforms", "llff", "idr"] = "auto"
     """Where poses come from: auto imports pose files found beside the photos (a COLMAP model, a transforms.json,
     LLFF's poses_bounds.npy, IDR/NeuS's cameras_sphere.npz), else runs SfM."""

@@ -1,0 +1,172 @@
+"""The options of the model's machinery, free of torch: what a new SceneModel is made of (`ModelOptions`), how it is
+fitted (`TrainOptions`) and how a mesh is drawn from it (`MeshOptions`). The fit and export stages' settings extend
+them (stages/settings/), so a settings listing and the pipeline's cache keys read them without loading the model."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+@dataclass
+class ModelOptions:
+    """What a new SceneModel is made of beyond the scene: its fit frame, colour model, background and sampling."""
+
+    ndc: Literal["auto", "on", "off"] = "auto"
+    """Fit in NDC of the average camera: auto (forward scenes), on or off."""
+    contract: Literal["auto", "on", "off"] = "auto"
+    """A contracted grid that holds all of space, the foreground box at its centre at full resolution and the world
+    around it ever more coarsely out to infinity (mip-NeRF 360): auto (unbounded scenes whose sparse points reach far
+    beyond the foreground: outdoors, streets, wide rooms), on or off."""
+    background: Literal["auto", "on", "off"] = "auto"
+    """Multi-sphere background model behind the grid: auto (unbounded scenes without a contracted grid), on or off."""
+    background_color: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])
+    """RGB in [0, 1] behind the grid and under image masks."""
+    sh_degree: int = 2
+    """Spherical-harmonic degree of the colour, 0-3."""
+    init_density: float = 0.1
+    """Raw density of every vertex at the start."""
+    box_padding: float = 0.05
+    """The grid box is the foreground box grown by this share of its size on each side."""
+    step_size: float = 0.5
+    """Ray sample spacing in voxels."""
+    stop_transmittance: float = 1e-4
+    """A ray stops once this little light gets through."""
+    near_share: float = 0.5
+    """Contracted grids: rays start this share of the nearest sparse point any camera saw (normalize's near) from their
+    camera, so that no haze hangs in front of the lenses (cup at `fast` with a contracted grid: +1.4 dB held-out)."""
+    background_spheres: int = 32
+    """Background model: number of spheres."""
+    background_width: int = 0
+    """Background model: texture width in texels (the height is half); 0: from the training photos, so that a texel
+    spans about background_texel_px of their pixels (between 64 and 2048 texels)."""
+    background_texel_px: float = 2.0
+    """Background model with background_width 0: how many training pixels one texel spans."""
+    tv_background: float = 1e-3
+    """Background model: TV weight of its density and colour."""
+
+
+@dataclass
+class TrainOptions:
+    """How a SceneModel is fitted: the levels, the batches, the optimiser, the regularisers and the pruning."""
+
+    resolutions: list[int] = field(default_factory=lambda: [128, 128, 256])
+    """Grid vertices along the longest axis, one per level. A level at the resolution of the one before prunes the
+    grid without upsampling it: a first level's grid is the whole box, and until it is pruned every ray marches all of
+    it, so the presets prune it after a fifth of its steps (lego `default`: 1000 steps at 128^3 in 61 s instead of 97,
+    the same held-out PSNR)."""
+    steps: list[int] = field(default_factory=lambda: [200, 800, 1500])
+    """Optimiser steps per level."""
+    first_level_scale: float = 1.0
+    """The first level's resolution (its early-pruned rest too) as this share of the one set, or of a time budget's
+    plan (never below 32, or the level's own resolution if that is less). Rooms seen from inside fitted as well or
+    better from a coarser start (fox `default` 25.72 -> 26.55 dB at 0.75; cup and the synthetic unbounded scene the
+    same); an object loses thin parts (lego `default` 31.23 -> 30.60 dB)."""
+    batch_size: int = 8192
+    """Rays per step."""
+    batch_mode: Literal["tiles", "rays"] = "rays"
+    """rays: random pixels; tiles: random square tiles of pixels (faster kernel, less progress per step)."""
+    tile_size: int = 32
+    """Tile side in pixels (batch_mode tiles)."""
+    coherent_batches: bool = True
+    """Order each batch's rays so that rays passing near each other sit together (the same rays, in another order:
+    the kernel's threads then read neighbouring voxels: 7-19% more samples per second in the kernel bench)."""
+    lr_density: float = 30.0
+    """RMSProp rate of the density at the start, decayed exponentially to lr_density_final."""
+    lr_density_final: float = 3.0
+    """RMSProp rate of the density at the end."""
+    lr_density_delay: float = 0.1
+    """Share of the steps over which the density rate ramps up from 1% (0: none)."""
+    lr_sh: float = 0.05
+    """RMSProp rate of the SH coefficients at the start, decayed exponentially to lr_sh_final."""
+    lr_sh_final: float = 5e-3
+    """RMSProp rate of the SH coefficients at the end."""
+    rmsprop_beta: float = 0.95
+    """RMSProp decay of the squared-gradient average, in [0, 1)."""
+    tv_density: float = 1e-10
+    """TV weight of the density per sampled vertex (the MSE is a mean over the batch)."""
+    tv_sh: float = 1e-8
+    """TV weight of the SH coefficients per sampled vertex."""
+    tv_sample_fraction: float = 0.01
+    """Share of the occupied vertices the TV term looks at each step."""
+    sparsity: float = 0.0
+    """Weight of a Cauchy prior that density is zero, per vertex of a random sample as large as TV's, at the first
+    level's resolution: pulls faint haze, which no photo needs but pruning keeps wherever some ray sees it, off the
+    grid before the first upsampling builds the finer levels from it; they then fit detail without it (0: off)."""
+    tv_views: float = 32.0
+    """Few views: where the training photos see each point of the grid's box fewer than this many times on average,
+    both TV weights grow by (tv_views / views)^tv_views_power (0: the weights as set, whatever the capture)."""
+    tv_views_power: float = 2.0
+    """How fast TV grows as the views per point fall below tv_views."""
+    tv_views_max_scale: float = 1000.0
+    """The most that few views multiply the TV weights by."""
+    tv_reference_resolution: int = 0
+    """A level finer than this (its entry in `resolutions`) gets both TV weights times (this / its resolution)^2: each
+    vertex's share of a batch's samples falls with the square of the resolution while its TV gradient does not, so
+    weights set for a coarser grid outweigh the photos on a finer one (0: the weights as set on every level)."""
+    lr_background: float = 0.01
+    """RMSProp rate of the background model's texels."""
+    prune_weight: float = 0.002
+    """Pruning keeps only vertices that some training ray weighs by more than this (max rendering weight)."""
+    prune_density: float = 0.0
+    """Pruning keeps only vertices whose raw density is above this (fit-frame units)."""
+    prune_dilation: int = 2
+    """What pruning keeps is then grown by this many voxels."""
+    prune_ray_scale: float = 0.5
+    """The densest set of training rays that measure weights for pruning: images at this share of their size."""
+    prune_rays_per_cell: float = 16.0
+    """A pruning pass marches about this many rays per cell of the grid's largest face (resolution squared), through
+    an even lattice of every photo's pixels (never denser than prune_ray_scale; 0: always that dense). What it must
+    find, the voxels some photo sees, grows with the grid's faces, not with the photos: many large photos then
+    prune in a fraction of the time, and a voxel still meets rays from several photos."""
+    prune_final: bool = True
+    """Prune the same way after the last level too (smaller model, fewer floaters)."""
+    voxel_budget: int = 16_000_000
+    """Most occupied vertices after an upsample."""
+    seed: int = 0
+    """Seed of the batches and of the TV samples."""
+
+    @property
+    def total_steps(self) -> int:
+        return sum(self.steps)
+
+
+@dataclass
+class MeshOptions:
+    """How the mesh is extracted from the fitted density, cleaned and simplified (the export stage's settings)."""
+    resolution: int | Literal["auto"] = "auto"
+    """Marching-cubes cells along the grid's longest axis; auto: the fit's own."""
+    level: float | Literal["auto"] = "auto"
+    """Density iso-level; auto: see level_share."""
+    level_share: float = 0.5
+    """Auto level: this share of the peak density the opaque training rays meet (auto_level)."""
+    level_opacity: float = 0.5
+    """Auto level without such points: the density at which one voxel is this opaque."""
+    crop_margin: float = 0.05
+    """The foreground box is grown by this share of its size before cropping."""
+    min_piece_fraction: float = 0.01
+    """Pieces with fewer faces than this share of the largest piece are dropped."""
+    max_gap: float = 0.05
+    """Pieces farther than this share of the foreground diagonal from the largest are dropped (unless they stood on
+    the ground that object_only cut away)."""
+    fill_voxels: int = 4
+    """Before marching cubes, seal openings in the fitted solids' skins up to 2 x this - 1 voxels across (those
+    solid rings in some plane; slots, gaps between solids and the edges where they meet the ground stay open) and
+    fill the cavities they close off, so the mesh is the solids' outside without the holes the fit's foam leaves
+    (0: the density as fitted; bench/README.md measures it)."""
+    unseen: Literal["drop", "keep"] = "drop"
+    """Faces no training view sees (insides of the fit's shells, undersides)."""
+    seen_tolerance: float = 1.0
+    """A vertex this many voxels behind what a view's pixel sees is still seen."""
+    align_voxels: float = 2.5
+    """Move each vertex along its normal, up to this many voxels, to where the training views that see it agree best
+    on its colour (plenoxels/surface/view_alignment.py); 0: the fitted density's level set as it is."""
+    object_only: Literal["auto", "on", "off"] = "auto"
+    """The object alone: cut away the ground or table it stands on and the room the box cuts through
+    (plenoxels/surface/ground.py); auto: on for object and unbounded scenes, off for forward ones. export.crop, when set, is
+    the box."""
+    max_faces: int = 200_000
+    """Decimate to at most this many faces (quadric, keeping boundaries and topology); 0 keeps every face."""
+    point_opacity: float = 0.5
+    """A pixel gives a point only where its ray is at least this opaque (points, seen faces)."""
+    seed: int = 0
+    """Seed of the random subsets (points, the auto level's rays, the ground's RANSAC)."""

@@ -1,0 +1,172 @@
+"""Volume rendering of a SparseGrid: forward, fused loss+gradient, and max weights for pruning.
+
+Every function runs the native core (plenoxels/core/native.py) on the device of the grid's tensors; the
+math is stated in reference.py, the PyTorch twin the tests hold the kernels to.
+
+Rays arrive in the fit frame. Directions need not be unit length: t, `near` and depth are fit-frame
+distances along the normalised direction. Density is integrated per fit-frame unit of distance while
+samples are spaced `step_size` voxels apart in grid coordinates, so anisotropic boxes work.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from plenoxels.core import native
+from plenoxels.core.errors import UserError
+from plenoxels.core.grid import OCCUPANCY_BLOCK, SparseGrid
+from plenoxels.core.optim import GridGrad
+
+# Real spherical-harmonic basis constants up to degree 3 and the offset added before the colour's relu,
+# as csrc/plenoxels_math.h has them (tests compare the two through the kernels' output).
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+         1.445305721320277, -0.5900435899266435)
+COLOUR_OFFSET = 0.5
+
+
+@dataclass
+class RenderOptions:
+    step_size: float = 0.5  # sample spacing in voxels (grid-coordinate units)
+    stop_transmittance: float = 1e-4  # early ray termination
+    near: float = 0.0  # ray t start (fit-frame units); rays are also clipped to the grid box
+    sigma_threshold: float = 0.0  # samples with density <= this are skipped
+    max_samples_per_ray: int = 4096  # a finer step is widened so that no ray takes more samples
+
+    def check(self) -> "RenderOptions":
+        if not self.step_size > 0:
+            raise UserError(f"step_size must be > 0 voxels, got {self.step_size}")
+        if not 0 <= self.stop_transmittance <= 1:
+            raise UserError(f"stop_transmittance must be in [0, 1], got {self.stop_transmittance}")
+        if not self.sigma_threshold >= 0:
+            raise UserError(f"sigma_threshold must be >= 0, got {self.sigma_threshold}")
+        if not self.max_samples_per_ray >= 1:
+            raise UserError(f"max_samples_per_ray must be >= 1, got {self.max_samples_per_ray}")
+        if self.near != self.near:
+            raise UserError("near must be a number")
+        return self
+
+
+@dataclass
+class RenderResult:
+    rgb: torch.Tensor  # [B, 3]
+    depth: torch.Tensor  # [B] expected termination distance (fit-frame units), weights not renormalised
+    opacity: torch.Tensor  # [B] 1 - final transmittance
+
+
+def ray_samples(grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opts: RenderOptions) -> dict:
+    """The sample lattice every kernel marches (steps 1-3 of reference.py's docstring), in float64 so
+    that it matches theirs exactly: per ray t_start, dt and n (sample i at t_start + (i + 0.5) dt,
+    fit-frame distance), the grid-space origin og and direction dg (per unit t), and the unit
+    fit-frame direction `unit` (float32). A contracted grid has no lattice: its rays bend and are marched step by step
+    (reference.contracted_samples states how)."""
+    if grid.contracted:
+        raise ValueError("a contracted grid's samples lie on no lattice: take its foreground model's grid")
+    o, d = origins.double(), dirs.double()
+    unit = d / d.norm(dim=1, keepdim=True)
+    lo = torch.tensor(grid.bbox_min, dtype=torch.float64, device=o.device)
+    scale = torch.tensor(grid.scale, dtype=torch.float64, device=o.device)
+    hi = torch.tensor(grid.resolution, dtype=torch.float64, device=o.device) - 1
+    og, dg = (o - lo) * scale, unit * scale
+    zero = dg == 0
+    safe = torch.where(zero, torch.ones_like(dg), dg)
+    ta, tb = (0 - og) / safe, (hi - og) / safe
+    inside = (og >= 0) & (og <= hi)
+    big = torch.full_like(ta, 1e300)
+    t_lo = torch.where(zero, torch.where(inside, -big, big), torch.minimum(ta, tb))
+    t_hi = torch.where(zero, torch.where(inside, big, -big), torch.maximum(ta, tb))
+    t_enter, t_exit = t_lo.max(dim=1).values, t_hi.min(dim=1).values
+    hit = t_exit > t_enter
+    t_start = torch.clamp_min(t_enter, opts.near)
+    length = t_exit - t_start
+    step_t = opts.step_size / dg.norm(dim=1)
+    n = torch.ceil(length / step_t - 0.5).clamp_min(0)
+    n = torch.where(hit & (length > 0), n, torch.zeros_like(n))
+    capped = n > opts.max_samples_per_ray
+    dt = torch.where(capped, length / opts.max_samples_per_ray, step_t)
+    n = torch.where(capped, torch.full_like(n, opts.max_samples_per_ray), n).long()
+    return {"t_start": t_start, "dt": dt, "n": n, "og": og, "dg": dg, "unit": unit.to(torch.float32)}
+
+
+def _rays(origins: torch.Tensor, dirs: torch.Tensor, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    origins = origins.detach().to(device=device, dtype=torch.float32).reshape(-1, 3).contiguous()
+    dirs = dirs.detach().to(device=device, dtype=torch.float32).reshape(-1, 3).contiguous()
+    if origins.shape != dirs.shape:
+        raise ValueError(f"origins {tuple(origins.shape)} and dirs {tuple(dirs.shape)} must both be [B, 3]")
+    if dirs.shape[0] and not bool((dirs.abs().amax(dim=1) > 0).all()):
+        raise ValueError("ray directions must be non-zero")
+    return origins, dirs
+
+
+def _colours(x: torch.Tensor | None, b: int, name: str, device: torch.device) -> torch.Tensor | None:
+    if x is None:
+        return None
+    x = x.detach().to(device=device, dtype=torch.float32).reshape(-1, 3).contiguous()
+    if x.shape[0] != b:
+        raise ValueError(f"{name} must be [B, 3] with B = {b}, got {tuple(x.shape)}")
+    return x
+
+
+def _grid_args(grid: SparseGrid) -> tuple:
+    native.check_device(grid.data.device)
+    cells, blocks = grid.occupancy()
+    return (grid.data, grid.links, cells, blocks, OCCUPANCY_BLOCK, list(grid.bbox_min), list(grid.bbox_max),
+            grid.sh_degree)
+
+
+def _march_args(opts: RenderOptions, grid: SparseGrid) -> tuple:
+    return (float(opts.step_size), float(opts.stop_transmittance), float(opts.near), float(opts.sigma_threshold),
+            int(opts.max_samples_per_ray), grid.contracted)
+
+
+def render(grid: SparseGrid, origins, dirs, background=None, opts: RenderOptions | None = None) -> RenderResult:
+    """rgb = sum_i T_i a_i c_i + T_final * background (None: black)."""
+    opts = (opts or RenderOptions()).check()
+    device = grid.data.device
+    origins, dirs = _rays(origins, dirs, device)
+    background = _colours(background, origins.shape[0], "background", device)
+    rgb, depth, opacity = native.ops.render(*_grid_args(grid), origins, dirs, background, *_march_args(opts, grid))
+    return RenderResult(rgb, depth, opacity)
+
+
+def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts: RenderOptions | None,
+                  grad: GridGrad) -> tuple[float, torch.Tensor]:
+    """Mean squared error over the B*3 colour values, forward and backward in one pass.
+
+    Adds d(mse)/d(density) and d(mse)/d(sh) into `grad` for the rows the batch touched, and returns
+    (mse, d(mse)/d(background) [B, 3]).
+    """
+    opts = (opts or RenderOptions()).check()
+    device = grid.data.device
+    origins, dirs = _rays(origins, dirs, device)
+    b = origins.shape[0]
+    targets = _colours(targets, b, "targets", device)
+    background = _colours(background, b, "background", device)
+    if background is None:
+        background = torch.zeros(b, 3, device=device)
+    if grad.data.shape != grid.data.shape:
+        raise ValueError("gradient storage belongs to another grid: make a new GridGrad after prune/upsample")
+    sse, grad_background, grad.num_touched = native.ops.loss_and_grad(
+        *_grid_args(grid), origins, dirs, targets, background, *_march_args(opts, grid), grad.data, grad.touched_mask,
+        grad.touched_rows, grad.num_touched, *grad.scratch())
+    return (sse / (3 * b) if b else 0.0), grad_background
+
+
+def max_weights(grid: SparseGrid, origins, dirs, opts: RenderOptions | None = None) -> torch.Tensor:
+    """Per occupied row, the largest rendering weight of a sample that reads it over these rays."""
+    opts = (opts or RenderOptions()).check()
+    origins, dirs = _rays(origins, dirs, grid.data.device)
+    out = torch.zeros(grid.num_occupied, dtype=torch.float32, device=grid.data.device)
+    native.ops.max_weights(*_grid_args(grid), origins, dirs, *_march_args(opts, grid), out)
+    return out
+
+
+def sample_counts(grid: SparseGrid, origins, dirs, opts: RenderOptions | None = None) -> tuple[int, int]:
+    """(lattice samples inside the box, samples that contribute) over these rays."""
+    opts = (opts or RenderOptions()).check()
+    origins, dirs = _rays(origins, dirs, grid.data.device)
+    lattice, used = native.ops.sample_counts(*_grid_args(grid), origins, dirs, *_march_args(opts, grid))
+    return int(lattice), int(used)

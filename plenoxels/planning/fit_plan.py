@@ -1,0 +1,287 @@
+"""The plan of a fit under a time budget: the candidate schedules, what each is predicted to take, the one chosen
+before the fit starts, and the re-plan of the steps (and levels) left as the fit measures its own costs.
+
+What a prediction adds up, from where the fit stands to its end: steps times seconds per step (for the level under
+way, what its steps measure, or before they have, the first-level model at its box's voxels; for later levels, the
+cost model at their occupied voxels, times the ratio of this scene's measured steps to the model's; a first level's
+ratio, and that of a first level's early-pruned rest, counts only above 1, as such a level clears its empty space and
+gets cheaper as it goes while a busy machine does not, and until a level at a finer resolution has measured its own,
+it is times what an upsampled grid's steps cost over the model in the calibration), level changes (a pruning
+pass over the training rays at the old resolution, then upsampling and a checkpoint that grow with the new grid),
+held-out evaluations, checkpoints, and the end (the last pruning pass, the held-out PSNR, the save). A later level's
+voxels are the level before's, times the share pruning keeps, times the upsampling's growth; the share is a prior
+until a level change has measured it.
+
+Which plan (bench/README.md, "Fit: quality against cost" and "The time budget"): grid resolution buys more than
+steps for the same time (lego `fast` with a 192^3 last level: 29.17 dB in 68 s; with twice the steps at 128^3:
+28.73 dB in 67 s), and a level needs enough steps to converge, but half the presets' steps lose less than one rung of
+resolution does (lego `fast` with half its steps: 27.44 dB; at 96^3 with all of them: 26.96 dB). A grid finer than
+the training photos have pixels across buys nothing (the bench's synthetic scene, trained on 200x150 photos: 128^3
+34.38 dB, 192^3 34.98 dB, 256^3 35.36 dB with more steps than 192^3's 35.43; the demo, trained on 160x120: `fast`'s
+128^3 34.75 dB, a 192^3 plan with fewer steps 34.69 dB). So the rule is: the finest rung of LADDER no finer than the
+photos' longest side whose predicted time fits with at least MIN_SHARE of its steps, given as many steps as the time
+allows up to MAX_SHARE of them (twice the steps bought lego `fast` 0.5 dB). A budget beyond that ends early.
+
+The coarsest rungs start at 32^3: a first level's step marches its whole box, so it is the dearest step of a fit for
+its voxels, and a 32^3 level finds the occupied space for a fraction of a 64^3 one's time (lego at 200x200, held out:
+32->64->128 with 100+250+600 steps 30.31 dB in 27 s, 64->128 with 300+600 30.41 dB in 36 s; 32->64 with 100+200
+25.63 dB in 4.5 s, 64 alone with 170 steps 25.53 dB in 8.8 s).
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from plenoxels.planning.fit_cost import CostModel
+
+# Shares of a rung's steps a plan may give: at least MIN_SHARE (a level needs enough steps to converge), at most
+# MAX_SHARE (past it, time goes further in a finer grid).
+MIN_SHARE = 0.5
+MAX_SHARE = 2.0
+# Priors for the share of a level's voxels that pruning keeps, until a level change has measured it: the first prune
+# (of a first level's whole box) by the scene type, and later ones (of grids pruned before: the demo's last prune keeps
+# 50%). An object's or a forward capture's box is mostly air in front of and around thin surfaces (the demo object
+# keeps 10-25%); an unbounded scene's box is the room the cameras stand in, seen from every side, and keeps most of
+# itself (fox 80%, cup 78%, the synthetic unbounded scene 58%). Too high a prior picks a coarser plan than the time
+# allows (re-plans then give it more steps), too low a finer one (re-plans then give it fewer: a fox 2-minute budget
+# planned 128->256 on the object's prior and ran a third of its steps).
+FIRST_KEEP_PRIOR = {"object": 0.2, "forward": 0.2, "unbounded": 0.75}
+LATER_KEEP_PRIOR = 0.6
+# A last level too dear for half its steps is lowered this many vertices at a time (see replan), in a scene whose
+# first prune kept more than FULL_BOX of its box: a room seen from inside (fox 91-97%, cup 78-89%, the synthetic
+# unbounded scene 67%), not an object on a backdrop (lego 15-20%, the demo object 10-25%).
+LOWER_BY = 16
+FULL_BOX = 0.5
+
+
+@dataclass(frozen=True)
+class Rung:
+    """A candidate schedule: the resolution of each level and its steps at a share of 1."""
+    resolutions: tuple[int, ...]
+    steps: tuple[int, ...]
+    fixed: int = 0
+    """Leading levels whose steps stay as they are whatever the share (a first level's early prune)."""
+
+    def scaled(self, share: float) -> list[int]:
+        return [n if level < self.fixed else max(1, round(share * n)) for level, n in enumerate(self.steps)]
+
+
+def _pruned_early(resolutions: tuple[int, ...], steps: tuple[int, ...]) -> Rung:
+    """A rung whose first level prunes after a fifth of its steps, as the presets' do, and goes on at the same
+    resolution: the prune comes after that many steps whatever the share, as what a grid keeps after fewer is still
+    diffuse."""
+    early = steps[0] // 5
+    return Rung((resolutions[0],) + resolutions, (early, steps[0] - early) + steps[1:], fixed=1)
+
+
+# Candidate schedules, coarse to fine, at the presets' step counts: the presets' levels (fast 64->128, balanced
+# 96->192, default 128->256, quality 128->256->384) and rungs between them made the same way, each first level pruned
+# early as the presets' are (a first level's steps march its whole box until a prune clears it: lego `default` 31.19 dB
+# in 246 s without, 31.24 dB in 216 s with); at the bottom, two that start at 32^3 (see the module's docstring), 32->64
+# being what a budget too short for any plan gets. The early prune stays at its step whatever the share (`fixed`):
+# scaled with it, down to 73-132 steps, it prunes a grid still diffuse, which keeps more voxels than the plan assumed
+# (22-25% of the box against 15% at lego `default`'s step 200) and upsamples to a finer grid twice the size (lego at
+# 400x400: 1 min 27.81 dB, 2 min 28.84 dB, against 28.41 and 29.88 dB with no early prune).
+LADDER = (
+    Rung((32, 64), (300, 600)),
+    Rung((48, 96), (500, 1000)),
+    Rung((32, 64, 128), (250, 500, 1000)),
+    _pruned_early((64, 128), (500, 1000)),
+    _pruned_early((80, 160), (600, 1200)),
+    _pruned_early((96, 192), (750, 1500)),
+    _pruned_early((112, 224), (900, 1500)),
+    _pruned_early((128, 256), (1000, 1500)),
+    _pruned_early((128, 256, 320), (1000, 1500, 1500)),
+    _pruned_early((128, 256, 384), (1000, 1500, 1500)),
+    _pruned_early((128, 256, 448), (1000, 2000, 3000)),
+    _pruned_early((128, 256, 512), (1000, 2000, 6000)),
+)
+
+
+@dataclass
+class FitFacts:
+    """What a prediction needs to know of the fit besides its schedule."""
+    box_voxels: Callable[[int], int]   # vertices of a first level's grid (its whole box) at a resolution
+    prune_rays: Callable[[int], int]   # rays of a pruning pass at a resolution
+    eval_rays: int                     # rays of one held-out evaluation (0: none)
+    eval_every: int
+    checkpoint_every: float
+    voxel_budget: int
+    max_resolution: int = 1 << 30      # the finest final resolution worth fitting: the photos' longest side
+    first_keep: float = FIRST_KEEP_PRIOR["object"]  # the first prune's kept share until it is measured (by scene type)
+
+    def outlook(self, **where) -> "Outlook":
+        """The state of a fit of this scene at `where`, with the scene's prior for what the first prune keeps."""
+        return Outlook(**{"first_keep": self.first_keep, **where})
+
+
+@dataclass
+class Outlook:
+    """Where the fit stands and what it has measured: the state a prediction starts from."""
+    level: int = 0
+    step: int = 0
+    voxels: int = 0                    # of the current grid
+    dense: bool = True                 # the current grid is a first level's (nothing pruned yet)
+    step_seconds: float | None = None  # measured at the current level
+    step_ratio: float = 1.0            # for later levels: this scene's measured step time over the model's
+    ratio_at_first: bool = True        # step_ratio is the first resolution's (or a prior): not yet of an upsampled grid
+    change_ratio: float = 1.0          # this scene's measured level changes (and their checkpoints) over the model's
+    eval_ratio: float = 1.0            # this scene's measured held-out evaluations over the model's
+    first_keep: float = FIRST_KEEP_PRIOR["object"]
+    later_keep: float = LATER_KEEP_PRIOR
+
+
+def finish_seconds(costs: CostModel, facts: FitFacts, now: Outlook, resolution: int, voxels: float,
+                   stop: bool = False) -> float:
+    """The end of a fit at this resolution and size: the last pruning pass (of a pruned grid, as the calibration's
+    are, at the ratio this scene's held-out renders through the same grid measured against the model), the held-out
+    PSNR and the save; after a `stop`, the checkpoint the stop writes first."""
+    return (now.eval_ratio * costs.pass_seconds(facts.prune_rays(resolution), resolution)
+            + costs.save_per_voxel * voxels
+            + now.eval_ratio * costs.pass_seconds(facts.eval_rays, resolution)
+            + (costs.checkpoint_per_voxel * voxels if stop else 0.0))
+
+
+def predict(costs: CostModel, facts: FitFacts, now: Outlook, resolutions: list[int], steps: list[int]) -> float:
+    """Seconds from where the fit stands to its end for this schedule, whose levels before `now.level` are done."""
+    seconds, voxels, start, remaining = 0.0, float(now.voxels), sum(steps[:now.level]), 0
+    # A level at another resolution than the first starts from an upsampled grid, whose steps the calibration measured
+    # at costs.upsampled_ratio of its model, until this scene's steps at such a level have been measured.
+    upsampled = now.step_ratio * (costs.upsampled_ratio if now.ratio_at_first else 1.0)
+    for level in range(now.level, len(resolutions)):
+        ratio = now.step_ratio if resolutions[level] == resolutions[0] else upsampled
+        if level == now.level:
+            step = now.step_seconds or ratio * costs.step_seconds(voxels, dense=now.dense)
+        else:
+            kept = (now.first_keep if level == 1 else now.later_keep) * voxels
+            voxels = min(facts.voxel_budget, kept * (resolutions[level] / resolutions[level - 1]) ** 3)
+            seconds += now.change_ratio * (costs.pass_seconds(facts.prune_rays(resolutions[level - 1]),
+                                                              resolutions[level - 1])
+                                           + (costs.change_per_voxel + costs.checkpoint_per_voxel) * voxels)
+            step = ratio * costs.step_seconds(voxels)
+        end = start + steps[level]
+        first = max(start, now.step)
+        seconds += (end - first) * step
+        remaining += end - first
+        if facts.eval_every and facts.eval_rays:
+            evaluations = end // facts.eval_every - first // facts.eval_every
+            seconds += evaluations * now.eval_ratio * costs.pass_seconds(facts.eval_rays, resolutions[level])
+        start = end
+    checkpoints = min(remaining, math.floor(seconds / facts.checkpoint_every))  # at most one a step
+    seconds += checkpoints * costs.checkpoint_per_voxel * voxels
+    return seconds + finish_seconds(costs, facts, now, resolutions[-1], voxels)
+
+
+def _largest_share(fits: Callable[[float], bool], low: float, high: float) -> float | None:
+    """The largest share in [low, high] for which `fits` holds (which then holds for every smaller share)."""
+    if not fits(low):
+        return None
+    if fits(high):
+        return high
+    for _ in range(30):
+        middle = (low + high) / 2
+        low, high = (middle, high) if fits(middle) else (low, middle)
+    return low
+
+
+@dataclass
+class Plan:
+    resolutions: list[int]
+    steps: list[int]
+    share: float       # of the rung's steps
+    predicted: float   # seconds from when it was made to the end of the fit
+    fits: bool         # whether it fits with at least MIN_SHARE of its steps
+
+    def describe(self) -> str:
+        levels = f"{len(self.resolutions)} level{'s' if len(self.resolutions) > 1 else ''}"
+        return f"{levels} {'->'.join(map(str, self.resolutions))}, {'+'.join(map(str, self.steps))} steps"
+
+
+def _finest_first(ladder) -> list[Rung]:
+    return sorted(ladder, key=lambda r: (r.resolutions[-1], len(r.resolutions)), reverse=True)
+
+
+def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung, ...] | None = None) -> Plan:
+    """The plan for a fit that has not started: the finest rung (no finer than `facts.max_resolution`) whose predicted
+    time fits `seconds` with at least MIN_SHARE of its steps, with the most steps that fit up to MAX_SHARE (of rungs
+    ending at the same resolution, the one that gets the largest share); when none fits, the coarsest rung with the
+    steps that fit (at least one a level)."""
+    ladder = _finest_first(ladder or LADDER)
+    ladder = [r for r in ladder if r.resolutions[-1] <= facts.max_resolution] or ladder[-1:]
+
+    def seconds_for(rung: Rung, share: float) -> float:
+        now = facts.outlook(voxels=facts.box_voxels(rung.resolutions[0]))
+        return predict(costs, facts, now, list(rung.resolutions), rung.scaled(share))
+
+    def plan(rung: Rung, share: float) -> Plan:
+        return Plan(list(rung.resolutions), rung.scaled(share), share, seconds_for(rung, share), share >= MIN_SHARE)
+
+    for finest in sorted({r.resolutions[-1] for r in ladder}, reverse=True):
+        shares = [(share, rung) for rung in ladder if rung.resolutions[-1] == finest
+                  for share in [_largest_share(lambda s: seconds_for(rung, s) <= seconds, MIN_SHARE, MAX_SHARE)]
+                  if share is not None]
+        if shares:
+            share, rung = max(shares, key=lambda pair: pair[0])  # the first of equal shares: ladder order
+            return plan(rung, share)
+    coarsest = ladder[-1]
+    return plan(coarsest, _largest_share(lambda s: seconds_for(coarsest, s) <= seconds, 0.0, MIN_SHARE) or 0.0)
+
+
+def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung: Rung, resolutions: list[int],
+           steps: list[int], measured: bool) -> tuple[list[int], list[int], float]:
+    """(resolutions, steps, share) for a fit under way, the levels done kept: the most steps (a share of the rung's,
+    at most MAX_SHARE) whose predicted time fits `seconds`. A level still to come is dropped when keeping it would leave
+    less than MIN_SHARE of the steps: with `measured` costs (once the fit has left its first resolution) any such level;
+    before that only one past the second resolution, as what pruning keeps is still a prior and a first resolution
+    alone, pruned early or not, is never a whole fit. Without that, a first level gives up the steps a level dropped
+    later would have needed (fox, 5-minute budget: 128->256->384 planned at half its steps, 256 of 1000 first-level
+    steps run, then 384 dropped at the level change). A level is not dropped where the levels before it, at
+    MAX_SHARE, would end the fit early: it stays, with what fits (lego, 30-second budget: 128 dropped at step 180 of
+    32->64->128, 64^3 at twice its steps, 25.42 dB in 21 s). When no schedule gets MIN_SHARE, the fewest levels
+    allowed get what fits.
+
+    In a scene whose first prune kept more than FULL_BOX of its box, a last level not yet started that would get less
+    than MIN_SHARE of its steps (and is not dropped) is lowered, by LOWER_BY, to the finest resolution that gets
+    MIN_SHARE: the rule the plan was chosen by, now on the scene's own costs. Such a scene's finer levels cost about
+    twice what the calibration's object predicts, and a finer grid short of steps loses to a coarser one with them
+    (fox, 2-minute budget, 112->112->224 planned: 25.79 dB at 224, 26.15 dB lowered to 160; on fox no grid past 192^3
+    wins at any time). On an object it is the other way round (lego, 2 minutes: 29.82 dB at 224 short of steps, 29.51
+    dB lowered to 208), so there the resolution stays the plan's (bench/README.md, "The time budget")."""
+    chosen = _replan_levels(seconds, costs, facts, now, rung, resolutions, steps, measured)
+    if (chosen[2] >= MIN_SHARE or len(chosen[0]) < len(resolutions) or now.level >= len(resolutions) - 1
+            or now.dense or now.first_keep <= FULL_BOX):
+        return chosen
+    for last in range(resolutions[-1] - LOWER_BY, resolutions[-2], -LOWER_BY):
+        lowered = _replan_levels(seconds, costs, facts, now, rung, resolutions[:-1] + [last], steps, measured)
+        if lowered[2] >= MIN_SHARE and len(lowered[0]) == len(resolutions):
+            return lowered
+    return chosen
+
+
+def _replan_levels(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung: Rung,
+                   resolutions: list[int], steps: list[int], measured: bool) -> tuple[list[int], list[int], float]:
+    done = now.step - sum(steps[:now.level])
+
+    def schedule(share: float, levels: int) -> list[int]:
+        new = rung.scaled(share)[:levels]
+        new[:now.level] = steps[:now.level]
+        new[now.level] = max(done, new[now.level])
+        return new
+
+    def fits(levels: int) -> Callable[[float], bool]:
+        return lambda s: predict(costs, facts, now, resolutions[:levels], schedule(s, levels)) <= seconds
+
+    # A first level pruned early goes on at its resolution: the second level is then the one after that.
+    second = next((level + 1 for level, r in enumerate(resolutions) if r != resolutions[0]), len(resolutions))
+    fewest = now.level + 1 if measured else min(len(resolutions), max(now.level + 1, second))
+    for levels in range(len(resolutions), fewest - 1, -1):
+        share = _largest_share(fits(levels), MIN_SHARE, MAX_SHARE)
+        if share is None:
+            continue
+        if levels < len(resolutions) and share >= MAX_SHARE:  # the fit would end early: the level stays, short
+            levels += 1
+            share = _largest_share(fits(levels), 0.0, MIN_SHARE) or 0.0
+        return resolutions[:levels], schedule(share, levels), share
+    share = _largest_share(fits(fewest), 0.0, MIN_SHARE) or 0.0
+    return resolutions[:fewest], schedule(share, fewest), share

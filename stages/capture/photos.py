@@ -1,0 +1,294 @@
+"""Reading the user's photos and videos: supported file types, decoding to upright 8-bit RGB (plus alpha),
+downscaling, sharpness scoring and picking the sharpest video frames."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image, ImageOps
+
+from plenoxels.core.errors import UserError
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp", ".heic", ".heif"}
+VIDEO_SUFFIXES = {".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v"}
+SHARPNESS_SIDE = 512  # score every image at the same size so scores compare across resolutions
+# Video frames are tracked at this size; a stretch ends when fewer than this share of its corners are still followed,
+# and its frames past this share of the motion wanted are candidates to keep.
+TRACKING_SIDE = 480
+TRACKS_KEPT_SHARE = 0.5
+CANDIDATE_SHARE = 0.6
+# A clip that gives too few frames at the motion set is read again at most VIDEO_RETRIES times, with frames at least
+# MIN_MOTION_SHARE of that motion apart (closer, neighbours differ by less than SfM can triangulate from).
+VIDEO_RETRIES = 3
+MIN_MOTION_SHARE = 0.25
+EXIF_ORIENTATION = 0x0112
+
+try:  # HEIC support comes from pillow-heif when it is installed
+    from pillow_heif import register_heif_opener
+
+    register_heif_opener()
+except ImportError:
+    IMAGE_SUFFIXES -= {".heic", ".heif"}
+
+
+def is_video(scene: Path) -> bool:
+    """True when the scene is a single video file rather than a folder of photos."""
+    return scene.is_file() and scene.suffix.lower() in VIDEO_SUFFIXES
+
+
+# The splits a NeRF synthetic (Blender) dataset folder has: <split>/ beside transforms_<split>.json.
+DATASET_SPLITS = ("train", "val", "test")
+
+
+def _has_photos(folder: Path) -> bool:
+    return folder.is_dir() and any(p.suffix.lower() in IMAGE_SUFFIXES for p in folder.iterdir() if p.is_file())
+
+
+def is_split_dataset(folder: Path) -> bool:
+    """A NeRF synthetic layout: train/ (and val/, test/) photo folders, each beside its transforms_<split>.json."""
+    return folder.is_dir() and (folder / "transforms_train.json").is_file() and _has_photos(folder / "train")
+
+
+def lexical_path(path: Path) -> Path:
+    """`path` made absolute and normalised (`.` and `..` folded) without following symbolic links: how a pose file's
+    frame and a photo are compared, the same way on both sides (a split folder of links to the photos must not
+    turn one split's frame into another's)."""
+    return Path(os.path.normpath(os.path.abspath(path)))
+
+
+def frame_photo(base: Path, file_path: str) -> Path | None:
+    """The photo a pose file's `file_path` names, relative to the pose file's folder `base`: the file as written, or
+    with a photo suffix added (NeRF synthetic frames name `./train/r_0` for `train/r_0.png`); None when absent."""
+    named = base / file_path.replace("\\", "/")
+    if named.suffix.lower() in IMAGE_SUFFIXES and named.is_file():
+        return named
+    return next((named.with_name(named.name + suffix) for suffix in sorted(IMAGE_SUFFIXES)
+                 if named.with_name(named.name + suffix).is_file()), None)
+
+
+def split_photos(scene: Path, split: str) -> list[Path]:
+    """The photos of a split dataset's `split`: the frames its transforms_<split>.json lists, nothing else (the
+    published test/ folders also hold depth and normal renders beside each photo); every photo of the folder where
+    the split has no such file."""
+    listing = scene / f"transforms_{split}.json"
+    folder = scene / split
+    if not listing.is_file():
+        return sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith(".")) if folder.is_dir() else []
+    try:
+        frames = json.loads(listing.read_text())["frames"]
+        names = [str(frame["file_path"]) for frame in frames]
+    except (json.JSONDecodeError, KeyError, TypeError):
+        raise UserError(f"{listing} is not a transforms file with a 'frames' list, each with a file_path; fix it or "
+                        f"move it away from the photos") from None
+    photos, absent = [], []
+    for name in names:
+        photo = frame_photo(scene, name)
+        if photo is not None and not lexical_path(photo).is_relative_to(lexical_path(scene)):
+            raise UserError(f"{listing.name} names {name}, outside the dataset folder {scene}; a split dataset's "
+                            f"frames live in its own split folders")
+        (photos if photo is not None else absent).append(photo or name)
+    if absent:
+        raise UserError(f"{listing.name} lists {len(absent)} frame(s) with no photo in {scene} ({', '.join(absent[:3])}"
+                        f"{', ...' if len(absent) > 3 else ''}); restore them or remove those frames from the file")
+    return sorted(set(photos))
+
+
+def photo_folder(scene: Path) -> Path:
+    """The folder the scene's photo paths are relative to: for a video, the folder it sits in; for a dataset
+    folder, its images/ (a COLMAP project or a nerfstudio folder) or its largest images_N/ (LLFF), or the dataset
+    itself when its photos sit in split folders (NeRF synthetic); else the folder named."""
+    if scene.is_file():
+        return scene.parent
+    if _has_photos(scene) or is_split_dataset(scene):
+        return scene
+    for name in ("images", "image"):  # image/: the NeuS/IDR layout (beside mask/ and cameras_sphere.npz)
+        if _has_photos(scene / name):
+            return scene / name
+    downscaled = [d for d in scene.glob("images_*") if d.name[7:].isdigit() and _has_photos(d)]
+    return min(downscaled, key=lambda d: int(d.name[7:])) if downscaled else scene
+
+
+def scene_photos(scene: Path, holdout_split: str) -> list[tuple[Path, str | None]]:
+    """The photo files of a folder scene, each with its split when the dataset defines one: a NeRF synthetic folder
+    gives train/ as "train" and the `holdout_split` folder ("val" or "test"; "none": none) as "test"."""
+    folder = photo_folder(scene)
+    if is_split_dataset(scene):
+        holding_out = holdout_split in DATASET_SPLITS[1:]
+        splits = [("train", "train" if holding_out else None)] + ([(holdout_split, "test")] if holding_out else [])
+        if len(splits) > 1 and not _has_photos(scene / holdout_split):
+            raise UserError(f"{scene} has no {holdout_split}/ photos to hold out; set ingest.holdout_split to one it "
+                            f"has ({', '.join(d for d in DATASET_SPLITS[1:] if _has_photos(scene / d)) or 'none'})")
+        return [(p, split) for name, split in splits for p in split_photos(scene, name)]
+    return [(p, None) for p in sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith("."))]
+
+
+def sharpness(rgb: np.ndarray) -> float:
+    """Variance of the Laplacian of the grey image at a fixed size: higher is sharper."""
+    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    scale = SHARPNESS_SIDE / max(grey.shape)
+    if scale < 1:
+        grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    return float(cv2.Laplacian(grey, cv2.CV_64F).var())
+
+
+def _to_uint8(array: np.ndarray) -> np.ndarray:
+    if array.dtype == np.uint8:
+        return array
+    if array.dtype == np.uint16:
+        return (array.astype(np.uint32) * 255 // 65535).astype(np.uint8)
+    if np.issubdtype(array.dtype, np.floating):
+        return (np.clip(array, 0, 1) * 255 + 0.5).astype(np.uint8)
+    return np.clip(array, 0, 255).astype(np.uint8)
+
+
+def _orient(array: np.ndarray, exif_orientation: int) -> np.ndarray:
+    """Applies an EXIF orientation tag (1-8) to a pixel array, as a camera's viewer would."""
+    ops = {2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
+           5: lambda a: np.swapaxes(a, 0, 1), 6: lambda a: np.rot90(a, -1),
+           7: lambda a: np.rot90(a, 1)[::-1], 8: lambda a: np.rot90(a, 1)}
+    return np.ascontiguousarray(ops[exif_orientation](array)) if exif_orientation in ops else array
+
+
+def scene_files(scene: Path) -> list[Path]:
+    """Every file `scene_photos` may return for this scene, whatever split is held out (for a cache key)."""
+    if scene.is_file():
+        return [scene]
+    if is_split_dataset(scene):
+        return [p for split in DATASET_SPLITS if (scene / split).is_dir()
+                for p in sorted(f for f in (scene / split).iterdir() if f.is_file() and not f.name.startswith("."))]
+    return [p for p, _ in scene_photos(scene, "none")]
+
+
+def load_photo(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Any supported photo -> (8-bit RGB [h,w,3], 8-bit alpha [h,w] or None), upright per its EXIF."""
+    with Image.open(path) as im:
+        orientation = im.getexif().get(EXIF_ORIENTATION, 1)
+        mode = im.mode
+        if mode in ("I;16", "I;16B", "I;16L", "I", "F"):
+            grey = _to_uint8(np.asarray(im)) if mode != "I" else _to_uint8(np.asarray(im).astype(np.uint16))
+            rgb, alpha = np.repeat(_orient(grey, orientation)[..., None], 3, axis=-1), None
+            return rgb, alpha
+        if mode not in ("RGB", "RGBA", "L", "LA", "P", "CMYK", "YCbCr", "I;16"):
+            raise ValueError(f"unsupported pixel mode {mode}")
+        wide = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.suffix.lower() in {".png", ".tif", ".tiff"} else None
+        if wide is not None and wide.dtype == np.uint16 and wide.ndim == 3:
+            # Pillow reads 16-bit colour as 8-bit by truncation; OpenCV keeps the full range.
+            wide = cv2.cvtColor(wide, cv2.COLOR_BGRA2RGBA if wide.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+            pixels = _orient(_to_uint8(wide), orientation)
+        else:
+            im = ImageOps.exif_transpose(im)
+            has_alpha = im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info)
+            pixels = np.asarray(im.convert("RGBA" if has_alpha else "RGB"))
+    if pixels.shape[2] == 4:
+        return np.ascontiguousarray(pixels[..., :3]), np.ascontiguousarray(pixels[..., 3])
+    return np.ascontiguousarray(pixels), None
+
+
+def fit_max_side(image: np.ndarray, max_side: int) -> np.ndarray:
+    """The image downscaled (area filter) so its longest side is at most `max_side`; 0 or a larger side keeps it."""
+    scale = max_side / max(image.shape[:2]) if max_side else 1.0
+    if scale >= 1.0:
+        return image
+    size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
+def _tracking_grey(bgr: np.ndarray) -> np.ndarray:
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    scale = TRACKING_SIDE / max(grey.shape)
+    return cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else grey
+
+
+def _corners(grey: np.ndarray) -> np.ndarray | None:
+    return cv2.goodFeaturesToTrack(grey, maxCorners=400, qualityLevel=0.01, minDistance=max(4, max(grey.shape) // 60))
+
+
+def video_frames(path: Path, max_side: int, motion: float, max_per_second: float, report,
+                 min_frames: int = 0) -> tuple[list[tuple[str, np.ndarray]], dict]:
+    """(name, RGB) of the frames to pose from a video (see frames_by_motion), and what the clip gave: its `seconds`,
+    the `motion` the frames were kept at and `total_motion` (diagonals the view moved in all). A clip whose motion
+    gives fewer than `min_frames` at `motion` (a short clip, or a camera that moved little) is read again with frames
+    closer together, as close as the motion allows for `min_frames` but never below MIN_MOTION_SHARE of `motion`, nor
+    more than `max_per_second` a second; where it still gives fewer, the caller says it is too short."""
+    kept, clip = frames_by_motion(path, max_side, motion, max_per_second, report)
+    used = motion
+    for _ in range(VIDEO_RETRIES):
+        if not min_frames or len(kept) >= min_frames or len(kept) >= clip["most_frames"]:
+            break
+        denser = max(motion * MIN_MOTION_SHARE, min(used * 0.7, clip["total_motion"] / min_frames))
+        if denser >= used:
+            break
+        used = denser
+        kept, clip = frames_by_motion(path, max_side, used, max_per_second, report)
+    return kept, {**clip, "motion": used, "max_per_second": max_per_second}
+
+
+def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: float,
+                     report) -> tuple[list[tuple[str, np.ndarray]], dict]:
+    """(name, RGB) of the frames to pose from a video, upright (its rotation metadata applied), downscaled to
+    `max_side`, and the clip's `seconds`, `total_motion` and `most_frames` (what `max_per_second` allows). A frame is
+    due each time the view has moved by `motion` of the frame's diagonal since the last kept
+    frame (the median motion of corners tracked from it by optical flow), or when fewer than half of those corners
+    can still be followed, so neighbours keep overlapping however fast or slowly the camera moved; of the frames
+    in the last stretch before that point, the sharpest is kept. At most `max_per_second` frames per second of video."""
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise UserError(f"cannot read video {path.name}; convert it to MP4 (H.264) or extract photos")
+    capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 1)
+    fps = capture.get(cv2.CAP_PROP_FPS) or 30.0
+    total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+    min_gap = max(1, round(fps / max_per_second))
+    kept: list[tuple[str, np.ndarray]] = []
+    candidates: list[tuple[float, int, np.ndarray]] = []   # (sharpness, index, rgb) since the stretch began
+    previous = points = start = None
+    index, last_kept, tracked = 0, -min_gap, 0
+    total_motion, counted = 0.0, 0.0  # diagonals moved in all: the stretches ended, and the current one so far
+
+    def keep(best: tuple[float, int, np.ndarray]) -> None:
+        nonlocal last_kept
+        kept.append((f"frame_{best[1]:06d}", best[2]))
+        last_kept = best[1]
+
+    with report.bar(total=total, desc=f"reading {path.name}") as bar:
+        while True:
+            ok, bgr = capture.read()
+            if not ok:
+                break
+            grey = _tracking_grey(bgr)
+            moved, lost = 0.0, False
+            if previous is not None and points is not None and len(points):
+                followed, status, _ = cv2.calcOpticalFlowPyrLK(previous, grey, points, None)
+                alive = status.ravel() == 1
+                points, start = followed[alive], start[alive]
+                lost = len(points) < TRACKS_KEPT_SHARE * tracked
+                if len(points):
+                    moved = float(np.median(np.linalg.norm((points - start).reshape(-1, 2), axis=1))) / np.hypot(*grey.shape)
+                    counted = max(counted, moved)
+            if previous is None or points is None or not len(points):
+                total_motion, counted = total_motion + counted, 0.0
+                points = _corners(grey)
+                start, tracked = points, len(points) if points is not None else 0
+                if not kept:  # the first frame anchors the sequence
+                    rgb = fit_max_side(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), max_side)
+                    keep((sharpness(rgb), index, rgb))
+            elif moved >= CANDIDATE_SHARE * motion or lost:
+                rgb = fit_max_side(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), max_side)
+                candidates.append((sharpness(rgb), index, rgb))
+            if (moved >= motion or lost) and candidates and index - last_kept >= min_gap:
+                keep(max(candidates, key=lambda c: c[0]))
+                candidates = []
+                # Track again from this frame: the next stretch is measured from (about) the frame just kept.
+                total_motion, counted = total_motion + counted, 0.0
+                points = _corners(grey)
+                start, tracked = points, len(points) if points is not None else 0
+            previous = grey
+            index += 1
+            bar.update()
+    if candidates and max(candidates, key=lambda c: c[0])[1] - last_kept >= min_gap:
+        keep(max(candidates, key=lambda c: c[0]))
+    capture.release()
+    return kept, {"seconds": round(index / fps, 2), "total_motion": round(total_motion + counted, 4),
+                  "most_frames": index // min_gap + 1}

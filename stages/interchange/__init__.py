@@ -1,0 +1,1 @@
+"""Files for other tools: meshes (OBJ, glTF, PLY) and point clouds (export)."""

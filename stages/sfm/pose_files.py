@@ -1,0 +1,47 @@
+"""Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy and IDR/NeuS cameras the importers
+(pose_import.py) could read. Finding them reads no pose, so a cache key lists them without loading COLMAP."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from stages.capture.photos import photo_folder
+
+KINDS = ("colmap", "transforms", "llff", "idr")
+# IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
+IDR_FILES = ("cameras_sphere.npz", "cameras.npz")
+
+
+def colmap_models(folder: Path) -> list[Path]:
+    """COLMAP model folders under `folder`: sparse/0, sparse/1, ... or sparse/ itself."""
+    sparse = folder / "sparse"
+    if not sparse.is_dir():
+        return []
+    found = [d for d in sorted(sparse.iterdir()) if d.is_dir() and is_colmap_model(d)]
+    return found or ([sparse] if is_colmap_model(sparse) else [])
+
+
+def is_colmap_model(folder: Path) -> bool:
+    return all((folder / f"{part}.bin").is_file() or (folder / f"{part}.txt").is_file()
+               for part in ("cameras", "images"))
+
+
+def candidates(scene: Path) -> dict[str, list[Path]]:
+    """Pose files beside the photos (the photo folder first, then its parent), by kind."""
+    found: dict[str, list[Path]] = {kind: [] for kind in KINDS}
+    folder = photo_folder(scene)
+    for place in (folder, folder.parent) if not scene.is_file() else (folder,):
+        found["colmap"] += colmap_models(place)
+        found["transforms"] += sorted(p for p in place.glob("transforms*.json") if p.is_file())
+        if (place / "poses_bounds.npy").is_file():
+            found["llff"].append(place / "poses_bounds.npy")
+        found["idr"] += [place / name for name in IDR_FILES if (place / name).is_file()]
+    return found
+
+
+def pose_files(scene: Path) -> list[Path]:
+    """Every file the importers could read for this scene (for a cache key)."""
+    files: list[Path] = []
+    for kind, paths in candidates(scene).items():
+        for path in paths:
+            files += sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
+    return files

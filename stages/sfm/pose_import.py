@@ -1,0 +1,373 @@
+"""Poses a user already has: a COLMAP sparse model, a NeRF / instant-ngp / nerfstudio / Blender
+transforms.json, LLFF poses_bounds.npy, or IDR/NeuS cameras_sphere.npz (DTU-style sets), turned into the same
+distorted COLMAP model that SfM makes.
+
+Every importer returns an `Imported`: a `pycolmap.Reconstruction` whose image names are the ingested
+PNGs (`<name>.png`) and whose cameras are scaled to the ingested image size, so it is undistorted and
+written exactly as an SfM result is (stages/sfm/outputs.py). Pose files describe images by their own
+names and sizes; images are matched to pose entries by path first, then by file stem (LLFF, which has
+no names, and IDR/NeuS, which number them, by sorted file order), and the ones without a pose are listed.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from stages.capture.photos import DATASET_SPLITS, frame_photo, is_split_dataset, lexical_path, photo_folder
+from stages.sfm.pose_files import KINDS, candidates, colmap_models, is_colmap_model
+from plenoxels.core.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, opengl_c2w_from_projection
+from plenoxels.core.errors import UserError
+
+# How far an image's size may be from the pose file's size after scaling before we call it a different image.
+SIZE_TOLERANCE_PX = 1.5
+
+
+@dataclass
+class Imported:
+    reconstruction: pycolmap.Reconstruction
+    path: Path                                    # the file or folder the poses came from
+    missing: list[str]                            # ingested images the pose file has no entry for
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)  # name -> (near, far), LLFF only
+    path_matches: int = 0                         # images matched by their path rather than only their stem
+
+
+def kind_of(path: Path) -> str:
+    if path.is_dir():
+        if is_colmap_model(path) or colmap_models(path) or colmap_models(path.parent):
+            return "colmap"
+    elif path.suffix == ".json":
+        return "transforms"
+    elif path.suffix == ".npy":
+        return "llff"
+    elif path.suffix == ".npz":
+        return "idr"
+    raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json, a poses_bounds.npy or an "
+                    "IDR/NeuS cameras*.npz")
+
+
+def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
+    if kind == "colmap":
+        if not is_colmap_model(path):
+            models = (colmap_models(path) or colmap_models(path.parent)) if path.is_dir() else []
+            if not models:
+                raise UserError(f"{path} holds no COLMAP model (cameras and images .bin/.txt, or sparse/0 with them); "
+                                "point poses.path at the model folder")
+            path = max(models, key=lambda m: pycolmap.Reconstruction(m).num_reg_images())
+        return from_colmap(path, records)
+    if kind == "transforms":
+        return from_transforms(path, records, scene)
+    if kind == "idr":
+        return from_idr(path, records, scene)
+    return from_llff(path, records)
+
+
+def choose(kind: str, paths: list[Path], records: list[dict], scene: Path) -> Imported:
+    """Of several pose files of one kind, the one that poses the most images (paths that match beat stems)."""
+    best, best_score = None, None
+    for path in paths:
+        imported = load(kind, path, records, scene)
+        score = (imported.path_matches, len(records) - len(imported.missing))
+        if best_score is None or score > best_score:
+            best, best_score = imported, score
+    return best
+
+
+def find(source: str, path: str, records: list[dict], scene: Path) -> tuple[str, Imported] | None:
+    """The poses to import for a scene and their kind, or None when SfM should make them: `path` names a pose file
+    or model folder (relative to the photos when not found as given), else the pose files beside the photos are
+    searched; `source` is "auto", "sfm" or one of KINDS."""
+    if source == "sfm":
+        return None
+    if path:
+        given = Path(path).expanduser()
+        if not given.is_absolute() and not given.exists():
+            given = photo_folder(scene) / given
+        if not given.exists():
+            raise UserError(f"poses.path {path} does not exist; give a COLMAP model folder, a transforms*.json or a poses_bounds.npy")
+        kind = source if source != "auto" else kind_of(given)
+        return kind, load(kind, given, records, scene)
+    found = candidates(scene)
+    if is_split_dataset(scene) and source in ("auto", "transforms"):
+        # One dataset in several files: the photos of every split the ingest kept are posed together.
+        splits = [scene / f"transforms_{split}.json" for split in DATASET_SPLITS]
+        present = [p for p in splits if p.is_file()]
+        return "transforms", from_transforms(present[0], records, scene, tuple(present[1:]))
+    for kind in [source] if source != "auto" else list(KINDS):
+        if found[kind]:
+            return kind, choose(kind, found[kind], records, scene)
+    if source != "auto":
+        raise UserError(f"poses.source={source} but no such pose file is beside the photos in "
+                        f"{photo_folder(scene)}; set poses.path to it or use poses.source=auto")
+    return None
+
+
+# ---- shared helpers ---------------------------------------------------------------------------------------
+
+def _stem(name: str) -> str:
+    return Path(name.replace("\\", "/")).name.rsplit(".", 1)[0] if "." in Path(name).name else Path(name).name
+
+
+def _rigid_from_c2w(c2w: np.ndarray) -> pycolmap.Rigid3d:
+    """COLMAP's world-to-camera for our camera-to-world; the rotation is projected onto SO(3) first
+    because exported matrices carry float noise (and some tools fold a scale into them)."""
+    c2w = np.array(c2w, dtype=np.float64)
+    u, _, vt = np.linalg.svd(c2w[:3, :3])
+    c2w[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    rotation, translation = colmap_w2c_from_opengl_c2w(c2w)
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation)
+
+
+def _scale_factor(record: dict, pose_w: float, pose_h: float, what: str) -> float:
+    """The factor from the pose file's image size to the ingested one; both sides must agree."""
+    factor = record["width"] / pose_w
+    if abs(pose_h * factor - record["height"]) > SIZE_TOLERANCE_PX * max(1.0, factor):
+        raise UserError(f"{record['source']} is {record['original_width']}x{record['original_height']} but {what} "
+                        f"describes {pose_w:g}x{pose_h:g} images (a different aspect); use the matching photos "
+                        "or set poses.source=sfm")
+    return factor
+
+
+def _camera(camera_id: int, k: Intrinsics, distortion: tuple[float, float, float, float]) -> pycolmap.Camera:
+    if any(distortion):
+        return pycolmap.Camera(model="OPENCV", width=k.w, height=k.h, camera_id=camera_id,
+                               params=[k.fl_x, k.fl_y, k.cx, k.cy, *distortion])
+    return pycolmap.Camera(model="PINHOLE", width=k.w, height=k.h, camera_id=camera_id,
+                           params=[k.fl_x, k.fl_y, k.cx, k.cy])
+
+
+class _CameraTable:
+    """Adds one COLMAP camera per distinct (intrinsics, distortion), so a shared camera stays shared."""
+
+    def __init__(self, reconstruction: pycolmap.Reconstruction):
+        self.reconstruction = reconstruction
+        self.ids: dict[tuple, int] = {}
+
+    def id_for(self, k: Intrinsics, distortion: tuple[float, float, float, float]) -> int:
+        key = (round(k.fl_x, 6), round(k.fl_y, 6), round(k.cx, 6), round(k.cy, 6), k.w, k.h,
+               *(round(d, 9) for d in distortion))
+        if key not in self.ids:
+            self.ids[key] = len(self.ids) + 1
+            self.reconstruction.add_camera_with_trivial_rig(_camera(self.ids[key], k, distortion))
+        return self.ids[key]
+
+
+def _add_image(reconstruction: pycolmap.Reconstruction, image_id: int, record: dict, camera_id: int,
+               c2w: np.ndarray) -> None:
+    image = pycolmap.Image(name=f"{record['name']}.png", camera_id=camera_id, image_id=image_id)
+    reconstruction.add_image_with_trivial_frame(image, _rigid_from_c2w(c2w))
+
+
+# ---- COLMAP -----------------------------------------------------------------------------------------------
+
+def from_colmap(model_dir: Path, records: list[dict]) -> Imported:
+    try:
+        source = pycolmap.Reconstruction(model_dir)
+    except Exception as e:  # pycolmap raises plain RuntimeErrors for unreadable or truncated models
+        raise UserError(f"cannot read the COLMAP model in {model_dir} ({str(e).splitlines()[0][:80]}); "
+                        "fix it or set poses.source=sfm") from None
+    by_stem: dict[str, pycolmap.Image] = {}
+    for image in source.images.values():
+        if image.has_pose:
+            by_stem.setdefault(_stem(image.name), image)
+    out = pycolmap.Reconstruction()
+    camera_ids: dict[tuple[int, int, int], int] = {}   # (source camera, w, h) -> new camera
+    kept: dict[int, int] = {}                           # source image id -> new image id
+    missing = []
+    for record in records:
+        image = by_stem.get(_stem(record["source"])) or by_stem.get(record["name"])
+        if image is None:
+            missing.append(record["name"])
+            continue
+        cam = source.cameras[image.camera_id]
+        _scale_factor(record, cam.width, cam.height, f"the COLMAP model in {model_dir}")
+        key = (image.camera_id, record["width"], record["height"])
+        if key not in camera_ids:
+            scaled = pycolmap.Camera(model=cam.model_name, width=cam.width, height=cam.height,
+                                     params=list(cam.params), camera_id=len(camera_ids) + 1)
+            scaled.rescale(record["width"], record["height"])
+            camera_ids[key] = scaled.camera_id
+            out.add_camera_with_trivial_rig(scaled)
+        sx, sy = record["width"] / cam.width, record["height"] / cam.height
+        new_id = len(kept) + 1
+        keypoints = np.array([p.xy for p in image.points2D], dtype=np.float64).reshape(-1, 2) * [sx, sy]
+        new_image = pycolmap.Image(name=f"{record['name']}.png", keypoints=keypoints, camera_id=camera_ids[key],
+                                   image_id=new_id)
+        out.add_image_with_trivial_frame(new_image, image.cam_from_world())
+        kept[image.image_id] = new_id
+    for point in source.points3D.values():
+        elements = [pycolmap.TrackElement(kept[e.image_id], e.point2D_idx)
+                    for e in point.track.elements if e.image_id in kept]
+        if len(elements) >= 2:
+            out.add_point3D(point.xyz, pycolmap.Track(elements), point.color)
+    out.update_point_3d_errors()
+    return Imported(out, model_dir, missing)
+
+
+# ---- transforms.json (NeRF, instant-ngp, nerfstudio, Blender) --------------------------------------------
+
+def _intrinsics_from(meta: dict, fallback: dict, record: dict) -> tuple[Intrinsics, tuple[float, float, float, float]]:
+    """A frame's camera from its own keys, else the file's: fl_x/fl_y/cx/cy/w/h or camera_angle_x/y."""
+    def get(key):
+        return meta.get(key, fallback.get(key))
+
+    w = get("w") or record["original_width"]
+    h = get("h") or record["original_height"]
+    fl_x = get("fl_x")
+    if fl_x is None and get("camera_angle_x") is not None:
+        fl_x = 0.5 * w / math.tan(0.5 * float(get("camera_angle_x")))
+    if fl_x is None:
+        raise UserError("the transforms file gives no focal length (fl_x or camera_angle_x); add one or set poses.source=sfm")
+    fl_y = get("fl_y")
+    if fl_y is None:
+        fl_y = 0.5 * h / math.tan(0.5 * float(get("camera_angle_y"))) if get("camera_angle_y") is not None else fl_x
+    cx = get("cx") if get("cx") is not None else w / 2
+    cy = get("cy") if get("cy") is not None else h / 2
+    distortion = tuple(float(get(key) or 0.0) for key in ("k1", "k2", "p1", "p2"))
+    return Intrinsics(float(fl_x), float(fl_y), float(cx), float(cy), int(round(w)), int(round(h))), distortion
+
+
+def _read_transforms(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+        if not isinstance(data["frames"], list):
+            raise TypeError
+    except (json.JSONDecodeError, KeyError, TypeError):
+        raise UserError(f"{path} is not a transforms.json with a 'frames' list; fix it or set poses.source=sfm") from None
+    return data
+
+
+def from_transforms(path: Path, records: list[dict], scene: Path, more: tuple[Path, ...] = ()) -> Imported:
+    """Poses from a transforms.json, and from the `more` files beside it (a split dataset's transforms_<split>.json
+    files, read as one); a frame's own camera keys override its file's.
+
+    A photo takes the frame whose file_path names it: both paths compared as written, made absolute without
+    following links (stages.capture.photos.lexical_path), then, where that finds none, both with their links followed,
+    where only one frame leads to the photo's file. A pose file written elsewhere (other folders, another machine)
+    matches by file stem, where only one frame has that stem; a stem several frames share (r_0 in train/, val/ and
+    test/) is refused, never guessed."""
+    folder = photo_folder(scene)
+    frames: list[tuple[dict, dict]] = []
+    by_path: dict[Path, int] = {}
+    by_target: dict[Path, list[int]] = {}
+    by_stem: dict[str, list[int]] = {}
+    for file in (path, *more):
+        data = _read_transforms(file)
+        for frame in data["frames"]:
+            index = len(frames)
+            frames.append((frame, data))
+            file_path = str(frame.get("file_path", ""))
+            written = lexical_path(file.parent / file_path)
+            by_path.setdefault(written, index)
+            by_path.setdefault(written.with_suffix(""), index)
+            photo = frame_photo(file.parent, file_path)
+            if photo is not None:
+                by_target.setdefault(photo.resolve(), []).append(index)
+            by_stem.setdefault(_stem(file_path), []).append(index)
+    reconstruction = pycolmap.Reconstruction()
+    cameras = _CameraTable(reconstruction)
+    missing, ambiguous, path_matches = [], [], 0
+    for record in records:
+        photo = folder / record["source"]
+        index = by_path.get(lexical_path(photo))
+        if index is None:
+            index = by_path.get(lexical_path(photo).with_suffix(""))
+        if index is None and len(by_target.get(photo.resolve(), [])) == 1:
+            index = by_target[photo.resolve()][0]
+        path_matches += index is not None
+        if index is None:
+            same_stem = by_stem.get(_stem(record["source"]), [])
+            if len(same_stem) > 1:
+                ambiguous.append(record["source"])
+                continue
+            index = same_stem[0] if same_stem else None
+        if index is None:
+            missing.append(record["name"])
+            continue
+        frame, data = frames[index]
+        k, distortion = _intrinsics_from(frame, data, record)
+        factor = _scale_factor(record, k.w, k.h, str(path))
+        scaled = k.scaled(factor)
+        scaled = Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
+        c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
+        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(scaled, distortion), c2w)
+    if ambiguous:
+        raise UserError(f"{len(ambiguous)} photo(s) match no frame of {path.name if not more else 'the transforms files'}"
+                        f" by path, and several frames by name ({', '.join(ambiguous[:3])}"
+                        f"{', ...' if len(ambiguous) > 3 else ''}); make each frame's file_path name its photo, relative "
+                        f"to the pose file")
+    return Imported(reconstruction, path.parent if more else path, missing, path_matches=path_matches)
+
+
+# ---- LLFF poses_bounds.npy --------------------------------------------------------------------------------
+
+def from_llff(path: Path, records: list[dict]) -> Imported:
+    """poses_bounds.npy rows follow the sorted photo file names; each is a 3x5 [down, right, back, centre, hwf]
+    plus near and far. The focal is for the full-size photos, so it is scaled by the width ratio."""
+    try:
+        table = np.load(path)
+    except (ValueError, OSError):
+        raise UserError(f"cannot read {path} as an LLFF poses_bounds.npy; fix it or set poses.source=sfm") from None
+    if table.ndim != 2 or table.shape[1] != 17:
+        raise UserError(f"{path} has shape {table.shape}; LLFF poses_bounds.npy is [N, 17]")
+    ordered = sorted(records, key=lambda r: r["source"])
+    if len(ordered) != len(table):
+        raise UserError(f"{path} has {len(table)} poses but the folder has {len(ordered)} photos; LLFF poses "
+                        "follow the photos' sorted order, so the counts must match (or set poses.source=sfm)")
+    reconstruction = pycolmap.Reconstruction()
+    cameras = _CameraTable(reconstruction)
+    bounds = {}
+    for row, record in zip(table, ordered):
+        pose = row[:15].reshape(3, 5)
+        h, w, focal = pose[:, 4]
+        factor = _scale_factor(record, w, h, str(path))
+        k = Intrinsics(focal, focal, w / 2, h / 2, int(round(w)), int(round(h))).scaled(factor)
+        k = Intrinsics(k.fl_x, k.fl_y, k.cx, k.cy, record["width"], record["height"])
+        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k, (0.0, 0.0, 0.0, 0.0)),
+                   opengl_c2w_from_llff(pose[:, :4]))
+        bounds[record["name"]] = (float(row[15]), float(row[16]))
+    return Imported(reconstruction, path, [], bounds)
+
+
+# ---- IDR / NeuS cameras_sphere.npz ------------------------------------------------------------------------
+
+def from_idr(path: Path, records: list[dict], scene: Path) -> Imported:
+    """IDR's and NeuS's cameras (their DTU and BlendedMVS releases): `world_mat_i`, the projection K [R | t] of the
+    i-th photo in sorted file order (the number in its name, where every name is one), and `scale_mat_i`, which takes the unit sphere around the object to the world;
+    the poses are kept in the sphere's frame (world_mat @ scale_mat), as those methods use them. Their K puts pixel
+    centres at whole numbers, ours at +0.5."""
+    try:
+        with np.load(path) as data:
+            projections = {int(key[len("world_mat_"):]): data[key] @ data.get(f"scale_mat_{key[len('world_mat_'):]}",
+                                                                                 np.eye(4))
+                           for key in data.files if key.startswith("world_mat_") and key[len("world_mat_"):].isdigit()}
+    except (ValueError, OSError, KeyError, TypeError):
+        raise UserError(f"cannot read {path} as IDR/NeuS cameras (world_mat_N, scale_mat_N); fix it or set "
+                        "poses.source=sfm") from None
+    if not projections:
+        raise UserError(f"{path} holds no world_mat_N projections; it is not an IDR/NeuS camera file (set poses.source)")
+    # Photos numbered by their names (000000.png) take those numbers, so a photo ingest skipped shifts no other.
+    numbered = all(_stem(r["source"]).isdigit() for r in records)
+    ordered = sorted(records, key=lambda r: r["source"])
+    if not numbered and len(ordered) != len(projections):
+        raise UserError(f"{path} has {len(projections)} cameras but the folder has {len(ordered)} photos; its cameras "
+                        "follow the photos' sorted order, so the counts must match (or set poses.source=sfm)")
+    reconstruction = pycolmap.Reconstruction()
+    cameras = _CameraTable(reconstruction)
+    missing = []
+    for position, record in enumerate(ordered):
+        index = int(_stem(record["source"])) if numbered else position
+        if index not in projections:
+            missing.append(record["name"])
+            continue
+        matrix, c2w = opengl_c2w_from_projection(projections[index])
+        w, h = record["original_width"], record["original_height"]
+        factor = _scale_factor(record, w, h, str(path))
+        k = Intrinsics(matrix[0, 0], matrix[1, 1], matrix[0, 2] + 0.5, matrix[1, 2] + 0.5, w, h).scaled(factor)
+        k = Intrinsics(k.fl_x, k.fl_y, k.cx, k.cy, record["width"], record["height"])
+        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k, (0.0, 0.0, 0.0, 0.0)), c2w)
+    return Imported(reconstruction, path, missing)

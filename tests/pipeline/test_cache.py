@@ -1,0 +1,133 @@
+"""Cache keys see code: editing any project module a stage imports makes that stage and those after it stale."""
+import ast
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from pipeline.report import Reporter
+from pipeline.runner import Pipeline
+from pipeline.stage import STAGE_ORDER, StageGraph, code_hash, import_closure
+
+# a -> b -> c; b reaches `shapes` only through `helpers` (and a relative import), so the key must follow imports
+# transitively; `unrelated` is imported by no stage.
+SOURCES = {
+    "__init__.py": "",
+    "shapes.py": "SIDE = 2\n",
+    "helpers.py": "from .shapes import SIDE\n\ndef area():\n    return SIDE * SIDE\n",
+    "unrelated.py": "X = 1\n",
+    "a.py": '''
+        from dataclasses import dataclass
+        NAME, DEPENDS, VERSION = "a", (), 1
+        @dataclass
+        class Settings:
+            value: int = 1
+        def run(ctx):
+            (ctx.work / "a.txt").write_text(str(ctx.settings.value))
+            return {"line": "a done"}
+    ''',
+    "b.py": '''
+        from dataclasses import dataclass
+        from cachestages import helpers
+        NAME, DEPENDS, VERSION = "b", ("a",), 1
+        @dataclass
+        class Settings:
+            pass
+        def run(ctx):
+            (ctx.work / "b.txt").write_text(str(helpers.area()))
+            return {"line": "b done"}
+    ''',
+    "c.py": '''
+        from dataclasses import dataclass
+        NAME, DEPENDS, VERSION = "c", ("b",), 1
+        @dataclass
+        class Settings:
+            pass
+        def run(ctx):
+            (ctx.work / "c.txt").write_text((ctx.upstream["b"] / "b.txt").read_text())
+            return {"line": "c done"}
+    ''',
+}
+
+
+@pytest.fixture
+def package(tmp_path, monkeypatch):
+    root = tmp_path / "pkg" / "cachestages"
+    root.mkdir(parents=True)
+    for name, source in SOURCES.items():
+        (root / name).write_text(textwrap.dedent(source))
+    monkeypatch.syspath_prepend(str(tmp_path / "pkg"))
+    for mod in [m for m in sys.modules if m.startswith("cachestages")]:
+        del sys.modules[mod]
+    return root
+
+
+def make(tmp_path) -> Pipeline:
+    (tmp_path / "scene").mkdir(exist_ok=True)
+    return Pipeline(tmp_path / "scene", tmp_path / "out", reporter=Reporter(quiet=True),
+                    graph=StageGraph(package="cachestages", order=("a", "b", "c"), declarations=None))
+
+
+def statuses(pipe: Pipeline) -> dict[str, tuple[str, str]]:
+    return {name: pipe.status(name) for name in ("a", "b", "c")}
+
+
+def test_the_closure_follows_imports_transitively(package):
+    closure = import_closure("cachestages.b")
+    assert {"cachestages", "cachestages.b", "cachestages.helpers", "cachestages.shapes"} <= set(closure)
+    assert "cachestages.unrelated" not in closure and "dataclasses" not in closure
+
+
+def test_editing_a_helper_makes_its_stage_and_those_after_it_stale(package, tmp_path, capsys):
+    make(tmp_path).run(["c"])
+    assert all(state == "done" for state, _ in statuses(make(tmp_path)).values())
+
+    (package / "shapes.py").write_text("SIDE = 10\n")
+    after = statuses(make(tmp_path))
+    assert after["a"][0] == "done"
+    assert after["b"] == ("stale", "code changed")
+    assert after["c"] == ("stale", "b will re-run")
+
+    capsys.readouterr()
+    for mod in [m for m in sys.modules if m.startswith("cachestages")]:
+        del sys.modules[mod]  # a new process would import the edited source
+    make(tmp_path).run(["c"])
+    out = capsys.readouterr().out
+    assert "[a] up to date" in out and "[b] b done" in out and "[c] c done" in out
+    assert (tmp_path / "out" / "c" / "c.txt").read_text() == "100"
+
+
+def test_editing_an_unrelated_module_changes_nothing(package, tmp_path):
+    make(tmp_path).run(["c"])
+    keys = {name: make(tmp_path).plan(name).key for name in ("a", "b", "c")}
+    (package / "unrelated.py").write_text("X = 2\n")
+    assert {name: make(tmp_path).plan(name).key for name in ("a", "b", "c")} == keys
+    assert all(state == "done" for state, _ in statuses(make(tmp_path)).values())
+
+
+def test_every_project_module_a_stage_imports_is_in_its_key():
+    # The camera convention, imported only through the library, must be in every key that depends on it.
+    for name in ("normalize", "fit", "evaluate", "export"):
+        assert "plenoxels.core.cameras" in import_closure(f"stages.{name}")
+
+
+def test_stages_that_load_the_native_core_hash_its_sources(tmp_path, monkeypatch):
+    import pipeline.stage as stage
+
+    assert "plenoxels.core.native" in import_closure("stages.fit")
+    csrc = tmp_path / "csrc"
+    csrc.mkdir()
+    (csrc / "kernel.cpp").write_text("int f() { return 1; }\n")
+    monkeypatch.setattr(stage, "NATIVE_SOURCES", csrc)
+    before = code_hash(["stages.fit"], 1)  # hashed from source; no need to import it
+    (csrc / "kernel.cpp").write_text("int f() { return 2; }\n")
+    assert code_hash(["stages.fit"], 1) != before
+
+
+def test_no_stage_lists_its_code_by_hand():
+    stages_dir = Path(__file__).resolve().parents[2] / "stages"
+    listed = [name for name in STAGE_ORDER
+              if any(isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "CODE" for t in node.targets)
+                     for node in ast.parse((stages_dir / f"{name}.py").read_text()).body)]
+    assert listed == [], "the cache key follows imports; delete CODE"

@@ -1,0 +1,205 @@
+"""The fit's time budget: the setting's durations, and budgeted fits that end on time, stop, resume and pace their
+levels (the cost model and the plan have their own tests: test_fit_cost.py, test_fit_plan.py)."""
+import json
+import os
+import shutil
+import signal
+import time
+
+import pytest
+from test_fit import QUICK, make_scene, run_stage
+
+from pipeline import config
+from stages.common.json_files import read_json
+from plenoxels.planning import budget
+from plenoxels.planning.fit_cost import CostModel
+from plenoxels.planning.fit_plan import Rung
+from plenoxels.core.errors import UserError
+from plenoxels.core.train import Fitter
+from stages import fit
+
+# A tiny ladder and a cost model that thinks every step is free: the plan then asks for far more steps than the
+# budget holds, and only the deadline's stop can end the fit on time.
+TINY_LADDER = (Rung((16, 32), (400, 800)),)
+FREE = CostModel(step_fixed=1e-6, step_per_voxel=1e-12, pass_per_ray=1e-12, change_per_voxel=1e-12,
+                 checkpoint_per_voxel=1e-12, save_per_voxel=1e-12)
+# What the budgeted fits of the tiny scene share with tests/stages/test_fit.py, without its levels.
+BUDGETED = {k: v for k, v in QUICK.items() if k not in ("resolutions", "steps")} | {"sh_degree": 1}
+
+
+@pytest.fixture(autouse=True)
+def private_cache(tmp_path, monkeypatch):
+    """Calibrations go to a folder of the test's own, never to the user's cache."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_scene(tmp_path_factory.mktemp("budget"))
+
+
+@pytest.fixture
+def fresh(scene, tmp_path):
+    root = tmp_path / "scene"
+    shutil.copytree(scene / "synth", root / "synth")
+    shutil.copytree(scene / "normalize", root / "normalize")
+    return root
+
+
+# ---- the setting ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("value, seconds", [("90s", 90), ("5m", 300), ("2m30s", 150), ("1h", 3600), (90, 90),
+                                            ("90", 90), (12.5, 12.5), ("1.5m", 90), (0, 0), ("0", 0), ("", 0)])
+def test_time_budget_takes_durations(value, seconds):
+    assert config.build(fit.Settings, "fit", {"time_budget": value}).budget_seconds == seconds
+
+
+@pytest.mark.parametrize("raw", ["5x", "abc", "-3", "30s2m", "5m5m", "m", "null", "inf"])
+def test_a_bad_time_budget_is_a_one_line_error_naming_the_key(raw):
+    values = config.parse_overrides([f"fit.time_budget={raw}"])["fit"]
+    with pytest.raises(UserError) as info:
+        config.build(fit.Settings, "fit", values)
+    message = str(info.value)
+    assert "fit.time_budget" in message and "\n" not in message
+
+
+def test_the_default_is_no_budget():
+    assert fit.Settings().budget_seconds == 0
+
+
+
+def test_a_budgeted_fit_ends_within_its_budget_with_a_complete_model(fresh):
+    seconds = 12.0
+    started = time.time()
+    summary = run_stage(fresh, fit, {**BUDGETED, "time_budget": f"{seconds:g}s"})
+    took = time.time() - started
+    # The budget covers the stage, its first calibration included; generous for a machine shared with other work.
+    assert took <= 1.1 * seconds + 4.0, took
+    record = read_json(fresh / "fit" / "fit.json")
+    assert record["complete"] and (fresh / "fit" / "grid.pt").is_file()
+    plan = record["budget"]
+    assert plan["seconds"] == seconds and plan["chosen"]["predicted"] <= seconds
+    assert plan["ran"]["resolutions"] == record["resolutions"] and record["steps"] <= sum(plan["ran"]["steps"])
+    assert plan["calibration"]["cached"] is False and plan["calibration"]["costs"]["step_fixed"] >= 0
+    assert "budget 12s: " in summary["line"] and "from a calibration of" in summary["line"]
+    if plan["chosen"]["fits"]:
+        assert record["held_out_psnr"] > 13.0, record["held_out_psnr"]  # it learned the scene (an untrained grid: ~10)
+    else:  # a machine so busy that the first calibration took most of the budget: the summary says what that left
+        assert plan["calibration"]["measured_in_seconds"] > seconds / 3, plan["calibration"]
+        assert "less than the coarsest plan needs" in summary["line"]
+
+
+def test_the_deadline_ends_a_fit_whose_plan_was_too_long_and_it_is_still_complete(fresh, monkeypatch):
+    monkeypatch.setattr(budget, "LADDER", TINY_LADDER)
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
+    # No re-plan shortens the free steps' schedule: neither every few steps nor at the level change, where a machine so
+    # busy that the first level took most of the budget would cut the last level to a step and end before the deadline.
+    monkeypatch.setattr(budget, "replan", lambda seconds, costs, facts, now, rung, resolutions, steps, measured: (
+        resolutions, steps, 1.0))
+    prunes = []
+    original = Fitter.prune
+    monkeypatch.setattr(Fitter, "prune", lambda self, budget_rows=None: prunes.append(budget_rows)
+                        or original(self, budget_rows))
+    step = Fitter.train_step
+    # 2 ms more a step: the free calibration's plan (2 x 1200 steps) then outlasts the budget on any machine (a fast
+    # one had run all of its tiny steps before the deadline).
+    monkeypatch.setattr(Fitter, "train_step", lambda self: time.sleep(0.002) or step(self))
+    seconds = 4.0
+    started = time.time()
+    summary = run_stage(fresh, fit, {**BUDGETED, "time_budget": seconds})
+    assert time.time() - started <= seconds + 3.0
+    record = read_json(fresh / "fit" / "fit.json")
+    assert record["budget"]["stopped_at_deadline"] and record["complete"]
+    assert record["steps"] < record["total_steps"] == 2 * 1200
+    assert prunes[-1] is None  # pruned once more at the end, as a complete schedule is
+    assert "stopped at the deadline" in summary["line"]
+
+
+def test_ctrl_c_still_stops_a_budgeted_fit_with_a_usable_model(fresh, monkeypatch):
+    monkeypatch.setattr(budget, "LADDER", TINY_LADDER)
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
+    original = Fitter.train_step
+
+    def interrupted(self):
+        if self.step == 30:
+            os.kill(os.getpid(), signal.SIGINT)
+        return original(self)
+
+    monkeypatch.setattr(Fitter, "train_step", interrupted)
+    summary = run_stage(fresh, fit, {**BUDGETED, "time_budget": "1m"})
+    record = read_json(fresh / "fit" / "fit.json")
+    assert not record["complete"] and record["steps"] == 31 and not record["budget"]["stopped_at_deadline"]
+    assert "stopped early at step 31" in summary["line"] and (fresh / "fit" / "grid.pt").is_file()
+
+
+def test_a_budget_plans_its_rungs_with_the_coarse_start_the_settings_ask_for(fresh, monkeypatch):
+    monkeypatch.setattr(budget, "LADDER", (Rung((64, 64, 96), (4, 16, 20), fixed=1),))
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
+    run_stage(fresh, fit, {**BUDGETED, "time_budget": "1m", "first_level_scale": 0.5})
+    plan = read_json(fresh / "fit" / "fit.json")["budget"]
+    assert plan["chosen"]["resolutions"] == [32, 32, 96] and plan["ran"]["resolutions"] == [32, 32, 96]
+
+
+def test_a_budgeted_fit_resumes_with_its_plan(fresh, monkeypatch):
+    monkeypatch.setattr(budget, "LADDER", (Rung((16, 32), (40, 40)),))
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
+    original = Fitter.train_step
+
+    def interrupted(self):
+        if self.step == 100:  # after the level change at step 80
+            raise KeyboardInterrupt
+        return original(self)
+
+    monkeypatch.setattr(Fitter, "train_step", interrupted)
+    values = {**BUDGETED, "time_budget": "1m", "checkpoint_every": 1e-6}
+    with pytest.raises(KeyboardInterrupt):
+        run_stage(fresh, fit, values)
+    monkeypatch.setattr(Fitter, "train_step", original)
+    run_stage(fresh, fit, values)
+    record = read_json(fresh / "fit" / "fit.json")
+    assert record["resumed_from_step"] == 100 and record["complete"]
+    assert record["resolutions"] == [16, 32] and record["steps"] == record["total_steps"] == 160  # the plan's 2x
+    # What the level change's prune kept, measured before the stop, not the scene type's prior.
+    first = record["levels"][0]
+    assert record["budget"]["kept_share"]["first_prune"] == pytest.approx(first["kept"] / first["pruned_from"], abs=1e-4)
+    assert first["kept"] / first["pruned_from"] != pytest.approx(record["budget"]["kept_share"]["first_prune_prior"])
+
+
+@pytest.mark.parametrize("scene_type", ["object", "unbounded"])
+def test_a_budgeted_fit_plans_with_its_scene_types_prior_for_the_first_prune(fresh, monkeypatch, scene_type):
+    monkeypatch.setattr(budget, "LADDER", (Rung((16, 32), (20, 20)),))
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
+    scene = read_json(fresh / "normalize" / "scene.json")
+    (fresh / "normalize" / "scene.json").write_text(json.dumps({**scene, "type": scene_type}))
+    run_stage(fresh, fit, {**BUDGETED, "time_budget": "1m"})
+    kept = read_json(fresh / "fit" / "fit.json")["budget"]["kept_share"]
+    assert kept["first_prune_prior"] == budget.FIRST_KEEP_PRIOR[scene_type]
+    assert kept["first_prune"] != kept["first_prune_prior"]  # measured at the level change, in place of the prior
+
+
+def test_a_rungs_early_prune_stays_at_its_step_and_its_cheap_steps_do_not_speak_for_later_ones(fresh, monkeypatch):
+    """A rung whose first level prunes early: the prune comes after the rung's steps whatever the share, prunes without
+    upsampling, and the steps of the level at the first resolution, which are cheaper than the model (the grid is still
+    clearing), never make the finer level's prediction cheaper than the model's; the finer level's own steps do. Its
+    re-plans treat the costs as a prior until the fit leaves the first resolution."""
+    monkeypatch.setattr(budget, "LADDER", (Rung((16, 16, 32), (20, 40, 40), fixed=1),))
+    dear = CostModel(**{**FREE.__dict__, "step_fixed": 0.2})  # the real steps take a few ms: a ratio far below 1
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (dear, {"cached": True, "file": "-", "key": {}}))
+    ratios, measured = [], []
+    replan_budget, replan = budget.TimeBudget._replan, budget.replan
+    monkeypatch.setattr(budget.TimeBudget, "_replan", lambda self, why: ratios.append(
+        (self.options.resolutions[self.fitter.level], self.now.step_ratio)) or replan_budget(self, why))
+    monkeypatch.setattr(budget, "replan", lambda *args, **kwargs: measured.append(
+        (args[3].level, kwargs["measured"])) or replan(*args, **kwargs))
+    run_stage(fresh, fit, {**BUDGETED, "time_budget": "30s"})
+    record = read_json(fresh / "fit" / "fit.json")
+    assert record["budget"]["chosen"]["share"] > 1  # the budget gave the rung more steps, not its early prune
+    assert record["resolutions"] == [16, 16, 32] and record["budget"]["ran"]["steps"][0] == 20
+    first, second = record["levels"]
+    assert first["step"] == 20 and first["kept"] == first["occupied"] < first["pruned_from"]  # pruned, not upsampled
+    assert second["occupied"] > second["kept"]  # the next level upsamples
+    assert [r for res, r in ratios if res == 16] and all(r == 1.0 for res, r in ratios if res == 16)
+    assert [r for res, r in ratios if res == 32][-1] < 0.5
+    # Its re-plans take the costs as measured only once the fit has left the first resolution: until then the second
+    # resolution is never dropped.
+    assert {level for level, _ in measured} == {0, 1, 2}
+    assert all(flag == (level == 2) for level, flag in measured), measured

@@ -1,0 +1,97 @@
+"""The cost model of a budgeted fit: the cached calibration, measured again for another key and rescaled to the
+machine's speed now, and the line its step and pass times are read by."""
+import os
+
+import pytest
+import torch
+
+from pipeline import config
+from plenoxels.planning import fit_cost
+from plenoxels.planning.fit_cost import CostModel
+from stages import fit
+
+
+@pytest.fixture(autouse=True)
+def private_cache(tmp_path, monkeypatch):
+    """Calibrations go to a folder of the test's own, never to the user's cache."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+
+
+def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(monkeypatch):
+    options = config.build(fit.Settings, "fit", {"batch_size": 512, "sh_degree": 0})
+    small, first = (16, 24, 32), (8, 16)
+    measured = []
+    original = fit_cost.measure
+    monkeypatch.setattr(fit_cost, "measure", lambda *a, **k: measured.append(1) or original(*a, **k))
+    cpu = torch.device("cpu")
+
+    costs, record = fit_cost.calibrate(options, cpu, None, small, first)
+    assert not record["cached"] and len(measured) == 1
+    assert costs.step_fixed + costs.step_per_voxel * 1e5 > 0 and costs.pass_seconds(1e5, 32) > 0
+    assert costs.step_seconds(1e5, dense=True) > 0 and costs.dense_fixed is not None
+    assert [p["voxels"] for p in record["first_level_points"]] == [8 ** 3, 16 ** 3]  # a new model's whole box
+    assert [p["resolution"] for p in record["passes"]] == list(small)
+    assert all(p["seconds"] > 0 for p in record["passes"])
+    # The steps on the grid the level change upsampled, over the model at its voxels.
+    change = record["level_change"]
+    assert change["step_seconds"] > 0 and costs.upsampled_ratio == pytest.approx(
+        change["step_seconds"] / costs.step_seconds(change["voxels"]), abs=1e-5 / costs.step_seconds(change["voxels"]))
+    assert record["file"].startswith(os.environ["XDG_CACHE_HOME"])
+    assert record["key"]["threads"] >= 1 and record["key"]["code"] and record["key"]["device"] == "cpu"
+
+    again, record = fit_cost.calibrate(options, cpu, None, small, first)
+    assert record["cached"] and len(measured) == 1
+    # The record's factor is rounded to 3 decimals: a factor far from 1 (a loaded machine's first timing) is off by
+    # more than a relative 1e-3 of itself.
+    assert again.step_fixed == pytest.approx(record["slower_now"] * costs.step_fixed, abs=5e-4 * costs.step_fixed)
+
+    fit_cost.calibrate(config.build(fit.Settings, "fit", {"batch_size": 256, "sh_degree": 0}), cpu, None, small, first)
+    assert len(measured) == 2  # other options that set a step's cost
+    fit_cost.calibrate(options, cpu, {"n_spheres": 4, "width": 16}, small, first)
+    assert len(measured) == 3  # a background model
+    monkeypatch.setattr(fit_cost.native, "num_threads", lambda: 97)
+    fit_cost.calibrate(options, cpu, None, small, first)
+    assert len(measured) == 4  # another thread count
+    monkeypatch.setattr(fit_cost, "code_hash", lambda: "changed")
+    _, record = fit_cost.calibrate(options, cpu, None, small, first)
+    assert len(measured) == 5 and not record["cached"]  # other code
+    with open(record["file"], "w") as handle:
+        handle.write("{ not json")
+    _, record = fit_cost.calibrate(options, cpu, None, small, first)
+    assert len(measured) == 6 and not record["cached"]  # an unreadable cache file is measured again
+    fit_cost.calibrate(options, cpu, None, small, (8, 12))
+    assert len(measured) == 7  # other first-level resolutions
+    assert len(list(fit_cost.cache_dir().glob("fit-cost-*.json"))) == 6
+
+    # A cached calibration's times follow the machine's speed now, timed again on the calibration's first step.
+    _, record = fit_cost.calibrate(options, cpu, None, small, (8, 12))
+    fresh_costs, reference = CostModel(**record["costs"]), record["points"][0]
+    timed = []
+    # Timed twice, the faster round counts: the first at 3x (a slow moment, fresh pages), the second at 2x.
+    monkeypatch.setattr(fit_cost, "_time_steps", lambda fitter, device, steps=8: timed.append(
+        fitter.model.grid.num_occupied) or (3 if len(timed) == 1 else 2) * reference["step_seconds"])
+    slower, record = fit_cost.calibrate(options, cpu, None, small, (8, 12))
+    assert record["cached"] and len(measured) == 7 and timed == [reference["voxels"]] * fit_cost.RETIME_ROUNDS
+    assert record["slower_now"] == pytest.approx(2.0)
+    assert slower.step_fixed == pytest.approx(2 * fresh_costs.step_fixed)
+    assert slower.step_seconds(1e5, dense=True) == pytest.approx(2 * fresh_costs.step_seconds(1e5, dense=True))
+    assert slower.pass_seconds(1e5, 32) == pytest.approx(2 * fresh_costs.pass_seconds(1e5, 32))
+    assert slower.upsampled_ratio == fresh_costs.upsampled_ratio  # a ratio of two times, whatever the speed
+
+
+@pytest.mark.parametrize("points, grows", [
+    ([(49_671, 0.00853), (228_352, 0.01501), (515_119, 0.02129)], True),    # a 2-core CPU's steps: a line
+    ([(49_671, 0.00402), (228_352, 0.00423), (515_119, 0.00364)], False),   # an H100's: flat at these sizes
+    ([(49_671, 0.00100), (228_352, 0.00900), (515_119, 0.02400)], True),    # rising faster than a line: no intercept
+])
+def test_the_step_line_reads_the_calibration_points_within_a_fifth(points, grows):
+    """Steps that do not grow with the grid are a fixed cost: a line through the origin would put a GPU's 50k-voxel
+    step at an eighth of what it measured, and the plan would carry that ratio to its finer levels."""
+    fixed, per_voxel = fit_cost._line(points)
+    model = CostModel(step_fixed=fixed, step_per_voxel=per_voxel, pass_per_ray=0, change_per_voxel=0,
+                      checkpoint_per_voxel=0, save_per_voxel=0)
+    assert fixed >= 0 and per_voxel >= 0 and (per_voxel > 0) == grows
+    # A line steeper than its points allow an intercept for is drawn through the origin: it reads the largest.
+    for voxels, seconds in points[-1:] if grows and fixed == 0 else points:
+        assert model.step_seconds(voxels) == pytest.approx(seconds, rel=0.2), (voxels, seconds, fixed, per_voxel)
+

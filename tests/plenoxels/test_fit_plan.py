@@ -1,0 +1,244 @@
+"""The plan of a budgeted fit: predictions, the plan chosen for a budget, and the re-plans of a fit under way."""
+import dataclasses
+
+import pytest
+
+from plenoxels.planning import fit_plan
+from plenoxels.planning.fit_cost import CostModel
+from plenoxels.planning.fit_plan import FitFacts, Outlook, Rung
+
+# Roughly what this machine measured with the fast preset's options on one thread.
+MEASURED = CostModel(step_fixed=0.018, step_per_voxel=7e-8, pass_per_ray=1.7e-8, change_per_voxel=5e-7,
+                     checkpoint_per_voxel=4e-7, save_per_voxel=1e-7)
+FACTS = FitFacts(box_voxels=lambda r: r ** 3, prune_rays=lambda r: 170_000, eval_rays=3600, eval_every=250,
+                 checkpoint_every=180.0, voxel_budget=16_000_000)
+
+
+def test_a_plan_never_predicts_more_than_its_budget_and_more_time_buys_a_finer_grid():
+    finals = []
+    for seconds in (20, 30, 45, 60, 90, 120, 180, 300, 600, 1200, 3600):
+        plan = fit_plan.choose(seconds, MEASURED, FACTS)
+        assert plan.fits and plan.predicted <= seconds, (seconds, plan)
+        assert fit_plan.MIN_SHARE <= plan.share <= fit_plan.MAX_SHARE
+        rung = next(r for r in fit_plan.LADDER if list(r.resolutions) == plan.resolutions)
+        assert plan.steps == rung.scaled(plan.share)
+        finer = [r for r in fit_plan.LADDER if r.resolutions[-1] > plan.resolutions[-1]]
+        for other in finer:  # the finest that fits: no finer rung fits with its fewest steps
+            now, fewest = Outlook(voxels=FACTS.box_voxels(other.resolutions[0])), other.scaled(fit_plan.MIN_SHARE)
+            assert fit_plan.predict(MEASURED, FACTS, now, list(other.resolutions), fewest) > seconds
+        finals.append(plan.resolutions[-1])
+    assert finals == sorted(finals) and finals[-1] > finals[0] and len(set(finals)) >= 4, finals
+
+
+def test_a_plan_is_no_finer_than_the_photos_have_pixels():
+    small_photos = FitFacts(**{**FACTS.__dict__, "max_resolution": 160})
+    plan = fit_plan.choose(3600, MEASURED, small_photos)
+    assert plan.resolutions[-1] == 160 and plan.share == fit_plan.MAX_SHARE and plan.predicted < 3600
+    assert fit_plan.choose(3600, MEASURED, FACTS).resolutions[-1] == max(r.resolutions[-1] for r in fit_plan.LADDER) == 512
+
+
+def test_a_budget_below_the_coarsest_plan_gets_what_fits_of_it():
+    plan = fit_plan.choose(2.0, MEASURED, FACTS)
+    coarsest = min(fit_plan.LADDER, key=lambda r: (r.resolutions[-1], len(r.resolutions)))
+    assert not plan.fits and plan.resolutions == list(coarsest.resolutions) and plan.share < fit_plan.MIN_SHARE
+    assert plan.predicted <= 2.0
+
+
+def test_a_first_level_is_predicted_at_its_own_cost_model():
+    """A first level's steps march the whole box: with a first-level model its prediction is its steps times that
+    model at the box's voxels, and a later level's is the pruned model's as before."""
+    dear = CostModel(**{**MEASURED.__dict__, "dense_fixed": 0.05, "dense_per_voxel": 3e-7})
+    box = FACTS.box_voxels(64)
+    first = Outlook(voxels=box)
+    gap = fit_plan.predict(dear, FACTS, first, [64, 128], [500, 1000]) - fit_plan.predict(MEASURED, FACTS, first, [64, 128],
+                                                                                      [500, 1000])
+    assert gap == pytest.approx(500 * (dear.step_seconds(box, dense=True) - MEASURED.step_seconds(box)), rel=1e-6)
+    later = Outlook(level=1, step=500, voxels=200_000, dense=False)
+    assert fit_plan.predict(dear, FACTS, later, [64, 128], [500, 1000]) == fit_plan.predict(MEASURED, FACTS, later,
+                                                                                       [64, 128], [500, 1000])
+    # The dearer first levels buy a coarser (or shorter) plan for the same fit_plan.
+    for seconds in (30, 120):
+        mine, before = fit_plan.choose(seconds, dear, FACTS), fit_plan.choose(seconds, MEASURED, FACTS)
+        assert mine.predicted <= seconds
+        assert (mine.resolutions[-1], mine.share) < (before.resolutions[-1], before.share), (seconds, mine, before)
+
+
+def test_an_upsampled_level_is_predicted_at_the_calibrations_ratio_until_the_scene_measures_one():
+    """The calibration's upsampled grid costs `upsampled_ratio` times its model: a level at a finer resolution is
+    predicted at that times the scene's ratio until the fit has measured steps at such a level; a first level's
+    early-pruned rest, at the first resolution, is not upsampled."""
+    dear = CostModel(**{**MEASURED.__dict__, "upsampled_ratio": 1.5})
+    facts = FitFacts(**{**FACTS.__dict__, "checkpoint_every": 1e9, "eval_rays": 0})  # the steps' time alone
+    resolutions, steps, voxels = [128, 128, 256], [200, 800, 1500], 300_000
+    rest = Outlook(level=1, step=400, voxels=voxels, dense=False, step_ratio=1.2)
+    finer = min(facts.voxel_budget, rest.later_keep * voxels * 8)
+    gap = fit_plan.predict(dear, facts, rest, resolutions, steps) - fit_plan.predict(MEASURED, facts, rest, resolutions,
+                                                                                 steps)
+    assert gap == pytest.approx(1500 * 1.2 * 0.5 * MEASURED.step_seconds(finer), rel=1e-6)
+    # Right after the level change, before the finer level's steps are measured: its steps at the upsampled ratio.
+    changed = Outlook(level=2, step=1000, voxels=finer, dense=False, step_ratio=1.2)
+    assert fit_plan.predict(dear, facts, changed, resolutions, steps) - fit_plan.predict(
+        MEASURED, facts, changed, resolutions, steps) == pytest.approx(gap, rel=1e-6)
+    # Measured there: the scene's own ratio, whatever the calibration said.
+    measured = Outlook(level=2, step=1100, voxels=finer, dense=False, step_ratio=1.7, ratio_at_first=False)
+    assert fit_plan.predict(dear, facts, measured, resolutions, steps) == fit_plan.predict(MEASURED, facts, measured,
+                                                                                       resolutions, steps)
+    # The first resolution's levels alone are not upsampled.
+    assert fit_plan.predict(dear, facts, rest, resolutions[:2], steps[:2]) == fit_plan.predict(
+        MEASURED, facts, rest, resolutions[:2], steps[:2])
+    for seconds in (60, 240):  # a dearer upsampled grid buys a coarser (or shorter) plan, which fits
+        mine, before = fit_plan.choose(seconds, dear, FACTS), fit_plan.choose(seconds, MEASURED, FACTS)
+        assert mine.predicted <= seconds
+        assert (mine.resolutions[-1], mine.share) < (before.resolutions[-1], before.share), (seconds, mine, before)
+
+
+def test_a_32_start_reaches_a_128_grid_on_a_budget_a_dense_64_start_cannot():
+    """A first level is its whole box: starting at 32^3 makes a 128^3 plan cheaper than 64->128's, and a budget
+    between the two gets the 32^3 start rather than a coarser grid."""
+    three = next(r for r in fit_plan.LADDER if r.resolutions == (32, 64, 128))
+    two = next(r for r in fit_plan.LADDER if r.resolutions[0] == 64 and r.resolutions[-1] == 128)
+
+    def fewest(rung):
+        now = FACTS.outlook(voxels=FACTS.box_voxels(rung.resolutions[0]))
+        return fit_plan.predict(MEASURED, FACTS, now, list(rung.resolutions), rung.scaled(fit_plan.MIN_SHARE))
+
+    assert fewest(three) < fewest(two)
+    plan = fit_plan.choose((fewest(three) + fewest(two)) / 2, MEASURED, FACTS)
+    assert plan.resolutions == [32, 64, 128] and plan.fits
+
+
+def test_of_rungs_ending_at_one_resolution_the_plan_takes_the_one_that_gets_the_most_steps():
+    """Rungs that end at the same resolution: the budget gets whichever its cost model says gets the larger share of
+    its steps, not the first in the ladder's order."""
+    three = next(r for r in fit_plan.LADDER if r.resolutions == (32, 64, 128))
+
+    def fewest(rung):
+        now = FACTS.outlook(voxels=FACTS.box_voxels(rung.resolutions[0]))
+        return fit_plan.predict(MEASURED, FACTS, now, list(rung.resolutions), rung.scaled(fit_plan.MIN_SHARE))
+
+    for other in (Rung((64, 128), (100, 200)), Rung((64, 128), (5000, 10000))):
+        cheaper = other if fewest(other) < fewest(three) else three
+        seconds = 1.5 * max(fewest(other), fewest(three))  # both fit with more than MIN_SHARE
+        plan = fit_plan.choose(seconds, MEASURED, FACTS, (three, other))
+        assert tuple(plan.resolutions) == cheaper.resolutions and plan.fits and plan.predicted <= seconds
+    assert fewest(Rung((64, 128), (100, 200))) < fewest(three) < fewest(Rung((64, 128), (5000, 10000)))
+
+
+def test_a_scene_that_fills_its_box_is_planned_coarser_for_the_same_budget():
+    """An unbounded scene's first prune keeps most of its box (the room), so its later levels cost more than an
+    object's: the same budget buys it a coarser or shorter plan, which its prediction says fits."""
+    room = FitFacts(**{**FACTS.__dict__, "first_keep": fit_plan.FIRST_KEEP_PRIOR["unbounded"]})
+    assert room.first_keep > FACTS.first_keep
+    coarser = 0
+    for seconds in (60, 120, 300):
+        mine, objects = fit_plan.choose(seconds, MEASURED, room), fit_plan.choose(seconds, MEASURED, FACTS)
+        assert mine.fits and mine.predicted <= seconds
+        assert (mine.resolutions[-1], mine.share) <= (objects.resolutions[-1], objects.share), (seconds, mine, objects)
+        # What the room's plan predicts for the object's plan is over the budget: the prior is what changed it.
+        if mine.resolutions != objects.resolutions:
+            coarser += 1
+            now = room.outlook(voxels=room.box_voxels(objects.resolutions[0]))
+            assert fit_plan.predict(MEASURED, room, now, objects.resolutions, objects.steps) > seconds
+    assert coarser >= 2
+
+
+def test_a_replan_follows_the_measured_cost_and_drops_a_level_that_cannot_converge():
+    rung = Rung((128, 256, 384), (1000, 1500, 1500))
+    resolutions, steps = list(rung.resolutions), rung.scaled(1.0)
+    now = Outlook(level=1, step=1100, voxels=2_000_000, dense=False)
+    fast_left = fit_plan.predict(MEASURED, FACTS, now, resolutions, steps)
+    kept, new_steps, share = fit_plan.replan(fast_left, MEASURED, FACTS, now, rung, resolutions, steps, measured=True)
+    assert kept == resolutions and share == pytest.approx(1.0, abs=0.02)
+    assert fit_plan.predict(MEASURED, FACTS, now, kept, new_steps) <= fast_left
+
+    now.step_seconds, now.step_ratio = 3 * MEASURED.step_seconds(2_000_000), 3.0  # three times slower than modelled
+    kept, new_steps, share = fit_plan.replan(fast_left, MEASURED, FACTS, now, rung, resolutions, steps, measured=True)
+    assert fit_plan.predict(MEASURED, FACTS, now, kept, new_steps) <= fast_left
+    assert new_steps[0] == steps[0] and new_steps[1] >= 100  # the levels done stay as they were
+    assert kept == resolutions[:2] and share >= fit_plan.MIN_SHARE  # the 384 level could not get half its steps
+
+
+def test_a_replan_keeps_a_short_level_rather_than_end_the_fit_early_without_it():
+    """After a level change, steps dearer than modelled leave the last level less than half its steps; without it the
+    levels before, at twice their steps, would end the fit with time unused: it stays, with what fits."""
+    rung = next(r for r in fit_plan.LADDER if r.resolutions == (32, 64, 128))
+    resolutions, planned = list(rung.resolutions), rung.scaled(0.6)
+    now = Outlook(level=1, step=planned[0] + 20, voxels=50_000, dense=False, step_ratio=1.3,
+                  step_seconds=1.3 * MEASURED.step_seconds(50_000))
+
+    def left(levels, share):  # the first level done as planned
+        steps = planned[:1] + rung.scaled(share)[1:]
+        return fit_plan.predict(MEASURED, FACTS, now, resolutions[:levels], steps[:levels])
+
+    two_at_most, three_at_least = left(2, fit_plan.MAX_SHARE), left(3, fit_plan.MIN_SHARE)
+    assert two_at_most < three_at_least
+    seconds = (two_at_most + three_at_least) / 2
+    kept, steps, share = fit_plan.replan(seconds, MEASURED, FACTS, now, rung, resolutions, planned, measured=True)
+    assert kept == resolutions and 0 < share < fit_plan.MIN_SHARE
+    assert fit_plan.predict(MEASURED, FACTS, now, kept, steps) <= seconds
+    # Where the levels before would use the time, the level is dropped, as before.
+    seconds = two_at_most * 0.99
+    kept, steps, share = fit_plan.replan(seconds, MEASURED, FACTS, now, rung, resolutions, planned, measured=True)
+    assert kept == resolutions[:2] and fit_plan.MIN_SHARE <= share < fit_plan.MAX_SHARE
+
+
+def test_a_replan_during_the_first_level_drops_a_third_level_but_keeps_two():
+    """Steps 3x dearer than modelled, measured early in the first level: a plan that cannot give its levels half their
+    steps loses its third level before the first level gives up steps for it, never its second (the level after the
+    first resolution, not the first level's own early prune)."""
+    three = next(r for r in fit_plan.LADDER if r.resolutions == (128, 128, 256, 384))
+    two = next(r for r in fit_plan.LADDER if r.resolutions == (128, 128, 256))
+    now = Outlook(level=0, step=100, voxels=FACTS.box_voxels(128), dense=True, step_ratio=3.0,
+                  step_seconds=3 * MEASURED.step_seconds(FACTS.box_voxels(128)))
+    planned = three.scaled(fit_plan.MIN_SHARE)
+    seconds = 0.6 * fit_plan.predict(MEASURED, FACTS, now, list(three.resolutions), planned)
+    kept, steps, share = fit_plan.replan(seconds, MEASURED, FACTS, now, three, list(three.resolutions), planned,
+                                       measured=False)
+    assert kept == [128, 128, 256] and share >= fit_plan.MIN_SHARE and steps[1] > planned[1]
+    assert steps[0] == planned[0]  # the early prune stays where it was
+    assert fit_plan.predict(MEASURED, FACTS, now, kept, steps) <= seconds
+    # Not even two resolutions get half their steps: both stay, with what fits.
+    tight = 0.3 * fit_plan.predict(MEASURED, FACTS, now, list(two.resolutions), two.scaled(fit_plan.MIN_SHARE))
+    kept, steps, share = fit_plan.replan(tight, MEASURED, FACTS, now, two, list(two.resolutions), two.scaled(1.0),
+                                       measured=False)
+    assert kept == [128, 128, 256] and 0 < share < fit_plan.MIN_SHARE
+    assert fit_plan.predict(MEASURED, FACTS, now, kept, steps) <= tight
+
+
+def test_a_last_level_short_of_half_its_steps_is_lowered_in_a_scene_that_fills_its_box():
+    """Steps 2.5x dearer than modelled, measured after the first level's early prune kept 90% of the box (a room seen
+    from inside): the 256 level cannot get half its steps, so it is lowered by LOWER_BY to the finest resolution that
+    can; with the time for it, it stays at 256. In an object's scene (20% kept), or before the first prune has measured
+    what the scene keeps, it stays at 256, short."""
+    two = next(r for r in fit_plan.LADDER if r.resolutions == (128, 128, 256))
+    voxels = int(0.9 * FACTS.box_voxels(128))
+    room = Outlook(level=1, step=two.steps[0] + 50, voxels=voxels, dense=False, step_ratio=2.5,
+                   step_seconds=2.5 * MEASURED.step_seconds(voxels), first_keep=0.9)
+    resolutions, planned = list(two.resolutions), two.scaled(1.0)
+
+    def at_half(now: Outlook, last: int) -> float:
+        return fit_plan.predict(MEASURED, FACTS, now, resolutions[:2] + [last], two.scaled(fit_plan.MIN_SHARE))
+
+    seconds = 0.6 * at_half(room, 256)
+    kept, steps, share = fit_plan.replan(seconds, MEASURED, FACTS, room, two, resolutions, planned, measured=False)
+    assert kept[:2] == [128, 128] and 128 < kept[2] < 256 and (256 - kept[2]) % fit_plan.LOWER_BY == 0
+    assert share >= fit_plan.MIN_SHARE and steps[0] == planned[0]
+    assert fit_plan.predict(MEASURED, FACTS, room, kept, steps) <= seconds
+    assert at_half(room, kept[2] + fit_plan.LOWER_BY) > seconds  # the finest that fits: one rung finer does not
+
+    kept, steps, share = fit_plan.replan(1.01 * at_half(room, 256), MEASURED, FACTS, room, two, resolutions, planned,
+                                       measured=False)
+    assert kept == resolutions and share >= fit_plan.MIN_SHARE
+
+    for now in (dataclasses.replace(room, first_keep=0.2), dataclasses.replace(room, level=0, step=100, dense=True)):
+        seconds = 0.6 * at_half(now, 256)
+        kept, steps, share = fit_plan.replan(seconds, MEASURED, FACTS, now, two, resolutions, planned, measured=False)
+        assert kept == resolutions and share < fit_plan.MIN_SHARE
+
+
+def test_the_last_pruning_pass_is_predicted_at_the_held_out_renders_measured_ratio():
+    slower = Outlook(eval_ratio=3.0)
+    assert fit_plan.finish_seconds(MEASURED, FACTS, slower, 128, 1e5) - fit_plan.finish_seconds(
+        MEASURED, FACTS, Outlook(), 128, 1e5) == pytest.approx(
+        2 * MEASURED.pass_seconds(FACTS.prune_rays(128) + FACTS.eval_rays, 128))  # the last pruning pass and the held-out
+

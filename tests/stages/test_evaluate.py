@@ -1,0 +1,108 @@
+"""The evaluate stage: metrics against a direct computation, the files it writes, the camera paths."""
+import math
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+from skimage.metrics import structural_similarity
+
+from stages.scoring import lpips
+from stages.scoring.camera_paths import orbit_path, spiral_path
+from stages.common.frames import load_frame
+from stages.common.json_files import read_json
+from stages.scoring.visuals import colour_depth
+from plenoxels.core.scene_model import SceneModel
+from stages import evaluate, fit
+from test_fit import QUICK, make_scene, run_stage
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    root = make_scene(tmp_path_factory.mktemp("evaluate"), views=15, width=40)
+    run_stage(root, fit, {**QUICK, "resolutions": [16, 24], "steps": [60, 60]})
+    return root
+
+
+def test_metrics_match_a_direct_computation(fitted):
+    summary = run_stage(fitted, evaluate, {"video_frames": 6, "video_side": 32, "sheet_side": 40})
+    metrics = read_json(fitted / "evaluate" / "metrics.json")
+    scene = read_json(fitted / "normalize" / "scene.json")
+    held_out = [f for f in scene["frames"] if f["split"] == "test"]
+    assert metrics["count"] == len(held_out) == 3
+    model = SceneModel.load(fitted / "fit")
+    direct_psnr, direct_ssim = [], []
+    for frame, view in zip(held_out, metrics["views"]):
+        truth, k = load_frame(fitted, frame, 1.0, (1.0, 1.0, 1.0))
+        render = model.render_camera(np.asarray(frame["transform_matrix"]), k)["rgb"].numpy()
+        mse = float(np.mean((render.astype(np.float64) - truth) ** 2))
+        direct_psnr.append(-10 * math.log10(mse))
+        direct_ssim.append(structural_similarity(truth, render, channel_axis=-1, data_range=1.0,
+                                                 gaussian_weights=True, sigma=1.5, use_sample_covariance=False))
+        assert view["name"] == frame["name"]
+        assert view["psnr"] == pytest.approx(direct_psnr[-1], abs=1e-3)
+        assert view["ssim"] == pytest.approx(direct_ssim[-1], abs=1e-4)
+        # The PNGs hold the same images, to 8 bits.
+        saved_render = iio.imread(fitted / "evaluate" / "renders" / f"{frame['name']}.png") / 255.0
+        saved_truth = iio.imread(fitted / "evaluate" / "gt" / f"{frame['name']}.png") / 255.0
+        assert -10 * math.log10(np.mean((saved_render - saved_truth) ** 2)) == pytest.approx(direct_psnr[-1], abs=0.1)
+        assert iio.imread(fitted / "evaluate" / "depth" / f"{frame['name']}.png").shape == (k.h, k.w, 3)
+    assert metrics["mean"]["psnr"] == pytest.approx(np.mean(direct_psnr), abs=1e-3)
+    assert metrics["mean"]["ssim"] == pytest.approx(np.mean(direct_ssim), abs=1e-4)
+    assert f"PSNR {metrics['mean']['psnr']:.2f} dB" in summary["line"]
+    if lpips.weights_available() and min(k.w, k.h) >= lpips.MIN_SIDE:
+        assert all(0 <= view["lpips"] < 1 for view in metrics["views"])
+        assert metrics["mean"]["lpips"] == pytest.approx(np.mean([v["lpips"] for v in metrics["views"]]), abs=1e-5)
+        assert f"LPIPS {metrics['mean']['lpips']:.3f}" in summary["line"]
+
+    video = [f for f in iio.imiter(fitted / "evaluate" / "video.mp4")]
+    assert len(video) == 6 and video[0].shape[1] == 32
+    sheet = iio.imread(fitted / "evaluate" / "contact_sheet.png")
+    assert sheet.shape[0] > 3 * 30 and sheet.shape[1] > 3 * 40  # three rows of three tiles
+
+
+def test_depth_colours_follow_depth_and_blank_empty_pixels():
+    depth = np.tile(np.linspace(1.0, 3.0, 50), (4, 1))
+    opacity = np.ones_like(depth)
+    opacity[:, :5] = 0.0
+    image = colour_depth(depth, opacity)
+    assert (image[:, :5] == 0).all()
+    # turbo runs from blue (near) to red (far).
+    assert image[0, 6, 2] > image[0, 6, 0] and image[0, -1, 0] > image[0, -1, 2]
+
+
+def test_orbit_and_spiral_cameras_look_at_the_scene():
+    scene = {"foreground": {"min": [-1, -1, -1], "max": [1, 1, 1]}}
+    frames = [{"transform_matrix": np.eye(4).tolist()} for _ in range(3)]
+    for frame, angle in zip(frames, (0.0, 2.0, 4.0)):
+        c2w = np.eye(4)
+        c2w[:3, 3] = [3 * math.cos(angle), 3 * math.sin(angle), 1.0]
+        frame["transform_matrix"] = c2w.tolist()
+    path = orbit_path(scene, frames, 8)
+    assert len(path) == 8
+    for c2w in path:
+        assert np.linalg.norm(c2w[:3, 3]) == pytest.approx(math.sqrt(10), rel=1e-6)
+        # The camera looks down -z at the foreground centre.
+        np.testing.assert_allclose(-c2w[:3, 2], -c2w[:3, 3] / np.linalg.norm(c2w[:3, 3]), atol=1e-9)
+
+    reference = np.eye(4)
+    forward_frames = []
+    for dx, dy in ((-0.2, 0.1), (0.2, -0.1), (0.0, 0.0)):
+        c2w = np.eye(4)
+        c2w[:3, 3] = [dx, dy, 0.0]
+        forward_frames.append({"transform_matrix": c2w.tolist(), "near": 1.0, "far": 10.0})
+    spiral = spiral_path({"forward": {"reference_c2w": reference.tolist()}}, forward_frames, 10)
+    for c2w in spiral:
+        assert np.all(np.abs(c2w[:3, 3]) <= 0.2 + 1e-9)
+        assert c2w[2, 2] > 0.9  # still facing the way the capture faced (down -z)
+
+
+def test_rays_that_miss_the_grid_see_the_background(fitted):
+    model = SceneModel.load(fitted / "fit")
+    o = torch.zeros(4, 3)
+    o[:, 0] = 5.0
+    d = torch.tensor([[-1.0, 0, 0], [-1, 0.1, 0], [0, 0, 1], [1, 0, 0]])
+    result = model.render_rays(o, d / d.norm(dim=1, keepdim=True))
+    assert torch.isfinite(result.rgb).all()
+    np.testing.assert_allclose(result.rgb[2:].numpy(), [model.background_color] * 2, atol=1e-6)
+    assert float(result.opacity[0]) > 0.5  # the ray through the object's centre is stopped

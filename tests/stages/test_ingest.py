@@ -1,0 +1,185 @@
+"""Ingest: every kind of photo becomes an upright 8-bit RGB PNG; bad input is reported, never a traceback."""
+import json
+import subprocess
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image
+
+from stages.common.media import read_rgb
+from pipeline.report import Reporter
+from pipeline.runner import Pipeline
+from plenoxels.core.errors import UserError
+
+
+def textured(h=60, w=80, seed=0):
+    rng = np.random.default_rng(seed)
+    return cv2.resize(rng.integers(0, 256, (h // 4, w // 4, 3), dtype=np.uint8), (w, h), interpolation=cv2.INTER_CUBIC)
+
+
+def run_ingest(photos, tmp_path, *overrides):
+    pipe = Pipeline(photos, tmp_path / "out", overrides=list(overrides), reporter=Reporter(quiet=True))
+    pipe.run(["ingest"])
+    return tmp_path / "out" / "ingest", json.loads((tmp_path / "out" / "ingest" / "images.json").read_text())
+
+
+@pytest.fixture
+def photos(tmp_path):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for i in range(3):
+        Image.fromarray(textured(seed=i)).save(folder / f"p{i}.jpg", quality=95)
+    return folder
+
+
+def test_plain_jpgs(photos, tmp_path):
+    out, listing = run_ingest(photos, tmp_path)
+    assert [r["name"] for r in listing["images"]] == ["p0", "p1", "p2"]
+    image = read_rgb(out / "images" / "p0.png")
+    assert image.shape == (60, 80, 3) and image.dtype == np.uint8
+    assert not listing["skipped"] and not (out / "masks").exists()
+
+
+def test_exif_orientation_is_applied(photos, tmp_path):
+    pixels = textured(60, 80, seed=9)
+    pixels[:10, :10] = 255  # a white top-left corner marks the stored orientation
+    exif = Image.Exif()
+    exif[0x0112] = 6  # stored rotated: viewers turn it 90 degrees clockwise
+    Image.fromarray(pixels).save(photos / "rotated.jpg", exif=exif, quality=95)
+    out, _ = run_ingest(photos, tmp_path)
+    upright = read_rgb(out / "images" / "rotated.png")
+    assert upright.shape == (80, 60, 3)
+    assert upright[:10, -10:].mean() > 200  # the stored top-left corner is now top-right
+
+
+def test_sixteen_bit_greyscale_and_rgba(photos, tmp_path):
+    wide = (textured(seed=3).astype(np.uint16) * 257)
+    cv2.imwrite(str(photos / "wide.png"), cv2.cvtColor(wide, cv2.COLOR_RGB2BGR))
+    Image.fromarray(textured(seed=4)[..., 0]).save(photos / "grey.png")
+    rgba = np.dstack([textured(seed=5), np.full((60, 80), 128, np.uint8)])
+    Image.fromarray(rgba, "RGBA").save(photos / "cutout.png")
+    out, listing = run_ingest(photos, tmp_path)
+    by_name = {r["name"]: r for r in listing["images"]}
+    assert np.abs(read_rgb(out / "images" / "wide.png").astype(int) - textured(seed=3)).max() <= 1
+    grey = read_rgb(out / "images" / "grey.png")
+    assert grey.shape == (60, 80, 3) and (grey[..., 0] == grey[..., 2]).all()
+    assert by_name["cutout"]["mask"] == "masks/cutout.png"
+    assert (read_rgb(out / "masks" / "cutout.png")[..., 0] == 128).all()
+    assert by_name["wide"]["mask"] is None
+
+
+def test_downscale_keeps_aspect_and_records_scale(photos, tmp_path):
+    _, listing = run_ingest(photos, tmp_path, "ingest.max_side=40")
+    record = listing["images"][0]
+    assert (record["width"], record["height"]) == (40, 30)
+    assert record["scale"] == pytest.approx(0.5)
+
+
+def test_unreadable_files_are_listed_and_skipped(photos, tmp_path, capsys):
+    (photos / "broken.jpg").write_bytes(b"not a jpeg at all")
+    (photos / "notes.docx").write_bytes(b"x")
+    _, listing = run_ingest(photos, tmp_path)
+    assert len(listing["images"]) == 3
+    assert any("broken.jpg" in s for s in listing["skipped"]) and any("notes.docx" in s for s in listing["skipped"])
+    warning = [l for l in capsys.readouterr().err.splitlines() if "skipped 2 file(s)" in l]
+    assert len(warning) == 1 and "broken.jpg" in warning[0] and "notes.docx" in warning[0]
+
+
+def test_too_few_images_is_a_clear_error(tmp_path):
+    folder = tmp_path / "two"
+    folder.mkdir()
+    for i in range(2):
+        Image.fromarray(textured(seed=i)).save(folder / f"{i}.png")
+    (folder / "bad.png").write_bytes(b"\x89PNG broken")
+    with pytest.raises(UserError, match=r"only 2 usable image\(s\).*at least 3"):
+        run_ingest(folder, tmp_path)
+    assert not (tmp_path / "out" / "ingest").exists()
+
+
+def test_blurriest_are_dropped(photos, tmp_path):
+    Image.fromarray(cv2.GaussianBlur(textured(seed=7), (0, 0), 4)).save(photos / "blurry.jpg")
+    _, listing = run_ingest(photos, tmp_path, "ingest.drop_blurry_fraction=0.25")
+    assert listing["dropped_blurry"] == ["blurry"]
+    assert "blurry" not in [r["name"] for r in listing["images"]]
+
+
+def panning_video(path, frames: int, sharp_every: int = 1, step_px: int = 1, fps: int = 10):
+    """A camera panning across a textured wall, step_px pixels a frame; only every sharp_every-th frame is sharp."""
+    wall = textured(h=60, w=80 + frames * step_px, seed=11)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (80, 60))
+    for i in range(frames):
+        frame = wall[:, i * step_px:i * step_px + 80]
+        if i % sharp_every:
+            frame = cv2.GaussianBlur(frame, (0, 0), 3)
+        writer.write(cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2BGR))
+    writer.release()
+    return path
+
+
+def test_video_frames_follow_the_motion_and_keep_the_sharpest(tmp_path):
+    # 1 px a frame on an 80x60 frame (100 px diagonal): at 8% of the diagonal a frame is due about every 8 frames.
+    video = panning_video(tmp_path / "pan.avi", 60, sharp_every=3)
+    _, listing = run_ingest(video, tmp_path, "ingest.video_motion=0.08", "ingest.video_fps=100",
+                            "ingest.video_min_frames=0")
+    kept = [int(r["name"].split("_")[1]) for r in listing["images"]]
+    assert all(i % 3 == 0 for i in kept[1:]), kept           # of each stretch's candidates, a sharp one
+    gaps = np.diff(kept)
+    assert 5 <= np.median(gaps) <= 12 and gaps.max() <= 14, kept
+
+
+def test_video_keeps_more_frames_where_the_camera_moves_faster(tmp_path):
+    slow = run_ingest(panning_video(tmp_path / "slow.avi", 60, step_px=1), tmp_path / "a", "ingest.video_fps=100",
+                      "ingest.video_min_frames=0")[1]
+    fast = run_ingest(panning_video(tmp_path / "fast.avi", 60, step_px=2), tmp_path / "b", "ingest.video_fps=100",
+                      "ingest.video_min_frames=0")[1]
+    assert len(fast["images"]) >= 1.6 * len(slow["images"])
+    capped = run_ingest(tmp_path / "fast.avi", tmp_path / "c", "ingest.video_fps=0.5")[1]
+    assert len(capped["images"]) <= 4    # 6 s of video at most 0.5 frames a second (and the first)
+
+
+def test_a_clip_that_moves_little_is_read_again_with_frames_closer_together(tmp_path):
+    # 1 px a frame: at 5% of the 100 px diagonal about 12 frames of 60; 24 wanted, so the clip is read again.
+    video = panning_video(tmp_path / "slow.avi", 60, step_px=1)
+    sparse = run_ingest(video, tmp_path / "a", "ingest.video_fps=100", "ingest.video_min_frames=0")[1]
+    out, dense = run_ingest(video, tmp_path / "b", "ingest.video_fps=100", "ingest.video_min_frames=24")
+    assert len(sparse["images"]) < 16 and len(dense["images"]) >= 1.5 * len(sparse["images"]), (sparse, dense)
+    assert dense["video"]["motion"] < 0.05 <= sparse["video"]["motion"]
+    assert 0.4 < dense["video"]["total_motion"] < 0.8  # 59 px of a 100 px diagonal
+    line = json.loads((out / "manifest.json").read_text())["summary"]["line"]
+    assert "closer than ingest.video_motion" in line
+
+
+def test_a_clip_too_short_for_a_good_fit_says_so(tmp_path):
+    video = panning_video(tmp_path / "short.avi", 20, step_px=2)   # 2 s at 10 frames a second
+    out, listing = run_ingest(video, tmp_path, "ingest.video_fps=3", "ingest.video_min_frames=30")
+    assert len(listing["images"]) <= 7 and listing["video"]["seconds"] == pytest.approx(2.0)
+    line = json.loads((out / "manifest.json").read_text())["summary"]["line"]
+    assert "too short for a good fit" in line and "ingest.video_fps=3" in line and "film longer" in line
+    enough = run_ingest(video, tmp_path / "b", "ingest.video_fps=100", "ingest.video_min_frames=5")[0]
+    assert "too short" not in json.loads((enough / "manifest.json").read_text())["summary"]["line"]
+
+
+def test_rotated_video_comes_out_upright(tmp_path):
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg", reason="imageio-ffmpeg (a base dependency) writes the rotation tag")
+    landscape = panning_video(tmp_path / "landscape.avi", 30, step_px=2)
+    frames = tmp_path / "plain.mp4"
+    reader = cv2.VideoCapture(str(landscape))
+    writer = cv2.VideoWriter(str(frames), cv2.VideoWriter_fourcc(*"mp4v"), 10, (80, 60))
+    first = None
+    while True:
+        ok, bgr = reader.read()
+        if not ok:
+            break
+        first = bgr if first is None else first
+        writer.write(bgr)
+    writer.release()
+    # A phone held upright records landscape pixels and a display rotation of 90 degrees (counter-clockwise).
+    rotated = tmp_path / "portrait.mp4"
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-display_rotation", "90", "-i",
+                    str(frames), "-c", "copy", str(rotated)], check=True)
+    out, listing = run_ingest(rotated, tmp_path, "ingest.video_fps=100")
+    image = read_rgb(out / "images" / f"{listing['images'][0]['name']}.png")
+    assert image.shape[:2] == (80, 60)
+    upright = np.rot90(cv2.cvtColor(first, cv2.COLOR_BGR2RGB), 1)
+    assert np.abs(image.astype(float) - upright).mean() < 12

@@ -1,0 +1,708 @@
+"""The poses stage: SfM accuracy on a synthetic scene, every import path, and its failures."""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import cv2
+import imageio.v3 as iio
+import numpy as np
+import pycolmap
+import pytest
+
+from PIL import Image
+
+from stages.common.media import read_rgb, write_png
+from stages.common.json_files import read_json
+from pipeline.report import Reporter
+from pipeline.runner import Pipeline
+from stages.sfm import reconstruct
+from stages.sfm.compare import compare_poses
+from stages.sfm.exif import FULL_FRAME_DIAGONAL_MM, exif_focal
+from stages.sfm.triangulate import neighbour_pairs
+from stages.sfm.model_checks import MAX_CONTRADICTED_SHARE, contradicted_images, detached_images
+from stages.capture.synthetic import build_scene, trace, write_scene
+from plenoxels.core.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, look_at, opengl_c2w_from_llff, project
+from plenoxels.core.errors import UserError
+
+N_VIEWS, WIDTH, HEIGHT = 24, 480, 360
+IMPORT_VIEWS = 6
+
+
+def run_poses(scene: Path, out: Path, *overrides: str) -> dict:
+    return Pipeline(scene, out, overrides=list(overrides), reporter=Reporter(quiet=True)).run(["poses"])["poses"]
+
+
+def frames_by_name(transforms: dict) -> dict[str, dict]:
+    return {Path(f["file_path"]).stem: f for f in transforms["frames"]}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    # 24 views at 480x360 is about the least that pins every pose well enough for the tolerances below.
+    return write_scene("object", tmp_path_factory.mktemp("poses") / "object", n_views=N_VIEWS, width=WIDTH,
+                       height=HEIGHT, seed=0, supersample=1)
+
+
+@pytest.fixture(scope="module")
+def truth(scene) -> dict:
+    return read_json(scene / "transforms.json")
+
+
+def photos(scene: Path, folder: Path, count: int = IMPORT_VIEWS) -> list[str]:
+    """Copies the first `count` views into `folder`; returns their stems."""
+    folder.mkdir(parents=True)
+    stems = sorted(p.stem for p in (scene / "images").glob("*.png"))[:count]
+    for stem in stems:
+        shutil.copy(scene / "images" / f"{stem}.png", folder / f"{stem}.png")
+    return stems
+
+
+def assert_poses_equal(transforms: dict, truth: dict, stems: list[str]) -> None:
+    got, want = frames_by_name(transforms), frames_by_name(truth)
+    assert sorted(got) == sorted(stems)
+    for stem in stems:
+        np.testing.assert_allclose(got[stem]["transform_matrix"], want[stem]["transform_matrix"], atol=1e-6)
+
+
+def sample(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear colour at continuous pixel coordinates (centres at +0.5)."""
+    x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    im = image.astype(np.float64)
+    return ((1 - fx) * (1 - fy) * im[y0, x0] + fx * (1 - fy) * im[y0, x0 + 1]
+            + (1 - fx) * fy * im[y0 + 1, x0] + fx * fy * im[y0 + 1, x0 + 1])
+
+
+# ---- SfM --------------------------------------------------------------------------------------------------
+
+def test_sfm_registers_every_view_and_matches_the_true_poses(scene, truth, tmp_path):
+    manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm")
+    out = tmp_path / "out" / "poses"
+    transforms = read_json(out / "transforms.json")
+    assert transforms["source"] == "sfm" and manifest["summary"]["registered"] == N_VIEWS
+
+    got, want = frames_by_name(transforms), frames_by_name(truth)
+    assert sorted(got) == sorted(want)
+    stems = sorted(want)
+    errors = compare_poses(np.array([got[s]["transform_matrix"] for s in stems]),
+                           np.array([want[s]["transform_matrix"] for s in stems]))
+    assert errors["centre_error_share_max"] < 0.01
+    assert errors["rotation_error_deg_max"] < 0.5
+
+    # Undistortion may change the image size, but not the angle a pixel subtends near the centre.
+    assert transforms["fl_x"] == pytest.approx(truth["fl_x"], rel=0.02)
+    assert transforms["k1"] == 0.0 and transforms["original_camera"]["model"] == "SIMPLE_RADIAL"
+    k = Intrinsics.from_frame(transforms)
+    for frame in transforms["frames"]:
+        assert read_rgb(out / frame["file_path"]).shape == (k.h, k.w, 3)
+
+    # Every sparse point lies in front of, and inside the view of, each frame that observed it.
+    points = np.load(out / "points.npz")
+    assert len(points["xyz"]) > 200 and points["rgb"].dtype == np.uint8
+    assert np.bincount(points["obs_point"], minlength=len(points["xyz"])).tolist() == points["track_length"].tolist()
+    for index, frame in enumerate(transforms["frames"]):
+        seen = points["obs_point"][points["obs_frame"] == index]
+        uv, depth = project(points["xyz"][seen], np.array(frame["transform_matrix"]), k)
+        assert len(seen) > 20 and (depth > 0).all()
+        assert ((uv > -1) & (uv < [k.w + 1, k.h + 1])).all()
+
+
+def test_global_mapper_registers_every_view_accurately(scene, truth, tmp_path):
+    manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.mapper=global")
+    summary = manifest["summary"]
+    assert summary["matching"] == "exhaustive" and summary["registered"] == N_VIEWS
+    got, want = frames_by_name(read_json(tmp_path / "out" / "poses" / "transforms.json")), frames_by_name(truth)
+    stems = sorted(want)
+    errors = compare_poses(np.array([got[s]["transform_matrix"] for s in stems]),
+                           np.array([want[s]["transform_matrix"] for s in stems]))
+    assert errors["centre_error_share_max"] < 0.01 and errors["rotation_error_deg_max"] < 0.5
+
+
+def pose_errors(out: Path, truth: dict, names: dict[str, str] | None = None) -> dict:
+    """compare_poses of the stage's frames against the true ones; `names` maps output stems to true stems."""
+    got, want = frames_by_name(read_json(out / "poses" / "transforms.json")), frames_by_name(truth)
+    stems = sorted(got)
+    return compare_poses(np.array([got[s]["transform_matrix"] for s in stems]),
+                         np.array([want[(names or {}).get(s, s)]["transform_matrix"] for s in stems]))
+
+
+def test_sequential_matching_matches_neighbours_only_and_poses_every_view_the_same_on_every_run(scene, truth, tmp_path):
+    # One COLMAP thread: with more, this model (no loop closure, its strict mapping split in two) varies with the
+    # threads' timing, and on a loaded machine it has failed the stage's checks and been repaired by exhaustive matching.
+    settings = ("poses.source=sfm", "poses.matching=sequential", "poses.sequential_overlap=4", "poses.loop_neighbours=0",
+                "poses.threads=1")
+    manifest = run_poses(scene / "images", tmp_path / "out", *settings)
+    summary = manifest["summary"]
+    assert summary["matching"] == "sequential" and summary["registered"] == N_VIEWS
+    # Overlap 4 with quadratic overlap: each view is matched with the ones 1, 2, 4 and 8 after it.
+    assert summary["pairs_matched"] <= sum(min(4, len([d for d in (1, 2, 4, 8) if n + d < N_VIEWS])) for n in range(N_VIEWS))
+    # Fewer pairs than exhaustive matching and no loop closure, so the error drifts along the orbit: a looser bound than
+    # there. A wrong pose is off by tens of degrees.
+    errors = pose_errors(tmp_path / "out", truth)
+    assert errors["centre_error_share_max"] < 0.03 and errors["rotation_error_deg_max"] < 2.0, errors
+    run_poses(scene / "images", tmp_path / "again", *settings)
+    assert (tmp_path / "again" / "poses" / "transforms.json").read_bytes() == (tmp_path / "out" / "poses" / "transforms.json").read_bytes()
+
+
+def test_global_mapper_poses_that_contradict_their_matches_fall_back_to_incremental(scene, truth, tmp_path, monkeypatch):
+    # Under sequential matching, global mapping has turned an orbit's first two views about 65 and 35 degrees while
+    # registering them at 0.15 px; whether it does so depends on run-to-run differences in the matches. So the real
+    # global model is given that fault here, and the stage must notice it and map again with the incremental mapper.
+    real_global = reconstruct.global_mapping
+
+    def global_with_two_views_turned(*args, **kwargs):
+        models = real_global(*args, **kwargs)
+        best = max(models, key=lambda m: m.num_reg_images())
+        for name, degrees in (("0000.png", 65.0), ("0001.png", 35.0)):
+            image = next(im for im in best.images.values() if im.name == name)
+            turned = pycolmap.Rigid3d(pycolmap.Rotation3d(np.radians([degrees, 0.0, 0.0])), np.zeros(3)) * image.cam_from_world()
+            best.frames[image.frame_id].set_cam_from_world(image.camera_id, turned)
+        return models
+
+    monkeypatch.setattr(reconstruct, "global_mapping", global_with_two_views_turned)
+    manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.mapper=global")
+    summary = manifest["summary"]
+    assert summary["registered"] == N_VIEWS and summary["mapper"] == "incremental"
+    # The turned views are named (a neighbour whose matches are mostly with them may be named too).
+    assert summary["mapper_fallback"].startswith("global mapping gave") and "(0000, 0001" in summary["mapper_fallback"]
+    assert "incremental mapper" in summary["line"]
+    errors = pose_errors(tmp_path / "out", truth)
+    assert errors["centre_error_share_max"] < 0.01 and errors["rotation_error_deg_max"] < 0.5
+
+
+def test_auto_matching_completes_sequential_with_exhaustive_when_photos_are_left_out(scene, truth, tmp_path):
+    # Photo names in a shuffled order: neighbours by name are not neighbours in space, so sequential matching with
+    # one neighbour verifies few pairs and leaves views out.
+    folder = tmp_path / "shuffled"
+    folder.mkdir()
+    order = np.random.default_rng(3).permutation(sorted(frames_by_name(truth)))
+    names = {f"photo_{n:02d}": stem for n, stem in enumerate(order)}
+    for name, stem in names.items():
+        shutil.copy(scene / "images" / f"{stem}.png", folder / f"{name}.png")
+    # Without loop closure: its pairs of alike images would find most of the true neighbours themselves.
+    manifest = run_poses(folder, tmp_path / "out", "poses.source=sfm", "poses.exhaustive_max_images=2",
+                         "poses.sequential_overlap=1", "poses.loop_neighbours=0")
+    summary = manifest["summary"]
+    assert summary["matching"] == "exhaustive after sequential" and summary["registered"] == N_VIEWS
+    assert summary["pairs_matched"] > N_VIEWS
+    errors = pose_errors(tmp_path / "out", truth, names)
+    assert errors["centre_error_share_max"] < 0.01 and errors["rotation_error_deg_max"] < 0.5
+
+
+def model_seeing(truth: dict, seen: dict[str, np.ndarray], xyz: np.ndarray) -> pycolmap.Reconstruction:
+    """A COLMAP model of the true poses of the views named in `seen`, each observing the points it lists (exactly)."""
+    k = Intrinsics(truth["fl_x"], truth["fl_y"], truth["cx"], truth["cy"], WIDTH, HEIGHT)
+    want = frames_by_name(truth)
+    model = pycolmap.Reconstruction()
+    model.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=WIDTH, height=HEIGHT, camera_id=1,
+                                                      params=[k.fl_x, k.fl_y, k.cx, k.cy]))
+    tracks: dict[int, list] = {}
+    for image_id, (stem, points) in enumerate(seen.items(), start=1):
+        c2w = np.array(want[stem]["transform_matrix"])
+        uv, _ = project(xyz[points], c2w, k)
+        rotation, translation = colmap_w2c_from_opengl_c2w(c2w)
+        model.add_image_with_trivial_frame(pycolmap.Image(name=f"{stem}.png", keypoints=uv, camera_id=1, image_id=image_id),
+                                           pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation))
+        for index, point in enumerate(points):
+            tracks.setdefault(int(point), []).append(pycolmap.TrackElement(image_id, index))
+    for point, elements in tracks.items():
+        if len(elements) > 1:
+            model.add_point3D(xyz[point], pycolmap.Track(elements), np.zeros(3, dtype=np.uint8))
+    return model
+
+
+@pytest.mark.parametrize("bridging, detached", [(5, ["0004", "0005"]), (20, [])])
+def test_images_sharing_too_few_points_with_the_model_are_detached(truth, bridging, detached):
+    # Views 0-3 share 40 points; views 4 and 5 share 20 of their own, and view 4 `bridging` more with view 3.
+    xyz = np.array([0.3, -0.2, 0.5]) + np.random.default_rng(4).uniform(-0.4, 0.4, size=(40 + 20 + bridging, 3))
+    block, island, bridge = np.arange(40), np.arange(40, 60), np.arange(60, 60 + bridging)
+    model = model_seeing(truth, {"0000": block, "0001": block, "0002": block, "0003": np.r_[block, bridge],
+                                 "0004": np.r_[island, bridge], "0005": island}, xyz)
+    assert detached_images(model) == detached
+
+
+def test_poses_that_contradict_their_verified_matches_are_named(truth, tmp_path):
+    stems = [f"{n:04d}" for n in range(8)]
+    xyz = np.array([0.3, -0.2, 0.5]) + np.random.default_rng(5).uniform(-0.4, 0.4, size=(60, 3))
+    model = model_seeing(truth, {stem: np.arange(len(xyz)) for stem in stems}, xyz)
+    db = tmp_path / "database.db"
+    with pycolmap.Database.open(db) as database:
+        camera_id = database.write_camera(model.cameras[1])
+        ids = {}
+        for image in model.images.values():
+            ids[image.image_id] = database.write_image(pycolmap.Image(name=image.name, camera_id=camera_id))
+            database.write_keypoints(ids[image.image_id], np.asarray([p.xy for p in image.points2D], dtype=np.float32))
+        every_point = np.repeat(np.arange(len(xyz), dtype=np.uint32)[:, None], 2, axis=1)
+        for a in ids:
+            for b in ids:
+                if a < b:
+                    database.write_two_view_geometry(ids[a], ids[b], pycolmap.TwoViewGeometry(inlier_matches=every_point))
+    assert contradicted_images(db, model, MAX_CONTRADICTED_SHARE) == {}
+
+    # Tilt view 0002 down by 5 degrees: its points move about 40 px across the (roughly horizontal) epipolar lines.
+    image = next(im for im in model.images.values() if im.name == "0002.png")
+    turned = pycolmap.Rigid3d(pycolmap.Rotation3d(np.radians([5.0, 0.0, 0.0])), np.zeros(3)) * image.cam_from_world()
+    model.frames[image.frame_id].set_cam_from_world(image.camera_id, turned)
+    found = contradicted_images(db, model, MAX_CONTRADICTED_SHARE)
+    assert list(found) == ["0002"] and found["0002"] > 0.9
+
+
+def write_jpeg_with_exif(path: Path, rgb: np.ndarray, tags: dict[int, float]) -> None:
+    exif = Image.Exif()
+    exif[0x0110] = "Synthetic"
+    exif.get_ifd(0x8769).update(tags)  # the Exif sub-IFD, where the focal length tags live
+    Image.fromarray(rgb).save(path, quality=95, exif=exif)
+
+
+def test_exif_focal_length_starts_the_shared_camera(scene, truth, tmp_path):
+    folder = tmp_path / "jpegs"
+    folder.mkdir()
+    # FocalLengthIn35mmFilm is a whole number of mm, so the prior is a little off the true focal (like a real one).
+    focal_35mm = round(truth["fl_x"] / math.hypot(WIDTH, HEIGHT) * FULL_FRAME_DIAGONAL_MM)
+    stems = sorted(frames_by_name(truth))[:12]
+    for stem in stems:  # photos twice the rendered size, which ingest halves again: the prior must follow
+        rgb = read_rgb(scene / "images" / f"{stem}.png").repeat(2, axis=0).repeat(2, axis=1)
+        write_jpeg_with_exif(folder / f"{stem}.jpg", rgb, {0xA405: focal_35mm})
+    scale = 0.5
+    manifest = run_poses(folder, tmp_path / "out", "poses.source=sfm", f"ingest.max_side={WIDTH}")
+    prior = manifest["summary"]["focal_prior"]
+    assert prior["images"] == len(stems) and prior["cameras"] == 1 and "35 mm" in prior["from"]
+    assert prior["focal_px"] == pytest.approx(focal_35mm / FULL_FRAME_DIAGONAL_MM * math.hypot(2 * WIDTH, 2 * HEIGHT) * scale, rel=1e-4)
+    assert manifest["summary"]["registered"] == len(stems)
+    transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    assert transforms["original_camera"]["params"][0] == pytest.approx(truth["fl_x"], rel=0.02)
+
+
+@pytest.mark.parametrize("tags, sensor_width_mm, expected", [
+    ({0xA405: 28, 0x920A: 4.2}, 0.0, 28 / FULL_FRAME_DIAGONAL_MM * 200.0),     # 35 mm equivalent wins
+    ({0x920A: 4.0, 0xA20E: 250.0, 0xA210: 4}, 0.0, 4.0 * 250.0),             # focal plane pixels per mm
+    ({0x920A: 4.0, 0xA20E: 2.5, 0xA210: 3}, 0.0, 4.0 * 0.25),                # ... per cm
+    ({0x920A: 4.0}, 6.4, 4.0 / 6.4 * 160.0),                                 # sensor width from the settings
+    ({0x920A: 4.0}, 0.0, None),                                              # not enough to know the focal
+    ({}, 6.4, None),
+])
+def test_exif_focal_length_in_pixels(tmp_path, tags, sensor_width_mm, expected):
+    path = tmp_path / "photo.jpg"
+    write_jpeg_with_exif(path, np.zeros((120, 160, 3), dtype=np.uint8), tags)  # diagonal 200 px
+    found = exif_focal(path, sensor_width_mm)
+    if expected is None:
+        assert found is None
+    else:
+        assert found[0] == pytest.approx(expected, rel=1e-6)
+
+
+def test_noise_photos_fail_with_one_line_error(tmp_path):
+    rng = np.random.default_rng(0)
+    folder = tmp_path / "noise"
+    folder.mkdir()
+    for n in range(8):
+        write_png(folder / f"noise_{n}.png", rng.integers(0, 256, (120, 160, 3), dtype=np.uint8))
+    with pytest.raises(UserError) as caught:
+        run_poses(folder, tmp_path / "out", "poses.min_features=0")
+    message = str(caught.value)
+    assert "\n" not in message and ("no model" in message or "left out" in message)
+    assert not (tmp_path / "out" / "poses").exists()
+
+
+# ---- imports ----------------------------------------------------------------------------------------------
+
+def test_transforms_import_scales_intrinsics_and_undistorts(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "capture" / "images")
+    distortion = {"k1": -0.15, "k2": 0.03, "p1": 0.002, "p2": -0.001}
+    # The pose file describes the photos at twice the size, with an off-centre principal point.
+    fl, cx, cy = 2 * truth["fl_x"], 2 * truth["cx"] + 7.0, 2 * truth["cy"] - 5.0
+    frames = [f for f in truth["frames"] if Path(f["file_path"]).stem in stems[1:]]
+    (tmp_path / "capture" / "transforms.json").write_text(json.dumps({
+        "fl_x": fl, "fl_y": fl, "cx": cx, "cy": cy, "w": 2 * WIDTH, "h": 2 * HEIGHT, **distortion,
+        "frames": [{"file_path": f"images/{Path(f['file_path']).stem}.jpg", "transform_matrix": f["transform_matrix"]}
+                   for f in frames]}))
+    manifest = run_poses(tmp_path / "capture" / "images", tmp_path / "out")
+    out = tmp_path / "out" / "poses"
+    transforms = read_json(out / "transforms.json")
+    assert transforms["source"] == "transforms"
+    assert manifest["summary"]["left_out"] == [stems[0]]
+    assert f"{(len(stems) - 1) / len(stems):.0%}" in manifest["summary"]["line"]
+    assert f"no pose: {stems[0]}" in manifest["summary"]["line"]
+    assert_poses_equal(transforms, truth, stems[1:])
+    original = transforms["original_camera"]
+    assert original["model"] == "OPENCV" and (original["width"], original["height"]) == (WIDTH, HEIGHT)
+    np.testing.assert_allclose(original["params"], [fl / 2, fl / 2, cx / 2, cy / 2, *distortion.values()], rtol=1e-9)
+
+    # The undistorted image at pinhole pixel p shows what the photo showed where the distorted camera puts p's ray.
+    k = Intrinsics.from_frame(transforms)
+    camera = pycolmap.Camera(model="OPENCV", width=WIDTH, height=HEIGHT, params=original["params"])
+    rng = np.random.default_rng(1)
+    uv = rng.uniform([0.1 * k.w, 0.1 * k.h], [0.9 * k.w, 0.9 * k.h], size=(400, 2))
+    rays = np.stack([(uv[:, 0] - k.cx) / k.fl_x, (uv[:, 1] - k.cy) / k.fl_y, np.ones(len(uv))], -1)  # OpenCV camera axes
+    distorted_uv = camera.img_from_cam(rays)
+    pinhole_uv = np.stack([rays[:, 0] * original["params"][0] + original["params"][2],
+                           rays[:, 1] * original["params"][1] + original["params"][3]], -1)
+    photo = read_rgb(scene / "images" / f"{stems[1]}.png")
+    undistorted = read_rgb(out / "images" / f"{stems[1]}.png")
+    aligned = np.abs(sample(undistorted, uv) - sample(photo, distorted_uv)).mean()
+    ignoring_distortion = np.abs(sample(undistorted, uv) - sample(photo, pinhole_uv)).mean()
+    assert aligned < 2.0 and aligned < 0.3 * ignoring_distortion
+
+
+def test_blender_import_uses_the_file_whose_paths_match_the_photos(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "lego" / "train")
+    alpha = np.zeros((HEIGHT, WIDTH), dtype=np.uint8)
+    alpha[:, : WIDTH // 2] = 255
+    for stem in stems:  # RGBA like the Blender renders: ingest keeps the alpha as a mask
+        path = tmp_path / "lego" / "train" / f"{stem}.png"
+        write_png(path, np.concatenate([read_rgb(path), alpha[..., None]], -1))
+    angle = 2 * math.atan(0.5 * WIDTH / truth["fl_x"])
+    want = frames_by_name(truth)
+    rotated = np.diag([1.0, -1.0, -1.0, 1.0])  # any other poses: the val file must not be picked
+    for split, transform in (("train", np.eye(4)), ("val", rotated)):
+        (tmp_path / "lego" / f"transforms_{split}.json").write_text(json.dumps({
+            "camera_angle_x": angle,
+            "frames": [{"file_path": f"./{split}/{s}", "transform_matrix": (transform @ np.array(want[s]["transform_matrix"])).tolist()}
+                       for s in stems]}))
+    run_poses(tmp_path / "lego" / "train", tmp_path / "out")
+    transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    assert transforms["source"] == "transforms" and transforms["source_path"].endswith("transforms_train.json")
+    assert_poses_equal(transforms, truth, stems)
+    assert transforms["fl_x"] == pytest.approx(truth["fl_x"], rel=1e-6)
+    assert transforms["cx"] == pytest.approx(WIDTH / 2) and transforms["w"] == WIDTH
+    for frame in transforms["frames"]:
+        mask = iio.imread(tmp_path / "out" / "poses" / frame["mask_path"])
+        assert mask.shape == alpha.shape and np.abs(mask.astype(int) - alpha).mean() < 2.0
+
+
+def test_colmap_import_keeps_poses_points_and_scales_the_camera(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "capture" / "images")
+    want = frames_by_name(truth)
+    k = Intrinsics(truth["fl_x"], truth["fl_y"], truth["cx"], truth["cy"], WIDTH, HEIGHT).scaled(2.0)
+    model = pycolmap.Reconstruction()
+    model.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=k.w, height=k.h, camera_id=1,
+                                                      params=[k.fl_x, k.fl_y, k.cx, k.cy]))
+    centre = np.array([0.3, -0.2, 0.5])
+    xyz = centre + np.random.default_rng(2).uniform(-0.5, 0.5, size=(30, 3))
+    for image_id, stem in enumerate(stems, start=1):
+        c2w = np.array(want[stem]["transform_matrix"])
+        uv, _ = project(xyz, c2w, k)
+        rotation, translation = colmap_w2c_from_opengl_c2w(c2w)
+        image = pycolmap.Image(name=f"{stem}.jpg", keypoints=uv, camera_id=1, image_id=image_id)
+        model.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation))
+    for n, point in enumerate(xyz):
+        track = pycolmap.Track([pycolmap.TrackElement(image_id, n) for image_id in range(1, len(stems) + 1)])
+        model.add_point3D(point, track, np.array([10, 20, 30], dtype=np.uint8))
+    (tmp_path / "capture" / "sparse" / "0").mkdir(parents=True)
+    model.write_binary(tmp_path / "capture" / "sparse" / "0")
+
+    manifest = run_poses(tmp_path / "capture" / "images", tmp_path / "out")
+    out = tmp_path / "out" / "poses"
+    transforms = read_json(out / "transforms.json")
+    assert transforms["source"] == "colmap"
+    assert_poses_equal(transforms, truth, stems)
+    assert (transforms["w"], transforms["h"]) == (WIDTH, HEIGHT)
+    assert transforms["fl_x"] == pytest.approx(truth["fl_x"], rel=1e-6) and transforms["cx"] == pytest.approx(truth["cx"])
+    points = np.load(out / "points.npz")
+    order = np.argsort(points["xyz"][:, 0])
+    np.testing.assert_allclose(points["xyz"][order], xyz[np.argsort(xyz[:, 0])], atol=1e-9)
+    assert (points["track_length"] == len(stems)).all() and len(points["obs_frame"]) == len(stems) * len(xyz)
+    assert manifest["summary"]["mean_reprojection_error"] < 1e-6
+    assert pycolmap.Reconstruction(out / "sparse").num_reg_images() == len(stems)
+
+
+def test_llff_import_scales_the_focal_and_keeps_bounds(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "fern" / "images_4")
+    want = frames_by_name(truth)
+    rows = []
+    for n, stem in enumerate(stems):
+        c2w = np.array(want[stem]["transform_matrix"])
+        # Our [right, up, back] columns as LLFF's [down, right, back]; hwf is for photos 4x larger.
+        llff = np.stack([-c2w[:3, 1], c2w[:3, 0], c2w[:3, 2], c2w[:3, 3]], 1)
+        np.testing.assert_allclose(opengl_c2w_from_llff(llff), c2w, atol=1e-12)
+        hwf = np.array([4 * HEIGHT, 4 * WIDTH, 4 * truth["fl_x"]])[:, None]
+        rows.append(np.concatenate([np.concatenate([llff, hwf], 1).ravel(), [1.0 + n, 10.0 + n]]))
+    np.save(tmp_path / "fern" / "poses_bounds.npy", np.array(rows))
+    run_poses(tmp_path / "fern" / "images_4", tmp_path / "out")
+    transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    assert transforms["source"] == "llff"
+    assert_poses_equal(transforms, truth, stems)
+    assert transforms["fl_x"] == pytest.approx(truth["fl_x"], rel=1e-6) and transforms["w"] == WIDTH
+    assert [(f["near"], f["far"]) for f in transforms["frames"]] == [(1.0 + n, 10.0 + n) for n in range(len(stems))]
+    points = np.load(tmp_path / "out" / "poses" / "points.npz")
+    assert points["xyz"].shape == (0, 3) and points["obs_frame"].shape == (0,)
+
+
+def test_import_posing_too_few_photos_names_the_rest(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "capture" / "images")
+    want = frames_by_name(truth)
+    (tmp_path / "capture" / "transforms.json").write_text(json.dumps({
+        "fl_x": truth["fl_x"], "w": WIDTH, "h": HEIGHT,
+        "frames": [{"file_path": f"images/{s}.png", "transform_matrix": want[s]["transform_matrix"]} for s in stems[:2]]}))
+    with pytest.raises(UserError) as caught:
+        run_poses(tmp_path / "capture" / "images", tmp_path / "out")
+    message = str(caught.value)
+    assert "2/6" in message and all(s in message for s in stems[2:]) and "\n" not in message
+
+
+def test_pose_file_changes_make_the_stage_stale(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "capture" / "images", count=3)
+    want = frames_by_name(truth)
+    pose_file = tmp_path / "capture" / "transforms.json"
+    content = {"fl_x": truth["fl_x"], "w": WIDTH, "h": HEIGHT,
+               "frames": [{"file_path": f"images/{s}.png", "transform_matrix": want[s]["transform_matrix"]} for s in stems]}
+    pose_file.write_text(json.dumps(content))
+    pipeline = Pipeline(tmp_path / "capture" / "images", tmp_path / "out", reporter=Reporter(quiet=True))
+    pipeline.run(["poses"])
+    assert pipeline.status("poses")[0] == "done"
+    content["fl_x"] *= 1.1
+    pose_file.write_text(json.dumps(content, indent=1))
+    assert pipeline.status("poses") == ("stale", "input photos changed")
+
+
+@pytest.mark.parametrize("overrides, expected", [
+    (["poses.path=does/not/exist.json"], "does not exist"),
+    (["poses.source=llff"], "no such pose file"),
+    (["poses.source=sfm", "poses.path=x.json"], "cannot be used"),
+    (["poses.min_registered_share=0"], "min_registered_share"),
+    (["poses.threads=-1"], "poses.threads must be 0"),
+    (["poses.source=colmap", "poses.path={photos}"], "holds no COLMAP model"),
+])
+def test_bad_pose_settings_are_one_line_errors(scene, tmp_path, overrides, expected):
+    folder = tmp_path / "capture" / "images"
+    photos(scene, folder, count=3)
+    with pytest.raises(UserError, match=expected):
+        run_poses(folder, tmp_path / "out", *(o.format(photos=folder) for o in overrides))
+
+
+def test_llff_count_mismatch_is_a_user_error(scene, tmp_path):
+    photos(scene, tmp_path / "fern" / "images", count=3)
+    np.save(tmp_path / "fern" / "poses_bounds.npy", np.zeros((5, 17)))
+    with pytest.raises(UserError, match="5 poses but the folder has 3 photos"):
+        run_poses(tmp_path / "fern" / "images", tmp_path / "out")
+
+
+@pytest.mark.parametrize("recorded, used", [
+    ((160, 120), True),    # the size the camera wrote
+    ((120, 160), True),    # the same, stored rotated (EXIF orientation)
+    ((320, 240), False),   # resized after capture
+    ((160, 160), False),   # cropped
+    (None, True),          # no record of the size: the focal tags are all there is
+])
+def test_exif_focal_is_a_hint_only_for_photos_the_size_the_camera_recorded(tmp_path, recorded, used):
+    path = tmp_path / "photo.jpg"
+    tags = {0xA405: 28}
+    if recorded:
+        tags.update({0xA002: recorded[0], 0xA003: recorded[1]})
+    write_jpeg_with_exif(path, np.zeros((120, 160, 3), dtype=np.uint8), tags)
+    assert (exif_focal(path, 0.0) is not None) == used
+
+
+def test_cropped_photos_with_their_uncropped_exif_focal_still_get_true_poses(scene, truth, tmp_path):
+    # The photos say a 1.5x too short focal, as a square crop of a wider photo keeps; EXIF's recorded size gives
+    # them away, so SfM starts from its own guess, and the poses match the truth.
+    folder = tmp_path / "cropped"
+    folder.mkdir()
+    wrong_35mm = round(truth["fl_x"] / 1.5 / math.hypot(WIDTH, HEIGHT) * FULL_FRAME_DIAGONAL_MM)
+    stems = sorted(frames_by_name(truth))[:12]
+    for stem in stems:
+        write_jpeg_with_exif(folder / f"{stem}.jpg", read_rgb(scene / "images" / f"{stem}.png"),
+                             {0xA405: wrong_35mm, 0xA002: 2 * WIDTH, 0xA003: int(1.5 * HEIGHT)})
+    # One COLMAP thread: the same model every run on a machine.
+    manifest = run_poses(folder, tmp_path / "out", "poses.source=sfm", "poses.threads=1")
+    summary = manifest["summary"]
+    assert summary["focal_prior"] is None and sorted(summary["exif_resized"]) == stems
+    assert summary["registered"] == len(stems)
+    errors = pose_errors(tmp_path / "out", truth)
+    # Twelve of the scene's photos: their worst rotation lands 0.48-0.53 degrees off from run to run (COLMAP's threads
+    # and the machine), so half a degree would be a draw; a degree still catches poses that went wrong.
+    assert errors["rotation_error_deg_max"] < 1.0 and errors["centre_error_share_max"] < 0.02
+
+
+def contradicting_first_attempts(monkeypatch, attempts: int) -> None:
+    """The first `attempts` SfM runs are judged to contradict most of their matches (a wrong model, as a cropped
+    photo's focal prior or a broken sequence gives); later runs are judged as they are."""
+    real = reconstruct.contradicted_images
+
+    def judged(db, model, above):
+        if int(Path(db).parent.name.split("_")[-1]) < attempts:
+            return {Path(im.name).stem: 0.5 for im in model.images.values() if im.has_pose}
+        return real(db, model, above)
+
+    monkeypatch.setattr(reconstruct, "contradicted_images", judged)
+
+
+def test_a_model_that_contradicts_its_matches_is_made_again_safer_and_the_summary_says_so(scene, truth, tmp_path, monkeypatch):
+    contradicting_first_attempts(monkeypatch, 1)
+    manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.matching=sequential")
+    summary = manifest["summary"]
+    assert [a["attempt"] for a in summary["attempts"]] == ["as set", "exhaustive matching"]
+    assert summary["attempt"] == "exhaustive matching" and summary["matching"] == "exhaustive"
+    assert summary["attempts"][0]["problems"] and not summary["attempts"][1]["problems"]
+    assert "contradict" in summary["line"] and "exhaustive matching" in summary["line"]
+    assert summary["registered"] == N_VIEWS
+    errors = pose_errors(tmp_path / "out", truth)
+    assert errors["rotation_error_deg_max"] < 0.5
+
+
+def test_no_model_that_holds_together_stops_the_pipeline_with_one_line(scene, tmp_path, monkeypatch):
+    contradicting_first_attempts(monkeypatch, 99)
+    folder = tmp_path / "few"
+    stems = photos(scene, folder, 8)
+    pipe = Pipeline(folder, tmp_path / "out", overrides=["poses.source=sfm"], reporter=Reporter(quiet=True))
+    with pytest.raises(UserError) as caught:
+        pipe.run(["poses", "normalize"])
+    message = str(caught.value)
+    assert "\n" not in message and "holds together" in message and "poses." in message
+    assert all(stem in message for stem in stems[:3])
+    assert not (tmp_path / "out" / "poses").exists() and not (tmp_path / "out" / "normalize").exists()
+
+
+def test_repair_off_refuses_at_the_first_contradicted_model(scene, tmp_path, monkeypatch):
+    contradicting_first_attempts(monkeypatch, 1)
+    with pytest.raises(UserError, match="after 1 attempt"):
+        run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.repair=false")
+
+
+def test_sequential_matching_closes_the_loop_of_an_orbit(scene, truth, tmp_path, monkeypatch):
+    asked = []
+    real = reconstruct.loop_pairs
+    monkeypatch.setattr(reconstruct, "loop_pairs", lambda *args: asked.extend(real(*args)) or asked)
+    manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.matching=sequential",
+                         "poses.sequential_overlap=3", "poses.loop_neighbours=3", "poses.repair=false")
+    # The loop pairs join the first views with the last, and the alike pairs join views that look at the scene from
+    # nearer directions than views outside the sequential window do on average.
+    assert ("0000.png", f"{N_VIEWS - 1:04d}.png") in asked
+    axis = {f"{stem}.png": np.asarray(f["transform_matrix"])[:3, 2] for stem, f in frames_by_name(truth).items()}
+    names = sorted(axis)
+
+    def angle(a, b):
+        return np.degrees(np.arccos(np.clip(axis[a] @ axis[b], -1, 1)))
+
+    outside = [angle(a, b) for i, a in enumerate(names) for b in names[i + 4:]]
+    assert np.mean([angle(a, b) for a, b in asked]) < 0.9 * np.mean(outside)
+    assert manifest["summary"]["registered"] == N_VIEWS
+    errors = pose_errors(tmp_path / "out", truth)
+    assert errors["rotation_error_deg_max"] < 0.5 and errors["centre_error_share_max"] < 0.01
+
+
+def orbit_video(tmp_path: Path) -> tuple[Path, dict, list[str]]:
+    """A synthetic orbit rendered as a video at 24 frames a second, each of its 48 views held for three frames (the
+    camera moving slowly); its truth and the views' names in order."""
+    views = write_scene("object", tmp_path / "orbit", n_views=48, width=384, height=288, seed=4, supersample=1)
+    truth = read_json(views / "transforms.json")
+    stems = sorted(frames_by_name(truth))
+    folder = tmp_path / "video"
+    folder.mkdir()
+    size = iio.imread(views / "images" / f"{stems[0]}.png").shape[1::-1]
+    writer = cv2.VideoWriter(str(folder / "orbit.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 24, size)
+    for stem in stems:
+        bgr = cv2.cvtColor(iio.imread(views / "images" / f"{stem}.png")[..., :3], cv2.COLOR_RGB2BGR)
+        for _ in range(3):
+            writer.write(bgr)
+    writer.release()
+    return folder / "orbit.avi", truth, stems
+
+
+def test_orbit_video_through_ingest_registers_every_kept_frame(tmp_path):
+    # Ingest keeps the orbit's frames by motion, and every one of them gets a pose matching the view it shows.
+    video, truth, stems = orbit_video(tmp_path)
+    manifest = Pipeline(video, tmp_path / "out", reporter=Reporter(quiet=True)).run(["ingest", "poses"])
+    kept = manifest["ingest"]["summary"]["images"]
+    assert 8 <= kept <= 48
+    assert manifest["poses"]["summary"]["registered"] == kept
+    names = {name: stems[int(name.split("_")[1]) // 3] for name in frames_by_name(read_json(tmp_path / "out" / "poses" / "transforms.json"))}
+    errors = pose_errors(tmp_path / "out", truth, names)
+    # Views 15 degrees apart at 384x288 pin most poses to about 0.35 degrees; the first frame, matched on one side
+    # only, has come out 3.6 degrees off: a looser bound on the worst than on the median.
+    assert errors["rotation_error_deg_median"] < 0.6 and errors["rotation_error_deg_max"] < 5.0
+
+
+def test_a_clip_whose_frames_do_not_hold_together_is_posed_from_frames_read_closer(tmp_path, monkeypatch):
+    # SfM refuses the frames ingest kept at half size (as a real clip's can: 7 of 20 posed), so the stage reads the
+    # clip again with frames twice as close and at full size, poses those, scales the model to the ingested size and
+    # says so; where those fail too, the refusal names both reads.
+    import stages.poses
+
+    video, truth, stems = orbit_video(tmp_path)
+    real = stages.poses.reconstruct
+    calls = []
+
+    def refuse_first(records, image_dir, *args):
+        calls.append((len(records), (records[0]["width"], records[0]["height"])))
+        if len(calls) == 1:
+            raise UserError(f"SfM posed only 3/{len(records)} images")
+        return real(records, image_dir, *args)
+
+    monkeypatch.setattr(stages.poses, "reconstruct", refuse_first)
+    manifest = Pipeline(video, tmp_path / "out", overrides=["ingest.max_side=192"],
+                        reporter=Reporter(quiet=True)).run(["ingest", "poses"])
+    ingested, summary = manifest["ingest"]["summary"]["images"], manifest["poses"]["summary"]
+    assert len(calls) == 2 and calls[0][0] == ingested and calls[1][0] > ingested
+    assert calls[0][1] == (192, 144) and calls[1][1] == (384, 288)
+    assert summary["registered"] == summary["images"] == calls[1][0]
+    assert summary["denser"]["first_frames"] == ingested and "read again" in summary["line"]
+    assert summary["mean_reprojection_error"] < 0.5  # the observations scaled with the cameras
+    frames = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    sizes = {iio.imread(tmp_path / "out" / "poses" / f["file_path"]).shape[1::-1] for f in frames["frames"]}
+    assert len(sizes) == 1 and abs(sizes.pop()[0] - 192) <= 1  # the ingested size (undistortion may trim a pixel)
+    names = {Path(f["file_path"]).stem: stems[int(Path(f["file_path"]).stem.split("_")[1]) // 3] for f in frames["frames"]}
+    assert len(names) == calls[1][0] and all((tmp_path / "out" / "poses" / f"images/{n}.png").is_file() for n in names)
+    assert pose_errors(tmp_path / "out", truth, names)["rotation_error_deg_median"] < 0.6
+
+    def refuse_all(records, *args):
+        raise UserError(f"SfM posed only 3/{len(records)} images")
+
+    monkeypatch.setattr(stages.poses, "reconstruct", refuse_all)
+    with pytest.raises(UserError, match=r"posed only 3/\d+ images \(read again at full size with frames twice as close: "
+                                        rf"{ingested} -> \d+ frames; the first read: SfM posed only 3/{ingested}"):
+        Pipeline(video, tmp_path / "out2", reporter=Reporter(quiet=True)).run(["ingest", "poses"])
+
+
+def test_imported_poses_without_points_get_points_triangulated_on_the_true_surface(scene, truth, tmp_path):
+    # The whole orbit with its true poses, as a transforms.json beside the photos (no points come with it).
+    capture = tmp_path / "capture"
+    shutil.copytree(scene / "images", capture / "images")
+    shutil.copy(scene / "transforms.json", capture / "transforms.json")
+    manifest = run_poses(capture, tmp_path / "out")
+    assert "points triangulated" in manifest["summary"]["line"]
+    with np.load(tmp_path / "out" / "poses" / "points.npz") as points:
+        xyz, rgb, obs_frame, obs_point = points["xyz"], points["rgb"], points["obs_frame"], points["obs_point"]
+    assert len(xyz) > 1000 and len(obs_frame) == 2 * len(xyz) and obs_point.max() == len(xyz) - 1
+    # On the slab and the objects, not scattered along the rays: the true surface lies where each point is, seen from
+    # the first camera that observed it (ray-cast against the generator's exact shapes).
+    spec = build_scene("object", seed=0)
+    first = np.full(len(xyz), -1)
+    first[obs_point[::-1]] = obs_frame[::-1]
+    frames = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    error = np.zeros(len(xyz))
+    for f in np.unique(first):
+        origin = np.asarray(frames["frames"][f]["transform_matrix"])[:3, 3]
+        mine = first == f
+        distance = np.linalg.norm(xyz[mine] - origin, axis=1)
+        surface, _ = trace(spec, origin, (xyz[mine] - origin) / distance[:, None])
+        error[mine] = np.abs(surface - distance)
+    bounds = read_json(scene / "ground_truth" / "scene.json")["object_bounds"]
+    size = float(np.linalg.norm(np.subtract(bounds["max"], bounds["min"])))
+    assert np.median(error) < 0.005 * size and np.mean(error < 0.01 * size) > 0.9
+    # Each observation is where its frame sees the point.
+    k = Intrinsics.from_frame(frames)
+    # Each point's colour is the photo's where its first observer saw it.
+    photo = read_rgb(tmp_path / "out" / "poses" / frames["frames"][first[0]]["file_path"]).astype(np.float64)
+    mine = np.flatnonzero(first == first[0])
+    uv, _ = project(xyz[mine], np.asarray(frames["frames"][first[0]]["transform_matrix"]), k)
+    seen = photo[np.clip(uv[:, 1].astype(int), 0, k.h - 1), np.clip(uv[:, 0].astype(int), 0, k.w - 1)]
+    assert np.median(np.abs(seen - rgb[mine]).max(axis=1)) < 40
+    for f in range(0, len(frames["frames"]), 6):
+        seen = xyz[obs_point[obs_frame == f]]
+        uv, depth = project(seen, np.asarray(frames["frames"][f]["transform_matrix"]), k)
+        assert (depth > 0).all() and ((uv >= 0) & (uv <= [k.w, k.h])).all()
+
+
+def test_triangulation_pairs_only_cameras_that_face_the_same_way():
+    # Three cameras round an object, one opposite them and one beside the first looking sideways: the last two face
+    # no other camera, so they pair with no one.
+    c2w = np.stack([look_at([3 * math.cos(a), 3 * math.sin(a), 1], [0, 0, 0]) for a in np.radians([0, 20, 40, 180])]
+                   + [look_at([3.1, 0.2, 1], [3.1, 10, 1])])
+    pairs = neighbour_pairs(c2w, neighbours=2)
+    assert (0, 1) in pairs and (1, 2) in pairs
+    assert all(4 not in p for p in pairs) and all(3 not in p for p in pairs)
