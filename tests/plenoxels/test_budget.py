@@ -7,7 +7,7 @@ import signal
 import time
 
 import pytest
-from test_fit import QUICK, make_scene, run_stage
+from tests.stages.test_fit import QUICK, make_scene, run_stage
 
 from pipeline import config
 from stages.common.json_files import read_json

@@ -11,7 +11,7 @@ from plenoxels.surface.ground import find_ground
 from plenoxels.surface.mesh import isolate_object
 from stages.common.json_files import read_json
 from stages.settings.export import Settings
-from test_export import (SPHERE_CENTRE, SPHERE_RADIUS, cluttered_sphere_field, identity_scene, orbit_frames,
+from tests.stages.test_export import (SPHERE_CENTRE, SPHERE_RADIUS, cluttered_sphere_field, identity_scene, orbit_frames,
                          radial_error, run_stage)
 
 VOXEL = 0.02

@@ -17,7 +17,7 @@ from plenoxels.surface import texture
 from plenoxels.surface.texture import (bake, rasterize, render_mesh, sample_texture, surface_normals, texel_surface,
                                texture_mesh, unwrap)
 from stages.settings.export import Settings
-from test_export import BOX, SPHERE_CENTRE, _Quiet, look_at, sphere_field
+from tests.stages.test_export import BOX, SPHERE_CENTRE, _Quiet, look_at, sphere_field
 
 RED, BLUE = np.array([0.9, 0.1, 0.1]), np.array([0.1, 0.1, 0.9])
 

@@ -20,7 +20,7 @@ from plenoxels.core.regularizers import tv_scale_for_views, views_per_point
 from plenoxels.core.scene_model import ModelOptions, SceneModel, background_width_for
 from plenoxels.core.train import (Diverged, Fitter, RaySet, TrainOptions, coherent_order, decayed_lr, prune_mask,
                              pruning_rays, pruning_stride)
-from test_fit import make_scene
+from tests.stages.test_fit import make_scene
 
 
 def training_rays(root, frames: list[dict]) -> RaySet:

@@ -14,7 +14,7 @@ from stages.common.json_files import read_json
 from stages.scoring.visuals import colour_depth
 from plenoxels.core.scene_model import SceneModel
 from stages import evaluate, fit
-from test_fit import QUICK, make_scene, run_stage
+from tests.stages.test_fit import QUICK, make_scene, run_stage
 
 
 @pytest.fixture(scope="module")
