@@ -1,14 +1,35 @@
-"""The options of the model's machinery, free of torch: what a new SceneModel is made of (`ModelOptions`), how it is
-fitted (`TrainOptions`) and how a mesh is drawn from it (`MeshOptions`). The fit and export stages' settings extend
-them (stages/settings/), so a settings listing and the pipeline's cache keys read them without loading the model."""
+"""The options of the model's machinery, free of torch: how rays are marched (`MarchOptions`, which a render's
+`RenderOptions` extends), what a new SceneModel is made of (`ModelOptions`), how it is fitted (`TrainOptions`) and how
+a mesh is drawn from it (`MeshOptions`). The fit and export stages' settings extend them (stages/settings/), so a
+settings listing and the pipeline's cache keys read them without loading the model.
+
+Each class holds its options' defaults and help, and its `check(section)` raises a one-line UserError for a bad value,
+naming the key as `section.name` (the section defaults to the stage whose settings hold the options); a class that
+extends another checks through the other's `check`, never again by itself."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from typing import Literal
 
+from plenoxels.core.errors import require
+
 
 @dataclass
-class ModelOptions:
+class MarchOptions:
+    """How rays are marched through the grid: set for the fit (ModelOptions), kept in the model for its renders."""
+
+    step_size: float = 0.5
+    """Ray sample spacing in voxels."""
+    stop_transmittance: float = 1e-4
+    """A ray stops once this little light gets through."""
+
+    def check(self, section: str = "fit") -> None:
+        require(self.step_size > 0, f"{section}.step_size must be positive (voxels)")
+        require(0 <= self.stop_transmittance < 1, f"{section}.stop_transmittance must be in [0, 1)")
+
+
+@dataclass
+class ModelOptions(MarchOptions):
     """What a new SceneModel is made of beyond the scene: its fit frame, colour model, background and sampling."""
 
     ndc: Literal["auto", "on", "off"] = "auto"
@@ -27,13 +48,9 @@ class ModelOptions:
     """Raw density of every vertex at the start."""
     box_padding: float = 0.05
     """The grid box is the foreground box grown by this share of its size on each side."""
-    step_size: float = 0.5
-    """Ray sample spacing in voxels."""
-    stop_transmittance: float = 1e-4
-    """A ray stops once this little light gets through."""
     near_share: float = 0.5
     """Contracted grids: rays start this share of the nearest sparse point any camera saw (normalize's near) from their
-    camera, so that no haze hangs in front of the lenses (cup at `fast` with a contracted grid: +1.4 dB held-out)."""
+    camera, so that no haze hangs in front of the lenses."""
     background_spheres: int = 32
     """Background model: number of spheres."""
     background_width: int = 0
@@ -44,6 +61,18 @@ class ModelOptions:
     tv_background: float = 1e-3
     """Background model: TV weight of its density and colour."""
 
+    def check(self, section: str = "fit") -> None:
+        MarchOptions.check(self, section)
+        require(len(self.background_color) == 3 and all(0 <= c <= 1 for c in self.background_color),
+                f"{section}.background_color must be three numbers in [0, 1] (for example [1, 1, 1])")
+        require(0 <= self.sh_degree <= 3, f"{section}.sh_degree must be 0, 1, 2 or 3")
+        require(self.box_padding >= 0, f"{section}.box_padding must be >= 0")
+        require(0 <= self.near_share < 1, f"{section}.near_share must be in [0, 1)")
+        require(self.background_spheres >= 1 and (self.background_width == 0 or self.background_width >= 4),
+                f"{section}.background_spheres must be >= 1 and {section}.background_width 0 (from the photos) or >= 4")
+        require(self.background_texel_px > 0, f"{section}.background_texel_px must be positive")
+        require(self.tv_background >= 0, f"{section}.tv_background must be >= 0")
+
 
 @dataclass
 class TrainOptions:
@@ -52,15 +81,15 @@ class TrainOptions:
     resolutions: list[int] = field(default_factory=lambda: [128, 128, 256])
     """Grid vertices along the longest axis, one per level. A level at the resolution of the one before prunes the
     grid without upsampling it: a first level's grid is the whole box, and until it is pruned every ray marches all of
-    it, so the presets prune it after a fifth of its steps (lego `default`: 1000 steps at 128^3 in 61 s instead of 97,
-    the same held-out PSNR)."""
+    it, so the presets prune it after a fifth of its steps: the rest of the level then marches only what the photos
+    see, in less time for the same held-out PSNR (bench/README.md, "Fit: quality against cost")."""
     steps: list[int] = field(default_factory=lambda: [200, 800, 1500])
     """Optimiser steps per level."""
     first_level_scale: float = 1.0
     """The first level's resolution (its early-pruned rest too) as this share of the one set, or of a time budget's
-    plan (never below 32, or the level's own resolution if that is less). Rooms seen from inside fitted as well or
-    better from a coarser start (fox `default` 25.72 -> 26.55 dB at 0.75; cup and the synthetic unbounded scene the
-    same); an object loses thin parts (lego `default` 31.23 -> 30.60 dB)."""
+    plan (never below 32, or the level's own resolution if that is less). A room seen from inside fills most of its
+    box, and a coarser first level is as good a start for the finer ones; an object loses thin parts to it
+    (configs/scene_types/unbounded.yaml sets it for rooms)."""
     batch_size: int = 8192
     """Rays per step."""
     batch_mode: Literal["tiles", "rays"] = "rays"
@@ -69,7 +98,7 @@ class TrainOptions:
     """Tile side in pixels (batch_mode tiles)."""
     coherent_batches: bool = True
     """Order each batch's rays so that rays passing near each other sit together (the same rays, in another order:
-    the kernel's threads then read neighbouring voxels: 7-19% more samples per second in the kernel bench)."""
+    the kernel's threads then read neighbouring voxels, which is faster; bench/README.md, "Kernels")."""
     lr_density: float = 30.0
     """RMSProp rate of the density at the start, decayed exponentially to lr_density_final."""
     lr_density_final: float = 3.0
@@ -129,6 +158,36 @@ class TrainOptions:
     def total_steps(self) -> int:
         return sum(self.steps)
 
+    def check(self, section: str = "fit") -> None:
+        require(len(self.resolutions) >= 1 and all(r >= 8 for r in self.resolutions),
+                f"{section}.resolutions must be a list of at least one resolution, each >= 8 (for example [128, 256])")
+        require(all(b >= a for a, b in zip(self.resolutions, self.resolutions[1:])),
+                f"{section}.resolutions must not decrease from level to level (for example [128, 128, 256]: a repeated "
+                "resolution prunes the grid without upsampling it)")
+        require(len(self.steps) == len(self.resolutions) and all(s >= 1 for s in self.steps),
+                f"{section}.steps must list one positive step count per resolution ({len(self.resolutions)} here)")
+        require(0 < self.first_level_scale <= 1,
+                f"{section}.first_level_scale must be in (0, 1] (1: the first level as set)")
+        require(self.batch_size >= 1, f"{section}.batch_size must be at least 1")
+        require(self.tile_size >= 1, f"{section}.tile_size must be at least 1")
+        require(self.lr_density > 0 and self.lr_density_final > 0 and self.lr_sh > 0 and self.lr_sh_final > 0,
+                f"{section}.lr_density, {section}.lr_density_final, {section}.lr_sh and {section}.lr_sh_final must be "
+                "positive")
+        require(0 <= self.lr_density_delay < 1, f"{section}.lr_density_delay must be in [0, 1)")
+        require(0 <= self.rmsprop_beta < 1, f"{section}.rmsprop_beta must be in [0, 1)")
+        require(self.tv_density >= 0 and self.tv_sh >= 0, f"{section}.tv_density and {section}.tv_sh must be >= 0")
+        require(0 < self.tv_sample_fraction <= 1, f"{section}.tv_sample_fraction must be in (0, 1]")
+        require(self.sparsity >= 0, f"{section}.sparsity must be >= 0 (0: off)")
+        require(self.tv_reference_resolution >= 0,
+                f"{section}.tv_reference_resolution must be >= 0 (0: the TV weights as set on every level)")
+        require(self.lr_background > 0, f"{section}.lr_background must be > 0")
+        require(self.prune_weight >= 0 and self.prune_dilation >= 0,
+                f"{section}.prune_weight and {section}.prune_dilation must be >= 0")
+        require(0 < self.prune_ray_scale <= 1, f"{section}.prune_ray_scale must be in (0, 1]")
+        require(self.prune_rays_per_cell >= 0,
+                f"{section}.prune_rays_per_cell must be >= 0 (0: every pixel at {section}.prune_ray_scale)")
+        require(self.voxel_budget >= 1000, f"{section}.voxel_budget must be at least 1000")
+
 
 @dataclass
 class MeshOptions:
@@ -170,3 +229,18 @@ class MeshOptions:
     """A pixel gives a point only where its ray is at least this opaque (points, seen faces)."""
     seed: int = 0
     """Seed of the random subsets (points, the auto level's rays, the ground's RANSAC)."""
+
+    def check(self, section: str = "export") -> None:
+        require(self.resolution == "auto" or 8 <= self.resolution <= 2048,
+                f"{section}.resolution must be auto or between 8 and 2048 cells")
+        require(self.level == "auto" or self.level > 0, f"{section}.level must be auto or a positive density")
+        require(0.0 < self.level_share < 1.0, f"{section}.level_share must be in (0, 1)")
+        require(0.0 < self.level_opacity < 1.0, f"{section}.level_opacity must be in (0, 1)")
+        require(self.crop_margin >= 0.0, f"{section}.crop_margin must be 0 or more")
+        require(0.0 <= self.min_piece_fraction <= 1.0, f"{section}.min_piece_fraction must be in [0, 1]")
+        require(self.max_gap > 0.0, f"{section}.max_gap must be positive")
+        require(self.fill_voxels >= 0, f"{section}.fill_voxels must be 0 (no filling) or more voxels")
+        require(self.seen_tolerance >= 0.0, f"{section}.seen_tolerance must be 0 or more voxels")
+        require(self.align_voxels >= 0.0, f"{section}.align_voxels must be 0 (no alignment) or more voxels")
+        require(self.max_faces == 0 or self.max_faces >= 4, f"{section}.max_faces must be 0 (keep all) or at least 4")
+        require(0.0 < self.point_opacity < 1.0, f"{section}.point_opacity must be in (0, 1)")

@@ -14,9 +14,10 @@ from dataclasses import dataclass
 import torch
 
 from plenoxels.core import native
-from plenoxels.core.errors import UserError
+from plenoxels.core.errors import require
 from plenoxels.core.grid import OCCUPANCY_BLOCK, SparseGrid
 from plenoxels.core.optim import GridGrad
+from plenoxels.core.options import MarchOptions
 
 # Real spherical-harmonic basis constants up to degree 3 and the offset added before the colour's relu,
 # as csrc/plenoxels_math.h has them (tests compare the two through the kernels' output).
@@ -29,24 +30,23 @@ COLOUR_OFFSET = 0.5
 
 
 @dataclass
-class RenderOptions:
-    step_size: float = 0.5  # sample spacing in voxels (grid-coordinate units)
-    stop_transmittance: float = 1e-4  # early ray termination
-    near: float = 0.0  # ray t start (fit-frame units); rays are also clipped to the grid box
-    sigma_threshold: float = 0.0  # samples with density <= this are skipped
-    max_samples_per_ray: int = 4096  # a finer step is widened so that no ray takes more samples
+class RenderOptions(MarchOptions):
+    """How a render marches its rays: the fit's step size and stopping threshold (MarchOptions, which checks them),
+    and what only a render sets."""
 
-    def check(self) -> "RenderOptions":
-        if not self.step_size > 0:
-            raise UserError(f"step_size must be > 0 voxels, got {self.step_size}")
-        if not 0 <= self.stop_transmittance <= 1:
-            raise UserError(f"stop_transmittance must be in [0, 1], got {self.stop_transmittance}")
-        if not self.sigma_threshold >= 0:
-            raise UserError(f"sigma_threshold must be >= 0, got {self.sigma_threshold}")
-        if not self.max_samples_per_ray >= 1:
-            raise UserError(f"max_samples_per_ray must be >= 1, got {self.max_samples_per_ray}")
-        if self.near != self.near:
-            raise UserError("near must be a number")
+    near: float = 0.0
+    """Rays start this far along (fit-frame units); they are also clipped to the grid's box."""
+    sigma_threshold: float = 0.0
+    """Samples with density at or below this are skipped."""
+    max_samples_per_ray: int = 4096
+    """A finer step is widened so that no ray takes more samples."""
+
+    def check(self, section: str = "fit") -> "RenderOptions":
+        """Raises a one-line UserError for a bad value; returns the options, checked."""
+        MarchOptions.check(self, section)
+        require(self.sigma_threshold >= 0, f"sigma_threshold must be >= 0, got {self.sigma_threshold}")
+        require(self.max_samples_per_ray >= 1, f"max_samples_per_ray must be >= 1, got {self.max_samples_per_ray}")
+        require(self.near == self.near, "near must be a number")
         return self
 
 

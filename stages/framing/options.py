@@ -1,9 +1,12 @@
-"""How normalize frames a scene and decides its type: the options the normalize stage's settings extend, free of
-the camera model's torch, so a settings listing and the pipeline's cache keys read them without loading it."""
+"""How normalize frames a scene and decides its type: the options the normalize stage's settings are, free of the
+camera model's torch, so a settings listing and the pipeline's cache keys read them without loading it. `check`
+raises a one-line UserError for a bad value, naming the key as `section.name`."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Literal
+
+from plenoxels.core.errors import require
 
 
 @dataclass
@@ -38,3 +41,16 @@ class SceneOptions:
     """What a masked photo's pixels outside its mask are trained as: empty space on fit.background_color (fit), or on
     the photo's own colour there, the median outside its mask (own: renders of the photos' views then look like the
     photos around the object; held-out views are scored on theirs)."""
+
+    def check(self, section: str = "normalize") -> None:
+        require(self.holdout_every == 0 or self.holdout_every >= 2,
+                f"{section}.holdout_every must be 0 (hold none out) or at least 2")
+        require(self.train_every >= 1, f"{section}.train_every must be at least 1 (1: every training photo)")
+        require(0.0 <= self.margin <= 1.0, f"{section}.margin must be in [0, 1]")
+        require(0.0 < self.forward_max_cone_deg < 90.0, f"{section}.forward_max_cone_deg must be in (0, 90)")
+        require(0.0 <= self.borderline_deg < self.forward_max_cone_deg,
+                f"{section}.borderline_deg must be >= 0 and below {section}.forward_max_cone_deg")
+        require(self.beyond_factor > 1.0, f"{section}.beyond_factor must be greater than 1")
+        require(0.0 < self.unbounded_min_beyond_fraction < 1.0,
+                f"{section}.unbounded_min_beyond_fraction must be in (0, 1)")
+        require(0.0 < self.object_min_empty_fraction < 1.0, f"{section}.object_min_empty_fraction must be in (0, 1)")

@@ -15,7 +15,8 @@ VERSION = 2
 
 @dataclass
 class Settings(MeshOptions):
-    """The mesh's settings (plenoxels.core.options.MeshOptions), and the frame, box, texture and points."""
+    """The mesh's options (plenoxels.core.options.MeshOptions, which checks its own), and the frame, box, texture and
+    points."""
     frame: Literal["input", "normalized"] = "input"
     """Input: the poses' (COLMAP) frame; normalized: the fit's world."""
     crop: list[float] = field(default_factory=list)
@@ -39,23 +40,11 @@ class Settings(MeshOptions):
     """Training views rendered for the points; 0: all."""
 
     def check(self) -> None:
-        require(self.resolution == "auto" or 8 <= self.resolution <= 2048,
-                "export.resolution must be auto or between 8 and 2048 cells")
-        require(self.level == "auto" or self.level > 0, "export.level must be auto or a positive density")
-        require(0.0 < self.level_share < 1.0, "export.level_share must be in (0, 1)")
-        require(0.0 < self.level_opacity < 1.0, "export.level_opacity must be in (0, 1)")
-        require(self.crop_margin >= 0.0, "export.crop_margin must be 0 or more")
+        MeshOptions.check(self, NAME)
         require(not self.crop or (len(self.crop) == 6 and all(lo < hi for lo, hi in zip(self.crop[:3], self.crop[3:]))),
                 "export.crop must be empty or [xmin, ymin, zmin, xmax, ymax, zmax] with each min below its max")
-        require(0.0 <= self.min_piece_fraction <= 1.0, "export.min_piece_fraction must be in [0, 1]")
-        require(self.max_gap > 0.0, "export.max_gap must be positive")
-        require(self.max_faces == 0 or self.max_faces >= 4, "export.max_faces must be 0 (keep all) or at least 4")
         require(64 <= self.texture_size <= 16384, "export.texture_size must be between 64 and 16384 texels")
         require(self.texture_views >= 1, "export.texture_views must be 1 or more")
         require(self.points >= 0, "export.points must be 0 (no point cloud) or more")
         require(0.0 < self.point_scale <= 1.0, "export.point_scale must be in (0, 1]")
         require(self.point_views >= 0, "export.point_views must be 0 (all training views) or more")
-        require(0.0 < self.point_opacity < 1.0, "export.point_opacity must be in (0, 1)")
-        require(self.fill_voxels >= 0, "export.fill_voxels must be 0 (no filling) or more voxels")
-        require(self.seen_tolerance >= 0.0, "export.seen_tolerance must be 0 or more voxels")
-        require(self.align_voxels >= 0.0, "export.align_voxels must be 0 (no alignment) or more voxels")

@@ -17,7 +17,7 @@ VERSION = 1
 
 @dataclass
 class Settings(SfmOptions):
-    """SfM's options (stages.sfm.options.SfmOptions), and where poses come from."""
+    """SfM's options (stages.sfm.options.SfmOptions, which checks its own), and where poses come from."""
     source: Literal["auto", "sfm", "colmap", "transforms", "llff", "idr"] = "auto"
     """Where poses come from: auto imports pose files found beside the photos (a COLMAP model, a transforms.json,
     LLFF's poses_bounds.npy, IDR/NeuS's cameras_sphere.npz), else runs SfM."""
@@ -29,16 +29,10 @@ class Settings(SfmOptions):
     """Show COLMAP's own log lines."""
 
     def check(self) -> None:
-        require(self.max_features >= 64, "poses.max_features must be at least 64")
-        require(self.feature_max_side == 0 or self.feature_max_side >= 64,
-                "poses.feature_max_side must be 0 (the ingested size) or at least 64")
-        require(self.min_features >= 0, "poses.min_features must be 0 or more")
-        require(self.sensor_width_mm >= 0, "poses.sensor_width_mm must be 0 (unknown) or the sensor width in mm")
-        require(self.exhaustive_max_images >= 2, "poses.exhaustive_max_images must be at least 2")
-        require(self.sequential_overlap >= 1, "poses.sequential_overlap must be at least 1")
-        require(self.threads >= 0, "poses.threads must be 0 (all cores) or a number of threads")
+        SfmOptions.check(self, NAME)
         require(0.0 < self.min_registered_share <= 1.0, "poses.min_registered_share must be in (0, 1]")
-        require(not (self.path and self.source == "sfm"), "poses.path names pose files to import; it cannot be used with poses.source=sfm")
+        require(not (self.path and self.source == "sfm"),
+                "poses.path names pose files to import; it cannot be used with poses.source=sfm")
 
 
 def fingerprint(scene: Path) -> list:

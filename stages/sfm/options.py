@@ -1,9 +1,12 @@
 """How to run structure from motion: the options the poses stage's settings extend, free of pycolmap, so a
-settings listing and the pipeline's cache keys read them without loading COLMAP."""
+settings listing and the pipeline's cache keys read them without loading COLMAP. `check` raises a one-line UserError
+for a bad value, naming the key as `section.name`."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Literal
+
+from plenoxels.core.errors import require
 
 
 @dataclass
@@ -49,3 +52,13 @@ class SfmOptions:
     repair: bool = True
     """When a model contradicts its matches or splits in parts, try safer configurations (exhaustive matching, no EXIF
     focal prior, more features, full-size images) and keep the first that holds; off: refuse at once."""
+
+    def check(self, section: str = "poses") -> None:
+        require(self.sensor_width_mm >= 0, f"{section}.sensor_width_mm must be 0 (unknown) or the sensor width in mm")
+        require(self.max_features >= 64, f"{section}.max_features must be at least 64")
+        require(self.feature_max_side == 0 or self.feature_max_side >= 64,
+                f"{section}.feature_max_side must be 0 (the ingested size) or at least 64")
+        require(self.min_features >= 0, f"{section}.min_features must be 0 or more")
+        require(self.exhaustive_max_images >= 2, f"{section}.exhaustive_max_images must be at least 2")
+        require(self.sequential_overlap >= 1, f"{section}.sequential_overlap must be at least 1")
+        require(self.threads >= 0, f"{section}.threads must be 0 (all cores) or a number of threads")
