@@ -147,7 +147,8 @@ def _coerce(value: Any, tp: Any) -> Any:
 
 def build(cls: type, section: str, values: dict[str, Any]):
     """Builds settings dataclass `cls` from `values`, with one-line errors naming the key and what is allowed.
-    A dataclass may define `check(self) -> None` that raises UserError for bad combinations."""
+    Types are checked here; values by the dataclass's `check(self) -> None`, when it has one, which raises a one-line
+    UserError naming the key (a stage's check runs those of the options classes its Settings extend, then its own)."""
     fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
     kwargs = {}
