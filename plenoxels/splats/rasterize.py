@@ -1,0 +1,137 @@
+"""A tile-free, differentiable splat rasterizer in plain PyTorch (runs on a CPU; autograd gives the gradients).
+
+It follows the ellipse kernel of glTF's KHR_gaussian_splatting and the original 3D Gaussian Splatting renderer:
+1. Each splat's mean goes into the camera (OpenCV axes: x right, y down, z forward); splats closer than `near` drop.
+2. EWA: its covariance projects to the image as J W S W^T J^T (W the world-to-camera rotation, J the Jacobian of the
+   perspective divide at the mean), plus 0.3 px^2 on the diagonal (the low-pass filter every 3DGS renderer adds).
+3. Its footprint is the box 3 sigma around the projected mean; every (splat, pixel) pair inside is kept.
+4. At each pixel centre alpha = min(0.99, opacity exp(-d^T S'^-1 d / 2)); pairs under 1/255 are skipped.
+5. Per pixel the splats composite front to back in order of camera depth: C = sum c_i a_i prod_{j<i} (1 - a_j), then
+   the background times what light remains.
+Pixel (i, j) has its centre at (i + 0.5, j + 0.5) in the intrinsics' convention (plenoxels/core/cameras.py).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from plenoxels.core.cameras import Intrinsics
+from plenoxels.splats.model import Splats
+
+LOW_PASS = 0.3
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.99
+NEAR = 0.01
+# Pairs made at once while rendering without gradients: bounds the memory of a full-size view.
+PAIRS_PER_PASS = 1 << 23
+
+
+@dataclass
+class Projected:
+    means2d: torch.Tensor  # [M, 2] pixel-index coordinates (centres at integers)
+    conics: torch.Tensor  # [M, 3] the inverse 2D covariance's (a, b, c)
+    radii: torch.Tensor  # [M] 3 sigma, in pixels
+    depth: torch.Tensor  # [M] camera z
+    colours: torch.Tensor  # [M, 3]
+    opacities: torch.Tensor  # [M]
+
+
+def project(splats: Splats, c2w, k: Intrinsics, near: float = NEAR) -> Projected:
+    """Steps 1-2 for the splats in front of the camera (c2w: OpenGL camera-to-world, as the poses keep it)."""
+    c2w = torch.as_tensor(np.asarray(c2w), dtype=splats.means.dtype)
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=c2w.dtype))
+    rot = flip @ c2w[:3, :3].T  # world -> OpenCV camera
+    centre = c2w[:3, 3]
+    p = (splats.means - centre) @ rot.T
+    front = p[:, 2] > near
+    p = p[front]
+    x, y, z = p.unbind(-1)
+    zero = torch.zeros_like(z)
+    jac = torch.stack([k.fl_x / z, zero, -k.fl_x * x / (z * z), zero, k.fl_y / z, -k.fl_y * y / (z * z)],
+                      dim=-1).reshape(-1, 2, 3)
+    jw = jac @ rot
+    cov2d = jw @ splats.covariances()[front] @ jw.transpose(1, 2)
+    a, b, c = cov2d[:, 0, 0] + LOW_PASS, cov2d[:, 0, 1], cov2d[:, 1, 1] + LOW_PASS
+    det = (a * c - b * b).clamp_min(1e-12)
+    conics = torch.stack([c / det, -b / det, a / det], dim=-1)
+    mid = (a + c) / 2
+    largest = mid + torch.sqrt((mid * mid - det).clamp_min(0.0))
+    means2d = torch.stack([k.fl_x * x / z + k.cx - 0.5, k.fl_y * y / z + k.cy - 0.5], dim=-1)
+    dirs = splats.means[front] - centre
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return Projected(means2d, conics, 3.0 * torch.sqrt(largest), z,
+                     splats.subset(front).colours(dirs), splats.opacities()[front])
+
+
+def _pairs(proj: Projected, window: tuple[int, int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Step 3 inside window (x0, y0, w, h): splat index and window pixel index of every pair."""
+    x0, y0, w, h = window
+    with torch.no_grad():
+        m, r = proj.means2d.detach(), proj.radii.detach()
+        lo_x = torch.clamp(torch.ceil(m[:, 0] - r), min=x0).long()
+        hi_x = torch.clamp(torch.floor(m[:, 0] + r), max=x0 + w - 1).long()
+        lo_y = torch.clamp(torch.ceil(m[:, 1] - r), min=y0).long()
+        hi_y = torch.clamp(torch.floor(m[:, 1] + r), max=y0 + h - 1).long()
+        nx, ny = (hi_x - lo_x + 1).clamp_min(0), (hi_y - lo_y + 1).clamp_min(0)
+        counts = nx * ny
+        splat = torch.repeat_interleave(torch.arange(len(counts)), counts)
+        first = torch.cumsum(counts, 0) - counts
+        local = torch.arange(len(splat)) - first[splat]
+        px = lo_x[splat] + local % nx[splat]
+        py = lo_y[splat] + local // nx[splat]
+    return splat, (py - y0) * w + (px - x0)
+
+
+def composite(proj: Projected, splat: torch.Tensor, pixel: torch.Tensor, n_pixels: int, window_xy: torch.Tensor,
+              background: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Steps 4-5 over the given pairs: rgb [n_pixels, 3] and opacity [n_pixels]. window_xy [n_pixels, 2]: the pixels'
+    index coordinates."""
+    d = window_xy[pixel] - proj.means2d[splat]
+    conic = proj.conics[splat]
+    power = -0.5 * (conic[:, 0] * d[:, 0] ** 2 + 2 * conic[:, 1] * d[:, 0] * d[:, 1] + conic[:, 2] * d[:, 1] ** 2)
+    alpha = torch.clamp_max(proj.opacities[splat] * torch.exp(power.clamp_max(0.0)), ALPHA_MAX)
+    with torch.no_grad():
+        keep = alpha >= ALPHA_MIN
+        rank = torch.empty(len(proj.depth), dtype=torch.long)
+        rank[torch.argsort(proj.depth.detach())] = torch.arange(len(proj.depth))
+        key = pixel[keep] * len(proj.depth) + rank[splat[keep]]
+        order = torch.argsort(key)
+    alpha, splat, pixel = alpha[keep][order], splat[keep][order], pixel[keep][order]
+    log_clear = torch.log1p(-alpha).double()
+    running = torch.cumsum(log_clear, 0)
+    with torch.no_grad():
+        starts = torch.ones_like(pixel, dtype=torch.bool)
+        starts[1:] = pixel[1:] != pixel[:-1]
+        segment = torch.cumsum(starts.long(), 0) - 1
+        start_index = torch.nonzero(starts).squeeze(1)
+    before = running - log_clear  # sum over this pixel's earlier splats, once the pixel's own offset is removed
+    offset = (running - log_clear)[start_index][segment]
+    transmittance = torch.exp(before - offset).to(alpha.dtype)
+    weight = alpha * transmittance
+    rgb = torch.zeros(n_pixels, 3, dtype=alpha.dtype).index_add(0, pixel, weight[:, None] * proj.colours[splat])
+    opacity = torch.zeros(n_pixels, dtype=alpha.dtype).index_add(0, pixel, weight)
+    return rgb + (1 - opacity)[:, None] * background, opacity
+
+
+def render_window(proj: Projected, window: tuple[int, int, int, int], background) -> tuple[torch.Tensor, torch.Tensor]:
+    """rgb [h, w, 3] and opacity [h, w] of the window (x0, y0, w, h) of the image."""
+    x0, y0, w, h = window
+    background = torch.as_tensor(background, dtype=proj.means2d.dtype).reshape(3)
+    j, i = torch.meshgrid(torch.arange(y0, y0 + h), torch.arange(x0, x0 + w), indexing="ij")
+    window_xy = torch.stack([i, j], dim=-1).reshape(-1, 2).to(proj.means2d.dtype)
+    splat, pixel = _pairs(proj, window)
+    rgb, opacity = composite(proj, splat, pixel, w * h, window_xy, background)
+    return rgb.reshape(h, w, 3), opacity.reshape(h, w)
+
+
+def render(splats: Splats, c2w, k: Intrinsics, background=(1.0, 1.0, 1.0)) -> dict[str, torch.Tensor]:
+    """A whole view without gradients: {"rgb" [h, w, 3], "opacity" [h, w]}, rendered in bands of rows so that no pass
+    holds more than PAIRS_PER_PASS pairs."""
+    with torch.no_grad():
+        proj = project(splats, c2w, k)
+        area = ((2 * proj.radii + 1) ** 2).sum().item()
+        rows = max(1, min(k.h, int(k.h * PAIRS_PER_PASS / max(area, 1.0))))
+        bands = [render_window(proj, (0, y, k.w, min(rows, k.h - y)), background) for y in range(0, k.h, rows)]
+    return {"rgb": torch.cat([b[0] for b in bands]).clamp(0.0, 1.0), "opacity": torch.cat([b[1] for b in bands])}
