@@ -10,6 +10,12 @@ export.max_faces, its vertices moved onto where the training views agree on the 
 unwrapped and its texture baked (plenoxels/surface/mesh.py, plenoxels/surface/ground.py,
 plenoxels/surface/view_alignment.py, plenoxels/surface/texture.py; files: stages/interchange/mesh_files.py).
 
+Splats (export.splats): splats.ply (the original 3D Gaussian Splatting layout) and splats.glb (KHR_gaussian_splatting,
+COLOR_0 for viewers without it) of the field itself, view-dependent colour and soft matter included: a splat per grid
+vertex the training views see (at most export.max_splats), distilled for export.splat_seconds against the field's
+renders of the training views, then rendered from the held-out views and scored against the photos and the field's
+render (export.json `splats`; plenoxels/splats/, stages/interchange/splat_files.py, stages/scoring/splat_views.py).
+
 Seen faces: a fit only pins down density where rays stop, so its surfaces are shells whose insides
 (and the undersides no camera looks at) are guesses; marching cubes turns them into inner surfaces.
 With `unseen: drop` (the default) a face stays only if a training view, rendered from the grid, sees
@@ -27,12 +33,15 @@ import numpy as np
 from stages.common.media import write_points
 from stages.common.json_files import read_json, write_json
 from stages.interchange.mesh_files import write_mesh_files
+from stages.interchange.splat_files import write_splat_glb, write_splat_ply
+from stages.scoring.splat_views import score_splats
 from plenoxels.surface.mesh import (LEVEL_RAY_OPACITY, build_mesh, grid_lattice_voxel, surface_colours, transform_normals,
                             transform_points)
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.surface.views import point_normals, ray_terminations, render_views, snap_to_level
 from plenoxels.surface.texture import texture_mesh
 from plenoxels.surface.view_alignment import align_to_views
+from plenoxels.splats.field_splats import fit_splats
 from stages.settings.export import Settings
 
 
@@ -62,7 +71,8 @@ def run(ctx) -> dict:
     s: Settings = ctx.settings
     scene = read_json(ctx.upstream["normalize"] / "scene.json")
     # A contracted grid's far world is coarse and squeezed: exports read its inner cube, which holds the foreground box.
-    model = SceneModel.load(ctx.upstream["fit"]).foreground_model()
+    fitted = SceneModel.load(ctx.upstream["fit"])
+    model = fitted.foreground_model()
     grid = model.grid
     frame = model.fit_frame
     box_min = np.asarray(scene["foreground"]["min"], dtype=np.float64)
@@ -128,6 +138,21 @@ def run(ctx) -> dict:
     if s.points > 0:
         write_points(ctx.work / "points.ply", points, colours, normals)
         files["points"] = "points.ply"
+    splats = None
+    if s.splats:
+        ctx.report.info(f"fitting up to {_count(s.max_splats)} splats to the field ({s.splat_seconds:g} s distillation)")
+        splats, splat_record = fit_splats(model, scene["frames"], s.max_splats, s.splat_min_weight, s.splat_scale,
+                                          s.splat_views, s.splat_seconds, s.splat_window, s.seed, ctx.report.track)
+        fit_scale = float(read_json(ctx.upstream["fit"] / "model.json").get("fit_settings", {}).get("image_scale", 1.0))
+        splat_record["held_out"] = score_splats(ctx.out, splats, fitted, scene["frames"], fit_scale,
+                                                s.splat_score_views, ctx.report.track)
+        splat_record["background"] = ("left out: the background model stays in the field (splats hold the foreground "
+                                      "box's grid only)" if fitted.background is not None else
+                                      f"none: composited on the background colour {list(model.background_color)}")
+        writable = splats.transformed(to_output)
+        write_splat_ply(ctx.work / "splats.ply", writable)
+        write_splat_glb(ctx.work / "splats.glb", writable)
+        files.update(splats_ply="splats.ply", splats_glb="splats.glb")
     sizes = {name: (ctx.work / f).stat().st_size for name, f in files.items()}
 
     frame_name = "input (the poses' COLMAP frame)" if s.frame == "input" else "normalized (z up, foreground in [-1, 1]^3)"
@@ -142,6 +167,7 @@ def run(ctx) -> dict:
         "file_bytes": sizes,
         "mesh": {"vertices": len(mesh.vertices), "faces": len(mesh.faces), "bounds": _bounds(mesh.vertices)},
         "points": {"count": len(points), "bounds": _bounds(points)},
+        "splats": splat_record if splats is not None else None,
         "axes": "PLY: the frame's own; OBJ and GLB y-up, (x, z, -y) of the frame: z-up importers such as Blender's "
                 "restore the frame's coordinates",
         **decisions,
@@ -153,7 +179,15 @@ def run(ctx) -> dict:
             f"[{', '.join(f'{v:.3g}' for v in lo)}] to [{', '.join(f'{v:.3g}' for v in hi)}], "
             f"level {decisions['level']:.3g}{' (auto)' if s.level == 'auto' else ''}, resolution {decisions['resolution']}"
             + (f", texture {'x'.join(map(str, texture.atlas.size))}" if texture is not None else ", vertex colours")
-            + f"; cut away: {decisions['object_only']['cut']}")
+            + f"; cut away: {decisions['object_only']['cut']}" + (_splat_line(splat_record, sizes) if splats is not None else ""))
     return {"line": line, "frame": s.frame, "faces": len(mesh.faces), "vertices": len(mesh.vertices),
             "points": len(points), "level": decisions["level"], "resolution": decisions["resolution"],
-            "cut_away": decisions["object_only"]["cut"]}
+            "cut_away": decisions["object_only"]["cut"], "splats": splats.count if splats is not None else 0,
+            "splat_psnr": splat_record["held_out"].get("psnr") if splats is not None else None}
+
+
+def _splat_line(record: dict, sizes: dict) -> str:
+    held = record["held_out"]
+    scores = (f", held-out PSNR {held['psnr']:.2f} dB (the field's {held['field_psnr']:.2f} dB; "
+              f"{held['psnr_vs_field']:.2f} dB against its render)" if held["views"] else "")
+    return f"; {_count(record['count'])} splats ({_size(sizes['splats_ply'])} PLY){scores}"

@@ -15,8 +15,8 @@ VERSION = 2
 
 @dataclass
 class Settings(MeshOptions):
-    """The mesh's options (plenoxels.core.options.MeshOptions, which checks its own), and the frame, box, texture and
-    points."""
+    """The mesh's options (plenoxels.core.options.MeshOptions, which checks its own), and the frame, box, texture,
+    points and splats."""
     frame: Literal["input", "normalized"] = "input"
     """Input: the poses' (COLMAP) frame; normalized: the fit's world."""
     crop: list[float] = field(default_factory=list)
@@ -38,6 +38,23 @@ class Settings(MeshOptions):
     """Training views are rendered at this share of their size (points, seen faces)."""
     point_views: int = 0
     """Training views rendered for the points; 0: all."""
+    splats: bool = True
+    """Write splats.ply and splats.glb: Gaussian splats of the field, started from the grid and distilled against its
+    renders of the training views (plenoxels/splats/)."""
+    max_splats: int = 500_000
+    """At most this many splats: the grid vertices the training views weigh most."""
+    splat_min_weight: float = 0.01
+    """A grid vertex becomes a splat where some training ray's rendering weight at it reaches this."""
+    splat_seconds: float = 120.0
+    """How long the distillation runs, in seconds; 0: the splats as they start from the grid."""
+    splat_scale: float = 0.5
+    """The training views are rendered for the distillation at this share of their size."""
+    splat_views: int = 0
+    """Training views rendered for the distillation; 0: all."""
+    splat_window: int = 128
+    """Each distillation step renders a window of a training view this many pixels a side."""
+    splat_score_views: int = 8
+    """Held-out views the splats are rendered from and scored on (export.json); 0: none."""
 
     def check(self) -> None:
         MeshOptions.check(self, NAME)
@@ -48,3 +65,10 @@ class Settings(MeshOptions):
         require(self.points >= 0, "export.points must be 0 (no point cloud) or more")
         require(0.0 < self.point_scale <= 1.0, "export.point_scale must be in (0, 1]")
         require(self.point_views >= 0, "export.point_views must be 0 (all training views) or more")
+        require(self.max_splats >= 1, "export.max_splats must be 1 or more (export.splats: false writes none)")
+        require(0.0 < self.splat_min_weight < 1.0, "export.splat_min_weight must be in (0, 1)")
+        require(self.splat_seconds >= 0, "export.splat_seconds must be 0 (no distillation) or more")
+        require(0.0 < self.splat_scale <= 1.0, "export.splat_scale must be in (0, 1]")
+        require(self.splat_views >= 0, "export.splat_views must be 0 (all training views) or more")
+        require(self.splat_window >= 8, "export.splat_window must be 8 pixels or more")
+        require(self.splat_score_views >= 0, "export.splat_score_views must be 0 (no scoring) or more")

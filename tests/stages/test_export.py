@@ -1,6 +1,7 @@
 """Export: marching cubes level and frame on analytic density fields, colours, cleaning, decimation,
 NDC mapping back to the world, points and the auto level, files that reload with the same counts, the
 frame round trip, and the whole pipeline on a tiny synthetic object against its true mesh."""
+import dataclasses
 import itertools
 import math
 from pathlib import Path
@@ -463,8 +464,10 @@ def test_ray_peaks_and_the_auto_level_follow_a_ramp_of_density():
 
 
 def run_stage(tmp_path, grid, scene: dict, settings: Settings, name: str, ndc=None, background=None,
-              contraction=None) -> tuple[dict, Path]:
-    """The export stage as the runner calls it, on a fit folder written by SceneModel.save."""
+              contraction=None, splats: bool = False) -> tuple[dict, Path]:
+    """The export stage as the runner calls it, on a fit folder written by SceneModel.save (splats only when asked:
+    tests/stages/test_splat_files.py tests them)."""
+    settings = dataclasses.replace(settings, splats=splats)
     fit, normalize, work = tmp_path / name / "fit", tmp_path / name / "normalize", tmp_path / name / "export"
     for folder in (fit, normalize, work):
         folder.mkdir(parents=True)
@@ -620,7 +623,8 @@ def test_forward_scene_exports_the_foreground_only_not_the_far_wall(tmp_path):
 E2E_FIT = ["fit.resolutions=[24,48]", "fit.steps=[150,150]", "fit.batch_size=2048", "fit.tile_size=16",
            "fit.image_scale=1.0", "fit.eval_every=0", "fit.lr_density=30", "fit.lr_density_final=0.05",
            "fit.lr_density_delay=0.2", "fit.lr_sh=0.01", "fit.lr_sh_final=0.000005", "fit.sh_degree=1",
-           "fit.prune_ray_scale=1.0", "export.points=3000", "export.point_scale=1.0", "export.texture_size=256"]
+           "fit.prune_ray_scale=1.0", "export.points=3000", "export.point_scale=1.0", "export.texture_size=256",
+           "export.splat_seconds=8", "export.splat_scale=1.0"]
 
 
 @pytest.fixture(scope="module")
@@ -724,3 +728,15 @@ class _Quiet:
 
     def track(self, iterable, total=None, desc=""):
         return iterable
+
+
+def test_full_pipeline_splats_render_the_held_out_views_about_as_well_as_the_field(pipeline_export):
+    out, _, _ = pipeline_export
+    record = read_json(out / "export" / "export.json")
+    splats = record["splats"]
+    assert splats["count"] > 1000 and splats["distillation"]["steps"] > 0
+    held = splats["held_out"]
+    assert held["views"] >= 2 and held["psnr_vs_field"] > 25, held
+    assert held["psnr"] > held["field_psnr"] - 2.0, held
+    for name in ("splats_ply", "splats_glb"):
+        assert (out / "export" / record["files"][name]).stat().st_size == record["file_bytes"][name]

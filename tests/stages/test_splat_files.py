@@ -1,18 +1,22 @@
 """Splat files: the PLY read back with a PLY reader has exactly the 3D Gaussian Splatting properties and loses nothing;
 the GLB's JSON and buffers hold what KHR_gaussian_splatting defines (names, types, counts, value ranges, COLOR_0) and
-read back to the same splats, rendering the same pixels."""
-import math
-
+read back to the same splats, rendering the same pixels; the export stage writes both in the input frame."""
 import numpy as np
 import pytest
 import torch
+import trimesh
 from plyfile import PlyData
 
 from plenoxels.core.cameras import Intrinsics, look_at
+from plenoxels.core.scene_model import SceneModel
+from plenoxels.splats.distill import psnr
 from plenoxels.splats.model import Splats
 from plenoxels.splats.rasterize import render
 from stages.interchange.splat_files import (EXTENSION, read_glb, read_splat_glb, read_splat_ply, write_splat_glb,
                                             write_splat_ply)
+from stages.common.json_files import read_json
+from stages.settings.export import Settings
+from tests.stages.test_export import SPHERE_CENTRE, SPHERE_RADIUS, orbit_frames, run_stage, sphere_field
 
 
 def some_splats(n: int, degree: int, seed: int = 0) -> Splats:
@@ -84,3 +88,37 @@ def test_glb_follows_khr_gaussian_splatting_and_round_trips(tmp_path):
     c2w = look_at(np.array([1.5, -2.0, 1.0]), (0.0, 0.0, 0.0))
     k = Intrinsics(40, 40, 16, 16, 32, 32)
     assert (render(back, c2w, k)["rgb"] - render(splats, c2w, k)["rgb"]).abs().max() < 1e-4
+
+
+def test_export_stage_writes_both_files_in_the_input_frame_and_they_render_like_the_field(tmp_path):
+    field = sphere_field(32)
+    input_from_world = trimesh.transformations.rotation_matrix(2.0, [0.2, 0.9, -0.4]) * 1.7
+    input_from_world[3] = [0, 0, 0, 1]
+    input_from_world[:3, 3] = [3.0, -2.0, 0.5]
+    frames = orbit_frames(6, size=32)
+    scene = {"type": "object", "input_from_world": input_from_world.tolist(),
+             "world_from_input": np.linalg.inv(input_from_world).tolist(),
+             "foreground": {"min": [-0.8] * 3, "max": [0.8] * 3}, "frames": frames}
+    settings = Settings(points=500, point_scale=1.0, texture=False, align_voxels=0, splat_scale=1.0, splat_seconds=3,
+                        splat_window=32)
+    summary, folder = run_stage(tmp_path, field, scene, settings, "splats", splats=True)
+    record = read_json(folder / "export.json")
+    assert record["files"]["splats_ply"] == "splats.ply" and record["files"]["splats_glb"] == "splats.glb"
+    assert summary["splats"] == record["splats"]["count"] > 500 and "splats" in summary["line"]
+    assert record["splats"]["distillation"]["steps"] > 0
+    ply, glb = read_splat_ply(folder / "splats.ply"), read_splat_glb(folder / "splats.glb")
+    assert ply.count == glb.count == record["splats"]["count"]
+    assert torch.allclose(ply.means, glb.means, atol=1e-5) and torch.allclose(ply.sh, glb.sh, atol=1e-4)
+    # In the input frame: mapped back to the normalised world, they sit on the sphere and render like the field.
+    back = ply.transformed(np.linalg.inv(input_from_world))
+    radii = (back.means - torch.as_tensor(SPHERE_CENTRE, dtype=torch.float32)).norm(dim=1)
+    heavy = back.opacities() > 0.3
+    assert (radii[heavy] - SPHERE_RADIUS).abs().median() < 2 * 2 / 31
+    model = SceneModel(field, "object")
+    scores = []
+    for frame in frames[:3]:
+        c2w, k = np.asarray(frame["transform_matrix"]), Intrinsics.from_frame(frame)
+        scores.append(psnr(render(back, c2w, k)["rgb"], model.render_camera(c2w, k)["rgb"]))
+    assert np.mean(scores) > 30, scores
+    # The same splats left in the input frame do not: the check can tell.
+    assert psnr(render(ply, c2w, k)["rgb"], model.render_camera(c2w, k)["rgb"]) < 15
