@@ -1,5 +1,5 @@
 """What a scene's output folder holds for the viewer, all in the normalised world (scene.json's frame):
-cameras with thumbnails of their photos, sparse points, the exported mesh and point cloud, the
+cameras with thumbnails of their photos, sparse points, the exported mesh, point cloud and splats, the
 foreground box, the scale and the up direction. Each part is None where its stage has not run."""
 from __future__ import annotations
 
@@ -11,8 +11,10 @@ import trimesh
 from PIL import Image
 
 from stages.common.json_files import read_json
+from stages.interchange.splat_files import read_splat_ply
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.errors import UserError
+from plenoxels.splats.model import Splats
 
 # Longest side of the photo thumbnails drawn inside the camera frustums.
 THUMBNAIL_SIDE = 160
@@ -42,6 +44,8 @@ class SceneContent:
     mesh: trimesh.Trimesh | None = None
     points: tuple[np.ndarray, np.ndarray] | None = None
     """The exported point cloud (xyz [N,3], rgb uint8 [N,3])."""
+    splats: Splats | None = None
+    """The exported Gaussian splats."""
 
     @property
     def radius(self) -> float:
@@ -79,6 +83,8 @@ def load_content(out: Path) -> SceneContent:
             cloud = trimesh.load(export / "points.ply")
             xyz = trimesh.transform_points(np.asarray(cloud.vertices, dtype=np.float64), to_world)
             content.points = (xyz, _colours(cloud.colors if hasattr(cloud, "colors") else None, len(xyz)))
+        if (export / "splats.ply").is_file():
+            content.splats = read_splat_ply(export / "splats.ply").transformed(to_world)
     return content
 
 

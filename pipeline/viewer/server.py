@@ -185,6 +185,9 @@ class Viewer:
         self.handles["mesh"] = [scene.add_mesh_trimesh("/export/mesh", c.mesh, visible=False)] if c.mesh else []
         self.handles["points"] = [scene.add_point_cloud("/export/points", c.points[0].astype(np.float32), c.points[1],
                                                         point_size=0.004 * c.radius, visible=False)] if c.points else []
+        self.handles["splats"] = [scene.add_gaussian_splats(
+            "/export/splats", c.splats.means.numpy(), c.splats.covariances().numpy(), c.splats.diffuse().numpy(),
+            c.splats.opacities()[:, None].numpy(), visible=False)] if c.splats is not None else []
         self.handles["foreground"] = [scene.add_line_segments("/foreground", box_segments(*c.foreground),
                                                               FOREGROUND_COLOUR, thickness=2.0,
                                                               thickness_units="screen")] if c.foreground else []
@@ -214,7 +217,7 @@ class Viewer:
         with gui.add_folder("layers"):
             for key, label, visible in (("train", "training cameras", True), ("test", "held-out cameras", True),
                                         ("sparse", "sparse points", True), ("mesh", "exported mesh", False),
-                                        ("points", "exported point cloud", False),
+                                        ("points", "exported point cloud", False), ("splats", "exported splats", False),
                                         ("foreground", "foreground box", True)):
                 box = gui.add_checkbox(label, visible, disabled=not self.handles[key])
                 box.on_update(self._toggle(key, box))

@@ -120,6 +120,10 @@ class Splats:
         basis = sh_basis(self.sh_degree, dirs)
         return torch.relu((self.sh * basis[:, None, :]).sum(-1) + COLOUR_OFFSET)
 
+    def diffuse(self) -> torch.Tensor:
+        """RGB [N, 3] in [0, 1] of the degree-0 term alone: the colour viewers without SH draw."""
+        return torch.clamp(self.sh[:, :, 0] * SH_C0 + COLOUR_OFFSET, 0.0, 1.0)
+
     def transformed(self, matrix: np.ndarray) -> "Splats":
         """The splats under a similarity (a uniform scale, a rotation and a shift: a 4x4 matrix), the SH turned with it
         so each splat keeps its colour along each direction."""

@@ -24,7 +24,6 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from stages.common.media import GLTF_FROM_ZUP
-from plenoxels.core.render import COLOUR_OFFSET, SH_C0
 from plenoxels.splats.model import Splats, sh_degree_of
 
 EXTENSION = "KHR_gaussian_splatting"
@@ -73,7 +72,7 @@ def gltf_attributes(splats: Splats) -> dict[str, np.ndarray]:
     """Attribute semantic -> float32 values [N, width] of a splat primitive, in glTF's order."""
     s = splats.detached()
     opacity = s.opacities()[:, None]
-    diffuse = np.clip((s.sh[:, :, 0] * SH_C0 + COLOUR_OFFSET).numpy(), 0.0, 1.0)
+    diffuse = s.diffuse().numpy()
     quats = s.quats / s.quats.norm(dim=1, keepdim=True).clamp_min(1e-12)
     out = {"POSITION": s.means, "COLOR_0": np.concatenate([srgb_to_linear(diffuse), opacity.numpy()], axis=1),
            f"{EXTENSION}:ROTATION": quats[:, [1, 2, 3, 0]], f"{EXTENSION}:SCALE": torch.exp(s.log_scales),

@@ -34,6 +34,8 @@ from plenoxels.core.grid import SparseGrid
 from plenoxels.core.scene_model import ModelOptions, SceneModel
 from plenoxels.core.train import Fitter, RaySet, TrainOptions
 from stages import export
+from stages.interchange.splat_files import write_splat_ply
+from plenoxels.splats.model import Splats
 from prerequisites import missing
 
 SH_C0 = 0.28209479177387814
@@ -88,8 +90,18 @@ def scene_out(tmp_path_factory) -> Path:
     model.save(out / "fit")
     surface.export(out / "export" / "mesh.ply")
     trimesh.PointCloud(surface.vertices).export(out / "export" / "points.ply")
+    write_splat_ply(out / "export" / "splats.ply", surface_splats(surface.vertices))
     write_json(out / "export" / "export.json", {"frame": "normalized"})
     return out
+
+
+def surface_splats(points: np.ndarray) -> Splats:
+    """Small round splats on the sphere's surface points, red where x > 0 and blue elsewhere."""
+    n = len(points)
+    colour = np.where(points[:, :1] > 0, RED, BLUE)
+    return Splats(torch.tensor(points, dtype=torch.float32), torch.full((n, 3), math.log(0.03)),
+                  torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.full((n,), 3.0),
+                  torch.tensor((colour - 0.5) / SH_C0, dtype=torch.float32)[:, :, None])
 
 
 def free_port() -> int:
@@ -188,6 +200,12 @@ def test_the_viewer_listens_on_loopback_prints_the_ssh_line_and_never_shares(sce
         assert viewer.url == f"http://127.0.0.1:{viewer.port}" and viewer.url in lines[0]
         assert f"ssh -N -L {viewer.port}:127.0.0.1:{viewer.port}" in lines[1]
         assert isinstance(viewer.server, LocalOnlyServer) and viewer.server.request_share_url() is None
+        # The exported splats are a layer, off until asked for, with the colours and places of the file.
+        splats = viewer.content.splats
+        assert splats is not None and splats.count == len(trimesh.creation.icosphere(subdivisions=2).vertices)
+        assert np.allclose(splats.means.norm(dim=1), RADIUS, atol=1e-5)
+        assert np.allclose(splats.diffuse()[splats.means[:, 0] > 0.01], RED, atol=1e-5)
+        assert len(viewer.handles["splats"]) == 1 and not viewer.handles["splats"][0].visible
         with socket.create_connection(("127.0.0.1", viewer.port), timeout=5):
             pass
         path = viewer.save_crop((0.2, -0.3, -0.4), (-0.1, 0.3, 0.4))
@@ -204,7 +222,7 @@ def test_the_viewer_listens_on_loopback_prints_the_ssh_line_and_never_shares(sce
 def run_export(scene_out: Path, tmp_path: Path, overrides: list[str]) -> trimesh.Trimesh:
     """The export stage as the runner calls it on the scene's fit, with `--set` overrides; the mesh and points
     it writes, in the normalised frame."""
-    values = {"frame": "normalized", "points": 2000, **config.parse_overrides(overrides).get("export", {})}
+    values = {"frame": "normalized", "points": 2000, "splats": False, **config.parse_overrides(overrides).get("export", {})}
     work = tmp_path / f"export{len(list(tmp_path.iterdir()))}"
     work.mkdir()
     ctx = StageContext(scene=scene_out, out=scene_out, work=work, scratch=tmp_path / "scratch",
