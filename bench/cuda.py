@@ -159,7 +159,11 @@ def lego_scene(folder: Path, val_limit: int | None = None):
     the val frames mapped into the same frame with split "test"."""
     import numpy as np
 
-    from stages.framing.scene_frame import Points, SceneOptions, normalize_scene
+    from stages.framing.options import SceneOptions
+
+    from stages.framing.scene_frame import normalize_scene
+
+    from stages.framing.sightings import Points
 
     transforms = {"frames": blender_frames(folder, "train")}  # intrinsics are per frame
     scene = normalize_scene(transforms, Points.empty(), SceneOptions(holdout_every=0), poses_dir=folder, path_prefix="")

@@ -87,7 +87,9 @@ def synthetic_scene() -> tuple[dict, Path]:
     """The synthetic object scene, rendered once and kept under bench/out."""
     from stages.common.json_files import read_json
     from stages.capture.synthetic import write_scene
-    from stages.framing.scene_frame import Points, SceneOptions, normalize_scene
+    from stages.framing.options import SceneOptions
+    from stages.framing.scene_frame import normalize_scene
+    from stages.framing.sightings import Points
 
     s = SYNTHETIC
     root = CACHE / f"synthetic_{s['kind']}_{s['n_views']}_{s['width']}x{s['height']}"

@@ -19,7 +19,9 @@ import pycolmap
 from PIL import Image
 
 from stages.common.json_files import write_json
-from stages.framing.scene_frame import Points, SceneOptions, normalize_scene
+from stages.framing.options import SceneOptions
+from stages.framing.scene_frame import normalize_scene
+from stages.framing.sightings import Points
 from plenoxels.core.cameras import opengl_c2w_from_colmap_w2c, opengl_c2w_from_llff
 
 REPO = Path(__file__).resolve().parent.parent

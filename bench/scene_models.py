@@ -63,7 +63,8 @@ def machine() -> dict:
 def real_scene(name: str, data: Path) -> tuple[dict, Path]:
     """A real scene normalised from the poses it comes with (bench/normalize.py's readers)."""
     from bench.normalize import LOADERS
-    from stages.framing.scene_frame import SceneOptions, normalize_scene
+    from stages.framing.options import SceneOptions
+    from stages.framing.scene_frame import normalize_scene
 
     folder = data / name
     transforms, points = LOADERS[name](folder)
@@ -76,7 +77,9 @@ def synthetic_scene(name: str) -> tuple[dict, Path]:
     each view's true near/far depths standing in for the sparse points SfM would give."""
     from stages.common.json_files import read_json
     from stages.capture.synthetic import write_scene
-    from stages.framing.scene_frame import Points, SceneOptions, normalize_scene
+    from stages.framing.options import SceneOptions
+    from stages.framing.scene_frame import normalize_scene
+    from stages.framing.sightings import Points
 
     kind = name.removeprefix("synthetic_")
     root = CACHE / name

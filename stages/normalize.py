@@ -6,7 +6,8 @@ Reads poses/transforms.json and poses/points.npz; writes normalize/scene.json (s
 from __future__ import annotations
 
 from stages.common.json_files import read_json, write_json
-from stages.framing.scene_frame import normalize_scene, read_points
+from stages.framing.scene_frame import normalize_scene
+from stages.framing.sightings import read_points
 from plenoxels.core.errors import UserError
 
 

@@ -13,7 +13,9 @@ import torch
 
 from stages.common.frames import load_frame
 from stages.common.json_files import read_json, write_json
-from stages.framing.scene_frame import Points, SceneOptions, normalize_scene
+from stages.framing.options import SceneOptions
+from stages.framing.scene_frame import normalize_scene
+from stages.framing.sightings import Points
 from stages.capture.synthetic import write_scene
 from plenoxels.planning import model_trial
 from plenoxels.core.options import ModelOptions, TrainOptions

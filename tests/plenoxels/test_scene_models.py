@@ -13,7 +13,9 @@ import torch
 
 from stages.common.frames import load_frame
 from stages.common.json_files import read_json
-from stages.framing.scene_frame import Points, SceneOptions, normalize_scene
+from stages.framing.options import SceneOptions
+from stages.framing.scene_frame import normalize_scene
+from stages.framing.sightings import Points
 from stages.capture.synthetic import build_scene, render_view, write_scene
 from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.scene_model import ModelOptions, SceneModel, psnr

@@ -10,7 +10,9 @@ import torch
 from pipeline import config
 from stages.common.json_files import read_json, write_json
 from pipeline.report import Reporter
-from stages.framing.scene_frame import Points, SceneOptions, normalize_scene
+from stages.framing.options import SceneOptions
+from stages.framing.scene_frame import normalize_scene
+from stages.framing.sightings import Points
 from pipeline.stage import StageContext, StageGraph
 from stages.capture.synthetic import write_scene
 from plenoxels.core.errors import UserError

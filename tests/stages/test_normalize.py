@@ -14,7 +14,10 @@ from PIL import Image
 from pipeline import config
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
-from stages.framing.scene_frame import Points, SceneOptions, normalize_scene, read_points, surroundings_box
+from stages.framing.foreground import surroundings_box
+from stages.framing.options import SceneOptions
+from stages.framing.scene_frame import normalize_scene
+from stages.framing.sightings import Points, read_points
 from pipeline.stage import StageContext
 from stages.capture.synthetic import build_scene, trace, write_scene
 from plenoxels.core.cameras import Intrinsics, look_at, pixel_directions

@@ -16,7 +16,9 @@ from stages.common.json_files import read_json, write_json
 from stages.scoring.metrics import mesh_scores
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
-from stages.framing.scene_frame import SceneOptions, normalize_scene, read_points
+from stages.framing.options import SceneOptions
+from stages.framing.scene_frame import normalize_scene
+from stages.framing.sightings import read_points
 from stages.sfm.compare import compare_poses, umeyama
 from stages.capture.synthetic import OBJECT_CENTRE, write_scene
 from stages.framing.visual_hull import Silhouettes, carve, cut_photos, shown_box
