@@ -15,7 +15,7 @@ import torch
 
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.splats.model import Splats
-from plenoxels.splats.rasterize import project, render_window
+from plenoxels.splats.rasterize import in_window, project, render_window
 
 LR = {"means": 0.05, "log_scales": 0.01, "quats": 0.005, "opacity_logits": 0.05, "sh_dc": 0.01, "sh_rest": 0.0025}
 
@@ -60,8 +60,10 @@ def distill(splats: Splats, views: list[TargetView], background, seconds: float,
         view = views[rng.integers(len(views))]
         w, h = min(window, view.k.w), min(window, view.k.h)
         x0, y0 = int(rng.integers(view.k.w - w + 1)), int(rng.integers(view.k.h - h + 1))
-        current = Splats(params["means"], params["log_scales"], params["quats"], params["opacity_logits"],
-                         torch.cat([dc, rest], dim=2))
+        near = in_window(Splats(params["means"], params["log_scales"], params["quats"], params["opacity_logits"], dc),
+                         view.c2w, view.k, (x0, y0, w, h))
+        current = Splats(params["means"][near], params["log_scales"][near], params["quats"][near],
+                         params["opacity_logits"][near], torch.cat([dc[near], rest[near]], dim=2))
         rgb, _ = render_window(project(current, view.c2w, view.k), (x0, y0, w, h), background)
         target = view.rgb[y0:y0 + h, x0:x0 + w]
         loss = torch.mean((rgb - target) ** 2)

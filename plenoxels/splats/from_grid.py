@@ -1,16 +1,17 @@
-"""Splats from a fitted grid: one per vertex the training views see, before any distillation.
+"""Splats from a fitted grid: one per cell the training views see, before any distillation.
 
-A vertex's value spreads over the cells around it by trilinear interpolation, a tent one voxel wide each way whose
-standard deviation is 1/sqrt(6) of a voxel; the splat takes a Gaussian of about that width (TENT_SIGMA voxels along
-each grid axis). A ray through the vertex crosses an integrated density of (raw density) x (one voxel of fit-frame
-length), so the splat's peak opacity is 1 - exp(-that). Its SH are the vertex's. In the fit frame of a forward scene
-(NDC) or of a contracted grid's inner cube, the voxel's three edges are mapped to the world through the frame's
-Jacobian at the vertex, so the splat's covariance is the voxel's shape in the world; a forward scene's vertices near
-the NDC far plane map to the far distance and are left out (FAR_NDC).
+A cell's splat sits at its centre with the field's own values there (trilinear: raw density and SH), so a surface cell
+takes the colour its outer, nearly empty corners give it as the field does. Its peak opacity is what a ray crossing
+one voxel of that density keeps: 1 - exp(-density x voxel length). Its shape is the voxel's: a Gaussian TENT_SIGMA
+voxels wide along each grid axis, narrower than the tent of trilinear interpolation (1/sqrt(6) voxel) since the
+renderer's low-pass filter widens every splat on screen and neighbours overlap (bench/README.md, "Splats"). In the fit
+frame of a forward scene (NDC) or of a contracted grid's inner cube, the voxel's three edges are mapped to the world
+through the frame's Jacobian at the centre, so the covariance is the voxel's shape in the world; a forward scene's
+cells near the NDC far plane map to the far distance and are left out (FAR_NDC).
 
-Which vertices: those whose largest rendering weight over the training views' rays reaches `min_weight` (the surface
-the views see; plenoxels.core.render.max_weights), the heaviest first up to `max_splats`, leaving out vertices
-whose own opacity over a voxel is under 1/255.
+Which cells: those whose rendering weight over the training views' rays reaches `min_weight` (the surface the views
+see; plenoxels.core.render.max_weights, per cell the smallest of its corners'), the heaviest first up to `max_splats`,
+leaving out cells whose own opacity over a voxel is under 1/255.
 """
 from __future__ import annotations
 
@@ -21,16 +22,29 @@ from plenoxels.core.fit_frame import FitFrame
 from plenoxels.core.grid import SparseGrid, sh_count
 from plenoxels.splats.model import Splats, matrix_to_quat
 
-TENT_SIGMA = 0.5
+TENT_SIGMA = 0.25
 FAR_NDC = 0.98
 OPACITY_RANGE = (0.005, 0.99)
 MIN_OPTICAL_DEPTH = 1.0 / 255.0
 
 
-def vertex_points(grid: SparseGrid, rows: torch.Tensor) -> np.ndarray:
-    """Fit-frame positions [M, 3] of the given rows' vertices."""
-    lo = np.asarray(grid.bbox_min, dtype=np.float64)
-    return lo + grid.coords()[rows].double().numpy() / np.asarray(grid.scale)
+CORNERS = [(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
+
+
+def seen_cells(grid: SparseGrid, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The cells whose lower corner is allocated: their lower corners [M, 3] (grid coordinates) and, per cell, the
+    smallest of its corners' weights. A corner's weight is the largest of any sample in the eight cells around it, so
+    the smallest over a cell's corners bounds what its own samples weighed (an unallocated corner: 0)."""
+    coords = grid.coords().long().cpu()
+    inside = (coords < torch.tensor(grid.resolution) - 1).all(dim=1)
+    lower = coords[inside]
+    links = grid.links.cpu()
+    weight = torch.full((len(lower),), float("inf"))
+    for d in CORNERS:
+        corner = lower + torch.tensor(d)
+        rows = links[corner[:, 0], corner[:, 1], corner[:, 2]].long()
+        weight = torch.minimum(weight, torch.where(rows >= 0, weights[rows.clamp_min(0)], torch.zeros(())))
+    return lower, weight
 
 
 def voxel_edges_world(frame: FitFrame, points: np.ndarray, voxel: np.ndarray) -> np.ndarray:
@@ -45,18 +59,20 @@ def voxel_edges_world(frame: FitFrame, points: np.ndarray, voxel: np.ndarray) ->
 
 def splats_from_grid(grid: SparseGrid, frame: FitFrame, weights: torch.Tensor, max_splats: int,
                      min_weight: float) -> Splats:
-    """Splats (in the normalised world) for the rows whose weight reaches min_weight, at most max_splats of them."""
-    weights = weights.detach().cpu()
+    """Splats (in the normalised world) for the cells whose weight reaches min_weight, at most max_splats of them."""
     voxel = 1.0 / np.asarray(grid.scale)
-    # A sample's weight reaches all eight corners of its cell: a corner with next to no density of its own adds nothing.
-    optical_depth = torch.relu(grid.density.detach().cpu()).double() * float(np.mean(voxel))
-    candidates = torch.nonzero((weights >= min_weight) & (optical_depth >= MIN_OPTICAL_DEPTH)).squeeze(1)
-    candidates = candidates[torch.argsort(weights[candidates], descending=True)]
-    points = vertex_points(grid, candidates)
+    lower, weight = seen_cells(grid, weights.detach().cpu().float())
+    keep = weight >= min_weight
+    lower, weight = lower[keep], weight[keep]
+    points = np.asarray(grid.bbox_min) + (lower.double().numpy() + 0.5) * voxel
+    density, sh = grid.sample(torch.as_tensor(points, dtype=torch.float32, device=grid.data.device))
+    optical_depth = torch.relu(density.cpu()).double().numpy() * float(np.mean(voxel))
+    keep = optical_depth >= MIN_OPTICAL_DEPTH
     if frame.ndc is not None:
-        near_enough = points[:, 2] < FAR_NDC
-        candidates, points = candidates[torch.as_tensor(near_enough)], points[near_enough]
-    candidates, points = candidates[:max_splats], points[:max_splats]
+        keep &= points[:, 2] < FAR_NDC
+    order = np.argsort(-weight.numpy()[keep], kind="stable")[:max_splats]
+    points, optical_depth = points[keep][order], optical_depth[keep][order]
+    sh = sh.cpu()[torch.as_tensor(np.nonzero(keep)[0][order])]
 
     edges = voxel_edges_world(frame, points, voxel)
     cov = TENT_SIGMA ** 2 * edges @ edges.transpose(0, 2, 1)
@@ -64,9 +80,8 @@ def splats_from_grid(grid: SparseGrid, frame: FitFrame, weights: torch.Tensor, m
     axes[np.linalg.det(axes) < 0, :, 0] *= -1  # a proper rotation: a mirror flips one axis of a symmetric shape
     log_scales = 0.5 * np.log(np.clip(variances, 1e-20, None))
 
-    opacity = np.clip(1.0 - np.exp(-optical_depth[candidates].numpy()), *OPACITY_RANGE)
-    k = sh_count(grid.sh_degree)
-    sh = grid.sh.detach().cpu()[candidates].reshape(-1, 3, k)
+    opacity = np.clip(1.0 - np.exp(-optical_depth), *OPACITY_RANGE)
+    sh = sh.reshape(-1, 3, sh_count(grid.sh_degree))
     world = frame.to_world(points)
     as_t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
     return Splats(as_t(world), as_t(log_scales), as_t(matrix_to_quat(axes)),

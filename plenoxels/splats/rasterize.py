@@ -7,7 +7,8 @@ It follows the ellipse kernel of glTF's KHR_gaussian_splatting and the original 
 3. Its footprint is the box 3 sigma around the projected mean; every (splat, pixel) pair inside is kept.
 4. At each pixel centre alpha = min(0.99, opacity exp(-d^T S'^-1 d / 2)); pairs under 1/255 are skipped.
 5. Per pixel the splats composite front to back in order of camera depth: C = sum c_i a_i prod_{j<i} (1 - a_j), then
-   the background times what light remains.
+   the background times what light remains; a splat that would leave less than 1e-4 of the light, and all behind it,
+   are left out (the original renderer's early stop).
 Pixel (i, j) has its centre at (i + 0.5, j + 0.5) in the intrinsics' convention (plenoxels/core/cameras.py).
 """
 from __future__ import annotations
@@ -23,6 +24,7 @@ from plenoxels.splats.model import Splats
 LOW_PASS = 0.3
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
+STOP_TRANSMITTANCE = 1e-4
 NEAR = 0.01
 # Pairs made at once while rendering without gradients: bounds the memory of a full-size view.
 PAIRS_PER_PASS = 1 << 23
@@ -65,6 +67,23 @@ def project(splats: Splats, c2w, k: Intrinsics, near: float = NEAR) -> Projected
                      splats.subset(front).colours(dirs), splats.opacities()[front])
 
 
+def in_window(splats: Splats, c2w, k: Intrinsics, window: tuple[int, int, int, int], near: float = NEAR) -> torch.Tensor:
+    """Indices of the splats whose 3 sigma reach (bounded by their largest scale, a sphere) may touch the window
+    (x0, y0, w, h): what a window's render needs, found without projecting every covariance."""
+    with torch.no_grad():
+        c2w = torch.as_tensor(np.asarray(c2w), dtype=splats.means.dtype)
+        flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=c2w.dtype))
+        p = (splats.means - c2w[:3, 3]) @ (flip @ c2w[:3, :3].T).T
+        z = p[:, 2].clamp_min(near)
+        reach = 3.0 * torch.exp(splats.log_scales.max(dim=1).values) * max(k.fl_x, k.fl_y) / z + 1.0
+        u = k.fl_x * p[:, 0] / z + k.cx - 0.5
+        v = k.fl_y * p[:, 1] / z + k.cy - 0.5
+        x0, y0, w, h = window
+        touch = ((p[:, 2] > near) & (u + reach >= x0) & (u - reach <= x0 + w - 1) & (v + reach >= y0)
+                 & (v - reach <= y0 + h - 1))
+        return torch.nonzero(touch).squeeze(1)
+
+
 def _pairs(proj: Projected, window: tuple[int, int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """Step 3 inside window (x0, y0, w, h): splat index and window pixel index of every pair."""
     x0, y0, w, h = window
@@ -84,32 +103,42 @@ def _pairs(proj: Projected, window: tuple[int, int, int, int]) -> tuple[torch.Te
     return splat, (py - y0) * w + (px - x0)
 
 
-def composite(proj: Projected, splat: torch.Tensor, pixel: torch.Tensor, n_pixels: int, window_xy: torch.Tensor,
-              background: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Steps 4-5 over the given pairs: rgb [n_pixels, 3] and opacity [n_pixels]. window_xy [n_pixels, 2]: the pixels'
-    index coordinates."""
+def _alphas(proj: Projected, splat: torch.Tensor, pixel: torch.Tensor, window_xy: torch.Tensor) -> torch.Tensor:
     d = window_xy[pixel] - proj.means2d[splat]
     conic = proj.conics[splat]
     power = -0.5 * (conic[:, 0] * d[:, 0] ** 2 + 2 * conic[:, 1] * d[:, 0] * d[:, 1] + conic[:, 2] * d[:, 1] ** 2)
-    alpha = torch.clamp_max(proj.opacities[splat] * torch.exp(power.clamp_max(0.0)), ALPHA_MAX)
-    with torch.no_grad():
-        keep = alpha >= ALPHA_MIN
-        rank = torch.empty(len(proj.depth), dtype=torch.long)
-        rank[torch.argsort(proj.depth.detach())] = torch.arange(len(proj.depth))
-        key = pixel[keep] * len(proj.depth) + rank[splat[keep]]
-        order = torch.argsort(key)
-    alpha, splat, pixel = alpha[keep][order], splat[keep][order], pixel[keep][order]
+    return torch.clamp_max(proj.opacities[splat] * torch.exp(power.clamp_max(0.0)), ALPHA_MAX)
+
+
+def _transmittance(alpha: torch.Tensor, pixel: torch.Tensor) -> torch.Tensor:
+    """Per pair (sorted by pixel, then front to back), the light left in front of it: prod (1 - a) over the pixel's
+    earlier pairs (a cumulative sum of logs, restarted at each pixel)."""
     log_clear = torch.log1p(-alpha).double()
-    running = torch.cumsum(log_clear, 0)
+    before = torch.cumsum(log_clear, 0) - log_clear
     with torch.no_grad():
         starts = torch.ones_like(pixel, dtype=torch.bool)
         starts[1:] = pixel[1:] != pixel[:-1]
-        segment = torch.cumsum(starts.long(), 0) - 1
-        start_index = torch.nonzero(starts).squeeze(1)
-    before = running - log_clear  # sum over this pixel's earlier splats, once the pixel's own offset is removed
-    offset = (running - log_clear)[start_index][segment]
-    transmittance = torch.exp(before - offset).to(alpha.dtype)
-    weight = alpha * transmittance
+        first = torch.nonzero(starts).squeeze(1)[torch.cumsum(starts.long(), 0) - 1]
+    return torch.exp(before - before[first]).to(alpha.dtype)
+
+
+def composite(proj: Projected, splat: torch.Tensor, pixel: torch.Tensor, n_pixels: int, window_xy: torch.Tensor,
+              background: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Steps 4-5 over the given pairs: rgb [n_pixels, 3] and opacity [n_pixels]. window_xy [n_pixels, 2]: the pixels'
+    index coordinates. Which pairs count is settled without gradients first (those under ALPHA_MIN and those behind
+    the point where a pixel's light falls under STOP_TRANSMITTANCE drop), so the graph holds only the pairs seen."""
+    with torch.no_grad():
+        alpha = _alphas(proj, splat, pixel, window_xy)
+        keep = alpha >= ALPHA_MIN
+        splat, pixel, alpha = splat[keep], pixel[keep], alpha[keep]
+        rank = torch.empty(len(proj.depth), dtype=torch.long)
+        rank[torch.argsort(proj.depth.detach())] = torch.arange(len(proj.depth))
+        order = torch.argsort(pixel * len(proj.depth) + rank[splat])
+        splat, pixel, alpha = splat[order], pixel[order], alpha[order]
+        seen = _transmittance(alpha, pixel) * (1 - alpha) >= STOP_TRANSMITTANCE
+        splat, pixel = splat[seen], pixel[seen]
+    alpha = _alphas(proj, splat, pixel, window_xy)
+    weight = alpha * _transmittance(alpha, pixel)
     rgb = torch.zeros(n_pixels, 3, dtype=alpha.dtype).index_add(0, pixel, weight[:, None] * proj.colours[splat])
     opacity = torch.zeros(n_pixels, dtype=alpha.dtype).index_add(0, pixel, weight)
     return rgb + (1 - opacity)[:, None] * background, opacity
