@@ -45,7 +45,7 @@ class Settings(MeshOptions):
     """At most this many splats: the grid vertices the training views weigh most."""
     splat_min_weight: float = 0.01
     """A grid vertex becomes a splat where some training ray's rendering weight at it reaches this."""
-    splat_seconds: float = 120.0
+    splat_seconds: float = 300.0
     """How long the distillation runs, in seconds; 0: the splats as they start from the grid."""
     splat_scale: float = 0.5
     """The training views are rendered for the distillation at this share of their size."""
