@@ -32,7 +32,7 @@ import trimesh
 
 from bench import blender
 from bench.fit import machine
-from stages.capture import synthetic
+from stages.capture import synthetic, synthetic_scenes
 from stages.common.json_files import read_json, write_json
 from stages.scoring.metrics import mesh_scores, surface_distance
 from pipeline.report import Reporter
@@ -65,7 +65,7 @@ def training_cameras(transforms: dict, scene: dict, split: str = "train") -> lis
     return [(np.asarray(f["transform_matrix"]), k) for f in transforms["frames"] if Path(f["file_path"]).stem in names]
 
 
-def visible_from(cameras: list[tuple[np.ndarray, Intrinsics]], spec: synthetic.SceneSpec, tolerance: float):
+def visible_from(cameras: list[tuple[np.ndarray, Intrinsics]], spec: synthetic_scenes.SceneSpec, tolerance: float):
     """A mask function: which points (generator frame) some camera sees, inside its image and not
     hidden behind another surface by more than `tolerance`."""
 
@@ -79,7 +79,7 @@ def visible_from(cameras: list[tuple[np.ndarray, Intrinsics]], spec: synthetic.S
                 continue
             centre = c2w[:3, 3]
             offsets = points[candidates] - centre
-            t_hit, _ = synthetic.trace(spec, centre, offsets)
+            t_hit, _ = synthetic_scenes.trace(spec, centre, offsets)
             distance = np.linalg.norm(offsets, axis=1)
             seen[candidates] = t_hit * distance >= distance - tolerance
         return seen
@@ -87,7 +87,7 @@ def visible_from(cameras: list[tuple[np.ndarray, Intrinsics]], spec: synthetic.S
     return mask
 
 
-def colour_error(mesh: trimesh.Trimesh, spec: synthetic.SceneSpec) -> dict:
+def colour_error(mesh: trimesh.Trimesh, spec: synthetic_scenes.SceneSpec) -> dict:
     """Mean absolute RGB error of the mesh's vertex colours against the true (view-independent, shaded)
     colour of the nearest foreground shape at each vertex, with two baselines for scale."""
     shapes = spec.foreground()
@@ -96,7 +96,7 @@ def colour_error(mesh: trimesh.Trimesh, spec: synthetic.SceneSpec) -> dict:
     nearest = np.stack([surface_distance(shape.mesh(), vertices, rng) for shape in shapes], axis=1).argmin(axis=1)
     truth = np.zeros((len(vertices), 3))
     for index, shape in enumerate(shapes):
-        truth[nearest == index] = synthetic.surface_colour(spec, shape, vertices[nearest == index])
+        truth[nearest == index] = synthetic_scenes.surface_colour(spec, shape, vertices[nearest == index])
     got = mesh.visual.vertex_colors[:, :3] / 255.0
     return {"median_abs_error": float(np.median(np.abs(got - truth).mean(axis=1))),
             "baseline_mid_grey": float(np.median(np.abs(0.5 - truth).mean(axis=1))),
@@ -110,7 +110,7 @@ def load_textured(obj: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     return None if uv is None else (np.asarray(mesh.vertices), np.asarray(mesh.faces), uv, image)
 
 
-def colour_renders(export_dir: Path, run_dir: Path, transforms: dict, scene: dict, spec: synthetic.SceneSpec) -> dict:
+def colour_renders(export_dir: Path, run_dir: Path, transforms: dict, scene: dict, spec: synthetic_scenes.SceneSpec) -> dict:
     """PSNR against the held-out photos, on the pixels the true objects wholly cover: the textured OBJ and the PLY's
     vertex colours rendered unlit (render_mesh; black where the mesh is missing), and the radiance field's own render
     of the same pixels; and the same on the part of those pixels the mesh covers (the colours apart from the holes)."""
@@ -127,7 +127,7 @@ def colour_renders(export_dir: Path, run_dir: Path, transforms: dict, scene: dic
         if record is None:
             continue
         c2w, k = np.asarray(frame["transform_matrix"]), Intrinsics.from_frame(record)
-        photo, _, coverage = synthetic.render_view(spec, c2w, k)
+        photo, _, coverage = synthetic_scenes.render_view(spec, c2w, k)
         photo = photo / 255.0
         mask = coverage >= 1.0
         vertex_render, covered = render_mesh(ply.vertices, ply.faces, c2w, k,
@@ -196,7 +196,7 @@ def score_scene(kind: str, seed: int, preset: str, overrides: list[str], out: Pa
     transforms = read_json(scene_dir / "transforms.json")
     scene = read_json(run_dir / "normalize" / "scene.json")
     cameras = training_cameras(transforms, scene)
-    spec = synthetic.build_scene(kind, seed)
+    spec = synthetic_scenes.build_scene(kind, seed)
     mesh = trimesh.load(export_dir / "mesh.ply", force="mesh", process=False)
     scores = mesh_scores(mesh, truth, tolerance, reference_visible=visible_from(cameras, spec, tolerance),
                          far=FAR_SHARE * size)

@@ -47,7 +47,7 @@ def ceiling(preset: str, data: Path, iterations: int) -> dict:
 
     from bench.fit import resolve
     from stages.common.frames import load_frame
-    from stages.capture.synthetic import build_scene, surface_points
+    from stages.capture.synthetic_scenes import build_scene, surface_points
     from plenoxels.core.reference import corners
     from plenoxels.core.scene_model import SceneModel
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from stages.capture import synthetic
+from stages.capture import synthetic, synthetic_scenes
 
 
 def add_arguments(parser: argparse.ArgumentParser, command: str) -> None:
-    parser.add_argument("kind", choices=synthetic.KINDS)
+    parser.add_argument("kind", choices=synthetic_scenes.KINDS)
     parser.add_argument("outdir", type=Path)
     parser.add_argument("--views", type=int, default=40)
     parser.add_argument("--width", type=int, default=320)

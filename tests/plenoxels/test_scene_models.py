@@ -16,7 +16,8 @@ from stages.common.json_files import read_json
 from stages.framing.options import SceneOptions
 from stages.framing.scene_frame import normalize_scene
 from stages.framing.sightings import Points
-from stages.capture.synthetic import build_scene, render_view, write_scene
+from stages.capture.synthetic import write_scene
+from stages.capture.synthetic_scenes import build_scene, render_view
 from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.scene_model import ModelOptions, SceneModel, psnr
 from plenoxels.core.train import Fitter, RaySet, TrainOptions

@@ -23,7 +23,8 @@ from stages.scoring.metrics import mesh_scores, surface_distance
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from pipeline.stage import StageContext
-from stages.capture.synthetic import build_scene, write_scene
+from stages.capture.synthetic import write_scene
+from stages.capture.synthetic_scenes import build_scene
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.errors import UserError
 from plenoxels.core.fit_frame import CONTRACTED_BOX, Contraction, FitFrame

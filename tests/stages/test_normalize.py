@@ -19,7 +19,8 @@ from stages.framing.options import SceneOptions
 from stages.framing.scene_frame import normalize_scene
 from stages.framing.sightings import Points, read_points
 from pipeline.stage import StageContext
-from stages.capture.synthetic import build_scene, trace, write_scene
+from stages.capture.synthetic import write_scene
+from stages.capture.synthetic_scenes import build_scene, trace
 from plenoxels.core.cameras import Intrinsics, look_at, pixel_directions
 from plenoxels.core.errors import UserError
 from stages import normalize

@@ -20,7 +20,8 @@ from stages.framing.options import SceneOptions
 from stages.framing.scene_frame import normalize_scene
 from stages.framing.sightings import read_points
 from stages.sfm.compare import compare_poses, umeyama
-from stages.capture.synthetic import OBJECT_CENTRE, write_scene
+from stages.capture.synthetic import write_scene
+from stages.capture.synthetic_scenes import OBJECT_CENTRE
 from stages.framing.visual_hull import Silhouettes, carve, cut_photos, shown_box
 from plenoxels.core.cameras import Intrinsics, look_at, rays_from_camera
 from plenoxels.core.errors import UserError

@@ -23,7 +23,8 @@ from stages.sfm.compare import compare_poses
 from stages.sfm.exif import FULL_FRAME_DIAGONAL_MM, exif_focal
 from stages.sfm.triangulate import neighbour_pairs
 from stages.sfm.model_checks import MAX_CONTRADICTED_SHARE, contradicted_images, detached_images
-from stages.capture.synthetic import build_scene, trace, write_scene
+from stages.capture.synthetic import write_scene
+from stages.capture.synthetic_scenes import build_scene, trace
 from plenoxels.core.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, look_at, opengl_c2w_from_llff, project
 from plenoxels.core.errors import UserError
 

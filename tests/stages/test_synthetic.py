@@ -8,8 +8,11 @@ import pytest
 import torch
 import trimesh
 
-from stages.capture.synthetic import (KINDS, Sphere, build_scene, camera_poses, intrinsics_for, render_view,
-                                surface_colour, surface_points, trace, write_scene)
+from stages.capture.synthetic import write_scene
+
+from stages.capture.synthetic_scenes import KINDS, build_scene, camera_poses, intrinsics_for, render_view, surface_colour, surface_points, trace
+
+from stages.capture.synthetic_shapes import Sphere
 from plenoxels.core.cameras import Intrinsics, pixel_directions, project, rays_from_camera
 from plenoxels.core.errors import UserError
 
