@@ -7,7 +7,8 @@ voxels wide along each grid axis, narrower than the tent of trilinear interpolat
 renderer's low-pass filter widens every splat on screen and neighbours overlap (bench/README.md, "Splats"). In the fit
 frame of a forward scene (NDC) or of a contracted grid's inner cube, the voxel's three edges are mapped to the world
 through the frame's Jacobian at the centre, so the covariance is the voxel's shape in the world; a forward scene's
-cells near the NDC far plane map to the far distance and are left out (FAR_NDC).
+cells near the NDC far plane map to the far distance and are left out (FAR_NDC), and since its field reads SH along
+NDC directions, each splat starts with the colour the reference camera sees it in (_seen_from_reference).
 
 Which cells: those whose rendering weight over the training views' rays reaches `min_weight` (the surface the views
 see; plenoxels.core.render.max_weights, per cell the smallest of its corners'), the heaviest first up to `max_splats`,
@@ -20,7 +21,8 @@ import torch
 
 from plenoxels.core.fit_frame import FitFrame
 from plenoxels.core.grid import SparseGrid, sh_count
-from plenoxels.splats.model import Splats, matrix_to_quat
+from plenoxels.core.render import COLOUR_OFFSET, SH_C0
+from plenoxels.splats.model import Splats, matrix_to_quat, sh_basis, sh_degree_of
 
 TENT_SIGMA = 0.25
 FAR_NDC = 0.98
@@ -83,6 +85,21 @@ def splats_from_grid(grid: SparseGrid, frame: FitFrame, weights: torch.Tensor, m
     opacity = np.clip(1.0 - np.exp(-optical_depth), *OPACITY_RANGE)
     sh = sh.reshape(-1, 3, sh_count(grid.sh_degree))
     world = frame.to_world(points)
+    if frame.ndc is not None:
+        sh = _seen_from_reference(sh, frame, world)
     as_t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
     return Splats(as_t(world), as_t(log_scales), as_t(matrix_to_quat(axes)),
                   as_t(np.log(opacity) - np.log1p(-opacity)), sh.float().clone())
+
+
+def _seen_from_reference(sh: torch.Tensor, frame: FitFrame, world: np.ndarray) -> torch.Tensor:
+    """A forward scene's field takes its SH along NDC directions, which no world direction stands for alone: each splat
+    starts with the colour the reference camera's ray to it sees, as its degree-0 term (distillation fits the rest)."""
+    centre = torch.tensor(frame.ndc.reference_c2w, dtype=torch.float64)[:3, 3]
+    d = torch.as_tensor(world, dtype=torch.float64) - centre
+    _, ndc_dirs = frame.rays(centre.expand_as(d).contiguous(), d / d.norm(dim=1, keepdim=True))
+    ndc_dirs = (ndc_dirs / ndc_dirs.norm(dim=1, keepdim=True)).float()
+    colour = torch.relu((sh * sh_basis(sh_degree_of(sh.shape[2]), ndc_dirs)[:, None, :]).sum(-1) + COLOUR_OFFSET)
+    out = torch.zeros_like(sh)
+    out[:, :, 0] = (colour - COLOUR_OFFSET) / SH_C0
+    return out

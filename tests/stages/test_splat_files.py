@@ -8,6 +8,8 @@ import trimesh
 from plyfile import PlyData
 
 from plenoxels.core.cameras import Intrinsics, look_at
+from plenoxels.core.background import MultiSphereBackground
+from plenoxels.core.fit_frame import FitFrame
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.splats.distill import psnr
 from plenoxels.splats.model import Splats
@@ -16,7 +18,8 @@ from stages.interchange.splat_files import (EXTENSION, read_glb, read_splat_glb,
                                             write_splat_ply)
 from stages.common.json_files import read_json
 from stages.settings.export import Settings
-from tests.stages.test_export import SPHERE_CENTRE, SPHERE_RADIUS, orbit_frames, run_stage, sphere_field
+from tests.stages.test_export import (SPHERE_CENTRE, SPHERE_RADIUS, cluttered_sphere_field, forward_rig,
+                                      identity_scene, orbit_frames, run_stage, sphere_field)
 
 
 def some_splats(n: int, degree: int, seed: int = 0) -> Splats:
@@ -122,3 +125,28 @@ def test_export_stage_writes_both_files_in_the_input_frame_and_they_render_like_
     assert np.mean(scores) > 30, scores
     # The same splats left in the input frame do not: the check can tell.
     assert psnr(render(ply, c2w, k)["rgb"], model.render_camera(c2w, k)["rgb"]) < 15
+
+
+def test_a_forward_scene_s_ndc_grid_becomes_splats_in_the_world_and_a_background_model_is_left_out(tmp_path):
+    c2w, ndc, view = forward_rig()
+    forward = -c2w[:3, 2]
+    behind = lambda p: ((p - c2w[:3, 3]) @ forward > 9.0) & ((p - c2w[:3, 3]) @ forward < 15.0)  # noqa: E731
+    field = cluttered_sphere_field(40, behind, FitFrame(ndc).to_world, (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    settings = Settings(frame="normalized", points=500, point_scale=1.0, texture=False, splat_seconds=2,
+                        splat_window=32, splat_scale=1.0)
+    run_stage(tmp_path, field, identity_scene("forward", [{**view, "split": "train"}]), settings, "forward", ndc=ndc,
+              splats=True)
+    splats = read_splat_ply(tmp_path / "forward" / "export" / "splats.ply")
+    on_sphere = (splats.means - torch.as_tensor(SPHERE_CENTRE, dtype=torch.float32)).norm(dim=1) < SPHERE_RADIUS + 0.1
+    assert on_sphere.sum() > 200  # world positions, not NDC ones
+    model = SceneModel(field, "forward", fit_frame=FitFrame(ndc))
+    k = Intrinsics.from_frame(view)
+    assert psnr(render(splats, c2w, k)["rgb"], model.render_camera(c2w, k)["rgb"]) > 22
+
+    background = MultiSphereBackground.around_box([-0.8] * 3, [0.8] * 3, n_spheres=2, height=4, width=8)
+    settings = Settings(frame="normalized", points=500, point_scale=1.0, texture=False, splat_seconds=0,
+                        texture_size=256, align_voxels=0)
+    run_stage(tmp_path, sphere_field(24), identity_scene("unbounded", orbit_frames(4, size=24)), settings, "unbounded",
+              background=background, splats=True)
+    record = read_json(tmp_path / "unbounded" / "export" / "export.json")["splats"]
+    assert record["background"].startswith("left out") and record["count"] > 100
