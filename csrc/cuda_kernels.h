@@ -2,7 +2,7 @@
 // file compiles with nvcc and this header alone (the compile-only check in tests/test_cuda.py);
 // bindings_cuda.cpp turns torch tensors into these arguments.
 //
-// Layouts are those of the CPU core (kernels_cpu.cpp): a packed parameter table `data` [N, stride]
+// Layouts are those of the CPU core (cpu_kernels.h): a packed parameter table `data` [N, stride]
 // (column 0 raw density, then K SH coefficients per channel R, G, B, then padding), `links`
 // [Rx, Ry, Rz] int32 (row or -1), cell and block occupancy as uint8. Gradients use the same layout.
 // Instead of the CPU's per-thread touched-row lists, the kernels set grad_mask[row] = 1 (a plain

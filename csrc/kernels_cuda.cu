@@ -1,5 +1,5 @@
 // CUDA kernels of the Plenoxels core, one thread per ray (or per voxel / parameter). They mirror
-// kernels_cpu.cpp step by step: the same ray set-up, the same sample lattice computed in double,
+// the CPU kernels (cpu_*.cpp) step by step: the same ray set-up, the same sample lattice computed in double,
 // the same empty-space skipping and the same per-sample math from plenoxels_math.h, so a ray meets
 // the same samples on either device. Gradients are scattered with atomicAdd instead of the CPU's
 // per-thread buffers, and the backward pass re-marches the ray instead of keeping its samples.
