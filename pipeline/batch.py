@@ -37,6 +37,7 @@ from pipeline.runner import read_manifest
 from pipeline.scenes import output_names
 from pipeline.stage import STAGE_ORDER
 from plenoxels.core.errors import UserError
+from stages.common.layout import EXPORT_JSON, MESH_PLY, METRICS_JSON, scene_json, stage_file
 
 PR_SET_PDEATHSIG = 1
 RECORD_FIELDS = ("name", "status", "stages_done", "stages_ran", "registered", "images", "scene_type", "psnr", "ssim",
@@ -139,16 +140,16 @@ def scene_record(job: SceneJob, options: BatchOptions, run_ids_before: dict[str,
     done = [name for name in options.stages() if manifests[name]]
     ran = [name for name in done if manifests[name].get("run_id") != run_ids_before.get(name)]
     poses = (manifests["poses"] or {}).get("summary", {})
-    mean = _read(job.out / "evaluate" / "metrics.json").get("mean") or {}
-    mesh = job.out / "export" / "mesh.ply"
+    mean = _read(stage_file(job.out, "evaluate", METRICS_JSON)).get("mean") or {}
+    mesh = stage_file(job.out, "export", MESH_PLY)
     return {
         "name": job.name, "scene": str(job.scene), "out": str(job.out),
         "status": "failed" if error else "done", "error": error,
         "stages_done": done, "stages_ran": ran,
         "registered": poses.get("registered"), "images": poses.get("images"),
-        "scene_type": _read(job.out / "normalize" / "scene.json").get("type"),
+        "scene_type": _read(scene_json(job.out)).get("type"),
         "psnr": mean.get("psnr"), "ssim": mean.get("ssim"),
-        "mesh_faces": (_read(job.out / "export" / "export.json").get("mesh") or {}).get("faces"),
+        "mesh_faces": (_read(stage_file(job.out, "export", EXPORT_JSON)).get("mesh") or {}).get("faces"),
         "mesh_bytes": mesh.stat().st_size if manifests["export"] and mesh.is_file() else None,
         "stage_seconds": round(sum(manifests[n].get("seconds", 0.0) for n in done), 2),
         "wall_seconds": round(wall_seconds, 2), "peak_memory_bytes": peak_memory_bytes,

@@ -27,6 +27,7 @@ from stages.common.json_files import write_json
 from pipeline.report import Reporter
 from pipeline.stage import StageContext, StageGraph
 from plenoxels.core.errors import UserError
+from stages.common.layout import MANIFEST, RESUME, TRASH, WORK, scene_json
 
 
 @dataclass
@@ -49,7 +50,7 @@ class Plan:
 
 def read_manifest(folder: Path) -> dict | None:
     try:
-        return json.loads((folder / "manifest.json").read_text())
+        return json.loads((folder / MANIFEST).read_text())
     except (FileNotFoundError, json.JSONDecodeError):
         return None
 
@@ -74,7 +75,7 @@ class Pipeline:
     # ---- keys and status -------------------------------------------------------------------------------
     def scene_type(self) -> str | None:
         try:
-            return json.loads((self.out / "normalize" / "scene.json").read_text())["type"]
+            return json.loads(scene_json(self.out).read_text())["type"]
         except (FileNotFoundError, KeyError, json.JSONDecodeError):
             return None
 
@@ -138,7 +139,7 @@ class Pipeline:
             return manifest
 
         module = self.graph.load(name)
-        work, scratch = self.out / ".work" / name, self.out / ".resume" / name
+        work, scratch = self.out / WORK / name, self.out / RESUME / name
         shutil.rmtree(work, ignore_errors=True)
         work.mkdir(parents=True)
         if (scratch / "KEY").is_file() and (scratch / "KEY").read_text() != plan.key or force:
@@ -162,14 +163,14 @@ class Pipeline:
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "seconds": round(time.time() - started, 2),
             "summary": summary,
         }
-        write_json(work / "manifest.json", manifest)
+        write_json(work / MANIFEST, manifest)
         self._swap_into_place(work, final)
         shutil.rmtree(scratch, ignore_errors=True)
         self.report.summary(name, summary["line"])
         return manifest
 
     def _swap_into_place(self, work: Path, final: Path) -> None:
-        trash = self.out / ".trash" / final.name
+        trash = self.out / TRASH / final.name
         shutil.rmtree(trash, ignore_errors=True)
         trash.parent.mkdir(exist_ok=True)
         if final.exists():
@@ -179,7 +180,7 @@ class Pipeline:
 
     def _recover(self) -> None:
         """Undo a swap that was cut off between its two renames."""
-        trash_root = self.out / ".trash"
+        trash_root = self.out / TRASH
         for trash in trash_root.glob("*") if trash_root.is_dir() else []:
             final = self.out / trash.name
             if not final.exists() and read_manifest(trash) is not None:

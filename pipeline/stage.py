@@ -30,11 +30,11 @@ from types import ModuleType
 from typing import Any, Iterator
 
 from pipeline.report import Reporter
+from stages.common.layout import MANIFEST, STAGE_ORDER
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
-# The stage graph, in execution order. Each stage's DEPENDS names earlier entries only.
-STAGE_ORDER = ("ingest", "poses", "normalize", "fit", "evaluate", "export")
+# The stage graph runs in STAGE_ORDER (stages/common/layout.py); each stage's DEPENDS names earlier entries only.
 
 
 @dataclass
@@ -49,7 +49,7 @@ class StageContext:
     report: Reporter
 
     def upstream_manifest(self, name: str) -> dict:
-        return json.loads((self.upstream[name] / "manifest.json").read_text())
+        return json.loads((self.upstream[name] / MANIFEST).read_text())
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ from stages.scoring.visuals import colour_depth, contact_sheet, error_image
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.scene_model import SceneModel
 from stages.settings.evaluate import Settings
+from stages.common.layout import METRICS_JSON, MODEL_JSON, SCENE_JSON
 
 
 
@@ -43,9 +44,9 @@ def _spread(items: list, limit: int) -> list:
 
 def run(ctx) -> dict:
     s: Settings = ctx.settings
-    scene = read_json(ctx.upstream["normalize"] / "scene.json")
+    scene = read_json(ctx.upstream["normalize"] / SCENE_JSON)
     model = SceneModel.load(ctx.upstream["fit"])
-    fit_record = read_json(ctx.upstream["fit"] / "model.json")
+    fit_record = read_json(ctx.upstream["fit"] / MODEL_JSON)
     scale = float(fit_record.get("fit_settings", {}).get("image_scale", 1.0)) if s.scale == "fit" else float(s.scale)
     frames = scene.get("frames") or []
     held_out = _spread([f for f in frames if f.get("split") == "test"], s.max_views)
@@ -95,7 +96,7 @@ def run(ctx) -> dict:
                  "fps": s.video_fps}
 
     mean = mean_scores(views)
-    write_json(ctx.work / "metrics.json", {"views": views, "mean": mean, "scale": scale, "count": len(views),
+    write_json(ctx.work / METRICS_JSON, {"views": views, "mean": mean, "scale": scale, "count": len(views),
                                            "render_seconds": round(render_seconds, 2), "video": video,
                                            "ssim": "skimage.metrics.structural_similarity, gaussian, data_range 1",
                                            "lpips": "AlexNet, v0.1 (stages/scoring/lpips.py)" if with_lpips else None})

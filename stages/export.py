@@ -43,6 +43,7 @@ from plenoxels.surface.texture import texture_mesh
 from plenoxels.surface.view_alignment import align_to_views
 from plenoxels.splats.field_splats import fit_splats
 from stages.settings.export import Settings
+from stages.common.layout import EXPORT_JSON, MODEL_JSON, SCENE_JSON
 
 
 def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -69,7 +70,7 @@ def _bounds(points: np.ndarray) -> dict:
 
 def run(ctx) -> dict:
     s: Settings = ctx.settings
-    scene = read_json(ctx.upstream["normalize"] / "scene.json")
+    scene = read_json(ctx.upstream["normalize"] / SCENE_JSON)
     # A contracted grid's far world is coarse and squeezed: exports read its inner cube, which holds the foreground box.
     fitted = SceneModel.load(ctx.upstream["fit"])
     model = fitted.foreground_model()
@@ -143,7 +144,7 @@ def run(ctx) -> dict:
         ctx.report.info(f"fitting up to {_count(s.max_splats)} splats to the field ({s.splat_seconds:g} s distillation)")
         splats, splat_record = fit_splats(model, scene["frames"], s.max_splats, s.splat_min_weight, s.splat_scale,
                                           s.splat_views, s.splat_seconds, s.splat_window, s.seed, ctx.report.track)
-        fit_scale = float(read_json(ctx.upstream["fit"] / "model.json").get("fit_settings", {}).get("image_scale", 1.0))
+        fit_scale = float(read_json(ctx.upstream["fit"] / MODEL_JSON).get("fit_settings", {}).get("image_scale", 1.0))
         splat_record["held_out"] = score_splats(ctx.out, splats, fitted, scene["frames"], fit_scale,
                                                 s.splat_score_views, ctx.report.track)
         splat_record["background"] = ("left out: the background model stays in the field (splats hold the foreground "
@@ -172,7 +173,7 @@ def run(ctx) -> dict:
                 "restore the frame's coordinates",
         **decisions,
     }
-    write_json(ctx.work / "export.json", record)
+    write_json(ctx.work / EXPORT_JSON, record)
     lo, hi = record["mesh"]["bounds"]["min"], record["mesh"]["bounds"]["max"]
     line = (f"mesh {_count(len(mesh.faces))} faces ({_size(sizes['ply'])} PLY), {_count(len(points))} points "
             f"({_size(sizes.get('points', 0))}) in the {s.frame} frame, bounds "

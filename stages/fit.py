@@ -41,8 +41,8 @@ from plenoxels.core.native import resolve_device
 from plenoxels.core.scene_model import BACKDROP_MIN_TRAIN_PSNR, SceneModel, backdrop_check_step
 from plenoxels.core.train import Diverged, Fitter, RaySet, coarse_start
 from stages.settings.fit import Settings
+from stages.common.layout import CHECKPOINT_PT, FIT_JSON, SCENE_JSON
 
-CHECKPOINT = "checkpoint.pt"
 BUDGET_PLAN = "budget_plan.json"
 BACKGROUND_ADDED = "background_added.json"
 MODEL_TRIAL = "model_trial.json"
@@ -54,7 +54,7 @@ def run(ctx) -> dict:
     device = resolve_device(s.device)
     if device.type != "cpu":
         ctx.report.info(f"fitting on {device}")
-    scene = read_json(ctx.upstream["normalize"] / "scene.json")
+    scene = read_json(ctx.upstream["normalize"] / SCENE_JSON)
     train_frames, held_out_frames = training_frames(scene, ctx.report)
     train = load_training(ctx.out, train_frames, s.image_scale, s.background_color, ctx.report)
     held_out = HeldOut(ctx.out, held_out_frames, s.eval_views, s.eval_scale, s.background_color)
@@ -79,7 +79,7 @@ def fit(ctx, settings: Settings, scene: dict, train: RaySet, held_out: HeldOut, 
     the object is not that colour, so the reason is kept in the scratch folder and the caller fits again with a
     background model."""
     s: Settings = replace(settings, background="on") if background_why else settings
-    checkpoint = ctx.scratch / CHECKPOINT
+    checkpoint = ctx.scratch / CHECKPOINT_PT
     mean_colour = train.mean_colour()
 
     def new_model(resolution: int) -> SceneModel:
@@ -197,7 +197,7 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
     if budget is not None:
         record["budget"] = budget.record(at_deadline)
         record["budget"]["stage_seconds"] = round(time.time() - budget.started, 1)
-    write_json(ctx.work / "fit.json", record)
+    write_json(ctx.work / FIT_JSON, record)
     res = grid.resolution
     shape = f"{res[0]}^3" if len(set(res)) == 1 else "x".join(map(str, res))
     line = (f"{shape} grid, {format_count(grid.num_occupied)} voxels ({format_bytes(memory['total'])}), "

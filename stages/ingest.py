@@ -18,6 +18,7 @@ from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, fit_max_side,
 from stages.common.text import short_list
 from plenoxels.core.errors import UserError
 from stages.settings.ingest import Settings
+from stages.common.layout import IMAGES_JSON
 
 
 
@@ -102,7 +103,7 @@ def run(ctx) -> dict:
 
     if len(records) < s.min_images:
         raise UserError(f"only {len(records)} usable image(s) in {ctx.scene}; at least {s.min_images} overlapping photos are needed")
-    write_json(ctx.work / "images.json", {"images": records, "skipped": unreadable, "dropped_blurry": dropped,
+    write_json(ctx.work / IMAGES_JSON, {"images": records, "skipped": unreadable, "dropped_blurry": dropped,
                                           **({"video": clip} if clip is not None else {})})
     w, h = records[0]["width"], records[0]["height"]
     line = f"{len(records)} images at {w}x{h}"

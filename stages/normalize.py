@@ -9,6 +9,7 @@ from stages.common.json_files import read_json, write_json
 from stages.framing.scene_frame import normalize_scene
 from stages.framing.sightings import read_points
 from plenoxels.core.errors import UserError
+from stages.common.layout import POINTS_NPZ, SCENE_JSON, TRANSFORMS_JSON
 
 
 def summary_line(scene: dict) -> str:
@@ -45,12 +46,12 @@ def summary_line(scene: dict) -> str:
 
 def run(ctx) -> dict:
     poses_dir = ctx.upstream["poses"]
-    transforms_path = poses_dir / "transforms.json"
+    transforms_path = poses_dir / TRANSFORMS_JSON
     if not transforms_path.is_file():
         raise UserError(f"{transforms_path} is missing; run the poses stage first")
-    scene = normalize_scene(read_json(transforms_path), read_points(poses_dir / "points.npz"),
+    scene = normalize_scene(read_json(transforms_path), read_points(poses_dir / POINTS_NPZ),
                             ctx.settings, poses_dir)
-    write_json(ctx.work / "scene.json", scene)
+    write_json(ctx.work / SCENE_JSON, scene)
     for reason in scene["reasons"]:
         ctx.report.info(f"normalize: {reason}")
     test = sum(f["split"] == "test" for f in scene["frames"])

@@ -24,6 +24,7 @@ from stages.sfm.reconstruct import colmap_logging, reconstruct
 from stages.sfm.video_again import denser_frames, rescale_model
 from plenoxels.core.errors import UserError
 from stages.settings.poses import Settings
+from stages.common.layout import IMAGES_JSON
 
 
 
@@ -45,7 +46,7 @@ def _sfm(ctx, s: Settings, folder: Path, records: list[dict]) -> tuple[pycolmap.
 def run(ctx) -> dict:
     s: Settings = ctx.settings
     ingest = ctx.upstream["ingest"]
-    ingested = read_json(ingest / "images.json")
+    ingested = read_json(ingest / IMAGES_JSON)
     records = ingested["images"]
     started = time.perf_counter()
     with colmap_logging(s.colmap_log):

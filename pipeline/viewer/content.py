@@ -15,6 +15,7 @@ from stages.interchange.splat_files import read_splat_ply
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.errors import UserError
 from plenoxels.splats.model import Splats
+from stages.common.layout import EXPORT_JSON, MESH_PLY, POINTS_NPZ, scene_json, stage_file
 
 # Longest side of the photo thumbnails drawn inside the camera frustums.
 THUMBNAIL_SIDE = 160
@@ -57,7 +58,7 @@ class SceneContent:
 
 def load_content(out: Path) -> SceneContent:
     """Reads what exists under `out`; the normalize stage's scene.json is required."""
-    scene_path = out / "normalize" / "scene.json"
+    scene_path = scene_json(out)
     if not scene_path.is_file():
         raise UserError(f"{out} has no normalize/scene.json: run the pipeline up to normalize first "
                         f"(make normalize scene=PATH), or give the scene's output folder")
@@ -72,12 +73,12 @@ def load_content(out: Path) -> SceneContent:
             name=frame.get("name", ""), split=frame.get("split", "train"),
             c2w=np.asarray(frame["transform_matrix"], dtype=np.float64), intrinsics=Intrinsics.from_frame(frame),
             thumbnail=_thumbnail(out / frame["file_path"]) if frame.get("file_path") else None))
-    content.sparse_points = _sparse_points(out / "poses" / "points.npz", world_from_input)
+    content.sparse_points = _sparse_points(stage_file(out, "poses", POINTS_NPZ), world_from_input)
     export = out / "export"
-    if (export / "export.json").is_file():
-        to_world = world_from_input if read_json(export / "export.json").get("frame", "input") == "input" else np.eye(4)
-        if (export / "mesh.ply").is_file():
-            content.mesh = trimesh.load(export / "mesh.ply", force="mesh", process=False)
+    if (export / EXPORT_JSON).is_file():
+        to_world = world_from_input if read_json(export / EXPORT_JSON).get("frame", "input") == "input" else np.eye(4)
+        if (export / MESH_PLY).is_file():
+            content.mesh = trimesh.load(export / MESH_PLY, force="mesh", process=False)
             content.mesh.apply_transform(to_world)
         if (export / "points.ply").is_file():
             cloud = trimesh.load(export / "points.ply")

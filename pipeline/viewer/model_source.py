@@ -10,8 +10,9 @@ import torch
 from stages.common.json_files import read_json
 from plenoxels.core.grid import SparseGrid
 from plenoxels.core.scene_model import ModelOptions, SceneModel
+from stages.common.layout import CHECKPOINT_PT, FIT_JSON, GRID_PT, MANIFEST, MODEL_JSON, RESUME, scene_json, stage_file
 
-CHECKPOINT = Path(".resume") / "fit" / "checkpoint.pt"
+CHECKPOINT = Path(RESUME) / "fit" / CHECKPOINT_PT
 
 
 @dataclass(frozen=True)
@@ -33,7 +34,7 @@ class ModelSource:
     def latest(self) -> ModelVersion | None:
         """The newer of the finished fit and the running fit's checkpoint, or None when neither exists."""
         candidates = []
-        for path, stamp in ((self.out / "fit" / "model.json", self.out / "fit" / "grid.pt"),
+        for path, stamp in ((stage_file(self.out, "fit", MODEL_JSON), stage_file(self.out, "fit", GRID_PT)),
                             (self.out / CHECKPOINT, self.out / CHECKPOINT)):
             try:
                 if path.is_file():
@@ -46,7 +47,8 @@ class ModelSource:
         """The model and a line saying what it is."""
         if not version.is_checkpoint:
             model = SceneModel.load(version.path.parent)
-            record = read_json(self.out / "fit" / "fit.json") if (self.out / "fit" / "fit.json").is_file() else {}
+            record_path = stage_file(self.out, "fit", FIT_JSON)
+            record = read_json(record_path) if record_path.is_file() else {}
             done = "" if record.get("complete", True) else f", stopped at step {record.get('steps')}"
             return model, f"fit: {'x'.join(map(str, model.grid.resolution))} grid{done}"
         return self._from_checkpoint(version.path)
@@ -55,7 +57,7 @@ class ModelSource:
         # The checkpoint holds the grid and background tensors; the frame and options around them come from
         # scene.json and the fit's settings as the fit stage builds them.
         state = torch.load(path, map_location="cpu", weights_only=False)
-        scene = read_json(self.out / "normalize" / "scene.json")
+        scene = read_json(scene_json(self.out))
         background = state.get("background")
         options = self._model_options(background)
         model = SceneModel.create(scene, options, 2)
@@ -70,7 +72,7 @@ class ModelSource:
         """The options of the last completed fit where there is one (its manifest), else the defaults;
         the background model's presence and shape follow the checkpoint."""
         options = ModelOptions()
-        manifest = self.out / "fit" / "manifest.json"
+        manifest = stage_file(self.out, "fit", MANIFEST)
         if manifest.is_file():
             saved = read_json(manifest).get("settings", {})
             for name in ("ndc", "contract", "background_color", "step_size", "stop_transmittance", "box_padding"):

@@ -37,12 +37,14 @@ import torch
 from plenoxels.core.background import MultiSphereBackground
 from plenoxels.core.cameras import Intrinsics, rays_from_camera
 from plenoxels.core.errors import UserError
+from plenoxels.core.files import GRID_FILE, MODEL_FILE
 from plenoxels.core.fit_frame import CONTRACTED_BOX, Contraction, FitFrame
 from plenoxels.core.grid import SparseGrid
 from plenoxels.core.memory import check_dense_level
 from plenoxels.core.ndc import NDCMapping
 from plenoxels.core.options import ModelOptions
 from plenoxels.core.render import RenderOptions, RenderResult, render
+
 
 MODEL_FORMAT = "voxfield-scene-model"
 MODEL_VERSION = 1
@@ -233,7 +235,7 @@ class SceneModel:
     def save(self, folder: Path, extra: dict | None = None) -> None:
         """Writes grid.pt, model.json and (with a background model) background.pt into `folder`."""
         folder = Path(folder)
-        self.grid.save(folder / "grid.pt")
+        self.grid.save(folder / GRID_FILE)
         background = None
         if self.background is not None:
             tmp = folder / "background.pt.tmp"
@@ -247,17 +249,17 @@ class SceneModel:
             "contraction": self.fit_frame.contraction.to_dict() if self.fit_frame.contraction is not None else None,
             "background": background, "background_color": list(self.background_color),
             "render_options": asdict(self.render_options),
-            "grid": {"file": "grid.pt", "resolution": list(self.grid.resolution), "bbox_min": list(self.grid.bbox_min),
+            "grid": {"file": GRID_FILE, "resolution": list(self.grid.resolution), "bbox_min": list(self.grid.bbox_min),
                      "bbox_max": list(self.grid.bbox_max), "sh_degree": self.grid.sh_degree,
                      "occupied": self.grid.num_occupied},
             **self.transforms, **(extra or {}),
         }
-        (folder / "model.json").write_text(json.dumps(record, indent=2))
+        (folder / MODEL_FILE).write_text(json.dumps(record, indent=2))
 
     @classmethod
     def load(cls, folder: Path) -> "SceneModel":
         folder = Path(folder)
-        path = folder / "model.json"
+        path = folder / MODEL_FILE
         if not path.is_file():
             raise UserError(f"{folder} holds no fitted model (model.json missing): run the fit stage")
         record = json.loads(path.read_text())

@@ -39,6 +39,7 @@ from stages.scoring.visuals import colour_depth
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.errors import UserError
 from plenoxels.core.scene_model import SceneModel
+from stages.common.layout import METRICS_JSON, scene_json
 
 NAMED_PATHS = ("auto", "orbit", "spiral")
 DEFAULT_PATH_FRAMES = 120
@@ -273,7 +274,7 @@ def render_cameras(model, cameras: CameraSet, out: Path, report, input_units_per
                "scored": sum(1 for v in views if "psnr" in v), "render_seconds": round(time.time() - started, 2),
                "video": "video.mp4" if cameras.is_path else None,
                "lpips": "AlexNet, v0.1 (stages/scoring/lpips.py)" if with_lpips else None}
-    write_json(out / "metrics.json", metrics)
+    write_json(out / METRICS_JSON, metrics)
     write_json(out / "cameras.json", {"frame": "normalized", "cameras": [
         {"name": c.name, "transform_matrix": c.c2w.tolist(), "fl_x": c.intrinsics.fl_x, "fl_y": c.intrinsics.fl_y,
          "cx": c.intrinsics.cx, "cy": c.intrinsics.cy, "w": c.intrinsics.w, "h": c.intrinsics.h}
@@ -315,7 +316,7 @@ def render_scene(scene_out: Path, spec: str, dest: Path | None = None, size: str
     """Renders the model fitted in `scene_out` (a pipeline output folder: normalize/, fit/) from the cameras
     `spec` names into `dest` (default scene_out/render/<the cameras' name>). Returns (metrics, dest)."""
     scene_out = Path(scene_out)
-    scene_path = scene_out / "normalize" / "scene.json"
+    scene_path = scene_json(scene_out)
     if not scene_path.is_file():
         raise UserError(f"{scene_out} holds no normalize/scene.json: run the pipeline on the scene first")
     scene = read_json(scene_path)

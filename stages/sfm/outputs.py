@@ -14,6 +14,7 @@ from stages.common.media import write_png
 from stages.common.json_files import write_json
 from stages.sfm.triangulate import triangulate
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
+from stages.common.layout import POINTS_NPZ, TRANSFORMS_JSON
 
 
 def _camera_dict(camera: pycolmap.Camera) -> dict:
@@ -82,14 +83,14 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
             frame.update(_pinhole(camera))
         if originals.count(original) != len(originals):
             frame["original_camera"] = original
-    write_json(out / "transforms.json", {
+    write_json(out / TRANSFORMS_JSON, {
         "camera_model": "PINHOLE", **shared, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
         "original_camera": originals[0], "source": source,
         "source_path": str(source_path) if source_path else None, "frames": frames})
     written = {"frames": len(frames), "width": shared["w"], "height": shared["h"]}
     if undistorted.num_points3D() or bounds:
         # SfM's points, an imported model's, or none where the poses bring their depth range (LLFF's bounds).
-        write_points(out / "points.npz", undistorted, frame_index)
+        write_points(out / POINTS_NPZ, undistorted, frame_index)
     else:
         # Imported poses with no points and no depths: triangulate some from the photos, so normalize sees where the
         # content lies.
@@ -97,7 +98,7 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
         points = triangulate([np.asarray(Image.open(out / f["file_path"]).convert("RGB")) for f in frames],
                              np.stack([np.asarray(f["transform_matrix"]) for f in frames]),
                              [Intrinsics.from_frame({**shared, **f}) for f in frames])
-        np.savez(out / "points.npz", **points.arrays())
+        np.savez(out / POINTS_NPZ, **points.arrays())
         written["triangulated"] = {"points": len(points.xyz), "pairs": points.pairs}
     return written
 

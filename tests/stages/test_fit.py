@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from pipeline import config
+from stages.common.layout import CHECKPOINT_PT, RESUME
 from stages.common.json_files import read_json, write_json
 from pipeline.report import Reporter
 from stages.framing.options import SceneOptions
@@ -217,7 +218,7 @@ def test_resume_continues_from_the_checkpoint(fresh, monkeypatch):
     monkeypatch.setattr(Fitter, "train_step", interrupted)
     with pytest.raises(KeyboardInterrupt):
         run_stage(fresh, fit, values)
-    assert (fresh / ".resume" / "fit" / fit.CHECKPOINT).is_file()
+    assert (fresh / RESUME / "fit" / CHECKPOINT_PT).is_file()
 
     calls = []
 
@@ -264,7 +265,7 @@ def test_non_finite_parameters_stop_with_the_setting_to_change(fresh, monkeypatc
     with pytest.raises(UserError, match="fit.lr_density") as info:
         run_stage(fresh, fit, {**QUICK, "resolutions": [16], "steps": [100], "checkpoint_every": 1e-6})
     assert "diverged at step" in str(info.value) and "checkpoint (step" in str(info.value)
-    state = torch.load(fresh / ".resume" / "fit" / fit.CHECKPOINT, weights_only=False)
+    state = torch.load(fresh / RESUME / "fit" / CHECKPOINT_PT, weights_only=False)
     assert torch.isfinite(state["grid"]["data"]).all()
     assert state["step"] <= 41
 
