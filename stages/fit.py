@@ -39,7 +39,7 @@ from plenoxels.planning import model_trial
 from plenoxels.core.errors import UserError
 from plenoxels.core.native import resolve_device
 from plenoxels.core.scene_model import BACKDROP_MIN_TRAIN_PSNR, SceneModel, backdrop_check_step
-from plenoxels.core.train import Diverged, Fitter, RaySet, coarse_start
+from plenoxels.core.train import Diverged, Fitter, RaySet, Schedule
 from stages.settings.fit import Settings
 from stages.common.layout import CHECKPOINT_PT, FIT_JSON, SCENE_JSON
 
@@ -90,17 +90,16 @@ def fit(ctx, settings: Settings, scene: dict, train: RaySet, held_out: HeldOut, 
         budget = TimeBudget(s.budget_seconds, s, new_model, train, held_out.rays, device, started,
                             plan_file=ctx.scratch / BUDGET_PLAN, resume=checkpoint.is_file(), say=ctx.report.info)
         ctx.report.info(budget.line())
-    options = budget.options if budget is not None else replace(
-        s, resolutions=coarse_start(s.resolutions, s.first_level_scale))
-    fitter = Fitter(new_model(options.resolutions[0]), options, train, device)
+    schedule = budget.schedule if budget is not None else Schedule.for_fit(s)
+    fitter = Fitter(new_model(schedule.resolutions[0]), s, train, device, schedule)
     masked = any(f.get("mask_path") for f in scene.get("frames", []))
-    check_step = None if masked or s.background != "auto" else backdrop_check_step(fitter.model, options.resolutions,
-                                                                                   options.steps)
+    check_step = None if masked or s.background != "auto" else backdrop_check_step(fitter.model, schedule.resolutions,
+                                                                                   schedule.steps)
     backdrop_psnr: list[float] = []
 
     if checkpoint.is_file():
         fitter.load_checkpoint(checkpoint)
-        ctx.report.info(f"resuming from the checkpoint at step {fitter.step}/{options.total_steps}")
+        ctx.report.info(f"resuming from the checkpoint at step {fitter.step}/{schedule.total_steps}")
     resumed_from = fitter.step
     if budget is not None:
         budget.attach(fitter)
@@ -116,13 +115,13 @@ def fit(ctx, settings: Settings, scene: dict, train: RaySet, held_out: HeldOut, 
 
     evaluate = held_out.psnr if budget is None else budget.timed(held_out.psnr)
     try:
-        with StopRequest() as stop, ctx.report.bar(total=options.total_steps, desc="fitting") as bar:
+        with StopRequest() as stop, ctx.report.bar(total=schedule.total_steps, desc="fitting") as bar:
             bar.update(fitter.step)
 
             def on_step(mse: float) -> None:
                 if budget is not None:
                     budget.step()
-                    bar.total = options.total_steps  # re-planned
+                    bar.total = schedule.total_steps
                 bar.update(1)
                 bar.set_postfix(loss=f"{mse:.4f}", psnr=f"{fitter.train_psnr():.2f}", refresh=False)
 
@@ -151,9 +150,9 @@ def fit(ctx, settings: Settings, scene: dict, train: RaySet, held_out: HeldOut, 
     stopped_early = stopped and stop.requested
     at_deadline = stopped and not stop.requested
     if stopped_early:
-        ctx.report.warn(f"stopped early at step {fitter.step}/{options.total_steps} (Ctrl-C); writing the model as "
+        ctx.report.warn(f"stopped early at step {fitter.step}/{schedule.total_steps} (Ctrl-C); writing the model as "
                         f"it stands")
-    elif at_deadline and options.prune_final:
+    elif at_deadline and s.prune_final:
         fitter.prune()  # the time budget's deadline: the end of the fit, pruned as a complete schedule is
     return finish(ctx, fitter, held_out, resumed_from, stopped_early, device, budget, at_deadline, background_why,
                   choice, seen)
@@ -163,16 +162,17 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
            budget: TimeBudget | None = None, at_deadline: bool = False, background_why: str = "",
            choice: dict | None = None, seen: HeldOut | None = None) -> dict:
     s: Settings = fitter.options
+    schedule = fitter.schedule
     model = fitter.model
     final_psnr = held_out.psnr(model) if held_out else None
     memory = model.memory_bytes()
-    model.save(ctx.work, extra={"fit_settings": {k: getattr(s, k) for k in ("resolutions", "steps", "sh_degree",
-                                                                            "image_scale", "step_size")}})
+    model.save(ctx.work, extra={"fit_settings": {"resolutions": schedule.resolutions, "steps": schedule.steps,
+                                                 **{k: getattr(s, k) for k in ("sh_degree", "image_scale", "step_size")}}})
     grid = model.grid
     record = {
         "complete": not stopped_early,
-        "resolutions": s.resolutions, "steps_per_level": s.steps,
-        "steps": fitter.step, "total_steps": s.total_steps, "resumed_from_step": resumed_from,
+        "resolutions": schedule.resolutions, "steps_per_level": schedule.steps,
+        "steps": fitter.step, "total_steps": schedule.total_steps, "resumed_from_step": resumed_from,
         "seconds": round(fitter.elapsed, 1), "device": str(device),
         "train_images": len(fitter.train), "train_pixels": fitter.train.num_pixels,
         "train_psnr": round(fitter.train_psnr(), 3),
@@ -231,10 +231,10 @@ def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_ea
             ctx.report.warn(advice.removeprefix("; "))
             line += advice
     if stopped_early:
-        line += f"; stopped early at step {fitter.step}/{s.total_steps} (Ctrl-C)"
+        line += f"; stopped early at step {fitter.step}/{schedule.total_steps} (Ctrl-C)"
     if budget is not None:
-        ran = f"ran {'->'.join(map(str, s.resolutions))}, {'+'.join(map(str, s.steps))} steps"
-        line += f"; {budget.line()}; " + (f"stopped at the deadline at step {fitter.step}/{s.total_steps}"
+        ran = f"ran {'->'.join(map(str, schedule.resolutions))}, {'+'.join(map(str, schedule.steps))} steps"
+        line += f"; {budget.line()}; " + (f"stopped at the deadline at step {fitter.step}/{schedule.total_steps}"
                                          if at_deadline else ran)
     return {"line": line, "complete": not stopped_early, "steps": fitter.step, "occupied": grid.num_occupied,
             "train_psnr": record["train_psnr"], "held_out_psnr": record["held_out_psnr"],

@@ -14,6 +14,8 @@ same batches. A loss or parameter that stops being finite raises `Diverged`.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import copy
 import math
 import time
@@ -50,6 +52,32 @@ def coarse_start(resolutions: list[int] | tuple[int, ...], scale: float) -> list
     coarse = first if scale >= 1 else min(first, max(min(32, first), 8 * round(first * scale / 8)))
     leading = next((level for level, r in enumerate(resolutions) if r != first), len(resolutions))
     return [coarse] * leading + list(resolutions[leading:])
+
+
+@dataclass
+class Schedule:
+    """Which resolution each level of a fit runs at, and for how many steps. The Fitter consults it at every step; a
+    time budget (plenoxels/planning/budget.py) owns the schedule of its fit and re-plans the levels not yet done."""
+    resolutions: list[int]
+    steps: list[int]
+
+    @classmethod
+    def as_set(cls, options: TrainOptions) -> Schedule:
+        """The options' levels as they are."""
+        return cls(list(options.resolutions), list(options.steps))
+
+    @classmethod
+    def for_fit(cls, options: TrainOptions) -> Schedule:
+        """The options' levels, the first at `first_level_scale` of its resolution (coarse_start)."""
+        return cls(coarse_start(options.resolutions, options.first_level_scale), list(options.steps))
+
+    @property
+    def total_steps(self) -> int:
+        return sum(self.steps)
+
+    def level_end(self, level: int) -> int:
+        """The step at which `level` ends."""
+        return sum(self.steps[:level + 1])
 
 
 class RaySet:
@@ -241,8 +269,9 @@ class Fitter:
     """The state of one fit: the model, its optimisers, the step counter and the history."""
 
     def __init__(self, model: SceneModel, options: TrainOptions, train: RaySet,
-                 device: torch.device = torch.device("cpu")):
+                 device: torch.device = torch.device("cpu"), schedule: Schedule | None = None):
         self.options, self.train, self.device = options, train.to(device), device
+        self.schedule = schedule if schedule is not None else Schedule.as_set(options)
         self.model = model.to(device)
         self.generator = torch.Generator().manual_seed(options.seed)  # on the CPU for every device: one stream
         self.step = 0
@@ -295,13 +324,13 @@ class Fitter:
         step, `on_level(grid)` after each level change, `on_eval(history entry)` after each evaluation.
         A KeyboardInterrupt writes a checkpoint (unless the parameters are no longer finite) and
         propagates; so does Diverged, leaving the last checkpoint, which was written from finite parameters.
-        The schedule is read from `options` at every step, so a callback may change the steps of levels not yet done
-        (plenoxels/planning/budget.py does, to end on time)."""
+        The schedule is consulted at every step, so its owner may change the levels not yet done (a time budget
+        does, to end on time)."""
         started = time.time() - self.elapsed
         last_save = time.time()
         stopped = False
         try:
-            while self.step < self.options.total_steps:
+            while self.step < self.schedule.total_steps:
                 if self.step == self.level_end(self.level):
                     self.next_level()
                     self.elapsed = time.time() - started
@@ -341,12 +370,12 @@ class Fitter:
 
     # ---- one step ------------------------------------------------------------------------------
     def level_end(self, level: int) -> int:
-        return sum(self.options.steps[:level + 1])
+        return self.schedule.level_end(level)
 
     def train_step(self) -> float:
         """One optimiser step on one batch; returns its MSE."""
         o = self.options
-        progress = self.step / max(1, o.total_steps)
+        progress = self.step / max(1, self.schedule.total_steps)
         self.optim.set_lr(decayed_lr(o.lr_density, o.lr_density_final, progress, o.lr_density_delay),
                           decayed_lr(o.lr_sh, o.lr_sh_final, progress))
         own_backdrops = self.train.backdrops is not None and self.bg_optim is None
@@ -401,7 +430,7 @@ class Fitter:
         """What the level's resolution multiplies the TV weights by (tv_reference_resolution). The level's entry in
         `resolutions`, not the grid's longest side: an NDC grid reaches past the reference image (up to twice as
         many cells across) and caps its depth, while its cells stay the size that entry gives them."""
-        return tv_scale_for_resolution(self.options.resolutions[self.level], self.options.tv_reference_resolution)
+        return tv_scale_for_resolution(self.schedule.resolutions[self.level], self.options.tv_reference_resolution)
 
     def regularisation_summary(self) -> str:
         """The fit summary's words on how TV was set for this capture ("" when as set)."""
@@ -446,7 +475,7 @@ class Fitter:
         budget = min(self.options.voxel_budget, voxels_that_fit(self.model.grid.sh_degree))
         old_res = max(self.model.grid.resolution)
         self.level += 1
-        new_shape = self.model.resolution_for(self.options.resolutions[self.level])
+        new_shape = self.model.resolution_for(self.schedule.resolutions[self.level])
         growth = (max(new_shape) / old_res) ** 3
         pruned = self.prune(budget_rows=max(1, int(budget / growth)))
         if tuple(new_shape) != self.model.grid.resolution:

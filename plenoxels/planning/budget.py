@@ -24,7 +24,7 @@ from plenoxels.planning.fit_plan import (FIRST_KEEP_PRIOR, LADDER, MAX_SHARE, MI
                                 finish_seconds, replan)
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.scene_model import SceneModel
-from plenoxels.core.train import Fitter, RaySet, coarse_start, pruning_rays
+from plenoxels.core.train import Fitter, RaySet, Schedule, coarse_start, pruning_rays
 
 # Re-plan every this many steps; a level's step time is the mean of its latest STEP_WINDOW, after its first few.
 REPLAN_EVERY = 20
@@ -38,8 +38,8 @@ SLACK = 0.02
 class TimeBudget:
     """Plans a fit to end by `started + seconds` and keeps it on time.
 
-    Made before the Fitter, whose options are then `options` (the fit's, with the plan's levels and steps), and
-    `attach`ed to it once it exists (resumed or new). While it runs, the caller calls `step()` after each step and
+    Made before the Fitter, which then runs on its `schedule` (the plan's levels and steps, re-planned as the fit
+    goes), and `attach`ed to it once it exists (resumed or new). While it runs, the caller calls `step()` after each step and
     `level()` after each level change, wraps held-out evaluations in `timed`, and stops the fit when `due()`.
     `line()` says what was chosen and why; `record()` says it all, for fit.json.
     """
@@ -77,7 +77,7 @@ class TimeBudget:
             self.plan = choose(self.left(), self.costs, self.facts, ladder)
             self.rung = next(r for r in ladder if list(r.resolutions) == self.plan.resolutions)
             resolutions, steps = self.plan.resolutions, self.plan.steps
-        self.options = dataclasses.replace(options, resolutions=list(resolutions), steps=list(steps))
+        self.schedule = Schedule(list(resolutions), list(steps))
         self.now = self.facts.outlook()
         self.fitter: Fitter | None = None
         self.replans: list[dict] = []          # at each level change, and the latest one within each level
@@ -95,8 +95,8 @@ class TimeBudget:
         changes have measured what its prunes keep."""
         self.fitter = fitter
         self.deadline = self.started + self.seconds - fitter.elapsed
-        start = sum(self.options.steps[:fitter.level])
-        self.options.steps[fitter.level] = max(self.options.steps[fitter.level], fitter.step - start)
+        start = sum(self.schedule.steps[:fitter.level])
+        self.schedule.steps[fitter.level] = max(self.schedule.steps[fitter.level], fitter.step - start)
         kept = [_kept_share(entry) for entry in fitter.levels]
         measured = {"first_keep": kept[0]} if kept else {}
         if len(kept) > 1:
@@ -108,14 +108,14 @@ class TimeBudget:
     def due(self) -> bool:
         """True when what is left of the budget is what it takes to end the fit as it stands (the stop's checkpoint,
         the last pruning pass, the held-out PSNR and the save)."""
-        resolution = self.options.resolutions[self.fitter.level]
+        resolution = self.schedule.resolutions[self.fitter.level]
         return self.left() <= finish_seconds(self.costs, self.facts, self.now, resolution, self.now.voxels, stop=True)
 
     def step(self) -> None:
         """After each step: its time (held-out evaluations left out), and a re-plan every REPLAN_EVERY steps."""
         clock = time.perf_counter()
         interval, self._last, self._eval_seconds = clock - self._last - self._eval_seconds, clock, 0.0
-        if self.fitter.step - sum(self.options.steps[:self.fitter.level]) > LEVEL_WARMUP:
+        if self.fitter.step - sum(self.schedule.steps[:self.fitter.level]) > LEVEL_WARMUP:
             self._intervals = (self._intervals + [interval])[-STEP_WINDOW:]
         if self.fitter.step % REPLAN_EVERY == 0 and len(self._intervals) >= 5:
             measured = float(np.mean(self._intervals))
@@ -132,7 +132,7 @@ class TimeBudget:
         fitter = self.fitter
         change, self._eval_seconds = time.perf_counter() - self._last - self._eval_seconds, 0.0
         entry = fitter.levels[-1]
-        before = self.options.resolutions[fitter.level - 1]
+        before = self.schedule.resolutions[fitter.level - 1]
         predicted = (self.costs.pass_seconds(self.facts.prune_rays(before), before)
                      + (self.costs.change_per_voxel + self.costs.checkpoint_per_voxel) * entry["occupied"])
         self.now.change_ratio = change / max(predicted, 1e-9)
@@ -164,22 +164,22 @@ class TimeBudget:
 
     def _at_first_resolution(self) -> bool:
         """Whether the fit is still at its first level's resolution (its early-pruned rest included)."""
-        return self.options.resolutions[self.fitter.level] == self.options.resolutions[0]
+        return self.schedule.resolutions[self.fitter.level] == self.schedule.resolutions[0]
 
     def _replan(self, why: str) -> None:
         self.now.step = self.fitter.step
         resolutions, steps, share = replan(self.left() - SLACK * self.seconds, self.costs, self.facts, self.now,
-                                           self.rung, self.options.resolutions, self.options.steps,
+                                           self.rung, self.schedule.resolutions, self.schedule.steps,
                                            measured=not self._at_first_resolution())
         entry = {"why": why, "step": self.fitter.step, "seconds_left": round(self.left(), 1), "share": round(share, 3),
                  "steps": steps, "step_seconds": round(self.now.step_seconds or 0.0, 5)}
-        if len(resolutions) < len(self.options.resolutions):
-            entry["dropped_levels"] = self.options.resolutions[len(resolutions):]
-        elif resolutions[-1] != self.options.resolutions[-1]:
-            entry["lowered_last_level"] = [self.options.resolutions[-1], resolutions[-1]]
-        # In place: the Fitter reads its schedule from these lists at every step (Fitter.run).
-        self.options.resolutions[:] = resolutions
-        self.options.steps[:] = steps
+        if len(resolutions) < len(self.schedule.resolutions):
+            entry["dropped_levels"] = self.schedule.resolutions[len(resolutions):]
+        elif resolutions[-1] != self.schedule.resolutions[-1]:
+            entry["lowered_last_level"] = [self.schedule.resolutions[-1], resolutions[-1]]
+        # The fitter consults this schedule at every step (Fitter.run).
+        self.schedule.resolutions[:] = resolutions
+        self.schedule.steps[:] = steps
         # A steps-only re-plan replaces the one before it, unless either dropped or lowered a level (that stays in the
         # record).
         if (why == "steps" and self.replans and self.replans[-1]["why"] == "steps"
@@ -193,7 +193,7 @@ class TimeBudget:
         if self.plan_file is None:
             return
         state = {"rung": dataclasses.asdict(self.rung), "plan": dataclasses.asdict(self.plan),
-                 "resolutions": self.options.resolutions, "steps": self.options.steps}
+                 "resolutions": self.schedule.resolutions, "steps": self.schedule.steps}
         tmp = self.plan_file.with_name(self.plan_file.name + ".tmp")
         tmp.write_text(json.dumps(state))
         tmp.replace(self.plan_file)
@@ -223,7 +223,7 @@ class TimeBudget:
                     f"steps, given the most steps that fit, up to {MAX_SHARE:g}x"),
             "chosen": {**dataclasses.asdict(self.plan), "share": round(self.plan.share, 3),
                        "predicted": round(self.plan.predicted, 1)},
-            "ran": {"resolutions": list(self.options.resolutions), "steps": list(self.options.steps)},
+            "ran": {"resolutions": list(self.schedule.resolutions), "steps": list(self.schedule.steps)},
             "stopped_at_deadline": stopped_at_deadline,
             "step_seconds_per_level": self.level_seconds + latest,
             "scene_over_model": {"later_steps": round(self.now.step_ratio, 3),

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from plenoxels.core.scene_model import SceneModel, psnr, reaches_far
-from plenoxels.core.train import Fitter, RaySet, coarse_start
+from plenoxels.core.train import Fitter, RaySet, Schedule
 
 # The models a trial chooses between, by the fit's toggles that make each.
 MODELS: dict[str, dict[str, str]] = {
@@ -180,7 +180,7 @@ def score_views(count: int) -> list[int]:
 def trial_options(options):
     """The fit's options for one short coarse level: its first resolution (no finer than MAX_RESOLUTION), pruned
     after a fifth of STEPS, no final prune."""
-    first = min(coarse_start(options.resolutions, options.first_level_scale)[0], MAX_RESOLUTION)
+    first = min(Schedule.for_fit(options).resolutions[0], MAX_RESOLUTION)
     early = STEPS // 5
     return replace(options, resolutions=[first, first], steps=[early, STEPS - early], prune_final=False)
 

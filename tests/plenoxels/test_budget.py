@@ -187,7 +187,7 @@ def test_a_rungs_early_prune_stays_at_its_step_and_its_cheap_steps_do_not_speak_
     ratios, measured = [], []
     replan_budget, replan = budget.TimeBudget._replan, budget.replan
     monkeypatch.setattr(budget.TimeBudget, "_replan", lambda self, why: ratios.append(
-        (self.options.resolutions[self.fitter.level], self.now.step_ratio)) or replan_budget(self, why))
+        (self.schedule.resolutions[self.fitter.level], self.now.step_ratio)) or replan_budget(self, why))
     monkeypatch.setattr(budget, "replan", lambda *args, **kwargs: measured.append(
         (args[3].level, kwargs["measured"])) or replan(*args, **kwargs))
     run_stage(fresh, fit, {**BUDGETED, "time_budget": "30s"})
