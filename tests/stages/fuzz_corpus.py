@@ -1,0 +1,154 @@
+"""Hostile inputs made on the fly: each kind is a photo folder (or a video) holding something a user may hand us.
+
+A kind's maker writes into an empty folder and returns the path to give the pipeline; nothing here is committed data.
+"""
+import os
+import struct
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image
+
+
+def textured(h=48, w=64, seed=0):
+    rng = np.random.default_rng(seed)
+    return cv2.resize(rng.integers(0, 256, (h // 4, w // 4, 3), dtype=np.uint8), (w, h), interpolation=cv2.INTER_CUBIC)
+
+
+def good_photos(folder: Path, count=3):
+    folder.mkdir(parents=True, exist_ok=True)
+    for i in range(count):
+        Image.fromarray(textured(seed=i)).save(folder / f"p{i}.jpg", quality=92)
+    return folder
+
+
+def bomb_png(path: Path, side=40000):
+    """A PNG whose header claims side x side pixels over a few bytes of data."""
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+    header = struct.pack(">IIBBBBB", side, side, 8, 2, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 64))
+                     + chunk(b"IEND", b""))
+
+
+def with_orientation(tag):
+    def make(folder):
+        exif = Image.Exif()
+        exif[0x0112] = tag
+        Image.fromarray(textured(seed=7)).save(good_photos(folder) / f"o{tag}.jpg", exif=exif, quality=92)
+        return folder
+    return make
+
+
+def one(name, writer):
+    def make(folder):
+        writer(good_photos(folder) / name)
+        return folder
+    return make
+
+
+def video(frames, truncate=False):
+    def make(folder):
+        folder.mkdir(parents=True)
+        path = folder / "clip.mp4"
+        out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10, (64, 48))
+        for i in range(frames):
+            out.write(textured(seed=i))
+        out.release()
+        if truncate and path.exists():
+            path.write_bytes(path.read_bytes()[: max(1, path.stat().st_size // 2)])
+        elif not path.exists():
+            path.write_bytes(b"")
+        return path
+    return make
+
+
+def mask_case(mask):
+    def make(folder):
+        good_photos(folder)
+        (folder / "masks").mkdir()
+        for i in range(3):
+            Image.fromarray(mask(i)).save(folder / "masks" / f"p{i}.png")
+        return folder
+    return make
+
+
+def symlink_loop(folder):
+    good_photos(folder)
+    os.symlink(folder / "loop", folder / "loop")
+    os.symlink(folder, folder / "self")
+    return folder
+
+
+def folder_named_jpg(folder):
+    (good_photos(folder) / "x.jpg").mkdir()
+    return folder
+
+
+def read_only(folder):
+    good_photos(folder)
+    folder.chmod(0o555)
+    return folder
+
+
+def mixed_sizes(folder):
+    good_photos(folder)
+    Image.fromarray(textured(96, 64, seed=5)).save(folder / "tall.jpg")
+    Image.fromarray(textured(40, 120, seed=6)).save(folder / "wide.jpg")
+    return folder
+
+
+def mask_rotated(folder):
+    good_photos(folder)
+    (folder / "masks").mkdir()
+    for i in range(3):
+        exif = Image.Exif()
+        exif[0x0112] = 6
+        Image.fromarray(np.full((48, 64), 255, np.uint8)).save(folder / "masks" / f"p{i}.jpg", exif=exif)
+    return folder
+
+
+def animated_gif(path):
+    frames = [Image.fromarray(textured(seed=s)) for s in range(3)]
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=100, loop=0)
+
+
+KINDS = {
+    "bomb_png": one("bomb.png", bomb_png),
+    "zero_byte": one("empty.jpg", lambda p: p.write_bytes(b"")),
+    "text_as_jpg": one("notes.jpg", lambda p: p.write_text("not a photo\n")),
+    "truncated_jpg": one("cut.jpg", lambda p: (Image.fromarray(textured(seed=9)).save(p), p.write_bytes(p.read_bytes()[:200]))),
+    "cmyk": one("cmyk.jpg", lambda p: Image.fromarray(textured(seed=4)).convert("CMYK").save(p)),
+    "grey16": one("grey16.png", lambda p: cv2.imwrite(str(p), textured(seed=3)[..., 0].astype(np.uint16) * 257)),
+    "palette": one("pal.png", lambda p: Image.fromarray(textured(seed=8)).convert("P").save(p)),
+    "one_by_one": one("dot.png", lambda p: Image.fromarray(np.zeros((1, 1, 3), np.uint8)).save(p)),
+    "huge_aspect": one("strip.png", lambda p: Image.fromarray(textured(4, 4000, seed=2)).save(p)),
+    "animated_gif": one("anim.gif", animated_gif),
+    "space_name": one("my photo 1.jpg", lambda p: Image.fromarray(textured(seed=11)).save(p)),
+    "non_ascii_name": one("фото-é-写真.jpg", lambda p: Image.fromarray(textured(seed=12)).save(p)),
+    "random_bytes_png": one("noise.png", lambda p: p.write_bytes(np.random.default_rng(0).bytes(4096))),
+    "png_header_only": one("head.png", lambda p: p.write_bytes(b"\x89PNG\r\n\x1a\n")),
+    "folder_named_jpg": folder_named_jpg,
+    "symlink_loop": symlink_loop,
+    "read_only_folder": read_only,
+    "mixed_sizes": mixed_sizes,
+    **{f"orientation_{t}": with_orientation(t) for t in (2, 3, 4, 5, 7, 8, 0, 9, 65535)},
+    "mask_other_size": mask_case(lambda i: np.full((10, 30), 255, np.uint8)),
+    "mask_all_black": mask_case(lambda i: np.zeros((48, 64), np.uint8)),
+    "mask_all_white": mask_case(lambda i: np.full((48, 64), 255, np.uint8)),
+    "mask_rotated_exif": mask_rotated,
+    "video_no_frames": video(0),
+    "video_one_frame": video(1),
+    "video_truncated": video(20, truncate=True),
+}
+
+# What the user must see for each kind: "skip" names the file among the skipped, "stop" is one UserError line,
+# "keep" ingests every photo; a kind missing here is "keep".
+EXPECT = {
+    **{k: "skip" for k in ("bomb_png", "zero_byte", "text_as_jpg", "truncated_jpg", "animated_gif", "random_bytes_png",
+                           "png_header_only")},
+    **{k: "stop" for k in ("mask_other_size", "mask_rotated_exif", "video_no_frames", "video_one_frame",
+                           "video_truncated")},
+}
