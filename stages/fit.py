@@ -32,14 +32,15 @@ from dataclasses import replace
 
 from stages.common.interrupts import StopRequest
 from stages.common.json_files import read_json, write_json
-from stages.common.text import format_bytes, format_count, format_duration
+from stages.common.text import format_bytes, format_count
+from stages.training.fit_record import Ending, FitInputs, budget_summary, fit_record, summary
 from stages.training.views import HeldOut, load_training, training_frames
-from plenoxels.planning.budget import TimeBudget
+from plenoxels.planning.budget import BudgetClock, TimeBudget
 from plenoxels.planning import model_trial
 from plenoxels.core.errors import UserError
 from plenoxels.core.native import resolve_device
 from plenoxels.core.scene_model import BACKDROP_MIN_TRAIN_PSNR, SceneModel, backdrop_check_step
-from plenoxels.core.train import Diverged, Fitter, RaySet, Schedule
+from plenoxels.core.train import Diverged, Fitter, Schedule
 from stages.settings.fit import Settings
 from stages.common.layout import CHECKPOINT_PT, FIT_JSON, SCENE_JSON
 
@@ -63,46 +64,81 @@ def run(ctx) -> dict:
     # Where normalize's measures leave the model open, short coarse fits of each plausible one choose it (inside the
     # time budget, which counts from `started`).
     s, choice = model_trial.choose(scene, s, train, device, s.budget_seconds, ctx.scratch / MODEL_TRIAL, ctx.report.info)
+    inputs = FitInputs(scene, train, held_out, seen, device, started, choice)
+    fitted = fit(ctx, s, inputs, background_added(ctx))
+    if fitted is None:  # an object fit whose photos' backdrop is no one colour: again, with a background model
+        fitted = fit(ctx, s, inputs, background_added(ctx))
+    return fitted
+
+
+def background_added(ctx) -> str:
+    """Why an earlier fit of these inputs added a background model ("" when none did)."""
     added = ctx.scratch / BACKGROUND_ADDED
-    while True:
-        # An object fit whose photos' backdrop is no one colour starts again with a background model (see fit()).
-        fitted = fit(ctx, s, scene, train, held_out, seen, device, started,
-                     read_json(added)["why"] if added.is_file() else "", choice)
-        if fitted is not None:
-            return fitted
+    return read_json(added)["why"] if added.is_file() else ""
 
 
-def fit(ctx, settings: Settings, scene: dict, train: RaySet, held_out: HeldOut, seen: HeldOut, device, started: float,
-        background_why: str, choice: dict) -> dict | None:
+def fit(ctx, settings: Settings, inputs: FitInputs, background_why: str) -> dict | None:
     """Fits the model and finishes the stage; None where an object fit with one colour behind its grid cannot
     reproduce its own photos at the end of its coarsest resolution (scene_model.backdrop_check_step): what surrounds
     the object is not that colour, so the reason is kept in the scratch folder and the caller fits again with a
-    background model."""
+    background model (a fit with one is never checked so, so it does not return None)."""
     s: Settings = replace(settings, background="on") if background_why else settings
     checkpoint = ctx.scratch / CHECKPOINT_PT
-    mean_colour = train.mean_colour()
+    fitter, budget, check_step = start(ctx, s, inputs, checkpoint)
+    resumed_from = fitter.step
+    how, backdrop_psnr = train_levels(ctx, fitter, inputs.held_out, budget, check_step, checkpoint)
+    if how == "backdrop":
+        why = (f"train PSNR {backdrop_psnr:.1f} dB at step {fitter.step} (below {BACKDROP_MIN_TRAIN_PSNR:g} dB): what "
+               "surrounds the object is not the one colour behind the grid, so a background model shows it")
+        ctx.report.warn(f"{why}; fitting again with it")
+        checkpoint.unlink(missing_ok=True)
+        (ctx.scratch / BUDGET_PLAN).unlink(missing_ok=True)
+        write_json(ctx.scratch / BACKGROUND_ADDED, {"why": why})
+        return None
+    if how == "ctrl-c":
+        ctx.report.warn(f"stopped early at step {fitter.step}/{fitter.schedule.total_steps} (Ctrl-C); writing the "
+                        f"model as it stands")
+    elif how == "deadline" and s.prune_final:
+        fitter.prune()  # the time budget's deadline: the end of the fit, pruned as a complete schedule is
+    return finish(ctx, fitter, inputs, Ending(resumed_from, how == "ctrl-c", how == "deadline", background_why), budget)
+
+
+def start(ctx, s: Settings, inputs: FitInputs, checkpoint) -> tuple[Fitter, TimeBudget | None, int | None]:
+    """The fit's Fitter on its schedule (a time budget's plan when the settings give one, which then follows the
+    Fitter), resumed from the checkpoint when there is one, and the step at which an object fit with one colour behind
+    its grid checks that it reproduces its photos (None where it does not: a masked capture, a model set by hand)."""
+    train, mean_colour = inputs.train, inputs.train.mean_colour()
 
     def new_model(resolution: int) -> SceneModel:
-        return SceneModel.create(scene, s, resolution, focal_px=float(train.k[:, :2].median()), mean_colour=mean_colour)
+        return SceneModel.create(inputs.scene, s, resolution, focal_px=float(train.k[:, :2].median()),
+                                 mean_colour=mean_colour)
 
     budget = None
     if s.budget_seconds:
-        budget = TimeBudget(s.budget_seconds, s, new_model, train, held_out.rays, device, started,
-                            plan_file=ctx.scratch / BUDGET_PLAN, resume=checkpoint.is_file(), say=ctx.report.info)
+        clock = BudgetClock(s.budget_seconds, inputs.started, plan_file=ctx.scratch / BUDGET_PLAN,
+                            resume=checkpoint.is_file())
+        budget = TimeBudget(clock, s, new_model, train, inputs.held_out.rays, inputs.device, say=ctx.report.info)
         ctx.report.info(budget.line())
     schedule = budget.schedule if budget is not None else Schedule.for_fit(s)
-    fitter = Fitter(new_model(schedule.resolutions[0]), s, train, device, schedule)
-    masked = any(f.get("mask_path") for f in scene.get("frames", []))
+    fitter = Fitter(new_model(schedule.resolutions[0]), s, train, inputs.device, schedule)
+    masked = any(f.get("mask_path") for f in inputs.scene.get("frames", []))
+    # The schedule as planned, before a resumed fit's budget stretches the level under way.
     check_step = None if masked or s.background != "auto" else backdrop_check_step(fitter.model, schedule.resolutions,
                                                                                    schedule.steps)
-    backdrop_psnr: list[float] = []
-
     if checkpoint.is_file():
         fitter.load_checkpoint(checkpoint)
         ctx.report.info(f"resuming from the checkpoint at step {fitter.step}/{schedule.total_steps}")
-    resumed_from = fitter.step
     if budget is not None:
         budget.attach(fitter)
+    return fitter, budget, check_step
+
+
+def train_levels(ctx, fitter: Fitter, held_out: HeldOut, budget: TimeBudget | None, check_step: int | None,
+                 checkpoint) -> tuple[str, float | None]:
+    """Runs the fit to the end of its schedule; returns how it ended ("complete", "ctrl-c", "deadline" or "backdrop":
+    its train PSNR at `check_step` too low for one colour behind the grid, with that PSNR)."""
+    s: Settings = fitter.options
+    schedule, backdrop_psnr = fitter.schedule, []
 
     def on_level(grid) -> None:
         if budget is not None:
@@ -140,102 +176,23 @@ def fit(ctx, settings: Settings, scene: dict, train: RaySet, held_out: HeldOut, 
         raise UserError(f"the fit diverged at step {fitter.step} ({exc}); lower fit.lr_density (now {s.lr_density:g}) "
                         f"or fit.lr_sh (now {s.lr_sh:g}) and run again; {kept}") from None
     if backdrop_psnr:
-        why = (f"train PSNR {backdrop_psnr[0]:.1f} dB at step {fitter.step} (below {BACKDROP_MIN_TRAIN_PSNR:g} dB): what "
-               "surrounds the object is not the one colour behind the grid, so a background model shows it")
-        ctx.report.warn(f"{why}; fitting again with it")
-        checkpoint.unlink(missing_ok=True)
-        (ctx.scratch / BUDGET_PLAN).unlink(missing_ok=True)
-        write_json(ctx.scratch / BACKGROUND_ADDED, {"why": why})
-        return None
-    stopped_early = stopped and stop.requested
-    at_deadline = stopped and not stop.requested
-    if stopped_early:
-        ctx.report.warn(f"stopped early at step {fitter.step}/{schedule.total_steps} (Ctrl-C); writing the model as "
-                        f"it stands")
-    elif at_deadline and s.prune_final:
-        fitter.prune()  # the time budget's deadline: the end of the fit, pruned as a complete schedule is
-    return finish(ctx, fitter, held_out, resumed_from, stopped_early, device, budget, at_deadline, background_why,
-                  choice, seen)
+        return "backdrop", backdrop_psnr[0]
+    if not stopped:
+        return "complete", None
+    return ("ctrl-c" if stop.requested else "deadline"), None
 
 
-def finish(ctx, fitter: Fitter, held_out: HeldOut, resumed_from: int, stopped_early: bool, device,
-           budget: TimeBudget | None = None, at_deadline: bool = False, background_why: str = "",
-           choice: dict | None = None, seen: HeldOut | None = None) -> dict:
+def finish(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBudget | None) -> dict:
+    """Saves the model, writes fit.json and returns the stage's result with its summary line."""
     s: Settings = fitter.options
-    schedule = fitter.schedule
-    model = fitter.model
+    schedule, model, held_out = fitter.schedule, fitter.model, inputs.held_out
     final_psnr = held_out.psnr(model) if held_out else None
-    memory = model.memory_bytes()
     model.save(ctx.work, extra={"fit_settings": {"resolutions": schedule.resolutions, "steps": schedule.steps,
                                                  **{k: getattr(s, k) for k in ("sh_degree", "image_scale", "step_size")}}})
-    grid = model.grid
-    record = {
-        "complete": not stopped_early,
-        "resolutions": schedule.resolutions, "steps_per_level": schedule.steps,
-        "steps": fitter.step, "total_steps": schedule.total_steps, "resumed_from_step": resumed_from,
-        "seconds": round(fitter.elapsed, 1), "device": str(device),
-        "train_images": len(fitter.train), "train_pixels": fitter.train.num_pixels,
-        "train_psnr": round(fitter.train_psnr(), 3),
-        "held_out_psnr": round(final_psnr, 3) if final_psnr is not None else None,
-        "held_out_views": len(held_out.views), "held_out_scale": s.eval_scale,
-        "history": fitter.history, "levels": fitter.levels,
-        "model": model.describe(),
-        "memory_bytes": memory,
-        "regularisation": fitter.regularisation,
-        "background_added": background_why or None,
-        "scene_model": model_trial.model_name(model), "model_choice": choice or {},
-        "own_backdrops": fitter.train.backdrops is not None and model.background is None,
-    }
-    if device.type == "cpu":
-        used, available = fitter.grad.threads()
-        record["gradient_threads"] = {"used": used, "available": available}
-    if fitter.bg_optim is not None:
-        optimiser_bytes = sum(t.numel() * t.element_size() for t in (fitter.bg_optim.grad, fitter.bg_optim.second_moment))
-        record["background_cost"] = {"seconds": round(fitter.background_seconds, 2),
-                                     "share_of_fitting": round(fitter.background_seconds / max(fitter.elapsed, 1e-9), 4),
-                                     "model_bytes": memory["background"], "optimiser_bytes": optimiser_bytes}
-    if budget is not None:
-        record["budget"] = budget.record(at_deadline)
-        record["budget"]["stage_seconds"] = round(time.time() - budget.started, 1)
+    record = fit_record(fitter, inputs, ending, budget, final_psnr)
     write_json(ctx.work / FIT_JSON, record)
-    res = grid.resolution
-    shape = f"{res[0]}^3" if len(set(res)) == 1 else "x".join(map(str, res))
-    line = (f"{shape} grid, {format_count(grid.num_occupied)} voxels ({format_bytes(memory['total'])}), "
-            f"train PSNR {record['train_psnr']:.1f} dB")
-    if final_psnr is not None:
-        # A quick estimate (a few views, downscaled); the evaluate stage gives the full figure.
-        line += f", held-out ~{final_psnr:.1f} dB ({len(held_out.views)} views at {s.eval_scale:g}x)"
-    line += f", {format_duration(fitter.elapsed)}"
-    if model.background is not None:
-        cost = record["background_cost"]
-        line += (f", background model {format_bytes(cost['model_bytes'] + cost['optimiser_bytes'])} with its optimiser, "
-                 f"{cost['share_of_fitting']:.0%} of the fitting time")
-        if background_why:
-            line += f" (added: {background_why})"
-    if (choice or {}).get("chosen"):
-        line += "; " + model_trial.summary(choice)
-    line += fitter.regularisation_summary()
-    if "gradient_threads" in record and record["gradient_threads"]["used"] < record["gradient_threads"]["available"]:
-        line += (f", gradients on {record['gradient_threads']['used']} of {record['gradient_threads']['available']} "
-                 f"threads (a gradient table per thread would pass their share of the memory)")
-    if record["own_backdrops"]:
-        line += ", each photo's own backdrop colour past the grid"
-    if model.fit_frame.ndc is not None:
-        line += ", in NDC"
-    if model.fit_frame.contraction is not None:
-        line += ", contracted (all of space)"
-    if not stopped_early and seen and final_psnr is not None:
-        advice = model_trial.gap_advice(seen.psnr(model), final_psnr, record["scene_model"], choice or {},
-                                        record["regularisation"].get("views_per_point"))
-        if advice:
-            ctx.report.warn(advice.removeprefix("; "))
-            line += advice
-    if stopped_early:
-        line += f"; stopped early at step {fitter.step}/{schedule.total_steps} (Ctrl-C)"
-    if budget is not None:
-        ran = f"ran {'->'.join(map(str, schedule.resolutions))}, {'+'.join(map(str, schedule.steps))} steps"
-        line += f"; {budget.line()}; " + (f"stopped at the deadline at step {fitter.step}/{schedule.total_steps}"
-                                         if at_deadline else ran)
-    return {"line": line, "complete": not stopped_early, "steps": fitter.step, "occupied": grid.num_occupied,
-            "train_psnr": record["train_psnr"], "held_out_psnr": record["held_out_psnr"],
-            "seconds": record["seconds"], "memory_bytes": memory["total"]}
+    line = summary(ctx, fitter, inputs, ending, record, final_psnr) + budget_summary(fitter, ending, budget)
+    return {"line": line, "complete": not ending.stopped_early, "steps": fitter.step,
+            "occupied": model.grid.num_occupied, "train_psnr": record["train_psnr"],
+            "held_out_psnr": record["held_out_psnr"], "seconds": record["seconds"],
+            "memory_bytes": record["memory_bytes"]["total"]}

@@ -35,8 +35,17 @@ LEVEL_WARMUP = 3
 SLACK = 0.02
 
 
+@dataclasses.dataclass
+class BudgetClock:
+    """The time a fit has, from when, and where its plan is kept so that a resumed fit keeps it."""
+    seconds: float
+    started: float                  # time.time() the budget counts from
+    plan_file: Path | None = None
+    resume: bool = False            # the fit resumes from a checkpoint: keep the plan saved in plan_file
+
+
 class TimeBudget:
-    """Plans a fit to end by `started + seconds` and keeps it on time.
+    """Plans a fit to end by its clock's `started + seconds` and keeps it on time.
 
     Made before the Fitter, which then runs on its `schedule` (the plan's levels and steps, re-planned as the fit
     goes), and `attach`ed to it once it exists (resumed or new). While it runs, the caller calls `step()` after each step and
@@ -44,13 +53,13 @@ class TimeBudget:
     `line()` says what was chosen and why; `record()` says it all, for fit.json.
     """
 
-    def __init__(self, seconds: float, options, new_model: Callable[[int], SceneModel], train: RaySet,
-                 eval_rays: int, device: torch.device, started: float, plan_file: Path | None = None,
-                 resume: bool = False, say: Callable[[str], None] | None = None,
+    def __init__(self, clock: BudgetClock, options, new_model: Callable[[int], SceneModel], train: RaySet,
+                 eval_rays: int, device: torch.device, say: Callable[[str], None] | None = None,
                  ladder: tuple[Rung, ...] | None = None):
         """`new_model(resolution)` makes the fit's first model (its box and background are what a plan needs)."""
-        self.seconds, self.started, self.plan_file = float(seconds), started, plan_file
-        self.deadline = started + self.seconds
+        self.seconds, self.started, self.plan_file = float(clock.seconds), clock.started, clock.plan_file
+        plan_file, resume = clock.plan_file, clock.resume
+        self.deadline = self.started + self.seconds
         scale = options.first_level_scale
         ladder = tuple(dataclasses.replace(rung, resolutions=tuple(coarse_start(rung.resolutions, scale)))
                        for rung in ladder or LADDER)
@@ -120,8 +129,8 @@ class TimeBudget:
         if self.fitter.step % REPLAN_EVERY == 0 and len(self._intervals) >= 5:
             measured = float(np.mean(self._intervals))
             ratio = measured / self.costs.step_seconds(self.now.voxels, dense=self.now.dense)
-            # A grid at the first resolution, pruned early or not, is still clearing: cheaper than what comes after it
-            # (lego 1- to 4-minute budgets: 0.86-1.04 of the model there, 1.28-1.6 at the last level).
+            # A grid at the first resolution, pruned early or not, is still clearing, so it runs cheaper than what
+            # comes after it: its ratio only counts above 1.
             self.now.ratio_at_first = self._at_first_resolution()
             self.now.step_ratio = max(1.0, ratio) if self.now.ratio_at_first else ratio
             self.now.step_seconds = measured

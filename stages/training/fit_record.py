@@ -1,0 +1,125 @@
+"""What a fit of the fit stage read and how it ended, and what it says of itself: fit.json's record and the stage's
+summary line (stages/fit.py runs the fit; these describe it)."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import torch
+
+from plenoxels.core.train import Fitter, RaySet
+from plenoxels.planning import model_trial
+from plenoxels.planning.budget import TimeBudget
+from stages.common.text import format_bytes, format_count, format_duration
+from stages.training.views import HeldOut
+
+
+@dataclass
+class FitInputs:
+    """What each fit of the stage reads: the scene, its training rays and held-out views, and the model trial's choice."""
+    scene: dict
+    train: RaySet
+    held_out: HeldOut
+    seen: HeldOut           # training views rendered as the held-out ones are
+    device: torch.device
+    started: float          # time.time() the stage started at; the time budget counts from it
+    choice: dict            # model_trial.choose's record
+
+
+@dataclass
+class Ending:
+    """How a fit ended, for its record and summary."""
+    resumed_from: int
+    stopped_early: bool = False     # by Ctrl-C: the model as it stands
+    at_deadline: bool = False       # by the time budget: a normal end
+    background_why: str = ""        # why a background model was added ("" when it was not)
+
+
+def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBudget | None,
+               final_psnr: float | None) -> dict:
+    """fit.json: what ran, what it made and what it cost."""
+    s = fitter.options
+    schedule, model = fitter.schedule, fitter.model
+    memory = model.memory_bytes()
+    record = {
+        "complete": not ending.stopped_early,
+        "resolutions": schedule.resolutions, "steps_per_level": schedule.steps,
+        "steps": fitter.step, "total_steps": schedule.total_steps, "resumed_from_step": ending.resumed_from,
+        "seconds": round(fitter.elapsed, 1), "device": str(inputs.device),
+        "train_images": len(fitter.train), "train_pixels": fitter.train.num_pixels,
+        "train_psnr": round(fitter.train_psnr(), 3),
+        "held_out_psnr": round(final_psnr, 3) if final_psnr is not None else None,
+        "held_out_views": len(inputs.held_out.views), "held_out_scale": s.eval_scale,
+        "history": fitter.history, "levels": fitter.levels,
+        "model": model.describe(),
+        "memory_bytes": memory,
+        "regularisation": fitter.regularisation,
+        "background_added": ending.background_why or None,
+        "scene_model": model_trial.model_name(model), "model_choice": inputs.choice or {},
+        "own_backdrops": fitter.train.backdrops is not None and model.background is None,
+    }
+    if inputs.device.type == "cpu":
+        used, available = fitter.grad.threads()
+        record["gradient_threads"] = {"used": used, "available": available}
+    if fitter.bg_optim is not None:
+        optimiser_bytes = sum(t.numel() * t.element_size() for t in (fitter.bg_optim.grad, fitter.bg_optim.second_moment))
+        record["background_cost"] = {"seconds": round(fitter.background_seconds, 2),
+                                     "share_of_fitting": round(fitter.background_seconds / max(fitter.elapsed, 1e-9), 4),
+                                     "model_bytes": memory["background"], "optimiser_bytes": optimiser_bytes}
+    if budget is not None:
+        record["budget"] = budget.record(ending.at_deadline)
+        record["budget"]["stage_seconds"] = round(time.time() - budget.started, 1)
+    return record
+
+
+def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict, final_psnr: float | None) -> str:
+    """The stage's summary line: the grid, its PSNRs and time, the model's parts and advice where the fit overfits."""
+    s = fitter.options
+    model, held_out, choice = fitter.model, inputs.held_out, inputs.choice or {}
+    grid = model.grid
+    res = grid.resolution
+    shape = f"{res[0]}^3" if len(set(res)) == 1 else "x".join(map(str, res))
+    line = (f"{shape} grid, {format_count(grid.num_occupied)} voxels ({format_bytes(record['memory_bytes']['total'])}), "
+            f"train PSNR {record['train_psnr']:.1f} dB")
+    if final_psnr is not None:
+        # A quick estimate (a few views, downscaled); the evaluate stage gives the full figure.
+        line += f", held-out ~{final_psnr:.1f} dB ({len(held_out.views)} views at {s.eval_scale:g}x)"
+    line += f", {format_duration(fitter.elapsed)}"
+    if model.background is not None:
+        cost = record["background_cost"]
+        line += (f", background model {format_bytes(cost['model_bytes'] + cost['optimiser_bytes'])} with its optimiser, "
+                 f"{cost['share_of_fitting']:.0%} of the fitting time")
+        if ending.background_why:
+            line += f" (added: {ending.background_why})"
+    if choice.get("chosen"):
+        line += "; " + model_trial.summary(choice)
+    line += fitter.regularisation_summary()
+    threads = record.get("gradient_threads")
+    if threads and threads["used"] < threads["available"]:
+        line += (f", gradients on {threads['used']} of {threads['available']} "
+                 f"threads (a gradient table per thread would pass their share of the memory)")
+    if record["own_backdrops"]:
+        line += ", each photo's own backdrop colour past the grid"
+    if model.fit_frame.ndc is not None:
+        line += ", in NDC"
+    if model.fit_frame.contraction is not None:
+        line += ", contracted (all of space)"
+    if not ending.stopped_early and inputs.seen and final_psnr is not None:
+        advice = model_trial.gap_advice(inputs.seen.psnr(model), final_psnr, record["scene_model"], choice,
+                                        record["regularisation"].get("views_per_point"))
+        if advice:
+            ctx.report.warn(advice.removeprefix("; "))
+            line += advice
+    return line
+
+
+def budget_summary(fitter: Fitter, ending: Ending, budget: TimeBudget | None) -> str:
+    """How the fit ended, for the summary line: a stop by Ctrl-C, the time budget's plan and what ran."""
+    schedule, line = fitter.schedule, ""
+    if ending.stopped_early:
+        line += f"; stopped early at step {fitter.step}/{schedule.total_steps} (Ctrl-C)"
+    if budget is not None:
+        ran = f"ran {'->'.join(map(str, schedule.resolutions))}, {'+'.join(map(str, schedule.steps))} steps"
+        line += f"; {budget.line()}; " + (f"stopped at the deadline at step {fitter.step}/{schedule.total_steps}"
+                                         if ending.at_deadline else ran)
+    return line
