@@ -3,12 +3,12 @@
 `calibrate(options, device, background)` times train steps of the real Fitter on a small synthetic object (thin
 opaque surfaces, the vertices within 3 voxels of them allocated, as pruning leaves a fit) at a few resolutions, a
 pruning pass, a level change and the steps on the grid it upsampled, and steps of a first level (a new model's grid,
-the whole box) at a few resolutions, on the device and with the threads the fit uses (about 5 s on a 2-core CPU). The
+the whole box) at a few resolutions, on the device and with the threads the fit uses (a few seconds). The
 `CostModel` fitted to those times is
 
 - seconds per step = a + b x occupied voxels, one line for pruned grids and one for first levels: a first level's
-  step marches every ray through the whole box with nothing to skip and nothing opaque to stop it, 2-4x a pruned
-  grid's step of as many voxels;
+  step marches every ray through the whole box with nothing to skip and nothing opaque to stop it, dearer than a
+  pruned grid's step of as many voxels;
 - seconds per pass (pruning, held-out renders) = c + d x rays x resolution;
 - per-voxel costs of a level change, a checkpoint and the final save;
 - the ratio of a just-upsampled grid's steps to the line (a thicker, softer shell than a converged grid, whose rays
@@ -21,9 +21,8 @@ finer grid's steps many times slower than they run.
 The model is cached as JSON under `$XDG_CACHE_HOME/voxfield/` (else `~/.cache/voxfield/`), keyed by the CPU and GPU
 model, the thread counts, the device, the code of the native core and of this package, and the options that set what
 a step costs; a changed key measures again. A cached one is timed again on its first grid (two rounds, the faster
-counts; about 0.3 s) and its times scaled by how much slower or faster the machine runs now: a shared machine's speed
-drifts (1.2x within an hour on the 2-core one the benches ran on), and a plan from a calibration made at a fast
-moment starves its last level.
+counts; a fraction of the calibration's time) and its times scaled by how much slower or faster the machine runs now:
+a shared machine's speed drifts, and a plan from a calibration made at a fast moment starves its last level.
 """
 from __future__ import annotations
 
@@ -51,13 +50,13 @@ from plenoxels.core.scene_model import SceneModel
 from plenoxels.core.train import Fitter, RaySet, pruning_rays
 
 CACHE_VERSION = 4
-# Resolutions the calibration times steps at (grids as pruning leaves a fit: about 50k, 230k and 520k voxels).
+# Resolutions the calibration times steps at (grids as pruning leaves a fit).
 CALIBRATION_RESOLUTIONS = (64, 128, 192)
-# Resolutions it times a first level's steps at: the whole box allocated, as a fit starts (33k, 262k and 885k voxels).
-# Such a step marches every ray through the box with nothing to skip and nothing opaque to stop it: 2-4x a pruned
-# grid's step of as many voxels (64^3: 85 ms against 14 ms for the surface grid's 50k voxels).
+# Resolutions it times a first level's steps at: the whole box allocated, as a fit starts. Such a step marches every
+# ray through the box with nothing to skip and nothing opaque to stop it, dearer than a pruned grid's step of as many
+# voxels, so first levels get a line of their own.
 DENSE_RESOLUTIONS = (32, 64, 96)
-DENSE_STEPS = 4  # timed steps at each (a new 96^3 grid's step takes about 0.15 s)
+DENSE_STEPS = 4  # timed steps at each (fewer than the surface grids': these steps are the dearest)
 CALIBRATION_WARMUP = 2
 CALIBRATION_STEPS = 8
 # Rounds of CALIBRATION_STEPS a cached calibration's first step is timed again in (see calibrate).
@@ -337,8 +336,7 @@ def calibrate(options, device: torch.device, background: dict | None = None, res
               dense_resolutions=DENSE_RESOLUTIONS, say: Callable[[str], None] | None = None) -> tuple[CostModel, dict]:
     """The cost model for these options on this machine: from the cache when its key matches, with its times scaled by
     how much longer the calibration's first step takes now (the faster of RETIME_ROUNDS timings) than it did (a shared
-    host's speed drifts: 1.2x within an hour on the 2-core one the benches ran on, and a plan from a calibration made
-    at a fast moment starves its last level), else measured (a few seconds) and cached. Returns it and the
+    host's speed drifts, and a plan from a calibration made at a fast moment starves its last level), else measured (a few seconds) and cached. Returns it and the
     calibration's record, with `cached`, `file` and `slower_now` (that scale; 1 for a calibration just measured)
     added."""
     key = calibration_key(options, device, background, resolutions, dense_resolutions)
@@ -350,8 +348,7 @@ def calibrate(options, device: torch.device, background: dict | None = None, res
             fitter = CalibrationObject(options, device, background, reference["resolution"]).fitter_at(
                 [reference["resolution"]])
             # The faster of two rounds: the first can pay for faulting in the new grid's tables, or catch the host
-            # at a slow moment, and one such round scaled a lego 1-minute plan by 1.55 when its steps then ran at
-            # 0.9 of the model.
+            # at a slow moment, which would scale a plan far past what its steps then cost.
             slower = min(_time_steps(fitter, device) for _ in range(RETIME_ROUNDS)) / reference["step_seconds"]
             return (CostModel(**record["costs"]).scaled(slower),
                     {**record, "cached": True, "file": str(path), "slower_now": round(slower, 3)})

@@ -13,19 +13,15 @@ voxels are the level before's, times the share pruning keeps, times the upsampli
 until a level change has measured it.
 
 Which plan (bench/README.md, "Fit: quality against cost" and "The time budget"): grid resolution buys more than
-steps for the same time (lego `fast` with a 192^3 last level: 29.17 dB in 68 s; with twice the steps at 128^3:
-28.73 dB in 67 s), and a level needs enough steps to converge, but half the presets' steps lose less than one rung of
-resolution does (lego `fast` with half its steps: 27.44 dB; at 96^3 with all of them: 26.96 dB). A grid finer than
-the training photos have pixels across buys nothing (the bench's synthetic scene, trained on 200x150 photos: 128^3
-34.38 dB, 192^3 34.98 dB, 256^3 35.36 dB with more steps than 192^3's 35.43; the demo, trained on 160x120: `fast`'s
-128^3 34.75 dB, a 192^3 plan with fewer steps 34.69 dB). So the rule is: the finest rung of LADDER no finer than the
-photos' longest side whose predicted time fits with at least MIN_SHARE of its steps, given as many steps as the time
-allows up to MAX_SHARE of them (twice the steps bought lego `fast` 0.5 dB). A budget beyond that ends early.
+steps for the same time, and a level needs enough steps to converge, but half the presets' steps lose less than one
+rung of resolution does. A grid finer than the training photos have pixels across buys nothing: it has no detail to
+learn that the photos show. So the rule is: the finest rung of LADDER no finer than the photos' longest side whose
+predicted time fits with at least MIN_SHARE of its steps, given as many steps as the time allows up to MAX_SHARE of
+them (more steps still help, less than a finer grid would). A budget beyond that ends early.
 
 The coarsest rungs start at 32^3: a first level's step marches its whole box, so it is the dearest step of a fit for
-its voxels, and a 32^3 level finds the occupied space for a fraction of a 64^3 one's time (lego at 200x200, held out:
-32->64->128 with 100+250+600 steps 30.31 dB in 27 s, 64->128 with 300+600 30.41 dB in 36 s; 32->64 with 100+200
-25.63 dB in 4.5 s, 64 alone with 170 steps 25.53 dB in 8.8 s).
+its voxels, and a 32^3 level finds the occupied space for a fraction of a 64^3 one's time, for about the same
+quality at the end.
 """
 from __future__ import annotations
 
@@ -40,17 +36,17 @@ from plenoxels.planning.fit_cost import CostModel
 MIN_SHARE = 0.5
 MAX_SHARE = 2.0
 # Priors for the share of a level's voxels that pruning keeps, until a level change has measured it: the first prune
-# (of a first level's whole box) by the scene type, and later ones (of grids pruned before: the demo's last prune keeps
-# 50%). An object's or a forward capture's box is mostly air in front of and around thin surfaces (the demo object
-# keeps 10-25%); an unbounded scene's box is the room the cameras stand in, seen from every side, and keeps most of
-# itself (fox 80%, cup 78%, the synthetic unbounded scene 58%). Too high a prior picks a coarser plan than the time
-# allows (re-plans then give it more steps), too low a finer one (re-plans then give it fewer: a fox 2-minute budget
-# planned 128->256 on the object's prior and ran a third of its steps).
+# (of a first level's whole box) by the scene type, and later ones (of grids pruned before, which keep more of
+# themselves). An object's or a forward capture's box is mostly air in front of and around thin surfaces; an unbounded
+# scene's box is the room the cameras stand in, seen from every side, and keeps most of itself. Too high a prior picks
+# a coarser plan than the time allows (re-plans then give it more steps), too low a finer one (re-plans then give it
+# fewer, and a room planned on an object's prior runs a fraction of its steps). Evidence: bench/README.md, "The time
+# budget".
 FIRST_KEEP_PRIOR = {"object": 0.2, "forward": 0.2, "unbounded": 0.75}
 LATER_KEEP_PRIOR = 0.6
 # A last level too dear for half its steps is lowered this many vertices at a time (see replan), in a scene whose
-# first prune kept more than FULL_BOX of its box: a room seen from inside (fox 91-97%, cup 78-89%, the synthetic
-# unbounded scene 67%), not an object on a backdrop (lego 15-20%, the demo object 10-25%).
+# first prune kept more than FULL_BOX of its box: a room seen from inside, not an object on a backdrop (which keeps a
+# small share of its box).
 LOWER_BY = 16
 FULL_BOX = 0.5
 
@@ -77,12 +73,11 @@ def _pruned_early(resolutions: tuple[int, ...], steps: tuple[int, ...]) -> Rung:
 
 # Candidate schedules, coarse to fine, at the presets' step counts: the presets' levels (fast 64->128, balanced
 # 96->192, default 128->256, quality 128->256->384) and rungs between them made the same way, each first level pruned
-# early as the presets' are (a first level's steps march its whole box until a prune clears it: lego `default` 31.19 dB
-# in 246 s without, 31.24 dB in 216 s with); at the bottom, two that start at 32^3 (see the module's docstring), 32->64
+# early as the presets' are (a first level's steps march its whole box until a prune clears it, so an early prune
+# saves time at no cost in quality); at the bottom, two that start at 32^3 (see the module's docstring), 32->64
 # being what a budget too short for any plan gets. The early prune stays at its step whatever the share (`fixed`):
-# scaled with it, down to 73-132 steps, it prunes a grid still diffuse, which keeps more voxels than the plan assumed
-# (22-25% of the box against 15% at lego `default`'s step 200) and upsamples to a finer grid twice the size (lego at
-# 400x400: 1 min 27.81 dB, 2 min 28.84 dB, against 28.41 and 29.88 dB with no early prune).
+# scaled down with it, it prunes a grid still diffuse, which keeps more voxels than the plan assumed and upsamples to
+# a finer grid larger than planned, which loses to no early prune at all (bench/README.md, "The time budget").
 LADDER = (
     Rung((32, 64), (300, 600)),
     Rung((48, 96), (500, 1000)),
@@ -235,19 +230,15 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     less than MIN_SHARE of the steps: with `measured` costs (once the fit has left its first resolution) any such level;
     before that only one past the second resolution, as what pruning keeps is still a prior and a first resolution
     alone, pruned early or not, is never a whole fit. Without that, a first level gives up the steps a level dropped
-    later would have needed (fox, 5-minute budget: 128->256->384 planned at half its steps, 256 of 1000 first-level
-    steps run, then 384 dropped at the level change). A level is not dropped where the levels before it, at
-    MAX_SHARE, would end the fit early: it stays, with what fits (lego, 30-second budget: 128 dropped at step 180 of
-    32->64->128, 64^3 at twice its steps, 25.42 dB in 21 s). When no schedule gets MIN_SHARE, the fewest levels
-    allowed get what fits.
+    later would have needed, and the fit ends with neither. A level is not dropped where the levels before it, at
+    MAX_SHARE, would end the fit early (leaving budget unused): it stays, with what fits. When no schedule gets
+    MIN_SHARE, the fewest levels allowed get what fits.
 
     In a scene whose first prune kept more than FULL_BOX of its box, a last level not yet started that would get less
     than MIN_SHARE of its steps (and is not dropped) is lowered, by LOWER_BY, to the finest resolution that gets
     MIN_SHARE: the rule the plan was chosen by, now on the scene's own costs. Such a scene's finer levels cost about
-    twice what the calibration's object predicts, and a finer grid short of steps loses to a coarser one with them
-    (fox, 2-minute budget, 112->112->224 planned: 25.79 dB at 224, 26.15 dB lowered to 160; on fox no grid past 192^3
-    wins at any time). On an object it is the other way round (lego, 2 minutes: 29.82 dB at 224 short of steps, 29.51
-    dB lowered to 208), so there the resolution stays the plan's (bench/README.md, "The time budget")."""
+    what the calibration's object predicts, and a finer grid short of steps loses to a coarser one with them. On an
+    object it is the other way round, so there the resolution stays the plan's (bench/README.md, "The time budget")."""
     chosen = _replan_levels(seconds, costs, facts, now, rung, resolutions, steps, measured)
     if (chosen[2] >= MIN_SHARE or len(chosen[0]) < len(resolutions) or now.level >= len(resolutions) - 1
             or now.dense or now.first_keep <= FULL_BOX):

@@ -3,11 +3,11 @@
 Normalize types a scene from measures taken before any fitting (stages/framing/scene_frame.py): the spread of the viewing
 directions, the share of sparse points far beyond the foreground, the share of pixels that show an empty backdrop.
 Near their thresholds more than one model is plausible, and the proxies cannot tell which one the photos need (a can
-on a tiled floor: 23% of the points beyond twice the foreground made normalize contract all of space, which lost the
-can in held-out views that a bounded grid with background spheres kept). There the fit asks the photos: each
+on a tiled floor just past the contraction threshold made normalize contract all of space, which lost the can in
+held-out views that a bounded grid with background spheres kept). There the fit asks the photos: each
 plausible model fits a few training photos on one short coarse level, renders training photos it did not fit, and the
-better held-out PSNR wins, by at least MARGIN_DB over the model the proxies picked (a coarse level's scores differ by
-a few tenths between seeds; the proxies' pick is kept on a tie).
+better held-out PSNR wins, by at least MARGIN_DB over the model the proxies picked (a coarse level's scores differ
+between seeds, so a small lead is noise; the proxies' pick is kept on a tie).
 
 The questions, each a pair of models (MODELS):
 - NDC or the world frame: the viewing directions spread within normalize.borderline_deg of the forward limit
@@ -42,17 +42,16 @@ MODELS: dict[str, dict[str, str]] = {
     "bounded": {"ndc": "off", "contract": "off", "background": "off"},
 }
 # Where a proxy is not clear-cut, as multiples of its threshold: the share of points beyond the foreground for the
-# contraction (cup 0.4% and ball 1% are rooms that a bounded grid holds; 50% and more is a street or a landscape),
-# and both backdrop proxies for an object against background spheres.
+# contraction (a room that a bounded grid holds has few points beyond; a street or a landscape has most of them
+# there), and both backdrop proxies for an object against background spheres.
 CONTRACT_BAND = (0.25, 5.0)
 BACKDROP_BAND = (0.5, 2.0)
 # Another model replaces the proxies' pick only when its held-out PSNR is at least this much higher.
 MARGIN_DB = 0.3
 # The trial's level: the fit's first resolution (its coarse start), no finer than MAX_RESOLUTION, of STEPS steps of the
 # fit's batches, pruned after a fifth of them. Coarser than the fit's own first level, a trial ranks models by what
-# they show at a resolution no fit ends at: ball (111 photos of 316x179 at `fast`, whose unbounded first level is 48^3)
-# scored bounded + background 23.55 dB, contracted 20.85 dB at 48^3 with 300 steps of 8192 rays, but 20.75 and 21.61
-# dB at 32^3 with 200 steps of 4096 (the contracted grid's floaters near the cameras need the finer cells to show).
+# they show at a resolution no fit ends at, and can rank them the wrong way round (a contracted grid's floaters near
+# the cameras need the finer cells to show; bench/README.md).
 MAX_RESOLUTION = 64
 STEPS = 300
 # Training photos held out of the trial's fits to score them: this many at most, evenly spread through the photos by
@@ -63,9 +62,8 @@ MIN_TRAIN_VIEWS = 8
 # Under a time budget the trial takes at most this share of it, split evenly between the models.
 BUDGET_SHARE = 0.2
 # A fit whose held-out PSNR falls this far below its train PSNR has learnt its photos but not the scene (floaters in
-# new views, or an object lost from them). Fits of every photo of fox, cup and fern stand within 3 dB at every preset;
-# a contracted grid that lost a can from two of six held-out views stood 13.6 dB apart; a quarter of fox's photos about
-# 9 dB (bench/README.md).
+# new views, or an object lost from them). Sound fits of the shared captures stand well within it at every preset,
+# while a fit that lost an object or was fitted on too few photos falls well past it (bench/README.md).
 GAP_DB = 6.0
 
 
