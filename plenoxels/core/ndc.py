@@ -50,8 +50,8 @@ PARALLEL_EPS = 1e-5
 # Largest NDC depth mapped back to the world: z_ndc = 1 is infinitely far.
 MAX_Z_NDC = 1.0 - 1e-5
 # Plenoxels' LLFF grids keep 128 depth cells at every level (256x256x128 up to 1408x1156x128): depth
-# needs half the cells across at coarse levels, and no more than 128 at fine ones. On fern (128 cells
-# across, 800 steps) 32, 64 and 128 depth cells gave 26.5, 27.0 and 27.1 dB held-out, the last at 1.7x the time.
+# needs half the cells across at coarse levels, and no more than 128 at fine ones: more depth cells than half
+# gain little for their time (bench/README.md, "Scene models").
 DEPTH_FRACTION = 0.5
 MAX_DEPTH_CELLS = 128
 # The grid box reaches at most this far in x and y (NDC units; the reference image is [-1, 1]), so it

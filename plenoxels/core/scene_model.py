@@ -124,7 +124,7 @@ class SceneModel:
             render_options.near = options.near_share * min(nears) / contraction.half_size
         # Past a world grid with nothing modelled there (a contracted grid's infinity, or a room's bounded grid with its
         # background model turned off) and no masks to say it is empty, the photos' mean colour is the least wrong:
-        # ball forced to a bounded grid alone scored 5.7 dB with white there, a room's walls all white.
+        # white there paints a room's walls white (bench/README.md, "The scene model by trial").
         unmodelled = ndc is None and background is None and (contraction is not None or scene_type != "object")
         if unmodelled and mean_colour is not None and not any(f.get("mask_path") for f in scene.get("frames", [])):
             far_colour = [float(c) for c in mean_colour]
@@ -284,18 +284,18 @@ def reaches_far(scene: dict) -> bool:
     the share that makes a scene unbounded): content a bounded grid cannot hold and background spheres place only by
     direction, which a contracted grid holds in depth. (Where all of it lies near, in a room around an object, the
     bounded grid keeps twice the contracted one's resolution on the foreground and no coarse space near the cameras to
-    hide floaters in: cup at `fast`, 26.2 dB bounded against 23.1 dB contracted.)"""
+    hide floaters in; bench/README.md, "Real captures".)"""
     measured, thresholds = scene.get("measured") or {}, scene.get("thresholds") or {}
     return float(measured.get("beyond_fraction", 0.0)) >= float(thresholds.get("unbounded_min_beyond_fraction", 0.1))
 
 
 # An object fit with one colour behind its grid (no background model, no masks) that reproduces its own training photos
 # worse than this at the end of its coarsest resolution is missing what surrounds the object: a backdrop that is not
-# that colour (a white table in some photos, a dark room in others). Object fits with a flat backdrop stood at 23.8-28.6
-# dB there in the fit bench (lego, the synthetic object); a room smeared into an object's grid stays near 15 dB.
+# that colour (a white table in some photos, a dark room in others). The threshold sits between the object fits with a
+# flat backdrop and a room smeared into an object's grid ("Fit: quality against cost" and "Object captures" in
+# bench/README.md).
 BACKDROP_MIN_TRAIN_PSNR = 20.0
-# A coarsest resolution of fewer steps has not converged far enough for its PSNR to say anything of the backdrop (a
-# quick look at 16^3 in 40 steps stands near 12 dB on a white backdrop).
+# A coarsest resolution of fewer steps has not converged far enough for its PSNR to say anything of the backdrop.
 BACKDROP_CHECK_MIN_STEPS = 100
 
 
