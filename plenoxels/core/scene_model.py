@@ -89,8 +89,7 @@ class SceneModel:
         options say auto. `focal_px`, the training photos' focal length in pixels, sizes the background's
         texture when options.background_width is 0 (without it: 128 texels). `mean_colour`, the training photos' mean
         RGB, is what a contracted grid's rays see past infinity when no photo has a mask: the least wrong colour for
-        the sky a new view sees and no photo did (the synthetic unbounded scene at `fast`: 18.8 -> 19.7 dB against
-        white); so does a bounded grid of a scene that is no object when its background model is off."""
+        the sky a new view sees and no photo did (bench/README.md, "Real captures"); so does a bounded grid of a scene that is no object when its background model is off."""
         scene_type = scene.get("type", "object")
         ndc = NDCMapping.from_scene(scene) if _uses(options.ndc, scene_type == "forward") else None
         lo, hi = foreground_box(scene, options.box_padding)

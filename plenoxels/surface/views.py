@@ -175,8 +175,8 @@ def view_cosines(mesh: trimesh.Trimesh, views: list[ViewRender], frame: FitFrame
     distance is the largest of the opaque ones in its 3x3 neighbourhood, so a vertex on a silhouette is
     not hidden by the far side of its own edge.
     The mesh's own layers: a fit's solids can come out as soft shells over an empty foam whose walls the
-    rendered depth, averaged over the shell and the foam, does not hide (on the synthetic object scene half
-    the mesh was such walls, 1-5% of the object inside its true surface). Against a z-buffer of the mesh's
+    rendered depth, averaged over the shell and the foam, does not hide (bench/README.md, "Export": how the
+    mesh got its level). Against a z-buffer of the mesh's
     vertices (`voxel`: world units) a vertex is hidden when a nearer one in its pixel is more than the
     tolerance nearer, plus what the surface's slant spreads over one pixel, up to GRAZING_VOXELS."""
     vertices = np.asarray(mesh.vertices)

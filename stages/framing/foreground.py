@@ -83,7 +83,7 @@ def surroundings_box(xyz_world: np.ndarray, foreground_box: np.ndarray, camera_o
                      beyond_factor: float) -> tuple[np.ndarray, float]:
     """([2,3] box, growth): what a bounded grid of a room holds. The foreground box is what most cameras see; the
     walls and floor around it, seen by fewer, lie outside it, and a background sphere shows them without the parallax
-    the cameras see between them (fox: the wall beside the head, 4.7 dB lost in one held-out view). So the box grows
+    the cameras see between them (bench/README.md, "The scene model by trial": how normalize boxes a room). So the box grows
     from the foreground's toward the robust box of the sparse points within `beyond_factor` of it, by the largest
     share (in steps of SURROUNDINGS_STEP) that leaves every camera outside: a grid around its cameras fills with
     floaters in front of them. Growth 0: the foreground box as it is (a camera stands at its edge, or no points lie
