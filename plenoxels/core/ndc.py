@@ -30,8 +30,7 @@ image: on fern, 3-10% of a training view's pixels at mid depth. A box of [-1, 1]
 nothing to fit but the constant colour behind the grid. The box therefore reaches, in x and y, as far
 as the training cameras' views do between the near plane and infinity (Plenoxels' LLFF grid is
 likewise about 1.5x the reference image); z stays [-1, 1]. The cells keep their size in the reference
-image's pixels, so the wider box adds cells rather than coarsening them. On fern (256 px wide, 400
-steps) the covering box took held-out PSNR from 23.7 to 25.5 dB, even at a third fewer cells across.
+image's pixels, so the wider box adds cells rather than coarsening them (bench/README.md, "Scene models").
 """
 from __future__ import annotations
 

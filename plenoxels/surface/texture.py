@@ -9,12 +9,10 @@ them). Which views see a texel comes from its face's vertices (plenoxels.surface
 the camera, not hidden). A texture holds one colour for every viewer, while the field's colour turns with the view
 even on a matte surface (its SH fits each photo): rendered from a held-out camera, the field's colour there matches
 the texture's only as well as the directions baked stand for that camera's. The mean over several views does that
-better than the one view facing most squarely (on the synthetic room scene 0.2-0.3 dB nearer the field's own render,
-bench/README.md). Only directions some photo saw are pinned down by the fit: its higher SH degrees are free elsewhere,
+better than the one view facing most squarely (bench/README.md, "Export"). Only directions some photo saw are pinned down by the fit: its higher SH degrees are free elsewhere,
 so the colour along the normal (`colour="normal"`, the fallback where no view sees a texel) strays on any surface no
 photo looked at head-on (the lower half of a ball seen from above), and the SH degree-0 term (`colour="mean"`, the
-mean over all directions, as the PLY's vertex colours are) averages in every unseen direction (on the room scene its
-texture falls 10 dB below the field's render).
+mean over all directions, as the PLY's vertex colours are) averages in every unseen direction.
 
 Seams: every texel a triangle covers, and every texel within GUTTER_TEXELS of one, is baked at the nearest point of
 that triangle, so bilinear filtering at a chart's edge reads surface colour; the rest of the atlas is filled by
