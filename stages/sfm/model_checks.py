@@ -18,9 +18,9 @@ MIN_VERIFIED_INLIERS = 15
 # nothing relates to the rest: its own few points fit it, so the reprojection error stays low while it can sit anywhere.
 MIN_TIED_POINTS = 15
 # A verified match lies within COLMAP's RANSAC error (4 px) of its epipolar line; a model contradicts it when its
-# relative pose puts the match farther than that. Measured shares of an image's verified matches contradicted: correct
-# models up to 2.2% (synthetic orbit) and 13% (fox at 480 px, some verified matches being wrong ones); the global
-# mapper's wrong poses 23-58% (synthetic) and 20-63% (fox). Replacing a global model costs only a mapping run, so a
+# relative pose puts the match farther than that. Correct models contradict a few of an image's verified matches (some
+# verified matches are wrong), wrong poses a large share of them (bench/README.md, "Poses"). Replacing a global model
+# costs only a mapping run, so a
 # lower share triggers it than the one that marks an image of a final model as misplaced (which leaves it out, and
 # when too many images are, makes the model again or refuses it), which must not cry wolf.
 EPIPOLAR_MAX_ERROR_PX = 4.0
@@ -31,10 +31,8 @@ MAX_CONTRADICTED_SHARE = 0.2
 # two-view geometry takes in all but STILL_SPLIT_SHARE of one group and at most that share of the other: what moved did not move as a rigid
 # scene with what stood still (far content seen from cameras that only slid sideways sits still too, but agrees with
 # the near content's geometry, and so does a pair taken twice from one spot). A capture has a still background when
-# STILL_MIN_SHARE of all its matches sit still and some pairs are split. Measured: the synthetic turntable in front of
-# a textured room, without masks, 94-98% of its matches still, 85 of 276 pairs split at 320x240 (their inliers held
-# every still match and 0-17% of the moving ones); handheld and forward captures, each of 20 photos matched with its
-# next three (OpenCV SIFT, the densest pairs), fox 2.8%, cup 6.4%, fern 6.5% still.
+# STILL_MIN_SHARE of all its matches sit still and some pairs are split: a turntable without masks has nearly all its
+# matches still, a handheld or forward capture a few (bench/README.md, "Poses").
 STILL_SHARE_OF_DIAGONAL = 0.004
 STILL_MIN_SHARE = 0.25
 STILL_SPLIT_SHARE = 0.25

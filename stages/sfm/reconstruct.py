@@ -251,13 +251,10 @@ def map_images(db: Path, image_dir: Path, scratch: Path, s: SfmOptions, report) 
     """Maps with the chosen mapper; returns the models, the largest, and why the global mapper was replaced, if it was.
 
     Global mapping (rotation averaging, then positions) has no loop to correct a bad relative pose where the view graph
-    is a chain, as sequential matching leaves the start of an orbit. On a 24-view synthetic orbit it turned the first
-    two views about 65 and 35 degrees (against the other 22, which were right); depending on small run-to-run
-    differences in the matches, the two came back either tied to nothing (their 10 points seen only by each other) or
-    tied by 25 points while contradicting a quarter of their verified matches. Both times 24/24 registered at 0.15 px
-    reprojection error, centres off by 128% of the spread. On fox at 480 px it went wrong even with exhaustive matching
-    (rotations off by 90 degrees; 14 images detached, 30 contradicting over 10% of their matches). The incremental
-    mapper, which registers each image against points it already has, posed both correctly."""
+    is a chain, as sequential matching leaves the start of an orbit, and its wrong poses can still reproject their own
+    points to a fraction of a pixel: such images come back tied to nothing, or contradicting their verified matches
+    (bench/README.md, "Poses"). The incremental mapper, which registers each image against points it already has,
+    poses those captures correctly, so a global model that fails the checks is mapped again with it."""
     if s.mapper == "global":
         report.info("global mapping")
         models = global_mapping(db, image_dir, scratch / "models", s)
