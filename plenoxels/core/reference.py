@@ -31,28 +31,11 @@ import torch
 from plenoxels.core.background import BACKGROUND_STOP_TRANSMITTANCE
 from plenoxels.core.fit_frame import contract
 from plenoxels.core.grid import SparseGrid, sh_count
-from plenoxels.core.render import COLOUR_OFFSET, SH_C0, SH_C1, SH_C2, SH_C3, ray_samples
+from plenoxels.core.render import COLOUR_OFFSET, ray_samples, sh_basis
 
 TV_EPS = 1e-9
 # csrc/plenoxels_math.h's PLX_CONTRACTED_MAX_STEP.
 CONTRACTED_MAX_STEP = 0.25
-
-
-def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
-    """Real SH basis [B, (degree+1)^2] at unit directions [B, 3]."""
-    x, y, z = dirs.unbind(-1)
-    out = [torch.full_like(x, SH_C0)]
-    if degree >= 1:
-        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
-    if degree >= 2:
-        xx, yy, zz = x * x, y * y, z * z
-        out += [SH_C2[0] * (x * y), SH_C2[1] * (y * z), SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * (x * z),
-                SH_C2[4] * (xx - yy)]
-    if degree >= 3:
-        out += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * (x * y) * z, SH_C3[2] * y * (4 * zz - xx - yy),
-                SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy),
-                SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3 * yy)]
-    return torch.stack(out, dim=-1)
 
 
 def corners(links: torch.Tensor, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -22,7 +22,8 @@ import torch
 from plenoxels.core.fit_frame import FitFrame
 from plenoxels.core.grid import SparseGrid, sh_count
 from plenoxels.core.render import COLOUR_OFFSET, SH_C0
-from plenoxels.splats.model import Splats, matrix_to_quat, sh_basis, sh_degree_of
+from plenoxels.core.render import sh_basis
+from plenoxels.splats.model import Splats, matrix_to_quat, sh_degree_of
 
 TENT_SIGMA = 0.25
 FAR_NDC = 0.98

@@ -12,24 +12,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
-from plenoxels.core.render import COLOUR_OFFSET, SH_C0, SH_C1, SH_C2, SH_C3
-
-
-def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
-    """Real SH basis [..., (degree+1)^2] at unit directions [..., 3], with the signs and constants of the grid's."""
-    x, y, z = dirs.unbind(-1)
-    out = [torch.full_like(x, SH_C0)]
-    if degree >= 1:
-        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
-    if degree >= 2:
-        xx, yy, zz = x * x, y * y, z * z
-        out += [SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * x * z,
-                SH_C2[4] * (xx - yy)]
-    if degree >= 3:
-        out += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * x * y * z, SH_C3[2] * y * (4 * zz - xx - yy),
-                SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy),
-                SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3 * yy)]
-    return torch.stack(out, dim=-1)
+from plenoxels.core.render import COLOUR_OFFSET, SH_C0, sh_basis
 
 
 def sh_degree_of(k: int) -> int:
