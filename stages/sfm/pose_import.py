@@ -115,7 +115,13 @@ def _stem(name: str) -> str:
 def _rigid_from_c2w(c2w: np.ndarray) -> pycolmap.Rigid3d:
     """COLMAP's world-to-camera for our camera-to-world; the rotation is projected onto SO(3) first
     because exported matrices carry float noise (and some tools fold a scale into them)."""
-    c2w = np.array(c2w, dtype=np.float64)
+    try:
+        c2w = np.array(c2w, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise UserError("a camera pose is not a 4x4 matrix of numbers; fix the pose file or set poses.source=sfm") from None
+    # LAPACK's SVD can loop forever on inf or NaN, and a singular rotation has no nearest rigid pose
+    if c2w.shape[-2:] not in ((3, 4), (4, 4)) or not np.isfinite(c2w).all() or abs(np.linalg.det(c2w[:3, :3])) < 1e-9:
+        raise UserError("a camera pose is not a finite, invertible 3x4 or 4x4 matrix; fix the pose file or set poses.source=sfm")
     u, _, vt = np.linalg.svd(c2w[:3, :3])
     c2w[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     rotation, translation = colmap_w2c_from_opengl_c2w(c2w)

@@ -2,14 +2,21 @@
 
 A kind's maker writes into an empty folder and returns the path to give the pipeline; nothing here is committed data.
 """
+import json
 import os
+import shutil
 import struct
+import tempfile
 import zlib
+from functools import lru_cache
 from pathlib import Path
 
 import cv2
 import numpy as np
+import pycolmap
 from PIL import Image
+
+from stages.capture.synthetic import write_scene
 
 
 def textured(h=48, w=64, seed=0):
@@ -114,6 +121,73 @@ def animated_gif(path):
     frames = [Image.fromarray(textured(seed=s)) for s in range(3)]
     frames[0].save(path, save_all=True, append_images=frames[1:], duration=100, loop=0)
 
+
+@lru_cache(maxsize=1)
+def pose_template() -> Path:
+    """A tiny synthetic scene with its transforms.json, made once per test process."""
+    return write_scene("object", Path(tempfile.mkdtemp()) / "object", n_views=6, width=40, height=30, seed=3,
+                       supersample=1)
+
+
+def posed(edit):
+    """A copy of the template scene whose pose files `edit` spoils (it gets the scene folder and its transforms)."""
+    def make(folder):
+        shutil.copytree(pose_template() / "images", folder / "images")
+        meta = json.loads((pose_template() / "transforms.json").read_text())
+        meta = edit(folder, meta)
+        if meta is not None:
+            (folder / "transforms.json").write_text(json.dumps(meta))
+        return folder
+    return make
+
+
+def frame_matrix(value):
+    def edit(folder, meta):
+        meta["frames"][0]["transform_matrix"] = value(meta["frames"][0]["transform_matrix"])
+        return meta
+    return edit
+
+
+def without(key, in_frame=False):
+    def edit(folder, meta):
+        (meta["frames"][0] if in_frame else meta).pop(key)
+        return meta
+    return edit
+
+
+def llff(table):
+    def edit(folder, meta):
+        np.save(folder / "poses_bounds.npy", table)
+    return edit
+
+
+def colmap_no_images(folder, meta):
+    (folder / "sparse" / "0").mkdir(parents=True)
+    pycolmap.Reconstruction().write(str(folder / "sparse" / "0"))
+
+
+def not_json(folder, meta):
+    (folder / "transforms.json").write_text("{\"frames\": [")
+
+
+POSE_KINDS = {
+    "transforms_nan": posed(frame_matrix(lambda m: [[float("nan")] * 4] + m[1:])),
+    "transforms_inf": posed(frame_matrix(lambda m: [[float("inf")] * 4] + m[1:])),
+    "transforms_singular": posed(frame_matrix(lambda m: [[0.0] * 4] * 3 + [m[3]])),
+    "transforms_non_rigid": posed(frame_matrix(lambda m: [[3 * v for v in m[0]]] + m[1:])),
+    "transforms_short_matrix": posed(frame_matrix(lambda m: [row[:3] for row in m[:3]])),
+    "transforms_matrix_text": posed(frame_matrix(lambda m: "identity")),
+    "transforms_no_frames": posed(without("frames")),
+    "transforms_no_matrix": posed(without("transform_matrix", in_frame=True)),
+    "transforms_no_path": posed(without("file_path", in_frame=True)),
+    "transforms_focal_text": posed(lambda folder, meta: {**meta, "fl_x": "long", "fl_y": None}),
+    "transforms_frames_dict": posed(lambda folder, meta: {**meta, "frames": {"a": 1}}),
+    "transforms_cut_short": posed(not_json),
+    "llff_wrong_shape": posed(llff(np.zeros((6, 15)))),
+    "llff_nan": posed(llff(np.full((6, 17), np.nan))),
+    "llff_one_dim": posed(llff(np.zeros(17))),
+    "colmap_no_images": posed(colmap_no_images),
+}
 
 KINDS = {
     "bomb_png": one("bomb.png", bomb_png),
