@@ -147,9 +147,7 @@ def run(ctx) -> dict:
         fit_scale = float(read_json(ctx.upstream["fit"] / MODEL_JSON).get("fit_settings", {}).get("image_scale", 1.0))
         splat_record["held_out"] = score_splats(ctx.out, splats, fitted, scene["frames"], fit_scale,
                                                 s.splat_score_views, ctx.report.track)
-        splat_record["background"] = ("left out: the background model stays in the field (splats hold the foreground "
-                                      "box's grid only)" if fitted.background is not None else
-                                      f"none: composited on the background colour {list(model.background_color)}")
+        splat_record["background"] = _splat_background(fitted, model, splat_record)
         writable = splats.transformed(to_output)
         write_splat_ply(ctx.work / "splats.ply", writable)
         write_splat_glb(ctx.work / "splats.glb", writable)
@@ -187,8 +185,22 @@ def run(ctx) -> dict:
             "splat_psnr": splat_record["held_out"].get("psnr") if splats is not None else None}
 
 
+def _splat_background(fitted: SceneModel, model: SceneModel, record: dict) -> str:
+    """What stands for the scene behind the foreground grid among the splats, in words (export.json, summary line)."""
+    colour = list(model.background_color)
+    if model.background is not None:
+        return (f"{record['background_splats']} splats on the background model's spheres (one per texel not clear), "
+                f"composited on its far colour {colour}")
+    if fitted.fit_frame.contraction is not None and fitted.grid.contracted:
+        return (f"left out: the contracted grid's outer shell beyond the inner cube; the splats are composited on the "
+                f"colour {colour}")
+    return f"none: composited on the background colour {colour}"
+
+
 def _splat_line(record: dict, sizes: dict) -> str:
     held = record["held_out"]
     scores = (f", held-out PSNR {held['psnr']:.2f} dB (the field's {held['field_psnr']:.2f} dB; "
               f"{held['psnr_vs_field']:.2f} dB against its render)" if held["views"] else "")
-    return f"; {_count(record['count'])} splats ({_size(sizes['splats_ply'])} PLY){scores}"
+    left_out = "; the scene behind them left out" if record["background"].startswith("left out") else ""
+    return (f"; {_count(record['count'])} splats ({_size(sizes['splats_ply'])} PLY, {_size(sizes['splats_glb'])} GLB, "
+            f"{record['seconds']:.0f} s){scores}{left_out}")

@@ -2,8 +2,9 @@
 own renders of those views (plenoxels/splats/from_grid.py, plenoxels/splats/distill.py).
 
 The model is the one exports read (SceneModel.foreground_model: a contracted grid's inner cube, with nothing behind
-it), so an unbounded scene's background model is not among the splats; the splats are composited on the model's
-background colour, as its renders are.
+it, so a contracted grid's outer shell is not among the splats). A multi-sphere background model behind a bounded grid
+becomes splats too, one per texel that is not clear (plenoxels/splats/background_splats.py), distilled with the rest.
+The splats are composited on the model's background colour (the far colour behind its spheres), as its renders are.
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from plenoxels.core.cameras import Intrinsics, rays_from_camera
 from plenoxels.core.render import max_weights
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.splats.distill import TargetView, distill
+from plenoxels.splats.background_splats import splats_from_background
 from plenoxels.splats.from_grid import splats_from_grid
 from plenoxels.splats.model import Splats
 
@@ -52,7 +54,13 @@ def fit_splats(model: SceneModel, frames: list[dict], max_splats: int, min_weigh
     started = time.time()
     views, weights = target_views(model, training_views(frames, max_views), scale, track)
     splats = splats_from_grid(model.grid, model.fit_frame, weights, max_splats, min_weight)
+    grid_count, background_count = splats.count, 0
+    if model.background is not None:
+        behind = splats_from_background(model.background, splats.sh.shape[2])
+        background_count = behind.count
+        splats = Splats(**{name: torch.cat([t, getattr(behind, name)]) for name, t in splats.tensors().items()})
     splats, distilled = distill(splats, views, model.background_color, seconds, window, seed)
-    return splats, {"count": splats.count, "capped": splats.count >= max_splats,
+    return splats, {"count": splats.count, "grid_splats": grid_count, "background_splats": background_count,
+                    "capped": grid_count >= max_splats,
                     "sh_degree": splats.sh_degree, "training_views": len(views), "view_scale": scale,
                     "distillation": distilled, "seconds": round(time.time() - started, 2)}

@@ -4,6 +4,8 @@ It follows the ellipse kernel of glTF's KHR_gaussian_splatting and the original 
 1. Each splat's mean goes into the camera (OpenCV axes: x right, y down, z forward); splats closer than `near` drop.
 2. EWA: its covariance projects to the image as J W S W^T J^T (W the world-to-camera rotation, J the Jacobian of the
    perspective divide at the mean), plus 0.3 px^2 on the diagonal (the low-pass filter every 3DGS renderer adds).
+   J is taken at the mean's direction clamped to 1.3 times the half field of view, as the original renderer does:
+   beside the camera and just in front of it J grows without bound, and one such splat would cover the whole view.
 3. Its footprint is the box 3 sigma around the projected mean; every (splat, pixel) pair inside is kept.
 4. At each pixel centre alpha = min(0.99, opacity exp(-d^T S'^-1 d / 2)); pairs under 1/255 are skipped.
 5. Per pixel the splats composite front to back in order of camera depth: C = sum c_i a_i prod_{j<i} (1 - a_j), then
@@ -13,6 +15,7 @@ Pixel (i, j) has its centre at (i + 0.5, j + 0.5) in the intrinsics' convention 
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,8 +29,21 @@ ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 STOP_TRANSMITTANCE = 1e-4
 NEAR = 0.01
+FOV_CLAMP = 1.3
 # Pairs made at once while rendering without gradients: bounds the memory of a full-size view.
 PAIRS_PER_PASS = 1 << 23
+
+
+@contextmanager
+def one_thread():
+    """Torch on one thread for the duration: a window's tensors hold 1e4-1e5 rows, where OpenMP's fork, join and
+    spin-waiting cost more than the work, and on a busy machine far more (bench/README.md, "Splats")."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 @dataclass
@@ -51,7 +67,9 @@ def project(splats: Splats, c2w, k: Intrinsics, near: float = NEAR) -> Projected
     p = p[front]
     x, y, z = p.unbind(-1)
     zero = torch.zeros_like(z)
-    jac = torch.stack([k.fl_x / z, zero, -k.fl_x * x / (z * z), zero, k.fl_y / z, -k.fl_y * y / (z * z)],
+    lim_x, lim_y = FOV_CLAMP * max(k.cx, k.w - k.cx) / k.fl_x, FOV_CLAMP * max(k.cy, k.h - k.cy) / k.fl_y
+    tx, ty = (x / z).clamp(-lim_x, lim_x) * z, (y / z).clamp(-lim_y, lim_y) * z
+    jac = torch.stack([k.fl_x / z, zero, -k.fl_x * tx / (z * z), zero, k.fl_y / z, -k.fl_y * ty / (z * z)],
                       dim=-1).reshape(-1, 2, 3)
     jw = jac @ rot
     cov2d = jw @ splats.covariances()[front] @ jw.transpose(1, 2)
@@ -158,7 +176,7 @@ def render_window(proj: Projected, window: tuple[int, int, int, int], background
 def render(splats: Splats, c2w, k: Intrinsics, background=(1.0, 1.0, 1.0)) -> dict[str, torch.Tensor]:
     """A whole view without gradients: {"rgb" [h, w, 3], "opacity" [h, w]}, rendered in bands of rows so that no pass
     holds more than PAIRS_PER_PASS pairs."""
-    with torch.no_grad():
+    with torch.no_grad(), one_thread():
         proj = project(splats, c2w, k)
         area = ((2 * proj.radii + 1) ** 2).sum().item()
         rows = max(1, min(k.h, int(k.h * PAIRS_PER_PASS / max(area, 1.0))))

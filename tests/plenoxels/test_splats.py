@@ -1,18 +1,21 @@
 """Splats: the rasterizer against a per-pixel brute-force reference and its projection against sampled points, a
 similarity that moves splats and camera together changing no pixel (SH turned with them), splats from a small grid
-rendering like the grid, and distillation raising their PSNR against the grid's renders."""
+rendering like the grid, distillation raising their PSNR against the grid's renders, and a background model's spheres
+as splats rendering like the model, a view beside the camera's plane included."""
 import math
 
 import numpy as np
 import pytest
 import torch
 
+from plenoxels.core.background import MultiSphereBackground
 from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.fit_frame import FitFrame
 from plenoxels.core.grid import SparseGrid
 from plenoxels.core.render import COLOUR_OFFSET, SH_C0, max_weights, render as render_grid
 from plenoxels.core.cameras import rays_from_camera
 from plenoxels.splats.distill import TargetView, distill, psnr
+from plenoxels.splats.background_splats import splats_from_background
 from plenoxels.splats.from_grid import splats_from_grid
 from plenoxels.splats.model import Splats, matrix_to_quat, quat_to_matrix
 from plenoxels.splats.rasterize import ALPHA_MAX, ALPHA_MIN, LOW_PASS, STOP_TRANSMITTANCE, project, render
@@ -90,7 +93,8 @@ def test_rasterizer_matches_the_per_pixel_reference_for_every_sh_degree():
 
 def test_projection_matches_the_spread_of_sampled_points():
     splats = random_splats(1, 0, seed=3, size=(0.01, 0.03))
-    c2w, k = camera([0.9, -1.4, 0.7], focal=200.0)
+    # A view wide enough to hold the splat: beyond 1.3 half fields of view the projection clamps its Jacobian.
+    c2w, k = camera([0.9, -1.4, 0.7], size=400, focal=200.0)
     proj = project(splats, c2w, k)
     points = torch.distributions.MultivariateNormal(splats.means[0].double(), splats.covariances()[0].double()).sample((200_000,))
     w2c = np.linalg.inv(c2w)
@@ -183,3 +187,27 @@ def test_no_splats_render_the_background(n):
     c2w, k = camera([1, 1, 1])
     out = render(splats, c2w, k, background=(0.3, 0.6, 0.9))
     assert torch.allclose(out["rgb"], torch.tensor([0.3, 0.6, 0.9]).expand(k.h, k.w, 3)) and out["opacity"].sum() == 0
+
+
+def test_a_background_model_s_spheres_as_splats_render_like_the_model_and_mirrored_ones_do_not():
+    """Two opaque spheres around an off-centre camera, their colour varying over azimuth and polar angle: the splats
+    (one per texel) render what the model's rays see; the same splats mirrored in z do not. The camera stands inside
+    the spheres, so splats lie beside and behind it too: their footprints must stay bounded."""
+    bg = MultiSphereBackground(centre=(0.1, -0.2, 0.05), r_min=2.0, r_max=20.0, n_spheres=2, height=16, width=32,
+                               far_colour=(1.0, 1.0, 1.0))
+    j, i = torch.meshgrid(torch.arange(16), torch.arange(32), indexing="ij")
+    tex = bg.texture.data
+    tex[..., 0] = 5.0
+    tex[0, ..., 1], tex[0, ..., 2] = torch.sin(i * 2 * math.pi / 32) * 2, torch.cos(j * math.pi / 16) * 2
+    tex[0, ..., 3] = torch.sin(i * 4 * math.pi / 32 + j * 0.5)
+    splats = splats_from_background(bg, 4)
+    assert splats.count == 2 * 16 * 32 and splats.sh_degree == 1
+    mirrored = splats.detached()
+    mirrored.means[:, 2] = 2 * 0.05 - mirrored.means[:, 2]
+    k = Intrinsics(w=64, h=48, fl_x=40.0, fl_y=40.0, cx=32.0, cy=24.0)
+    for target in [(1.0, 0.3, 0.6), (-0.5, 1.0, -0.2), (0.2, 0.1, 1.0)]:
+        c2w = look_at((0.3, 0.0, 0.1), target)
+        o, d = rays_from_camera(c2w, k)
+        truth = bg(o.reshape(-1, 3), d.reshape(-1, 3)).reshape(k.h, k.w, 3)
+        assert psnr(render(splats, c2w, k)["rgb"], truth) > 25
+        assert psnr(render(mirrored, c2w, k)["rgb"], truth) < 18
