@@ -1,6 +1,6 @@
 """The web viewer: a tiny scene's output folder served on a free loopback port and looked at by headless
 Chromium (selenium), whose screenshots must show our render where the object is and the camera frustums,
-and change when the camera is dragged; plus the camera conversions, stale render requests, the live
+and change when the camera is dragged, and the exported splats when their layer is on; plus the camera conversions, stale render requests, the live
 checkpoint pick-up, the closed share tunnel, and the crop box from the viewer to the export stage."""
 import io
 import json
@@ -396,3 +396,34 @@ def test_a_checkpoint_of_a_contracted_fit_loads_contracted_with_its_far_colour(t
     assert live.background is None and live.background_color == (0.2, 0.3, 0.4)
     o, d = torch.zeros(4, 3), torch.nn.functional.normalize(torch.randn(4, 3, generator=torch.Generator().manual_seed(0)))
     torch.testing.assert_close(live.render_rays(o, d).rgb, model.render_rays(o, d).rgb)
+
+
+def test_the_splat_layer_draws_the_exported_splats_in_the_page(scene_out, browser):
+    """With the field's render off, turning the layer "exported splats" on paints the sphere's red and blue where it
+    stands, in the middle of the page (viser's own splat renderer, in WebGL), and turning it off takes them away."""
+    viewer = Viewer(scene_out, ViewOptions(port=free_port(), resolution=128, settle=0.2))
+    viewer.start()
+    try:
+        browser.get(viewer.url)
+        wait_for(lambda: viewer.frames_shown > 0, 30, "a first render")
+        viewer.mode.value = "off"
+
+        def coloured() -> int:
+            """Red or blue pixels around the page's middle (the splats blend into the white page at their edges)."""
+            shot = screenshot(browser)
+            h, w = shot.shape[:2]
+            middle = shot[int(0.25 * h):int(0.75 * h), int(0.35 * w):int(0.65 * w)]
+            red = middle[..., 0] - np.maximum(middle[..., 1], middle[..., 2]) > 60
+            blue = middle[..., 2] - np.maximum(middle[..., 0], middle[..., 1]) > 60
+            return int((red | blue).sum())
+
+        # The foreground box's blue edges and the frustums' thumbnails stay: what counts is what the layer adds.
+        time.sleep(2)
+        without = coloured()
+        viewer.handles["splats"][0].visible = True
+        with_splats = wait_for(lambda: (lambda n: n if n > without + 1500 else None)(coloured()), 30,
+                               f"the splats in the page (red and blue pixels without them: {without})")
+        viewer.handles["splats"][0].visible = False
+        wait_for(lambda: coloured() < without + 300, 20, f"the splats gone again (with them: {with_splats})")
+    finally:
+        viewer.stop()
