@@ -1,7 +1,8 @@
 """The web viewer: a tiny scene's output folder served on a free loopback port and looked at by headless
 Chromium (selenium), whose screenshots must show our render where the object is and the camera frustums,
-and change when the camera is dragged, and the exported splats when their layer is on; plus the camera conversions, stale render requests, the live
-checkpoint pick-up, the closed share tunnel, and the crop box from the viewer to the export stage."""
+and change when the camera is dragged, and the exported splats when their layer is on; plus the camera
+conversions, stale render requests, the live checkpoint pick-up, the closed share tunnel, and the crop box
+from the viewer to the export stage."""
 import io
 import json
 import math
