@@ -10,7 +10,7 @@ from plenoxels.core.options import MeshOptions
 
 NAME = "export"
 DEPENDS: tuple[str, ...] = ("normalize", "fit")
-VERSION = 2
+VERSION = 3
 
 
 @dataclass
@@ -42,7 +42,8 @@ class Settings(MeshOptions):
     """Write splats.ply and splats.glb: Gaussian splats of the field, started from the grid and distilled against its
     renders of the training views (plenoxels/splats/)."""
     max_splats: int = 500_000
-    """At most this many splats: the grid vertices the training views weigh most."""
+    """At most this many splats from the grid: the cells the training views weigh most (a background model's texels
+    come on top)."""
     splat_min_weight: float = 0.01
     """A grid vertex becomes a splat where some training ray's rendering weight at it reaches this."""
     splat_seconds: float = 300.0
@@ -51,8 +52,9 @@ class Settings(MeshOptions):
     """The training views are rendered for the distillation at this share of their size."""
     splat_views: int = 0
     """Training views rendered for the distillation; 0: all."""
-    splat_window: int = 128
-    """Each distillation step renders a window of a training view this many pixels a side."""
+    splat_window: int = 48
+    """Each distillation step renders a window of a training view this many pixels a side (small windows: more steps
+    in the same time, each over the splats near one part of the scene; bench/README.md, "Splats")."""
     splat_score_views: int = 8
     """Held-out views the splats are rendered from and scored on (export.json); 0: none."""
 
