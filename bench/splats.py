@@ -47,7 +47,8 @@ def measure(out: Path, cap: int, seconds: float, views: int) -> dict:
     mesh = out / "export" / "mesh.glb"
     mesh_bytes = mesh.stat().st_size if mesh.is_file() else None
     gap = held["field_psnr"] - held["psnr"] if held.get("views") else None
-    return {"scene": out.name, "cap": cap, "count": splats.count, "distillation": record["distillation"],
+    return {"scene": out.name, "cap": cap, "count": splats.count, "grid_splats": record["grid_splats"],
+            "background_splats": record["background_splats"], "distillation": record["distillation"],
             "fit_seconds": round(fit_seconds, 1), "held_out": held, "below_field_db": round(gap, 3) if gap is not None else None,
             "ply_bytes": sizes["s.ply"], "glb_bytes": sizes["s.glb"], "mesh_glb_bytes": mesh_bytes,
             "size_ratio": round(max(sizes.values()) / mesh_bytes, 2) if mesh_bytes else None,
@@ -74,7 +75,7 @@ def main() -> None:
     name = f"splats-{args.label}.json" if args.label else "splats.json"
     write_json(Path(__file__).parent / "results" / name,
                {"recorded": recorded(), "machine": machine(), "threads": os.environ.get("OMP_NUM_THREADS"),
-                "seconds": args.seconds, "goal": {"db": GOAL_DB, "size_ratio": GOAL_SIZE_RATIO}, "runs": runs})
+                "load_average_at_end": [round(x, 2) for x in os.getloadavg()]: list(os.getloadavg()), "seconds": args.seconds, "goal": {"db": GOAL_DB, "size_ratio": GOAL_SIZE_RATIO}, "runs": runs})
 
 
 if __name__ == "__main__":
