@@ -12,9 +12,10 @@ plenoxels/surface/view_alignment.py, plenoxels/surface/texture.py; files: stages
 
 Splats (export.splats): splats.ply (the original 3D Gaussian Splatting layout) and splats.glb (KHR_gaussian_splatting,
 COLOR_0 for viewers without it) of the field itself, view-dependent colour and soft matter included: a splat per grid
-vertex the training views see (at most export.max_splats), distilled for export.splat_seconds against the field's
-renders of the training views, then rendered from the held-out views and scored against the photos and the field's
-render (export.json `splats`; plenoxels/splats/, stages/interchange/splat_files.py, stages/scoring/splat_views.py).
+cell the training views see (at most export.max_splats) and one per texel of a background model's spheres, distilled
+for export.splat_seconds against the field's renders of the training views, then rendered from the held-out views and
+scored against the photos and the field's render (export.json `splats` and the summary line; plenoxels/splats/,
+stages/interchange/splat_files.py, stages/scoring/splat_views.py).
 
 Seen faces: a fit only pins down density where rays stop, so its surfaces are shells whose insides
 (and the undersides no camera looks at) are guesses; marching cubes turns them into inner surfaces.
