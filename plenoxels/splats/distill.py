@@ -86,8 +86,8 @@ def distill(splats: Splats, views: list[TargetView], background, seconds: float,
     tenth = max(1, len(scores) // 10)
     out = Splats(tensors["means"], tensors["log_scales"], tensors["quats"], tensors["opacity_logits"],
                  torch.cat([tensors["sh_dc"], tensors["sh_rest"]], dim=2))
-    return out, {"steps": len(scores), "seconds": round(elapsed, 2), "steps_per_second": round(len(scores) / elapsed, 3),
-                 "window": window, "window_psnr_first": round(float(np.mean(scores[:tenth])), 3),
+    return out, {"steps": len(scores), "seconds": round(elapsed, 2),
+                 "steps_per_second": round(len(scores) / elapsed, 3), "window": window, "window_psnr_first": round(float(np.mean(scores[:tenth])), 3),
                  "window_psnr_last": round(float(np.mean(scores[-tenth:])), 3)}
 
 
