@@ -23,6 +23,10 @@ from stages.sfm.pose_files import KINDS, candidates, colmap_models, is_colmap_mo
 from plenoxels.core.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, opengl_c2w_from_projection
 from plenoxels.core.errors import UserError
 
+# The most one axis of a pose's rotation may be stretched beyond another (its singular values' ratio): a pose file's
+# float noise, printed to six digits, stays below 1.0001; a sheared or hand-damaged matrix does not.
+NON_RIGID_STRETCH = 1.02
+
 # How far an image's size may be from the pose file's size after scaling before we call it a different image.
 SIZE_TOLERANCE_PX = 1.5
 
@@ -112,20 +116,40 @@ def _stem(name: str) -> str:
     return Path(name.replace("\\", "/")).name.rsplit(".", 1)[0] if "." in Path(name).name else Path(name).name
 
 
-def _rigid_from_c2w(c2w: np.ndarray) -> pycolmap.Rigid3d:
-    """COLMAP's world-to-camera for our camera-to-world; the rotation is projected onto SO(3) first
-    because exported matrices carry float noise (and some tools fold a scale into them)."""
+def _rigid_from_c2w(c2w, where: str) -> pycolmap.Rigid3d:
+    """COLMAP's world-to-camera for our camera-to-world; the rotation is projected onto SO(3) first because exported
+    matrices carry float noise (and some tools fold a uniform scale into them). `where` names the pose in the file for
+    the one line that refuses it."""
     try:
         c2w = np.array(c2w, dtype=np.float64)
     except (TypeError, ValueError):
-        raise UserError("a camera pose is not a 4x4 matrix of numbers; fix the pose file or set poses.source=sfm") from None
+        raise UserError(f"{where}: the camera pose is not a 4x4 matrix of numbers; fix the pose file or set "
+                        "poses.source=sfm") from None
     # LAPACK's SVD can loop forever on inf or NaN, and a singular rotation has no nearest rigid pose
     if c2w.shape[-2:] not in ((3, 4), (4, 4)) or not np.isfinite(c2w).all() or abs(np.linalg.det(c2w[:3, :3])) < 1e-9:
-        raise UserError("a camera pose is not a finite, invertible 3x4 or 4x4 matrix; fix the pose file or set poses.source=sfm")
-    u, _, vt = np.linalg.svd(c2w[:3, :3])
+        raise UserError(f"{where}: the camera pose is not a finite, invertible 3x4 or 4x4 matrix; fix the pose file or "
+                        "set poses.source=sfm")
+    u, singular, vt = np.linalg.svd(c2w[:3, :3])
+    # A uniform scale is a convention; one axis stretched more than the others is a damaged or sheared matrix, whose
+    # nearest rotation would be a guess.
+    if singular[0] > NON_RIGID_STRETCH * singular[2]:
+        raise UserError(f"{where}: the camera pose's rotation stretches one axis {singular[0] / singular[2]:.2f}x more "
+                        "than another, so it is no rotation; fix the pose file or set poses.source=sfm")
     c2w[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     rotation, translation = colmap_w2c_from_opengl_c2w(c2w)
     return pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation)
+
+
+def _number(value, key: str, where: str, positive: bool = False) -> float:
+    """A pose file's number, or one line that names the key and the file."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = float("nan")
+    if not math.isfinite(number) or (positive and number <= 0):
+        raise UserError(f"{where}: {key} is {value!r}, not a{' positive' if positive else ''} finite number; fix the "
+                        "pose file or set poses.source=sfm")
+    return number
 
 
 def _scale_factor(record: dict, pose_w: float, pose_h: float, what: str) -> float:
@@ -163,9 +187,9 @@ class _CameraTable:
 
 
 def _add_image(reconstruction: pycolmap.Reconstruction, image_id: int, record: dict, camera_id: int,
-               c2w: np.ndarray) -> None:
+               c2w: np.ndarray, where: str) -> None:
     image = pycolmap.Image(name=f"{record['name']}.png", camera_id=camera_id, image_id=image_id)
-    reconstruction.add_image_with_trivial_frame(image, _rigid_from_c2w(c2w))
+    reconstruction.add_image_with_trivial_frame(image, _rigid_from_c2w(c2w, where))
 
 
 # ---- COLMAP -----------------------------------------------------------------------------------------------
@@ -216,25 +240,27 @@ def from_colmap(model_dir: Path, records: list[dict]) -> Imported:
 
 # ---- transforms.json (NeRF, instant-ngp, nerfstudio, Blender) --------------------------------------------
 
-def _intrinsics_from(meta: dict, fallback: dict, record: dict) -> tuple[Intrinsics, tuple[float, float, float, float]]:
+def _intrinsics_from(meta: dict, fallback: dict, record: dict,
+                     where: str) -> tuple[Intrinsics, tuple[float, float, float, float]]:
     """A frame's camera from its own keys, else the file's: fl_x/fl_y/cx/cy/w/h or camera_angle_x/y."""
-    def get(key):
-        return meta.get(key, fallback.get(key))
+    def get(key, positive=False, default=None):
+        value = meta.get(key, fallback.get(key))
+        return default if value is None else _number(value, key, where, positive)
 
-    w = get("w") or record["original_width"]
-    h = get("h") or record["original_height"]
-    fl_x = get("fl_x")
-    if fl_x is None and get("camera_angle_x") is not None:
-        fl_x = 0.5 * w / math.tan(0.5 * float(get("camera_angle_x")))
+    w = get("w", positive=True, default=record["original_width"])
+    h = get("h", positive=True, default=record["original_height"])
+    fl_x = get("fl_x", positive=True)
+    if fl_x is None and (angle_x := get("camera_angle_x", positive=True)) is not None:
+        fl_x = 0.5 * w / math.tan(0.5 * angle_x)
     if fl_x is None:
-        raise UserError("the transforms file gives no focal length (fl_x or camera_angle_x); add one or set poses.source=sfm")
-    fl_y = get("fl_y")
+        raise UserError(f"{where}: no focal length (fl_x or camera_angle_x); add one or set poses.source=sfm")
+    fl_y = get("fl_y", positive=True)
     if fl_y is None:
-        fl_y = 0.5 * h / math.tan(0.5 * float(get("camera_angle_y"))) if get("camera_angle_y") is not None else fl_x
-    cx = get("cx") if get("cx") is not None else w / 2
-    cy = get("cy") if get("cy") is not None else h / 2
-    distortion = tuple(float(get(key) or 0.0) for key in ("k1", "k2", "p1", "p2"))
-    return Intrinsics(float(fl_x), float(fl_y), float(cx), float(cy), int(round(w)), int(round(h))), distortion
+        angle_y = get("camera_angle_y", positive=True)
+        fl_y = 0.5 * h / math.tan(0.5 * angle_y) if angle_y is not None else fl_x
+    cx, cy = get("cx", default=w / 2), get("cy", default=h / 2)
+    distortion = tuple(get(key, default=0.0) for key in ("k1", "k2", "p1", "p2"))
+    return Intrinsics(fl_x, fl_y, cx, cy, int(round(w)), int(round(h))), distortion
 
 
 def _read_transforms(path: Path) -> dict:
@@ -295,12 +321,15 @@ def from_transforms(path: Path, records: list[dict], scene: Path, more: tuple[Pa
             missing.append(record["name"])
             continue
         frame, data = frames[index]
-        k, distortion = _intrinsics_from(frame, data, record)
+        where = f"{path.name if not more else 'the transforms files'}, the frame of {record['source']}"
+        if not isinstance(frame, dict) or "transform_matrix" not in frame:
+            raise UserError(f"{where} has no transform_matrix; add it or set poses.source=sfm")
+        k, distortion = _intrinsics_from(frame, data, record, where)
         factor = _scale_factor(record, k.w, k.h, str(path))
         scaled = k.scaled(factor)
         scaled = Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
-        c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
-        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(scaled, distortion), c2w)
+        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(scaled, distortion),
+                   frame["transform_matrix"], where)
     if ambiguous:
         raise UserError(f"{len(ambiguous)} photo(s) match no frame of {path.name if not more else 'the transforms files'}"
                         f" by path, and several frames by name ({', '.join(ambiguous[:3])}"
@@ -327,14 +356,17 @@ def from_llff(path: Path, records: list[dict]) -> Imported:
     reconstruction = pycolmap.Reconstruction()
     cameras = _CameraTable(reconstruction)
     bounds = {}
-    for row, record in zip(table, ordered):
+    for number, (row, record) in enumerate(zip(table, ordered)):
+        where = f"{path.name}, row {number} ({record['source']})"
+        if not np.isfinite(row).all():
+            raise UserError(f"{where} holds NaN or infinite numbers; fix the pose file or set poses.source=sfm")
         pose = row[:15].reshape(3, 5)
-        h, w, focal = pose[:, 4]
+        h, w, focal = (_number(value, key, where, positive=True) for value, key in zip(pose[:, 4], ("h", "w", "focal")))
         factor = _scale_factor(record, w, h, str(path))
         k = Intrinsics(focal, focal, w / 2, h / 2, int(round(w)), int(round(h))).scaled(factor)
         k = Intrinsics(k.fl_x, k.fl_y, k.cx, k.cy, record["width"], record["height"])
         _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k, (0.0, 0.0, 0.0, 0.0)),
-                   opengl_c2w_from_llff(pose[:, :4]))
+                   opengl_c2w_from_llff(pose[:, :4]), where)
         bounds[record["name"]] = (float(row[15]), float(row[16]))
     return Imported(reconstruction, path, [], bounds)
 
@@ -375,5 +407,6 @@ def from_idr(path: Path, records: list[dict], scene: Path) -> Imported:
         factor = _scale_factor(record, w, h, str(path))
         k = Intrinsics(matrix[0, 0], matrix[1, 1], matrix[0, 2] + 0.5, matrix[1, 2] + 0.5, w, h).scaled(factor)
         k = Intrinsics(k.fl_x, k.fl_y, k.cx, k.cy, record["width"], record["height"])
-        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k, (0.0, 0.0, 0.0, 0.0)), c2w)
+        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k, (0.0, 0.0, 0.0, 0.0)), c2w,
+                   f"{path.name}, world_mat_{index} ({record['source']})")
     return Imported(reconstruction, path, missing)

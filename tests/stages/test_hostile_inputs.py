@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from fuzz_corpus import EXPECT, KINDS
+from fuzz_corpus import EXPECT, KINDS, POSE_KINDS
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from plenoxels.core.errors import UserError
@@ -64,3 +64,40 @@ def test_hostile_input(kind, tmp_path):
 
 def test_corpus_has_thirty_kinds():
     assert len(KINDS) >= 30
+
+
+# A frame that names no photo leaves that photo without a pose: left out and named, as SfM leaves out what it cannot
+# place; every other spoiled pose file stops the poses stage.
+POSES_LEFT_OUT = {"transforms_no_path": "0000"}
+
+
+@pytest.mark.parametrize("kind", sorted(POSE_KINDS))
+def test_spoiled_pose_file(kind, tmp_path):
+    """A pose file that is cut short, holds text or NaN where numbers belong, a matrix that is no rigid pose, or lacks
+    what a frame needs stops the poses stage with one line that names the file and the frame (or, for a frame that
+    names no photo, poses the others and names the photo left out); never a traceback or a hang, never a write
+    beside the photos."""
+    scene = POSE_KINDS[kind](tmp_path / "in")
+    before = snapshot(scene)
+    old = signal.signal(signal.SIGALRM, on_alarm)
+    signal.alarm(SECONDS_PER_KIND)
+    line, stopped = None, False
+    try:
+        line = Pipeline(scene / "images", tmp_path / "out", reporter=Reporter(quiet=True)).run(["poses"])["poses"]
+        line = line["summary"]["line"]
+    except UserError as e:
+        line, stopped = str(e).strip(), True
+    except Hang:
+        pytest.fail(f"{kind}: poses ran past {SECONDS_PER_KIND} s")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+    assert snapshot(scene) == before, f"{kind}: the poses stage wrote into the input"
+    if kind in POSES_LEFT_OUT:
+        assert not stopped and f"no pose: {POSES_LEFT_OUT[kind]}" in line, f"{kind}: {line}"
+        return
+    assert stopped, f"{kind}: the poses stage took a spoiled pose file: {line}"
+    assert "\n" not in line, f"{kind}: a UserError of more than one line: {line}"
+    assert any(name in line for name in ("transforms", "poses_bounds", "sparse")), \
+        f"{kind}: the line does not name the pose file: {line}"
+    assert not (tmp_path / "out" / "poses").exists()
