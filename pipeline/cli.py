@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 
+from pipeline.disk import describe_os_error
 from pipeline.stage import STAGE_ORDER
 from plenoxels.core.errors import UserError
 
@@ -75,6 +76,9 @@ def main(argv: list[str] | None = None) -> int:
         module.main(args)
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        print(f"error: {describe_os_error(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted: completed stages are kept; run the same command again to resume", file=sys.stderr)

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline import config
+from pipeline.disk import damaged_file, folder_bytes, output_files, write_failure, write_failure_line
 from stages.common.json_files import write_json
 from pipeline.report import Reporter
 from pipeline.stage import StageContext, StageGraph
@@ -99,6 +100,8 @@ class Pipeline:
             return "missing", "never completed"
         plan = self.plan(name)
         if manifest.get("key") == plan.key:
+            if damaged := damaged_file(self.out / name, manifest):
+                return "stale", f"{damaged} changed or was damaged since it was written"
             # Its own key still matches, but a stage it needs will re-run first and so rebuild it too.
             rerun = [dep for dep in self.graph.declaration(name).DEPENDS if self.status(dep)[0] != "done"]
             if rerun:
@@ -135,11 +138,27 @@ class Pipeline:
         final = self.out / name
         manifest = read_manifest(final)
         if manifest and manifest.get("key") == plan.key and not force:
-            self.report.summary(name, f"up to date, skipped ({manifest['summary']['line']})")
-            return manifest
+            damaged = damaged_file(final, manifest)
+            if damaged is None:
+                self.report.summary(name, f"up to date, skipped ({manifest['summary']['line']})")
+                return manifest
+            self.report.info(f"{damaged} changed or was damaged since the {name} stage wrote it: running {name} again")
 
         module = self.graph.load(name)
-        work, scratch = self.out / WORK / name, self.out / RESUME / name
+        work = self.out / WORK / name
+        try:
+            return self._write_output(name, plan, module, work, final, force)
+        except (OSError, RuntimeError) as e:
+            code = write_failure(e, self.out)
+            if code is None:
+                raise
+            written = folder_bytes(work)
+            shutil.rmtree(work, ignore_errors=True)  # what it had written is of no use, and the space is needed
+            raise UserError(write_failure_line(name, e, code, self.out, written, folder_bytes(final))) from None
+
+    def _write_output(self, name: str, plan: Plan, module, work: Path, final: Path, force: bool) -> dict:
+        """Runs the stage into its work folder, records what it wrote and swaps it into place."""
+        scratch = self.out / RESUME / name
         shutil.rmtree(work, ignore_errors=True)
         work.mkdir(parents=True)
         if (scratch / "KEY").is_file() and (scratch / "KEY").read_text() != plan.key or force:
@@ -161,7 +180,7 @@ class Pipeline:
             "code": plan.code, "input": plan.fingerprint, "scene": str(self.scene), "scene_type": plan.scene_type,
             "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(started)),
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "seconds": round(time.time() - started, 2),
-            "summary": summary,
+            "summary": summary, "files": output_files(work),
         }
         write_json(work / MANIFEST, manifest)
         self._swap_into_place(work, final)

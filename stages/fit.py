@@ -126,8 +126,13 @@ def start(ctx, s: Settings, inputs: FitInputs, checkpoint) -> tuple[Fitter, Time
     check_step = None if masked or s.background != "auto" else backdrop_check_step(fitter.model, schedule.resolutions,
                                                                                    schedule.steps)
     if checkpoint.is_file():
-        fitter.load_checkpoint(checkpoint)
-        ctx.report.info(f"resuming from the checkpoint at step {fitter.step}/{schedule.total_steps}")
+        try:
+            fitter.load_checkpoint(checkpoint)
+            ctx.report.info(f"resuming from the checkpoint at step {fitter.step}/{schedule.total_steps}")
+        except Exception as e:  # cut short or damaged on disk: torch and pickle raise many kinds
+            checkpoint.unlink()
+            ctx.report.info(f"the checkpoint could not be read ({type(e).__name__}); starting the fit afresh")
+            fitter = Fitter(new_model(schedule.resolutions[0]), s, train, inputs.device, schedule)
     if budget is not None:
         budget.attach(fitter)
     return fitter, budget, check_step

@@ -20,6 +20,7 @@ import torch.nn.functional as F
 
 from plenoxels.core import native
 from plenoxels.core.errors import UserError
+from plenoxels.core.files import write_whole
 
 FORMAT = "voxfield-plenoxels-grid"
 FORMAT_VERSION = 1
@@ -332,10 +333,7 @@ class SparseGrid:
             "contracted": self.contracted,
             "extra": dict(extra or {}),
         }
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(payload, tmp)
-        tmp.replace(path)
+        write_whole(path, lambda tmp: torch.save(payload, tmp))
 
     @classmethod
     def load(cls, path) -> tuple["SparseGrid", dict]:

@@ -37,7 +37,7 @@ import torch
 from plenoxels.core.background import MultiSphereBackground
 from plenoxels.core.cameras import Intrinsics, rays_from_camera
 from plenoxels.core.errors import UserError
-from plenoxels.core.files import GRID_FILE, MODEL_FILE
+from plenoxels.core.files import GRID_FILE, MODEL_FILE, write_whole
 from plenoxels.core.fit_frame import CONTRACTED_BOX, Contraction, FitFrame
 from plenoxels.core.grid import SparseGrid
 from plenoxels.core.memory import check_dense_level
@@ -237,9 +237,8 @@ class SceneModel:
         self.grid.save(folder / GRID_FILE)
         background = None
         if self.background is not None:
-            tmp = folder / "background.pt.tmp"
-            torch.save(self.background.state_dict(), tmp)
-            tmp.replace(folder / "background.pt")
+            state = self.background.state_dict()
+            write_whole(folder / "background.pt", lambda tmp: torch.save(state, tmp))
             background = {"kind": "multi_sphere", "config": self.background.config(), "file": "background.pt"}
         record = {
             "format": MODEL_FORMAT, "version": MODEL_VERSION, "scene_type": self.scene_type,

@@ -28,6 +28,7 @@ import torch
 from plenoxels.core.background import BackgroundOptimiser
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.errors import UserError
+from plenoxels.core.files import write_whole
 from plenoxels.core.grid import SparseGrid, sh_count
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.optim import GridGrad, SparseRMSProp
@@ -506,9 +507,8 @@ class Fitter:
 
     def save_checkpoint(self, path: Path) -> None:
         self.check_finite()
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(self.state(), tmp)
-        tmp.replace(path)
+        state = self.state()
+        write_whole(path, lambda tmp: torch.save(state, tmp))
         self.checkpoint_step = self.step
 
     def load_checkpoint(self, path: Path) -> None:

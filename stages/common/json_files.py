@@ -2,18 +2,18 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from plenoxels.core.files import write_whole
+
 
 def write_json(path: Path, data: Any) -> None:
     """Writes beside the target and renames, so a reader never sees half a file."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=_jsonable))
-    os.replace(tmp, path)
+    text = json.dumps(data, indent=2, default=_jsonable)
+    write_whole(path, lambda tmp: Path(tmp).write_text(text))
 
 
 def read_json(path: Path) -> Any:

@@ -234,6 +234,27 @@ def test_resume_continues_from_the_checkpoint(fresh, monkeypatch):
     assert record["steps"] == 60 and record["complete"]
 
 
+def test_a_checkpoint_cut_short_on_disk_is_dropped_and_the_fit_starts_afresh(fresh, monkeypatch):
+    values = {**QUICK, "resolutions": [16], "steps": [40], "checkpoint_every": 1e-6}
+    original = Fitter.train_step
+
+    def interrupted(self):
+        if self.step == 20:
+            raise KeyboardInterrupt
+        return original(self)
+
+    monkeypatch.setattr(Fitter, "train_step", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_stage(fresh, fit, values)
+    checkpoint = fresh / RESUME / "fit" / CHECKPOINT_PT
+    checkpoint.write_bytes(checkpoint.read_bytes()[: checkpoint.stat().st_size // 2])
+
+    monkeypatch.setattr(Fitter, "train_step", original)
+    run_stage(fresh, fit, values)
+    record = read_json(fresh / "fit" / "fit.json")
+    assert not record["resumed_from_step"] and record["steps"] == 40 and record["complete"]
+
+
 def test_first_ctrl_c_stops_early_and_leaves_a_usable_fit(fresh, monkeypatch):
     original = Fitter.train_step
 
