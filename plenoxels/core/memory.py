@@ -1,14 +1,22 @@
-"""How much of this machine's memory a fit's grid may take, so a fit never asks for more than is there: a first level
-whose every vertex would not fit stops before it starts, and later levels are held to as many voxels as fit (the
-tighter of this and fit.voxel_budget)."""
+"""How much memory this process may use, so a fit never asks for more than is there: a first level whose every
+vertex would not fit stops before it starts, and later levels are held to as many voxels as fit (the tighter of this
+and fit.voxel_budget).
+
+What a process may use is the least of the machine's memory, what the kernel reports available (MemAvailable: other
+jobs' memory is not ours) plus what this process already holds, and the limit of every cgroup it runs in (v2's
+memory.max, v1's memory.limit_in_bytes: a container, a Slurm job, a systemd scope) less what the rest of that group
+holds. A machine's size alone lets a fit plan past what a container allows, and the kernel's OOM killer then ends it
+with nothing said."""
 from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
+from pathlib import Path
 
 from plenoxels.core.errors import UserError
 
-# The share of physical memory a fit's grid may take at its peak; the rest is the training photos' pixels and rays,
+# The share of usable memory a fit's grid may take at its peak; the rest is the training photos' pixels and rays,
 # the per-thread gradient tables (plenoxels/core/optim.py, at most a quarter), the renders and the system.
 GRID_MEMORY_SHARE = 0.5
 # Copies of a voxel's row a fit holds at its peak, as measured: the parameters, RMSProp's running mean square, the
@@ -18,9 +26,85 @@ GRID_MEMORY_SHARE = 0.5
 ROW_COPIES = 10
 
 
-def physical_memory() -> int:
-    """Bytes of physical memory on this machine."""
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+@dataclass(frozen=True)
+class MemoryLimit:
+    bytes: int
+    source: str
+    """What sets it, for the line that stops a fit: "physical memory", "MemAvailable", "cgroup memory.max"."""
+
+
+# A cgroup limit at or above this is "no limit" (v1 writes 2^63 rounded down to a page).
+NO_LIMIT = 1 << 60
+
+
+def _read_int(path: Path) -> int | None:
+    try:
+        text = path.read_text().strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None
+
+
+def _meminfo(proc: Path, key: str) -> int | None:
+    try:
+        for line in (proc / "meminfo").read_text().splitlines():
+            name, _, value = line.partition(":")
+            if name == key:
+                return int(value.split()[0]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def _resident(proc: Path) -> int:
+    """Bytes this process holds in memory now (its resident set)."""
+    try:
+        return int((proc / "self" / "statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+def _cgroup_limits(proc: Path, cgroups: Path) -> list[tuple[int, int, str]]:
+    """(limit, usage, which file) of every cgroup this process is in and each of their parents that sets a limit."""
+    try:
+        lines = (proc / "self" / "cgroup").read_text().splitlines()
+    except OSError:
+        return []
+    found = []
+    for line in lines:
+        _, controllers, path = line.split(":", 2)
+        if controllers == "":  # v2: one unified hierarchy
+            base, limit_file, usage_file = cgroups, "memory.max", "memory.current"
+        elif "memory" in controllers.split(","):
+            base, limit_file, usage_file = cgroups / "memory", "memory.limit_in_bytes", "memory.usage_in_bytes"
+        else:
+            continue
+        folder = base / path.lstrip("/")
+        while True:
+            limit = _read_int(folder / limit_file)
+            if limit is not None and limit < NO_LIMIT:
+                found.append((limit, _read_int(folder / usage_file) or 0, f"cgroup {limit_file}"))
+            if folder == base or base not in folder.parents:
+                break
+            folder = folder.parent
+    return found
+
+
+def memory_limit(proc: Path = Path("/proc"), cgroups: Path = Path("/sys/fs/cgroup")) -> MemoryLimit:
+    """The most memory this process may hold in all, and what sets it (module docstring)."""
+    held = _resident(proc)
+    candidates = [MemoryLimit(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"), "physical memory")]
+    available = _meminfo(proc, "MemAvailable")
+    if available is not None:
+        candidates.append(MemoryLimit(available + held, "MemAvailable"))
+    for limit, usage, which in _cgroup_limits(proc, cgroups):
+        candidates.append(MemoryLimit(max(limit - max(usage - held, 0), 0), which))
+    return min(candidates, key=lambda c: c.bytes)
+
+
+def usable_memory() -> int:
+    """Bytes this process may hold in all (memory_limit)."""
+    return memory_limit().bytes
 
 
 def fit_bytes_per_voxel(sh_degree: int) -> int:
@@ -30,8 +114,8 @@ def fit_bytes_per_voxel(sh_degree: int) -> int:
 
 
 def voxels_that_fit(sh_degree: int, memory: int | None = None) -> int:
-    """The most voxels a fit's grid may hold on a machine with `memory` bytes (default: this one's)."""
-    memory = physical_memory() if memory is None else memory
+    """The most voxels a fit's grid may hold in `memory` bytes (default: what this process may use)."""
+    memory = usable_memory() if memory is None else memory
     return int(GRID_MEMORY_SHARE * memory // fit_bytes_per_voxel(sh_degree))
 
 
@@ -40,8 +124,10 @@ def check_dense_level(shape: tuple[int, ...], sh_degree: int, memory: int | None
     voxels = math.prod(shape)
     limit = voxels_that_fit(sh_degree, memory)
     if voxels > limit:
-        memory = physical_memory() if memory is None else memory
+        source = "the memory given" if memory is not None else memory_limit().source
+        memory = usable_memory() if memory is None else memory
         raise UserError(f"a first level of {'x'.join(map(str, shape))} vertices ({voxels / 1e6:.0f} M, every one "
-                        f"allocated until the first prune) needs about {voxels * fit_bytes_per_voxel(sh_degree) / 2**30:.0f} "
-                        f"GiB, more than this machine's {memory / 2**30:.0f} GiB allow; start coarser (fit.resolutions "
-                        f"beginning at 128, as the presets do) and let later levels grow where the scene is")
+                        f"allocated until the first prune) needs about {voxels * fit_bytes_per_voxel(sh_degree) / 2**30:.1f} "
+                        f"GiB, more than the {memory / 2**30:.1f} GiB this process may use (set by {source}) allow; "
+                        f"start coarser (fit.resolutions beginning at 128, as the presets do) and let later levels grow "
+                        f"where the scene is, or give the job more memory")

@@ -10,10 +10,10 @@ import torch
 
 from plenoxels.core import native
 from plenoxels.core.grid import OCCUPANCY_BLOCK, SparseGrid, large_zeros, sh_count
-from plenoxels.core.memory import physical_memory
+from plenoxels.core.memory import usable_memory
 
 
-# The share of physical memory the per-thread gradient tables may take together. Each thread past the first adds a
+# The share of usable memory (plenoxels/core/memory.py) the per-thread gradient tables may take together. Each thread past the first adds a
 # table the size of the grid's (random rays touch every page of it within a few batches), so on many cores a fine
 # grid would otherwise take a table per core: 15 x 1.5 GB for 12 M voxels on 16 cores.
 SCRATCH_MEMORY_SHARE = 0.25
@@ -21,8 +21,8 @@ SCRATCH_MEMORY_SHARE = 0.25
 
 def scratch_slots(table_bytes: int, memory: int | None = None) -> int:
     """How many per-thread copies of a gradient table of `table_bytes` (with its mask) fit in SCRATCH_MEMORY_SHARE
-    of `memory` (default: this machine's); the kernels that add gradient use one thread per copy, plus one."""
-    memory = physical_memory() if memory is None else memory
+    of `memory` (default: what this process may use); the kernels that add gradient use one thread per copy, plus one."""
+    memory = usable_memory() if memory is None else memory
     return int(SCRATCH_MEMORY_SHARE * memory // max(table_bytes, 1))
 
 

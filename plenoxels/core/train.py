@@ -81,6 +81,11 @@ class Schedule:
         return sum(self.steps[:level + 1])
 
 
+def as_bytes(image: np.ndarray) -> np.ndarray:
+    """An image's pixels as uint8, from floats in [0, 1] or as they are."""
+    return image if image.dtype == np.uint8 else np.round(image * 255).astype(np.uint8)
+
+
 class RaySet:
     """Pixels of a set of images with their cameras; makes world rays for any (image, row, column).
 
@@ -95,7 +100,7 @@ class RaySet:
         self.sizes = torch.tensor([[k.h, k.w] for k in intrinsics], dtype=torch.int64)
         counts = self.sizes[:, 0] * self.sizes[:, 1]
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.int64), counts.cumsum(0)])
-        self.pixels = torch.cat([torch.from_numpy(np.round(im * 255).astype(np.uint8).reshape(-1, 3)) for im in images])
+        self.pixels = torch.cat([torch.from_numpy(as_bytes(im).reshape(-1, 3)) for im in images])
         self.c2w = torch.tensor(np.stack(c2ws), dtype=torch.float32)
         self.k = torch.tensor([[k.fl_x, k.fl_y, k.cx, k.cy] for k in intrinsics], dtype=torch.float32)
         self.intrinsics = intrinsics

@@ -1,6 +1,7 @@
 """Frame images as the fit and evaluate stages see them: float RGB in [0, 1], masks composited, resized."""
 from __future__ import annotations
 
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterator
@@ -72,13 +73,20 @@ def load_frames(root: Path, frames: list[dict], scale: float, background_color,
                 threads: int | None = None) -> Iterator[tuple[np.ndarray, Intrinsics]]:
     """load_frame of each frame, in order, decoded on `threads` threads (default: as many as the fit's kernels use,
     OMP_NUM_THREADS, so a batch's share of the cores holds here too; PNG decoding and resizing release the GIL),
-    yielded as each is ready so a progress bar can follow."""
+    yielded as each is ready so a progress bar can follow. At most two frames a thread are read ahead of the one
+    taken: a pool's map would decode every photo at once and hold them all as floats until taken."""
     threads = threads or torch.get_num_threads()
     if threads == 1 or len(frames) <= 1:
         yield from (load_frame(root, frame, scale, background_color) for frame in frames)
         return
     with ThreadPoolExecutor(threads) as pool:
-        yield from pool.map(lambda frame: load_frame(root, frame, scale, background_color), frames)
+        ahead: deque = deque()
+        for frame in frames:
+            ahead.append(pool.submit(load_frame, root, frame, scale, background_color))
+            if len(ahead) > 2 * threads:
+                yield ahead.popleft().result()
+        while ahead:
+            yield ahead.popleft().result()
 
 
 def read_alpha(path: Path) -> np.ndarray:

@@ -11,7 +11,7 @@ from stages.common.frames import load_frames
 from stages.common.text import short_list
 from plenoxels.core.errors import UserError
 from plenoxels.core.scene_model import SceneModel, psnr
-from plenoxels.core.train import RaySet
+from plenoxels.core.train import RaySet, as_bytes
 
 
 class HeldOut:
@@ -59,11 +59,12 @@ def training_frames(scene: dict, report) -> tuple[list[dict], list[dict]]:
 
 def load_training(root: Path, frames: list[dict], scale: float, background_color, report) -> RaySet:
     """The training frames' pixels (masks composited onto `background_color`), cameras and, where normalize found
-    each photo's own backdrop colour, those."""
+    each photo's own backdrop colour, those. Each photo is turned to bytes as it is read, so the floats of one photo
+    at a time are held, never of all (lego's 100 photos at 800x800: 0.2 GB, not 0.8)."""
     images, c2ws, ks = [], [], []
     loaded = load_frames(root, frames, scale, background_color)
     for frame, (image, k) in zip(frames, report.track(loaded, total=len(frames), desc="loading training images")):
-        images.append(image)
+        images.append(as_bytes(image))
         c2ws.append(np.asarray(frame["transform_matrix"], dtype=np.float64))
         ks.append(k)
     backdrops = [frame.get("backdrop") for frame in frames]

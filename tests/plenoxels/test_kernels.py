@@ -125,7 +125,7 @@ def test_per_thread_tables_stop_at_their_memory_share_and_the_gradients_still_su
 
     grid = random_grid(seed=51)
     table = grid.data.numel() * 4 + grid.num_occupied
-    monkeypatch.setattr(optim, "physical_memory", lambda: int(1.5 * table / optim.SCRATCH_MEMORY_SHARE))
+    monkeypatch.setattr(optim, "usable_memory", lambda: int(1.5 * table / optim.SCRATCH_MEMORY_SHARE))
     assert optim.scratch_slots(table) == 1 and optim.scratch_slots(table, memory=8 * table) == 2
     native, twin = gradients_on_threads(grid, 3, (53, 54), seed=52)
     before = torch.get_num_threads()

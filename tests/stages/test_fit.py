@@ -166,7 +166,7 @@ def test_a_fit_whose_per_thread_tables_would_pass_their_memory_share_adds_gradie
     before = torch.get_num_threads()
     torch.set_num_threads(2)  # a thread to leave out, on any machine
     try:
-        monkeypatch.setattr(optim, "physical_memory", lambda: 1024)
+        monkeypatch.setattr(optim, "usable_memory", lambda: 1024)
         # The per-thread tables are the CPU core's; on a GPU machine `auto` would fit on the GPU.
         summary = run_stage(fresh, fit, {**QUICK, "steps": [30, 30], "device": "cpu"})
         record = read_json(fresh / "fit" / "fit.json")
@@ -314,7 +314,7 @@ def test_a_first_level_that_would_not_fit_in_memory_stops_with_what_to_do(fresh,
     import plenoxels.core.memory as memory
 
     dense_16 = 16 * 16 * 12 * memory.fit_bytes_per_voxel(2)  # about the synthetic object's first level at 16^3
-    monkeypatch.setattr(memory, "physical_memory", lambda: int(dense_16 / memory.GRID_MEMORY_SHARE / 4))
+    monkeypatch.setattr(memory, "usable_memory", lambda: int(dense_16 / memory.GRID_MEMORY_SHARE / 4))
     with pytest.raises(UserError, match="start coarser"):
         run_stage(fresh, fit, {**QUICK, "device": "cpu"})
     assert not (fresh / "fit" / "grid.pt").exists()  # nothing half-written
@@ -326,7 +326,7 @@ def test_later_levels_hold_as_many_voxels_as_fit_in_memory(fresh, monkeypatch):
     run_stage(fresh, fit, {**QUICK, "steps": [60, 60], "device": "cpu"})
     unlimited = read_json(fresh / "fit" / "fit.json")["model"]["occupied"]
     limit = unlimited // 2
-    monkeypatch.setattr(memory, "physical_memory",
+    monkeypatch.setattr(memory, "usable_memory",
                         lambda: int(limit * memory.fit_bytes_per_voxel(2) / memory.GRID_MEMORY_SHARE) + 1)
     shutil.rmtree(fresh / "fit")
     run_stage(fresh, fit, {**QUICK, "steps": [60, 60], "device": "cpu"})
