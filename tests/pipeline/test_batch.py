@@ -21,7 +21,8 @@ REPO = Path(__file__).resolve().parents[2]
 GOOD = ("vase", "bowl", "cup")
 # Every stage on 12 photos of 48x36 with a one-level 16^3 fit: seconds per scene, mostly process start-up.
 QUICK = ["fit.resolutions=[16]", "fit.steps=[40]", "fit.batch_size=1024", "fit.tile_size=16", "fit.image_scale=1.0",
-         "fit.eval_every=0", "evaluate.video_frames=0", "export.points=500", "export.splat_seconds=0"]
+         "fit.eval_every=0", "evaluate.video_frames=0", "export.points=500", "export.splat_seconds=0",
+         "export.texture_size=128"]
 OPTIONS = BatchOptions(preset="fast", overrides=QUICK)
 NO_RAY = "Ray is an optional extra: install it with `make install extras=cluster`"
 

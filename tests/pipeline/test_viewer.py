@@ -223,7 +223,8 @@ def test_the_viewer_listens_on_loopback_prints_the_ssh_line_and_never_shares(sce
 def run_export(scene_out: Path, tmp_path: Path, overrides: list[str]) -> trimesh.Trimesh:
     """The export stage as the runner calls it on the scene's fit, with `--set` overrides; the mesh and points
     it writes, in the normalised frame."""
-    values = {"frame": "normalized", "points": 2000, "splats": False, **config.parse_overrides(overrides).get("export", {})}
+    values = {"frame": "normalized", "points": 2000, "splats": False, "texture": False,
+              **config.parse_overrides(overrides).get("export", {})}
     work = tmp_path / f"export{len(list(tmp_path.iterdir()))}"
     work.mkdir()
     ctx = StageContext(scene=scene_out, out=scene_out, work=work, scratch=tmp_path / "scratch",
