@@ -51,16 +51,22 @@ SOURCES = {
 }
 
 
-@pytest.fixture
-def package(tmp_path, monkeypatch):
-    root = tmp_path / "pkg" / "cachestages"
+def stage_package(tmp_path, monkeypatch, name: str, sources: dict[str, str]) -> Path:
+    """A package of tiny stages written under tmp_path and importable as `name`, fresh (no module of an earlier test's
+    package of that name is left imported)."""
+    root = tmp_path / "pkg" / name
     root.mkdir(parents=True)
-    for name, source in SOURCES.items():
-        (root / name).write_text(textwrap.dedent(source))
+    for file, source in sources.items():
+        (root / file).write_text(textwrap.dedent(source))
     monkeypatch.syspath_prepend(str(tmp_path / "pkg"))
-    for mod in [m for m in sys.modules if m.startswith("cachestages")]:
+    for mod in [m for m in sys.modules if m.startswith(name)]:
         del sys.modules[mod]
     return root
+
+
+@pytest.fixture
+def package(tmp_path, monkeypatch):
+    return stage_package(tmp_path, monkeypatch, "cachestages", SOURCES)
 
 
 def make(tmp_path) -> Pipeline:

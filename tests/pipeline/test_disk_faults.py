@@ -4,8 +4,6 @@ and settings that wrote it; a file is written whole or not at all."""
 import errno
 import json
 import os
-import sys
-import textwrap
 from pathlib import Path
 
 import pytest
@@ -16,6 +14,7 @@ from pipeline.runner import Pipeline
 from pipeline.stage import StageGraph
 from plenoxels.core.errors import UserError
 from plenoxels.core.files import write_whole
+from tests.pipeline.test_cache import stage_package
 from stages.common.text import format_bytes
 
 # a -> b -> c. b fails as the scene's FAIL file says (an errno, or a library's message), and keeps a checkpoint in its
@@ -66,14 +65,7 @@ SOURCES = {
 
 @pytest.fixture
 def package(tmp_path, monkeypatch):
-    root = tmp_path / "pkg" / "diskstages"
-    root.mkdir(parents=True)
-    for name, source in SOURCES.items():
-        (root / name).write_text(textwrap.dedent(source))
-    monkeypatch.syspath_prepend(str(tmp_path / "pkg"))
-    for mod in [m for m in sys.modules if m.startswith("diskstages")]:
-        del sys.modules[mod]
-    return root
+    return stage_package(tmp_path, monkeypatch, "diskstages", SOURCES)
 
 
 def make(tmp_path, *overrides: str) -> Pipeline:
