@@ -43,6 +43,11 @@ LOOP_TRAINING_PER_IMAGE = 300
 LOOP_VOCABULARY = 256
 # Repairs match every pair up to this many images (COLMAP's exhaustive matching grows with the square).
 REPAIR_EXHAUSTIVE_MAX_IMAGES = 400
+# A repair extracts features on images downscaled to this side (the `fast` preset's photos), where larger ones do not
+# hold together: COLMAP puts the keypoints back in full-size pixels, so the cameras come out for the photos as they
+# are. A phone video's frames that pose at 640 px have failed the check at 960, 8 to 9 of 52 contradicting their
+# matches after every other repair.
+REPAIR_FEATURE_SIDE = 640
 
 
 @contextmanager
@@ -284,11 +289,13 @@ class Attempt:
     peak_threshold: float = SIFT_PEAK_THRESHOLD
 
 
-def attempt_plan(s: SfmOptions, n_images: int, from_video: bool) -> list[Attempt]:
+def attempt_plan(s: SfmOptions, n_images: int, from_video: bool, longest_side: int = 0) -> list[Attempt]:
     """The configuration as set, then each safer one in turn, every step keeping the ones before it: exhaustive
     matching (which sees every pair, so a loop closes and a bad sequence link is outvoted), no EXIF focal prior (a
-    cropped or mislabelled photo's focal starts verification from the wrong essential matrices), twice the features
-    at a lower detection threshold, and features from the full-size ingested images."""
+    cropped or mislabelled photo's focal starts verification from the wrong essential matrices), features from images
+    of REPAIR_FEATURE_SIDE where the photos' `longest_side` is larger (that attempt alone; the next go on at the
+    size before), twice the features at a lower detection threshold, and features from the full-size ingested
+    images."""
     plan = [Attempt("as set", s, s.exif_focal)]
     if not s.repair:
         return plan
@@ -301,6 +308,9 @@ def attempt_plan(s: SfmOptions, n_images: int, from_video: bool) -> list[Attempt
     if prior:
         prior = False
         plan.append(Attempt("no EXIF focal prior", current, prior))
+    if longest_side > REPAIR_FEATURE_SIDE and not 0 < current.feature_max_side <= REPAIR_FEATURE_SIDE:
+        plan.append(Attempt(f"features at {REPAIR_FEATURE_SIDE} px", replace(current, feature_max_side=REPAIR_FEATURE_SIDE),
+                            prior))
     current = replace(current, max_features=2 * current.max_features, min_features=2 * current.min_features)
     peak = SIFT_PEAK_THRESHOLD / LOW_FEATURE_PEAK_DIVISOR
     plan.append(Attempt("twice the features", current, prior, peak))
@@ -335,7 +345,7 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
     that neither contradicts its own matches nor splits in parts. Images left detached or contradicting their matches
     are dropped from it; with no such model the stage stops with what the user can do. Returns the model and what
     happened on the way (attempts, counts, fallbacks, timings). `scratch` holds the databases and models."""
-    plan = attempt_plan(s, len(records), from_video)
+    plan = attempt_plan(s, len(records), from_video, max(max(r["width"], r["height"]) for r in records))
     masks = feature_masks(records, image_dir.parent, scratch / "feature_masks")
     if masks is not None:
         report.info(f"features only inside the masks of {sum(bool(r.get('mask')) for r in records)} images")

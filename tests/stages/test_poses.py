@@ -545,6 +545,30 @@ def test_a_model_that_contradicts_its_matches_is_made_again_safer_and_the_summar
     assert errors["rotation_error_deg_max"] < 0.5
 
 
+def test_photos_that_do_not_hold_together_at_their_size_are_posed_from_smaller_features_for_their_own_size(
+        scene, truth, tmp_path, monkeypatch):
+    # This scene's photos are 480x360; the repair's side comes down with them, as a phone video's 960 px frames
+    # come down to 640.
+    monkeypatch.setattr(reconstruct, "REPAIR_FEATURE_SIDE", 320)
+    plan = reconstruct.attempt_plan(reconstruct.SfmOptions(matching="exhaustive", exif_focal=False), 24, False, 480)
+    assert [a.label for a in plan] == ["as set", "features at 320 px", "twice the features"]
+    assert plan[1].options.feature_max_side == 320 and plan[2].options.feature_max_side == 0
+    assert [a.label for a in reconstruct.attempt_plan(plan[0].options, 24, False, 320)] == ["as set", "twice the features"]
+
+    contradicting_first_attempts(monkeypatch, 1)
+    manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.matching=exhaustive",
+                         "poses.exif_focal=false")
+    summary = manifest["summary"]
+    assert summary["attempt"] == "features at 320 px" and "features at 320 px" in summary["line"]
+    transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    camera = transforms["original_camera"]  # the camera SfM fitted, before the photos are undistorted
+    assert (camera["width"], camera["height"]) == (WIDTH, HEIGHT)
+    assert abs(camera["params"][1] - WIDTH / 2) < 0.02 * WIDTH  # the principal point in full-size pixels
+    assert summary["registered"] == N_VIEWS
+    errors = pose_errors(tmp_path / "out", truth)
+    assert errors["rotation_error_deg_max"] < 0.5 and errors["centre_error_share_max"] < 0.02, errors
+
+
 def test_no_model_that_holds_together_stops_the_pipeline_with_one_line(scene, tmp_path, monkeypatch):
     contradicting_first_attempts(monkeypatch, 99)
     folder = tmp_path / "few"
