@@ -128,6 +128,7 @@ def check_dense_level(shape: tuple[int, ...], sh_degree: int, memory: int | None
         memory = usable_memory() if memory is None else memory
         raise UserError(f"a first level of {'x'.join(map(str, shape))} vertices ({voxels / 1e6:.0f} M, every one "
                         f"allocated until the first prune) needs about {voxels * fit_bytes_per_voxel(sh_degree) / 2**30:.1f} "
-                        f"GiB, more than the {memory / 2**30:.1f} GiB this process may use (set by {source}) allow; "
+                        f"GiB, more than the {GRID_MEMORY_SHARE * memory / 2**30:.1f} GiB a grid may take of the "
+                        f"{memory / 2**30:.1f} GiB this process may use (set by {source}); "
                         f"start coarser (fit.resolutions beginning at 128, as the presets do) and let later levels grow "
                         f"where the scene is, or give the job more memory")

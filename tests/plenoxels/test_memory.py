@@ -70,7 +70,8 @@ def test_a_first_level_past_the_limit_stops_with_what_it_needs_and_what_sets_the
     with pytest.raises(UserError) as stopped:
         memory.check_dense_level((128, 128, 128), sh_degree=2)
     line = str(stopped.value)
-    assert "\n" not in line and "1.0 GiB this process may use (set by cgroup memory.max)" in line
+    assert "\n" not in line and "0.5 GiB a grid may take of the 1.0 GiB this process may use (set by cgroup " \
+                                 "memory.max)" in line
     assert f"{128 ** 3 * memory.fit_bytes_per_voxel(2) / GIB:.1f} GiB" in line and "fit.resolutions" in line
     memory.check_dense_level((64, 64, 64), sh_degree=2)  # 0.3 GiB of a 0.5 GiB share: goes ahead
 
