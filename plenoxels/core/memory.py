@@ -126,7 +126,7 @@ def check_dense_level(shape: tuple[int, ...], sh_degree: int, memory: int | None
     if voxels > limit:
         source = "the memory given" if memory is not None else memory_limit().source
         memory = usable_memory() if memory is None else memory
-        raise UserError(f"a first level of {'x'.join(map(str, shape))} vertices ({voxels / 1e6:.0f} M, every one "
+        raise UserError(f"a first level of {'x'.join(map(str, shape))} vertices ({voxels / 1e6:.1f} M, every one "
                         f"allocated until the first prune) needs about {voxels * fit_bytes_per_voxel(sh_degree) / 2**30:.1f} "
                         f"GiB, more than the {GRID_MEMORY_SHARE * memory / 2**30:.1f} GiB a grid may take of the "
                         f"{memory / 2**30:.1f} GiB this process may use (set by {source}); "
