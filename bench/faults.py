@@ -131,6 +131,10 @@ def memory_rows(data: Path, work: Path) -> list[dict]:
                      "seconds": run["seconds"], "outputs": complete_outputs(out),
                      "lost": "the run (OOM-killed)" if killed else "nothing"})
         shutil.rmtree(out, ignore_errors=True)
+        try:
+            folder.rmdir()  # empty once its one process has ended
+        except OSError:
+            pass
     return rows
 
 
