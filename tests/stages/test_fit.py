@@ -206,18 +206,24 @@ def test_a_fit_with_a_coarse_start_fits_its_first_level_coarser(fresh):
         config.build(fit.Settings, "fit", {"first_level_scale": 0.0})
 
 
-def test_resume_continues_from_the_checkpoint(fresh, monkeypatch):
-    values = {**QUICK, "resolutions": [16], "steps": [60], "checkpoint_every": 1e-6}
+def interrupted_fit(fresh, values: dict, monkeypatch, step: int):
+    """Runs the fit stage until a Ctrl-C at `step`, leaving its checkpoint; returns the real Fitter.train_step."""
     original = Fitter.train_step
 
     def interrupted(self):
-        if self.step == 25:
+        if self.step == step:
             raise KeyboardInterrupt
         return original(self)
 
     monkeypatch.setattr(Fitter, "train_step", interrupted)
     with pytest.raises(KeyboardInterrupt):
         run_stage(fresh, fit, values)
+    return original
+
+
+def test_resume_continues_from_the_checkpoint(fresh, monkeypatch):
+    values = {**QUICK, "resolutions": [16], "steps": [60], "checkpoint_every": 1e-6}
+    original = interrupted_fit(fresh, values, monkeypatch, 25)
     assert (fresh / RESUME / "fit" / CHECKPOINT_PT).is_file()
 
     calls = []
@@ -236,16 +242,7 @@ def test_resume_continues_from_the_checkpoint(fresh, monkeypatch):
 
 def test_a_checkpoint_cut_short_on_disk_is_dropped_and_the_fit_starts_afresh(fresh, monkeypatch):
     values = {**QUICK, "resolutions": [16], "steps": [40], "checkpoint_every": 1e-6}
-    original = Fitter.train_step
-
-    def interrupted(self):
-        if self.step == 20:
-            raise KeyboardInterrupt
-        return original(self)
-
-    monkeypatch.setattr(Fitter, "train_step", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        run_stage(fresh, fit, values)
+    original = interrupted_fit(fresh, values, monkeypatch, 20)
     checkpoint = fresh / RESUME / "fit" / CHECKPOINT_PT
     checkpoint.write_bytes(checkpoint.read_bytes()[: checkpoint.stat().st_size // 2])
 
