@@ -1,7 +1,9 @@
 """The batch command: many scenes, each a whole `pipeline run` in its own process, on local workers or on a Ray
 cluster; failures reported, re-runs skip what is done, and killed runs (or Ray workers) resume."""
+import contextlib
 import json
 import os
+import random
 import signal
 import subprocess
 import sys
@@ -148,6 +150,48 @@ def test_a_batch_killed_mid_scene_resumes_where_it_stopped(scenes, tmp_path):
     assert records[GOOD[1]]["status"] == "done" and records[GOOD[1]]["stages_done"] == list(STAGE_ORDER)
     assert "ingest" not in records[GOOD[1]]["stages_ran"] and stage_run_ids(second)["ingest"] == before["ingest"]
     assert "every stage up to date" in resumed.stdout and GOOD[1] in format_table(list(records.values()))
+
+
+
+@pytest.mark.parametrize("seed", [7])
+def test_a_batch_whose_scene_processes_are_killed_at_random_moments_finishes_every_scene_on_a_rerun(scenes, tmp_path,
+                                                                                                   seed):
+    """SIGKILL at seeded random moments to whichever scene process is running: the batch reports those scenes as
+    killed and goes on; the rerun finishes every scene, and no stage that had finished runs again."""
+    root, _ = scenes
+    out = tmp_path / "out"
+    rng = random.Random(seed)
+    paths = [root / name / "images" for name in GOOD]
+    batch = subprocess.Popen(batch_command(*paths, "--out", out, "--workers", "2"), cwd=REPO,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    killed = []
+    try:
+        while batch.poll() is None and len(killed) < len(GOOD):
+            time.sleep(rng.uniform(0.5, 4.0))
+            running = sorted(pid for pid, _ in pipeline_processes(str(out)))
+            if running:
+                pid = rng.choice(running)
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+        assert batch.wait(timeout=300) in (0, 1)
+    finally:
+        batch.kill()
+    assert killed, "no scene process was running to be killed"
+    first = records_by_name(out)
+    assert any("killed by signal 9" in (r["error"] or "") for r in first.values()), first
+    finished_before = {name: {stage: run for stage, run in stage_run_ids(out / name).items() if run}
+                       for name in GOOD}
+
+    rerun = subprocess.run(batch_command(*paths, "--out", out, "--workers", "2"), capture_output=True, text=True,
+                           cwd=REPO)
+    assert rerun.returncode == 0, rerun.stderr
+    records = records_by_name(out)
+    for name in GOOD:
+        assert records[name]["status"] == "done" and records[name]["stages_done"] == list(STAGE_ORDER), records[name]
+        after = stage_run_ids(out / name)
+        assert {stage: after[stage] for stage in finished_before[name]} == finished_before[name], name
+        assert set(records[name]["stages_ran"]).isdisjoint(finished_before[name]), records[name]
 
 
 # ---- on a Ray cluster ---------------------------------------------------------------------------------------------
