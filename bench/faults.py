@@ -6,7 +6,8 @@ process, so what the user saw is its exit code and its last line on stderr.
 - disk: the output folder on a tmpfs of about half what the run writes, then the same command with room again;
 - cache: each stage's files cut short at a random offset or edited in place, then the same command;
 - kill: the run SIGKILLed at random moments, then the same command;
-- hostile inputs: the fuzz corpus of the test suite, through ingest and poses.
+- hostile inputs: the fuzz corpus of the test suite, through ingest and poses;
+- viewer: dozens of websocket clients on loopback connecting, moving, dropping and sending malformed messages.
 The cgroup and tmpfs rows need root (mount, cgroup folders); where this process may not make them the row says so.
 Results: bench/results/faults.json."""
 from __future__ import annotations
@@ -239,6 +240,20 @@ def hostile_rows() -> list[dict]:
              "lost": "nothing" if run.returncode == 0 else "see the failed kinds"}]
 
 
+# ---- viewer --------------------------------------------------------------------------------------------------------
+def viewer_rows() -> list[dict]:
+    started = time.monotonic()
+    run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                          "tests/pipeline/test_viewer_load.py"], cwd=REPO, capture_output=True, text=True)
+    summary = run.stdout.strip().splitlines()[-1] if run.stdout.strip() else run.stderr.strip()[-200:]
+    return [{"fault": "the viewer under load", "injected": "40 websocket clients on loopback connect, move their "
+             "cameras and drop (half without a close frame); every 5th sends a malformed message "
+             "(tests/pipeline/test_viewer_load.py)",
+             "user_saw": f"{summary}: each malformed client closed alone, the rest and a client that stayed rendered "
+             f"({time.monotonic() - started:.0f} s)" if run.returncode == 0 else summary,
+             "lost": "nothing" if run.returncode == 0 else "see the failed assertion"}]
+
+
 def table(rows: list[dict]) -> str:
     lines = ["| fault | how it was injected | what the user saw | lost |", "|---|---|---|---|"]
     lines += [f"| {r['fault']} | {r['injected']} | {r['user_saw']} | {r['lost']} |" for r in rows]
@@ -249,7 +264,7 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.faults", description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data", help="the folder holding lego/")
     parser.add_argument("--work", type=Path, default=Path("/tmp/voxfield-bench-faults"), help="scratch folder")
-    parser.add_argument("--only", nargs="*", default=["memory", "disk", "cache", "kill", "hostile"],
+    parser.add_argument("--only", nargs="*", default=["memory", "disk", "cache", "kill", "hostile", "viewer"],
                         help="which rows to run")
     parser.add_argument("--kills", type=int, default=6, help="SIGKILLs at random moments before the last run")
     parser.add_argument("--seed", type=int, default=0)
@@ -261,7 +276,8 @@ def main(argv: list[str]) -> int:
     scene = small_scene(args.work)
     for part, make in (("memory", lambda: memory_rows(args.data, args.work)), ("disk", lambda: disk_rows(scene, args.work)),
                        ("cache", lambda: cache_rows(scene, args.work, rng)),
-                       ("kill", lambda: kill_rows(scene, args.work, rng, args.kills)), ("hostile", hostile_rows)):
+                       ("kill", lambda: kill_rows(scene, args.work, rng, args.kills)), ("hostile", hostile_rows),
+                       ("viewer", viewer_rows)):
         if part in args.only:
             made = [{"part": part, "recorded": recorded(), **row} for row in make()]
             print(table(made), flush=True)
