@@ -46,6 +46,10 @@ from plenoxels.splats.field_splats import fit_splats
 from stages.settings.export import Settings
 from stages.common.layout import EXPORT_JSON, MODEL_JSON, SCENE_JSON
 
+# The training views' opaque rays kept for the level, the free-space test and the points: a seeded share of each
+# view's. 64 bytes a ray; a hundred 400x400 views give about 5 M, which the export held at once (300 MB, twice over).
+MAX_TERMINATIONS = 1_000_000
+
 
 def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.all((points >= lo) & (points <= hi), axis=1)
@@ -84,7 +88,7 @@ def run(ctx) -> dict:
 
     crop_min, crop_max = box_min - s.crop_margin * (box_max - box_min), box_max + s.crop_margin * (box_max - box_min)
     views = render_views(grid, frame, scene["frames"], s.point_scale, s.point_views, ctx.report)
-    terminations = ray_terminations(views, frame, s.point_opacity)
+    terminations = ray_terminations(views, frame, s.point_opacity, MAX_TERMINATIONS, s.seed)
     ends = terminations.world(frame)
     inside = _in_box(ends, crop_min, crop_max)
     terminations = terminations.subset(inside)

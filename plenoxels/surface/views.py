@@ -128,15 +128,23 @@ def render_views(grid, frame: FitFrame, frames: list[dict], scale: float, max_vi
     return views
 
 
-def ray_terminations(views: list[ViewRender], frame: FitFrame, min_opacity: float) -> Terminations:
+def ray_terminations(views: list[ViewRender], frame: FitFrame, min_opacity: float, max_rays: int = 0,
+                     seed: int = 0) -> Terminations:
     """The expected ray-termination points of the rendered views' pixels whose rays are at least
-    `min_opacity` opaque (see render_views)."""
+    `min_opacity` opaque (see render_views): all of them, or at most `max_rays` (0: no cap), the same seeded share
+    of each view's, so that a hundred large views do not hold tens of millions of rays in memory at once."""
+    good = [view.opacity >= min_opacity for view in views]
+    total = sum(int(g.sum()) for g in good)
+    share = 1.0 if not max_rays or total <= max_rays else max_rays / total
+    rng = np.random.default_rng(seed)
     parts = [Terminations(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0))]
-    for view in views:
-        good = view.opacity >= min_opacity
+    for view, good_pixels in zip(views, good):
+        keep = np.flatnonzero(good_pixels)
+        if share < 1.0:
+            keep = np.sort(rng.choice(keep, int(round(share * len(keep))), replace=False))
         origins, directions = view.rays(frame)
-        parts.append(Terminations(origins[good], directions[good], view.t[good].astype(np.float64),
-                                  view.opacity[good].astype(np.float64)))
+        parts.append(Terminations(origins[keep], directions[keep], view.t[keep].astype(np.float64),
+                                  view.opacity[keep].astype(np.float64)))
     return Terminations(*(np.concatenate([getattr(p, name) for p in parts]) for name in ("origins", "directions", "t", "opacity")))
 
 

@@ -438,6 +438,21 @@ def test_points_lie_on_the_surface_with_its_colours_and_normals_and_set_the_auto
     assert np.median(surface_distance(mesh, snapped, np.random.default_rng(0))) < 0.1 * voxel
 
 
+
+def test_capped_ray_terminations_are_a_share_of_every_view_drawn_from_the_whole():
+    field = sphere_field(24)
+    views = render_views(field, FitFrame(), orbit_frames(6), 1.0, 0, _Quiet())
+    whole = ray_terminations(views, FitFrame(), 0.5)
+    cap = len(whole.t) // 3
+    capped = ray_terminations(views, FitFrame(), 0.5, max_rays=cap, seed=1)
+    assert abs(len(capped.t) - cap) <= len(views)  # each view's share is rounded
+    rows = {tuple(row) for row in np.column_stack([whole.origins, whole.directions, whole.t]).round(9)}
+    assert all(tuple(row) in rows for row in np.column_stack([capped.origins, capped.directions, capped.t]).round(9))
+    per_view = [int((v.opacity >= 0.5).sum()) for v in views]
+    origins = {tuple(v.c2w[:3, 3].round(9)) for v in views}
+    assert len({tuple(o) for o in capped.origins.round(9)}) == len(origins) == len([n for n in per_view if n])
+    assert len(ray_terminations(views, FitFrame(), 0.5, max_rays=10 * len(whole.t)).t) == len(whole.t)
+
 def test_ray_peaks_and_the_auto_level_follow_a_ramp_of_density():
     # Density rising linearly, a per unit, from the plane x = x0 (a grid vertex, so trilinear is exact). A ray whose
     # direction has x-component c has optical depth a c s^2 / 2 at s past the plane: it is 95% opaque (PEAK_OPTICAL_DEPTH)
