@@ -1,12 +1,13 @@
-"""How much memory this process may use, so a fit never asks for more than is there: a first level whose every
-vertex would not fit stops before it starts, and later levels are held to as many voxels as fit (the tighter of this
-and fit.voxel_budget).
+"""How much memory this process may use, so a fit never asks for more than is there: a first level whose every vertex
+would not fit stops before it starts, and later levels are held to as many voxels as fit (the tighter of this and
+fit.voxel_budget).
 
 What a process may use is the least of the machine's memory, what the kernel reports available (MemAvailable: other
 jobs' memory is not ours) plus what this process already holds, and the limit of every cgroup it runs in (v2's
 memory.max, v1's memory.limit_in_bytes: a container, a Slurm job, a systemd scope) less what the rest of that group
-holds. A machine's size alone lets a fit plan past what a container allows, and the kernel's OOM killer then ends it
-with nothing said."""
+holds (its usage less the page cache the kernel would drop first, inactive_file, as `docker stats` counts it). A
+machine's size alone lets a fit plan past what a container allows, and the kernel's OOM killer then ends it with
+nothing said."""
 from __future__ import annotations
 
 import math
@@ -64,6 +65,18 @@ def _resident(proc: Path) -> int:
         return 0
 
 
+def _stat(path: Path, key: str) -> int:
+    """A value of a cgroup's memory.stat, 0 if absent."""
+    try:
+        for line in path.read_text().splitlines():
+            name, _, value = line.partition(" ")
+            if name == key:
+                return int(value)
+    except (OSError, ValueError):
+        return 0
+    return 0
+
+
 def _cgroup_limits(proc: Path, cgroups: Path) -> list[tuple[int, int, str]]:
     """(limit, usage, which file) of every cgroup this process is in and each of their parents that sets a limit."""
     try:
@@ -74,16 +87,18 @@ def _cgroup_limits(proc: Path, cgroups: Path) -> list[tuple[int, int, str]]:
     for line in lines:
         _, controllers, path = line.split(":", 2)
         if controllers == "":  # v2: one unified hierarchy
-            base, limit_file, usage_file = cgroups, "memory.max", "memory.current"
+            base, limit_file, usage_file, cache_key = cgroups, "memory.max", "memory.current", "inactive_file"
         elif "memory" in controllers.split(","):
-            base, limit_file, usage_file = cgroups / "memory", "memory.limit_in_bytes", "memory.usage_in_bytes"
+            base, limit_file, usage_file, cache_key = (cgroups / "memory", "memory.limit_in_bytes",
+                                                       "memory.usage_in_bytes", "total_inactive_file")
         else:
             continue
         folder = base / path.lstrip("/")
         while True:
             limit = _read_int(folder / limit_file)
             if limit is not None and limit < NO_LIMIT:
-                found.append((limit, _read_int(folder / usage_file) or 0, f"cgroup {limit_file}"))
+                usage = max((_read_int(folder / usage_file) or 0) - _stat(folder / "memory.stat", cache_key), 0)
+                found.append((limit, usage, f"cgroup {limit_file}"))
             if folder == base or base not in folder.parents:
                 break
             folder = folder.parent
@@ -105,6 +120,20 @@ def memory_limit(proc: Path = Path("/proc"), cgroups: Path = Path("/sys/fs/cgrou
 def usable_memory() -> int:
     """Bytes this process may hold in all (memory_limit)."""
     return memory_limit().bytes
+
+
+def resident_memory() -> int:
+    """Bytes this process holds now."""
+    return _resident(Path("/proc"))
+
+
+def check_fits(need: int, what: str, advice: str, limit: MemoryLimit | None = None) -> None:
+    """Stops with one line when `need` bytes in all (for `what`, in words: the work and what it holds) would not fit in
+    what this process may use; `advice`: the settings that make it smaller."""
+    limit = memory_limit() if limit is None else limit
+    if need > limit.bytes:
+        raise UserError(f"{what} needs about {need / 2**30:.1f} GiB, more than the {limit.bytes / 2**30:.1f} GiB this "
+                        f"process may use (set by {limit.source}); {advice}, or give the job more memory")
 
 
 def fit_bytes_per_voxel(sh_degree: int) -> int:

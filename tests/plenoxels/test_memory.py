@@ -53,6 +53,22 @@ def test_a_cgroup_v1_memory_limit_binds(tmp_path):
     assert (limit.bytes, limit.source) == (GIB, "cgroup memory.limit_in_bytes")
 
 
+
+def test_the_page_cache_a_group_could_drop_does_not_count_against_it(tmp_path):
+    proc = fake_proc(tmp_path, "4:memory:/job\n", available=100 * GIB, resident=GIB // 4)
+    for version, (limit_file, usage_file, key) in {"v1": ("memory.limit_in_bytes", "memory.usage_in_bytes",
+                                                          "total_inactive_file"),
+                                                   "v2": ("memory.max", "memory.current", "inactive_file")}.items():
+        cgroups = tmp_path / version
+        group = cgroups / "memory" / "job" if version == "v1" else cgroups / "job"
+        if version == "v2":
+            (proc / "self" / "cgroup").write_text("0::/job\n")
+        write(group / limit_file, f"{2 * GIB}\n")
+        write(group / usage_file, f"{GIB + GIB // 4}\n")  # this process's quarter, and a GiB of files read
+        write(group / "memory.stat", f"cache {GIB}\nactive_file {GIB // 4}\n{key} {3 * GIB // 4}\n")
+        # What another process holds is the usage less this one's and the inactive file pages: a quarter GiB.
+        assert memory.memory_limit(proc, cgroups).bytes == 2 * GIB - GIB // 4, version
+
 def test_without_a_cgroup_limit_what_is_available_binds_not_the_machine(tmp_path):
     proc = fake_proc(tmp_path, "0::/\n", available=GIB, resident=GIB // 2)
     write(tmp_path / "cgroup" / "memory.max", "max\n")
