@@ -31,7 +31,7 @@ STOP_TRANSMITTANCE = 1e-4
 NEAR = 0.01
 FOV_CLAMP = 1.3
 # Pairs made at once while rendering without gradients: bounds the memory of a full-size view.
-PAIRS_PER_PASS = 1 << 23
+PAIRS_PER_PASS = 1 << 21
 
 
 @contextmanager

@@ -40,13 +40,16 @@ from plenoxels.surface.views import ViewRender, view_cosines
 # Texels beyond a chart's edge baked with its edge's colour (bilinear filtering reads one; a mip level or two more).
 GUTTER_TEXELS = 2
 # Pixels (and texels) tested per chunk by the rasteriser, to bound memory.
-RASTER_CHUNK = 1 << 22
+RASTER_CHUNK = 1 << 20
 # The ray baked per texel starts this many voxels outside the surface, along its normal.
 BAKE_START_VOXELS = 2.0
 # Texels per chunk when choosing each one's view.
 VIEW_CHUNK = 1 << 16
 # Rays rendered per chunk when baking.
 BAKE_CHUNK = 1 << 18
+# Texels baked at a time: each holds a few hundred bytes of points, normals, views and colours on the way, and a
+# 4096-texel atlas has millions.
+TEXEL_CHUNK = 1 << 19
 # A baked ray at least this opaque gives its colour; fainter ones take the degree-0 colour at the surface.
 BAKE_MIN_OPACITY = 0.05
 
@@ -326,15 +329,19 @@ def texture_mesh(grid, frame: FitFrame, mesh: trimesh.Trimesh, resolution: int,
     voxel_world = grid_lattice_voxel_world(grid, frame, mesh)
     atlas = unwrap(vertices if layout_vertices is None else layout_vertices, np.asarray(mesh.faces), resolution)
     texels, faces, weights = texel_faces(atlas)
-    points = (vertices[faces] * weights[..., None]).sum(axis=1)
-    outward = surface_normals(vertices, faces, weights, normals)
     if colour == "view":
         cosines = view_cosines(mesh, list(views), frame, voxel_world, seen_tolerance * voxel_world, opacity)
-        best, facing = facing_views(faces, weights, cosines, view_count)
         centres = np.stack([view.c2w[:3, 3] for view in views])
-        colours = view_colour_texels(grid, frame, points, outward, best, facing, centres, voxel_world)
-    else:
-        colours = surface_colour_texels(grid, frame, points, outward, voxel_world, colour)
+    colours = np.empty((len(texels), 3))
+    for start in range(0, len(texels), TEXEL_CHUNK):
+        part = slice(start, start + TEXEL_CHUNK)
+        points = (vertices[faces[part]] * weights[part, :, None]).sum(axis=1)
+        outward = surface_normals(vertices, faces[part], weights[part], normals)
+        if colour == "view":
+            best, facing = facing_views(faces[part], weights[part], cosines, view_count)
+            colours[part] = view_colour_texels(grid, frame, points, outward, best, facing, centres, voxel_world)
+        else:
+            colours[part] = surface_colour_texels(grid, frame, points, outward, voxel_world, colour)
     return Texture(atlas, bake(texels, colours, atlas.size), colour)
 
 
