@@ -29,6 +29,8 @@ scene.json's `input_from_world`, or left in the normalised frame with `frame: no
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from stages.common.media import write_points
@@ -38,17 +40,55 @@ from stages.interchange.splat_files import write_splat_glb, write_splat_ply
 from stages.scoring.splat_views import score_splats
 from plenoxels.surface.mesh import (LEVEL_RAY_OPACITY, build_mesh, grid_lattice_voxel, surface_colours, transform_normals,
                             transform_points)
+from plenoxels.core.cameras import Intrinsics
+from plenoxels.core.memory import check_fits, resident_memory
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.surface.views import point_normals, ray_terminations, render_views, snap_to_level
 from plenoxels.surface.texture import texture_mesh
 from plenoxels.surface.view_alignment import align_to_views
-from plenoxels.splats.field_splats import fit_splats
+from plenoxels.splats.field_splats import fit_splats, training_views
 from stages.settings.export import Settings
 from stages.common.layout import EXPORT_JSON, MODEL_JSON, SCENE_JSON
 
 # The training views' opaque rays kept for the level, the free-space test and the points: a seeded share of each
 # view's. 64 bytes a ray; a hundred 400x400 views give about 5 M, which the export held at once (300 MB, twice over).
 MAX_TERMINATIONS = 1_000_000
+# What the export holds at its peak past what is loaded, per unit of each phase's work, measured on lego `default`
+# (bench/README.md, "Faults") with a margin: the training views rendered (depth, opacity and colour per pixel; held to
+# the end of the texture), the opaque rays, then the largest of the mesh (marching cubes, sealing and cleaning, per
+# cell of the lattice), the texture (rasterising and baking in chunks, per texel of an atlas up to ATLAS_SIDE times
+# texture_size on a side: xatlas grows it to fit the charts) and the splats (attributes, Adam's moments and copies,
+# the distillation's target views and the scoring renders' pairs).
+VIEW_PIXEL_BYTES = 16
+TERMINATION_BYTES = 2 * 64
+LATTICE_CELL_BYTES = 150
+ATLAS_SIDE = 1.5
+TEXEL_BYTES = 100
+SPLAT_BYTES = 1500
+TARGET_PIXEL_BYTES = 16
+SCORING_BYTES = 300 << 20
+
+
+def _memory_need(s: Settings, grid, frames: list[dict]) -> tuple[int, str]:
+    """Bytes the export will hold at its peak (resident now, and the largest phase's share: the constants above), and
+    what they are for, in words."""
+    def pixels(scale: float, limit: int) -> int:
+        chosen = training_views(frames, limit)
+        return sum(Intrinsics.from_frame(f).scaled(scale).w * Intrinsics.from_frame(f).scaled(scale).h for f in chosen)
+    view_pixels = pixels(s.point_scale, s.point_views)
+    native = max(grid.resolution) - 1
+    cells = math.prod(grid.resolution) * (1.0 if s.resolution == "auto" else max(int(s.resolution) / native, 1.0) ** 3)
+    texels = (ATLAS_SIDE * s.texture_size) ** 2 if s.texture else 0
+    splats = min(s.max_splats, grid.num_occupied) if s.splats else 0
+    phases = {"mesh": cells * LATTICE_CELL_BYTES, "texture": texels * TEXEL_BYTES,
+              "splats": splats * SPLAT_BYTES + pixels(s.splat_scale, s.splat_views) * TARGET_PIXEL_BYTES
+              + SCORING_BYTES if splats else 0}
+    largest = max(phases, key=phases.get)
+    need = (resident_memory() + view_pixels * VIEW_PIXEL_BYTES + min(view_pixels, MAX_TERMINATIONS) * TERMINATION_BYTES
+            + phases[largest])
+    what = (f"the export of a {'x'.join(map(str, grid.resolution))} grid ({_count(view_pixels)} training-view pixels; "
+            f"at its largest, the {largest}" + (f" of up to {_count(splats)}" if largest == "splats" else "") + ")")
+    return int(need), what
 
 
 def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -86,6 +126,8 @@ def run(ctx) -> dict:
     if s.crop:
         box_min, box_max = np.asarray(s.crop[:3], dtype=np.float64), np.asarray(s.crop[3:], dtype=np.float64)
 
+    check_fits(*_memory_need(s, grid, scene["frames"]), "lower export.point_scale, export.texture_size or "
+               "export.max_splats (export.splats=false writes none)")
     crop_min, crop_max = box_min - s.crop_margin * (box_max - box_min), box_max + s.crop_margin * (box_max - box_min)
     views = render_views(grid, frame, scene["frames"], s.point_scale, s.point_views, ctx.report)
     terminations = ray_terminations(views, frame, s.point_opacity, MAX_TERMINATIONS, s.seed)
@@ -133,6 +175,7 @@ def run(ctx) -> dict:
     if len(terminations.t) == 0:
         ctx.report.warn(f"no training-view pixel is {s.point_opacity:.0%} opaque inside the foreground box: the "
                         "level comes from export.level_opacity and points.ply is empty; lower export.point_opacity")
+    del views, terminations  # the splats' phase needs their memory
 
     if s.frame == "input":
         to_output = np.asarray(scene["input_from_world"], dtype=np.float64)

@@ -26,6 +26,7 @@ from pipeline.stage import StageContext
 from stages.capture.synthetic import write_scene
 from stages.capture.synthetic_scenes import build_scene
 from plenoxels.core.cameras import Intrinsics
+from plenoxels.core import memory
 from plenoxels.core.errors import UserError
 from plenoxels.core.fit_frame import CONTRACTED_BOX, Contraction, FitFrame
 from plenoxels.core.grid import SparseGrid
@@ -536,6 +537,22 @@ def test_stage_writes_every_file_in_the_input_frame_or_the_normalized_one(tmp_pa
     assert np.allclose(transform_points(np.linalg.inv(input_from_world), mesh_in.vertices), mesh_norm.vertices,
                        atol=1e-5)
 
+
+
+def test_an_export_that_would_not_fit_in_memory_stops_before_it_starts_and_a_smaller_one_runs(tmp_path, monkeypatch):
+    # What this process may use, as a cgroup would set it: 1 GiB past what it holds now. A 4096-texel texture's
+    # atlas plans past that; a 256-texel one fits.
+    limit = memory.MemoryLimit(memory.resident_memory() + (1 << 30), "cgroup memory.max")
+    monkeypatch.setattr(memory, "memory_limit", lambda: limit)
+    scene = {"type": "object", "input_from_world": np.eye(4).tolist(), "world_from_input": np.eye(4).tolist(),
+             "foreground": {"min": [-0.8] * 3, "max": [0.8] * 3}, "frames": orbit_frames(4, size=32)}
+    with pytest.raises(UserError) as stop:
+        run_stage(tmp_path, sphere_field(16), scene, Settings(points=100, texture_size=4096), "large")
+    line = str(stop.value)
+    assert "\n" not in line and "needs about" in line and "texture" in line and "cgroup memory.max" in line
+    assert "export.texture_size" in line and not any((tmp_path / "large" / "export").iterdir())
+    summary, folder = run_stage(tmp_path, sphere_field(16), scene, Settings(points=100, texture_size=256), "small")
+    assert summary["faces"] > 0 and (folder / "mesh.png").is_file()
 
 def cluttered_sphere_field(res: int, clutter, points_to_world=lambda p: p, lo=(-1, -1, -1), hi=(1, 1, 1)):
     """sphere_field's sphere plus dense matter (at twice the sphere's peak) wherever clutter(world points) holds."""
