@@ -41,7 +41,7 @@ from stages.scoring.splat_views import score_splats
 from plenoxels.surface.mesh import (LEVEL_RAY_OPACITY, build_mesh, grid_lattice_voxel, surface_colours, transform_normals,
                             transform_points)
 from plenoxels.core.cameras import Intrinsics
-from plenoxels.core.memory import check_fits, resident_memory
+from plenoxels.core.memory import check_fits, release_freed, resident_memory
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.surface.views import point_normals, ray_terminations, render_views, snap_to_level
 from plenoxels.surface.texture import texture_mesh
@@ -134,11 +134,13 @@ def run(ctx) -> dict:
     ends = terminations.world(frame)
     inside = _in_box(ends, crop_min, crop_max)
     terminations = terminations.subset(inside)
+    release_freed()
     # The level comes from nearly opaque rays only: a fainter one grazes an edge or crosses a thin part, whose peak is low.
     opaque = terminations.opacity >= LEVEL_RAY_OPACITY
     object_only = s.object_only == "on" or (s.object_only == "auto" and scene.get("type") != "forward")
     mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, terminations.subset(opaque), views,
                                  object_only=object_only, user_box=bool(s.crop))
+    release_freed()
     # The atlas is charted on the level set as it came (the same faces): xatlas charts the aligned surface, rougher by
     # a fraction of a voxel, several times slower (bench/README.md), and a shift that small does not stretch the UVs.
     layout = np.asarray(mesh.vertices).copy()
@@ -157,6 +159,7 @@ def run(ctx) -> dict:
                                s.point_opacity, s.texture_views, layout)
         decisions["texture"] = {"size": list(texture.atlas.size), "charts": texture.atlas.charts,
                                 "colour": texture.colour, "atlas_vertices": len(texture.atlas.uv)}
+        release_freed()
 
     voxel = grid_lattice_voxel(grid)
     if len(terminations.t) > 2 * s.points:  # the snap drops some rays: keep a margin, subsample after
@@ -176,6 +179,7 @@ def run(ctx) -> dict:
         ctx.report.warn(f"no training-view pixel is {s.point_opacity:.0%} opaque inside the foreground box: the "
                         "level comes from export.level_opacity and points.ply is empty; lower export.point_opacity")
     del views, terminations  # the splats' phase needs their memory
+    release_freed()
 
     if s.frame == "input":
         to_output = np.asarray(scene["input_from_world"], dtype=np.float64)

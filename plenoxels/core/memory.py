@@ -10,6 +10,7 @@ machine's size alone lets a fit plan past what a container allows, and the kerne
 nothing said."""
 from __future__ import annotations
 
+import ctypes
 import math
 import os
 from dataclasses import dataclass
@@ -125,6 +126,16 @@ def usable_memory() -> int:
 def resident_memory() -> int:
     """Bytes this process holds now."""
     return _resident(Path("/proc"))
+
+
+def release_freed() -> None:
+    """Hands the heap's freed pages back to the system where the C library can (glibc's malloc_trim): glibc keeps them
+    for reuse, a cgroup counts them as this process's, and a phase's large temporaries would otherwise stay charged
+    to the phases after it."""
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc
+        pass
 
 
 def check_fits(need: int, what: str, advice: str, limit: MemoryLimit | None = None) -> None:

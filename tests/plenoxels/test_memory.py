@@ -100,3 +100,14 @@ def test_photos_are_held_as_bytes_whether_given_as_floats_or_bytes():
     from_bytes = RaySet([np.round(floats * 255).astype(np.uint8)], [np.eye(4)], [k])
     assert from_floats.pixels.dtype == from_bytes.pixels.dtype and from_floats.pixels.equal(from_bytes.pixels)
     np.testing.assert_allclose(from_floats.image(0).numpy(), floats, atol=0.5 / 255 + 1e-6)
+
+
+def test_freed_heap_pages_go_back_to_the_system():
+    held = memory.resident_memory()
+    chunks = [np.ones(1000) for _ in range(50_000)]  # 8 kB each: under glibc's mmap threshold, so on the heap
+    pin = np.ones(10)  # allocated last, it keeps the heap's top in use, so free() alone returns nothing
+    grown = memory.resident_memory()
+    assert grown - held > 300 << 20
+    del chunks
+    memory.release_freed()
+    assert memory.resident_memory() - held < 100 << 20 and pin.sum() == 10
