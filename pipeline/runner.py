@@ -28,6 +28,7 @@ from stages.common.json_files import write_json
 from pipeline.report import Reporter
 from pipeline.stage import StageContext, StageGraph
 from plenoxels.core.errors import UserError
+from plenoxels.core.memory import release_freed
 from stages.common.layout import MANIFEST, RESUME, TRASH, WORK, scene_json
 
 
@@ -131,6 +132,7 @@ class Pipeline:
             for name in self.graph.order:
                 if name in wanted:
                     results[name] = self._run_one(name, force=name in force)
+                    release_freed()  # what one stage freed is not charged to the next (plenoxels/core/memory.py)
         return {t: results[t] for t in targets}
 
     def _run_one(self, name: str, force: bool) -> dict:
