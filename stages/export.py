@@ -54,19 +54,19 @@ from stages.common.layout import EXPORT_JSON, MODEL_JSON, SCENE_JSON
 # view's. 64 bytes a ray; a hundred 400x400 views give about 5 M, which the export held at once (300 MB, twice over).
 MAX_TERMINATIONS = 1_000_000
 # What the export holds at its peak past what is loaded, per unit of each phase's work, measured on lego `default`
-# (bench/README.md, "Faults") with a margin: the training views rendered (depth, opacity and colour per pixel; held to
-# the end of the texture), the opaque rays, then the largest of the mesh (marching cubes, sealing and cleaning, per
-# cell of the lattice), the texture (rasterising and baking in chunks, per texel of an atlas up to ATLAS_SIDE times
-# texture_size on a side: xatlas grows it to fit the charts) and the splats (attributes, Adam's moments and copies,
-# the distillation's target views and the scoring renders' pairs).
-VIEW_PIXEL_BYTES = 16
+# (bench/README.md, "Faults"), rounded up: the training views rendered (depth, opacity and colour per pixel, and the
+# renderer's own) and their opaque rays, held through the mesh (marching cubes, sealing and cleaning, per cell of the
+# lattice) and the texture (rasterising and baking in chunks, per texel of an atlas up to ATLAS_SIDE times
+# texture_size on a side: xatlas grows it to fit the charts); then, with those let go, the splats (attributes, Adam's
+# moments and copies, the distillation's target views and the scoring renders' pairs).
+VIEW_PIXEL_BYTES = 20
 TERMINATION_BYTES = 2 * 64
 LATTICE_CELL_BYTES = 150
 ATLAS_SIDE = 1.5
-TEXEL_BYTES = 100
-SPLAT_BYTES = 1500
+TEXEL_BYTES = 80
+SPLAT_BYTES = 1200
 TARGET_PIXEL_BYTES = 16
-SCORING_BYTES = 300 << 20
+SCORING_BYTES = 200 << 20
 
 
 def _memory_need(s: Settings, grid, frames: list[dict]) -> tuple[int, str]:
@@ -80,12 +80,12 @@ def _memory_need(s: Settings, grid, frames: list[dict]) -> tuple[int, str]:
     cells = math.prod(grid.resolution) * (1.0 if s.resolution == "auto" else max(int(s.resolution) / native, 1.0) ** 3)
     texels = (ATLAS_SIDE * s.texture_size) ** 2 if s.texture else 0
     splats = min(s.max_splats, grid.num_occupied) if s.splats else 0
-    phases = {"mesh": cells * LATTICE_CELL_BYTES, "texture": texels * TEXEL_BYTES,
+    views = view_pixels * VIEW_PIXEL_BYTES + min(view_pixels, MAX_TERMINATIONS) * TERMINATION_BYTES
+    phases = {"mesh": views + cells * LATTICE_CELL_BYTES, "texture": views + texels * TEXEL_BYTES,
               "splats": splats * SPLAT_BYTES + pixels(s.splat_scale, s.splat_views) * TARGET_PIXEL_BYTES
               + SCORING_BYTES if splats else 0}
     largest = max(phases, key=phases.get)
-    need = (resident_memory() + view_pixels * VIEW_PIXEL_BYTES + min(view_pixels, MAX_TERMINATIONS) * TERMINATION_BYTES
-            + phases[largest])
+    need = resident_memory() + phases[largest]
     what = (f"the export of a {'x'.join(map(str, grid.resolution))} grid ({_count(view_pixels)} training-view pixels; "
             f"at its largest, the {largest}" + (f" of up to {_count(splats)}" if largest == "splats" else "") + ")")
     return int(need), what
