@@ -44,7 +44,7 @@ from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.memory import check_fits, release_freed, resident_memory
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.surface.views import point_normals, ray_terminations, render_views, snap_to_level
-from plenoxels.surface.texture import texture_mesh
+from plenoxels.surface.texture import texture_mesh, view_sight
 from plenoxels.surface.view_alignment import align_to_views
 from plenoxels.splats.field_splats import fit_splats, training_views
 from stages.settings.export import Settings
@@ -56,9 +56,9 @@ MAX_TERMINATIONS = 1_000_000
 # What the export holds at its peak past what is loaded, per unit of each phase's work, measured on lego `default`
 # (bench/README.md, "Faults"), rounded up: the training views rendered (depth, opacity and colour per pixel, and the
 # renderer's own) and their opaque rays, held through the mesh (marching cubes, sealing and cleaning, per cell of the
-# lattice) and the texture (rasterising and baking in chunks, per texel of an atlas up to ATLAS_SIDE times
-# texture_size on a side: xatlas grows it to fit the charts); then, with those let go, the splats (attributes, Adam's
-# moments and copies, the distillation's target views and the scoring renders' pairs).
+# lattice) and the points; then, with those let go, the texture (rasterising and baking in chunks, per texel of an
+# atlas up to ATLAS_SIDE times texture_size on a side: xatlas grows it to fit the charts), and the splats (attributes,
+# Adam's moments and copies, the distillation's target views and the scoring renders' pairs).
 VIEW_PIXEL_BYTES = 20
 TERMINATION_BYTES = 2 * 64
 LATTICE_CELL_BYTES = 150
@@ -81,7 +81,7 @@ def _memory_need(s: Settings, grid, frames: list[dict]) -> tuple[int, str]:
     texels = (ATLAS_SIDE * s.texture_size) ** 2 if s.texture else 0
     splats = min(s.max_splats, grid.num_occupied) if s.splats else 0
     views = view_pixels * VIEW_PIXEL_BYTES + min(view_pixels, MAX_TERMINATIONS) * TERMINATION_BYTES
-    phases = {"mesh": views + cells * LATTICE_CELL_BYTES, "texture": views + texels * TEXEL_BYTES,
+    phases = {"mesh": views + cells * LATTICE_CELL_BYTES, "texture": texels * TEXEL_BYTES,
               "splats": splats * SPLAT_BYTES + pixels(s.splat_scale, s.splat_views) * TARGET_PIXEL_BYTES
               + SCORING_BYTES if splats else 0}
     largest = max(phases, key=phases.get)
@@ -152,15 +152,6 @@ def run(ctx) -> dict:
                                                     s.point_opacity, s.align_voxels)
         mesh.visual.vertex_colors = surface_colours(grid, frame.from_world(np.asarray(mesh.vertices)),
                                                     grid_lattice_voxel(grid))
-    texture = None
-    if s.texture:
-        ctx.report.info(f"unwrapping {_count(len(mesh.faces))} faces and baking a {s.texture_size}-texel texture")
-        texture = texture_mesh(grid, frame, mesh, s.texture_size, s.texture_colour, views, s.seen_tolerance,
-                               s.point_opacity, s.texture_views, layout)
-        decisions["texture"] = {"size": list(texture.atlas.size), "charts": texture.atlas.charts,
-                                "colour": texture.colour, "atlas_vertices": len(texture.atlas.uv)}
-        release_freed()
-
     voxel = grid_lattice_voxel(grid)
     if len(terminations.t) > 2 * s.points:  # the snap drops some rays: keep a margin, subsample after
         terminations = terminations.subset(np.random.default_rng(s.seed).choice(len(terminations.t), 2 * s.points,
@@ -178,8 +169,20 @@ def run(ctx) -> dict:
     if len(terminations.t) == 0:
         ctx.report.warn(f"no training-view pixel is {s.point_opacity:.0%} opaque inside the foreground box: the "
                         "level comes from export.level_opacity and points.ply is empty; lower export.point_opacity")
-    del views, terminations  # the splats' phase needs their memory
+    # What the texture needs of the views (which see each vertex, how squarely), so they are let go before it bakes.
+    sight = (view_sight(grid, frame, mesh, views, s.seen_tolerance, s.point_opacity)
+             if s.texture and s.texture_colour == "view" else None)
+    del views, terminations
     release_freed()
+    texture = None
+    if s.texture:
+        ctx.report.info(f"unwrapping {_count(len(mesh.faces))} faces and baking a {s.texture_size}-texel texture")
+        texture = texture_mesh(grid, frame, mesh, s.texture_size, s.texture_colour, sight=sight,
+                               view_count=s.texture_views, layout_vertices=layout)
+        decisions["texture"] = {"size": list(texture.atlas.size), "charts": texture.atlas.charts,
+                                "colour": texture.colour, "atlas_vertices": len(texture.atlas.uv)}
+        del sight
+        release_freed()
 
     if s.frame == "input":
         to_output = np.asarray(scene["input_from_world"], dtype=np.float64)

@@ -314,32 +314,50 @@ class Texture:
     colour: str
 
 
+@dataclass
+class ViewSight:
+    """What baking "view" colour needs of the training views: per mesh vertex and view [V, C], the cosine between the
+    vertex normal and the direction to the camera where the view sees it (0: unseen; plenoxels.surface.views.
+    view_cosines), and the cameras' centres [C, 3] (world)."""
+    cosines: np.ndarray
+    centres: np.ndarray
+
+
+def view_sight(grid, frame: FitFrame, mesh: trimesh.Trimesh, views: list[ViewRender], seen_tolerance: float = 1.0,
+               opacity: float = 0.5) -> ViewSight:
+    """The views' sight of the mesh (world frame): a vertex `seen_tolerance` voxels behind what a view's pixel at
+    least `opacity` opaque sees is still seen (view_cosines)."""
+    voxel_world = grid_lattice_voxel_world(grid, frame, mesh)
+    return ViewSight(view_cosines(mesh, list(views), frame, voxel_world, seen_tolerance * voxel_world, opacity),
+                     np.stack([view.c2w[:3, 3] for view in views]))
+
+
 def texture_mesh(grid, frame: FitFrame, mesh: trimesh.Trimesh, resolution: int,
                  colour: Literal["view", "normal", "mean"], views: list[ViewRender] = (), seen_tolerance: float = 1.0,
-                 opacity: float = 0.5, view_count: int = 1, layout_vertices: np.ndarray | None = None) -> Texture:
+                 opacity: float = 0.5, view_count: int = 1, layout_vertices: np.ndarray | None = None,
+                 sight: ViewSight | None = None) -> Texture:
     """Unwraps the mesh (world frame) into an atlas of about `resolution` texels on a side and bakes the field's
-    colour into it (module docstring). "view" needs the training `views` (plenoxels.surface.views.render_views) and blends
-    up to `view_count` of them per texel; a vertex `seen_tolerance` voxels behind what a view's pixel at least
-    `opacity` opaque sees is still seen (view_cosines). `layout_vertices` [V, 3]: where the atlas is charted, if not
-    at the mesh's own vertices (the same faces a little elsewhere); the colour is baked at the mesh's own."""
-    if colour == "view" and not views:
-        raise ValueError('texture colour "view" needs the training views')
+    colour into it (module docstring). "view" needs the training `views` (plenoxels.surface.views.render_views), or
+    their `sight` of the mesh (view_sight) when the views themselves are let go first, and blends up to `view_count`
+    of them per texel. `layout_vertices` [V, 3]: where the atlas is charted, if not at the mesh's own vertices (the
+    same faces a little elsewhere); the colour is baked at the mesh's own."""
+    if colour == "view" and sight is None:
+        if not views:
+            raise ValueError('texture colour "view" needs the training views')
+        sight = view_sight(grid, frame, mesh, views, seen_tolerance, opacity)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
     voxel_world = grid_lattice_voxel_world(grid, frame, mesh)
     atlas = unwrap(vertices if layout_vertices is None else layout_vertices, np.asarray(mesh.faces), resolution)
     texels, faces, weights = texel_faces(atlas)
-    if colour == "view":
-        cosines = view_cosines(mesh, list(views), frame, voxel_world, seen_tolerance * voxel_world, opacity)
-        centres = np.stack([view.c2w[:3, 3] for view in views])
     colours = np.empty((len(texels), 3))
     for start in range(0, len(texels), TEXEL_CHUNK):
         part = slice(start, start + TEXEL_CHUNK)
         points = (vertices[faces[part]] * weights[part, :, None]).sum(axis=1)
         outward = surface_normals(vertices, faces[part], weights[part], normals)
         if colour == "view":
-            best, facing = facing_views(faces[part], weights[part], cosines, view_count)
-            colours[part] = view_colour_texels(grid, frame, points, outward, best, facing, centres, voxel_world)
+            best, facing = facing_views(faces[part], weights[part], sight.cosines, view_count)
+            colours[part] = view_colour_texels(grid, frame, points, outward, best, facing, sight.centres, voxel_world)
         else:
             colours[part] = surface_colour_texels(grid, frame, points, outward, voxel_world, colour)
     return Texture(atlas, bake(texels, colours, atlas.size), colour)
