@@ -124,13 +124,8 @@ def usable_memory() -> int:
 
 
 def resident_memory() -> int:
-    """Bytes of its own this process holds now: its resident set less the pages mapped from files (the libraries'
-    code, which the kernel can drop and read again)."""
-    try:
-        fields = Path("/proc/self/statm").read_text().split()
-        return (int(fields[1]) - int(fields[2])) * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, IndexError):
-        return 0
+    """Bytes this process holds now, the libraries' mapped code included: a cgroup charges it too."""
+    return _resident(Path("/proc"))
 
 
 def release_freed() -> None:
