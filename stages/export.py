@@ -51,7 +51,7 @@ from stages.settings.export import Settings
 from stages.common.layout import EXPORT_JSON, MODEL_JSON, SCENE_JSON
 
 # The training views' opaque rays kept for the level, the free-space test and the points: a seeded share of each
-# view's. 64 bytes a ray; a hundred 400x400 views give about 5 M, which the export held at once (300 MB, twice over).
+# view's. 64 bytes a ray: a hundred 400x400 views give about 5 M, 320 MB, and twice that while they are joined.
 MAX_TERMINATIONS = 1_000_000
 # What the export holds at its peak past what is loaded, per unit of each phase's work, measured on lego `default`
 # (bench/README.md, "Faults"), rounded up: the training views rendered (depth, opacity and colour per pixel, and the
@@ -69,9 +69,15 @@ TARGET_PIXEL_BYTES = 16
 SCORING_BYTES = 200 << 20
 
 
-def _memory_need(s: Settings, grid, frames: list[dict]) -> tuple[int, str]:
-    """Bytes the export will hold at its peak (resident now, and the largest phase's share: the constants above), and
-    what they are for, in words."""
+# What shrinks each phase, for the line that stops an export that would not fit.
+SHRINK = {"mesh": "lower export.point_scale (the training views rendered beside the fitted grid's own lattice)",
+          "texture": "lower export.texture_size, or export.texture=false for vertex colours",
+          "splats": "lower export.max_splats, or export.splats=false for none"}
+
+
+def _memory_need(s: Settings, grid, frames: list[dict]) -> tuple[int, str, str]:
+    """Bytes the export will hold at its peak (resident now, and the largest phase's share: the constants above), what
+    they are for, in words, and what shrinks them."""
     def pixels(scale: float, limit: int) -> int:
         chosen = training_views(frames, limit)
         return sum(Intrinsics.from_frame(f).scaled(scale).w * Intrinsics.from_frame(f).scaled(scale).h for f in chosen)
@@ -88,7 +94,7 @@ def _memory_need(s: Settings, grid, frames: list[dict]) -> tuple[int, str]:
     need = resident_memory() + phases[largest]
     what = (f"the export of a {'x'.join(map(str, grid.resolution))} grid ({_count(view_pixels)} training-view pixels; "
             f"at its largest, the {largest}" + (f" of up to {_count(splats)}" if largest == "splats" else "") + ")")
-    return int(need), what
+    return int(need), what, SHRINK[largest]
 
 
 def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -126,8 +132,7 @@ def run(ctx) -> dict:
     if s.crop:
         box_min, box_max = np.asarray(s.crop[:3], dtype=np.float64), np.asarray(s.crop[3:], dtype=np.float64)
 
-    check_fits(*_memory_need(s, grid, scene["frames"]), "lower export.point_scale, export.texture_size or "
-               "export.max_splats (export.splats=false writes none)")
+    check_fits(*_memory_need(s, grid, scene["frames"]))
     crop_min, crop_max = box_min - s.crop_margin * (box_max - box_min), box_max + s.crop_margin * (box_max - box_min)
     views = render_views(grid, frame, scene["frames"], s.point_scale, s.point_views, ctx.report)
     terminations = ray_terminations(views, frame, s.point_opacity, MAX_TERMINATIONS, s.seed)
