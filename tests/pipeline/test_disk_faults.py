@@ -14,7 +14,7 @@ from pipeline.runner import Pipeline
 from pipeline.stage import StageGraph
 from plenoxels.core.errors import UserError
 from plenoxels.core.files import write_whole
-from tests.pipeline.test_cache import stage_package
+from tests.pipeline.test_cache import SOURCES as CACHE_SOURCES, stage_package
 from stages.common.text import format_bytes
 
 # a -> b -> c. b fails as the scene's FAIL file says (an errno, or a library's message), and keeps a checkpoint in its
@@ -50,16 +50,7 @@ SOURCES = {
                 raise RuntimeError(how)
             return {"line": "b done", "resumed": resumed}
     ''',
-    "c.py": '''
-        from dataclasses import dataclass
-        NAME, DEPENDS, VERSION = "c", ("b",), 1
-        @dataclass
-        class Settings:
-            pass
-        def run(ctx):
-            (ctx.work / "c.txt").write_text((ctx.upstream["b"] / "b.txt").read_text())
-            return {"line": "c done"}
-    ''',
+    "c.py": CACHE_SOURCES["c.py"],  # the same last stage as the cache tests'
 }
 
 
