@@ -96,6 +96,20 @@ class TrainOptions:
     """rays: random pixels; tiles: random square tiles of pixels (faster kernel, less progress per step)."""
     tile_size: int = 32
     """Tile side in pixels (batch_mode tiles)."""
+    photo_colour: bool = False
+    """Fit each training photo's own colour (a gain per channel, plenoxels/core/photo_colour.py) and train
+    the field against the photos taken back to their common colour, for a phone's exposure and white balance, which
+    change as it turns: the field then reproduces its photos, but renders every view in the common colour, which a
+    held-out photo of its own exposure does not share (bench/README.md, "Real captures")."""
+    error_share: float = 0.0
+    """Share of each batch of random rays drawn where the render still disagrees with the photos, in proportion to
+    the squared error of each block of pixels (plenoxels/core/error_map.py); the rest are uniform (0: every ray
+    uniform; batch_mode rays only)."""
+    measure_every: int = 200
+    """Steps between two measurements of the training photos against the render (their colours, the error map); each
+    level's start measures them too. Only a fit that uses either measures."""
+    measure_rays: int = 1 << 17
+    """Rays one measurement renders: an even lattice of every photo's pixels, as fine as this allows."""
     coherent_batches: bool = True
     """Order each batch's rays so that rays passing near each other sit together (the same rays, in another order:
     the kernel's threads then read neighbouring voxels, which is faster; bench/README.md, "Kernels")."""
@@ -170,6 +184,9 @@ class TrainOptions:
                 f"{section}.first_level_scale must be in (0, 1] (1: the first level as set)")
         require(self.batch_size >= 1, f"{section}.batch_size must be at least 1")
         require(self.tile_size >= 1, f"{section}.tile_size must be at least 1")
+        require(0 <= self.error_share <= 1, f"{section}.error_share must be in [0, 1] (0: every ray uniform)")
+        require(self.measure_every >= 1 and self.measure_rays >= 1,
+                f"{section}.measure_every and {section}.measure_rays must be at least 1")
         require(self.lr_density > 0 and self.lr_density_final > 0 and self.lr_sh > 0 and self.lr_sh_final > 0,
                 f"{section}.lr_density, {section}.lr_density_final, {section}.lr_sh and {section}.lr_sh_final must be "
                 "positive")

@@ -27,6 +27,8 @@ import torch
 
 from plenoxels.core.background import BackgroundOptimiser
 from plenoxels.core.cameras import Intrinsics
+from plenoxels.core.error_map import ErrorMap, measure_stride
+from plenoxels.core.photo_colour import PhotoColour
 from plenoxels.core.errors import UserError
 from plenoxels.core.files import write_whole
 from plenoxels.core.grid import SparseGrid, sh_count
@@ -35,7 +37,7 @@ from plenoxels.core.optim import GridGrad, SparseRMSProp
 from plenoxels.core.options import TrainOptions
 from plenoxels.core.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution,
                                     tv_scale_for_views, views_per_point)
-from plenoxels.core.render import loss_and_grad, max_weights
+from plenoxels.core.render import loss_and_grad, max_weights, render
 from plenoxels.core.scene_model import SceneModel, psnr
 
 # The running train PSNR averages the MSE of this many recent steps.
@@ -156,17 +158,25 @@ class RaySet:
         return c2w[:, :3, 3].contiguous(), (d / d.norm(dim=-1, keepdim=True)).contiguous()
 
     def batch(self, size: int, mode: str, tile: int, generator: torch.Generator, coherent: bool = False,
-              with_backdrops: bool = False):
+              with_backdrops: bool = False, error_map: ErrorMap | None = None, error_share: float = 0.0,
+              colour: PhotoColour | None = None):
         """A training batch: world origins, directions [B, 3] and target colours [B, 3] in [0, 1], and with
         `with_backdrops` each ray's photo's backdrop colour [B, 3] after them; with `coherent`, random rays come ordered
-        by coherent_order. `generator` is a CPU generator; the batch is on this set's device."""
+        by coherent_order. Random rays: `error_share` of them drawn from `error_map` once it is measured. With `colour`
+        the target colours are the photos' taken back to their common colour. `generator` is a CPU generator; the batch
+        is on this set's device."""
         device = self.device
         if mode == "rays":
-            flat = torch.randint(self.num_pixels, (size,), generator=generator).to(device)
+            by_error = round(size * error_share) if error_map is not None and error_map.measured else 0
+            flat = torch.randint(self.num_pixels, (size - by_error,), generator=generator).to(device)
             image = torch.searchsorted(self.offsets, flat, right=True) - 1
             local = flat - self.offsets[image]
             w = self.sizes[image, 1]
             row, col = local // w, local % w
+            if by_error:
+                drawn = [t.to(device) for t in error_map.draw(by_error, generator)]
+                image, row, col = (torch.cat([a, b]) for a, b in zip((image, row, col), drawn))
+                flat = self.offsets[image] + row * self.sizes[image, 1] + col
         else:
             n_tiles = max(1, size // (tile * tile))
             image = torch.multinomial(self.image_pixels, n_tiles, replacement=True, generator=generator).to(device)
@@ -183,7 +193,8 @@ class RaySet:
             w = self.sizes[image, 1]
             flat = self.offsets[image] + row * w + col
         o, d = self.rays(image, row, col)
-        drawn = [o, d, self.pixels[flat].float() / 255.0]
+        target = self.pixels[flat].float() / 255.0
+        drawn = [o, d, target if colour is None else colour.to_common(image, target)]
         if with_backdrops:
             drawn.append(self.backdrops[image])
         if coherent and mode == "rays":
@@ -191,17 +202,26 @@ class RaySet:
             drawn = [t[order] for t in drawn]
         return tuple(drawn)
 
+    def lattice(self, stride: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """A regular subset of every image's pixels, every stride-th row and column from stride // 2: (image, row,
+        column) [P], on the CPU."""
+        image, row, col = [], [], []
+        for i, (h, w) in enumerate(self.sizes.tolist()):
+            r, c = torch.meshgrid(torch.arange(stride // 2, h, stride), torch.arange(stride // 2, w, stride),
+                                  indexing="ij")
+            image.append(torch.full((r.numel(),), i))
+            row.append(r.reshape(-1))
+            col.append(c.reshape(-1))
+        return torch.cat(image), torch.cat(row), torch.cat(col)
+
+    def colours(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
+        """The photos' colours [B, 3] in [0, 1] at these pixels (on this set's device)."""
+        return self.pixels[self.offsets[image] + row * self.sizes[image, 1] + col].float() / 255.0
+
     def strided_rays(self, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Rays through a regular subset of every image's pixels (every stride-th row and column)."""
-        origins, dirs = [], []
-        device = self.device
-        for i, (h, w) in enumerate(self.sizes.tolist()):
-            row, col = torch.meshgrid(torch.arange(stride // 2, h, stride, device=device),
-                                      torch.arange(stride // 2, w, stride, device=device), indexing="ij")
-            o, d = self.rays(torch.full((row.numel(),), i, device=device), row.reshape(-1), col.reshape(-1))
-            origins.append(o)
-            dirs.append(d)
-        return torch.cat(origins), torch.cat(dirs)
+        image, row, col = (t.to(self.device) for t in self.lattice(stride))
+        return self.rays(image, row, col)
 
 
 def coherent_order(origins: torch.Tensor, dirs: torch.Tensor, extent: float = 2.0) -> torch.Tensor:
@@ -289,6 +309,12 @@ class Fitter:
         self.background_seconds = 0.0       # of this run's steps, spent rendering and training the background
         self.checkpoint_step: int | None = None
         self.regularisation = self._regularisation()
+        stride = measure_stride(train.sizes, options.measure_rays)
+        self.error_map = (ErrorMap(train.sizes, stride) if options.error_share > 0 and options.batch_mode == "rays"
+                          else None)
+        self.colour_used = options.photo_colour
+        self.colour = PhotoColour(len(train))
+        self.colour_gain_db: float | None = None  # what the first fit of the photos' colours brought
         self._new_optimiser()
 
     # ---- optimiser state ------------------------------------------------------------------------
@@ -385,8 +411,12 @@ class Fitter:
         self.optim.set_lr(decayed_lr(o.lr_density, o.lr_density_final, progress, o.lr_density_delay),
                           decayed_lr(o.lr_sh, o.lr_sh_final, progress))
         own_backdrops = self.train.backdrops is not None and self.bg_optim is None
+        if self.measures() and self.step > 0 and (self.step % o.measure_every == 0 or self.level_starts()):
+            self.measure_photos()
         drawn = [t.to(self.device) for t in self.train.batch(o.batch_size, o.batch_mode, o.tile_size, self.generator,
-                                                             o.coherent_batches, with_backdrops=own_backdrops)]
+                                                             o.coherent_batches, with_backdrops=own_backdrops,
+                                                             error_map=self.error_map, error_share=o.error_share,
+                                                             colour=self.colour if self.colour_used else None)]
         o_w, d_w, target = drawn[:3]
         o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
         started = time.perf_counter()
@@ -419,6 +449,42 @@ class Fitter:
             self.check_finite()
         return mse
 
+    def level_starts(self) -> bool:
+        """Whether this step is the first of a level after the first."""
+        return self.level > 0 and self.step == self.level_end(self.level - 1)
+
+    def measures(self) -> bool:
+        """Whether this fit measures its photos against the render: for their colours or for its error map."""
+        return self.error_map is not None or self.colour_used
+
+    def measure_photos(self) -> None:
+        """Renders an even lattice of every training photo's pixels with the model as it stands; fits the photos'
+        colours where the options say so, and measures the error map against the photos in their common colour."""
+        image, row, col = self.train.lattice(self.error_map.stride if self.error_map is not None
+                                             else measure_stride(self.train.sizes, self.options.measure_rays))
+        rendered, photo = self.render_pixels(image, row, col)
+        if self.colour_used:
+            self.colour.fit(image, rendered, photo)
+            if self.colour_gain_db is None:
+                self.colour_gain_db = round(self.colour.gain_db(image, rendered, photo), 3)
+        if self.error_map is not None:
+            common = self.colour.to_common(image, photo) if self.colour_used else photo
+            self.error_map.measure(image, row, col, ((rendered.clamp(0, 1) - common) ** 2).mean(dim=1))
+
+    def render_pixels(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The render and the photo's colour [B, 3] at these training pixels, on the CPU."""
+        rendered, photo = [], []
+        for start in range(0, image.shape[0], RAY_CHUNK):
+            i, r, c = (t[start:start + RAY_CHUNK].to(self.device) for t in (image, row, col))
+            o_w, d_w = self.train.rays(i, r, c)
+            with torch.no_grad():
+                background = (self.train.backdrops[i] if self.train.backdrops is not None and self.bg_optim is None
+                              else self.model.background_rgb(o_w, d_w))
+            o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
+            rendered.append(render(self.model.grid, o_fit, d_fit, background, self.model.render_options).rgb.cpu())
+            photo.append(self.train.colours(i, r, c).cpu())
+        return torch.cat(rendered), torch.cat(photo)
+
     def check_finite(self) -> None:
         columns = 1 + 3 * sh_count(self.model.grid.sh_degree)
         data = self.model.grid.data
@@ -447,6 +513,21 @@ class Fitter:
             words += (f", TV x{self.tv_level_scale():.3g} on the last level "
                       f"(finer than {self.options.tv_reference_resolution}^3)")
         return words
+
+    def colour_record(self) -> dict:
+        """What the fit did about the photos' colours: whether it fitted them, what the first fit brought the renders
+        (dB closer to their photos), and the gains' range."""
+        record = {"used": self.colour_used, "gain_db": self.colour_gain_db}
+        return {**record, **self.colour.describe()} if self.colour_used else record
+
+    def colour_summary(self) -> str:
+        """The fit summary's words on the photos' colours ("" where they were taken as they are)."""
+        if not self.colour_used:
+            return ""
+        gains = self.colour.describe()
+        brought = f", {self.colour_gain_db:+.1f} dB at first" if self.colour_gain_db is not None else ""
+        return (f", each photo's colour fitted (gains {min(gains['gain_min']):.2f}-{max(gains['gain_max']):.2f}"
+                f"{brought}; train PSNR in the common colour)")
 
     def train_psnr(self) -> float:
         return psnr(sum(self.recent_mse) / len(self.recent_mse)) if self.recent_mse else float("nan")
@@ -508,6 +589,8 @@ class Fitter:
             "background": self.model.background.state_dict() if self.model.background is not None else None,
             "background_color": list(self.model.background_color),
             "bg_optim": self.bg_optim.state_dict() if self.bg_optim is not None else None,
+            "error_map": self.error_map.state_dict() if self.error_map is not None else None,
+            "colour": {"used": self.colour_used, "gain_db": self.colour_gain_db, **self.colour.state_dict()},
         }
 
     def save_checkpoint(self, path: Path) -> None:
@@ -530,3 +613,8 @@ class Fitter:
         if self.model.background is not None:
             self.model.background.load_state_dict(state["background"])
             self.bg_optim.load_state_dict(state["bg_optim"])
+        if self.error_map is not None and state.get("error_map") is not None:
+            self.error_map.load_state_dict(state["error_map"])
+        if state.get("colour") is not None:
+            self.colour_gain_db = state["colour"]["gain_db"]
+            self.colour.load_state_dict(state["colour"])

@@ -54,6 +54,7 @@ def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBu
         "model": model.describe(),
         "memory_bytes": memory,
         "regularisation": fitter.regularisation,
+        "photo_colour": fitter.colour_record(),
         "background_added": ending.background_why or None,
         "scene_model": model_trial.model_name(model), "model_choice": inputs.choice or {},
         "own_backdrops": fitter.train.backdrops is not None and model.background is None,
@@ -93,7 +94,7 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
             line += f" (added: {ending.background_why})"
     if choice.get("chosen"):
         line += "; " + model_trial.summary(choice)
-    line += fitter.regularisation_summary()
+    line += fitter.regularisation_summary() + fitter.colour_summary()
     threads = record.get("gradient_threads")
     if threads and threads["used"] < threads["available"]:
         line += (f", gradients on {threads['used']} of {threads['available']} "

@@ -261,13 +261,15 @@ def test_a_repeated_resolution_prunes_the_grid_without_upsampling_it(tmp_path):
     assert max(fitter.model.grid.resolution) == 48 and fitter.model.grid.num_occupied > pruned.num_occupied
 
 
-def test_a_fit_stopped_between_the_early_prune_and_the_upsample_resumes_to_the_same_model(tmp_path):
+@pytest.mark.parametrize("measures", [{}, {"photo_colour": True, "error_share": 0.5, "measure_every": 4}])
+def test_a_fit_stopped_between_the_early_prune_and_the_upsample_resumes_to_the_same_model(tmp_path, measures):
     """On one thread (the gradient sums' order is then fixed), a fit stopped inside a repeated resolution's level and
-    resumed from its checkpoint ends where the fit that never stopped does."""
+    resumed from its checkpoint ends where the fit that never stopped does; so does one that measures its photos
+    (their colours, the error map its batches draw from), between two measurements."""
     root = make_scene(tmp_path, width=64)
     scene = read_json(root / "normalize" / "scene.json")
     train = training_rays(root, [f for f in scene["frames"] if f["split"] == "train"])
-    options = TrainOptions(resolutions=[16, 16, 32], steps=[30, 10, 10], batch_size=1024)
+    options = TrainOptions(resolutions=[16, 16, 32], steps=[30, 10, 10], batch_size=1024, **measures)
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -282,6 +284,9 @@ def test_a_fit_stopped_between_the_early_prune_and_the_upsample_resumes_to_the_s
         torch.set_num_threads(before)
     assert resumed.levels == whole.levels
     assert torch.equal(resumed.model.grid.data, whole.model.grid.data)
+    if measures:
+        assert torch.equal(resumed.colour.gain, whole.colour.gain) and not bool(whole.colour.gain.eq(1).all())
+        assert torch.equal(resumed.error_map.error, whole.error_map.error) and whole.error_map.measured
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])

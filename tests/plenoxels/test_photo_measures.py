@@ -1,0 +1,112 @@
+"""What the fit measures of its photos against the render: each photo's colour (gain and offset per channel) and the
+error map a share of each batch is drawn from."""
+import numpy as np
+import torch
+
+from stages.common.json_files import read_json
+from plenoxels.core.cameras import Intrinsics
+from plenoxels.core.error_map import ErrorMap, measure_stride
+from plenoxels.core.photo_colour import PhotoColour
+from plenoxels.core.scene_model import ModelOptions, SceneModel
+from plenoxels.core.train import Fitter, RaySet, TrainOptions
+from tests.plenoxels.test_train import training_rays
+from tests.stages.test_fit import make_scene
+
+
+def test_each_photos_gains_are_found_and_clipped_pixels_say_nothing():
+    gen = torch.Generator().manual_seed(0)
+    photos, per_photo = 5, 4000
+    gain = 0.7 + 0.6 * torch.rand(photos, 3, generator=gen, dtype=torch.float64)
+    gain = gain / gain.mean(0)
+    image = torch.arange(photos).repeat_interleave(per_photo)
+    rendered = 0.1 + 0.7 * torch.rand(photos * per_photo, 3, generator=gen, dtype=torch.float64)
+    photo = gain[image] * rendered
+    # A fifth of each photo blown out: clipped at 1 whatever the render there, so it must not move the gains.
+    blown = torch.rand(photos * per_photo, generator=gen) < 0.2
+    photo[blown] = 1.0
+    colour = PhotoColour(photos)
+    colour.fit(image, rendered, photo)
+    torch.testing.assert_close(colour.gain, gain, atol=1e-9, rtol=0)
+    # Taken back to the common colour, each photo is the render again (where it is not clipped).
+    torch.testing.assert_close(colour.to_common(image, photo)[~blown], rendered[~blown], atol=1e-9, rtol=0)
+    assert colour.gain_db(image, rendered, photo) > 10
+    # Noise in the render (a fit is never exact) leaves the gains where they were.
+    noisy = rendered + 0.05 * torch.randn(rendered.shape, generator=gen, dtype=torch.float64)
+    colour.fit(image, noisy, photo)
+    torch.testing.assert_close(colour.gain, gain, atol=0.01, rtol=0)
+
+
+def test_gains_stay_at_the_common_colour_where_a_photo_says_nothing():
+    # Photo 1 is all clipped, photo 2 renders black: neither can be fitted, and no gain leaves its bounds.
+    image = torch.tensor([0] * 100 + [1] * 100 + [2] * 100)
+    rendered = torch.cat([torch.full((100, 3), 0.5), torch.full((100, 3), 0.5), torch.zeros(100, 3)])
+    photo = torch.cat([torch.full((100, 3), 0.6), torch.ones(100, 3), torch.full((100, 3), 0.3)])
+    colour = PhotoColour(3)
+    colour.fit(image, rendered, photo)
+    assert bool(torch.isfinite(colour.gain).all())
+    torch.testing.assert_close(colour.gain[1], colour.gain[2])  # both at the common gain
+    torch.testing.assert_close(colour.gain[0] / colour.gain[1], torch.full((3,), 1.2, dtype=torch.float64))
+
+
+def test_the_error_map_draws_pixels_from_the_blocks_that_are_wrong():
+    sizes = torch.tensor([[30, 40], [20, 20]])
+    error_map = ErrorMap(sizes, stride=2)
+    image, row, col = lattice(sizes, 2)
+    # Wrong only in photo 1's block at rows 4-7, columns 8-11, and a little everywhere in photo 0.
+    errors = torch.where((image == 1) & (row // 4 == 1) & (col // 4 == 2), 0.25, 0.0)
+    errors = errors + torch.where(image == 0, 1e-4, 0.0)
+    error_map.measure(image, row, col, errors)
+    drawn_image, drawn_row, drawn_col = error_map.draw(20000, torch.Generator().manual_seed(0))
+    in_block = (drawn_image == 1) & (drawn_row // 4 == 1) & (drawn_col // 4 == 2)
+    # Drawn in proportion to pixels x RMS error: 16 x 0.5 against 1200 x 0.01 for photo 0.
+    share = 16 * 0.5 / (16 * 0.5 + 1200 * 0.01)
+    assert abs(float(in_block.double().mean()) - share) < 0.02
+    assert bool(((drawn_row < sizes[drawn_image, 0]) & (drawn_col < sizes[drawn_image, 1])).all())
+    # Every pixel of the block is drawn, none outside it in photo 1.
+    assert len({(r, c) for r, c in zip(drawn_row[in_block].tolist(), drawn_col[in_block].tolist())}) == 16
+    assert not bool(((drawn_image == 1) & ~in_block).any())
+
+
+def lattice(sizes: torch.Tensor, stride: int):
+    """The pixels a measurement at this stride renders, of black photos of these sizes."""
+    images = [np.zeros((h, w, 3), np.float32) for h, w in sizes.tolist()]
+    k = [Intrinsics(10.0, 10.0, w / 2, h / 2, w, h) for h, w in sizes.tolist()]
+    return RaySet(images, [np.eye(4)] * len(images), k).lattice(stride)
+
+
+def test_the_measuring_stride_renders_about_the_rays_asked():
+    sizes = torch.tensor([[400, 400]] * 100)
+    stride = measure_stride(sizes, 1 << 17)
+    pixels = 100 * 400 * 400
+    assert (pixels / stride ** 2) >= (1 << 17) > pixels / (stride + 1) ** 2
+    assert measure_stride(torch.tensor([[8, 8]]), 1 << 17) == 2  # never finer than blocks of MIN_BLOCK pixels
+
+
+def test_a_fit_of_photos_in_several_exposures_finds_each_photos_gains(tmp_path):
+    """Photos of one scene, each in an exposure and white balance of its own: the fit with photo_colour finds each
+    photo's gains; the fit without leaves them at 1."""
+    root = make_scene(tmp_path, width=64)
+    scene = read_json(root / "normalize" / "scene.json")
+    frames = [f for f in scene["frames"] if f["split"] == "train"]
+    plain = training_rays(root, frames)
+    gen = torch.Generator().manual_seed(2)
+    gains = 0.75 + 0.5 * torch.rand(len(plain), 3, generator=gen)
+    gains = gains / gains.mean(0)
+    images = [(plain.image(i) * gains[i]).clamp(0, 1).numpy() for i in range(len(plain))]
+    exposed = RaySet(images, [np.asarray(f["transform_matrix"]) for f in frames], plain.intrinsics)
+    fits = {}
+    for used in (False, True):
+        # SH degree 0: no view-dependent colour that could take up the photos' exposures instead.
+        options = TrainOptions(resolutions=[24, 24, 32], steps=[60, 60, 120], batch_size=2048, photo_colour=used,
+                               measure_every=40)
+        fitter = Fitter(SceneModel.create(scene, ModelOptions(sh_degree=0), 24), options, exposed)
+        fitter.run(tmp_path / f"{used}.pt", 1e9)
+        fits[used] = fitter
+    found = fits[True].colour.gain.float()
+    # The photos' own gains, as near as a fit of 20 dB renders them: in the same order, near their size.
+    for channel in range(3):
+        assert np.corrcoef(found[:, channel], gains[:, channel])[0, 1] > 0.8
+    assert float((found - gains).abs().mean()) < 0.06 < float((gains - 1).abs().mean())
+    record = fits[True].colour_record()
+    assert record["used"] and record["gain_db"] > 0.5 and min(record["gain_min"]) < 0.95 < 1.05 < max(record["gain_max"])
+    assert not fits[False].colour_record()["used"] and bool(fits[False].colour.gain.eq(1).all())
