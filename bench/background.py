@@ -31,7 +31,8 @@ from plenoxels.core.background import MultiSphereBackground  # noqa: E402
 from plenoxels.core.cameras import Intrinsics, look_at  # noqa: E402
 from plenoxels.core.render import RenderOptions  # noqa: E402
 from plenoxels.core.scene_model import ModelOptions, SceneModel, background_width_for  # noqa: E402
-from plenoxels.core.train import Fitter, RaySet, TrainOptions  # noqa: E402
+from plenoxels.core.train import Fitter, TrainOptions  # noqa: E402
+from plenoxels.core.ray_set import RaySet  # noqa: E402
 
 RESULTS = REPO / "bench" / "results" / "background.json"
 

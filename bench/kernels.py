@@ -36,7 +36,7 @@ from plenoxels.core.grid import SparseGrid  # noqa: E402
 from plenoxels.core.optim import GridGrad  # noqa: E402
 from plenoxels.core.render import RenderOptions  # noqa: E402
 from plenoxels.core.render import loss_and_grad, sample_counts  # noqa: E402
-from plenoxels.core.train import coherent_order  # noqa: E402
+from plenoxels.core.ray_set import coherent_order  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "kernels.json"
 TILE = 32

@@ -51,7 +51,8 @@ def one_point(spec: dict) -> dict:
 
     from stages.common.frames import load_frame
     from plenoxels.core.scene_model import SceneModel
-    from plenoxels.core.train import Fitter, RaySet
+    from plenoxels.core.train import Fitter
+    from plenoxels.core.ray_set import RaySet
 
     scene, root = load_scene(spec["scene"], Path(spec["data"]), 0)
     resolution, coarse = spec["resolution"], spec["coarse_steps"]

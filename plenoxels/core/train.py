@@ -16,25 +16,23 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import copy
 import math
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from plenoxels.core.background import BackgroundOptimiser
-from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.error_map import ErrorMap, measure_stride
-from plenoxels.core.photo_colour import PhotoColour
 from plenoxels.core.errors import UserError
 from plenoxels.core.files import write_whole
 from plenoxels.core.grid import SparseGrid, sh_count
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.optim import GridGrad, SparseRMSProp
 from plenoxels.core.options import TrainOptions
+from plenoxels.core.photo_colour import PhotoColour
+from plenoxels.core.ray_set import RaySet
 from plenoxels.core.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution,
                                     tv_scale_for_views, views_per_point)
 from plenoxels.core.render import loss_and_grad, max_weights, render
@@ -81,166 +79,6 @@ class Schedule:
     def level_end(self, level: int) -> int:
         """The step at which `level` ends."""
         return sum(self.steps[:level + 1])
-
-
-def as_bytes(image: np.ndarray) -> np.ndarray:
-    """An image's pixels as uint8, from floats in [0, 1] or as they are."""
-    return image if image.dtype == np.uint8 else np.round(image * 255).astype(np.uint8)
-
-
-class RaySet:
-    """Pixels of a set of images with their cameras; makes world rays for any (image, row, column).
-
-    Pixels are stored flat (uint8 [P, 3]) so images of different sizes sit side by side.
-    """
-
-    def __init__(self, images: list[np.ndarray], c2ws: list[np.ndarray], intrinsics: list[Intrinsics],
-                 backdrops: list | None = None):
-        # Each photo's own backdrop colour (RGB in [0, 1]) where the photos of an object show it on backdrops of
-        # different colours: what a ray of that photo sees past the grid. None: the model's one colour or background.
-        self.backdrops = torch.tensor(np.asarray(backdrops, dtype=np.float32).reshape(-1, 3)) if backdrops else None
-        self.sizes = torch.tensor([[k.h, k.w] for k in intrinsics], dtype=torch.int64)
-        counts = self.sizes[:, 0] * self.sizes[:, 1]
-        self.offsets = torch.cat([torch.zeros(1, dtype=torch.int64), counts.cumsum(0)])
-        self.pixels = torch.cat([torch.from_numpy(as_bytes(im).reshape(-1, 3)) for im in images])
-        self.c2w = torch.tensor(np.stack(c2ws), dtype=torch.float32)
-        self.k = torch.tensor([[k.fl_x, k.fl_y, k.cx, k.cy] for k in intrinsics], dtype=torch.float32)
-        self.intrinsics = intrinsics
-        self.num_pixels = int(self.offsets[-1])
-        self.image_pixels = counts.double()  # the tiles' draw weights, on the CPU with the generator
-
-    def to(self, device: torch.device) -> RaySet:
-        """The same rays with their tables on `device`, where a batch's rays and colours are then made: on a GPU a
-        few launches instead of milliseconds of small CPU operations. The random draws stay on the CPU generator
-        (a few thousand integers), so a fit draws the same batches on every device."""
-        moved = copy.copy(self)
-        for name in ("sizes", "offsets", "pixels", "c2w", "k"):  # not image_pixels
-            setattr(moved, name, getattr(self, name).to(device))
-        if self.backdrops is not None:
-            moved.backdrops = self.backdrops.to(device)
-        return moved
-
-    @property
-    def device(self) -> torch.device:
-        return self.pixels.device
-
-    def mean_colour(self) -> list[float]:
-        """The mean RGB in [0, 1] of every pixel, summed a slice at a time (no float copy of the whole set)."""
-        total = sum(chunk.sum(dim=0, dtype=torch.float64) for chunk in self.pixels.split(1 << 20))
-        return (total / (255.0 * max(self.num_pixels, 1))).tolist()
-
-    def __len__(self) -> int:
-        return self.sizes.shape[0]
-
-    def image(self, index: int) -> torch.Tensor:
-        """Image `index` as float RGB [h, w, 3] in [0, 1], on this set's device."""
-        h, w = self.sizes[index].tolist()
-        start = int(self.offsets[index])
-        return self.pixels[start:start + h * w].reshape(h, w, 3).float() / 255.0
-
-    def subset(self, indices: list[int]) -> RaySet:
-        """The images at `indices` (in that order) as a RaySet of their own, on the CPU."""
-        return RaySet([self.image(i).cpu().numpy() for i in indices], [self.c2w[i].double().cpu().numpy() for i in indices],
-                      [self.intrinsics[i] for i in indices],
-                      None if self.backdrops is None else self.backdrops[indices].cpu().tolist())
-
-    def backdrop(self, index: int) -> list[float] | None:
-        """Photo `index`'s own backdrop colour (None where the photos have none of their own)."""
-        return None if self.backdrops is None else self.backdrops[index].tolist()
-
-    def rays(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """World origins and unit directions [B, 3] through pixel centres (plenoxels.core.cameras convention)."""
-        k = self.k[image]
-        d_cam = torch.stack([(col.float() + 0.5 - k[:, 2]) / k[:, 0], -(row.float() + 0.5 - k[:, 3]) / k[:, 1],
-                             -torch.ones_like(k[:, 0])], dim=-1)
-        c2w = self.c2w[image]
-        d = torch.einsum("bij,bj->bi", c2w[:, :3, :3], d_cam)
-        return c2w[:, :3, 3].contiguous(), (d / d.norm(dim=-1, keepdim=True)).contiguous()
-
-    def batch(self, size: int, mode: str, tile: int, generator: torch.Generator, coherent: bool = False,
-              with_backdrops: bool = False, error_map: ErrorMap | None = None, error_share: float = 0.0,
-              colour: PhotoColour | None = None):
-        """A training batch: world origins, directions [B, 3] and target colours [B, 3] in [0, 1], and with
-        `with_backdrops` each ray's photo's backdrop colour [B, 3] after them; with `coherent`, random rays come ordered
-        by coherent_order. Random rays: `error_share` of them drawn from `error_map` once it is measured. With `colour`
-        the target colours are the photos' taken back to their common colour. `generator` is a CPU generator; the batch
-        is on this set's device."""
-        device = self.device
-        if mode == "rays":
-            by_error = round(size * error_share) if error_map is not None and error_map.measured else 0
-            flat = torch.randint(self.num_pixels, (size - by_error,), generator=generator).to(device)
-            image = torch.searchsorted(self.offsets, flat, right=True) - 1
-            local = flat - self.offsets[image]
-            w = self.sizes[image, 1]
-            row, col = local // w, local % w
-            if by_error:
-                drawn = [t.to(device) for t in error_map.draw(by_error, generator)]
-                image, row, col = (torch.cat([a, b]) for a, b in zip((image, row, col), drawn))
-                flat = self.offsets[image] + row * self.sizes[image, 1] + col
-        else:
-            n_tiles = max(1, size // (tile * tile))
-            image = torch.multinomial(self.image_pixels, n_tiles, replacement=True, generator=generator).to(device)
-            h, w = self.sizes[image, 0], self.sizes[image, 1]
-            th, tw = torch.clamp(h, max=tile), torch.clamp(w, max=tile)
-            top = (torch.rand(n_tiles, generator=generator).to(device) * (h - th + 1)).long()
-            left = (torch.rand(n_tiles, generator=generator).to(device) * (w - tw + 1)).long()
-            dy, dx = torch.meshgrid(torch.arange(tile, device=device), torch.arange(tile, device=device), indexing="ij")
-            dy, dx = dy.reshape(1, -1), dx.reshape(1, -1)
-            inside = (dy < th[:, None]) & (dx < tw[:, None])
-            image = image[:, None].expand(-1, tile * tile)[inside]
-            row = (top[:, None] + dy)[inside]
-            col = (left[:, None] + dx)[inside]
-            w = self.sizes[image, 1]
-            flat = self.offsets[image] + row * w + col
-        o, d = self.rays(image, row, col)
-        target = self.pixels[flat].float() / 255.0
-        drawn = [o, d, target if colour is None else colour.to_common(image, target)]
-        if with_backdrops:
-            drawn.append(self.backdrops[image])
-        if coherent and mode == "rays":
-            order = coherent_order(o, d)
-            drawn = [t[order] for t in drawn]
-        return tuple(drawn)
-
-    def lattice(self, stride: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """A regular subset of every image's pixels, every stride-th row and column from stride // 2: (image, row,
-        column) [P], on the CPU."""
-        image, row, col = [], [], []
-        for i, (h, w) in enumerate(self.sizes.tolist()):
-            r, c = torch.meshgrid(torch.arange(stride // 2, h, stride), torch.arange(stride // 2, w, stride),
-                                  indexing="ij")
-            image.append(torch.full((r.numel(),), i))
-            row.append(r.reshape(-1))
-            col.append(c.reshape(-1))
-        return torch.cat(image), torch.cat(row), torch.cat(col)
-
-    def colours(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
-        """The photos' colours [B, 3] in [0, 1] at these pixels (on this set's device)."""
-        return self.pixels[self.offsets[image] + row * self.sizes[image, 1] + col].float() / 255.0
-
-    def strided_rays(self, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Rays through a regular subset of every image's pixels (every stride-th row and column)."""
-        image, row, col = (t.to(self.device) for t in self.lattice(stride))
-        return self.rays(image, row, col)
-
-
-def coherent_order(origins: torch.Tensor, dirs: torch.Tensor, extent: float = 2.0) -> torch.Tensor:
-    """A permutation that puts rays passing near each other next to each other: by the Morton code (a space-filling
-    curve, 10 bits per axis) of each ray's point closest to the scene's centre, which the normalised frame puts at the
-    origin with the foreground inside [-1, 1]^3 (points beyond `extent` share the faces of the curve's cube)."""
-    unit = dirs / dirs.norm(dim=1, keepdim=True)
-    closest = origins - unit * (origins * unit).sum(1, keepdim=True)
-    cell = ((closest.clamp(-extent, extent) + extent) / (2 * extent) * 1023).long()
-    spread = _every_third_bit(cell)
-    return torch.argsort(spread[:, 0] | (spread[:, 1] << 1) | (spread[:, 2] << 2))
-
-
-def _every_third_bit(v: torch.Tensor) -> torch.Tensor:
-    """Bit i of each 10-bit value moved to bit 3i, in four shifts and masks (not thirty single-bit steps)."""
-    v = (v | (v << 16)) & 0x030000FF
-    v = (v | (v << 8)) & 0x0300F00F
-    v = (v | (v << 4)) & 0x030C30C3
-    return (v | (v << 2)) & 0x09249249
 
 
 def decayed_lr(initial: float, final: float, progress: float, delay: float = 0.0) -> float:

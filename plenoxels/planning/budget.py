@@ -24,7 +24,8 @@ from plenoxels.planning.fit_plan import (FIRST_KEEP_PRIOR, LADDER, MAX_SHARE, MI
                                 finish_seconds, replan)
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.scene_model import SceneModel
-from plenoxels.core.train import Fitter, RaySet, Schedule, coarse_start, pruning_rays
+from plenoxels.core.train import Fitter, Schedule, coarse_start, pruning_rays
+from plenoxels.core.ray_set import RaySet
 
 # Re-plan every this many steps; a level's step time is the mean of its latest STEP_WINDOW, after its first few.
 REPLAN_EVERY = 20

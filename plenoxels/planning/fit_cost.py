@@ -47,7 +47,8 @@ from plenoxels.core import native
 from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.grid import SparseGrid, sh_count
 from plenoxels.core.scene_model import SceneModel
-from plenoxels.core.train import Fitter, RaySet, pruning_rays
+from plenoxels.core.train import Fitter, pruning_rays
+from plenoxels.core.ray_set import RaySet
 
 CACHE_VERSION = 4
 # Resolutions the calibration times steps at (grids as pruning leaves a fit).

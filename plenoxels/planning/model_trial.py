@@ -32,7 +32,8 @@ import numpy as np
 import torch
 
 from plenoxels.core.scene_model import SceneModel, psnr, reaches_far
-from plenoxels.core.train import Fitter, RaySet, Schedule
+from plenoxels.core.train import Fitter, Schedule
+from plenoxels.core.ray_set import RaySet
 
 # The models a trial chooses between, by the fit's toggles that make each.
 MODELS: dict[str, dict[str, str]] = {

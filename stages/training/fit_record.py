@@ -7,7 +7,8 @@ from dataclasses import dataclass
 
 import torch
 
-from plenoxels.core.train import Fitter, RaySet
+from plenoxels.core.train import Fitter
+from plenoxels.core.ray_set import RaySet
 from plenoxels.planning import model_trial
 from plenoxels.planning.budget import TimeBudget
 from stages.common.text import format_bytes, format_count, format_duration

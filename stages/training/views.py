@@ -11,7 +11,7 @@ from stages.common.frames import load_frames
 from stages.common.text import short_list
 from plenoxels.core.errors import UserError
 from plenoxels.core.scene_model import SceneModel, psnr
-from plenoxels.core.train import RaySet, as_bytes
+from plenoxels.core.ray_set import RaySet, as_bytes
 
 
 class HeldOut:

@@ -33,7 +33,8 @@ from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.errors import UserError
 from plenoxels.core.grid import SparseGrid
 from plenoxels.core.scene_model import ModelOptions, SceneModel
-from plenoxels.core.train import Fitter, RaySet, TrainOptions
+from plenoxels.core.train import Fitter, TrainOptions
+from plenoxels.core.ray_set import RaySet
 from stages import export
 from stages.interchange.splat_files import write_splat_ply
 from plenoxels.splats.model import Splats

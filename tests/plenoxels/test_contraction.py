@@ -227,7 +227,7 @@ def test_the_foreground_model_is_the_inner_cube_and_renders_it_as_the_full_model
 
 def test_a_contracted_grid_has_no_lattice_and_the_photos_mean_colour_is_their_pixels_mean():
     from plenoxels.core.render import ray_samples
-    from plenoxels.core.train import RaySet
+    from plenoxels.core.ray_set import RaySet
 
     with pytest.raises(ValueError, match="no lattice"):
         ray_samples(contracted_grid(), *awkward_rays(), RenderOptions())

@@ -7,7 +7,7 @@ import pytest
 
 from plenoxels.core import memory
 from plenoxels.core.errors import UserError
-from plenoxels.core.train import RaySet
+from plenoxels.core.ray_set import RaySet
 from plenoxels.core.cameras import Intrinsics
 
 GIB = 1 << 30

@@ -19,7 +19,7 @@ from stages.framing.sightings import Points
 from stages.capture.synthetic import write_scene
 from plenoxels.planning import model_trial
 from plenoxels.core.options import ModelOptions, TrainOptions
-from plenoxels.core.train import RaySet
+from plenoxels.core.ray_set import RaySet
 from stages import fit
 from tests.stages.test_fit import run_stage
 

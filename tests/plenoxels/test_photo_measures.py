@@ -8,7 +8,8 @@ from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.error_map import ErrorMap, measure_stride
 from plenoxels.core.photo_colour import PhotoColour
 from plenoxels.core.scene_model import ModelOptions, SceneModel
-from plenoxels.core.train import Fitter, RaySet, TrainOptions
+from plenoxels.core.train import Fitter, TrainOptions
+from plenoxels.core.ray_set import RaySet
 from tests.plenoxels.test_train import training_rays
 from tests.stages.test_fit import make_scene
 

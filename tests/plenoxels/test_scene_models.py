@@ -20,7 +20,8 @@ from stages.capture.synthetic import write_scene
 from stages.capture.synthetic_scenes import build_scene, render_view
 from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.scene_model import ModelOptions, SceneModel, psnr
-from plenoxels.core.train import Fitter, RaySet, TrainOptions
+from plenoxels.core.train import Fitter, TrainOptions
+from plenoxels.core.ray_set import RaySet
 
 # A small fit that runs in well under a minute: 30 training views of 64x48 pixels, 48 cells across, 400 steps. The
 # schedule suits so few steps (the density rate ramps up, the colour rate decays only 10x) and TV is

@@ -18,8 +18,9 @@ from plenoxels.core.optim import GridGrad
 from plenoxels.core.render import RenderOptions, loss_and_grad
 from plenoxels.core.regularizers import tv_scale_for_views, views_per_point
 from plenoxels.core.scene_model import ModelOptions, SceneModel, background_width_for
-from plenoxels.core.train import (Diverged, Fitter, RaySet, TrainOptions, coherent_order, decayed_lr, prune_mask,
-                             pruning_rays, pruning_stride)
+from plenoxels.core.train import (Diverged, Fitter, TrainOptions, decayed_lr, prune_mask, pruning_rays,
+                                  pruning_stride)
+from plenoxels.core.ray_set import RaySet, coherent_order
 from tests.stages.test_fit import make_scene
 
 
