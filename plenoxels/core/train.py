@@ -147,10 +147,9 @@ class Fitter:
         self.background_seconds = 0.0       # of this run's steps, spent rendering and training the background
         self.checkpoint_step: int | None = None
         self.regularisation = self._regularisation()
-        stride = measure_stride(train.sizes, options.measure_rays)
-        self.error_map = (ErrorMap(train.sizes, stride) if options.error_share > 0 and options.batch_mode == "rays"
-                          else None)
-        self.colour_used = options.photo_colour
+        self.measure_stride = measure_stride(train.sizes, options.measure_rays)
+        self.error_map = (ErrorMap(train.sizes, self.measure_stride)
+                          if options.error_share > 0 and options.batch_mode == "rays" else None)
         self.colour = PhotoColour(len(train))
         self.colour_gain_db: float | None = None  # what the first fit of the photos' colours brought
         self._new_optimiser()
@@ -254,7 +253,7 @@ class Fitter:
         drawn = [t.to(self.device) for t in self.train.batch(o.batch_size, o.batch_mode, o.tile_size, self.generator,
                                                              o.coherent_batches, with_backdrops=own_backdrops,
                                                              error_map=self.error_map, error_share=o.error_share,
-                                                             colour=self.colour if self.colour_used else None)]
+                                                             colour=self.colour if self.options.photo_colour else None)]
         o_w, d_w, target = drawn[:3]
         o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
         started = time.perf_counter()
@@ -293,20 +292,19 @@ class Fitter:
 
     def measures(self) -> bool:
         """Whether this fit measures its photos against the render: for their colours or for its error map."""
-        return self.error_map is not None or self.colour_used
+        return self.error_map is not None or self.options.photo_colour
 
     def measure_photos(self) -> None:
         """Renders an even lattice of every training photo's pixels with the model as it stands; fits the photos'
         colours where the options say so, and measures the error map against the photos in their common colour."""
-        image, row, col = self.train.lattice(self.error_map.stride if self.error_map is not None
-                                             else measure_stride(self.train.sizes, self.options.measure_rays))
+        image, row, col = self.train.lattice(self.measure_stride)
         rendered, photo = self.render_pixels(image, row, col)
-        if self.colour_used:
+        if self.options.photo_colour:
             self.colour.fit(image, rendered, photo)
             if self.colour_gain_db is None:
                 self.colour_gain_db = round(self.colour.gain_db(image, rendered, photo), 3)
         if self.error_map is not None:
-            common = self.colour.to_common(image, photo) if self.colour_used else photo
+            common = self.colour.to_common(image, photo) if self.options.photo_colour else photo
             self.error_map.measure(image, row, col, ((rendered.clamp(0, 1) - common) ** 2).mean(dim=1))
 
     def render_pixels(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -355,12 +353,12 @@ class Fitter:
     def colour_record(self) -> dict:
         """What the fit did about the photos' colours: whether it fitted them, what the first fit brought the renders
         (dB closer to their photos), and the gains' range."""
-        record = {"used": self.colour_used, "gain_db": self.colour_gain_db}
-        return {**record, **self.colour.describe()} if self.colour_used else record
+        record = {"used": self.options.photo_colour, "gain_db": self.colour_gain_db}
+        return {**record, **self.colour.describe()} if self.options.photo_colour else record
 
     def colour_summary(self) -> str:
         """The fit summary's words on the photos' colours ("" where they were taken as they are)."""
-        if not self.colour_used:
+        if not self.options.photo_colour:
             return ""
         gains = self.colour.describe()
         brought = f", {self.colour_gain_db:+.1f} dB at first" if self.colour_gain_db is not None else ""
@@ -428,7 +426,7 @@ class Fitter:
             "background_color": list(self.model.background_color),
             "bg_optim": self.bg_optim.state_dict() if self.bg_optim is not None else None,
             "error_map": self.error_map.state_dict() if self.error_map is not None else None,
-            "colour": {"used": self.colour_used, "gain_db": self.colour_gain_db, **self.colour.state_dict()},
+            "colour": {"gain_db": self.colour_gain_db, **self.colour.state_dict()},
         }
 
     def save_checkpoint(self, path: Path) -> None:
