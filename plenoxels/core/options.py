@@ -103,8 +103,8 @@ class TrainOptions:
     held-out photo of its own exposure does not share (bench/README.md, "Real captures")."""
     error_share: float = 0.0
     """Share of each batch of random rays drawn where the render still disagrees with the photos, in proportion to
-    the squared error of each block of pixels (plenoxels/core/error_map.py); the rest are uniform (0: every ray
-    uniform; batch_mode rays only)."""
+    the RMS error of each block of pixels (plenoxels/core/error_map.py); the rest are uniform (0: every ray uniform;
+    batch_mode rays only)."""
     measure_every: int = 200
     """Steps between two measurements of the training photos against the render (their colours, the error map); each
     level's start measures them too. Only a fit that uses either measures."""

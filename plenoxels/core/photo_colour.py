@@ -1,10 +1,10 @@
 """Each training photo's own colour: per channel, the gain that takes the field's render of its view to it.
 
-A phone sets exposure and white balance anew as it turns: ball's frames need blue gains from 0.79 to 1.09 of one
-field's colour (bench/README.md, "Real captures"). No one field reproduces photos that disagree on colour; it fits
-their average, blurred, or takes the differences up as view-dependent colour. With `fit.photo_colour` the fit
-measures, now and then, each photo's gain per channel against its render (over an even lattice of its pixels, clipped
-pixels left out) and trains the field against the photos taken back to a common colour, photo / gain. The gains
+A phone sets exposure and white balance anew as it turns: a colour correction per photo brings ball's training renders
+1.2 dB closer to their photos (bench/README.md, "Real captures"). No one field reproduces photos that disagree on
+colour; it fits their average, blurred, or takes the differences up as view-dependent colour. With `fit.photo_colour`
+the fit measures, now and then, each photo's gain per channel against its render (over an even lattice of its pixels,
+clipped pixels left out) and trains the field against the photos taken back to a common colour, photo / gain. The gains
 average 1 over the photos, so the field keeps their average colour, the one a new view is rendered in.
 """
 from __future__ import annotations
@@ -45,7 +45,7 @@ class PhotoColour:
         return photo / self.gain.to(device=photo.device, dtype=photo.dtype)[image]
 
     def gain_db(self, image: torch.Tensor, rendered: torch.Tensor, photo: torch.Tensor) -> float:
-        """How much closer (dB of PSNR) the renders come to these photo pixels through the lines than as they are,
+        """How much closer (dB of PSNR) the renders come to these photo pixels through the gains than as they are,
         over the pixels that are not clipped."""
         rendered, photo = rendered.double().clamp(0, 1), photo.double()
         use = ((photo > CLIPPED) & (photo < 1 - CLIPPED)).double()

@@ -106,7 +106,6 @@ class RaySet:
             if by_error:
                 drawn = [t.to(device) for t in error_map.draw(by_error, generator)]
                 image, row, col = (torch.cat([a, b]) for a, b in zip((image, row, col), drawn))
-                flat = self.offsets[image] + row * self.sizes[image, 1] + col
         else:
             n_tiles = max(1, size // (tile * tile))
             image = torch.multinomial(self.image_pixels, n_tiles, replacement=True, generator=generator).to(device)
@@ -120,10 +119,8 @@ class RaySet:
             image = image[:, None].expand(-1, tile * tile)[inside]
             row = (top[:, None] + dy)[inside]
             col = (left[:, None] + dx)[inside]
-            w = self.sizes[image, 1]
-            flat = self.offsets[image] + row * w + col
         o, d = self.rays(image, row, col)
-        target = self.pixels[flat].float() / 255.0
+        target = self.colours(image, row, col)
         drawn = [o, d, target if colour is None else colour.to_common(image, target)]
         if with_backdrops:
             drawn.append(self.backdrops[image])
