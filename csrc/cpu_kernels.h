@@ -320,5 +320,8 @@ plx::op::tv_loss_and_grad tv_loss_and_grad;
 plx::op::rmsprop_step rmsprop_step;
 plx::op::background_render background_render;
 plx::op::background_backward background_backward;
+plx::op::adam_rows adam_rows;
+plx::op::splat_composite splat_composite;
+plx::op::splat_composite_backward splat_composite_backward;
 
 }  // namespace plx_cpu

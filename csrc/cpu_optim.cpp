@@ -106,4 +106,44 @@ void rmsprop_step(Tensor data, Tensor second_moment, Tensor grad_data, Tensor gr
     }
 }
 
+// Adam on the given rows of a table [N, D] (the splats' distillation: each step touches the rows of one window's
+// splats). Each row keeps its own step count for the bias correction; the rate of column c is rates[c], times the
+// row's row_factor on the columns [scaled_begin, scaled_end). Rows must be distinct.
+void adam_rows(Tensor data, Tensor first, Tensor second, Tensor steps, Tensor rows, Tensor grad, Tensor rates,
+               Tensor row_factor, int64_t scaled_begin, int64_t scaled_end, double beta1, double beta2, double eps) {
+    for (auto [t, name] : {std::pair{&data, "data"}, {&first, "first moment"}, {&second, "second moment"},
+                           {&grad, "grad"}, {&rates, "rates"}, {&row_factor, "row factor"}, {&steps, "steps"}})
+        check_float_rows(*t, name);
+    const int64_t d = data.size(1), n = rows.numel();
+    TORCH_CHECK(data.dim() == 2 && first.sizes() == data.sizes() && second.sizes() == data.sizes() &&
+                steps.numel() == data.size(0) && row_factor.numel() == data.size(0) && rates.numel() == d,
+                "adam_rows: moments [N, D], steps and row factor [N], rates [D]");
+    TORCH_CHECK(rows.scalar_type() == at::kLong && rows.is_contiguous() && grad.dim() == 2 && grad.size(0) == n &&
+                grad.size(1) == d, "adam_rows: rows int64 [R], grad [R, D]");
+    float *p = data.data_ptr<float>(), *m = first.data_ptr<float>(), *v = second.data_ptr<float>();
+    float* t = steps.data_ptr<float>();
+    const float *g = grad.data_ptr<float>(), *rate = rates.data_ptr<float>(), *factor = row_factor.data_ptr<float>();
+    const int64_t* row = rows.data_ptr<int64_t>();
+    for (int64_t i = 0; i < n; ++i) TORCH_CHECK(row[i] >= 0 && row[i] < data.size(0), "adam_rows: a row outside the table");
+    // 1 - beta and the bias corrections in double: 1 - 0.999f is 1.3e-5 off 0.001.
+    const float b1 = (float)beta1, b2 = (float)beta2, e = (float)eps, rest1 = (float)(1.0 - beta1),
+                rest2 = (float)(1.0 - beta2);
+#pragma omp parallel for schedule(static)
+    for (int64_t i = 0; i < n; ++i) {
+        const int64_t r = row[i];
+        const float step = (t[r] += 1.0f);
+        const float correct1 = (float)(1.0 - std::pow(beta1, (double)step)),
+                    correct2 = (float)(1.0 - std::pow(beta2, (double)step));
+        for (int64_t c = 0; c < d; ++c) {
+            const float gc = g[i * d + c];
+            float& mc = m[r * d + c];
+            float& vc = v[r * d + c];
+            mc = b1 * mc + rest1 * gc;
+            vc = b2 * vc + rest2 * gc * gc;
+            const float lr = rate[c] * (c >= scaled_begin && c < scaled_end ? factor[r] : 1.0f);
+            p[r * d + c] -= lr * (mc / correct1) / (std::sqrt(vc / correct2) + e);
+        }
+    }
+}
+
 }  // namespace plx_cpu

@@ -1,7 +1,8 @@
 // The CPU kernels of the Plenoxels core, registered for torch.ops.voxfield (the schema is declared once in
 // ops.cpp). They are split by concern like the CUDA side: cpu_render.cpp (render, loss and gradient, max weights),
 // cpu_grid.cpp (occupancy, live blocks, samples, row coordinates), cpu_regularizers.cpp (total variation),
-// cpu_optim.cpp (sparse RMSProp), cpu_background.cpp (the background spheres), on the shared machinery of
+// cpu_optim.cpp (sparse RMSProp), cpu_background.cpp (the background spheres), cpu_splats.cpp (the splat
+// rasterizer's compositing), on the shared machinery of
 // cpu_kernels.h and cpu_common.cpp.
 #include <torch/library.h>
 
@@ -14,4 +15,7 @@ TORCH_LIBRARY_IMPL(voxfield, CPU, m) {
         return advise_huge_pages(t.data_ptr(), (size_t)t.nbytes());
     });
     PLX_IMPL_DEVICE_OPS(m);
+    PLX_IMPL(m, adam_rows);
+    PLX_IMPL(m, splat_composite);
+    PLX_IMPL(m, splat_composite_backward);
 }

@@ -70,6 +70,22 @@ TORCH_LIBRARY(voxfield, m) {
     m.def("rmsprop_step(Tensor(a!) data, Tensor(b!) second_moment, Tensor(c!) grad_data, Tensor(d!) grad_mask, "
           "Tensor grad_rows, int num_touched, int columns, float lr_density, float lr_sh, float beta, float eps, "
           "Tensor? live_coords, int live_block, Tensor(e!)? live_counts, Tensor(f!)? live_blocks) -> ()");
+    // Adam on distinct rows of a table [N, D] (CPU only, as the splats' distillation): moments [N, D], per-row step
+    // counts [N] (float), grad [R, D] of those rows; column c's rate is rates[c], times row_factor[row] on the columns
+    // [scaled_begin, scaled_end).
+    m.def("adam_rows(Tensor(a!) data, Tensor(b!) first, Tensor(c!) second, Tensor(d!) steps, Tensor rows, "
+          "Tensor grad, Tensor rates, Tensor row_factor, int scaled_begin, int scaled_end, float beta1, float beta2, "
+          "float eps) -> ()");
+    // Splats composited over the window (x0, y0, w, h) of an image (CPU only: splats are distilled on the CPU), from
+    // their projections (means2d [M, 2] in pixel-index coordinates, conics [M, 3], colours [M, 3], opacities [M],
+    // radii [M] of their 3 sigma boxes) and order [M] (front to back): [rgb [h*w, 3], opacity [h*w], ends [h*w]
+    // (int32, how far down its tile's list each pixel went, which the backward pass reads)].
+    m.def("splat_composite(Tensor means2d, Tensor conics, Tensor colours, Tensor opacities, Tensor radii, "
+          "Tensor order, int x0, int y0, int w, int h, Tensor background) -> Tensor[]");
+    // d loss / d (means2d, conics, colours, opacities) from d loss / d (rgb, opacity) of splat_composite.
+    m.def("splat_composite_backward(Tensor means2d, Tensor conics, Tensor colours, Tensor opacities, Tensor radii, "
+          "Tensor order, int x0, int y0, int w, int h, Tensor background, Tensor ends, Tensor grad_rgb, "
+          "Tensor grad_opacity) -> Tensor[]");
 }
 
 // `import plenoxels._C` loads this library, which registers the operators above; the module itself is empty.

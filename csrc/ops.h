@@ -63,6 +63,16 @@ using background_backward = int64_t(Tensor origins, Tensor dirs, Tensor centre, 
                                     Tensor grad_rows, int64_t num_touched, Tensor scratch_grad,
                                     Tensor scratch_mask);
 
+using adam_rows = void(Tensor data, Tensor first, Tensor second, Tensor steps, Tensor rows, Tensor grad, Tensor rates,
+                       Tensor row_factor, int64_t scaled_begin, int64_t scaled_end, double beta1, double beta2,
+                       double eps);
+using splat_composite = std::vector<Tensor>(Tensor means2d, Tensor conics, Tensor colours, Tensor opacities,
+                                            Tensor radii, Tensor order, int64_t x0, int64_t y0, int64_t w, int64_t h,
+                                            Tensor background);
+using splat_composite_backward = std::vector<Tensor>(Tensor means2d, Tensor conics, Tensor colours, Tensor opacities,
+                                                     Tensor radii, Tensor order, int64_t x0, int64_t y0, int64_t w,
+                                                     int64_t h, Tensor background, Tensor ends, Tensor grad_rgb,
+                                                     Tensor grad_opacity);
 }  // namespace plx::op
 
 // Registers the function `name` of the current scope as the kernel of operator `name`; it must have
@@ -71,7 +81,7 @@ using background_backward = int64_t(Tensor origins, Tensor dirs, Tensor centre, 
 
 // Every operator that runs on a device, each backend's kernels registered with the functions of the same names
 // in the scope of its TORCH_LIBRARY_IMPL block: a backend that lacks one does not compile. (The CPU's block also
-// registers advise_huge_pages, a host-memory helper.)
+// registers advise_huge_pages, a host-memory helper, and the splat rasterizer's compositing.)
 #define PLX_IMPL_DEVICE_OPS(library) \
     PLX_IMPL(library, grad_scratch); \
     PLX_IMPL(library, build_occupancy); \

@@ -1,4 +1,6 @@
-"""A tile-free, differentiable splat rasterizer in plain PyTorch (runs on a CPU; autograd gives the gradients).
+"""A differentiable splat rasterizer for the CPU: the projection in PyTorch (autograd gives its gradients), the
+compositing by the native core (csrc/cpu_splats.cpp, forward and backward) or, as its reference, by (splat, pixel)
+pairs in PyTorch.
 
 It follows the ellipse kernel of glTF's KHR_gaussian_splatting and the original 3D Gaussian Splatting renderer:
 1. Each splat's mean goes into the camera (OpenCV axes: x right, y down, z forward); splats closer than `near` drop.
@@ -22,6 +24,7 @@ import numpy as np
 import torch
 
 from plenoxels.core.cameras import Intrinsics
+from plenoxels.core.native import ops
 from plenoxels.splats.model import Splats
 
 LOW_PASS = 0.3
@@ -85,21 +88,37 @@ def project(splats: Splats, c2w, k: Intrinsics, near: float = NEAR) -> Projected
                      splats.subset(front).colours(dirs), splats.opacities()[front])
 
 
-def in_window(splats: Splats, c2w, k: Intrinsics, window: tuple[int, int, int, int], near: float = NEAR) -> torch.Tensor:
-    """Indices of the splats whose 3 sigma reach (bounded by their largest scale, a sphere) may touch the window
-    (x0, y0, w, h): what a window's render needs, found without projecting every covariance."""
+@dataclass
+class Footprints:
+    """Where each splat lands in a view, bounded by its largest scale (a sphere): centre (u, v) in pixel-index
+    coordinates, 3 sigma reach in pixels plus one, and whether it lies in front of the camera."""
+    u: torch.Tensor
+    v: torch.Tensor
+    reach: torch.Tensor
+    front: torch.Tensor
+
+    def in_window(self, window: tuple[int, int, int, int]) -> torch.Tensor:
+        """Indices of the splats that may touch the window (x0, y0, w, h)."""
+        x0, y0, w, h = window
+        touch = (self.front & (self.u + self.reach >= x0) & (self.u - self.reach <= x0 + w - 1)
+                 & (self.v + self.reach >= y0) & (self.v - self.reach <= y0 + h - 1))
+        return torch.nonzero(touch).squeeze(1)
+
+
+def footprints(splats: Splats, c2w, k: Intrinsics, near: float = NEAR) -> Footprints:
+    """Every splat's footprint in the view, found without projecting its covariance."""
     with torch.no_grad():
         c2w = torch.as_tensor(np.asarray(c2w), dtype=splats.means.dtype)
         flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=c2w.dtype))
         p = (splats.means - c2w[:3, 3]) @ (flip @ c2w[:3, :3].T).T
         z = p[:, 2].clamp_min(near)
         reach = 3.0 * torch.exp(splats.log_scales.max(dim=1).values) * max(k.fl_x, k.fl_y) / z + 1.0
-        u = k.fl_x * p[:, 0] / z + k.cx - 0.5
-        v = k.fl_y * p[:, 1] / z + k.cy - 0.5
-        x0, y0, w, h = window
-        touch = ((p[:, 2] > near) & (u + reach >= x0) & (u - reach <= x0 + w - 1) & (v + reach >= y0)
-                 & (v - reach <= y0 + h - 1))
-        return torch.nonzero(touch).squeeze(1)
+        return Footprints(k.fl_x * p[:, 0] / z + k.cx - 0.5, k.fl_y * p[:, 1] / z + k.cy - 0.5, reach, p[:, 2] > near)
+
+
+def in_window(splats: Splats, c2w, k: Intrinsics, window: tuple[int, int, int, int], near: float = NEAR) -> torch.Tensor:
+    """Indices of the splats whose footprint may touch the window (x0, y0, w, h): what a window's render needs."""
+    return footprints(splats, c2w, k, near).in_window(window)
 
 
 def _pairs(proj: Projected, window: tuple[int, int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -162,10 +181,36 @@ def composite(proj: Projected, splat: torch.Tensor, pixel: torch.Tensor, n_pixel
     return rgb + (1 - opacity)[:, None] * background, opacity
 
 
-def render_window(proj: Projected, window: tuple[int, int, int, int], background) -> tuple[torch.Tensor, torch.Tensor]:
-    """rgb [h, w, 3] and opacity [h, w] of the window (x0, y0, w, h) of the image."""
+class _NativeComposite(torch.autograd.Function):
+    """Steps 4-5 by the native core (csrc/cpu_splats.cpp), the gradients by its backward kernel."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, colours, opacities, radii, order, window, background):
+        inputs = [t.detach().float().contiguous() for t in (means2d, conics, colours, opacities, radii)]
+        rgb, opacity, ends = ops.splat_composite(*inputs, order, *window, background)
+        ctx.save_for_backward(*inputs, order, background, ends)
+        ctx.window = window
+        return rgb, opacity
+
+    @staticmethod
+    def backward(ctx, grad_rgb, grad_opacity):
+        *inputs, order, background, ends = ctx.saved_tensors
+        grads = ops.splat_composite_backward(*inputs, order, *ctx.window, background, ends,
+                                             grad_rgb.float().contiguous(), grad_opacity.float().contiguous())
+        return (*grads, None, None, None, None)
+
+
+def render_window(proj: Projected, window: tuple[int, int, int, int], background,
+                  native: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """rgb [h, w, 3] and opacity [h, w] of the window (x0, y0, w, h) of the image: by the native core, or with
+    native=False by the (splat, pixel) pairs in torch, its reference."""
     x0, y0, w, h = window
     background = torch.as_tensor(background, dtype=proj.means2d.dtype).reshape(3)
+    if native:
+        order = torch.argsort(proj.depth.detach())
+        rgb, opacity = _NativeComposite.apply(proj.means2d, proj.conics, proj.colours, proj.opacities,
+                                              proj.radii.detach(), order, window, background.float().contiguous())
+        return rgb.reshape(h, w, 3).to(proj.means2d.dtype), opacity.reshape(h, w).to(proj.means2d.dtype)
     j, i = torch.meshgrid(torch.arange(y0, y0 + h), torch.arange(x0, x0 + w), indexing="ij")
     window_xy = torch.stack([i, j], dim=-1).reshape(-1, 2).to(proj.means2d.dtype)
     splat, pixel = _pairs(proj, window)

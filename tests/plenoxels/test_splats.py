@@ -14,11 +14,11 @@ from plenoxels.core.fit_frame import FitFrame
 from plenoxels.core.grid import SparseGrid
 from plenoxels.core.render import COLOUR_OFFSET, SH_C0, max_weights, render as render_grid
 from plenoxels.core.cameras import rays_from_camera
-from plenoxels.splats.distill import TargetView, distill, psnr
+from plenoxels.splats.distill import RowAdam, TargetView, WindowErrors, distill, psnr
 from plenoxels.splats.background_splats import splats_from_background
 from plenoxels.splats.from_grid import splats_from_grid
 from plenoxels.splats.model import Splats, matrix_to_quat, quat_to_matrix
-from plenoxels.splats.rasterize import ALPHA_MAX, ALPHA_MIN, LOW_PASS, STOP_TRANSMITTANCE, project, render
+from plenoxels.splats.rasterize import ALPHA_MAX, ALPHA_MIN, LOW_PASS, STOP_TRANSMITTANCE, project, render, render_window
 
 
 def random_splats(n: int, degree: int, seed: int = 0, spread: float = 0.6, size=(0.04, 0.15)) -> Splats:
@@ -89,6 +89,50 @@ def test_rasterizer_matches_the_per_pixel_reference_for_every_sh_degree():
     # The reference can tell: the same splats seen from elsewhere differ.
     elsewhere = render(splats, camera([1.3, -1.8, 0.9])[0], k, background=(0.2, 0.4, 0.9))["rgb"].double().numpy()
     assert np.abs(elsewhere - truth).max() > 0.05
+
+
+def _window_grads(splats: Splats, c2w, k: Intrinsics, window, native: bool):
+    leaves = {name: t.detach().double().clone().requires_grad_(True) for name, t in splats.tensors().items()}
+    rgb, opacity = render_window(project(Splats(**leaves), c2w, k), window, (0.2, 0.5, 0.9), native=native)
+    weights = torch.linspace(-1.0, 1.0, rgb.numel(), dtype=rgb.dtype).reshape(rgb.shape)
+    loss = (rgb * weights).sum() + (opacity ** 2).sum()
+    return rgb.detach(), opacity.detach(), torch.autograd.grad(loss, list(leaves.values()), allow_unused=True)
+
+
+@pytest.mark.parametrize("case", ["mixed", "opaque stack", "faint", "border window", "one splat", "nothing near"])
+def test_native_compositing_matches_the_torch_pairs_in_values_and_gradients(case):
+    """The native kernel (csrc/cpu_splats.cpp) against the (splat, pixel) pairs composited in torch, its reference:
+    pixels and the gradient of a loss over them with respect to every splat attribute, where the clamp at ALPHA_MAX and
+    the early stop decide (an opaque stack), where most pairs fall under ALPHA_MIN (faint), in a window cut by the
+    image's edge, for a single splat and for none."""
+    splats = random_splats(300, 2, seed=11, spread=0.5)
+    c2w, k = camera([1.1, -1.7, 1.0], size=40, focal=45.0)
+    window = (3, 5, 29, 23)
+    if case == "opaque stack":
+        splats = random_splats(200, 1, seed=12, spread=0.12)
+        splats.opacity_logits[:] = 7.0
+    elif case == "faint":
+        splats.opacity_logits[:] = -4.0
+    elif case == "border window":
+        window = (k.w - 13, k.h - 9, 13, 9)
+    elif case == "one splat":
+        splats = random_splats(1, 3, seed=13, size=(0.2, 0.3), spread=0.05)
+    elif case == "nothing near":
+        splats.means[:, 2] += 40.0  # behind the camera
+    ours, reference = (_window_grads(splats, c2w, k, window, native) for native in (True, False))
+    assert torch.allclose(ours[0], reference[0], atol=2e-6) and torch.allclose(ours[1], reference[1], atol=2e-6)
+    for mine, theirs in zip(ours[2], reference[2]):
+        if theirs is None:  # nothing in front of the camera: no attribute reaches the pixels
+            assert mine is None or not mine.any()
+            continue
+        scale = theirs.abs().max().clamp_min(1e-3)
+        assert ((mine - theirs).abs().max() / scale) < 2e-4, (case, float((mine - theirs).abs().max()), float(scale))
+    if case == "mixed":
+        # The comparison can fail: a splat moved by a tenth of a pixel changes the gradients.
+        moved = splats.detached()
+        moved.means[0] += 0.003
+        other = _window_grads(moved, c2w, k, window, True)
+        assert max(float((a - b).abs().max()) for a, b in zip(other[2], reference[2])) > 1e-4
 
 
 def test_projection_matches_the_spread_of_sampled_points():
@@ -179,6 +223,46 @@ def test_splats_from_a_small_grid_render_like_it_and_distillation_raises_their_p
     assert record["steps"] == 150 and record["window_psnr_last"] > record["window_psnr_first"]
     assert score(refined) > start + 1.0, (start, score(refined))
     assert refined.count == splats.count and not torch.equal(refined.means, splats.means)
+
+
+def test_native_row_adam_matches_its_torch_reference_over_steps_on_overlapping_rows():
+    """Rows visited unevenly (each with its own step count), a per-row factor on some columns, gradients from tiny to
+    huge: the native step (float32) and the torch one (its reference, here in float64) agree after every step, and a
+    row not stepped never moves."""
+    g = torch.Generator().manual_seed(5)
+    data = torch.randn(50, 7, generator=g)
+    rates, factor = torch.tensor([0.1, 0.2, 0.05, 0.01, 0.3, 0.02, 0.5]), torch.rand(50, generator=g) + 0.1
+    twins = [RowAdam(data.clone(), rates, factor, slice(1, 3)), RowAdam(data.double(), rates, factor, slice(1, 3))]
+    twins[1].rates, twins[1].row_factor = rates.double(), factor.double()
+    twins[1].steps = twins[1].steps.double()
+    for step in range(12):
+        rows = torch.randperm(49, generator=g)[: 5 + step * 3]  # row 49 is never stepped
+        grad = torch.randn(len(rows), 7, generator=g) * torch.tensor([1e-8, 1e-3, 1.0, 1e3, 1e6, 0.0, 1.0])
+        for twin, native in zip(twins, (True, False)):
+            twin.step(rows, grad.to(twin.data.dtype), native=native)
+        assert torch.allclose(twins[0].data.double(), twins[1].data, rtol=0, atol=1e-6), step
+        assert torch.equal(twins[0].steps.double(), twins[1].steps)
+    assert torch.equal(twins[0].data[49], data[49]) and not torch.allclose(twins[0].data[:49], data[:49])
+
+
+def test_error_drawn_windows_go_where_the_splats_differ_from_the_field():
+    """Two views, one flat and one with detail in a corner: before any measure the detailed tiles are drawn most;
+    once measured, a tile with error is drawn in proportion to it and a perfect one only by the uniform share."""
+    flat = torch.full((64, 64, 3), 0.5)
+    detailed = flat.clone()
+    detailed[:32, :32] = torch.rand(32, 32, 3, generator=torch.Generator().manual_seed(1))
+    views = [TargetView(np.eye(4), Intrinsics(64, 64, 32, 32, 64, 64), rgb) for rgb in (flat, detailed)]
+    errors = WindowErrors(views, 32, share=0.8, power=1.0)
+    rng = np.random.default_rng(0)
+    draws = [errors.draw_view(rng) for _ in range(2000)]
+    assert 0.85 < np.mean(draws) < 0.95  # 0.8 by error (all to view 1) + 0.2 uniform (half of it)
+    tiles = [errors.draw_tile(1, rng) for _ in range(2000)]
+    assert 0.8 < np.mean([t == (0, 0) for t in tiles]) < 0.9
+    for row, col in [(0, 0), (0, 1), (1, 0), (1, 1)]:
+        errors.measured(1, row, col, 0.0)
+    errors.measured(1, 1, 1, 0.01)
+    tiles = [errors.draw_tile(1, rng) for _ in range(2000)]
+    assert 0.8 < np.mean([t == (1, 1) for t in tiles]) < 0.9
 
 
 @pytest.mark.parametrize("n", [0])
