@@ -98,6 +98,8 @@ std::vector<Tensor> splat_composite(Tensor means2d, Tensor conics, Tensor colour
     auto rgb = at::empty({h * w, 3}, means2d.options());
     auto opacity = at::empty({h * w}, means2d.options());
     auto ends = at::empty({h * w}, means2d.options().dtype(at::kInt));
+    auto light = at::empty({h * w}, means2d.options().dtype(at::kDouble));
+    double* out_light = light.data_ptr<double>();
 
     float* out_rgb = rgb.data_ptr<float>();
     float* out_opacity = opacity.data_ptr<float>();
@@ -126,24 +128,29 @@ std::vector<Tensor> splat_composite(Tensor means2d, Tensor conics, Tensor colour
         for (int ch = 0; ch < 3; ++ch) out_rgb[3 * p + ch] = (float)(c[ch] + (1.0 - weights) * bg[ch]);
         out_opacity[p] = (float)weights;
         out_ends[p] = (int32_t)(end - in.tile_start[tile]);
+        out_light[p] = t;
     }
-    return {rgb, opacity, ends};
+    return {rgb, opacity, ends, light};
 }
 
 std::vector<Tensor> splat_composite_backward(Tensor means2d, Tensor conics, Tensor colours, Tensor opacities,
                                              Tensor radii, Tensor order, int64_t x0, int64_t y0, int64_t w, int64_t h,
-                                             Tensor background, Tensor ends, Tensor grad_rgb, Tensor grad_opacity) {
+                                             Tensor background, Tensor ends, Tensor light, Tensor grad_rgb,
+                                             Tensor grad_opacity) {
     check_splats(means2d, conics, colours, opacities, radii, order, background);
     check_float_rows(grad_rgb, "grad_rgb");
     check_float_rows(grad_opacity, "grad_opacity");
     TORCH_CHECK(grad_rgb.numel() == h * w * 3 && grad_opacity.numel() == h * w && ends.numel() == h * w &&
-                ends.scalar_type() == at::kInt && ends.is_contiguous(), "gradients and ends must be per window pixel");
+                ends.scalar_type() == at::kInt && ends.is_contiguous() && light.numel() == h * w &&
+                light.scalar_type() == at::kDouble && light.is_contiguous(),
+                "gradients, ends and light must be per window pixel, as splat_composite gave them");
     const Window win = window_of(x0, y0, w, h);
     const SplatInputs in = bin(means2d, conics, colours, opacities, radii, order, win);
     const int64_t m = means2d.size(0), n = (int64_t)in.splats.size();
     const float* g_rgb = grad_rgb.data_ptr<float>();
     const float* g_opacity = grad_opacity.data_ptr<float>();
     const int32_t* pixel_ends = ends.data_ptr<int32_t>();
+    const double* pixel_light = light.data_ptr<double>();
     const float* bg = background.data_ptr<float>();
     // Per thread: d loss / d (mean2d 2, conic 3, colour 3, opacity 1) of every splat that reaches the window (by its
     // position front to back), summed after.
@@ -156,16 +163,7 @@ std::vector<Tensor> splat_composite_backward(Tensor means2d, Tensor conics, Tens
         const int px = win.x0 + (int)(p % w), py = win.y0 + (int)(p / w);
         const int tile = ((py - win.y0) / kTile) * win.tiles_x + (px - win.x0) / kTile;
         const int64_t first = in.tile_start[tile], last = first + pixel_ends[p];
-        // The light left behind the pixel's last pair, found again front to back.
-        double t_final = 1.0;
-        for (int64_t e = first; e < last; ++e) {
-            const Splat& sp = in.splats[in.tile_splats[e]];
-            if (!plx::splat::box_holds(sp.box, px, py) ||
-                plx::splat::power_at(sp.conic, (float)px - sp.mean[0], (float)py - sp.mean[1]) < sp.faint) continue;
-            float gauss;
-            const float a = plx::splat::alpha_at(sp.opacity, sp.conic, (float)px - sp.mean[0], (float)py - sp.mean[1], &gauss);
-            if (a >= plx::splat::kAlphaMin) t_final *= 1.0 - a;
-        }
+        const double t_final = pixel_light[p];
         // Back to front: behind[] is what the pairs behind the current one and the background add to the pixel
         // (colour, then opacity), so that d pixel / d alpha_i = T_i c_i - behind / (1 - alpha_i).
         double t = t_final, behind[4] = {t_final * bg[0], t_final * bg[1], t_final * bg[2], 0.0};

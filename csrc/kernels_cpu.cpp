@@ -1,9 +1,9 @@
 // The CPU kernels of the Plenoxels core, registered for torch.ops.voxfield (the schema is declared once in
 // ops.cpp). They are split by concern like the CUDA side: cpu_render.cpp (render, loss and gradient, max weights),
 // cpu_grid.cpp (occupancy, live blocks, samples, row coordinates), cpu_regularizers.cpp (total variation),
-// cpu_optim.cpp (sparse RMSProp), cpu_background.cpp (the background spheres), cpu_splats.cpp (the splat
-// rasterizer's compositing), on the shared machinery of
-// cpu_kernels.h and cpu_common.cpp.
+// cpu_optim.cpp (sparse RMSProp; the splats' row Adam), cpu_background.cpp (the background spheres), cpu_splats.cpp
+// (the splat rasterizer's compositing), on the shared machinery of cpu_kernels.h and cpu_common.cpp. The splat
+// kernels are the CPU's alone: splats are distilled and scored on the CPU.
 #include <torch/library.h>
 
 #include "cpu_kernels.h"

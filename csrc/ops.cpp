@@ -79,12 +79,13 @@ TORCH_LIBRARY(voxfield, m) {
     // Splats composited over the window (x0, y0, w, h) of an image (CPU only: splats are distilled on the CPU), from
     // their projections (means2d [M, 2] in pixel-index coordinates, conics [M, 3], colours [M, 3], opacities [M],
     // radii [M] of their 3 sigma boxes) and order [M] (front to back): [rgb [h*w, 3], opacity [h*w], ends [h*w]
-    // (int32, how far down its tile's list each pixel went, which the backward pass reads)].
+    // (int32, how far down its tile's list each pixel went) and light [h*w] (float64, what light each pixel kept),
+    // which the backward pass reads].
     m.def("splat_composite(Tensor means2d, Tensor conics, Tensor colours, Tensor opacities, Tensor radii, "
           "Tensor order, int x0, int y0, int w, int h, Tensor background) -> Tensor[]");
     // d loss / d (means2d, conics, colours, opacities) from d loss / d (rgb, opacity) of splat_composite.
     m.def("splat_composite_backward(Tensor means2d, Tensor conics, Tensor colours, Tensor opacities, Tensor radii, "
-          "Tensor order, int x0, int y0, int w, int h, Tensor background, Tensor ends, Tensor grad_rgb, "
+          "Tensor order, int x0, int y0, int w, int h, Tensor background, Tensor ends, Tensor light, Tensor grad_rgb, "
           "Tensor grad_opacity) -> Tensor[]");
 }
 

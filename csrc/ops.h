@@ -71,8 +71,8 @@ using splat_composite = std::vector<Tensor>(Tensor means2d, Tensor conics, Tenso
                                             Tensor background);
 using splat_composite_backward = std::vector<Tensor>(Tensor means2d, Tensor conics, Tensor colours, Tensor opacities,
                                                      Tensor radii, Tensor order, int64_t x0, int64_t y0, int64_t w,
-                                                     int64_t h, Tensor background, Tensor ends, Tensor grad_rgb,
-                                                     Tensor grad_opacity);
+                                                     int64_t h, Tensor background, Tensor ends, Tensor light,
+                                                     Tensor grad_rgb, Tensor grad_opacity);
 }  // namespace plx::op
 
 // Registers the function `name` of the current scope as the kernel of operator `name`; it must have

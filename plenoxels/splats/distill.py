@@ -32,7 +32,7 @@ BETAS = (0.9, 0.999)
 EPS = 1e-15
 ERROR_SHARE = 0.5
 ERROR_POWER = 1.0
-WINDOWS_PER_VISIT = 4
+WINDOWS_PER_VISIT = 8
 
 
 @dataclass
@@ -70,6 +70,16 @@ class SplatRows:
         sh = torch.cat([rows[:, c["sh_dc"]][:, :, None], rows[:, c["sh_rest"]].reshape(-1, 3, self.k - 1)], dim=2)
         return Splats(rows[:, c["means"]], rows[:, c["log_scales"]], rows[:, c["quats"]],
                       rows[:, c["opacity_logits"]][:, 0], sh)
+
+    @property
+    def widths(self) -> list[int]:
+        return [c.stop - c.start for c in self.columns.values()]
+
+    def splats_of(self, parts: list[torch.Tensor]) -> Splats:
+        """The splats of per-attribute tensors, as split from rows of the table by `widths`."""
+        means, log_scales, quats, opacity, dc, rest = parts
+        return Splats(means, log_scales, quats, opacity[:, 0],
+                      torch.cat([dc[:, :, None], rest.reshape(-1, 3, self.k - 1)], dim=2))
 
     def shapes(self) -> Splats:
         """All the splats with their SH degree-0 term alone: where they are and how large, without copying colours."""
@@ -210,12 +220,14 @@ def _steps(rows: SplatRows, optimiser: RowAdam, views: list[TargetView], backgro
             x0 = int(np.clip(round(cx - w / 2), 0, view.k.w - w))
             y0 = int(np.clip(round(cy - h / 2), 0, view.k.h - h))
             near = seen.in_window((x0, y0, w, h))
-            leaf = rows.data[near].requires_grad_(True)
-            rgb, _ = render_window(project(rows.splats(leaf), view.c2w, view.k), (x0, y0, w, h), background)
+            # One leaf per attribute: slices of a single leaf would each send back a zero-filled table of all columns.
+            leaves = [part.contiguous().requires_grad_(True) for part in rows.data[near].split(rows.widths, dim=1)]
+            rgb, _ = render_window(project(rows.splats_of(leaves),
+                                           view.c2w, view.k), (x0, y0, w, h), background)
             loss = torch.mean((rgb - view.rgb[y0:y0 + h, x0:x0 + w]) ** 2)
             if len(near):
                 loss.backward()
                 with torch.no_grad():
-                    optimiser.step(near, leaf.grad)
+                    optimiser.step(near, torch.cat([leaf.grad for leaf in leaves], dim=1))
             errors.measured(index, row, col, float(loss.detach()))
             scores.append(-10.0 * float(np.log10(max(float(loss.detach()), 1e-12))))

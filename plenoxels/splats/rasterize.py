@@ -25,7 +25,7 @@ import torch
 
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.native import ops
-from plenoxels.splats.model import Splats
+from plenoxels.splats.model import Splats, quat_to_matrix
 
 LOW_PASS = 0.3
 ALPHA_MIN = 1.0 / 255.0
@@ -60,32 +60,35 @@ class Projected:
 
 
 def project(splats: Splats, c2w, k: Intrinsics, near: float = NEAR) -> Projected:
-    """Steps 1-2 for the splats in front of the camera (c2w: OpenGL camera-to-world, as the poses keep it)."""
+    """Steps 1-2 for the splats in front of the camera (c2w: OpenGL camera-to-world, as the poses keep it). The 2x3
+    and 3x3 products are written out per entry: batched matrix products of that size cost torch more than the
+    arithmetic, forward and backward."""
     c2w = torch.as_tensor(np.asarray(c2w), dtype=splats.means.dtype)
     flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=c2w.dtype))
     rot = flip @ c2w[:3, :3].T  # world -> OpenCV camera
     centre = c2w[:3, 3]
     p = (splats.means - centre) @ rot.T
     front = p[:, 2] > near
-    p = p[front]
+    if not bool(front.all()):
+        splats, p = splats.subset(front), p[front]
     x, y, z = p.unbind(-1)
-    zero = torch.zeros_like(z)
     lim_x, lim_y = FOV_CLAMP * max(k.cx, k.w - k.cx) / k.fl_x, FOV_CLAMP * max(k.cy, k.h - k.cy) / k.fl_y
     tx, ty = (x / z).clamp(-lim_x, lim_x) * z, (y / z).clamp(-lim_y, lim_y) * z
-    jac = torch.stack([k.fl_x / z, zero, -k.fl_x * tx / (z * z), zero, k.fl_y / z, -k.fl_y * ty / (z * z)],
-                      dim=-1).reshape(-1, 2, 3)
-    jw = jac @ rot
-    cov2d = jw @ splats.covariances()[front] @ jw.transpose(1, 2)
-    a, b, c = cov2d[:, 0, 0] + LOW_PASS, cov2d[:, 0, 1], cov2d[:, 1, 1] + LOW_PASS
+    # Rows of J W (J the Jacobian of the perspective divide, W the rotation into the camera), then of J W R S.
+    jw0 = (k.fl_x / z)[:, None] * rot[0] - (k.fl_x * tx / (z * z))[:, None] * rot[2]
+    jw1 = (k.fl_y / z)[:, None] * rot[1] - (k.fl_y * ty / (z * z))[:, None] * rot[2]
+    shape = quat_to_matrix(splats.quats) * torch.exp(splats.log_scales)[:, None, :]
+    t0 = (jw0[:, :, None] * shape).sum(1)
+    t1 = (jw1[:, :, None] * shape).sum(1)
+    a, b, c = (t0 * t0).sum(1) + LOW_PASS, (t0 * t1).sum(1), (t1 * t1).sum(1) + LOW_PASS
     det = (a * c - b * b).clamp_min(1e-12)
     conics = torch.stack([c / det, -b / det, a / det], dim=-1)
     mid = (a + c) / 2
     largest = mid + torch.sqrt((mid * mid - det).clamp_min(0.0))
     means2d = torch.stack([k.fl_x * x / z + k.cx - 0.5, k.fl_y * y / z + k.cy - 0.5], dim=-1)
-    dirs = splats.means[front] - centre
+    dirs = splats.means - centre
     dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    return Projected(means2d, conics, 3.0 * torch.sqrt(largest), z,
-                     splats.subset(front).colours(dirs), splats.opacities()[front])
+    return Projected(means2d, conics, 3.0 * torch.sqrt(largest), z, splats.colours(dirs), splats.opacities())
 
 
 @dataclass
@@ -112,7 +115,9 @@ def footprints(splats: Splats, c2w, k: Intrinsics, near: float = NEAR) -> Footpr
         flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=c2w.dtype))
         p = (splats.means - c2w[:3, 3]) @ (flip @ c2w[:3, :3].T).T
         z = p[:, 2].clamp_min(near)
-        reach = 3.0 * torch.exp(splats.log_scales.max(dim=1).values) * max(k.fl_x, k.fl_y) / z + 1.0
+        scales = splats.log_scales
+        largest = torch.maximum(torch.maximum(scales[:, 0], scales[:, 1]), scales[:, 2])  # max(dim=1) is slower
+        reach = 3.0 * torch.exp(largest) * max(k.fl_x, k.fl_y) / z + 1.0
         return Footprints(k.fl_x * p[:, 0] / z + k.cx - 0.5, k.fl_y * p[:, 1] / z + k.cy - 0.5, reach, p[:, 2] > near)
 
 
@@ -187,15 +192,15 @@ class _NativeComposite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colours, opacities, radii, order, window, background):
         inputs = [t.detach().float().contiguous() for t in (means2d, conics, colours, opacities, radii)]
-        rgb, opacity, ends = ops.splat_composite(*inputs, order, *window, background)
-        ctx.save_for_backward(*inputs, order, background, ends)
+        rgb, opacity, ends, light = ops.splat_composite(*inputs, order, *window, background)
+        ctx.save_for_backward(*inputs, order, background, ends, light)
         ctx.window = window
         return rgb, opacity
 
     @staticmethod
     def backward(ctx, grad_rgb, grad_opacity):
-        *inputs, order, background, ends = ctx.saved_tensors
-        grads = ops.splat_composite_backward(*inputs, order, *ctx.window, background, ends,
+        *inputs, order, background, ends, light = ctx.saved_tensors
+        grads = ops.splat_composite_backward(*inputs, order, *ctx.window, background, ends, light,
                                              grad_rgb.float().contiguous(), grad_opacity.float().contiguous())
         return (*grads, None, None, None, None)
 
