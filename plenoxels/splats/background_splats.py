@@ -7,6 +7,12 @@ Gaussian about as wide as the tent of the bilinear read the model does, 1/sqrt(6
 model's colour does not change with the view). Texel centres follow the model's read: azimuth -pi + (i + 0.5) 2 pi / W,
 polar angle from +z (j + 0.5) pi / H. The splats composite front to back by camera depth, as the spheres do from the
 inside; what light passes them all sees the far colour, the splats' background colour.
+
+The model reads each sphere where a ray leaves it, never where it enters: a camera outside a sphere sees through its
+near side. Splats have no such side, so a sphere smaller than the cameras' reach would veil the scene from every camera
+beyond it (a phone circling an object on a floor stands outside the inner spheres). Its texels go out along their
+directions to just beyond the farthest camera (OUTSIDE_CAMERAS times its distance from the centre), where every view
+sees them behind the grid, as the model shows them.
 """
 from __future__ import annotations
 
@@ -20,10 +26,12 @@ from plenoxels.splats.model import Splats, matrix_to_quat
 
 BACKGROUND_SIGMA = 0.45
 FLAT = 0.05
+OUTSIDE_CAMERAS = 1.05
 
 
-def splats_from_background(background: MultiSphereBackground, sh_count: int) -> Splats:
-    """Splats [N] in the normalised world for the texels whose optical depth reaches 1/255, SH [N, 3, sh_count]."""
+def splats_from_background(background: MultiSphereBackground, sh_count: int, camera_reach: float = 0.0) -> Splats:
+    """Splats [N] in the normalised world for the texels whose optical depth reaches 1/255, SH [N, 3, sh_count], none
+    of them nearer the centre than OUTSIDE_CAMERAS x camera_reach (the farthest camera's distance from the centre)."""
     texture = background.texture.detach().cpu().double()
     k, h, w, _ = texture.shape
     depth = torch.relu(texture[..., 0]).numpy()
@@ -33,7 +41,7 @@ def splats_from_background(background: MultiSphereBackground, sh_count: int) -> 
     normal = np.stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)], axis=1)
     along = np.stack([-np.sin(azimuth), np.cos(azimuth), np.zeros_like(azimuth)], axis=1)
     axes = np.stack([along, np.cross(normal, along), normal], axis=2)  # columns; a proper rotation
-    radius = background.radii.detach().cpu().double().numpy()[sphere]
+    radius = np.maximum(background.radii.detach().cpu().double().numpy()[sphere], OUTSIDE_CAMERAS * camera_reach)
     widths = np.stack([radius * np.sin(polar) * 2 * np.pi / w, radius * np.pi / h], axis=1) * BACKGROUND_SIGMA
     scales = np.concatenate([widths, FLAT * widths.min(axis=1, keepdims=True)], axis=1)
     opacity = np.clip(1.0 - np.exp(-depth[sphere, row, column]), *OPACITY_RANGE)

@@ -56,7 +56,9 @@ def fit_splats(model: SceneModel, frames: list[dict], max_splats: int, min_weigh
     splats = splats_from_grid(model.grid, model.fit_frame, weights, max_splats, min_weight)
     grid_count, background_count = splats.count, 0
     if model.background is not None:
-        behind = splats_from_background(model.background, splats.sh.shape[2])
+        centre = model.background.centre.detach().cpu().double().numpy()
+        reach = max(float(np.linalg.norm(np.asarray(f["transform_matrix"])[:3, 3] - centre)) for f in frames)
+        behind = splats_from_background(model.background, splats.sh.shape[2], reach)
         background_count = behind.count
         splats = Splats(**{name: torch.cat([t, getattr(behind, name)]) for name, t in splats.tensors().items()})
     splats, distilled = distill(splats, views, model.background_color, seconds, window, seed)

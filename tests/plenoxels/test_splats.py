@@ -295,3 +295,30 @@ def test_a_background_model_s_spheres_as_splats_render_like_the_model_and_mirror
         truth = bg(o.reshape(-1, 3), d.reshape(-1, 3)).reshape(k.h, k.w, 3)
         assert psnr(render(splats, c2w, k)["rgb"], truth) > 25
         assert psnr(render(mirrored, c2w, k)["rgb"], truth) < 18
+
+
+def test_a_camera_outside_an_inner_sphere_sees_its_splats_behind_the_scene_as_the_model_does():
+    """Cameras circling at 3 units around an opaque sphere of radius 1.2, red on its +x half and blue on its -x half:
+    the model reads a sphere only where a ray leaves it, so a camera on the +x side sees blue at the middle of its view.
+    The sphere's splats, pushed out beyond the cameras, show that too; left at radius 1.2 they would show the near
+    side's red, a veil between the camera and what it looks at."""
+    bg = MultiSphereBackground(centre=(0.0, 0.0, 0.0), r_min=1.2, r_max=30.0, n_spheres=2, height=16, width=32,
+                               far_colour=(1.0, 1.0, 1.0))
+    j, i = torch.meshgrid(torch.arange(16), torch.arange(32), indexing="ij")
+    azimuth = -math.pi + (i + 0.5) * 2 * math.pi / 32
+    tex = bg.texture.data
+    tex[..., 0] = 5.0
+    red = torch.cos(azimuth) > 0
+    tex[0, ..., 1], tex[0, ..., 2], tex[0, ..., 3] = torch.where(red, 4.0, -4.0), -4.0, torch.where(red, -4.0, 4.0)
+    k = Intrinsics(w=48, h=36, fl_x=30.0, fl_y=30.0, cx=24.0, cy=18.0)
+    reach = 3.0
+    pushed, left = splats_from_background(bg, 1, camera_reach=reach), splats_from_background(bg, 1)
+    assert pushed.means.norm(dim=1).min() >= reach and left.means.norm(dim=1).min() < 1.3
+    for angle in (-0.4, 0.0, 0.5):
+        c2w = look_at((reach * math.cos(angle), reach * math.sin(angle), 0.3), (0.0, 0.0, 0.0))
+        o, d = rays_from_camera(c2w, k)
+        middle = lambda image: image.reshape(k.h, k.w, 3)[14:22, 20:28].reshape(-1, 3).mean(0)  # noqa: E731
+        truth = middle(bg(o.reshape(-1, 3), d.reshape(-1, 3)))
+        assert truth[2] > 0.9 and truth[0] < 0.1  # the far side: blue
+        assert (middle(render(pushed, c2w, k)["rgb"]) - truth).abs().max() < 0.1
+        assert (middle(render(left, c2w, k)["rgb"]) - truth).abs().max() > 0.5
