@@ -63,13 +63,9 @@ class SplatRows:
         self.k = k
         self.data = torch.cat([p.detach().float() for p in parts.values()], dim=1).contiguous()
 
-    def splats(self, rows: torch.Tensor | None = None) -> Splats:
-        """The splats of these rows of a [M, D] tensor (default: all of them), as views into it."""
-        rows = self.data if rows is None else rows
-        c = self.columns
-        sh = torch.cat([rows[:, c["sh_dc"]][:, :, None], rows[:, c["sh_rest"]].reshape(-1, 3, self.k - 1)], dim=2)
-        return Splats(rows[:, c["means"]], rows[:, c["log_scales"]], rows[:, c["quats"]],
-                      rows[:, c["opacity_logits"]][:, 0], sh)
+    def splats(self) -> Splats:
+        """All the splats, each attribute a tensor of its own."""
+        return self.splats_of([part.contiguous() for part in self.data.split(self.widths, dim=1)])
 
     @property
     def widths(self) -> list[int]:
@@ -100,7 +96,7 @@ class RowAdam:
     alone."""
 
     def __init__(self, data: torch.Tensor, rates: torch.Tensor, row_factor: torch.Tensor, scaled: slice):
-        self.data, self.rates, self.row_factor, self.scaled = data, rates, row_factor, scaled
+        self.data, self.scaled = data, scaled
         self.first, self.second = torch.zeros_like(data), torch.zeros_like(data)
         self.steps = torch.zeros(data.shape[0])
         self.rates, self.row_factor = rates.float().contiguous(), row_factor.float().contiguous()

@@ -12,6 +12,7 @@ from plenoxels.core.background import MultiSphereBackground
 from plenoxels.core.fit_frame import FitFrame
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.splats.distill import psnr
+from plenoxels.splats.background_splats import OUTSIDE_CAMERAS
 from plenoxels.splats.model import Splats
 from plenoxels.splats.rasterize import render
 from stages.interchange.splat_files import (EXTENSION, read_glb, read_splat_glb, read_splat_ply, write_splat_glb,
@@ -146,12 +147,18 @@ def test_a_forward_scene_s_ndc_grid_becomes_splats_in_the_world_and_a_background
     background = MultiSphereBackground.around_box([-0.8] * 3, [0.8] * 3, n_spheres=2, height=4, width=8)
     settings = Settings(frame="normalized", points=500, point_scale=1.0, texture=False, splat_seconds=0,
                         texture_size=256, align_voxels=0)
-    run_stage(tmp_path, sphere_field(24), identity_scene("unbounded", orbit_frames(4, size=24)), settings, "unbounded",
+    frames = orbit_frames(4, size=24)
+    run_stage(tmp_path, sphere_field(24), identity_scene("unbounded", frames), settings, "unbounded",
               background=background, splats=True)
     record = read_json(tmp_path / "unbounded" / "export" / "export.json")["splats"]
-    # Every texel of the two 4x8 spheres holds the initial density, not clear: a splat each, on its sphere.
+    # Every texel of the two 4x8 spheres holds the initial density, not clear: a splat each, on its sphere, or beyond
+    # the cameras where they stand outside it (the model reads a sphere only where rays leave it).
     assert record["background_splats"] == 64 and record["count"] == record["grid_splats"] + 64
     assert "spheres" in record["background"] and record["grid_splats"] > 100
     radii = (read_splat_ply(tmp_path / "unbounded" / "export" / "splats.ply").means[-64:]
              - background.centre).norm(dim=1)
-    assert torch.allclose(radii.sort().values, background.radii.repeat_interleave(32), rtol=1e-4)
+    reach = max(float(np.linalg.norm(np.asarray(f["transform_matrix"])[:3, 3] - background.centre.numpy()))
+                for f in frames)
+    assert background.radii[0] < reach < background.radii[1]  # the cameras stand outside the inner sphere
+    expected = background.radii.clamp_min(OUTSIDE_CAMERAS * reach).repeat_interleave(32)
+    assert torch.allclose(radii.sort().values, expected.float(), rtol=1e-4)
