@@ -121,11 +121,6 @@ def footprints(splats: Splats, c2w, k: Intrinsics, near: float = NEAR) -> Footpr
         return Footprints(k.fl_x * p[:, 0] / z + k.cx - 0.5, k.fl_y * p[:, 1] / z + k.cy - 0.5, reach, p[:, 2] > near)
 
 
-def in_window(splats: Splats, c2w, k: Intrinsics, window: tuple[int, int, int, int], near: float = NEAR) -> torch.Tensor:
-    """Indices of the splats whose footprint may touch the window (x0, y0, w, h): what a window's render needs."""
-    return footprints(splats, c2w, k, near).in_window(window)
-
-
 def _pairs(proj: Projected, window: tuple[int, int, int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """Step 3 inside window (x0, y0, w, h): splat index and window pixel index of every pair."""
     x0, y0, w, h = window
