@@ -51,7 +51,7 @@ void check_launch(cudaError_t err, const char* what) {
 cudaStream_t stream() { return c10::cuda::getCurrentCUDAStream().stream(); }
 
 plx_cuda::Grid make_grid(const Tensor& data, const Tensor& links, const Tensor& cell_occ, const Tensor& block_occ,
-                         int64_t block, c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree) {
+                         int64_t block, c10::ArrayRef<double> lattice, int64_t degree) {
     check_cuda(data, at::kFloat, "data", data);
     check_cuda(links, at::kInt, "links", data);
     check_cuda(cell_occ, at::kByte, "cell_occ", data);
@@ -63,7 +63,6 @@ plx_cuda::Grid make_grid(const Tensor& data, const Tensor& links, const Tensor& 
                 "links must be [Rx,Ry,Rz] with every size >= 2");
     TORCH_CHECK(block_occ.dim() == 3 && block > 0 && (block & (block - 1)) == 0,
                 "block_occ must be 3-D and block a power of two");
-    TORCH_CHECK(bmin.size() == 3 && bmax.size() == 3, "bbox bounds must have 3 values each");
     check_aligned(data, "data");
     plx_cuda::Grid g;
     g.data = data.data_ptr<float>();
@@ -75,9 +74,9 @@ plx_cuda::Grid make_grid(const Tensor& data, const Tensor& links, const Tensor& 
     for (int a = 0; a < 3; ++a) {
         g.res[a] = (int)links.size(a);
         g.bres[a] = (int)block_occ.size(a);
-        g.bmin[a] = bmin[a];
-        g.scale[a] = (g.res[a] - 1) / (bmax[a] - bmin[a]);
     }
+    const char* error = plx::read_lattice(lattice.data(), (long)lattice.size(), g.res, &g.lattice);
+    TORCH_CHECK(error == nullptr, error);
     return g;
 }
 
@@ -113,11 +112,11 @@ int64_t compact_touched(const Tensor& grad_mask, Tensor& grad_rows) {
 }
 
 std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
-                           c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree, Tensor origins,
+                           c10::ArrayRef<double> lattice, int64_t degree, Tensor origins,
                            Tensor dirs, std::optional<Tensor> background, double step, double stop_transmittance,
                            double near, double sigma_threshold, int64_t max_samples, bool contract) {
     const c10::cuda::CUDAGuard guard(data.device());
-    const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, bmin, bmax, degree);
+    const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, lattice, degree);
     plx_cuda::Rays rays = make_rays(origins, dirs, data);
     if (background.has_value()) {
         check_cuda(*background, at::kFloat, "background", data);
@@ -136,14 +135,14 @@ std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor bl
 }
 
 std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ,
-                                                  int64_t block, c10::ArrayRef<double> bmin,
-                                                  c10::ArrayRef<double> bmax, int64_t degree, Tensor origins,
+                                                  int64_t block, c10::ArrayRef<double> lattice,
+                                                  int64_t degree, Tensor origins,
                                                   Tensor dirs, Tensor targets, Tensor background, double step,
                                                   double stop_transmittance, double near, double sigma_threshold,
                                                   int64_t max_samples, bool contract, Tensor grad_data, Tensor grad_mask,
                                                   Tensor grad_rows, int64_t num_touched, Tensor, Tensor) {
     const c10::cuda::CUDAGuard guard(data.device());
-    const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, bmin, bmax, degree);
+    const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, lattice, degree);
     const plx_cuda::Rays rays = make_rays(origins, dirs, data);
     check_cuda(targets, at::kFloat, "targets", data);
     check_cuda(background, at::kFloat, "background", data);
@@ -167,11 +166,11 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
 }
 
 void max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
-                   c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree, Tensor origins,
+                   c10::ArrayRef<double> lattice, int64_t degree, Tensor origins,
                    Tensor dirs, double step, double stop_transmittance, double near, double sigma_threshold,
                    int64_t max_samples, bool contract, Tensor out) {
     const c10::cuda::CUDAGuard guard(data.device());
-    const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, bmin, bmax, degree);
+    const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, lattice, degree);
     const plx_cuda::Rays rays = make_rays(origins, dirs, data);
     check_cuda(out, at::kFloat, "out", data);
     TORCH_CHECK(out.numel() == data.size(0), "out must have one entry per row");
@@ -181,11 +180,11 @@ void max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, i
 }
 
 std::tuple<int64_t, int64_t> sample_counts(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
-                                           c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree,
+                                           c10::ArrayRef<double> lattice, int64_t degree,
                                            Tensor origins, Tensor dirs, double step, double stop_transmittance,
                                            double near, double sigma_threshold, int64_t max_samples, bool contract) {
     const c10::cuda::CUDAGuard guard(data.device());
-    const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, bmin, bmax, degree);
+    const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, lattice, degree);
     const plx_cuda::Rays rays = make_rays(origins, dirs, data);
     Tensor counts = at::zeros({2}, data.options().dtype(at::kLong));
     check_launch(plx_cuda::sample_counts(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples, contract),

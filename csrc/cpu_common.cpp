@@ -7,7 +7,7 @@
 namespace plx_cpu {
 
 GridView make_view(const at::Tensor& data, const at::Tensor& links, const at::Tensor& cell_occ,
-                   const at::Tensor& block_occ, int block, c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax) {
+                   const at::Tensor& block_occ, int block, c10::ArrayRef<double> lattice) {
     TORCH_CHECK(block > 0 && (block & (block - 1)) == 0, "the occupancy block must be a power of two, got ",
                 std::to_string(block));
     GridView g;
@@ -19,9 +19,9 @@ GridView make_view(const at::Tensor& data, const at::Tensor& links, const at::Te
     for (int a = 0; a < 3; ++a) {
         g.res[a] = (int)links.size(a);
         g.bres[a] = (int)block_occ.size(a);
-        g.bmin[a] = bmin[a];
-        g.scale[a] = (g.res[a] - 1) / (bmax[a] - bmin[a]);
     }
+    const char* error = plx::read_lattice(lattice.data(), (long)lattice.size(), g.res, &g.lattice);
+    TORCH_CHECK(error == nullptr, error);
     const int origin[3] = {0, 0, 0};
     for (int c = 0; c < 8; ++c) g.corner_offset[c] = plx::corner_index(origin, g.res, c);
     return g;

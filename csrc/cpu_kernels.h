@@ -40,8 +40,7 @@ struct GridView {
     int res[3];
     int block;
     int bres[3];
-    double bmin[3];
-    double scale[3];
+    plx::Lattice lattice;  // fit frame -> grid coordinates
     int64_t corner_offset[8];  // links index of corner c less that of corner 0 (plx::corner_index)
 };
 
@@ -57,10 +56,10 @@ struct MarchOptions {
 using Ray = plx::RayMarch;
 
 GridView make_view(const at::Tensor& data, const at::Tensor& links, const at::Tensor& cell_occ,
-                   const at::Tensor& block_occ, int block, c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax);
+                   const at::Tensor& block_occ, int block, c10::ArrayRef<double> lattice);
 
 inline void setup_ray(const GridView& g, const float* o, const float* d, const MarchOptions& opt, Ray* r) {
-    plx::setup_ray(g.res, g.bmin, g.scale, o, d, opt.near, opt.step, opt.max_samples, opt.contract, r);
+    plx::setup_ray(g.lattice, o, d, opt.near, opt.step, opt.max_samples, opt.contract, r);
 }
 
 using plx::cell_of;
@@ -98,22 +97,23 @@ struct Sample {
 // order; visit returns the transmittance after the sample, and the march stops below the threshold.
 // `interp` receives the interpolated row (density and SH) of the sample.
 template <int S, typename Visit>
-inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, float* interp, Visit visit) {
+inline float march(const GridView& g, const Ray& ray, const MarchOptions& opt, float* interp, Visit visit) {
     float transmittance = 1.0f;
+    Ray r = ray;  // a lattice ray lays out its pieces as it goes
     plx::MarchWalk walk = plx::march_start(r);
     // The far stage's cells by sample index, so that the near stage finds a cell it already located.
     struct Ahead {
         int i = -1;
         int cell[3];
     } ahead[2 * kLookahead];
-    while (plx::next_sample(g.res, g.bres, g.block, g.block_occ, g.cell_occ, g.bmin, g.scale, r, &walk)) {
+    while (plx::next_sample(g.res, g.bres, g.block, g.block_occ, g.cell_occ, g.lattice, &r, &walk)) {
         const int* cell = walk.cell;
         // Rows scattered over hundreds of MB miss the cache, so the march loads ahead in two stages: the links (and
         // occupancy) of the cell 2 kLookahead samples ahead, then the rows of the cell kLookahead ahead, whose links
         // the first stage has brought in; each stage's misses overlap the work on this sample.
         if (walk.i - 1 + 2 * kLookahead < r.n) {
             float q[3];
-            plx::point_ahead(g.res, g.bmin, g.scale, r, walk, 2 * kLookahead, q);
+            plx::point_ahead(g.res, g.lattice, r, walk, 2 * kLookahead, q);
             Ahead& slot = ahead[(walk.i - 1) % (2 * kLookahead)];
             slot.i = walk.i - 1 + 2 * kLookahead;
             int* far = slot.cell;
@@ -129,7 +129,7 @@ inline float march(const GridView& g, const Ray& r, const MarchOptions& opt, flo
                 for (int a = 0; a < 3; ++a) next[a] = slot.cell[a];
             } else {
                 float q[3];
-                plx::point_ahead(g.res, g.bmin, g.scale, r, walk, kLookahead, q);
+                plx::point_ahead(g.res, g.lattice, r, walk, kLookahead, q);
                 for (int a = 0; a < 3; ++a) next[a] = cell_of(q[a], g.res[a]);
             }
             if (next[0] != cell[0] || next[1] != cell[1] || next[2] != cell[2]) {

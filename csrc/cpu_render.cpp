@@ -152,7 +152,7 @@ void sample_counts_impl(const GridView& g, const MarchOptions& opt, const float*
         for (int64_t b = 0; b < B; ++b) {
             Ray r;
             setup_ray(g, origins + 3 * b, dirs + 3 * b, opt, &r);
-            lattice_total += plx::ray_length_samples(g.res, g.bmin, g.scale, r);
+            lattice_total += plx::ray_length_samples(g.res, g.lattice, r);
             march<S>(g, r, opt, interp, [&](Sample& s, const float*) {
                 ++used_total;
                 return s.t_before * s.transmittance_factor;
@@ -164,7 +164,7 @@ void sample_counts_impl(const GridView& g, const MarchOptions& opt, const float*
 }
 
 std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
-                           c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree, Tensor origins,
+                           c10::ArrayRef<double> lattice, int64_t degree, Tensor origins,
                            Tensor dirs, std::optional<Tensor> background, double step, double stop_transmittance,
                            double near, double sigma_threshold, int64_t max_samples, bool contract) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
@@ -176,7 +176,7 @@ std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor bl
         TORCH_CHECK(background->sizes() == origins.sizes(), "background must be [B,3]");
         bg = background->data_ptr<float>();
     }
-    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
+    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, lattice);
     const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract);
     Tensor rgb = at::empty({B, 3}, data.options());
     Tensor depth = at::empty({B}, data.options());
@@ -187,7 +187,7 @@ std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor bl
 }
 
 std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ,
-                                                  int64_t block, c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax,
+                                                  int64_t block, c10::ArrayRef<double> lattice,
                                                   int64_t degree, Tensor origins, Tensor dirs, Tensor targets,
                                                   Tensor background, double step, double stop_transmittance,
                                                   double near, double sigma_threshold, int64_t max_samples, bool contract,
@@ -202,7 +202,7 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
     TORCH_CHECK(grad_data.sizes() == data.sizes(), "gradient storage does not match the grid");
     ThreadGrads scratch(grad_data, scratch_grad, scratch_mask);
     const int64_t B = origins.size(0);
-    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
+    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, lattice);
     const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract);
     Tensor grad_background = at::empty({B, 3}, data.options());
     GradTarget target{grad_data.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), grad_rows.data_ptr<int32_t>(), num_touched};
@@ -215,14 +215,14 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
 }
 
 void max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
-                   c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree, Tensor origins, Tensor dirs,
+                   c10::ArrayRef<double> lattice, int64_t degree, Tensor origins, Tensor dirs,
                    double step, double stop_transmittance, double near, double sigma_threshold, int64_t max_samples, bool contract,
                    Tensor out) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
     check_rays(origins, dirs);
     check_float_rows(out, "out");
     TORCH_CHECK(out.numel() == data.size(0), "out must have one entry per row");
-    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
+    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, lattice);
     const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract);
     PLX_DISPATCH_DEGREE(degree, max_weights_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
                                                     origins.size(0), out.data_ptr<float>()));
@@ -230,17 +230,17 @@ void max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, i
 
 // (samples on the rays' lattices inside the box, samples that contributed): for benchmarks and reports.
 std::tuple<int64_t, int64_t> sample_counts(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
-                                           c10::ArrayRef<double> bmin, c10::ArrayRef<double> bmax, int64_t degree,
+                                           c10::ArrayRef<double> lattice, int64_t degree,
                                            Tensor origins, Tensor dirs, double step, double stop_transmittance,
                                            double near, double sigma_threshold, int64_t max_samples, bool contract) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
     check_rays(origins, dirs);
-    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, bmin, bmax);
+    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, lattice);
     const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract);
-    int64_t lattice = 0, used = 0;
+    int64_t on_lattice = 0, used = 0;
     PLX_DISPATCH_DEGREE(degree, sample_counts_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
-                                                      origins.size(0), &lattice, &used));
-    return {lattice, used};
+                                                      origins.size(0), &on_lattice, &used));
+    return {on_lattice, used};
 }
 
 }  // namespace plx_cpu

@@ -12,6 +12,8 @@
 #include <cuda_runtime_api.h>
 #include <stdint.h>
 
+#include "plenoxels_math.h"
+
 namespace plx_cuda {
 
 struct Grid {
@@ -23,8 +25,7 @@ struct Grid {
     int res[3];
     int block;
     int bres[3];
-    double bmin[3];
-    double scale[3];  // (R - 1) / (bmax - bmin) per axis
+    plx::Lattice lattice;  // fit frame -> grid coordinates
 };
 
 struct March {

@@ -24,7 +24,7 @@ inline unsigned blocks_for(int64_t n) { return (unsigned)((n + kThreads - 1) / k
 using RayState = plx::RayMarch;
 
 __device__ __forceinline__ void setup_ray(const Grid& g, const float* o, const float* d, const March& opt, RayState* r) {
-    plx::setup_ray(g.res, g.bmin, g.scale, o, d, opt.near, opt.step, opt.max_samples, opt.contract, r);
+    plx::setup_ray(g.lattice, o, d, opt.near, opt.step, opt.max_samples, opt.contract, r);
 }
 
 struct Sample {
@@ -39,11 +39,12 @@ struct Sample {
 // at hand). visit returns the transmittance after the sample; the march stops below the threshold.
 // Returns the final transmittance.
 template <int C, typename Visit>
-__device__ float march(const Grid& g, const RayState& r, const March& opt, Visit visit) {
+__device__ float march(const Grid& g, const RayState& ray, const March& opt, Visit visit) {
     float transmittance = 1.0f;
+    RayState r = ray;  // a lattice ray lays out its pieces as it goes
     const int S = g.stride;
     plx::MarchWalk walk = plx::march_start(r);
-    while (plx::next_sample(g.res, g.bres, g.block, g.block_occ, g.cell_occ, g.bmin, g.scale, r, &walk)) {
+    while (plx::next_sample(g.res, g.bres, g.block, g.block_occ, g.cell_occ, g.lattice, &r, &walk)) {
         Sample s;
         plx::trilinear(walk.p, g.res, walk.cell, s.w);
         float raw_density = 0.0f;
@@ -213,7 +214,7 @@ __global__ void sample_counts_kernel(Grid g, March opt, Rays rays, unsigned long
         ++used;
         return s.t_before * s.transmittance_factor;
     });
-    const int lattice = plx::ray_length_samples(g.res, g.bmin, g.scale, r);
+    const int lattice = plx::ray_length_samples(g.res, g.lattice, r);
     if (lattice > 0) atomicAdd(counts, (unsigned long long)lattice);
     if (used > 0) atomicAdd(counts + 1, used);
 }

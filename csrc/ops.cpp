@@ -16,8 +16,8 @@
 
 namespace {
 
-#define PLX_GRID "Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int block, float[] bbox_min, " \
-                 "float[] bbox_max, int sh_degree"
+#define PLX_GRID "Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int block, float[] lattice, " \
+                 "int sh_degree"
 #define PLX_MARCH "float step, float stop_transmittance, float near, float sigma_threshold, int max_samples, " \
                   "bool contract"
 #define PLX_GRAD "Tensor(a!) grad_data, Tensor(b!) grad_mask, Tensor(c!) grad_rows, int num_touched, " \

@@ -29,21 +29,21 @@ using count_live_blocks = void(Tensor data, Tensor coords, int64_t block, Tensor
 using row_coords = Tensor(Tensor links, int64_t rows);
 using sample = Tensor(Tensor data, Tensor links, Tensor points);
 using render = std::vector<Tensor>(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
-                                   Doubles bmin, Doubles bmax, int64_t degree, Tensor origins, Tensor dirs,
+                                   Doubles lattice, int64_t degree, Tensor origins, Tensor dirs,
                                    MaybeTensor background, double step, double stop_transmittance, double near,
                                    double sigma_threshold, int64_t max_samples, bool contract);
 using loss_and_grad = std::tuple<double, Tensor, int64_t>(
-    Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block, Doubles bmin, Doubles bmax,
+    Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block, Doubles lattice,
     int64_t degree, Tensor origins, Tensor dirs, Tensor targets, Tensor background, double step,
     double stop_transmittance, double near, double sigma_threshold, int64_t max_samples, bool contract,
     Tensor grad_data, Tensor grad_mask, Tensor grad_rows, int64_t num_touched, Tensor scratch_grad,
     Tensor scratch_mask);
-using max_weights = void(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block, Doubles bmin,
-                         Doubles bmax, int64_t degree, Tensor origins, Tensor dirs, double step,
+using max_weights = void(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block, Doubles lattice,
+                         int64_t degree, Tensor origins, Tensor dirs, double step,
                          double stop_transmittance, double near, double sigma_threshold, int64_t max_samples,
                          bool contract, Tensor out);
 using sample_counts = std::tuple<int64_t, int64_t>(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ,
-                                                   int64_t block, Doubles bmin, Doubles bmax, int64_t degree,
+                                                   int64_t block, Doubles lattice, int64_t degree,
                                                    Tensor origins, Tensor dirs, double step,
                                                    double stop_transmittance, double near, double sigma_threshold,
                                                    int64_t max_samples, bool contract);

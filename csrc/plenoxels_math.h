@@ -136,49 +136,147 @@ PLX_HD int sample_lattice(double t_start, double t_end, double step_t, int max_s
     return (int)n;
 }
 
-// One ray prepared for marching, identically on every backend.
-// On a contracted grid (see contract_point) og and dg are the ray's origin and unit direction in the frame before
-// contraction, dt is the step in contracted units and n the most steps the ray may take.
-struct RayMarch {
-    double og[3], dg[3];  // grid-space origin and direction (per unit of fit-frame distance)
-    double inv_dg[3];     // 1 / dg (0 where dg is 0): where the march meets a block's faces
-    float dir[3];         // unit fit-frame direction
-    double t_start, dt;   // sample i sits at t_start + (i + 0.5) * dt
-    int n;                // samples on the ray (0: it misses the grid)
-    bool contracted;
+// The map from the fit frame to grid coordinates, per axis piecewise linear: knots x[a][0] < ... < x[a][k-1] (fit
+// frame) sit at grid coordinates g[a][0] = 0 < ... < g[a][k-1] = res - 1, and between two knots the map is linear. Two
+// knots make the plain grid of one cell size over its box (g = (p - bbox_min) * scale); more let the cells of one
+// lattice grow from a finely resolved foreground out to its coarser surroundings, with no seam where they meet (one
+// lattice: interpolation, TV and pruning never see two cell sizes at once).
+constexpr int kMaxKnots = 4;
+struct Lattice {
+    int knots[3];
+    double x[3][kMaxKnots];
+    double g[3][kMaxKnots];
+    double slope[3][kMaxKnots - 1];  // grid units per fit-frame unit between knots j and j + 1
 };
 
-// Maps a fit-frame ray into grid coordinates (g = (p - bmin) * scale), clips it to the grid box and
-// to t >= near, and lays out its samples `step` grid units apart. On a contracted grid the ray keeps its frame and
-// starts at near; its samples are laid out as it is marched (next_sample).
-PLX_HD void setup_ray(const int res[3], const double bmin[3], const double scale[3], const float* o, const float* d,
-                      double near, double step, int max_samples, bool contracted, RayMarch* r) {
-    const double norm = sqrt((double)d[0] * d[0] + (double)d[1] * d[1] + (double)d[2] * d[2]);
-    double dg2 = 0.0, hi[3], finest = 0.0;
-    r->contracted = contracted;
+// Reads a lattice from its flat form, per axis [k, x_0 .. x_{k-1}, g_0 .. g_{k-1}]; the error says what is wrong, or
+// is null. Host code (the operators' argument checks).
+inline const char* read_lattice(const double* v, long n, const int res[3], Lattice* L) {
+    long at = 0;
     for (int a = 0; a < 3; ++a) {
-        const double u = d[a] / norm;
-        r->dir[a] = (float)u;
-        r->og[a] = contracted ? (double)o[a] : ((double)o[a] - bmin[a]) * scale[a];
-        r->dg[a] = contracted ? u : u * scale[a];
+        if (at >= n) return "the lattice must list every axis: [k, k knots, k grid coordinates] per axis";
+        const double k = v[at++];
+        if (!(k >= 2 && k <= kMaxKnots) || k != (double)(int)k) return "the lattice needs 2 to 4 knots per axis";
+        const int K = (int)k;
+        if (at + 2 * K > n) return "the lattice ends before its knots do";
+        L->knots[a] = K;
+        for (int j = 0; j < K; ++j) {
+            L->x[a][j] = v[at + j];
+            L->g[a][j] = v[at + K + j];
+        }
+        at += 2 * K;
+        if (L->g[a][0] != 0.0 || L->g[a][K - 1] != (double)(res[a] - 1))
+            return "the lattice's grid coordinates must run from 0 to the axis' last vertex";
+        for (int j = 0; j + 1 < K; ++j) {
+            if (!(L->x[a][j + 1] > L->x[a][j]) || !(L->g[a][j + 1] > L->g[a][j]))
+                return "the lattice's knots must increase";
+            L->slope[a][j] = (L->g[a][j + 1] - L->g[a][j]) / (L->x[a][j + 1] - L->x[a][j]);
+        }
+    }
+    return at == n ? nullptr : "the lattice has values past its third axis";
+}
+
+// The piece of axis a that holds fit-frame coordinate x (the first below x[a][1], the last at or past x[a][k-2]).
+PLX_HD int lattice_piece(const Lattice& L, int a, double x) {
+    int j = 0;
+    while (j < L.knots[a] - 2 && x >= L.x[a][j + 1]) ++j;
+    return j;
+}
+
+// The grid coordinate of fit-frame coordinate x on axis a (linear past the end knots).
+PLX_HD double lattice_coord(const Lattice& L, int a, double x) {
+    const int j = lattice_piece(L, a, x);
+    return L.g[a][j] + (x - L.x[a][j]) * L.slope[a][j];
+}
+
+// The most grid units per fit-frame unit on any axis and piece: the finest cells.
+PLX_HD double finest_slope(const Lattice& L) {
+    double finest = 0.0;
+    for (int a = 0; a < 3; ++a)
+        for (int j = 0; j + 1 < L.knots[a]; ++j) finest = L.slope[a][j] > finest ? L.slope[a][j] : finest;
+    return finest;
+}
+
+// One ray prepared for marching, identically on every backend.
+// On a lattice a ray is marched a piece at a time: between two knot planes it crosses, the map to grid coordinates is
+// linear, so og and dg are the piece's grid-space origin and direction, and its samples a lattice of their own
+// (t_start, dt, n). On a contracted grid (see contract_point) og and dg are the ray's origin and unit direction in the
+// frame before contraction, dt is the step in contracted units and n the most steps the ray may take.
+struct RayMarch {
+    double og[3], dg[3];  // grid-space origin and direction (per unit of fit-frame distance) of the piece
+    double inv_dg[3];     // 1 / dg (0 where dg is 0): where the march meets a block's faces
+    float dir[3];         // unit fit-frame direction
+    double t_start, dt;   // sample i of the piece sits at t_start + (i + 0.5) * dt
+    int n;                // samples on the piece (0: none)
+    bool contracted;
+    double o[3], u[3];    // fit-frame origin and unit direction (to lay out the next piece)
+    double t_piece_end;   // where the piece ends: a knot plane, or t_end
+    double t_end;         // where the ray leaves the grid's box
+    double step;          // grid units between samples
+    int budget;           // samples the ray may still take after this piece
+};
+
+// Lays out the piece of a lattice ray that starts at t0: it ends at the first knot plane the ray crosses after t0, or
+// where it leaves the box; its samples are `step` grid units apart, at most the ray's remaining budget of them.
+PLX_HD void lay_piece(const Lattice& L, double t0, RayMarch* r) {
+    double t1 = r->t_end;
+    for (int a = 0; a < 3; ++a) {
+        if (r->u[a] == 0.0) continue;
+        for (int j = 1; j + 1 < L.knots[a]; ++j) {
+            const double tk = (L.x[a][j] - r->o[a]) / r->u[a];
+            if (tk > t0 && tk < t1) t1 = tk;
+        }
+    }
+    const double mid = 0.5 * (t0 + t1);
+    double dg2 = 0.0;
+    for (int a = 0; a < 3; ++a) {
+        const int j = lattice_piece(L, a, r->o[a] + mid * r->u[a]);
+        r->og[a] = L.g[a][j] + (r->o[a] - L.x[a][j]) * L.slope[a][j];
+        r->dg[a] = r->u[a] * L.slope[a][j];
         r->inv_dg[a] = r->dg[a] != 0.0 ? 1.0 / r->dg[a] : 0.0;
         dg2 += r->dg[a] * r->dg[a];
-        hi[a] = res[a] - 1;
-        finest = scale[a] > finest ? scale[a] : finest;
+    }
+    r->t_start = t0;
+    r->t_piece_end = t1;
+    r->n = sample_lattice(t0, t1, r->step / sqrt(dg2), r->budget, &r->dt);
+    r->budget -= r->n;
+}
+
+// Prepares a fit-frame ray for marching: clips it to the grid box and to t >= near and lays out its first piece
+// (lay_piece). On a contracted grid the ray keeps its frame and starts at near; its samples are laid out as it is
+// marched (next_sample).
+PLX_HD void setup_ray(const Lattice& L, const float* o, const float* d, double near, double step, int max_samples,
+                      bool contracted, RayMarch* r) {
+    const double norm = sqrt((double)d[0] * d[0] + (double)d[1] * d[1] + (double)d[2] * d[2]);
+    double from_min[3], extent[3];  // the origin from the box's low corner, and the box's size
+    r->contracted = contracted;
+    r->step = step;
+    for (int a = 0; a < 3; ++a) {
+        r->u[a] = d[a] / norm;
+        r->o[a] = (double)o[a];
+        r->dir[a] = (float)r->u[a];
+        from_min[a] = r->o[a] - L.x[a][0];
+        extent[a] = L.x[a][L.knots[a] - 1] - L.x[a][0];
     }
     if (contracted) {
+        for (int a = 0; a < 3; ++a) {
+            r->og[a] = r->o[a];
+            r->dg[a] = r->u[a];
+            r->inv_dg[a] = r->dg[a] != 0.0 ? 1.0 / r->dg[a] : 0.0;
+        }
         r->t_start = near;
-        r->dt = step / finest;
+        r->dt = step / finest_slope(L);
         r->n = max_samples;
         return;
     }
     double t_enter, t_exit;
     r->n = 0;
     r->dt = 1.0;
-    r->t_start = 0.0;
-    if (!ray_box(r->og, r->dg, hi, &t_enter, &t_exit)) return;
-    r->t_start = t_enter < near ? near : t_enter;
-    r->n = sample_lattice(r->t_start, t_exit, step / sqrt(dg2), max_samples, &r->dt);
+    r->t_start = r->t_piece_end = r->t_end = 0.0;
+    if (!ray_box(from_min, r->u, extent, &t_enter, &t_exit)) return;
+    r->t_end = t_exit;
+    r->budget = max_samples;
+    lay_piece(L, t_enter < near ? near : t_enter, r);
 }
 
 // Clamps to [lo, hi] with comparisons only, so NaN passes through the same way on host and device.

@@ -47,12 +47,11 @@ PLX_HD double contracted_speed(const double q[3], const double u[3]) {
 }
 
 // The grid point (clamped) of the contracted ray at distance t; returns |contracted point|_inf there.
-PLX_HD double contracted_grid_point(const int res[3], const double bmin[3], const double scale[3], const RayMarch& r,
-                                    double t, float p[3]) {
+PLX_HD double contracted_grid_point(const int res[3], const Lattice& L, const RayMarch& r, double t, float p[3]) {
     double q[3], c[3];
     for (int a = 0; a < 3; ++a) q[a] = r.og[a] + t * r.dg[a];
     const double radius = contract_point(q, c);
-    for (int a = 0; a < 3; ++a) p[a] = clamp_to((float)((c[a] - bmin[a]) * scale[a]), 0.0f, (float)(res[a] - 1));
+    for (int a = 0; a < 3; ++a) p[a] = clamp_to((float)lattice_coord(L, a, c[a]), 0.0f, (float)(res[a] - 1));
     return radius;
 }
 
@@ -85,8 +84,7 @@ enum ContractedSample { kInside, kBeyondComingIn, kGone };
 // One step of a contracted ray: dt contracted units long at the speed where it starts (at most
 // PLX_CONTRACTED_MAX_STEP of |q|_inf), its sample half way, integrating density over the step's contracted length (by
 // the midpoint rule). Fills the walk's t, delta and p.
-PLX_HD ContractedSample contracted_step(const int res[3], const double bmin[3], const double scale[3],
-                                        const RayMarch& r, MarchWalk* w) {
+PLX_HD ContractedSample contracted_step(const int res[3], const Lattice& L, const RayMarch& r, MarchWalk* w) {
     double q[3];
     for (int a = 0; a < 3; ++a) q[a] = r.og[a] + w->cursor * r.dg[a];
     const double reach = fabs(q[major_axis(q)]);
@@ -98,55 +96,69 @@ PLX_HD ContractedSample contracted_step(const int res[3], const double bmin[3], 
     ++w->i;
     for (int a = 0; a < 3; ++a) q[a] = r.og[a] + w->t * r.dg[a];
     w->delta = w->dt * contracted_speed(q, r.dg);
-    if (contracted_grid_point(res, bmin, scale, r, w->t, w->p) < 2.0 - 0.5 * r.dt) return kInside;
+    if (contracted_grid_point(res, L, r, w->t, w->p) < 2.0 - 0.5 * r.dt) return kInside;
     const int k = major_axis(q);
     return (q[k] < 0.0 ? -r.dg[k] : r.dg[k]) < 0.0 ? kBeyondComingIn : kGone;
 }
 
 // Moves the walk to the next sample worth visiting (its cell may hold density); false when the ray has none left. A
-// lattice ray's samples sit at t_start + (i + 0.5) dt, each dt long, and skip empty blocks whole. A contracted ray
+// lattice ray's samples sit at t_start + (i + 0.5) dt of their piece, each dt long, and skip empty blocks whole; at a
+// piece's end the ray lays out its next piece (lay_piece) and the walk starts that piece's samples. A contracted ray
 // steps as contracted_step says, skips samples beyond the grid's reach and ends where it is gone or after n steps.
 PLX_HD bool next_sample(const int res[3], const int bres[3], int block, const uint8_t* block_occ,
-                        const uint8_t* cell_occ, const double bmin[3], const double scale[3], const RayMarch& r,
-                        MarchWalk* w) {
-    if (!r.contracted) {
-        while (w->i < r.n) {
-            w->t = r.t_start + (w->i + 0.5) * r.dt;
-            grid_point(res, r, w->t, w->p);
-            const int next = occupied_or_next(res, bres, block, block_occ, cell_occ, r, w->p, w->i, w->cell);
-            if (next == w->i) {
-                ++w->i;
-                return true;
+                        const uint8_t* cell_occ, const Lattice& L, RayMarch* r, MarchWalk* w) {
+    if (!r->contracted) {
+        while (true) {
+            while (w->i < r->n) {
+                w->t = r->t_start + (w->i + 0.5) * r->dt;
+                grid_point(res, *r, w->t, w->p);
+                const int next = occupied_or_next(res, bres, block, block_occ, cell_occ, *r, w->p, w->i, w->cell);
+                if (next == w->i) {
+                    w->delta = r->dt;
+                    ++w->i;
+                    return true;
+                }
+                w->i = next;
             }
-            w->i = next;
+            if (!(r->t_piece_end < r->t_end)) return false;
+            lay_piece(L, r->t_piece_end, r);
+            w->i = 0;
         }
-        return false;
     }
-    while (w->i < r.n) {
-        const ContractedSample where = contracted_step(res, bmin, scale, r, w);
+    while (w->i < r->n) {
+        const ContractedSample where = contracted_step(res, L, *r, w);
         if (where == kGone) return false;
         if (where == kInside && cell_occupied(res, bres, block, block_occ, cell_occ, w->p, w->cell)) return true;
     }
     return false;
 }
 
-// The grid point about `ahead` samples past the walk's (for prefetching; clamped).
-PLX_HD void point_ahead(const int res[3], const double bmin[3], const double scale[3], const RayMarch& r,
-                        const MarchWalk& w, int ahead, float p[3]) {
+// The grid point about `ahead` samples past the walk's (for prefetching; clamped; past a piece's end, on the piece's
+// line).
+PLX_HD void point_ahead(const int res[3], const Lattice& L, const RayMarch& r, const MarchWalk& w, int ahead,
+                        float p[3]) {
     if (r.contracted)
-        contracted_grid_point(res, bmin, scale, r, w.t + ahead * w.dt, p);
+        contracted_grid_point(res, L, r, w.t + ahead * w.dt, p);
     else
         grid_point(res, r, w.t + ahead * r.dt, p);
 }
 
-// Samples on the ray before any occupancy test or early stop: n on a lattice, the steps inside the grid's reach on a
-// contracted ray (reports and benchmarks).
-PLX_HD int ray_length_samples(const int res[3], const double bmin[3], const double scale[3], const RayMarch& r) {
-    if (!r.contracted) return r.n;
+// Samples on the ray before any occupancy test or early stop: those of every piece on a lattice, the steps inside
+// the grid's reach on a contracted ray (reports and benchmarks).
+PLX_HD int ray_length_samples(const int res[3], const Lattice& L, const RayMarch& ray) {
+    RayMarch r = ray;
+    if (!r.contracted) {
+        int samples = r.n;
+        while (r.t_piece_end < r.t_end) {
+            lay_piece(L, r.t_piece_end, &r);
+            samples += r.n;
+        }
+        return samples;
+    }
     MarchWalk w = march_start(r);
     int samples = 0;
     while (w.i < r.n) {
-        const ContractedSample where = contracted_step(res, bmin, scale, r, &w);
+        const ContractedSample where = contracted_step(res, L, r, &w);
         if (where == kGone) break;
         samples += where == kInside;
     }

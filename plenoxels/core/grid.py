@@ -3,7 +3,10 @@
 Values live at grid vertices. A fit-frame point p maps to grid coordinates
 g = (p - bbox_min) * (R - 1) / (bbox_max - bbox_min) per axis, so vertex (i, j, k) sits at integer
 coordinates in [0, R-1]; a point is interpolated trilinearly from the 8 vertices of its cell, and an
-unallocated vertex counts as all zeros.
+unallocated vertex counts as all zeros. A grid may bend that map at `knots`: per axis, fit-frame positions inside the
+box with the share of the lattice below each, so that its cells are fine across a foreground and grow coarser out to
+its surroundings, one lattice throughout (csrc/plenoxels_math.h, Lattice). Shares, not vertex indices, so a grid keeps
+its knots at every resolution.
 
 Parameters are stored packed, one padded row per vertex (`data` [N, S]: raw density, then the SH
 coefficients of R, G and B), so the kernels read a whole vertex in one or two cache lines; the row
@@ -13,6 +16,7 @@ the grid's tensors.
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import torch
@@ -42,6 +46,22 @@ def _check_box(bbox_min, bbox_max) -> tuple[tuple[float, ...], tuple[float, ...]
     if len(lo) != 3 or len(hi) != 3 or not all(h > l for l, h in zip(lo, hi)):
         raise UserError(f"grid box must satisfy bbox_min < bbox_max on every axis, got {lo} and {hi}")
     return lo, hi
+
+
+Knots = tuple[tuple[tuple[float, float], ...], ...]  # per axis, (fit-frame position, share of the lattice below it)
+
+
+def _check_knots(knots, lo, hi) -> Knots:
+    if knots is None:
+        return ((), (), ())
+    checked = tuple(tuple((float(x), float(f)) for x, f in axis) for axis in knots)
+    for a, axis in enumerate(checked):
+        xs = [lo[a]] + [x for x, _ in axis] + [hi[a]]
+        fs = [0.0] + [f for _, f in axis] + [1.0]
+        if len(checked) != 3 or len(axis) > 2 or any(b <= a_ for a_, b in zip(xs, xs[1:])) or \
+                any(b <= a_ for a_, b in zip(fs, fs[1:])):
+            raise UserError(f"grid knots must be at most two per axis, inside the box and increasing, got {knots}")
+    return checked
 
 
 def _check_resolution(resolution) -> tuple[int, int, int]:
@@ -77,7 +97,7 @@ def large_zeros(like: torch.Tensor) -> torch.Tensor:
 
 class SparseGrid:
     def __init__(self, links: torch.Tensor, data: torch.Tensor, bbox_min, bbox_max, sh_degree: int,
-                 contracted: bool = False):
+                 contracted: bool = False, knots: Knots | None = None):
         if not 0 <= int(sh_degree) <= 3:
             raise UserError(f"sh_degree must be 0, 1, 2 or 3, got {sh_degree}")
         self.sh_degree = int(sh_degree)
@@ -85,6 +105,9 @@ class SparseGrid:
         # The box lies in contracted space (csrc/plenoxels_math.h, contract_point): rays come in the frame before the
         # contraction and bend through the grid.
         self.contracted = bool(contracted)
+        self.knots = _check_knots(knots, self.bbox_min, self.bbox_max)
+        if self.contracted and self.warped:
+            raise UserError("a contracted grid has one cell size over its box: it takes no knots")
         _check_resolution(links.shape)
         stride = row_stride(self.sh_degree)
         if data.dim() != 2 or data.shape[1] != stride:
@@ -97,7 +120,8 @@ class SparseGrid:
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
-    def from_values(cls, links, density, sh, bbox_min, bbox_max, sh_degree, contracted: bool = False) -> "SparseGrid":
+    def from_values(cls, links, density, sh, bbox_min, bbox_max, sh_degree, contracted: bool = False,
+                    knots: Knots | None = None) -> "SparseGrid":
         """A grid from unpacked values: density [N], sh [N, 3K]."""
         k3 = 3 * sh_count(sh_degree)
         if sh.shape != (density.shape[0], k3):
@@ -105,18 +129,18 @@ class SparseGrid:
         data = torch.zeros(density.shape[0], row_stride(sh_degree), dtype=torch.float32)
         data[:, 0] = density
         data[:, 1 : 1 + k3] = sh
-        return cls(links, data, bbox_min, bbox_max, sh_degree, contracted)
+        return cls(links, data, bbox_min, bbox_max, sh_degree, contracted, knots)
 
     @classmethod
     def dense(cls, resolution, bbox_min, bbox_max, sh_degree: int, init_density=0.1, init_sh=0.0,
-              contracted: bool = False) -> "SparseGrid":
+              contracted: bool = False, knots: Knots | None = None) -> "SparseGrid":
         res = _check_resolution(resolution)
         n = res[0] * res[1] * res[2]
         links = torch.arange(n, dtype=torch.int32).reshape(res)
         data = torch.zeros(n, row_stride(int(sh_degree)), dtype=torch.float32)
         data[:, 0] = init_density
         data[:, 1 : 1 + 3 * sh_count(int(sh_degree))] = init_sh
-        return cls(links, data, bbox_min, bbox_max, sh_degree, contracted)
+        return cls(links, data, bbox_min, bbox_max, sh_degree, contracted, knots)
 
     # ---- views and facts ----------------------------------------------------------------------
     @property
@@ -140,9 +164,54 @@ class SparseGrid:
         return self.data.shape[0]
 
     @property
+    def warped(self) -> bool:
+        """Whether the cells differ in size along some axis (the grid has knots)."""
+        return any(self.knots)
+
+    def axis_knots(self, axis: int) -> tuple[list[float], list[float]]:
+        """Axis `axis`'s knots, box ends included: fit-frame positions and their grid coordinates."""
+        r = self.resolution[axis] - 1
+        xs = [self.bbox_min[axis]] + [x for x, _ in self.knots[axis]] + [self.bbox_max[axis]]
+        gs = [0.0] + [f * r for _, f in self.knots[axis]] + [float(r)]
+        return xs, gs
+
+    def coarsening(self) -> float:
+        """How many times the coarsest cells' side is the finest's, along the axis where that is most (1: one size)."""
+        ratios = []
+        for a in range(3):
+            xs, gs = self.axis_knots(a)
+            slopes = [(g1 - g0) / (x1 - x0) for x0, x1, g0, g1 in zip(xs, xs[1:], gs, gs[1:])]
+            ratios.append(max(slopes) / min(slopes))
+        return max(ratios)
+
+    def finest_vertices(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """The first and last vertex per axis of the piece between knots where the cells are finest."""
+        first, last = [], []
+        for a in range(3):
+            xs, gs = self.axis_knots(a)
+            j = max(range(len(xs) - 1), key=lambda j: (gs[j + 1] - gs[j]) / (xs[j + 1] - xs[j]))
+            first.append(math.ceil(gs[j] - 1e-9))
+            last.append(max(first[-1] + 1, math.floor(gs[j + 1] + 1e-9)))
+        return tuple(first), tuple(last)
+
+    def lattice(self) -> list[float]:
+        """The map to grid coordinates as the kernels take it: per axis [k, k positions, k grid coordinates]."""
+        flat = []
+        for a in range(3):
+            xs, gs = self.axis_knots(a)
+            flat += [float(len(xs))] + xs + gs
+        return flat
+
+    @property
     def scale(self) -> tuple[float, float, float]:
-        """Grid units per fit-frame unit, per axis."""
-        return tuple((r - 1) / (hi - lo) for r, lo, hi in zip(self.resolution, self.bbox_min, self.bbox_max))
+        """Grid units per fit-frame unit, per axis (where the cells are finest on a warped grid)."""
+        if not self.warped:
+            return tuple((r - 1) / (hi - lo) for r, lo, hi in zip(self.resolution, self.bbox_min, self.bbox_max))
+        scales = []
+        for a in range(3):
+            xs, gs = self.axis_knots(a)
+            scales.append(max((g1 - g0) / (x1 - x0) for x0, x1, g0, g1 in zip(xs, xs[1:], gs, gs[1:])))
+        return tuple(scales)
 
     def memory_bytes(self) -> int:
         """Parameters plus the index volume (and the occupancy structure once built)."""
@@ -156,9 +225,16 @@ class SparseGrid:
         return total
 
     def world_to_grid(self, points: torch.Tensor) -> torch.Tensor:
-        lo = torch.tensor(self.bbox_min, dtype=points.dtype, device=points.device)
-        scale = torch.tensor(self.scale, dtype=points.dtype, device=points.device)
-        return (points - lo) * scale
+        """Fit-frame points [..., 3] -> grid coordinates (linear past the box, as the kernels map them)."""
+        if not self.warped:
+            lo = torch.tensor(self.bbox_min, dtype=points.dtype, device=points.device)
+            scale = torch.tensor(self.scale, dtype=points.dtype, device=points.device)
+            return (points - lo) * scale
+        return torch.stack([_piecewise(points[..., a], *self.axis_knots(a)) for a in range(3)], dim=-1)
+
+    def grid_to_world(self, g: torch.Tensor) -> torch.Tensor:
+        """Grid coordinates [..., 3] -> fit-frame points (world_to_grid's inverse)."""
+        return torch.stack([_piecewise(g[..., a], *reversed(self.axis_knots(a))) for a in range(3)], dim=-1)
 
     # ---- cached helpers for the kernels -------------------------------------------------------
     def occupancy(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -217,7 +293,7 @@ class SparseGrid:
         if self.data.device == device:
             return self
         return SparseGrid(self._links.to(device), self.data.to(device), self.bbox_min, self.bbox_max, self.sh_degree,
-                          self.contracted)
+                          self.contracted, self.knots)
 
     def prune(self, keep: torch.Tensor) -> tuple["SparseGrid", torch.Tensor]:
         """Keeps rows where `keep` is true; returns the new grid and, for each new row, its old row."""
@@ -232,7 +308,7 @@ class SparseGrid:
         links = torch.full_like(flat, -1)
         links[occupied] = new_index[flat[occupied].long()]
         grid = SparseGrid(links.reshape(self._links.shape), self.data[old_rows], self.bbox_min, self.bbox_max,
-                          self.sh_degree, self.contracted)
+                          self.sh_degree, self.contracted, self.knots)
         return grid, old_rows
 
     def crop(self, first: tuple[int, int, int], last: tuple[int, int, int]) -> "SparseGrid":
@@ -245,10 +321,19 @@ class SparseGrid:
         old_rows = links[links >= 0].long()
         new_links = torch.full_like(links, -1)
         new_links[links >= 0] = torch.arange(old_rows.shape[0], dtype=torch.int32, device=links.device)
-        step = [(hi - lo) / (r - 1) for lo, hi, r in zip(self.bbox_min, self.bbox_max, self.resolution)]
-        box_min = [lo + i * d for lo, i, d in zip(self.bbox_min, lo_i, step)]
-        box_max = [lo + i * d for lo, i, d in zip(self.bbox_min, hi_i, step)]
-        return SparseGrid(new_links.contiguous(), self.data[old_rows], box_min, box_max, self.sh_degree)
+        if not self.warped:
+            step = [(hi - lo) / (r - 1) for lo, hi, r in zip(self.bbox_min, self.bbox_max, self.resolution)]
+            box_min = [lo + i * d for lo, i, d in zip(self.bbox_min, lo_i, step)]
+            box_max = [lo + i * d for lo, i, d in zip(self.bbox_min, hi_i, step)]
+            return SparseGrid(new_links.contiguous(), self.data[old_rows], box_min, box_max, self.sh_degree)
+        corners = self.grid_to_world(torch.tensor([lo_i, hi_i], dtype=torch.float64))
+        knots = []
+        for a in range(3):  # the knots strictly inside the crop, as shares of the crop's own lattice
+            xs, gs = self.axis_knots(a)
+            span = hi_i[a] - lo_i[a]
+            knots.append(tuple((x, (g - lo_i[a]) / span) for x, g in zip(xs[1:-1], gs[1:-1]) if lo_i[a] < g < hi_i[a]))
+        return SparseGrid(new_links.contiguous(), self.data[old_rows], corners[0].tolist(), corners[1].tolist(),
+                          self.sh_degree, knots=tuple(knots))
 
     def dilate(self, keep: torch.Tensor, radius: int = 1) -> torch.Tensor:
         """Grows a per-row keep mask to every allocated vertex within `radius` voxels (Chebyshev)."""
@@ -307,18 +392,19 @@ class SparseGrid:
             nearest.append(self._links[near[:, 0], near[:, 1], near[:, 2]].long())
         data = torch.cat(values) if values else torch.zeros(0, row_stride(self.sh_degree))
         old_rows = torch.cat(nearest) if nearest else torch.zeros(0, dtype=torch.int64)
-        return SparseGrid(links, data, self.bbox_min, self.bbox_max, self.sh_degree, self.contracted), old_rows
+        return SparseGrid(links, data, self.bbox_min, self.bbox_max, self.sh_degree, self.contracted,
+                          self.knots), old_rows
 
     # ---- persistence --------------------------------------------------------------------------
     def state_dict(self) -> dict:
         """The grid as a fit checkpoint holds it (its tensors as they are); from_state_dict reads it back."""
         return {"links": self.links, "data": self.data, "bbox_min": self.bbox_min, "bbox_max": self.bbox_max,
-                "sh_degree": self.sh_degree, "contracted": self.contracted}
+                "sh_degree": self.sh_degree, "contracted": self.contracted, "knots": _knots_record(self.knots)}
 
     @classmethod
     def from_state_dict(cls, state: dict) -> "SparseGrid":
         return cls(state["links"], state["data"], state["bbox_min"], state["bbox_max"], state["sh_degree"],
-                   bool(state.get("contracted", False)))
+                   bool(state.get("contracted", False)), state.get("knots"))
 
     def save(self, path, extra: dict | None = None) -> None:
         payload = {
@@ -331,6 +417,7 @@ class SparseGrid:
             "bbox_max": list(self.bbox_max),
             "sh_degree": self.sh_degree,
             "contracted": self.contracted,
+            "knots": _knots_record(self.knots),
             "extra": dict(extra or {}),
         }
         write_whole(path, lambda tmp: torch.save(payload, tmp))
@@ -349,5 +436,24 @@ class SparseGrid:
         if payload.get("version") != FORMAT_VERSION:
             raise UserError(f"{path} has grid format version {payload.get('version')}, expected {FORMAT_VERSION}: fit again")
         grid = cls.from_values(payload["links"], payload["density"], payload["sh"], payload["bbox_min"],
-                               payload["bbox_max"], payload["sh_degree"], bool(payload.get("contracted", False)))
+                               payload["bbox_max"], payload["sh_degree"], bool(payload.get("contracted", False)),
+                               payload.get("knots"))
         return grid, payload["extra"]
+
+
+def _knots_record(knots: Knots) -> list:
+    """Knots as plain lists (files and checkpoints)."""
+    return [[[x, f] for x, f in axis] for axis in knots]
+
+
+def _piecewise(v: torch.Tensor, xs: list[float], ys: list[float]) -> torch.Tensor:
+    """The piecewise-linear map through (xs[j], ys[j]) at v, linear past the ends; the piece is chosen as
+    csrc/plenoxels_math.h's lattice_piece chooses it, and computed in its order of operations."""
+    piece = torch.zeros(v.shape, dtype=torch.long, device=v.device)
+    for x in xs[1:-1]:
+        piece += (v >= x).long()
+    x0 = torch.tensor(xs[:-1], dtype=v.dtype, device=v.device)[piece]
+    y0 = torch.tensor(ys[:-1], dtype=v.dtype, device=v.device)[piece]
+    slope = torch.tensor([(y1 - ya) / (x1 - xa) for xa, x1, ya, y1 in zip(xs, xs[1:], ys, ys[1:])],
+                         dtype=torch.float64, device=v.device)[piece].to(v.dtype)
+    return y0 + (v - x0) * slope

@@ -48,6 +48,11 @@ class ModelOptions(MarchOptions):
     """Raw density of every vertex at the start."""
     box_padding: float = 0.05
     """The grid box is the foreground box grown by this share of its size on each side."""
+    surroundings_cells: float = 1.0
+    """A room's bounded grid (an unbounded scene without a contracted grid), whose box holds the walls and floor around
+    the foreground: its cells there are this many times the foreground's across, so the foreground keeps fine cells
+    however far the surroundings reach (1: one cell size over the box; bench/README.md, "Cells that follow the
+    scene")."""
     near_share: float = 0.5
     """Contracted grids: rays start this share of the nearest sparse point any camera saw (normalize's near) from their
     camera, so that no haze hangs in front of the lenses."""
@@ -67,6 +72,7 @@ class ModelOptions(MarchOptions):
                 f"{section}.background_color must be three numbers in [0, 1] (for example [1, 1, 1])")
         require(0 <= self.sh_degree <= 3, f"{section}.sh_degree must be 0, 1, 2 or 3")
         require(self.box_padding >= 0, f"{section}.box_padding must be >= 0")
+        require(self.surroundings_cells >= 1, f"{section}.surroundings_cells must be >= 1")
         require(0 <= self.near_share < 1, f"{section}.near_share must be in [0, 1)")
         require(self.background_spheres >= 1 and (self.background_width == 0 or self.background_width >= 4),
                 f"{section}.background_spheres must be >= 1 and {section}.background_width 0 (from the photos) or >= 4")

@@ -2,13 +2,15 @@
 statement of the math; tests hold the C++ (and CUDA) kernels to it, and it is far too slow to fit with.
 
 Rendering one ray (all kernels agree on every step):
-1. Normalise the direction u = d/|d|. In grid coordinates the ray is og + t * dg with
-   og = (o - bbox_min) * scale and dg = u * scale; t is fit-frame distance along the ray.
-2. Clip to the grid box [0, R-1]^3 and to t >= near: [t_start, t_exit).
-3. Samples at t_i = t_start + (i + 0.5) * dt, dt = step_size / |dg| (step_size voxels in grid units),
-   keeping t_i < t_exit; a ray that would need more than max_samples_per_ray gets exactly that many.
-   This lattice is computed in float64 so that every backend takes the same samples; the twin uses
-   the product's own lattice, render.ray_samples (tests check it against the kernels' sample counts).
+1. Normalise the direction u = d/|d|; t is fit-frame distance along the ray o + t u.
+2. Clip to the grid box and to t >= near: [t_start, t_exit). A grid with knots (grid.py) cuts the ray at every knot
+   plane it crosses into pieces; on each the map to grid coordinates is linear, og + t * dg with
+   og = g_j + (o - x_j) * slope_j and dg = u * slope_j per axis (one piece, og = (o - bbox_min) * scale, without knots).
+3. On each piece, samples at t_i = t_start + (i + 0.5) * dt, dt = step_size / |dg| (step_size voxels in grid units),
+   keeping t_i before the piece's end; a ray that would need more than max_samples_per_ray gets exactly that many:
+   the piece where they run out is stretched over the rest of them and later pieces get none. This lattice is computed in float64 so that every backend takes the same
+   samples; the twin uses the product's own lattice, render.ray_samples (tests check it against the kernels' sample
+   counts).
 4. At each sample: raw density and SH coefficients interpolated trilinearly from the 8 corners of its
    cell (an empty corner counts as zeros). sigma = raw density; samples with sigma <= sigma_threshold
    (>= 0) are skipped. colour = relu(sum_k sh_k Y_k(u) + 0.5) per channel.
@@ -133,17 +135,23 @@ def _samples(grid: SparseGrid, origins, dirs, opts) -> tuple:
         cs = contracted_samples(grid, origins, dirs, opts)
         M = cs["t"].shape[1]
         ray, idx = torch.nonzero(cs["valid"], as_tuple=True)
-        lo = torch.tensor(grid.bbox_min, dtype=torch.float64)
-        scale = torch.tensor(grid.scale, dtype=torch.float64)
-        g = (cs["c"][ray, idx] - lo) * scale
+        g = grid.world_to_grid(cs["c"][ray, idx])
         return ray, idx, cs["t"][ray, idx], g, cs["delta"][ray, idx], cs["unit"], M
     lat = ray_samples(grid, origins, dirs, opts)
-    M = int(lat["n"].max()) if origins.shape[0] else 0
-    i = torch.arange(M, dtype=torch.float64)
-    valid = i.long()[None, :] < lat["n"][:, None]
-    ray, idx = torch.nonzero(valid, as_tuple=True)
-    t = lat["t_start"][ray] + (idx.double() + 0.5) * lat["dt"][ray]
-    return ray, idx, t, lat["og"][ray] + t[:, None] * lat["dg"][ray], lat["dt"][ray], lat["unit"], M
+    per_ray = lat["n"].sum(dim=1)
+    M = int(per_ray.max()) if origins.shape[0] else 0
+    first = torch.cumsum(lat["n"], dim=1) - lat["n"]  # each piece's first sample's index along its ray
+    rays, idxs, ts, gs, deltas = [], [], [], [], []
+    for p in range(lat["n"].shape[1]):
+        i = torch.arange(int(lat["n"][:, p].max()) if origins.shape[0] else 0, dtype=torch.float64)
+        ray, k = torch.nonzero(i.long()[None, :] < lat["n"][:, p, None], as_tuple=True)
+        t = lat["t_start"][ray, p] + (k.double() + 0.5) * lat["dt"][ray, p]
+        rays.append(ray)
+        idxs.append(first[ray, p] + k)
+        ts.append(t)
+        gs.append(lat["og"][ray, p] + t[:, None] * lat["dg"][ray, p])
+        deltas.append(lat["dt"][ray, p])
+    return torch.cat(rays), torch.cat(idxs), torch.cat(ts), torch.cat(gs), torch.cat(deltas), lat["unit"], M
 
 
 def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torch.Tensor) -> dict:

@@ -59,36 +59,76 @@ class RenderResult:
 
 def ray_samples(grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opts: RenderOptions) -> dict:
     """The sample lattice every kernel marches (steps 1-3 of reference.py's docstring), in float64 so
-    that it matches theirs exactly: per ray t_start, dt and n (sample i at t_start + (i + 0.5) dt,
-    fit-frame distance), the grid-space origin og and direction dg (per unit t), and the unit
-    fit-frame direction `unit` (float32). A contracted grid has no lattice: its rays bend and are marched step by step
+    that it matches theirs exactly. A ray is clipped to the grid box and to t >= near, then cut at every knot plane it
+    crosses (csrc/plenoxels_math.h, lay_piece) into P pieces, on each of which the map to grid coordinates is linear:
+    per ray and piece [B, P] t_start, dt and n (sample i of a piece at t_start + (i + 0.5) dt, fit-frame distance), the
+    grid-space origin og and direction dg [B, P, 3] (per unit t); per ray the unit fit-frame direction `unit` (float32).
+    A grid without knots has one piece. A contracted grid has no lattice: its rays bend and are marched step by step
     (reference.contracted_samples states how)."""
     if grid.contracted:
         raise ValueError("a contracted grid's samples lie on no lattice: take its foreground model's grid")
     o, d = origins.double(), dirs.double()
-    unit = d / d.norm(dim=1, keepdim=True)
-    lo = torch.tensor(grid.bbox_min, dtype=torch.float64, device=o.device)
-    scale = torch.tensor(grid.scale, dtype=torch.float64, device=o.device)
-    hi = torch.tensor(grid.resolution, dtype=torch.float64, device=o.device) - 1
-    og, dg = (o - lo) * scale, unit * scale
-    zero = dg == 0
-    safe = torch.where(zero, torch.ones_like(dg), dg)
-    ta, tb = (0 - og) / safe, (hi - og) / safe
-    inside = (og >= 0) & (og <= hi)
+    unit = d / _norm(d)[:, None]
+    knots = [grid.axis_knots(a) for a in range(3)]
+    lo = torch.tensor([xs[0] for xs, _ in knots], dtype=torch.float64, device=o.device)
+    extent = torch.tensor([xs[-1] for xs, _ in knots], dtype=torch.float64, device=o.device) - lo
+    t_enter, t_exit = _box_interval(o - lo, unit, extent)
+    hit = t_exit > t_enter
+    t_start = torch.clamp_min(t_enter, opts.near)
+    crossings = [torch.full_like(t_start, float("inf"))]
+    for a, (xs, _) in enumerate(knots):
+        for x in xs[1:-1]:
+            t = (x - o[:, a]) / unit[:, a]
+            inside = (unit[:, a] != 0) & (t > t_start) & (t < t_exit)
+            crossings.append(torch.where(inside, t, torch.full_like(t, float("inf"))))
+    t_end = torch.maximum(t_exit, t_start)
+    cuts = torch.minimum(torch.sort(torch.stack(crossings, dim=1), dim=1).values[:, :-1], t_end[:, None])
+    bounds = torch.cat([t_start[:, None], cuts, t_end[:, None]], dim=1)  # [B, P + 1]
+    t0, t1 = bounds[:, :-1], bounds[:, 1:]
+    mid = o[:, None, :] + (0.5 * (t0 + t1))[..., None] * unit[:, None, :]
+    og, dg = torch.empty_like(mid), torch.empty_like(mid)
+    for a, (xs, gs) in enumerate(knots):
+        piece = torch.zeros(mid.shape[:2], dtype=torch.long, device=o.device)
+        for x in xs[1:-1]:
+            piece += (mid[..., a] >= x).long()
+        x0 = torch.tensor(xs[:-1], dtype=torch.float64, device=o.device)[piece]
+        g0 = torch.tensor(gs[:-1], dtype=torch.float64, device=o.device)[piece]
+        slope = torch.tensor([(g1 - ga) / (x1 - xa) for xa, x1, ga, g1 in zip(xs, xs[1:], gs, gs[1:])],
+                             dtype=torch.float64, device=o.device)[piece]
+        og[..., a] = g0 + (o[:, None, a] - x0) * slope
+        dg[..., a] = unit[:, None, a] * slope
+    length = t1 - t0
+    norm = _norm(dg)
+    step_t = torch.full_like(norm, opts.step_size) / norm  # a scalar over a tensor multiplies by its reciprocal
+    wanted = torch.ceil(length / step_t - 0.5).clamp_min(0)
+    wanted = torch.where(hit[:, None] & (length > 0), wanted, torch.zeros_like(wanted))
+    n, dt = torch.zeros_like(wanted), torch.empty_like(wanted)
+    budget = torch.full_like(t_start, float(opts.max_samples_per_ray))
+    for p in range(wanted.shape[1]):  # sample_lattice with the samples the ray has left
+        capped = wanted[:, p] > budget
+        dt[:, p] = torch.where(capped, length[:, p] / budget, step_t[:, p])
+        n[:, p] = torch.where(capped, budget, wanted[:, p])
+        budget = budget - n[:, p]
+    return {"t_start": t0, "dt": dt, "n": n.long(), "og": og, "dg": dg, "unit": unit.to(torch.float32)}
+
+
+def _norm(v: torch.Tensor) -> torch.Tensor:
+    """|v| over the last axis in the kernels' order of operations, so that a sample count on a tie (an axis-parallel
+    ray through knots at round numbers) rounds as theirs does."""
+    return torch.sqrt(v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2])
+
+
+def _box_interval(from_min: torch.Tensor, unit: torch.Tensor, extent: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """csrc/plenoxels_math.h's ray_box per ray: where rays from `from_min` (relative to the box's low corner) along
+    `unit` enter and leave the box [0, extent]."""
+    zero = unit == 0
+    safe = torch.where(zero, torch.ones_like(unit), unit)
+    ta, tb = (0 - from_min) / safe, (extent - from_min) / safe
+    inside = (from_min >= 0) & (from_min <= extent)
     big = torch.full_like(ta, 1e300)
     t_lo = torch.where(zero, torch.where(inside, -big, big), torch.minimum(ta, tb))
     t_hi = torch.where(zero, torch.where(inside, big, -big), torch.maximum(ta, tb))
-    t_enter, t_exit = t_lo.max(dim=1).values, t_hi.min(dim=1).values
-    hit = t_exit > t_enter
-    t_start = torch.clamp_min(t_enter, opts.near)
-    length = t_exit - t_start
-    step_t = opts.step_size / dg.norm(dim=1)
-    n = torch.ceil(length / step_t - 0.5).clamp_min(0)
-    n = torch.where(hit & (length > 0), n, torch.zeros_like(n))
-    capped = n > opts.max_samples_per_ray
-    dt = torch.where(capped, length / opts.max_samples_per_ray, step_t)
-    n = torch.where(capped, torch.full_like(n, opts.max_samples_per_ray), n).long()
-    return {"t_start": t_start, "dt": dt, "n": n, "og": og, "dg": dg, "unit": unit.to(torch.float32)}
+    return t_lo.max(dim=1).values, t_hi.min(dim=1).values
 
 
 def _rays(origins: torch.Tensor, dirs: torch.Tensor, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -113,8 +153,7 @@ def _colours(x: torch.Tensor | None, b: int, name: str, device: torch.device) ->
 def _grid_args(grid: SparseGrid) -> tuple:
     native.check_device(grid.data.device)
     cells, blocks = grid.occupancy()
-    return (grid.data, grid.links, cells, blocks, OCCUPANCY_BLOCK, list(grid.bbox_min), list(grid.bbox_max),
-            grid.sh_degree)
+    return grid.data, grid.links, cells, blocks, OCCUPANCY_BLOCK, grid.lattice(), grid.sh_degree
 
 
 def _march_args(opts: RenderOptions, grid: SparseGrid) -> tuple:

@@ -96,9 +96,13 @@ class SceneModel:
         contraction = None
         if ndc is None and _uses(options.contract, scene_type == "unbounded" and reaches_far(scene)):
             contraction = Contraction.around_box(lo, hi)
+        knots = None
         if ndc is None and contraction is None and scene_type == "unbounded":
-            # A room's bounded grid holds the walls and floor near the foreground too (normalize's surroundings box).
+            # A room's bounded grid holds the walls and floor near the foreground too (normalize's surroundings box),
+            # in cells that grow coarser past the foreground's.
+            inner = (lo, hi)
             lo, hi = foreground_box(scene, options.box_padding, "surroundings")
+            knots = surroundings_knots(inner, (lo, hi), options.surroundings_cells)
         background = None
         if _uses(options.background, scene_type == "unbounded" and contraction is None):
             width = options.background_width or background_width_for(focal_px, options.background_texel_px)
@@ -112,10 +116,10 @@ class SceneModel:
         else:
             if contraction is not None:
                 lo, hi = CONTRACTED_BOX
-            shape = grid_shape(np.asarray(hi) - np.asarray(lo), resolution)
+            shape = grid_shape(lattice_extent(lo, hi, knots), resolution)
         check_dense_level(shape, options.sh_degree)
         grid = SparseGrid.dense(shape, lo, hi, options.sh_degree, init_density=options.init_density,
-                                contracted=contraction is not None)
+                                contracted=contraction is not None, knots=knots)
         render_options = RenderOptions(step_size=options.step_size, stop_transmittance=options.stop_transmittance)
         nears = [f["near"] for f in scene.get("frames", []) if f.get("near")]
         far_colour = options.background_color
@@ -134,7 +138,7 @@ class SceneModel:
         """The grid shape this model uses at `resolution` vertices along its longest axis."""
         if self.fit_frame.ndc is not None:
             return self.fit_frame.ndc.grid_resolution(resolution)
-        return grid_shape(np.subtract(self.grid.bbox_max, self.grid.bbox_min), resolution)
+        return grid_shape(lattice_extent(self.grid.bbox_min, self.grid.bbox_max, self.grid.knots), resolution)
 
     def to(self, device: torch.device) -> "SceneModel":
         """Moves the grid and the background model to `device` (in place; returns self)."""
@@ -249,7 +253,7 @@ class SceneModel:
             "render_options": asdict(self.render_options),
             "grid": {"file": GRID_FILE, "resolution": list(self.grid.resolution), "bbox_min": list(self.grid.bbox_min),
                      "bbox_max": list(self.grid.bbox_max), "sh_degree": self.grid.sh_degree,
-                     "occupied": self.grid.num_occupied},
+                     "occupied": self.grid.num_occupied, "knots": [[list(k) for k in axis] for axis in self.grid.knots]},
             **self.transforms, **(extra or {}),
         }
         (folder / MODEL_FILE).write_text(json.dumps(record, indent=2))
@@ -305,6 +309,42 @@ def backdrop_check_step(model: "SceneModel", resolutions: list[int], steps: list
         return None
     leading = next((level for level, r in enumerate(resolutions) if r != resolutions[0]), len(resolutions))
     return sum(steps[:leading]) if sum(steps[:leading]) >= BACKDROP_CHECK_MIN_STEPS else None
+
+
+# Knots closer than this share of the surroundings' size to its faces would make cells thinner than the rest: none.
+MIN_SURROUNDINGS_SHARE = 0.02
+
+
+def surroundings_knots(inner, outer, coarsening: float):
+    """Knots (grid.py) for a grid over the box `outer` whose cells are `coarsening` times coarser outside the box
+    `inner` than in it: per axis, where the inner box lies inside, its faces with the share of the lattice below each
+    (each stretch of the axis takes vertices in proportion to its length over its cell size)."""
+    if coarsening <= 1.0:
+        return None
+    knots = []
+    for a in range(3):
+        lo, hi = float(outer[0][a]), float(outer[1][a])
+        cuts = [x for x in (float(inner[0][a]), float(inner[1][a])) if lo + MIN_SURROUNDINGS_SHARE * (hi - lo) < x <
+                hi - MIN_SURROUNDINGS_SHARE * (hi - lo)]
+        xs = [lo] + cuts + [hi]
+        fine_lo, fine_hi = max(lo, float(inner[0][a])), min(hi, float(inner[1][a]))
+        cells = [(x1 - x0) / (1.0 if x0 >= fine_lo - 1e-12 and x1 <= fine_hi + 1e-12 else coarsening)
+                 for x0, x1 in zip(xs, xs[1:])]
+        below = np.cumsum(cells)[:-1] / sum(cells)
+        knots.append(tuple(zip(cuts, below.tolist())))
+    return tuple(knots) if any(knots) else None
+
+
+def lattice_extent(lo, hi, knots) -> np.ndarray:
+    """The box's size per axis in cells of the finest size: its size without knots; with them, each stretch between
+    knots counted at its share of the lattice."""
+    extent = np.subtract(hi, lo).astype(np.float64)
+    for a, axis in enumerate(knots or ()):
+        if axis:
+            xs = [lo[a]] + [x for x, _ in axis] + [hi[a]]
+            fs = [0.0] + [f for _, f in axis] + [1.0]
+            extent[a] = min((x1 - x0) / (f1 - f0) for x0, x1, f0, f1 in zip(xs, xs[1:], fs, fs[1:]))
+    return extent
 
 
 def background_width_for(focal_px: float | None, texel_px: float) -> int:

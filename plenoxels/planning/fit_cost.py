@@ -45,7 +45,7 @@ import torch
 
 from plenoxels.core import native
 from plenoxels.core.cameras import Intrinsics, look_at
-from plenoxels.core.grid import SparseGrid, sh_count
+from plenoxels.core.grid import SparseGrid, row_stride, sh_count
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.core.train import Fitter, pruning_rays
 from plenoxels.core.ray_set import RaySet
@@ -180,9 +180,12 @@ def _surface_grid(model: SceneModel, resolution: int, sh_degree: int) -> SparseG
     """The calibration object in the model's box as a converged, pruned fit has it: opaque within a voxel inside its
     surfaces, empty elsewhere, the vertices within 3 voxels of a surface allocated."""
     shape = model.resolution_for(resolution)
-    lo, hi = model.grid.bbox_min, model.grid.bbox_max
-    axes = [torch.linspace(lo[a], hi[a], shape[a]) for a in range(3)]
-    voxel = max((hi[a] - lo[a]) / (shape[a] - 1) for a in range(3))
+    lo, hi, knots = model.grid.bbox_min, model.grid.bbox_max, model.grid.knots
+    lattice = SparseGrid(torch.full(shape, -1, dtype=torch.int32), torch.zeros(0, row_stride(sh_degree)), lo, hi,
+                         sh_degree, knots=knots)
+    axes = [lattice.grid_to_world(torch.arange(n, dtype=torch.float64)[:, None].expand(n, 3))[:, a].float()
+            for a, n in enumerate(shape)]
+    voxel = max(1.0 / s for s in lattice.scale)
     y, z = torch.meshgrid(axes[1], axes[2], indexing="ij")
     distance = torch.stack([_surface_distance(torch.stack([torch.full_like(y, float(x)), y, z], dim=-1))
                             for x in axes[0]])  # a slab at a time: little memory at any resolution
@@ -192,7 +195,7 @@ def _surface_grid(model: SceneModel, resolution: int, sh_degree: int) -> SparseG
     links[keep] = torch.arange(count, dtype=torch.int32)
     density = 300.0 * torch.sigmoid(-distance[keep] / voxel) - 10.0
     sh = torch.randn(count, 3 * sh_count(sh_degree), generator=torch.Generator().manual_seed(0)) * 0.3
-    return SparseGrid.from_values(links, density, sh, lo, hi, sh_degree)
+    return SparseGrid.from_values(links, density, sh, lo, hi, sh_degree, knots=knots)
 
 
 def _calibration_views(model: SceneModel) -> RaySet:

@@ -51,11 +51,13 @@ def seen_cells(grid: SparseGrid, weights: torch.Tensor) -> tuple[torch.Tensor, t
 
 
 def voxel_edges_world(frame: FitFrame, points: np.ndarray, voxel: np.ndarray) -> np.ndarray:
-    """[M, 3, 3]: column a is the world vector one voxel along fit-frame axis a, at each point (central differences)."""
+    """[M, 3, 3]: column a is the world vector one voxel along fit-frame axis a, at each point (central differences);
+    `voxel` is each point's voxel [M, 3] or one for all [3]."""
+    voxel = np.broadcast_to(voxel, points.shape)
     columns = []
     for a in range(3):
-        step = np.zeros(3)
-        step[a] = voxel[a] / 2
+        step = np.zeros(points.shape)
+        step[:, a] = voxel[:, a] / 2
         columns.append(frame.to_world(points + step) - frame.to_world(points - step))
     return np.stack(columns, axis=2)
 
@@ -63,18 +65,19 @@ def voxel_edges_world(frame: FitFrame, points: np.ndarray, voxel: np.ndarray) ->
 def splats_from_grid(grid: SparseGrid, frame: FitFrame, weights: torch.Tensor, max_splats: int,
                      min_weight: float) -> Splats:
     """Splats (in the normalised world) for the cells whose weight reaches min_weight, at most max_splats of them."""
-    voxel = 1.0 / np.asarray(grid.scale)
     lower, weight = seen_cells(grid, weights.detach().cpu().float())
     keep = weight >= min_weight
     lower, weight = lower[keep], weight[keep]
-    points = np.asarray(grid.bbox_min) + (lower.double().numpy() + 0.5) * voxel
+    # Each cell's centre and size (a grid with knots has cells of more than one size).
+    points = grid.grid_to_world(lower.double() + 0.5).numpy()
+    voxel = (grid.grid_to_world(lower.double() + 1.0) - grid.grid_to_world(lower.double())).numpy()
     density, sh = grid.sample(torch.as_tensor(points, dtype=torch.float32, device=grid.data.device))
-    optical_depth = torch.relu(density.cpu()).double().numpy() * float(np.mean(voxel))
+    optical_depth = torch.relu(density.cpu()).double().numpy() * voxel.mean(axis=1)
     keep = optical_depth >= MIN_OPTICAL_DEPTH
     if frame.ndc is not None:
         keep &= points[:, 2] < FAR_NDC
     order = np.argsort(-weight.numpy()[keep], kind="stable")[:max_splats]
-    points, optical_depth = points[keep][order], optical_depth[keep][order]
+    points, optical_depth, voxel = points[keep][order], optical_depth[keep][order], voxel[keep][order]
     sh = sh.cpu()[torch.as_tensor(np.nonzero(keep)[0][order])]
 
     edges = voxel_edges_world(frame, points, voxel)

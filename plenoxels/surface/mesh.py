@@ -57,9 +57,8 @@ def grid_box(grid) -> tuple[np.ndarray, np.ndarray]:
 
 
 def grid_lattice_voxel(grid) -> float:
-    """The mean spacing of the grid's vertices, in fit-frame units."""
-    lo, hi = grid_box(grid)
-    return float(np.mean((hi - lo) / (np.array(as_numpy(grid.links).shape) - 1)))
+    """The mean spacing of the grid's vertices, in fit-frame units (where they are finest, on a grid with knots)."""
+    return float(np.mean(1.0 / np.asarray(grid.scale)))
 
 
 def grid_lattice_voxel_world(grid, frame: FitFrame, mesh: trimesh.Trimesh) -> float:
@@ -71,8 +70,22 @@ def grid_lattice_voxel_world(grid, frame: FitFrame, mesh: trimesh.Trimesh) -> fl
     return float(np.mean([np.linalg.norm(frame.to_world(centre + step * e) - frame.to_world(centre)) for e in np.eye(3)]))
 
 
-def grid_lattice(grid) -> Lattice:
-    """The grid's own vertices as a dense array of raw density."""
+def grid_lattice(grid, box: tuple[np.ndarray, np.ndarray] | None = None) -> Lattice:
+    """The grid's own vertices as a dense array of raw density. A grid with knots: its raw density as the renderer
+    interpolates it, on a lattice of its finest cells' spacing over `box` (fit frame; the grid's whole box without one),
+    so a surface crosses from fine cells to coarse ones without a crack."""
+    if grid.warped:
+        lo, hi = grid_box(grid)
+        if box is not None:
+            lo, hi = np.maximum(lo, box[0]), np.minimum(hi, box[1])
+        spacing = 1.0 / np.asarray(grid.scale)
+        shape = np.maximum(np.ceil((hi - lo) / spacing - 1e-9).astype(int) + 1, 2)
+        spacing = (hi - lo) / (shape - 1)
+        y, z = np.meshgrid(lo[1] + np.arange(shape[1]) * spacing[1], lo[2] + np.arange(shape[2]) * spacing[2],
+                           indexing="ij")
+        values = np.stack([sample_field(grid, np.stack([np.full_like(y, lo[0] + i * spacing[0]), y, z], -1)
+                                        .reshape(-1, 3))[0].reshape(y.shape) for i in range(shape[0])])
+        return Lattice(values.astype(np.float32), lo, spacing)
     links = as_numpy(grid.links)
     density = as_numpy(grid.density).reshape(-1).astype(np.float32)
     values = np.zeros(links.shape, dtype=np.float32)
@@ -108,24 +121,25 @@ def ray_peaks(grid, rays: Terminations) -> np.ndarray:
     leaves the box before it has let half its light through."""
     lattice = ray_samples(grid, torch.as_tensor(rays.origins), torch.as_tensor(rays.directions),
                           RenderOptions(step_size=MARCH_STEP_VOXELS).check())
-    t_start, dt, n = (lattice[key].numpy() for key in ("t_start", "dt", "n"))
     steps = np.arange(16)                               # a chunk of samples per ray per pass
-    optical_depth, peak = np.zeros(len(n)), np.zeros(len(n))
-    done_samples = np.zeros(len(n), dtype=np.int64)
-    marching = np.flatnonzero(n > 0)
-    while len(marching):
-        index = done_samples[marching, None] + steps[None]                            # [M, S]
-        t = t_start[marching, None] + (index + 0.5) * dt[marching, None]
-        density, _ = sample_field(grid, (rays.origins[marching, None] + t[..., None] * rays.directions[marching, None]
-                                    ).reshape(-1, 3))
-        density = np.where(index < n[marching, None], density.reshape(t.shape), 0.0)
-        depth = optical_depth[marching, None] + np.cumsum(density * dt[marching, None], axis=1)
-        # Samples up to and including the one that makes the ray all but opaque.
-        upto = np.concatenate([np.ones((len(marching), 1), dtype=bool), depth[:, :-1] < PEAK_OPTICAL_DEPTH], axis=1)
-        peak[marching] = np.maximum(peak[marching], np.where(upto, density, 0.0).max(axis=1))
-        optical_depth[marching] = depth[:, -1]
-        done_samples[marching] += len(steps)
-        marching = marching[(depth[:, -1] < PEAK_OPTICAL_DEPTH) & (done_samples[marching] < n[marching])]
+    optical_depth, peak = np.zeros(len(rays.origins)), np.zeros(len(rays.origins))
+    for piece in range(lattice["n"].shape[1]):          # a grid with knots cuts rays into pieces
+        t_start, dt, n = (lattice[key][:, piece].numpy() for key in ("t_start", "dt", "n"))
+        done_samples = np.zeros(len(n), dtype=np.int64)
+        marching = np.flatnonzero((n > 0) & (optical_depth < PEAK_OPTICAL_DEPTH))
+        while len(marching):
+            index = done_samples[marching, None] + steps[None]                        # [M, S]
+            t = t_start[marching, None] + (index + 0.5) * dt[marching, None]
+            density, _ = sample_field(grid, (rays.origins[marching, None] + t[..., None] * rays.directions[marching, None]
+                                        ).reshape(-1, 3))
+            density = np.where(index < n[marching, None], density.reshape(t.shape), 0.0)
+            depth = optical_depth[marching, None] + np.cumsum(density * dt[marching, None], axis=1)
+            # Samples up to and including the one that makes the ray all but opaque.
+            upto = np.concatenate([np.ones((len(marching), 1), dtype=bool), depth[:, :-1] < PEAK_OPTICAL_DEPTH], axis=1)
+            peak[marching] = np.maximum(peak[marching], np.where(upto, density, 0.0).max(axis=1))
+            optical_depth[marching] = depth[:, -1]
+            done_samples[marching] += len(steps)
+            marching = marching[(depth[:, -1] < PEAK_OPTICAL_DEPTH) & (done_samples[marching] < n[marching])]
     return np.where(optical_depth >= math.log(2.0), peak, np.nan)
 
 
@@ -448,7 +462,10 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
     `level_rays`: the training views' opaque rays (fit frame), for the auto level; `views`: the training views
     rendered, to drop the faces none of them sees (with unseen: drop); `object_only`: cut the ground and the room
     away (isolate_object); `user_box`: the box is the user's crop."""
-    lattice = grid_lattice(grid)
+    size = box_max - box_min
+    crop_min, crop_max = box_min - options.crop_margin * size, box_max + options.crop_margin * size
+    box = (frame.from_world(crop_min[None])[0], frame.from_world(crop_max[None])[0]) if grid.warped else None
+    lattice = grid_lattice(grid, box)
     if options.level == "auto":
         level, level_source = auto_level(grid, lattice, level_rays, options.level_share, options.level_opacity,
                                          options.seed)
@@ -463,8 +480,6 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
     world, faces = mesh_to_world(vertices, faces, frame)
     mesh = trimesh.Trimesh(world, faces, process=False)
 
-    size = box_max - box_min
-    crop_min, crop_max = box_min - options.crop_margin * size, box_max + options.crop_margin * size
     max_gap = options.max_gap * float(np.linalg.norm(size))
     mesh, cleaning = clean_mesh(mesh, crop_min, crop_max, options.min_piece_fraction, max_gap)
     if len(mesh.faces) == 0:

@@ -81,8 +81,11 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
     grid = model.grid
     res = grid.resolution
     shape = f"{res[0]}^3" if len(set(res)) == 1 else "x".join(map(str, res))
-    line = (f"{shape} grid, {format_count(grid.num_occupied)} voxels ({format_bytes(record['memory_bytes']['total'])}), "
-            f"train PSNR {record['train_psnr']:.1f} dB")
+    line = f"{shape} grid"
+    if grid.warped:
+        line += f" (cells up to {grid.coarsening():.2g}x coarser around the foreground)"
+    line += (f", {format_count(grid.num_occupied)} voxels ({format_bytes(record['memory_bytes']['total'])}), "
+             f"train PSNR {record['train_psnr']:.1f} dB")
     if final_psnr is not None:
         # A quick estimate (a few views, downscaled); the evaluate stage gives the full figure.
         line += f", held-out ~{final_psnr:.1f} dB ({len(held_out.views)} views at {s.eval_scale:g}x)"

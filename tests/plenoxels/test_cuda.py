@@ -185,6 +185,18 @@ def _special_rays():
     return torch.tensor(o), torch.tensor(d)
 
 
+def _lattice(links, box=(BMIN, BMAX), knots=None) -> list[float]:
+    """The map to grid coordinates as the operators take it: per axis [k, k positions, k grid coordinates] (grid.py's
+    knots: per axis (position, share of the lattice))."""
+    flat = []
+    for a, r in enumerate(links.shape):
+        inner = knots[a] if knots else ()
+        xs = [box[0][a]] + [x for x, _ in inner] + [box[1][a]]
+        gs = [0.0] + [f * (r - 1) for _, f in inner] + [float(r - 1)]
+        flat += [float(len(xs))] + xs + gs
+    return flat
+
+
 def _cuda(values):
     return [v.cuda() if isinstance(v, torch.Tensor) else v for v in values]
 
@@ -198,14 +210,16 @@ def _close(gpu, cpu, rtol=1e-4, atol=1e-5):
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=rtol, atol=atol)
 
 
-def _render_both(links, data, degree, origins, dirs, background, march=MARCH, box=(BMIN, BMAX)):
+def _render_both(links, data, degree, origins, dirs, background, march=MARCH, box=(BMIN, BMAX), knots=None):
     C, G = _native()
     cells, blocks = C.build_occupancy(links, BLOCK)
-    args = [data, links, cells, blocks, BLOCK, *box, degree, origins, dirs, background, *_march_args(march)]
+    args = [data, links, cells, blocks, BLOCK, _lattice(links, box, knots), degree, origins, dirs, background,
+            *_march_args(march)]
     return C.render(*args), G.render(*_cuda(args))
 
 
-def _loss_grad_both(links, data, degree, origins, dirs, targets, background, march=MARCH, box=(BMIN, BMAX)):
+def _loss_grad_both(links, data, degree, origins, dirs, targets, background, march=MARCH, box=(BMIN, BMAX),
+                    knots=None):
     C, G = _native()
     cells, blocks = C.build_occupancy(links, BLOCK)
     n, stride = data.shape
@@ -214,7 +228,7 @@ def _loss_grad_both(links, data, degree, origins, dirs, targets, background, mar
         grad = torch.zeros(n, stride)
         mask = torch.zeros(n, dtype=torch.uint8)
         rows = torch.zeros(n, dtype=torch.int32)
-        args = [data, links, cells, blocks, BLOCK, *box, degree, origins, dirs, targets, background,
+        args = [data, links, cells, blocks, BLOCK, _lattice(links, box, knots), degree, origins, dirs, targets, background,
                 *_march_args(march), grad, mask, rows, 0]
         moved = move(args)
         grad_out, mask_out, rows_out = moved[-4:-1]  # counted from the end: the march's arguments vary
@@ -268,6 +282,29 @@ def test_contracted_grid_renders_and_differentiates_as_on_cpu():
 
 
 @needs_gpu
+def test_grid_with_knots_renders_counts_and_differentiates_as_on_cpu():
+    """Rays cut into pieces at knot planes (cells fine in the middle of the box, coarse around it) meet the same
+    samples on both devices."""
+    knots = (((-0.5, 0.2), (0.4, 0.8)), ((0.0, 0.6),), ((-0.4, 0.1), (0.3, 0.9)))
+    links, data = _grid(2, density_scale=1.5)
+    origins, dirs = _all_rays()
+    gen = torch.Generator().manual_seed(5)
+    background, targets = torch.rand(origins.shape[0], 3, generator=gen), torch.rand(origins.shape[0], 3, generator=gen)
+    cpu, gpu = _render_both(links, data, 2, origins, dirs, background, knots=knots)
+    for g, c in zip(gpu, cpu):
+        _close(g, c)
+    cpu, gpu = _loss_grad_both(links, data, 2, origins, dirs, targets, background, knots=knots)
+    assert gpu[0] == pytest.approx(cpu[0], rel=1e-5)
+    scale = float(cpu[2].abs().max())
+    _close(gpu[2], cpu[2], rtol=1e-3, atol=1e-5 * scale)
+    assert gpu[4] == cpu[4] and len(cpu[4]) > 0
+    C, G = _native()
+    cells, blocks = C.build_occupancy(links, BLOCK)
+    args = [data, links, cells, blocks, BLOCK, _lattice(links, knots=knots), 2, origins, dirs, *_march_args(MARCH)]
+    assert G.sample_counts(*_cuda(args))[0] == C.sample_counts(*args)[0]
+
+
+@needs_gpu
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_loss_and_grad_match_cpu(degree):
     links, data = _grid(degree, density_scale=1.5)
@@ -290,7 +327,7 @@ def test_max_weights_match_cpu():
     links, data = _grid(2)
     origins, dirs = _rays(3000)
     cells, blocks = C.build_occupancy(links, BLOCK)
-    args = [data, links, cells, blocks, BLOCK, BMIN, BMAX, 2, origins, dirs, *_march_args(MARCH)]
+    args = [data, links, cells, blocks, BLOCK, _lattice(links), 2, origins, dirs, *_march_args(MARCH)]
     cpu, gpu = torch.zeros(data.shape[0]), torch.zeros(data.shape[0], device="cuda")
     C.max_weights(*args, cpu)
     G.max_weights(*_cuda(args), gpu)
@@ -376,7 +413,7 @@ def test_sample_counts_match_cpu():
     links, data = _grid(1)
     origins, dirs = _all_rays()
     cells, blocks = C.build_occupancy(links, BLOCK)
-    args = [data, links, cells, blocks, BLOCK, BMIN, BMAX, 1, origins, dirs, *_march_args(MARCH)]
+    args = [data, links, cells, blocks, BLOCK, _lattice(links), 1, origins, dirs, *_march_args(MARCH)]
     cpu = C.sample_counts(*args)
     gpu = G.sample_counts(*_cuda(args))
     assert cpu[0] > cpu[1] > 0
