@@ -48,7 +48,7 @@ class ModelOptions(MarchOptions):
     """Raw density of every vertex at the start."""
     box_padding: float = 0.05
     """The grid box is the foreground box grown by this share of its size on each side."""
-    surroundings_cells: float = 1.0
+    surroundings_cells: float = 2.0
     """A room's bounded grid (an unbounded scene without a contracted grid), whose box holds the walls and floor around
     the foreground: its cells there are this many times the foreground's across, so the foreground keeps fine cells
     however far the surroundings reach (1: one cell size over the box; bench/README.md, "Cells that follow the
