@@ -14,7 +14,7 @@ from plenoxels.core.optim import GridGrad, SparseRMSProp
 from plenoxels.core.regularizers import SPARSITY_THICKNESS, sample_rows, sparsity_loss_and_grad, tv_loss_and_grad
 from plenoxels.core.render import RenderOptions
 from plenoxels.core.render import COLOUR_OFFSET, SH_C0, loss_and_grad, max_weights, ray_samples, render, sample_counts
-from twin_checks import assert_loss_and_grad_match_twin
+from twin_checks import assert_loss_and_grad_match_twin, assert_render_matches_twin
 
 ATOL = 2e-5
 REPO = Path(__file__).resolve().parents[2]
@@ -49,15 +49,7 @@ def twin_render(grid, origins, dirs, background=None, opts=None):
 @pytest.mark.parametrize("sh_degree", [0, 1, 2, 3])
 def test_render_native_matches_twin(sh_degree):
     grid = random_grid(sh_degree=sh_degree, seed=sh_degree)
-    origins, dirs = random_rays(seed=10 + sh_degree)
-    background = torch.rand(origins.shape[0], 3, generator=torch.Generator().manual_seed(3))
-    opts = RenderOptions(step_size=0.4, sigma_threshold=0.05)
-    native = render(grid, origins, dirs, background, opts)
-    rgb, depth, opacity = twin_render(grid, origins, dirs, background, opts)
-    assert 0.05 < float(native.opacity.mean()) < 0.999  # the comparison covers real compositing
-    torch.testing.assert_close(native.rgb, rgb, atol=ATOL, rtol=1e-5)
-    torch.testing.assert_close(native.depth, depth, atol=1e-4, rtol=1e-5)
-    torch.testing.assert_close(native.opacity, opacity, atol=ATOL, rtol=1e-5)
+    assert_render_matches_twin(grid, *random_rays(seed=10 + sh_degree), seed=3)
 
 
 def test_render_without_background_is_black_behind():

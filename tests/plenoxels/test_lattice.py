@@ -14,7 +14,7 @@ from plenoxels.core.render import RenderOptions, max_weights, ray_samples, rende
 from plenoxels.core.options import ModelOptions
 from plenoxels.core.scene_model import SceneModel, lattice_extent, surroundings_knots
 from plenoxels.surface.mesh import extract_surface, grid_lattice
-from twin_checks import assert_loss_and_grad_match_twin
+from twin_checks import assert_loss_and_grad_match_twin, assert_render_matches_twin
 
 ATOL = 2e-5
 BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.5))
@@ -64,16 +64,7 @@ def test_knots_map_points_and_back():
 @pytest.mark.parametrize("sh_degree", [0, 2])
 def test_render_on_knots_matches_twin(sh_degree):
     grid = warped_grid(sh_degree=sh_degree, seed=sh_degree)
-    origins, dirs = crossing_rays(seed=10 + sh_degree)
-    background = torch.rand(origins.shape[0], 3, generator=torch.Generator().manual_seed(3))
-    opts = RenderOptions(step_size=0.4, sigma_threshold=0.05)
-    native = render(grid, origins, dirs, background, opts)
-    with torch.no_grad():
-        rgb, depth, opacity = reference.render(grid, origins, dirs, background, opts)
-    assert 0.05 < float(native.opacity.mean()) < 0.999
-    torch.testing.assert_close(native.rgb, rgb, atol=ATOL, rtol=1e-5)
-    torch.testing.assert_close(native.depth, depth, atol=1e-4, rtol=1e-5)
-    torch.testing.assert_close(native.opacity, opacity, atol=ATOL, rtol=1e-5)
+    assert_render_matches_twin(grid, *crossing_rays(seed=10 + sh_degree), seed=3)
 
 
 def test_loss_grad_and_weights_on_knots_match_twin():
