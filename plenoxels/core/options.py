@@ -48,11 +48,11 @@ class ModelOptions(MarchOptions):
     """Raw density of every vertex at the start."""
     box_padding: float = 0.05
     """The grid box is the foreground box grown by this share of its size on each side."""
-    surroundings_cells: float = 2.0
+    surroundings_cells: float = 1.0
     """A room's bounded grid (an unbounded scene without a contracted grid), whose box holds the walls and floor around
-    the foreground: its cells there are this many times the foreground's across, so the foreground keeps fine cells
-    however far the surroundings reach (1: one cell size over the box; bench/README.md, "Cells that follow the
-    scene")."""
+    the foreground: its cells there are this many times the foreground's across, so the foreground gets finer cells
+    at the same resolution, however far the surroundings reach (1: one cell size over the box; `fast` takes 2;
+    bench/README.md, "Cells that follow the scene")."""
     near_share: float = 0.5
     """Contracted grids: rays start this share of the nearest sparse point any camera saw (normalize's near) from their
     camera, so that no haze hangs in front of the lenses."""
