@@ -16,7 +16,6 @@ the grid's tensors.
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import torch
@@ -175,24 +174,14 @@ class SparseGrid:
         gs = [0.0] + [f * r for _, f in self.knots[axis]] + [float(r)]
         return xs, gs
 
+    def axis_slopes(self, axis: int) -> list[float]:
+        """Grid units per fit-frame unit between each two knots of axis `axis` (one value without knots)."""
+        xs, gs = self.axis_knots(axis)
+        return [(g1 - g0) / (x1 - x0) for x0, x1, g0, g1 in zip(xs, xs[1:], gs, gs[1:])]
+
     def coarsening(self) -> float:
         """How many times the coarsest cells' side is the finest's, along the axis where that is most (1: one size)."""
-        ratios = []
-        for a in range(3):
-            xs, gs = self.axis_knots(a)
-            slopes = [(g1 - g0) / (x1 - x0) for x0, x1, g0, g1 in zip(xs, xs[1:], gs, gs[1:])]
-            ratios.append(max(slopes) / min(slopes))
-        return max(ratios)
-
-    def finest_vertices(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
-        """The first and last vertex per axis of the piece between knots where the cells are finest."""
-        first, last = [], []
-        for a in range(3):
-            xs, gs = self.axis_knots(a)
-            j = max(range(len(xs) - 1), key=lambda j: (gs[j + 1] - gs[j]) / (xs[j + 1] - xs[j]))
-            first.append(math.ceil(gs[j] - 1e-9))
-            last.append(max(first[-1] + 1, math.floor(gs[j + 1] + 1e-9)))
-        return tuple(first), tuple(last)
+        return max(max(slopes) / min(slopes) for slopes in map(self.axis_slopes, range(3)))
 
     def lattice(self) -> list[float]:
         """The map to grid coordinates as the kernels take it: per axis [k, k positions, k grid coordinates]."""
@@ -207,11 +196,7 @@ class SparseGrid:
         """Grid units per fit-frame unit, per axis (where the cells are finest on a warped grid)."""
         if not self.warped:
             return tuple((r - 1) / (hi - lo) for r, lo, hi in zip(self.resolution, self.bbox_min, self.bbox_max))
-        scales = []
-        for a in range(3):
-            xs, gs = self.axis_knots(a)
-            scales.append(max((g1 - g0) / (x1 - x0) for x0, x1, g0, g1 in zip(xs, xs[1:], gs, gs[1:])))
-        return tuple(scales)
+        return tuple(max(self.axis_slopes(a)) for a in range(3))
 
     def memory_bytes(self) -> int:
         """Parameters plus the index volume (and the occupancy structure once built)."""

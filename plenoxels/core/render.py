@@ -93,8 +93,7 @@ def ray_samples(grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opt
             piece += (mid[..., a] >= x).long()
         x0 = torch.tensor(xs[:-1], dtype=torch.float64, device=o.device)[piece]
         g0 = torch.tensor(gs[:-1], dtype=torch.float64, device=o.device)[piece]
-        slope = torch.tensor([(g1 - ga) / (x1 - xa) for xa, x1, ga, g1 in zip(xs, xs[1:], gs, gs[1:])],
-                             dtype=torch.float64, device=o.device)[piece]
+        slope = torch.tensor(grid.axis_slopes(a), dtype=torch.float64, device=o.device)[piece]
         og[..., a] = g0 + (o[:, None, a] - x0) * slope
         dg[..., a] = unit[:, None, a] * slope
     length = t1 - t0
