@@ -384,7 +384,7 @@ class SparseGrid:
     def state_dict(self) -> dict:
         """The grid as a fit checkpoint holds it (its tensors as they are); from_state_dict reads it back."""
         return {"links": self.links, "data": self.data, "bbox_min": self.bbox_min, "bbox_max": self.bbox_max,
-                "sh_degree": self.sh_degree, "contracted": self.contracted, "knots": _knots_record(self.knots)}
+                "sh_degree": self.sh_degree, "contracted": self.contracted, "knots": knots_record(self.knots)}
 
     @classmethod
     def from_state_dict(cls, state: dict) -> "SparseGrid":
@@ -402,7 +402,7 @@ class SparseGrid:
             "bbox_max": list(self.bbox_max),
             "sh_degree": self.sh_degree,
             "contracted": self.contracted,
-            "knots": _knots_record(self.knots),
+            "knots": knots_record(self.knots),
             "extra": dict(extra or {}),
         }
         write_whole(path, lambda tmp: torch.save(payload, tmp))
@@ -426,8 +426,8 @@ class SparseGrid:
         return grid, payload["extra"]
 
 
-def _knots_record(knots: Knots) -> list:
-    """Knots as plain lists (files and checkpoints)."""
+def knots_record(knots: Knots) -> list:
+    """Knots as plain lists (grid files, checkpoints, model.json)."""
     return [[[x, f] for x, f in axis] for axis in knots]
 
 

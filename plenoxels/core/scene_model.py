@@ -39,7 +39,7 @@ from plenoxels.core.cameras import Intrinsics, rays_from_camera
 from plenoxels.core.errors import UserError
 from plenoxels.core.files import GRID_FILE, MODEL_FILE, write_whole
 from plenoxels.core.fit_frame import CONTRACTED_BOX, Contraction, FitFrame
-from plenoxels.core.grid import SparseGrid
+from plenoxels.core.grid import SparseGrid, knots_record
 from plenoxels.core.memory import check_dense_level
 from plenoxels.core.ndc import NDCMapping
 from plenoxels.core.options import ModelOptions
@@ -253,7 +253,7 @@ class SceneModel:
             "render_options": asdict(self.render_options),
             "grid": {"file": GRID_FILE, "resolution": list(self.grid.resolution), "bbox_min": list(self.grid.bbox_min),
                      "bbox_max": list(self.grid.bbox_max), "sh_degree": self.grid.sh_degree,
-                     "occupied": self.grid.num_occupied, "knots": [[list(k) for k in axis] for axis in self.grid.knots]},
+                     "occupied": self.grid.num_occupied, "knots": knots_record(self.grid.knots)},
             **self.transforms, **(extra or {}),
         }
         (folder / MODEL_FILE).write_text(json.dumps(record, indent=2))
