@@ -190,7 +190,8 @@ def fit_settings(overrides: list[str], preset: str | None = None):
     if preset is None:
         values = dict(LEGO_FIT)
     else:
-        values = config.merge(config.load_preset(preset), config.load_scene_type_overlay("object")).get("fit", {})
+        values = config.merge(config.load_preset(preset),
+                              config.load_scene_type_overlay("object", preset)).get("fit", {})
         values.update({k: LEGO_FIT[k] for k in ("device", "eval_every", "eval_views", "eval_scale", "checkpoint_every")})
     names = {f.name for f in dataclasses.fields(Settings)}
     for item in overrides:

@@ -107,7 +107,7 @@ def resolve(preset: str, scene_type: str, overrides: dict):
     from pipeline import config
     from stages import fit
 
-    values = config.merge(config.load_preset(preset), config.load_scene_type_overlay(scene_type),
+    values = config.merge(config.load_preset(preset), config.load_scene_type_overlay(scene_type, preset),
                           {"fit": overrides}).get("fit", {})
     return config.build(fit.Settings, "fit", values)
 

@@ -110,7 +110,7 @@ def one_run(name: str, scene: dict, root: Path, label: str, overrides: dict, pre
     from stages import fit
     from stages.scoring.metrics import image_psnr, image_ssim
 
-    values = config.merge(config.load_preset(preset), config.load_scene_type_overlay(scene["type"]),
+    values = config.merge(config.load_preset(preset), config.load_scene_type_overlay(scene["type"], preset),
                           {"fit": overrides})["fit"]
     frames = scene["frames"]
     longest = max(max(int(f["w"]), int(f["h"])) for f in frames)

@@ -2,8 +2,9 @@
 command-line overrides, validated on load.
 
 Resolution order (later wins): the dataclass defaults, `configs/<preset>.yaml`,
-`configs/scene_types/<type>.yaml` (only for stages after `normalize`, once the scene type is known),
-then `--set section.key=value` overrides. A stage's section in the YAML is its name.
+`configs/scene_types/<type>.yaml` (only for stages after `normalize`, once the scene type is known; its
+`presets.<preset>` section last, for what pays for one scene type at one preset only), then
+`--set section.key=value` overrides. A stage's section in the YAML is its name.
 
 Each Settings field's help is the one-line string right below it (an attribute docstring, as in PEP 257 and tyro);
 `field_help` reads them and `python -m pipeline settings` prints them.
@@ -14,7 +15,6 @@ import ast
 import dataclasses
 import inspect
 import math
-import re
 import textwrap
 import types
 import typing
@@ -49,11 +49,22 @@ def load_preset(name: str) -> dict[str, dict[str, Any]]:
     return _read_yaml(path)
 
 
-def load_scene_type_overlay(scene_type: str | None) -> dict[str, dict[str, Any]]:
+def load_scene_type_overlay(scene_type: str | None, preset: str) -> dict[str, dict[str, Any]]:
+    """What `configs/scene_types/<scene_type>.yaml` sets at `preset`: its stage sections, then its
+    `presets.<preset>` section's."""
     if scene_type is None:
         return {}
     path = CONFIG_DIR / "scene_types" / f"{scene_type}.yaml"
-    return _read_yaml(path) if path.is_file() else {}
+    if not path.is_file():
+        return {}
+    overlay = _read_yaml(path)
+    by_preset = overlay.pop("presets", {})
+    for name, sections in by_preset.items():
+        if name not in preset_names():
+            raise UserError(f"{path}: presets.{name} names no preset; presets are: {', '.join(preset_names())}")
+        if not isinstance(sections, dict) or not all(isinstance(v, dict) for v in sections.values()):
+            raise UserError(f"{path}: presets.{name} must map stage names to sections of key: value settings")
+    return merge(overlay, by_preset.get(preset) or {})
 
 
 def parse_overrides(pairs: list[str]) -> dict[str, dict[str, Any]]:
@@ -207,7 +218,8 @@ def describe(cls: type, section: str, preset: str = "default") -> list[SettingIn
     hints = typing.get_type_hints(cls)
     helps = field_help(cls)
     preset_values = load_preset(preset).get(section, {})
-    overlays = {p.stem: _read_yaml(p).get(section, {}) for p in sorted((CONFIG_DIR / "scene_types").glob("*.yaml"))}
+    overlays = {p.stem: load_scene_type_overlay(p.stem, preset).get(section, {})
+                for p in sorted((CONFIG_DIR / "scene_types").glob("*.yaml"))}
     infos = []
     for f in dataclasses.fields(cls):
         default = _default(f)

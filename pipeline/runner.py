@@ -68,6 +68,7 @@ class Pipeline:
         self.out = out.resolve()
         self.report = reporter or Reporter()
         self.graph = graph
+        self.preset = preset
         self.layers = [config.load_preset(preset)]
         self.overrides = config.parse_overrides(overrides or [])
         unknown = set(self.overrides) - set(graph.order)
@@ -84,7 +85,8 @@ class Pipeline:
     def plan(self, name: str) -> Plan:
         declared = self.graph.declaration(name)
         scene_type = self.scene_type() if "normalize" in self.graph.upstream(name) else None
-        values = config.merge(*self.layers, config.load_scene_type_overlay(scene_type), self.overrides).get(name, {})
+        values = config.merge(*self.layers, config.load_scene_type_overlay(scene_type, self.preset),
+                              self.overrides).get(name, {})
         settings = config.build(declared.Settings, name, values)
         upstream_keys = {}
         for dep in declared.DEPENDS:
