@@ -228,7 +228,7 @@ def lego(torch, args) -> dict:
             image, k = load_frame(folder, frame, 1.0, settings.background_color)
             sync()
             t0 = time.time()
-            rgb = model.render_camera(frame["transform_matrix"], k)["rgb"]
+            rgb = model.render_camera(frame["transform_matrix"], k, photo=frame["name"])["rgb"]
             sync()
             render_seconds += time.time() - t0
             scores.append(psnr(float(((rgb.cpu() - torch.from_numpy(image)) ** 2).mean())))

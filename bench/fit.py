@@ -188,7 +188,7 @@ def one_run(spec: dict) -> dict:
     for frame in [f for f in scene["frames"] if f.get("split") == "test"]:
         truth, k = load_frame(root, frame, spec["scoring"]["eval_scale"], settings.background_color)
         with torch.no_grad():
-            render = model.render_camera(frame["transform_matrix"], k)["rgb"].numpy()
+            render = model.render_camera(frame["transform_matrix"], k, photo=frame["name"])["rgb"].numpy()
         psnrs.append(image_psnr(render, truth))
         ssims.append(image_ssim(render, truth))
     render_seconds = time.time() - render_started

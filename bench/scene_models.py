@@ -128,7 +128,7 @@ def one_run(name: str, scene: dict, root: Path, label: str, overrides: dict, pre
         for frame in [f for f in frames if f.get("split") == "test"]:
             truth, k = load_frame(root, frame, settings.image_scale, settings.background_color)
             with torch.no_grad():
-                render = model.render_camera(frame["transform_matrix"], k)["rgb"].numpy()
+                render = model.render_camera(frame["transform_matrix"], k, photo=frame["name"])["rgb"].numpy()
             psnrs.append(image_psnr(render, truth))
             ssims.append(image_ssim(render, truth))
             renders.append((truth, render))

@@ -10,7 +10,10 @@ where they do not, a spiral for forward scenes; stages/scoring/camera_paths.py) 
 Ground truth is the held-out photo resized to the evaluation scale, its mask (if any) composited onto
 the fit's background colour exactly as the fit saw its training photos. Views with a mask are scored inside it too
 (`psnr_masked`, `ssim_masked`: over the mask's pixels only, as the DTU protocol scores object captures), since the
-whole image's score counts a backdrop any empty render matches. SSIM is scikit-image's
+whole image's score counts a backdrop any empty render matches. Where the fit measured each photo's colour
+(`fit.photo_colour`: a phone's exposure and white balance), a held-out view is rendered in the colour its neighbours in
+the capture's order were taken in (plenoxels/core/photo_colour.py, PhotoGains), from none of its own pixels; the
+video is in the photos' common colour. SSIM is scikit-image's
 structural_similarity (Gaussian-weighted, as in Wang et al. 2004) on RGB in [0, 1]; LPIPS is v0.1 with
 AlexNet (stages/scoring/lpips.py), left out with a warning when its weights are not installed.
 """
@@ -52,6 +55,8 @@ def run(ctx) -> dict:
     held_out = _spread([f for f in frames if f.get("split") == "test"], s.max_views)
     train = [f for f in frames if f.get("split", "train") == "train"] or frames
 
+    # Where the photos' gains follow the order they were taken in, not where they scatter (PhotoGains.follows_order).
+    in_neighbours_colour = model.photo_gains is not None and model.photo_gains.follows_order
     for folder in ("renders", "gt", "depth"):
         (ctx.work / folder).mkdir()
     views, sheet_rows, captions = [], [], []
@@ -65,11 +70,13 @@ def run(ctx) -> dict:
         with torch.no_grad():
             # A photo with a backdrop of its own colour is scored with that colour past the grid, as it was fitted.
             out = model.render_camera(np.asarray(frame["transform_matrix"], dtype=np.float64), k,
-                                      backdrop=frame.get("backdrop"))
+                                      backdrop=frame.get("backdrop"), photo=frame["name"])
         render = out["rgb"].cpu().numpy().astype(np.float32)
+        gain = model.photo_gains.of(frame["name"]) if in_neighbours_colour else None
         mask = load_mask(ctx.out, frame, k)
         views.append({"name": frame["name"], "width": k.w, "height": k.h, **image_scores(render, truth, with_lpips),
-                      **(masked_scores(render, truth, mask) if mask is not None else {})})
+                      **(masked_scores(render, truth, mask) if mask is not None else {}),
+                      **({"gain": [round(float(g), 4) for g in gain]} if gain is not None else {})})
         write_png(ctx.work / "renders" / f"{frame['name']}.png", to_uint8(render))
         write_png(ctx.work / "gt" / f"{frame['name']}.png", to_uint8(truth))
         write_png(ctx.work / "depth" / f"{frame['name']}.png",
@@ -98,12 +105,15 @@ def run(ctx) -> dict:
     mean = mean_scores(views)
     write_json(ctx.work / METRICS_JSON, {"views": views, "mean": mean, "scale": scale, "count": len(views),
                                            "render_seconds": round(render_seconds, 2), "video": video,
+                                           "colour": "capture neighbours' gains" if in_neighbours_colour else "common",
                                            "ssim": "skimage.metrics.structural_similarity, gaussian, data_range 1",
                                            "lpips": "AlexNet, v0.1 (stages/scoring/lpips.py)" if with_lpips else None})
     if mean:
         lpips = f", LPIPS {mean['lpips']:.3f}" if "lpips" in mean else ""
         line = (f"PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.3f}{lpips} on {len(views)} held-out views "
                 f"at {views[0]['width']}x{views[0]['height']}")
+        if in_neighbours_colour:
+            line += " (each in the colour of its neighbours in the capture)"
         if "psnr_masked" in mean:
             line += f"; inside their masks PSNR {mean['psnr_masked']:.2f} dB, SSIM {mean['ssim_masked']:.3f}"
     else:

@@ -33,7 +33,7 @@ from dataclasses import replace
 from stages.common.interrupts import StopRequest
 from stages.common.json_files import read_json, write_json
 from stages.common.text import format_bytes, format_count
-from stages.training.fit_record import Ending, FitInputs, budget_summary, fit_record, summary
+from stages.training.fit_record import Ending, FitInputs, budget_summary, fit_record, photo_gains, summary
 from stages.training.views import HeldOut, load_training, training_frames
 from plenoxels.planning.budget import BudgetClock, TimeBudget
 from plenoxels.planning import model_trial
@@ -57,6 +57,11 @@ def run(ctx) -> dict:
         ctx.report.info(f"fitting on {device}")
     scene = read_json(ctx.upstream["normalize"] / SCENE_JSON)
     train_frames, held_out_frames = training_frames(scene, ctx.report)
+    if s.photo_colour and any(f.get("mask_path") for f in train_frames):
+        # A gain over the whole composite would take the backdrop colour the masks put in, which no exposure took.
+        ctx.report.info("the photos' colours are taken as they are (fit.photo_colour): their masks put one backdrop "
+                        "colour around the object")
+        s = replace(s, photo_colour=False)
     train = load_training(ctx.out, train_frames, s.image_scale, s.background_color, ctx.report)
     held_out = HeldOut(ctx.out, held_out_frames, s.eval_views, s.eval_scale, s.background_color)
     # Training views rendered as the held-out ones are, so that the gap between the two compares like with like.
@@ -64,7 +69,7 @@ def run(ctx) -> dict:
     # Where normalize's measures leave the model open, short coarse fits of each plausible one choose it (inside the
     # time budget, which counts from `started`).
     s, choice = model_trial.choose(scene, s, train, device, s.budget_seconds, ctx.scratch / MODEL_TRIAL, ctx.report.info)
-    inputs = FitInputs(scene, train, held_out, seen, device, started, choice)
+    inputs = FitInputs(scene, train, [f["name"] for f in train_frames], held_out, seen, device, started, choice)
     fitted = fit(ctx, s, inputs, background_added(ctx))
     if fitted is None:  # an object fit whose photos' backdrop is no one colour: again, with a background model
         fitted = fit(ctx, s, inputs, background_added(ctx))
@@ -86,7 +91,7 @@ def fit(ctx, settings: Settings, inputs: FitInputs, background_why: str) -> dict
     checkpoint = ctx.scratch / CHECKPOINT_PT
     fitter, budget, check_step = start(ctx, s, inputs, checkpoint)
     resumed_from = fitter.step
-    how, backdrop_psnr = train_levels(ctx, fitter, inputs.held_out, budget, check_step, checkpoint)
+    how, backdrop_psnr = train_levels(ctx, fitter, inputs, budget, check_step, checkpoint)
     if how == "backdrop":
         why = (f"train PSNR {backdrop_psnr:.1f} dB at step {fitter.step} (below {BACKDROP_MIN_TRAIN_PSNR:g} dB): what "
                "surrounds the object is not the one colour behind the grid, so a background model shows it")
@@ -138,12 +143,12 @@ def start(ctx, s: Settings, inputs: FitInputs, checkpoint) -> tuple[Fitter, Time
     return fitter, budget, check_step
 
 
-def train_levels(ctx, fitter: Fitter, held_out: HeldOut, budget: TimeBudget | None, check_step: int | None,
+def train_levels(ctx, fitter: Fitter, inputs: FitInputs, budget: TimeBudget | None, check_step: int | None,
                  checkpoint) -> tuple[str, float | None]:
     """Runs the fit to the end of its schedule; returns how it ended ("complete", "ctrl-c", "deadline" or "backdrop":
     its train PSNR at `check_step` too low for one colour behind the grid, with that PSNR)."""
     s: Settings = fitter.options
-    schedule, backdrop_psnr = fitter.schedule, []
+    schedule, held_out, backdrop_psnr = fitter.schedule, inputs.held_out, []
 
     def on_level(grid) -> None:
         if budget is not None:
@@ -154,7 +159,11 @@ def train_levels(ctx, fitter: Fitter, held_out: HeldOut, budget: TimeBudget | No
     def on_eval(entry: dict) -> None:
         ctx.report.info(f"step {entry['step']}: held-out PSNR {entry['held_out_psnr']:.2f} dB")
 
-    evaluate = held_out.psnr if budget is None else budget.timed(held_out.psnr)
+    def held_out_psnr(model) -> float:
+        model.photo_gains = photo_gains(fitter, inputs)  # the photos' colours as measured so far
+        return held_out.psnr(model)
+
+    evaluate = held_out_psnr if budget is None else budget.timed(held_out_psnr)
     try:
         with StopRequest() as stop, ctx.report.bar(total=schedule.total_steps, desc="fitting") as bar:
             bar.update(fitter.step)
@@ -191,6 +200,7 @@ def finish(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeB
     """Saves the model, writes fit.json and returns the stage's result with its summary line."""
     s: Settings = fitter.options
     schedule, model, held_out = fitter.schedule, fitter.model, inputs.held_out
+    model.photo_gains = photo_gains(fitter, inputs)
     final_psnr = held_out.psnr(model) if held_out else None
     model.save(ctx.work, extra={"fit_settings": {"resolutions": schedule.resolutions, "steps": schedule.steps,
                                                  **{k: getattr(s, k) for k in ("sh_degree", "image_scale", "step_size")}}})

@@ -105,8 +105,9 @@ class TrainOptions:
     photo_colour: bool = False
     """Fit each training photo's own colour (a gain per channel, plenoxels/core/photo_colour.py) and train
     the field against the photos taken back to their common colour, for a phone's exposure and white balance, which
-    change as it turns: the field then reproduces its photos, but renders every view in the common colour, which a
-    held-out photo of its own exposure does not share (bench/README.md, "Real captures")."""
+    change as it turns. A new view is rendered in the common colour; a held-out photo in the colour of its neighbours
+    in the capture's order, as the phone was set when it took it. Photos with masks keep their colours: a gain would
+    take in the backdrop colour the masks put round the object (bench/README.md, "Real captures")."""
     error_share: float = 0.0
     """Share of each batch of random rays drawn where the render still disagrees with the photos, in proportion to
     the RMS error of each block of pixels (plenoxels/core/error_map.py); the rest are uniform (0: every ray uniform;
@@ -115,7 +116,8 @@ class TrainOptions:
     """Steps between two measurements of the training photos against the render (their colours, the error map); each
     level's start measures them too. Only a fit that uses either measures."""
     measure_rays: int = 1 << 17
-    """Rays one measurement renders: an even lattice of every photo's pixels, as fine as this allows."""
+    """Rays one measurement renders: an even lattice of every photo's pixels, as fine as this allows (at most a quarter
+    of the default where it measures the photos' colours alone: plenoxels/core/photo_colour.py, COLOUR_RAYS)."""
     coherent_batches: bool = True
     """Order each batch's rays so that rays passing near each other sit together (the same rays, in another order:
     the kernel's threads then read neighbouring voxels, which is faster; bench/README.md, "Kernels")."""

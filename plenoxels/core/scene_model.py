@@ -43,6 +43,7 @@ from plenoxels.core.grid import SparseGrid, knots_record
 from plenoxels.core.memory import check_dense_level
 from plenoxels.core.ndc import NDCMapping
 from plenoxels.core.options import ModelOptions
+from plenoxels.core.photo_colour import PhotoGains
 from plenoxels.core.render import RenderOptions, RenderResult, render
 
 
@@ -70,7 +71,8 @@ def grid_shape(extent: np.ndarray, resolution: int) -> tuple[int, int, int]:
 class SceneModel:
     def __init__(self, grid: SparseGrid, scene_type: str, fit_frame: FitFrame | None = None,
                  background: MultiSphereBackground | None = None, background_color=(1.0, 1.0, 1.0),
-                 render_options: RenderOptions | None = None, transforms: dict | None = None):
+                 render_options: RenderOptions | None = None, transforms: dict | None = None,
+                 photo_gains: PhotoGains | None = None):
         self.grid = grid
         self.scene_type = scene_type
         self.fit_frame = fit_frame or FitFrame()
@@ -79,6 +81,9 @@ class SceneModel:
         self.render_options = render_options or RenderOptions()
         # world_from_input, input_from_world, scale: scene.json's, kept so exports need only the fit folder.
         self.transforms = dict(transforms or {})
+        # Each photo's colour where the fit measured them (fit.photo_colour): a render of a photo's camera through its
+        # gains is that photo as taken; the field itself holds the photos' common colour.
+        self.photo_gains = photo_gains
 
     # ---- construction ---------------------------------------------------------------------------
     @classmethod
@@ -191,11 +196,12 @@ class SceneModel:
         return torch.where(hit, world, torch.zeros_like(world))
 
     def render_camera(self, c2w, intrinsics: Intrinsics, opts: RenderOptions | None = None,
-                      chunk: int = RENDER_CHUNK, backdrop=None) -> dict[str, torch.Tensor]:
+                      chunk: int = RENDER_CHUNK, backdrop=None, photo: str | None = None) -> dict[str, torch.Tensor]:
         """One pinhole view (world camera-to-world, OpenGL convention) -> {"rgb" [h,w,3] in [0,1],
         "depth" [h,w] world distance (see world_depth), "opacity" [h,w]}. `backdrop`: an RGB colour to show past the
         grid in place of the model's own (a photo's own backdrop, scene.json's frame `backdrop`); a background model
-        keeps its colours."""
+        keeps its colours. `photo`: the name of the capture's photo this camera took, rendered in that photo's colour
+        where the fit measured the photos' colours (photo_gains); else, and for a new view, in their common colour."""
         origins, dirs = rays_from_camera(c2w, intrinsics)
         origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
         swap = None
@@ -212,7 +218,10 @@ class SceneModel:
             depth.append(self.world_depth(o, d, result))
             opacity.append(result.opacity)
         h, w = intrinsics.h, intrinsics.w
-        return {"rgb": torch.cat(rgb).reshape(h, w, 3), "depth": torch.cat(depth).reshape(h, w),
+        rgb = torch.cat(rgb)
+        if photo is not None and self.photo_gains is not None:
+            rgb = (rgb * torch.as_tensor(self.photo_gains.of(photo), dtype=rgb.dtype, device=rgb.device)).clamp(0, 1)
+        return {"rgb": rgb.reshape(h, w, 3), "depth": torch.cat(depth).reshape(h, w),
                 "opacity": torch.cat(opacity).reshape(h, w)}
 
     # ---- facts ----------------------------------------------------------------------------------
@@ -254,6 +263,7 @@ class SceneModel:
             "grid": {"file": GRID_FILE, "resolution": list(self.grid.resolution), "bbox_min": list(self.grid.bbox_min),
                      "bbox_max": list(self.grid.bbox_max), "sh_degree": self.grid.sh_degree,
                      "occupied": self.grid.num_occupied, "knots": knots_record(self.grid.knots)},
+            "photo_gains": self.photo_gains.record() if self.photo_gains is not None else None,
             **self.transforms, **(extra or {}),
         }
         (folder / MODEL_FILE).write_text(json.dumps(record, indent=2))
@@ -278,7 +288,7 @@ class SceneModel:
         transforms = {k: record[k] for k in TRANSFORM_KEYS if k in record}
         return cls(grid, record.get("scene_type", "object"), FitFrame(ndc, contraction), background,
                    record.get("background_color", (1, 1, 1)), RenderOptions(**record.get("render_options", {})),
-                   transforms)
+                   transforms, PhotoGains.from_record(record.get("photo_gains")))
 
 
 def reaches_far(scene: dict) -> bool:

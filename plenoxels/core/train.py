@@ -31,7 +31,7 @@ from plenoxels.core.grid import SparseGrid, sh_count
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.optim import GridGrad, SparseRMSProp
 from plenoxels.core.options import TrainOptions
-from plenoxels.core.photo_colour import PhotoColour
+from plenoxels.core.photo_colour import COLOUR_RAYS, PhotoColour
 from plenoxels.core.ray_set import RaySet
 from plenoxels.core.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution,
                                     tv_scale_for_views, views_per_point)
@@ -147,7 +147,8 @@ class Fitter:
         self.background_seconds = 0.0       # of this run's steps, spent rendering and training the background
         self.checkpoint_step: int | None = None
         self.regularisation = self._regularisation()
-        self.measure_stride = measure_stride(train.sizes, options.measure_rays)
+        measured_rays = options.measure_rays if options.error_share > 0 else min(options.measure_rays, COLOUR_RAYS)
+        self.measure_stride = measure_stride(train.sizes, measured_rays)
         self.error_map = (ErrorMap(train.sizes, self.measure_stride)
                           if options.error_share > 0 and options.batch_mode == "rays" else None)
         self.colour = PhotoColour(len(train))

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import torch
 
 from plenoxels.core.train import Fitter
+from plenoxels.core.photo_colour import PhotoGains
 from plenoxels.core.ray_set import RaySet
 from plenoxels.planning import model_trial
 from plenoxels.planning.budget import TimeBudget
@@ -20,6 +21,7 @@ class FitInputs:
     """What each fit of the stage reads: the scene, its training rays and held-out views, and the model trial's choice."""
     scene: dict
     train: RaySet
+    train_names: list[str]  # the training photos' names, in the RaySet's order
     held_out: HeldOut
     seen: HeldOut           # training views rendered as the held-out ones are
     device: torch.device
@@ -34,6 +36,15 @@ class Ending:
     stopped_early: bool = False     # by Ctrl-C: the model as it stands
     at_deadline: bool = False       # by the time budget: a normal end
     background_why: str = ""        # why a background model was added ("" when it was not)
+
+
+def photo_gains(fitter: Fitter, inputs: FitInputs) -> PhotoGains | None:
+    """The photos' colours as the fit measured them (None where it took the photos as they are): a held-out photo's
+    in its capture neighbours' colour."""
+    if not fitter.options.photo_colour:
+        return None
+    return PhotoGains([f["name"] for f in inputs.scene.get("frames") or []],
+                      dict(zip(inputs.train_names, fitter.colour.gain.tolist())))
 
 
 def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBudget | None,

@@ -20,6 +20,7 @@ class HeldOut:
     def __init__(self, root: Path, frames: list[dict], views: int, scale: float, background_color):
         pick = frames if len(frames) <= views else [frames[i] for i in
                                                     np.linspace(0, len(frames) - 1, views).round().astype(int)]
+        self.names = [frame["name"] for frame in pick]
         self.views = [(np.asarray(frame["transform_matrix"], dtype=np.float64), k, torch.from_numpy(image),
                        frame.get("backdrop")) for frame, (image, k) in zip(pick, load_frames(root, pick, scale,
                                                                                            background_color))]
@@ -33,9 +34,10 @@ class HeldOut:
         return sum(k.w * k.h for _, k, _, _ in self.views)
 
     def psnr(self, model: SceneModel) -> float:
+        """Mean PSNR of the views' renders, each in its photo's colour where the fit measured the photos' colours."""
         errors = []
-        for c2w, k, image, backdrop in self.views:
-            rgb = model.render_camera(c2w, k, backdrop=backdrop)["rgb"].cpu()
+        for name, (c2w, k, image, backdrop) in zip(self.names, self.views):
+            rgb = model.render_camera(c2w, k, backdrop=backdrop, photo=name)["rgb"].cpu()
             errors.append(float(((rgb - image) ** 2).mean()))
         return float(np.mean([psnr(e) for e in errors]))
 

@@ -6,7 +6,7 @@ import torch
 from stages.common.json_files import read_json
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.error_map import ErrorMap, measure_stride
-from plenoxels.core.photo_colour import PhotoColour
+from plenoxels.core.photo_colour import PhotoColour, PhotoGains
 from plenoxels.core.scene_model import ModelOptions, SceneModel
 from plenoxels.core.train import Fitter, TrainOptions
 from plenoxels.core.ray_set import RaySet
@@ -47,6 +47,43 @@ def test_gains_stay_at_the_common_colour_where_a_photo_says_nothing():
     assert bool(torch.isfinite(colour.gain).all())
     torch.testing.assert_close(colour.gain[1], colour.gain[2])  # both at the common gain
     torch.testing.assert_close(colour.gain[0] / colour.gain[1], torch.full((3,), 1.2, dtype=torch.float64))
+
+
+def test_a_photo_not_fitted_takes_the_gain_between_its_capture_neighbours():
+    order = ["a", "b", "c", "d", "e", "f"]
+    gains = PhotoGains(order, {"b": [1.0, 0.8, 1.2], "e": [0.7, 1.1, 1.2], "f": [0.6, 1.2, 1.3]})
+    np.testing.assert_allclose(gains.of("b"), [1.0, 0.8, 1.2])  # a fitted photo keeps its own
+    # c and d lie a third and two thirds of the way from b to e.
+    np.testing.assert_allclose(gains.of("c"), [0.9, 0.9, 1.2])
+    np.testing.assert_allclose(gains.of("d"), [0.8, 1.0, 1.2])
+    np.testing.assert_allclose(gains.of("a"), [1.0, 0.8, 1.2])  # before the first fitted photo: the first one's
+    np.testing.assert_allclose(gains.of("elsewhere"), [1.0, 1.0, 1.0])  # a camera of no photo: the common colour
+    again = PhotoGains.from_record(gains.record())
+    assert all(np.allclose(again.of(name), gains.of(name)) for name in order)
+    assert PhotoGains.from_record(None) is None
+    assert PhotoGains(order, {}).of("c").tolist() == [1.0, 1.0, 1.0]
+    # Numbered without leading zeros, as a camera may: 9 lies between 8 and 10, whatever order the names came in.
+    numbered = PhotoGains(["IMG_10", "IMG_11", "IMG_8", "IMG_9"],
+                          {"IMG_8": [1.0] * 3, "IMG_10": [0.8] * 3, "IMG_11": [0.7] * 3})
+    assert numbered.order == ["IMG_8", "IMG_9", "IMG_10", "IMG_11"]
+    np.testing.assert_allclose(numbered.of("IMG_9"), [0.9] * 3)
+
+
+def test_gains_that_do_not_follow_the_capture_order_leave_a_held_out_photo_in_the_common_colour():
+    order = [f"{i:03d}" for i in range(40)]
+    held_out = order[5::10]
+    drift = {name: [0.8 + 0.01 * i] * 3 for i, name in enumerate(order) if name not in held_out}
+    drifting = PhotoGains(order, drift)
+    assert drifting.follows_order
+    np.testing.assert_allclose(drifting.of("015"), [0.95] * 3)
+    # The same gains shuffled among the photos: neighbours say nothing of each other, and a guess from them would
+    # be further off than the common colour.
+    names = list(drift)
+    shuffled = dict(zip(names, [drift[names[i]] for i in np.random.default_rng(0).permutation(len(names))]))
+    scattered = PhotoGains(order, shuffled)
+    assert not scattered.follows_order
+    np.testing.assert_allclose(scattered.of("015"), [1.0] * 3)
+    np.testing.assert_allclose(scattered.of(names[3]), shuffled[names[3]])  # a fitted photo keeps its own
 
 
 def test_the_error_map_draws_pixels_from_the_blocks_that_are_wrong():

@@ -61,6 +61,38 @@ def test_metrics_match_a_direct_computation(fitted):
     assert sheet.shape[0] > 3 * 30 and sheet.shape[1] > 3 * 40  # three rows of three tiles
 
 
+def test_held_out_views_are_scored_in_the_colour_of_their_capture_neighbours(tmp_path):
+    """Photos whose exposure drifts along the capture, as a phone's does: the fit measures each training photo's gains,
+    and evaluate renders a held-out view in the gains between its neighbours, which the drift puts near its own."""
+    root = make_scene(tmp_path, views=20, width=40, alpha=False)
+    scene = read_json(root / "normalize" / "scene.json")
+    # At most 0.95: a photo clipped at white would say less of its gain.
+    drift = np.linspace(0.0, 1.0, len(scene["frames"]))[:, None] * np.array([0.35, 0.25, -0.3]) + np.array([0.6, 0.7, 0.95])
+    for frame, gain in zip(scene["frames"], drift):
+        photo = iio.imread(root / frame["file_path"])[..., :3] / 255.0
+        iio.imwrite(root / frame["file_path"], np.round(np.clip(photo * gain, 0, 1) * 255).astype(np.uint8))
+    run_stage(root, fit, {**QUICK, "photo_colour": True, "measure_every": 40, "sh_degree": 0})
+    summary = run_stage(root, evaluate, {"video_frames": 0, "sheet_side": 40})
+    metrics = read_json(root / "evaluate" / "metrics.json")
+    model = SceneModel.load(root / "fit")
+    held_out = [(i, f) for i, f in enumerate(scene["frames"]) if f["split"] == "test"]
+    # The fitted gains average 1 over the training photos: the field holds their mean colour.
+    common_colour = drift[[f["split"] == "train" for f in scene["frames"]]].mean(0)
+    assert metrics["colour"] == "capture neighbours' gains" and "neighbours in the capture" in summary["line"]
+    common = []
+    for (i, frame), view in zip(held_out, metrics["views"]):
+        truth, k = load_frame(root, frame, 1.0, model.background_color)
+        render = model.render_camera(np.asarray(frame["transform_matrix"]), k)["rgb"].numpy().astype(np.float64)
+        gain = np.asarray(view["gain"])
+        # The gains follow the drift, ...
+        np.testing.assert_allclose(gain, drift[i] / common_colour, atol=0.06)
+        # ... and the view is scored as rendered through them.
+        assert view["psnr"] == pytest.approx(-10 * math.log10(np.mean((np.clip(render * gain, 0, 1) - truth) ** 2)),
+                                             abs=1e-3)
+        common.append(-10 * math.log10(np.mean((render - truth) ** 2)))
+    assert metrics["mean"]["psnr"] > np.mean(common) + 0.5
+
+
 def test_depth_colours_follow_depth_and_blank_empty_pixels():
     depth = np.tile(np.linspace(1.0, 3.0, 50), (4, 1))
     opacity = np.ones_like(depth)
