@@ -20,6 +20,7 @@ ground inside a textured sphere, written under bench/out/ with its true poses as
     .venv/bin/python -m bench.real_scenes --set tv_density=1e-9 --label tv10  # a variant, kept beside the others
     .venv/bin/python -m bench.real_scenes --table
     .venv/bin/python -m bench.real_scenes --scenes fox --presets default --views all --budgets 30s 1m 2m 5m 10m
+    .venv/bin/python -m bench.real_scenes --scenes ball --presets default --views all --budgets 1m 5m --label "colour off" --set photo_colour=false
     .venv/bin/python -m bench.real_scenes --scenes ball apple --presets fast --views all --models auto contracted background
 
 With --models each run is the fit's own choice of scene model (auto: where normalize's measures are not clear-cut, a
@@ -29,7 +30,8 @@ wall time, which on a machine other jobs share measures the cost better.
 
 Each run records the date and the commit it measured (`recorded`); a sweep's runs are labelled with them unless
 --label names the sweep. With --budgets each run is the preset's detail under fit.time_budget (labelled "budget 30s",
-...); --table then says for each where it stands against the presets' runs labelled --front (one label or several, as
+..., or "<label> budget 30s": two sweeps in one run, each a curve, such as the product as it is and with a setting
+off); --table then says for each where it stands against the presets' runs labelled --front (one label or several, as
 scenes benched on different days have their own; by default each scene's newest preset runs), and
 bench/results/real_scenes_budget.png draws them on the axes of the presets' Pareto plot (held-out PSNR against fit
 time).
@@ -122,7 +124,8 @@ def one_run(spec: dict) -> dict:
         scale = spec["score_side"] / max(frame["w"], frame["h"]) if spec.get("score_side") else settings.image_scale
         truth, k = load_frame(out, frame, scale, settings.background_color)
         with torch.no_grad():
-            render = model.render_camera(np.asarray(frame["transform_matrix"]), k, backdrop=frame.get("backdrop"))["rgb"].numpy()
+            render = model.render_camera(np.asarray(frame["transform_matrix"]), k, backdrop=frame.get("backdrop"),
+                                       photo=frame["name"])["rgb"].numpy()
         views.append({"name": frame["name"], **image_scores(render, truth, with_lpips=False)})
         first = first if first is not None else (truth, render)
     RENDERS.mkdir(parents=True, exist_ok=True)
@@ -158,9 +161,19 @@ def is_budget(run: dict) -> bool:
     return "time_budget" in run["overrides"]
 
 
-def budget_label(budget: str) -> str:
-    """The label of a budget sweep's run (probes under a budget carry labels of their own)."""
-    return f"budget {budget}"
+def budget_label(budget: str, sweep: str = "") -> str:
+    """The label of a budget sweep's run: "budget 2m", or "<sweep> budget 2m" for a sweep --label names (its runs are
+    drawn as a curve of their own, beside the others in the same run)."""
+    return f"{sweep} budget {budget}".strip()
+
+
+def sweep_of(run: dict) -> str | None:
+    """The name of the budget sweep a run belongs to ("" for the unnamed one; None for a run under no budget, or a
+    probe under one whose label is its own)."""
+    if not is_budget(run):
+        return None
+    suffix = budget_label(run["overrides"]["time_budget"])
+    return run["label"][:-len(suffix)].strip() if run["label"].endswith(suffix) else None
 
 
 def newest_front(runs: list[dict]) -> list[str]:
@@ -209,8 +222,8 @@ def table(results: dict, front: list[str]) -> str:
 
 
 def plot_budgets(results: dict, front: list[str], path: Path) -> None:
-    """Held-out PSNR against fit time: each scene's preset runs with their Pareto front, and its budget sweep (the runs
-    labelled "budget ..."; probes of other settings under a budget stay in the table)."""
+    """Held-out PSNR against fit time: each scene's preset runs with their Pareto front, and its budget sweeps (the runs
+    labelled "budget ..." or "<sweep> budget ..."; probes of other settings under a budget stay in the table)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -219,20 +232,21 @@ def plot_budgets(results: dict, front: list[str], path: Path) -> None:
     from bench.fit import pareto
 
     runs = results.get("runs", [])
-    budgets = [r for r in runs if is_budget(r) and r["label"] == budget_label(r["overrides"]["time_budget"])]
-    groups = sorted({(r["scene"], r["views"]) for r in budgets})
+    budgets = [r for r in runs if sweep_of(r) is not None]
+    groups = sorted({(r["scene"], r["views"], sweep_of(r)) for r in budgets})
     if not groups:
         return
     fig, ax = plt.subplots(figsize=(8, 6))
-    for scene, views in groups:
-        mine = sorted((r for r in budgets if (r["scene"], r["views"]) == (scene, views)), key=lambda r: r["fit_seconds"])
+    for scene, views, sweep in groups:
+        mine = sorted((r for r in budgets if (r["scene"], r["views"], sweep_of(r)) == (scene, views, sweep)),
+                      key=lambda r: r["fit_seconds"])
         presets = sorted(front_runs(mine[0], runs, front), key=lambda r: r["fit_seconds"])
         line, = ax.plot([r["fit_seconds"] for r in mine], [r["mean"]["psnr"] for r in mine], "-^", markersize=8,
-                        label=f"{scene} ({views} photos): time budgets on {mine[0]['preset']}")
+                        label=f"{scene} ({views} photos): {sweep or 'time budgets'} on {mine[0]['preset']}")
         for r in mine:
             ax.annotate(r["overrides"]["time_budget"], (r["fit_seconds"], r["mean"]["psnr"]), fontsize=7,
                         xytext=(4, -10), textcoords="offset points")
-        if presets:
+        if presets and not any(g[:2] == (scene, views) for g in groups[:groups.index((scene, views, sweep))]):
             points = [(r["fit_seconds"], r["mean"]["psnr"]) for r in presets]
             on_front = [presets[i] for i in pareto(points)]
             ax.scatter(*zip(*points), marker="s", s=50, color=line.get_color(), label=f"{scene}: presets")
@@ -293,7 +307,7 @@ def run_all(args) -> int:
         return 0
     overrides = fit_overrides(args.set)
     when = recorded()
-    variants = ([(budget_label(b), {**overrides, "time_budget": b}) for b in args.budgets] if args.budgets
+    variants = ([(budget_label(b, args.label or ""), {**overrides, "time_budget": b}) for b in args.budgets] if args.budgets
                 else [(args.label or when, overrides)])
     if args.models:
         variants = [(label if flag == "auto" else f"{label} {MODEL_FLAGS[flag]}",
