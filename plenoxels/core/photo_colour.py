@@ -79,8 +79,9 @@ class PhotoColour:
 COLOUR_RAYS = 1 << 15
 # The share of the gains' spread that the capture's order must explain (1 - the squared error of each fitted photo's
 # gain predicted from its neighbours over that of the common colour) before a held-out photo takes its neighbours'.
-# Phone videos: ball 0.81, apple 0.87; photo sets whose gains scatter: fox 0.45, cup 0.18, where the neighbours' gains
-# left cup's held-out views 0.07 dB further from their photos than the common colour (bench/README.md).
+# Phone videos: ball 0.81, apple 0.87; photo sets whose gains scatter: fox 0.45, cup 0.18, whose held-out views the
+# neighbours' gains brought +0.19 dB and -0.07 / +0.09 (two fits) nearer their photos: little either way, so the bar
+# stands at half (bench/README.md, "Real captures").
 ORDER_EXPLAINS = 0.5
 
 
