@@ -11,9 +11,9 @@ Ground truth is the held-out photo resized to the evaluation scale, its mask (if
 the fit's background colour exactly as the fit saw its training photos. Views with a mask are scored inside it too
 (`psnr_masked`, `ssim_masked`: over the mask's pixels only, as the DTU protocol scores object captures), since the
 whole image's score counts a backdrop any empty render matches. Where the fit measured each photo's colour
-(`fit.photo_colour`: a phone's exposure and white balance), a held-out view is rendered in the colour its neighbours in
-the capture's order were taken in (plenoxels/core/photo_colour.py, PhotoGains), from none of its own pixels; the
-video is in the photos' common colour. SSIM is scikit-image's
+(`fit.photo_colour`: a phone's exposure and white balance) and the gains follow the capture's order, a held-out view is
+rendered in the colour its neighbours in that order were taken in (plenoxels/core/photo_colour.py, PhotoGains), from
+none of its own pixels; the video is in the photos' common colour. SSIM is scikit-image's
 structural_similarity (Gaussian-weighted, as in Wang et al. 2004) on RGB in [0, 1]; LPIPS is v0.1 with
 AlexNet (stages/scoring/lpips.py), left out with a warning when its weights are not installed.
 """
