@@ -74,6 +74,7 @@ class PhotoColour:
             raise ValueError("the photos' colours were measured on another set of photos")
         self.gain = state["gain"].clone()
 
+
 # Rays a measurement of the photos' colours alone renders (the error map's take fit.measure_rays): a photo's gains are
 # three ratios of sums, which a few hundred of its pixels fix to a fraction of a percent.
 COLOUR_RAYS = 1 << 15

@@ -218,11 +218,16 @@ class SceneModel:
             depth.append(self.world_depth(o, d, result))
             opacity.append(result.opacity)
         h, w = intrinsics.h, intrinsics.w
-        rgb = torch.cat(rgb)
-        if photo is not None and self.photo_gains is not None:
-            rgb = (rgb * torch.as_tensor(self.photo_gains.of(photo), dtype=rgb.dtype, device=rgb.device)).clamp(0, 1)
+        rgb = self.as_photographed(torch.cat(rgb), photo)
         return {"rgb": rgb.reshape(h, w, 3), "depth": torch.cat(depth).reshape(h, w),
                 "opacity": torch.cat(opacity).reshape(h, w)}
+
+    def as_photographed(self, rgb: torch.Tensor, photo: str | None) -> torch.Tensor:
+        """Colours [..., 3] rendered in the common colour, as capture photo `photo` was taken (its gains, or its
+        capture neighbours'; photo_gains); as they are for no photo or where the fit took the photos as they are."""
+        if photo is None or self.photo_gains is None:
+            return rgb
+        return (rgb * torch.as_tensor(self.photo_gains.of(photo), dtype=rgb.dtype, device=rgb.device)).clamp(0, 1)
 
     # ---- facts ----------------------------------------------------------------------------------
     def region_box(self) -> tuple[tuple[float, ...], tuple[float, ...]]:

@@ -37,9 +37,9 @@ def score_splats(root: Path, splats: Splats, model: SceneModel, frames: list[dic
         c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
         with torch.no_grad():
             field = model.render_camera(c2w, k, backdrop=frame.get("backdrop"), photo=frame["name"])["rgb"].cpu().numpy()
-        ours = render(splats, c2w, k, background=frame.get("backdrop") or model.background_color)["rgb"].numpy()
-        if model.photo_gains is not None:  # the splats hold the field's common colour: scored as the photo was taken
-            ours = np.clip(ours * model.photo_gains.of(frame["name"]).astype(np.float32), 0.0, 1.0)
+        # The splats hold the field's common colour: scored as the photo was taken.
+        ours = model.as_photographed(render(splats, c2w, k, background=frame.get("backdrop") or model.background_color)
+                                     ["rgb"], frame["name"]).numpy()
         rows.append((image_psnr(ours, truth), image_psnr(ours, field), image_psnr(field, truth)))
     if not rows:
         return {"views": 0}
