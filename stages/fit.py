@@ -57,12 +57,8 @@ def run(ctx) -> dict:
         ctx.report.info(f"fitting on {device}")
     scene = read_json(ctx.upstream["normalize"] / SCENE_JSON)
     train_frames, held_out_frames = training_frames(scene, ctx.report)
-    if s.photo_colour and any(f.get("mask_path") for f in train_frames):
-        # A gain over the whole composite would take the backdrop colour the masks put in, which no exposure took.
-        ctx.report.info("the photos' colours are taken as they are (fit.photo_colour): their masks put one backdrop "
-                        "colour around the object")
-        s = replace(s, photo_colour=False)
-    train = load_training(ctx.out, train_frames, s.image_scale, s.background_color, ctx.report)
+    train = load_training(ctx.out, train_frames, s.image_scale, s.background_color, ctx.report,
+                          with_masks=s.photo_colour)
     held_out = HeldOut(ctx.out, held_out_frames, s.eval_views, s.eval_scale, s.background_color)
     # Training views rendered as the held-out ones are, so that the gap between the two compares like with like.
     seen = HeldOut(ctx.out, train_frames, s.eval_views, s.eval_scale, s.background_color)

@@ -10,6 +10,9 @@ average 1 over the photos, so the field keeps their average colour, the one a ne
 A photo the fit did not see (a held-out one) was taken in a colour of its own too. A phone's exposure follows its
 capture: frames next to each other in a video, or photos taken one after another, share theirs. So a held-out photo is
 rendered in the gain between the fitted photos nearest it in capture order (PhotoGains), from no pixel of its own.
+
+Where masks cut the object out, what lies outside them is the colour the masks put there, which no exposure took: the
+gains are measured inside the masks and apply to the object's part of each pixel alone (`put_in`, the masks' share).
 """
 from __future__ import annotations
 
@@ -32,13 +35,15 @@ class PhotoColour:
     def __init__(self, photos: int):
         self.gain = torch.ones(photos, 3, dtype=torch.float64)
 
-    def fit(self, image: torch.Tensor, rendered: torch.Tensor, photo: torch.Tensor) -> None:
+    def fit(self, image: torch.Tensor, rendered: torch.Tensor, photo: torch.Tensor,
+            inside: torch.Tensor | None = None) -> None:
         """Fits each photo's gains to these pixels (image index [B], the render and the photo's colour [B, 3], on the
-        CPU): the ratio of the photo's sum to the render's over the pixels not clipped, then set to average 1 over
-        the photos. A ratio of sums, not a least-squares line: the render is itself wrong by a few percent at every
-        pixel, which would pull a fitted slope towards flat."""
+        CPU; `inside` [B] bool, the pixels wholly inside their photo's mask where the photos have masks): the ratio of
+        the photo's sum to the render's over the pixels not clipped, then set to average 1 over the photos. A ratio of
+        sums, not a least-squares line: the render is itself wrong by a few percent at every pixel, which would pull a
+        fitted slope towards flat."""
         rendered, photo = rendered.double().clamp(0, 1), photo.double()
-        use = ((photo > CLIPPED) & (photo < 1 - CLIPPED)).double()
+        use = _measured(photo, inside)
         sums = torch.zeros(self.gain.shape[0], 3, 3, dtype=torch.float64)
         sums.index_add_(0, image.long(), torch.stack([use, use * rendered, use * photo], 1))
         n, sr, sp = sums.unbind(1)
@@ -47,15 +52,18 @@ class PhotoColour:
         gain = gain.clamp(*GAIN_RANGE)
         self.gain = gain / gain.mean(dim=0, keepdim=True)
 
-    def to_common(self, image: torch.Tensor, photo: torch.Tensor) -> torch.Tensor:
-        """Photo colours [B, 3] of photos `image` [B] taken back to the common colour (on their device)."""
-        return photo / self.gain.to(device=photo.device, dtype=photo.dtype)[image]
+    def to_common(self, image: torch.Tensor, photo: torch.Tensor, put_in: torch.Tensor | None = None) -> torch.Tensor:
+        """Photo colours [B, 3] of photos `image` [B] taken back to the common colour (on their device); `put_in`
+        [B, 3], the part of each colour the masks put there (their backdrop times one less their coverage), stays."""
+        gain = self.gain.to(device=photo.device, dtype=photo.dtype)[image]
+        return photo / gain if put_in is None else (photo - put_in) / gain + put_in
 
-    def gain_db(self, image: torch.Tensor, rendered: torch.Tensor, photo: torch.Tensor) -> float:
+    def gain_db(self, image: torch.Tensor, rendered: torch.Tensor, photo: torch.Tensor,
+                inside: torch.Tensor | None = None) -> float:
         """How much closer (dB of PSNR) the renders come to these photo pixels through the gains than as they are,
-        over the pixels that are not clipped."""
+        over the pixels that are not clipped (and inside their masks, `inside`, where the photos have masks)."""
         rendered, photo = rendered.double().clamp(0, 1), photo.double()
-        use = ((photo > CLIPPED) & (photo < 1 - CLIPPED)).double()
+        use = _measured(photo, inside)
         through = self.gain[image] * rendered
         before = float((use * (rendered - photo) ** 2).sum() / use.sum().clamp_min(1))
         after = float((use * (through.clamp(0, 1) - photo) ** 2).sum() / use.sum().clamp_min(1))
@@ -73,6 +81,13 @@ class PhotoColour:
         if state["gain"].shape != self.gain.shape:
             raise ValueError("the photos' colours were measured on another set of photos")
         self.gain = state["gain"].clone()
+
+
+def _measured(photo: torch.Tensor, inside: torch.Tensor | None) -> torch.Tensor:
+    """1.0 where a photo's channel value says something of its gain: not clipped, and inside its mask where it has
+    one; else 0.0 [B, 3]."""
+    use = (photo > CLIPPED) & (photo < 1 - CLIPPED)
+    return (use if inside is None else use & inside.to(use.device)[:, None]).double()
 
 
 # Rays a measurement of the photos' colours alone renders (the error map's take fit.measure_rays): a photo's gains are
@@ -97,9 +112,11 @@ class PhotoGains:
     fitted; else, by position in the capture's order (capture_key), the straight line between the nearest fitted photos
     before and after it (the nearest one's where it has a neighbour on one side only). Only where the order says
     something of the colour (ORDER_EXPLAINS): photos named in no order of their taking, or whose gains scatter from one
-    to the next, leave a held-out photo in the common colour."""
+    to the next, leave a held-out photo in the common colour. `masked`: the photos' masks put the colour past the
+    object, which the gains leave as it is."""
 
-    def __init__(self, names: Sequence[str], gains: dict[str, Sequence[float]]):
+    def __init__(self, names: Sequence[str], gains: dict[str, Sequence[float]], masked: bool = False):
+        self.masked = masked
         self.order = sorted(names, key=capture_key)
         self.gains = {name: np.asarray(gain, dtype=np.float64) for name, gain in gains.items()}
         self.fitted = [i for i, name in enumerate(self.order) if name in self.gains]
@@ -136,9 +153,9 @@ class PhotoGains:
 
     def record(self) -> dict:
         """model.json's entry: the photos' names in the capture's order and each fitted photo's gains."""
-        return {"order": self.order, "follows_order": self.follows_order,
+        return {"order": self.order, "follows_order": self.follows_order, "masked": self.masked,
                 "gains": {name: [round(float(g), 5) for g in gain] for name, gain in self.gains.items()}}
 
     @classmethod
     def from_record(cls, record: dict | None) -> "PhotoGains | None":
-        return cls(record["order"], record["gains"]) if record else None
+        return cls(record["order"], record["gains"], record.get("masked", False)) if record else None

@@ -25,10 +25,14 @@ class RaySet:
     """
 
     def __init__(self, images: list[np.ndarray], c2ws: list[np.ndarray], intrinsics: list[Intrinsics],
-                 backdrops: list | None = None):
+                 backdrops: list | None = None, masks: list[np.ndarray] | None = None, behind: list | None = None):
         # Each photo's own backdrop colour (RGB in [0, 1]) where the photos of an object show it on backdrops of
         # different colours: what a ray of that photo sees past the grid. None: the model's one colour or background.
         self.backdrops = torch.tensor(np.asarray(backdrops, dtype=np.float32).reshape(-1, 3)) if backdrops else None
+        # Where the fit needs to know what its photos' masks put in (their colours measured inside the masks alone):
+        # each pixel's coverage by its mask (uint8 [P]) and the colour composited behind each photo [N, 3].
+        self.coverage = torch.cat([torch.from_numpy(as_bytes(m).reshape(-1)) for m in masks]) if masks else None
+        self.behind = torch.tensor(np.asarray(behind, dtype=np.float32).reshape(-1, 3)) if masks else None
         self.sizes = torch.tensor([[k.h, k.w] for k in intrinsics], dtype=torch.int64)
         counts = self.sizes[:, 0] * self.sizes[:, 1]
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.int64), counts.cumsum(0)])
@@ -46,8 +50,9 @@ class RaySet:
         moved = copy.copy(self)
         for name in ("sizes", "offsets", "pixels", "c2w", "k"):  # not image_pixels
             setattr(moved, name, getattr(self, name).to(device))
-        if self.backdrops is not None:
-            moved.backdrops = self.backdrops.to(device)
+        for name in ("backdrops", "coverage", "behind"):
+            if getattr(self, name) is not None:
+                setattr(moved, name, getattr(self, name).to(device))
         return moved
 
     @property
@@ -70,9 +75,13 @@ class RaySet:
 
     def subset(self, indices: list[int]) -> RaySet:
         """The images at `indices` (in that order) as a RaySet of their own, on the CPU."""
+        masks = None
+        if self.coverage is not None:
+            masks = [self.coverage[self.offsets[i]:self.offsets[i + 1]].cpu().numpy() for i in indices]
         return RaySet([self.image(i).cpu().numpy() for i in indices], [self.c2w[i].double().cpu().numpy() for i in indices],
                       [self.intrinsics[i] for i in indices],
-                      None if self.backdrops is None else self.backdrops[indices].cpu().tolist())
+                      None if self.backdrops is None else self.backdrops[indices].cpu().tolist(),
+                      masks, None if masks is None else self.behind[indices].cpu().tolist())
 
     def backdrop(self, index: int) -> list[float] | None:
         """Photo `index`'s own backdrop colour (None where the photos have none of their own)."""
@@ -121,7 +130,7 @@ class RaySet:
             col = (left[:, None] + dx)[inside]
         o, d = self.rays(image, row, col)
         target = self.colours(image, row, col)
-        drawn = [o, d, target if colour is None else colour.to_common(image, target)]
+        drawn = [o, d, target if colour is None else colour.to_common(image, target, self.put_in(image, row, col))]
         if with_backdrops:
             drawn.append(self.backdrops[image])
         if coherent and mode == "rays":
@@ -144,6 +153,20 @@ class RaySet:
     def colours(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
         """The photos' colours [B, 3] in [0, 1] at these pixels (on this set's device)."""
         return self.pixels[self.offsets[image] + row * self.sizes[image, 1] + col].float() / 255.0
+
+    def put_in(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor | None:
+        """The part of the photos' colours [B, 3] at these pixels that their masks put there (the colour behind the
+        photo times one less the mask's coverage); None where the set keeps no masks."""
+        if self.coverage is None:
+            return None
+        outside = 1.0 - self.coverage[self.offsets[image] + row * self.sizes[image, 1] + col].float() / 255.0
+        return outside[:, None] * self.behind[image]
+
+    def inside(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor | None:
+        """Whether each of these pixels lies wholly inside its photo's mask [B] (None where the set keeps no masks)."""
+        if self.coverage is None:
+            return None
+        return self.coverage[self.offsets[image] + row * self.sizes[image, 1] + col] == 255
 
     def strided_rays(self, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Rays through a regular subset of every image's pixels (every stride-th row and column)."""

@@ -218,16 +218,25 @@ class SceneModel:
             depth.append(self.world_depth(o, d, result))
             opacity.append(result.opacity)
         h, w = intrinsics.h, intrinsics.w
-        rgb = self.as_photographed(torch.cat(rgb), photo)
-        return {"rgb": rgb.reshape(h, w, 3), "depth": torch.cat(depth).reshape(h, w),
-                "opacity": torch.cat(opacity).reshape(h, w)}
+        opacity = torch.cat(opacity)
+        rgb = self.as_photographed(torch.cat(rgb), photo, opacity, backdrop)
+        return {"rgb": rgb.reshape(h, w, 3), "depth": torch.cat(depth).reshape(h, w), "opacity": opacity.reshape(h, w)}
 
-    def as_photographed(self, rgb: torch.Tensor, photo: str | None) -> torch.Tensor:
+    def as_photographed(self, rgb: torch.Tensor, photo: str | None, opacity: torch.Tensor | None = None,
+                        backdrop=None) -> torch.Tensor:
         """Colours [..., 3] rendered in the common colour, as capture photo `photo` was taken (its gains, or its
-        capture neighbours'; photo_gains); as they are for no photo or where the fit took the photos as they are."""
+        capture neighbours'; photo_gains); as they are for no photo or where the fit took the photos as they are.
+        Where the photos' masks put the colour past the object (photo_gains.masked), the gains leave that part, the
+        backdrop (`backdrop`, else the model's colour) times one less the render's `opacity` [...], as it is."""
         if photo is None or self.photo_gains is None:
             return rgb
-        return (rgb * torch.as_tensor(self.photo_gains.of(photo), dtype=rgb.dtype, device=rgb.device)).clamp(0, 1)
+        gain = torch.as_tensor(self.photo_gains.of(photo), dtype=rgb.dtype, device=rgb.device)
+        if not self.photo_gains.masked or self.background is not None:
+            return (rgb * gain).clamp(0, 1)
+        colour = torch.as_tensor(backdrop if backdrop is not None else self.background_color, dtype=rgb.dtype,
+                                 device=rgb.device)
+        put_in = (1.0 - opacity.to(rgb.dtype))[..., None] * colour
+        return ((rgb - put_in) * gain + put_in).clamp(0, 1)
 
     # ---- facts ----------------------------------------------------------------------------------
     def region_box(self) -> tuple[tuple[float, ...], tuple[float, ...]]:

@@ -38,6 +38,8 @@ from plenoxels.core.regularizers import (sparsity_loss_and_grad, tv_loss_and_gra
 from plenoxels.core.render import loss_and_grad, max_weights, render
 from plenoxels.core.scene_model import SceneModel, psnr
 
+# A render this opaque inside a photo's mask shows the object's colour, to measure the photo's gains against.
+OPAQUE = 0.98
 # The running train PSNR averages the MSE of this many recent steps.
 LOSS_WINDOW = 50
 # Parameters are checked for NaN/inf this often (and before every checkpoint); the loss every step.
@@ -299,18 +301,24 @@ class Fitter:
         """Renders an even lattice of every training photo's pixels with the model as it stands; fits the photos'
         colours where the options say so, and measures the error map against the photos in their common colour."""
         image, row, col = self.train.lattice(self.measure_stride)
-        rendered, photo = self.render_pixels(image, row, col)
+        rendered, photo, opacity = self.render_pixels(image, row, col)
+        pixels = [t.to(self.device) for t in (image, row, col)]
+        inside, put_in = (None if t is None else t.cpu() for t in (self.train.inside(*pixels), self.train.put_in(*pixels)))
+        if inside is not None:
+            # Inside the masks, where the render is still partly the backdrop, its colour is not yet the object's.
+            inside &= opacity > OPAQUE
         if self.options.photo_colour:
-            self.colour.fit(image, rendered, photo)
+            self.colour.fit(image, rendered, photo, inside)
             if self.colour_gain_db is None:
-                self.colour_gain_db = round(self.colour.gain_db(image, rendered, photo), 3)
+                self.colour_gain_db = round(self.colour.gain_db(image, rendered, photo, inside), 3)
         if self.error_map is not None:
-            common = self.colour.to_common(image, photo) if self.options.photo_colour else photo
+            common = self.colour.to_common(image, photo, put_in) if self.options.photo_colour else photo
             self.error_map.measure(image, row, col, ((rendered.clamp(0, 1) - common) ** 2).mean(dim=1))
 
     def render_pixels(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """The render and the photo's colour [B, 3] at these training pixels, on the CPU."""
-        rendered, photo = [], []
+        """The render and the photo's colour [B, 3] and the render's opacity [B] at these training pixels, on the
+        CPU."""
+        rendered, photo, opacity = [], [], []
         for start in range(0, image.shape[0], RAY_CHUNK):
             i, r, c = (t[start:start + RAY_CHUNK].to(self.device) for t in (image, row, col))
             o_w, d_w = self.train.rays(i, r, c)
@@ -318,9 +326,11 @@ class Fitter:
                 background = (self.train.backdrops[i] if self.train.backdrops is not None and self.bg_optim is None
                               else self.model.background_rgb(o_w, d_w))
             o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
-            rendered.append(render(self.model.grid, o_fit, d_fit, background, self.model.render_options).rgb.cpu())
+            result = render(self.model.grid, o_fit, d_fit, background, self.model.render_options)
+            rendered.append(result.rgb.cpu())
+            opacity.append(result.opacity.cpu())
             photo.append(self.train.colours(i, r, c).cpu())
-        return torch.cat(rendered), torch.cat(photo)
+        return torch.cat(rendered), torch.cat(photo), torch.cat(opacity)
 
     def check_finite(self) -> None:
         columns = 1 + 3 * sh_count(self.model.grid.sh_degree)

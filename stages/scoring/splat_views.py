@@ -38,8 +38,9 @@ def score_splats(root: Path, splats: Splats, model: SceneModel, frames: list[dic
         with torch.no_grad():
             field = model.render_camera(c2w, k, backdrop=frame.get("backdrop"), photo=frame["name"])["rgb"].cpu().numpy()
         # The splats hold the field's common colour: scored as the photo was taken.
-        ours = model.as_photographed(render(splats, c2w, k, background=frame.get("backdrop") or model.background_color)
-                                     ["rgb"], frame["name"]).numpy()
+        behind = frame.get("backdrop") or model.background_color
+        drawn = render(splats, c2w, k, background=behind)
+        ours = model.as_photographed(drawn["rgb"], frame["name"], drawn["opacity"], behind).numpy()
         rows.append((image_psnr(ours, truth), image_psnr(ours, field), image_psnr(field, truth)))
     if not rows:
         return {"views": 0}

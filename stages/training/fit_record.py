@@ -44,7 +44,7 @@ def photo_gains(fitter: Fitter, inputs: FitInputs) -> PhotoGains | None:
     if not fitter.options.photo_colour:
         return None
     return PhotoGains([f["name"] for f in inputs.scene.get("frames") or []],
-                      dict(zip(inputs.train_names, fitter.colour.gain.tolist())))
+                      dict(zip(inputs.train_names, fitter.colour.gain.tolist())), masked=inputs.train.coverage is not None)
 
 
 def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBudget | None,

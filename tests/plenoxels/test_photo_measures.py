@@ -37,6 +37,44 @@ def test_each_photos_gains_are_found_and_clipped_pixels_say_nothing():
     torch.testing.assert_close(colour.gain, gain, atol=0.01, rtol=0)
 
 
+def test_masked_photos_are_measured_inside_their_masks_and_keep_what_the_masks_put_in():
+    """A photo cut out by its mask onto a backdrop: the object's pixels carry the photo's gain, the backdrop's share
+    of each pixel none. The gains are measured inside the masks alone, and taking the photo back to the common colour
+    leaves the masks' share as it is."""
+    gen = torch.Generator().manual_seed(1)
+    h, w, photos = 12, 16, 3
+    gain = torch.tensor([[0.7, 0.8, 1.2], [1.0, 1.0, 1.0], [1.3, 1.2, 0.8]], dtype=torch.float64)
+    object_colour = 0.2 + 0.6 * torch.rand(photos, h, w, 3, generator=gen, dtype=torch.float64)
+    coverage = torch.zeros(photos, h, w, dtype=torch.float64)
+    coverage[:, 3:9, 4:12] = 1.0
+    coverage[:, 3:9, 4] = 0.5  # an edge the mask half covers
+    behind = torch.tensor([[1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [0.2, 0.9, 0.4]], dtype=torch.float64)
+    photo = (coverage[..., None] * gain[:, None, None] * object_colour + (1 - coverage[..., None]) * behind[:, None, None]).clamp(0, 1)
+    rays = RaySet([p.numpy() for p in photo], [np.eye(4)] * photos, [Intrinsics(20.0, 20.0, w / 2, h / 2, w, h)] * photos,
+                  masks=[c.numpy() for c in coverage], behind=behind.tolist())
+    image, row, col = rays.lattice(1)
+    inside, put_in = rays.inside(image, row, col), rays.put_in(image, row, col).double()
+    assert int(inside.sum()) == photos * 6 * 7
+    # The render: the object in the common colour, the backdrop behind it where the mask is not.
+    common = (coverage[..., None] * object_colour + (1 - coverage[..., None]) * behind[:, None, None])[image, row, col]
+    pixels = rays.colours(image, row, col).double()
+    colour = PhotoColour(photos)
+    colour.fit(image, common, pixels, inside)
+    torch.testing.assert_close(colour.gain, gain / gain.mean(0), atol=0.01, rtol=0)
+    colour.gain = gain.clone()
+    # One byte a channel: the colours and the masks' coverage are stored to 1/255.
+    unclipped = (pixels < 1).all(1)
+    torch.testing.assert_close(colour.to_common(image, pixels, put_in)[unclipped], common[unclipped], atol=0.02, rtol=0)
+    outside = coverage[image, row, col] == 0
+    torch.testing.assert_close(colour.to_common(image, pixels, put_in)[outside], behind[image[outside]], atol=0.005, rtol=0)
+    # Over the whole composite, the gains would take the backdrop too.
+    assert float((colour.to_common(image, pixels)[outside] - behind[image[outside]]).abs().max()) > 0.1
+    # A subset keeps each photo's mask and backdrop.
+    part = rays.subset([2])
+    one = image == 2
+    torch.testing.assert_close(part.put_in(image[one] * 0, row[one], col[one]), rays.put_in(image[one], row[one], col[one]))
+
+
 def test_gains_stay_at_the_common_colour_where_a_photo_says_nothing():
     # Photo 1 is all clipped, photo 2 renders black: neither can be fitted, and no gain leaves its bounds.
     image = torch.tensor([0] * 100 + [1] * 100 + [2] * 100)

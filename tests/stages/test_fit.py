@@ -351,11 +351,3 @@ def test_the_held_out_gap_compares_training_views_rendered_as_the_held_out_ones(
     assert held_out_psnr == pytest.approx(record["held_out_psnr"], abs=1e-3)
     # The training views as the held-out ones are rendered, not the full-size training rays' PSNR (24.8 dB here).
     assert train_psnr == pytest.approx(seen.psnr(SceneModel.load(fresh / "fit")), abs=1e-4)
-
-
-def test_masked_photos_keep_their_colours_as_taken(fresh):
-    """A gain per photo over a composite would take in the one backdrop colour the masks put round the object, which
-    no exposure took: with masks the fit takes the photos' colours as they are, whatever fit.photo_colour says."""
-    run_stage(fresh, fit, {**QUICK, "photo_colour": True, "measure_every": 40})
-    assert read_json(fresh / "fit" / "fit.json")["photo_colour"]["used"] is False
-    assert SceneModel.load(fresh / "fit").photo_gains is None
