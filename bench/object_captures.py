@@ -9,6 +9,9 @@ Cases:
   farthest vertex is, whether any of it reaches the floor or the room).
 - turntable_no_masks: the same photos without their masks: the poses stage's refusal, and its time.
 - idr_layout: the synthetic object with alpha, laid out as NeuS's DTU release (image/, mask/, cameras_sphere.npz).
+- idr_light / idr_light_colour_off: the same set with each photo under a light of its own (a gain and a left-to-right
+  ramp, each within ±20%, drawn at random, so no order in the capture predicts them), with each photo's colour fitted
+  where the photos differ in it (the object preset) and with the photos taken as they are (fit.photo_colour=false).
 - mast_hull / mast_points: the synthetic object with a thin mast, in RGBA, posed by its true cameras: the box from the
   photos' masks (visual hull) against the box of the sparse points' bulk (normalize.silhouette_box=false), and the
   held-out PSNR inside the masks that each gives.
@@ -43,8 +46,10 @@ from plenoxels.core.cameras import colmap_w2c_from_opengl_c2w
 from plenoxels.core.errors import UserError
 
 REPO = Path(__file__).resolve().parent.parent
-CASES = ("turntable_masks", "turntable_no_masks", "idr_layout", "mast_hull", "mast_points", "backdrop_varies",
-         "backdrop_varies_object")
+CASES = ("turntable_masks", "turntable_no_masks", "idr_layout", "idr_light", "idr_light_colour_off", "mast_hull",
+         "mast_points", "backdrop_varies", "backdrop_varies_object")
+# Each photo of idr_light under a light of its own: a gain and the slope of a left-to-right ramp, drawn within these.
+LIGHT_GAIN, LIGHT_SLOPE = (0.8, 1.2), (-0.2, 0.2)
 
 
 def commit() -> str:
@@ -113,8 +118,10 @@ def mesh_against_truth(out: Path, scene: Path) -> dict:
             "lowest_vertex_below_object_share": round(float(truth.bounds[0][2] - vertices[:, 2].min()) / size, 4)}
 
 
-def neus_layout(synthetic: Path, folder: Path) -> None:
-    """The RGBA synthetic object as NeuS's DTU release lays it out (image/, mask/, cameras_sphere.npz)."""
+def neus_layout(synthetic: Path, folder: Path, light_seed: int | None = None) -> None:
+    """The RGBA synthetic object as NeuS's DTU release lays it out (image/, mask/, cameras_sphere.npz); with
+    `light_seed`, each photo under a light of its own (LIGHT_GAIN, LIGHT_SLOPE)."""
+    rng = np.random.default_rng(light_seed)
     truth = read_json(synthetic / "transforms.json")
     shutil.rmtree(folder, ignore_errors=True)
     (folder / "image").mkdir(parents=True)
@@ -123,7 +130,11 @@ def neus_layout(synthetic: Path, folder: Path) -> None:
     arrays = {}
     for i, frame in enumerate(truth["frames"]):
         rgba = np.asarray(Image.open(synthetic / frame["file_path"]))
-        Image.fromarray(rgba[..., :3]).save(folder / "image" / f"{i:06d}.png")
+        rgb = rgba[..., :3]
+        if light_seed is not None:
+            ramp = 1 + rng.uniform(*LIGHT_SLOPE) * np.linspace(-1, 1, rgb.shape[1])[None, :, None]
+            rgb = np.clip(np.round(rgb * rng.uniform(*LIGHT_GAIN) * ramp), 0, 255).astype(np.uint8)
+        Image.fromarray(rgb).save(folder / "image" / f"{i:06d}.png")
         Image.fromarray(np.where(rgba[..., 3] > 127, 255, 0).astype(np.uint8)).save(folder / "mask" / f"{i:03d}.png")
         rotation, translation = colmap_w2c_from_opengl_c2w(np.asarray(frame["transform_matrix"]))
         world = np.eye(4)
@@ -177,10 +188,14 @@ def main() -> None:
             if "refused" not in record:
                 record.update(poses=pose_errors(out, read_json(turntable / "transforms.json")),
                               mesh=mesh_against_truth(out, turntable), **scores(out))
-        elif case == "idr_layout":
-            synthetic = write_scene("object", data / "object_rgba", n_views=40, width=400, height=300, seed=2, alpha=True)
-            neus_layout(synthetic, data / "idr")
-            record = run_pipeline(data / "idr", out, args.preset, [])
+        elif case.startswith("idr"):
+            synthetic = data / "object_rgba"
+            if not synthetic.is_dir():
+                write_scene("object", synthetic, n_views=40, width=400, height=300, seed=2, alpha=True)
+            lit = case.startswith("idr_light")
+            neus_layout(synthetic, data / case, light_seed=7 if lit else None)
+            record = run_pipeline(data / case, out, args.preset,
+                                  ["fit.photo_colour=false"] if case == "idr_light_colour_off" else [])
             record.update(scores(out))
         elif case.startswith("mast"):
             mast = data / "mast"

@@ -106,8 +106,13 @@ class TrainOptions:
     """Fit each training photo's own colour (a gain per channel, plenoxels/core/photo_colour.py) and train
     the field against the photos taken back to their common colour, for a phone's exposure and white balance, which
     change as it turns. A new view is rendered in the common colour; a held-out photo in the colour of its neighbours
-    in the capture's order, as the phone was set when it took it. Photos with masks keep their colours: a gain would
-    take in the backdrop colour the masks put round the object (bench/README.md, "Real captures")."""
+    in the capture's order, as the phone was set when it took it. Where masks cut the object out, the gains are
+    measured inside them and the backdrop colour the masks put round it keeps its colour (bench/README.md, "Real
+    captures", "Object captures")."""
+    photo_colour_min_db: float = 0.15
+    """The least the first measure of the photos' gains must bring the renders nearer their photos (dB of PSNR) for
+    the fit to keep fitting them; below, the photos agree on colour, and gains would take up the field's own errors
+    instead (lego -0.8 dB held-out), so they are taken as they are (bench/README.md, "Object captures")."""
     error_share: float = 0.0
     """Share of each batch of random rays drawn where the render still disagrees with the photos, in proportion to
     the RMS error of each block of pixels (plenoxels/core/error_map.py); the rest are uniform (0: every ray uniform;

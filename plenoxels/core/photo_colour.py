@@ -13,6 +13,7 @@ rendered in the gain between the fitted photos nearest it in capture order (Phot
 
 Where masks cut the object out, what lies outside them is the colour the masks put there, which no exposure took: the
 gains are measured inside the masks and apply to the object's part of each pixel alone (`put_in`, the masks' share).
+So too where normalize measured each photo's own backdrop colour: it is that photo's, as taken.
 """
 from __future__ import annotations
 
@@ -112,11 +113,11 @@ class PhotoGains:
     fitted; else, by position in the capture's order (capture_key), the straight line between the nearest fitted photos
     before and after it (the nearest one's where it has a neighbour on one side only). Only where the order says
     something of the colour (ORDER_EXPLAINS): photos named in no order of their taking, or whose gains scatter from one
-    to the next, leave a held-out photo in the common colour. `masked`: the photos' masks put the colour past the
-    object, which the gains leave as it is."""
+    to the next, leave a held-out photo in the common colour. `backdrop_as_taken`: the colour past the object is
+    given with the photos as they were taken (their masks', or each photo's own backdrop), which the gains leave."""
 
-    def __init__(self, names: Sequence[str], gains: dict[str, Sequence[float]], masked: bool = False):
-        self.masked = masked
+    def __init__(self, names: Sequence[str], gains: dict[str, Sequence[float]], backdrop_as_taken: bool = False):
+        self.backdrop_as_taken = backdrop_as_taken
         self.order = sorted(names, key=capture_key)
         self.gains = {name: np.asarray(gain, dtype=np.float64) for name, gain in gains.items()}
         self.fitted = [i for i, name in enumerate(self.order) if name in self.gains]
@@ -153,9 +154,9 @@ class PhotoGains:
 
     def record(self) -> dict:
         """model.json's entry: the photos' names in the capture's order and each fitted photo's gains."""
-        return {"order": self.order, "follows_order": self.follows_order, "masked": self.masked,
+        return {"order": self.order, "follows_order": self.follows_order, "backdrop_as_taken": self.backdrop_as_taken,
                 "gains": {name: [round(float(g), 5) for g in gain] for name, gain in self.gains.items()}}
 
     @classmethod
     def from_record(cls, record: dict | None) -> "PhotoGains | None":
-        return cls(record["order"], record["gains"], record.get("masked", False)) if record else None
+        return cls(record["order"], record["gains"], record.get("backdrop_as_taken", False)) if record else None

@@ -131,8 +131,8 @@ class RaySet:
         o, d = self.rays(image, row, col)
         target = self.colours(image, row, col)
         drawn = [o, d, target if colour is None else colour.to_common(image, target, self.put_in(image, row, col))]
-        if with_backdrops:
-            drawn.append(self.backdrops[image])
+        if with_backdrops:  # as the photos' colours are: in their common colour where `colour` takes them there
+            drawn.append(self.backdrops[image] if colour is None else colour.to_common(image, self.backdrops[image]))
         if coherent and mode == "rays":
             order = coherent_order(o, d)
             drawn = [t[order] for t in drawn]

@@ -226,12 +226,13 @@ class SceneModel:
                         backdrop=None) -> torch.Tensor:
         """Colours [..., 3] rendered in the common colour, as capture photo `photo` was taken (its gains, or its
         capture neighbours'; photo_gains); as they are for no photo or where the fit took the photos as they are.
-        Where the photos' masks put the colour past the object (photo_gains.masked), the gains leave that part, the
-        backdrop (`backdrop`, else the model's colour) times one less the render's `opacity` [...], as it is."""
+        Where the colour past the object came with the photos as taken (photo_gains.backdrop_as_taken: their masks', or
+        each photo's own backdrop), the gains leave that part, the backdrop (`backdrop`, else the model's colour) times
+        one less the render's `opacity` [...], as it is."""
         if photo is None or self.photo_gains is None:
             return rgb
         gain = torch.as_tensor(self.photo_gains.of(photo), dtype=rgb.dtype, device=rgb.device)
-        if not self.photo_gains.masked or self.background is not None:
+        if not self.photo_gains.backdrop_as_taken or self.background is not None:
             return (rgb * gain).clamp(0, 1)
         colour = torch.as_tensor(backdrop if backdrop is not None else self.background_color, dtype=rgb.dtype,
                                  device=rgb.device)

@@ -250,18 +250,17 @@ class Fitter:
         progress = self.step / max(1, self.schedule.total_steps)
         self.optim.set_lr(decayed_lr(o.lr_density, o.lr_density_final, progress, o.lr_density_delay),
                           decayed_lr(o.lr_sh, o.lr_sh_final, progress))
-        own_backdrops = self.train.backdrops is not None and self.bg_optim is None
         if self.measures() and self.step > 0 and (self.step % o.measure_every == 0 or self.level_starts()):
             self.measure_photos()
         drawn = [t.to(self.device) for t in self.train.batch(o.batch_size, o.batch_mode, o.tile_size, self.generator,
-                                                             o.coherent_batches, with_backdrops=own_backdrops,
+                                                             o.coherent_batches, with_backdrops=self.own_backdrops,
                                                              error_map=self.error_map, error_share=o.error_share,
-                                                             colour=self.colour if self.options.photo_colour else None)]
+                                                             colour=self.colour if self.fits_colour else None)]
         o_w, d_w, target = drawn[:3]
         o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
         started = time.perf_counter()
         # The background's optimiser renders the batch itself, keeping where each ray met each sphere for its backward.
-        if own_backdrops:
+        if self.own_backdrops:
             background = drawn[3]
         else:
             background = self.bg_optim.forward(o_w, d_w) if self.bg_optim is not None else self.model.background_rgb(o_w, d_w)
@@ -295,7 +294,30 @@ class Fitter:
 
     def measures(self) -> bool:
         """Whether this fit measures its photos against the render: for their colours or for its error map."""
-        return self.error_map is not None or self.options.photo_colour
+        return self.error_map is not None or self.fits_colour
+
+    @property
+    def own_backdrops(self) -> bool:
+        """Whether each photo shows its own backdrop colour past the grid (RaySet.backdrops), not a background model."""
+        return self.train.backdrops is not None and self.bg_optim is None
+
+    @property
+    def backdrop_as_taken(self) -> bool:
+        """Whether what lies past the object in the photos is as they were taken, given with them (the colour their
+        masks put there, or each photo's own backdrop): the photos' gains are measured on the object alone."""
+        return self.train.coverage is not None or self.own_backdrops
+
+    def backdrops_in_common(self, image: torch.Tensor) -> torch.Tensor:
+        """The own backdrop colours [B, 3] of photos `image`, in the common colour where the fit fits the photos'."""
+        backdrops = self.train.backdrops[image]
+        return self.colour.to_common(image, backdrops) if self.fits_colour else backdrops
+
+    @property
+    def fits_colour(self) -> bool:
+        """Whether this fit fits its photos' colours: asked to (photo_colour), and their first measure brought the
+        renders at least photo_colour_min_db nearer the photos."""
+        measured = self.colour_gain_db
+        return self.options.photo_colour and (measured is None or measured >= self.options.photo_colour_min_db)
 
     def measure_photos(self) -> None:
         """Renders an even lattice of every training photo's pixels with the model as it stands; fits the photos'
@@ -304,15 +326,18 @@ class Fitter:
         rendered, photo, opacity = self.render_pixels(image, row, col)
         pixels = [t.to(self.device) for t in (image, row, col)]
         inside, put_in = (None if t is None else t.cpu() for t in (self.train.inside(*pixels), self.train.put_in(*pixels)))
-        if inside is not None:
-            # Inside the masks, where the render is still partly the backdrop, its colour is not yet the object's.
-            inside &= opacity > OPAQUE
-        if self.options.photo_colour:
+        if self.backdrop_as_taken:
+            # Where the render is still partly the backdrop, its colour is not yet the object's.
+            inside = (opacity > OPAQUE) & (True if inside is None else inside)
+        if self.fits_colour:
             self.colour.fit(image, rendered, photo, inside)
             if self.colour_gain_db is None:
                 self.colour_gain_db = round(self.colour.gain_db(image, rendered, photo, inside), 3)
+                if not self.fits_colour:  # the photos agree on colour: as they are from here on
+                    self.colour = PhotoColour(len(self.train))
+                    self.train.coverage = self.train.behind = None
         if self.error_map is not None:
-            common = self.colour.to_common(image, photo, put_in) if self.options.photo_colour else photo
+            common = self.colour.to_common(image, photo, put_in) if self.fits_colour else photo
             self.error_map.measure(image, row, col, ((rendered.clamp(0, 1) - common) ** 2).mean(dim=1))
 
     def render_pixels(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -323,7 +348,7 @@ class Fitter:
             i, r, c = (t[start:start + RAY_CHUNK].to(self.device) for t in (image, row, col))
             o_w, d_w = self.train.rays(i, r, c)
             with torch.no_grad():
-                background = (self.train.backdrops[i] if self.train.backdrops is not None and self.bg_optim is None
+                background = (self.backdrops_in_common(i) if self.own_backdrops
                               else self.model.background_rgb(o_w, d_w))
             o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
             result = render(self.model.grid, o_fit, d_fit, background, self.model.render_options)
@@ -364,13 +389,16 @@ class Fitter:
     def colour_record(self) -> dict:
         """What the fit did about the photos' colours: whether it fitted them, what the first fit brought the renders
         (dB closer to their photos), and the gains' range."""
-        record = {"used": self.options.photo_colour, "gain_db": self.colour_gain_db}
-        return {**record, **self.colour.describe()} if self.options.photo_colour else record
+        record = {"used": self.fits_colour, "asked": self.options.photo_colour, "gain_db": self.colour_gain_db}
+        return {**record, **self.colour.describe()} if self.fits_colour else record
 
     def colour_summary(self) -> str:
         """The fit summary's words on the photos' colours ("" where they were taken as they are)."""
         if not self.options.photo_colour:
             return ""
+        if not self.fits_colour:
+            return (f", the photos agree on colour (gains {self.colour_gain_db:+.2f} dB nearer them at first, under "
+                    f"{self.options.photo_colour_min_db:g}): taken as they are")
         gains = self.colour.describe()
         brought = f", {self.colour_gain_db:+.1f} dB at first" if self.colour_gain_db is not None else ""
         return (f", each photo's colour fitted (gains {min(gains['gain_min']):.2f}-{max(gains['gain_max']):.2f}"

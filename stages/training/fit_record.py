@@ -41,10 +41,10 @@ class Ending:
 def photo_gains(fitter: Fitter, inputs: FitInputs) -> PhotoGains | None:
     """The photos' colours as the fit measured them (None where it took the photos as they are): a held-out photo's
     in its capture neighbours' colour."""
-    if not fitter.options.photo_colour:
+    if not fitter.fits_colour:
         return None
     return PhotoGains([f["name"] for f in inputs.scene.get("frames") or []],
-                      dict(zip(inputs.train_names, fitter.colour.gain.tolist())), masked=inputs.train.coverage is not None)
+                      dict(zip(inputs.train_names, fitter.colour.gain.tolist())), fitter.backdrop_as_taken)
 
 
 def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBudget | None,

@@ -158,7 +158,7 @@ def test_masked_photos_take_their_gains_on_the_object_alone(tmp_path):
     run_stage(root, evaluate, {"video_frames": 0, "sheet_side": 40})
     metrics = read_json(root / "evaluate" / "metrics.json")
     model = SceneModel.load(root / "fit")
-    assert model.photo_gains.masked
+    assert model.photo_gains.backdrop_as_taken
     held_out = [(i, f) for i, f in enumerate(scene["frames"]) if f["split"] == "test"]
     train = [f["split"] == "train" for f in scene["frames"]]
     # Each held-out photo's true gains as its neighbours' true gains give them: the measured ones follow those.

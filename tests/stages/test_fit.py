@@ -4,6 +4,8 @@ import shutil
 import signal
 from pathlib import Path
 
+import imageio.v3 as iio
+import numpy as np
 import pytest
 import torch
 
@@ -351,3 +353,21 @@ def test_the_held_out_gap_compares_training_views_rendered_as_the_held_out_ones(
     assert held_out_psnr == pytest.approx(record["held_out_psnr"], abs=1e-3)
     # The training views as the held-out ones are rendered, not the full-size training rays' PSNR (24.8 dB here).
     assert train_psnr == pytest.approx(seen.psnr(SceneModel.load(fresh / "fit")), abs=1e-4)
+
+
+def test_photos_that_agree_on_colour_are_taken_as_they_are(fresh):
+    """Photos of one light and exposure: the first measure of their gains brings the renders next to nothing nearer
+    them, so the fit stops fitting gains that would only take up its own errors; photos whose exposures differ keep
+    theirs."""
+    summary = run_stage(fresh, fit, {**QUICK, "photo_colour": True, "measure_every": 40})
+    record = read_json(fresh / "fit" / "fit.json")["photo_colour"]
+    assert record["asked"] and not record["used"] and record["gain_db"] < 0.15
+    assert SceneModel.load(fresh / "fit").photo_gains is None
+    assert "agree on colour" in summary["line"]
+    for frame in read_json(fresh / "normalize" / "scene.json")["frames"][::2]:
+        photo = iio.imread(fresh / frame["file_path"]) / 255.0
+        photo[..., :3] *= 0.6
+        iio.imwrite(fresh / frame["file_path"], np.round(photo * 255).astype(np.uint8))
+    run_stage(fresh, fit, {**QUICK, "photo_colour": True, "measure_every": 40})
+    record = read_json(fresh / "fit" / "fit.json")["photo_colour"]
+    assert record["used"] and record["gain_db"] >= 0.15

@@ -25,6 +25,7 @@ from stages.capture.synthetic_scenes import OBJECT_CENTRE
 from stages.framing.visual_hull import Silhouettes, carve, cut_photos, shown_box
 from plenoxels.core.cameras import Intrinsics, look_at, rays_from_camera
 from plenoxels.core.errors import UserError
+from plenoxels.core.scene_model import SceneModel
 
 TURNTABLE_VIEWS, WIDTH, HEIGHT = 24, 480, 360
 # A short fit, as the export end-to-end test's, on the photos at a quarter of their size.
@@ -241,9 +242,12 @@ def test_photos_on_backdrops_of_their_own_colours_fit_as_the_object_alone(tmp_pa
     synthetic = write_scene("object", tmp_path / "synth", n_views=24, width=96, height=72, seed=0, alpha=True,
                             supersample=1)
     folder = backdrop_scene(synthetic, tmp_path / "photos", 2)
+    # Each photo's gains fitted too, whatever they bring: they take the object's part of each pixel alone.
     run(folder, tmp_path / "out", ["evaluate"], "fit.resolutions=[32,48]", "fit.steps=[200,200]", "fit.batch_size=2048",
-        "fit.image_scale=1", "fit.eval_every=0", "fit.sh_degree=0")
+        "fit.image_scale=1", "fit.eval_every=0", "fit.sh_degree=0", "fit.photo_colour=true",
+        "fit.photo_colour_min_db=-100")
     fitted = read_json(tmp_path / "out" / "fit" / "fit.json")
+    assert fitted["photo_colour"]["used"] and SceneModel.load(tmp_path / "out" / "fit").photo_gains.backdrop_as_taken
     assert not fitted["model"]["background_model"] and fitted["background_added"] is None
     assert fitted["own_backdrops"] and fitted["train_psnr"] > 18
     assert "flat backdrop of its own colour" in read_json(tmp_path / "out" / "normalize" / "manifest.json")["summary"]["line"]
