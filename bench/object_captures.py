@@ -213,7 +213,8 @@ def main() -> None:
             record = run_pipeline(photos, out, args.preset,
                                   [] if case == "backdrop_varies" else ["normalize.scene_type=object"])
             record.update(scores(out))
-        results["cases"][case] = {**record, "commit": results["commit"], "date": results["date"]}
+        results["cases"][case] = {**record, "commit": results["commit"], "date": results["date"],
+                                  "machine": results["machine"]}
         write_json(results_path, results)
         print(f"{case}: {record.get('refused') or record.get('summaries', {}).get('evaluate')} "
               f"({record['seconds']} s)", flush=True)
