@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from stages.scoring.camera_paths import default_path, median_intrinsics
-from stages.common.frames import load_frame, load_mask
+from stages.common.frames import read_frame
 from stages.common.media import write_png
 from stages.common.json_files import read_json, write_json
 from stages.scoring.lpips import weights_available
@@ -66,14 +66,13 @@ def run(ctx) -> dict:
     sheet_names = {f["name"] for f in _spread(held_out, s.sheet_rows)}
     started = time.time()
     for frame in ctx.report.track(held_out, desc="rendering held-out views"):
-        truth, k = load_frame(ctx.out, frame, scale, model.background_color)
+        truth, k, mask = read_frame(ctx.out, frame, scale, model.background_color)
         with torch.no_grad():
             # A photo with a backdrop of its own colour is scored with that colour past the grid, as it was fitted.
             out = model.render_camera(np.asarray(frame["transform_matrix"], dtype=np.float64), k,
                                       backdrop=frame.get("backdrop"), photo=frame["name"])
         render = out["rgb"].cpu().numpy().astype(np.float32)
         gain = model.photo_gains.of(frame["name"]) if in_neighbours_colour else None
-        mask = load_mask(ctx.out, frame, k)
         views.append({"name": frame["name"], "width": k.w, "height": k.h, **image_scores(render, truth, with_lpips),
                       **(masked_scores(render, truth, mask) if mask is not None else {}),
                       **({"gain": [round(float(g), 4) for g in gain]} if gain is not None else {})})

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stages.common.frames import load_frames, load_mask
+from stages.common.frames import load_frames
 from stages.common.text import short_list
 from plenoxels.core.errors import UserError
 from plenoxels.core.scene_model import SceneModel, psnr
@@ -22,7 +22,7 @@ class HeldOut:
                                                     np.linspace(0, len(frames) - 1, views).round().astype(int)]
         self.names = [frame["name"] for frame in pick]
         self.views = [(np.asarray(frame["transform_matrix"], dtype=np.float64), k, torch.from_numpy(image),
-                       frame.get("backdrop")) for frame, (image, k) in zip(pick, load_frames(root, pick, scale,
+                       frame.get("backdrop")) for frame, (image, k, _) in zip(pick, load_frames(root, pick, scale,
                                                                                            background_color))]
 
     def __bool__(self) -> bool:
@@ -67,11 +67,11 @@ def load_training(root: Path, frames: list[dict], scale: float, background_color
     at a time are held, never of all (lego's 100 photos at 800x800: 0.2 GB, not 0.8)."""
     images, c2ws, ks, masks = [], [], [], []
     loaded = load_frames(root, frames, scale, background_color)
-    for frame, (image, k) in zip(frames, report.track(loaded, total=len(frames), desc="loading training images")):
+    for frame, (image, k, mask) in zip(frames, report.track(loaded, total=len(frames), desc="loading training images")):
         images.append(as_bytes(image))
         c2ws.append(np.asarray(frame["transform_matrix"], dtype=np.float64))
         ks.append(k)
-        masks.append(load_mask(root, frame, k) if with_masks else None)
+        masks.append(as_bytes(mask) if with_masks and mask is not None else None)
     backdrops = [frame.get("backdrop") for frame in frames]
     behind = [frame.get("backdrop") or background_color for frame in frames]
     return RaySet(images, c2ws, ks, backdrops if all(b is not None for b in backdrops) else None,

@@ -9,7 +9,7 @@ from skimage.metrics import structural_similarity
 
 from stages.scoring import lpips
 from stages.scoring.camera_paths import orbit_path, spiral_path
-from stages.common.frames import load_frame, load_mask
+from stages.common.frames import load_frame, read_frame
 from stages.common.json_files import read_json
 from stages.scoring.visuals import colour_depth
 from plenoxels.core.photo_colour import PhotoGains
@@ -167,8 +167,8 @@ def test_masked_photos_take_their_gains_on_the_object_alone(tmp_path):
     backdrop = np.asarray(model.background_color)
     common, oracle = [], []
     for (i, frame), view in zip(held_out, metrics["views"]):
-        truth, k = load_frame(root, frame, 1.0, model.background_color)
-        mask = load_mask(root, frame, k) > 0.5
+        truth, k, mask = read_frame(root, frame, 1.0, model.background_color)
+        mask = mask > 0.5
         plain = model.render_camera(np.asarray(frame["transform_matrix"]), k)
         seen = model.render_camera(np.asarray(frame["transform_matrix"]), k, photo=frame["name"])
         render, opacity, photographed = (plain["rgb"].numpy().astype(np.float64), plain["opacity"].numpy()[..., None],

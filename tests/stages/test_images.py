@@ -5,7 +5,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from stages.common.frames import load_frame, load_frames
+from stages.common.frames import load_frame, load_frames, read_frame
 from plenoxels.core.errors import UserError
 
 
@@ -32,9 +32,15 @@ def test_a_photo_that_is_its_own_mask_loads_as_a_separate_mask_does(tmp_path):
     iio.imwrite(tmp_path / "colour.png", rgba[..., :3])
     iio.imwrite(tmp_path / "mask.png", rgba[..., 3])
     camera = {"fl_x": 9.0, "fl_y": 9.0, "cx": 5.0, "cy": 4.0, "w": 10, "h": 8}
-    together, _ = load_frame(tmp_path, {"file_path": "photo.png", "mask_path": "photo.png", **camera}, 0.5, (0.2, 0.4, 0.6))
-    apart, _ = load_frame(tmp_path, {"file_path": "colour.png", "mask_path": "mask.png", **camera}, 0.5, (0.2, 0.4, 0.6))
+    together, _, mask = read_frame(tmp_path, {"file_path": "photo.png", "mask_path": "photo.png", **camera}, 0.5,
+                                   (0.2, 0.4, 0.6))
+    apart, _, mask_apart = read_frame(tmp_path, {"file_path": "colour.png", "mask_path": "mask.png", **camera}, 0.5,
+                                      (0.2, 0.4, 0.6))
     np.testing.assert_array_equal(together, apart)
+    # The mask it composited with, at the image's size: each pixel the mean of the 2x2 it covers.
+    expected = rgba[..., 3].astype(np.float32).reshape(4, 2, 5, 2).mean(axis=(1, 3)) / 255
+    np.testing.assert_allclose(mask, expected, atol=1e-6)
+    np.testing.assert_array_equal(mask, mask_apart)
 
 
 def test_frames_load_on_threads_in_order_as_one_by_one(tmp_path):
@@ -46,7 +52,8 @@ def test_frames_load_on_threads_in_order_as_one_by_one(tmp_path):
     one_by_one = [load_frame(tmp_path, f, 0.5, (1.0, 1.0, 1.0)) for f in frames]
     threaded = list(load_frames(tmp_path, frames, 0.5, (1.0, 1.0, 1.0), threads=3))
     assert len(threaded) == len(frames)
-    for (image, k), (expected, k_expected) in zip(threaded, one_by_one):
+    for (image, k, mask), (expected, k_expected) in zip(threaded, one_by_one):
+        assert mask is None
         np.testing.assert_array_equal(image, expected)
         assert (k.w, k.h, k.fl_x) == (k_expected.w, k_expected.h, k_expected.fl_x)
 
