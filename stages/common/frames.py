@@ -77,7 +77,7 @@ def resized(image: np.ndarray, k: Intrinsics) -> np.ndarray:
 
 
 def load_frames(root: Path, frames: list[dict], scale: float, background_color,
-                threads: int | None = None) -> Iterator[tuple[np.ndarray, Intrinsics]]:
+                threads: int | None = None) -> Iterator[tuple[np.ndarray, Intrinsics, np.ndarray | None]]:
     """read_frame of each frame, in order, decoded on `threads` threads (default: as many as the fit's kernels use,
     OMP_NUM_THREADS, so a batch's share of the cores holds here too; PNG decoding and resizing release the GIL),
     yielded as each is ready so a progress bar can follow. At most two frames a thread are read ahead of the one
