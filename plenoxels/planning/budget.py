@@ -4,7 +4,8 @@
 (plenoxels/planning/fit_plan.py), and, attached to the Fitter, measures what the real scene costs as the fit goes: its step
 times, level changes, what each prune keeps and its held-out renders. Every REPLAN_EVERY steps and at each level
 change it re-plans the steps of the levels under way and to come (dropping a level that cannot get half its steps,
-and in a scene that fills its box lowering a last level too dear for half of them), and it says when the fit must
+bringing a dropped one back when the costs measured since fit it, and in a scene that fills its box lowering a last
+level too dear for half of them), and it says when the fit must
 stop so that the stage ends by the deadline with a complete model.
 """
 from __future__ import annotations
@@ -178,22 +179,30 @@ class TimeBudget:
 
     def _replan(self, why: str) -> None:
         self.now.step = self.fitter.step
+        # The plan's levels that an earlier re-plan dropped stay candidates: a level dropped on costs predicted before
+        # its resolution was reached comes back once the steps measured since leave time for it (else the fit ends
+        # early, its last level at twice its steps).
+        kept = len(self.schedule.resolutions)
+        candidates = self.schedule.resolutions + self.plan.resolutions[kept:]
         resolutions, steps, share = replan(self.left() - SLACK * self.seconds, self.costs, self.facts, self.now,
-                                           self.rung, self.schedule.resolutions, self.schedule.steps,
+                                           self.rung, candidates, self.schedule.steps + self.plan.steps[kept:],
                                            measured=not self._at_first_resolution())
         entry = {"why": why, "step": self.fitter.step, "seconds_left": round(self.left(), 1), "share": round(share, 3),
                  "steps": steps, "step_seconds": round(self.now.step_seconds or 0.0, 5)}
-        if len(resolutions) < len(self.schedule.resolutions):
+        if len(resolutions) < kept:
             entry["dropped_levels"] = self.schedule.resolutions[len(resolutions):]
+        elif len(resolutions) > kept:
+            entry["restored_levels"] = resolutions[kept:]
         elif resolutions[-1] != self.schedule.resolutions[-1]:
             entry["lowered_last_level"] = [self.schedule.resolutions[-1], resolutions[-1]]
         # The fitter consults this schedule at every step (Fitter.run).
         self.schedule.resolutions[:] = resolutions
         self.schedule.steps[:] = steps
-        # A steps-only re-plan replaces the one before it, unless either dropped or lowered a level (that stays in the
-        # record).
+        # A steps-only re-plan replaces the one before it, unless either dropped, restored or lowered a level (that
+        # stays in the record).
+        changed_levels = {"dropped_levels", "restored_levels", "lowered_last_level"}
         if (why == "steps" and self.replans and self.replans[-1]["why"] == "steps"
-                and not {"dropped_levels", "lowered_last_level"} & (set(entry) | set(self.replans[-1]))):
+                and not changed_levels & (set(entry) | set(self.replans[-1]))):
             self.replans[-1] = entry
         else:
             self.replans.append(entry)

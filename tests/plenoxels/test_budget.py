@@ -203,3 +203,25 @@ def test_a_rungs_early_prune_stays_at_its_step_and_its_cheap_steps_do_not_speak_
     # resolution is never dropped.
     assert {level for level, _ in measured} == {0, 1, 2}
     assert all(flag == (level == 2) for level, flag in measured), measured
+
+
+def test_a_level_a_replan_dropped_comes_back_once_the_measured_steps_leave_time_for_it(fresh, monkeypatch):
+    """A level dropped on costs predicted before the fit reached it (a machine that seemed slow when the fit began)
+    comes back once the steps measured since leave time for it: the fit does not end early without it."""
+    monkeypatch.setattr(budget, "LADDER", (Rung((16, 24, 32), (20, 20, 20)),))
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
+    replan, calls = budget.replan, []
+
+    def dear_at_first(seconds, costs, facts, now, rung, resolutions, steps, measured):
+        calls.append(list(resolutions))
+        if len(calls) == 1:  # the first re-plan drops the last level, as dear predicted costs would
+            resolutions, steps = resolutions[:-1], steps[:-1]
+        return replan(seconds, costs, facts, now, rung, resolutions, steps, measured)
+
+    monkeypatch.setattr(budget, "replan", dear_at_first)
+    run_stage(fresh, fit, {**BUDGETED, "time_budget": "1m"})
+    record = read_json(fresh / "fit" / "fit.json")
+    replans = record["budget"]["replans"]
+    assert replans[0]["dropped_levels"] == [32] and [r for r in replans if r.get("restored_levels") == [32]]
+    assert record["resolutions"] == record["budget"]["ran"]["resolutions"] == [16, 24, 32] and record["complete"]
+    assert record["steps"] == record["total_steps"] == 3 * 40  # every level at the free costs' twice its steps
