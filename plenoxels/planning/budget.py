@@ -132,9 +132,11 @@ class TimeBudget:
             measured = float(np.mean(self._intervals))
             ratio = measured / self.costs.step_seconds(self.now.voxels, dense=self.now.dense)
             # A grid at the first resolution, pruned early or not, is still clearing, so it runs cheaper than what
-            # comes after it: its ratio only counts above 1.
+            # comes after it: its ratio only counts above the calibration as measured. It may undo a retime that
+            # read the machine slower than its steps now run (a stall while it was timed), not call it faster.
             self.now.ratio_at_first = self._at_first_resolution()
-            self.now.step_ratio = max(1.0, ratio) if self.now.ratio_at_first else ratio
+            floor = 1.0 / max(1.0, self.calibration.get("slower_now") or 1.0)
+            self.now.step_ratio = max(floor, ratio) if self.now.ratio_at_first else ratio
             self.now.step_seconds = measured
             self._replan("steps")
 
@@ -257,6 +259,7 @@ class TimeBudget:
                             "level_change": self.calibration.get("level_change"),
                             "cached": self.calibration["cached"], "file": self.calibration["file"],
                             "slower_now": self.calibration.get("slower_now"),
+                            "retimed": self.calibration.get("retimed"),
                             "key": self.calibration["key"], "measured_in_seconds": self.calibration.get("seconds"),
                             "load_average": self.calibration.get("load_average"),
                             "when": self.calibration.get("when")},

@@ -22,7 +22,8 @@ The model is cached as JSON under `$XDG_CACHE_HOME/voxfield/` (else `~/.cache/vo
 model, the thread counts, the device, the code of the native core and of this package, and the options that set what
 a step costs; a changed key measures again. A cached one is timed again on its first grid (two rounds, the faster
 counts; a fraction of the calibration's time) and its times scaled by how much slower or faster the machine runs now:
-a shared machine's speed drifts, and a plan from a calibration made at a fast moment starves its last level.
+a shared machine's speed drifts, and a plan from a calibration made at a fast moment starves its last level. A reading
+far from the calibration is checked with a few more rounds, as a moment's stall would otherwise scale the whole plan.
 """
 from __future__ import annotations
 
@@ -60,8 +61,13 @@ DENSE_RESOLUTIONS = (32, 64, 96)
 DENSE_STEPS = 4  # timed steps at each (fewer than the surface grids': these steps are the dearest)
 CALIBRATION_WARMUP = 2
 CALIBRATION_STEPS = 8
-# Rounds of CALIBRATION_STEPS a cached calibration's first step is timed again in (see calibrate).
+# Rounds of CALIBRATION_STEPS a cached calibration's first step is timed again in (see calibrate), and the rounds
+# added when the faster of those reads the machine more than RETIME_CHECK slower or faster than the calibration did: a
+# moment's stall at the start of a fit can read 1.3x on a machine whose steps then run at the calibration's speed, and
+# the plan it scales chooses a grid a level too coarse for the budget (bench/README.md, "The time budget").
 RETIME_ROUNDS = 2
+RETIME_MORE = 3
+RETIME_CHECK = 0.1
 # The calibration's cameras: this many views of this many pixels a side, around the synthetic object.
 CALIBRATION_VIEWS = 24
 CALIBRATION_SIDE = 64
@@ -339,10 +345,11 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
 def calibrate(options, device: torch.device, background: dict | None = None, resolutions=CALIBRATION_RESOLUTIONS,
               dense_resolutions=DENSE_RESOLUTIONS, say: Callable[[str], None] | None = None) -> tuple[CostModel, dict]:
     """The cost model for these options on this machine: from the cache when its key matches, with its times scaled by
-    how much longer the calibration's first step takes now (the faster of RETIME_ROUNDS timings) than it did (a shared
-    host's speed drifts, and a plan from a calibration made at a fast moment starves its last level), else measured (a few seconds) and cached. Returns it and the
-    calibration's record, with `cached`, `file` and `slower_now` (that scale; 1 for a calibration just measured)
-    added."""
+    how much longer the calibration's first step takes now (the fastest of RETIME_ROUNDS timings, and of RETIME_MORE
+    more where those read far from the calibration) than it did (a shared host's speed drifts, and a plan from a
+    calibration made at a fast moment starves its last level), else measured (a few seconds) and cached. Returns it and
+    the calibration's record, with `cached`, `file`, `retimed` (the rounds, in seconds) and `slower_now` (that scale; 1
+    for a calibration just measured) added."""
     key = calibration_key(options, device, background, resolutions, dense_resolutions)
     path = cache_dir() / f"fit-cost-{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]}.json"
     try:
@@ -351,11 +358,15 @@ def calibrate(options, device: torch.device, background: dict | None = None, res
             reference = record["points"][0]
             fitter = CalibrationObject(options, device, background, reference["resolution"]).fitter_at(
                 [reference["resolution"]])
-            # The faster of two rounds: the first can pay for faulting in the new grid's tables, or catch the host
+            # The fastest round counts: the first can pay for faulting in the new grid's tables, or catch the host
             # at a slow moment, which would scale a plan far past what its steps then cost.
-            slower = min(_time_steps(fitter, device) for _ in range(RETIME_ROUNDS)) / reference["step_seconds"]
+            rounds = [_time_steps(fitter, device) for _ in range(RETIME_ROUNDS)]
+            if abs(min(rounds) / reference["step_seconds"] - 1) > RETIME_CHECK:
+                rounds += [_time_steps(fitter, device) for _ in range(RETIME_MORE)]
+            slower = min(rounds) / reference["step_seconds"]
             return (CostModel(**record["costs"]).scaled(slower),
-                    {**record, "cached": True, "file": str(path), "slower_now": round(slower, 3)})
+                    {**record, "cached": True, "file": str(path), "slower_now": round(slower, 3),
+                     "retimed": [round(t, 5) for t in rounds]})
     except (OSError, ValueError, TypeError, KeyError, ZeroDivisionError):
         pass  # none yet, or unreadable: measure
     if say is not None:

@@ -205,6 +205,24 @@ def test_a_rungs_early_prune_stays_at_its_step_and_its_cheap_steps_do_not_speak_
     assert all(flag == (level == 2) for level, flag in measured), measured
 
 
+def test_the_first_levels_steps_can_take_back_a_retime_that_read_the_machine_slower_than_it_runs(fresh, monkeypatch):
+    """A cached calibration scaled by a retime that read the machine 4x slower (a stall while it was timed): the first
+    level's steps, far cheaper than that, bring the ratio down to the calibration as measured (1/4 of the scaled
+    model), no further, as a grid that is still clearing runs cheaper than the levels after it."""
+    monkeypatch.setattr(budget, "LADDER", (Rung((16, 32), (20, 20)),))
+    dear = CostModel(**{**FREE.__dict__, "step_fixed": 0.2})
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (dear, {"cached": True, "file": "-", "key": {},
+                                                                     "slower_now": 4.0}))
+    ratios = []
+    replan_budget = budget.TimeBudget._replan
+    monkeypatch.setattr(budget.TimeBudget, "_replan", lambda self, why: ratios.append(
+        (self.schedule.resolutions[self.fitter.level], self.now.step_ratio)) or replan_budget(self, why))
+    run_stage(fresh, fit, {**BUDGETED, "time_budget": "30s"})
+    at_first = [r for res, r in ratios if res == 16]
+    assert at_first and at_first[-1] == pytest.approx(0.25)
+    assert read_json(fresh / "fit" / "fit.json")["budget"]["calibration"]["slower_now"] == 4.0
+
+
 def test_a_level_a_replan_dropped_comes_back_once_the_measured_steps_leave_time_for_it(fresh, monkeypatch):
     """A level dropped on costs predicted before the fit reached it (a machine that seemed slow when the fit began)
     comes back once the steps measured since leave time for it: the fit does not end early without it."""

@@ -67,12 +67,28 @@ def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(mon
     _, record = fit_cost.calibrate(options, cpu, None, small, (8, 12))
     fresh_costs, reference = CostModel(**record["costs"]), record["points"][0]
     timed = []
-    # Timed twice, the faster round counts: the first at 3x (a slow moment, fresh pages), the second at 2x.
-    monkeypatch.setattr(fit_cost, "_time_steps", lambda fitter, device, steps=8: timed.append(
-        fitter.model.grid.num_occupied) or (3 if len(timed) == 1 else 2) * reference["step_seconds"])
+
+    def rounds_at(*factors):
+        """Each round of the retime at the next of `factors` times the calibration's step."""
+        timed.clear()
+        monkeypatch.setattr(fit_cost, "_time_steps", lambda fitter, device, steps=8: timed.append(
+            fitter.model.grid.num_occupied) or factors[len(timed) - 1] * reference["step_seconds"])
+
+    # Timed twice, the faster round counts: the first at 1.5x (a slow moment, fresh pages), the second at 1.04x, near
+    # enough to the calibration to need no more.
+    rounds_at(1.5, 1.04)
+    _, record = fit_cost.calibrate(options, cpu, None, small, (8, 12))
+    assert timed == [reference["voxels"]] * fit_cost.RETIME_ROUNDS and record["slower_now"] == pytest.approx(1.04)
+    # Both rounds far from it (a stall at the fit's start): more rounds, and the fastest of them all counts.
+    rounds_at(3.0, 2.5, 1.6, 1.05, 1.3)
+    _, record = fit_cost.calibrate(options, cpu, None, small, (8, 12))
+    assert len(timed) == fit_cost.RETIME_ROUNDS + fit_cost.RETIME_MORE and record["slower_now"] == pytest.approx(1.05)
+    assert record["retimed"] == pytest.approx([f * reference["step_seconds"] for f in (3.0, 2.5, 1.6, 1.05, 1.3)],
+                                              abs=1e-5)
+    # A machine that stays twice as slow: every time of the model scaled by it.
+    rounds_at(3.0, 2.0, 2.1, 2.0, 2.2)
     slower, record = fit_cost.calibrate(options, cpu, None, small, (8, 12))
-    assert record["cached"] and len(measured) == 7 and timed == [reference["voxels"]] * fit_cost.RETIME_ROUNDS
-    assert record["slower_now"] == pytest.approx(2.0)
+    assert record["cached"] and len(measured) == 7 and record["slower_now"] == pytest.approx(2.0)
     assert slower.step_fixed == pytest.approx(2 * fresh_costs.step_fixed)
     assert slower.step_seconds(1e5, dense=True) == pytest.approx(2 * fresh_costs.step_seconds(1e5, dense=True))
     assert slower.pass_seconds(1e5, 32) == pytest.approx(2 * fresh_costs.pass_seconds(1e5, 32))
