@@ -110,9 +110,10 @@ class TrainOptions:
     measured inside them and the backdrop colour the masks put round it keeps its colour (bench/README.md, "Real
     captures", "Object captures")."""
     photo_colour_min_db: float = 0.15
-    """The least the first measure of the photos' gains must bring the renders nearer their photos (dB of PSNR) for
-    the fit to keep fitting them; below, the photos agree on colour, and gains would take up the field's own errors
-    instead (lego -0.8 dB held-out), so they are taken as they are (bench/README.md, "Object captures")."""
+    """The least the photos' gains must bring the renders nearer their photos (dB of PSNR), on average over the fit's
+    first measures of them (plenoxels/core/photo_colour.py, DECIDING_MEASURES), for the fit to fit them; below, the
+    photos agree on colour, and gains would take up the field's own errors instead (lego -0.8 dB held-out), so they
+    are taken as they are (bench/README.md, "Object captures")."""
     error_share: float = 0.0
     """Share of each batch of random rays drawn where the render still disagrees with the photos, in proportion to
     the RMS error of each block of pixels (plenoxels/core/error_map.py); the rest are uniform (0: every ray uniform;

@@ -31,7 +31,7 @@ from plenoxels.core.grid import SparseGrid, sh_count
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.optim import GridGrad, SparseRMSProp
 from plenoxels.core.options import TrainOptions
-from plenoxels.core.photo_colour import COLOUR_RAYS, PhotoColour
+from plenoxels.core.photo_colour import COLOUR_RAYS, DECIDING_MEASURES, PhotoColour
 from plenoxels.core.ray_set import RaySet
 from plenoxels.core.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution,
                                     tv_scale_for_views, views_per_point)
@@ -154,7 +154,7 @@ class Fitter:
         self.error_map = (ErrorMap(train.sizes, self.measure_stride)
                           if options.error_share > 0 and options.batch_mode == "rays" else None)
         self.colour = PhotoColour(len(train))
-        self.colour_gain_db: float | None = None  # what the first fit of the photos' colours brought
+        self.colour_measures: list[float] = []  # what the gains of each deciding measure brought (dB nearer)
         self._new_optimiser()
 
     # ---- optimiser state ------------------------------------------------------------------------
@@ -294,7 +294,7 @@ class Fitter:
 
     def measures(self) -> bool:
         """Whether this fit measures its photos against the render: for their colours or for its error map."""
-        return self.error_map is not None or self.fits_colour
+        return self.error_map is not None or self.colour_deciding or (self.fits_colour and not self.colour_frozen)
 
     @property
     def own_backdrops(self) -> bool:
@@ -313,11 +313,32 @@ class Fitter:
         return self.colour.to_common(image, backdrops) if self.fits_colour else backdrops
 
     @property
+    def colour_gain_db(self) -> float | None:
+        """What the gains of the deciding measures brought the renders nearer the photos, on average (dB); None
+        until they are all taken."""
+        if len(self.colour_measures) < DECIDING_MEASURES:
+            return None
+        return round(sum(self.colour_measures) / len(self.colour_measures), 3)
+
+    @property
+    def colour_deciding(self) -> bool:
+        """Whether the fit is asked to fit its photos' colours and is still measuring whether they differ (the photos
+        are trained as they are meanwhile)."""
+        return self.options.photo_colour and self.colour_gain_db is None
+
+    @property
     def fits_colour(self) -> bool:
-        """Whether this fit fits its photos' colours: asked to (photo_colour), and their first measure brought the
-        renders at least photo_colour_min_db nearer the photos."""
+        """Whether this fit fits its photos' colours: asked to (photo_colour), and the gains of its deciding measures
+        brought the renders at least photo_colour_min_db nearer the photos on average."""
         measured = self.colour_gain_db
-        return self.options.photo_colour and (measured is None or measured >= self.options.photo_colour_min_db)
+        return self.options.photo_colour and measured is not None and measured >= self.options.photo_colour_min_db
+
+    @property
+    def colour_frozen(self) -> bool:
+        """Whether the photos' gains are kept as they stand: from the last level on. A field fine enough can take a
+        photo's gain up as view-dependent colour, and the gains measured against it then confirm themselves and
+        wander (plenoxels/core/photo_colour.py)."""
+        return self.level >= len(self.schedule.resolutions) - 1
 
     def measure_photos(self) -> None:
         """Renders an even lattice of every training photo's pixels with the model as it stands; fits the photos'
@@ -329,13 +350,15 @@ class Fitter:
         if self.backdrop_as_taken:
             # Where the render is still partly the backdrop, its colour is not yet the object's.
             inside = (opacity > OPAQUE) & (True if inside is None else inside)
-        if self.fits_colour:
+        if self.colour_deciding:
+            # Measured against the photos as they are, which the field has been trained on: gains it has not learnt.
             self.colour.fit(image, rendered, photo, inside)
-            if self.colour_gain_db is None:
-                self.colour_gain_db = round(self.colour.gain_db(image, rendered, photo, inside), 3)
-                if not self.fits_colour:  # the photos agree on colour: as they are from here on
-                    self.colour = PhotoColour(len(self.train))
-                    self.train.coverage = self.train.behind = None
+            self.colour_measures.append(round(self.colour.gain_db(image, rendered, photo, inside), 3))
+            if not self.colour_deciding and not self.fits_colour:  # the photos agree on colour: as they are
+                self.colour = PhotoColour(len(self.train))
+                self.train.coverage = self.train.behind = None
+        elif self.fits_colour and not self.colour_frozen:
+            self.colour.fit(image, rendered, photo, inside)
         if self.error_map is not None:
             common = self.colour.to_common(image, photo, put_in) if self.fits_colour else photo
             self.error_map.measure(image, row, col, ((rendered.clamp(0, 1) - common) ** 2).mean(dim=1))
@@ -387,20 +410,23 @@ class Fitter:
         return words
 
     def colour_record(self) -> dict:
-        """What the fit did about the photos' colours: whether it fitted them, what the first fit brought the renders
-        (dB closer to their photos), and the gains' range."""
-        record = {"used": self.fits_colour, "asked": self.options.photo_colour, "gain_db": self.colour_gain_db}
+        """What the fit did about the photos' colours: whether it fitted them, what the gains of its deciding measures
+        brought the renders (dB closer to their photos: their mean, and each), and the gains' range."""
+        record = {"used": self.fits_colour, "asked": self.options.photo_colour, "gain_db": self.colour_gain_db,
+                  "measures": self.colour_measures}
         return {**record, **self.colour.describe()} if self.fits_colour else record
 
     def colour_summary(self) -> str:
         """The fit summary's words on the photos' colours ("" where they were taken as they are)."""
         if not self.options.photo_colour:
             return ""
+        if self.colour_gain_db is None:
+            return f", the photos taken as they are (the fit ended before {DECIDING_MEASURES} measures of their colours)"
         if not self.fits_colour:
             return (f", the photos agree on colour (gains {self.colour_gain_db:+.2f} dB nearer them at first, under "
                     f"{self.options.photo_colour_min_db:g}): taken as they are")
         gains = self.colour.describe()
-        brought = f", {self.colour_gain_db:+.1f} dB at first" if self.colour_gain_db is not None else ""
+        brought = f", {self.colour_gain_db:+.1f} dB at first"
         return (f", each photo's colour fitted (gains {min(gains['gain_min']):.2f}-{max(gains['gain_max']):.2f}"
                 f"{brought}; train PSNR in the common colour)")
 
@@ -465,7 +491,7 @@ class Fitter:
             "background_color": list(self.model.background_color),
             "bg_optim": self.bg_optim.state_dict() if self.bg_optim is not None else None,
             "error_map": self.error_map.state_dict() if self.error_map is not None else None,
-            "colour": {"gain_db": self.colour_gain_db, **self.colour.state_dict()},
+            "colour": {"measures": self.colour_measures, **self.colour.state_dict()},
         }
 
     def save_checkpoint(self, path: Path) -> None:
@@ -491,5 +517,5 @@ class Fitter:
         if self.error_map is not None and state.get("error_map") is not None:
             self.error_map.load_state_dict(state["error_map"])
         if state.get("colour") is not None:
-            self.colour_gain_db = state["colour"]["gain_db"]
+            self.colour_measures = list(state["colour"]["measures"])
             self.colour.load_state_dict(state["colour"])

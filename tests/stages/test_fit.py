@@ -356,12 +356,13 @@ def test_the_held_out_gap_compares_training_views_rendered_as_the_held_out_ones(
 
 
 def test_photos_that_agree_on_colour_are_taken_as_they_are(fresh):
-    """Photos of one light and exposure: the first measure of their gains brings the renders next to nothing nearer
+    """Photos of one light and exposure: the first two measures of their gains bring the renders next to nothing nearer
     them, so the fit stops fitting gains that would only take up its own errors; photos whose exposures differ keep
     theirs."""
     summary = run_stage(fresh, fit, {**QUICK, "photo_colour": True, "measure_every": 40})
     record = read_json(fresh / "fit" / "fit.json")["photo_colour"]
     assert record["asked"] and not record["used"] and record["gain_db"] < 0.15
+    assert len(record["measures"]) == 2 and record["gain_db"] == pytest.approx(np.mean(record["measures"]), abs=1e-3)
     assert SceneModel.load(fresh / "fit").photo_gains is None
     assert "agree on colour" in summary["line"]
     for frame in read_json(fresh / "normalize" / "scene.json")["frames"][::2]:
