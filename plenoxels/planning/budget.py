@@ -5,8 +5,8 @@
 times, level changes, what each prune keeps and its held-out renders. Every REPLAN_EVERY steps and at each level
 change it re-plans the steps of the levels under way and to come (dropping a level that cannot get half its steps,
 bringing a dropped one back when the costs measured since fit it, and in a scene that fills its box lowering a last
-level too dear for half of them, or raising it back to the plan's), and it says when the fit must stop so that the stage ends by the deadline with a
-complete model.
+level too dear for half of them, or raising it back to the plan's once they leave time for it), and it says when the
+fit must stop so that the stage ends by the deadline with a complete model.
 """
 from __future__ import annotations
 
@@ -207,8 +207,8 @@ class TimeBudget:
         # The fitter consults this schedule at every step (Fitter.run).
         self.schedule.resolutions[:] = resolutions
         self.schedule.steps[:] = steps
-        # A steps-only re-plan replaces the one before it, unless either dropped, restored or lowered a level (that
-        # stays in the record).
+        # A steps-only re-plan replaces the one before it, unless either dropped, restored, lowered or raised a level
+        # (that stays in the record).
         changed_levels = {"dropped_levels", "restored_levels", "lowered_last_level", "raised_last_level"}
         if (why == "steps" and self.replans and self.replans[-1]["why"] == "steps"
                 and not changed_levels & (set(entry) | set(self.replans[-1]))):
