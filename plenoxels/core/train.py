@@ -421,7 +421,8 @@ class Fitter:
         if not self.options.photo_colour:
             return ""
         if self.colour_gain_db is None:
-            return f", the photos taken as they are (the fit ended before {DECIDING_MEASURES} measures of their colours)"
+            return (f", the photos taken as they are (the fit ended before {DECIDING_MEASURES} measures of their "
+                    f"colours)")
         if not self.fits_colour:
             return (f", the photos agree on colour (gains {self.colour_gain_db:+.2f} dB nearer them at first, under "
                     f"{self.options.photo_colour_min_db:g}): taken as they are")
