@@ -7,13 +7,13 @@ the fit measures, now and then, each photo's gain per channel against its render
 clipped pixels left out) and trains the field against the photos taken back to a common colour, photo / gain. The gains
 average 1 over the photos, so the field keeps their average colour, the one a new view is rendered in.
 
-Whether the photos differ in colour at all is decided on the fit's first DECIDING_MEASURES measures, with the photos
-trained as they are until then: one measure of a field that has just begun reads its own errors as much as the photos'
-colours (lego's first measure at 800x800 has read 0.08 and 0.20 dB in two fits). The gains are measured again as the
-fit goes, and kept as they stand from its last level on: a field that fits a photo's gain as view-dependent colour
-(spherical harmonics of degree 2 can, for a few views) renders that photo in it, so the gains measured against it
-confirm themselves, measure after measure, and wander (lego's `paper` fit in 30 minutes ended with gains from 0.49 to
-1.97, held out 25.6 dB).
+Whether the photos differ in colour at all is decided on the fit's first DECIDING_MEASURES measures (or as many as a
+short fit takes before its last level), with the photos trained as they are until then: one measure of a field that has
+just begun reads its own errors as much as the photos' colours (lego's first measure at 800x800 has read 0.08 and 0.20
+dB in two fits). Gains fitted to photos that agree take those errors up, and a field that can follow a photo's gain
+as view-dependent colour (spherical harmonics of degree 2, for a few views) renders the photo in it, so the gains
+measured against it confirm themselves measure after measure and wander: lego's `paper` fit in 30 minutes, decided on
+one measure, ended with gains from 0.49 to 1.97 and held out 25.6 dB.
 
 A photo the fit did not see (a held-out one) was taken in a colour of its own too. A phone's exposure follows its
 capture: frames next to each other in a video, or photos taken one after another, share theirs. So a held-out photo is

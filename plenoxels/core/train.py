@@ -155,6 +155,7 @@ class Fitter:
                           if options.error_share > 0 and options.batch_mode == "rays" else None)
         self.colour = PhotoColour(len(train))
         self.colour_measures: list[float] = []  # what the gains of each deciding measure brought (dB nearer)
+        self.colour_decided = False  # whether those measures have decided if the photos differ in colour
         self._new_optimiser()
 
     # ---- optimiser state ------------------------------------------------------------------------
@@ -294,7 +295,7 @@ class Fitter:
 
     def measures(self) -> bool:
         """Whether this fit measures its photos against the render: for their colours or for its error map."""
-        return self.error_map is not None or self.colour_deciding or (self.fits_colour and not self.colour_frozen)
+        return self.error_map is not None or self.colour_deciding or self.fits_colour
 
     @property
     def own_backdrops(self) -> bool:
@@ -315,8 +316,8 @@ class Fitter:
     @property
     def colour_gain_db(self) -> float | None:
         """What the gains of the deciding measures brought the renders nearer the photos, on average (dB); None
-        until they are all taken."""
-        if len(self.colour_measures) < DECIDING_MEASURES:
+        until they have decided."""
+        if not self.colour_decided:
             return None
         return round(sum(self.colour_measures) / len(self.colour_measures), 3)
 
@@ -333,12 +334,6 @@ class Fitter:
         measured = self.colour_gain_db
         return self.options.photo_colour and measured is not None and measured >= self.options.photo_colour_min_db
 
-    @property
-    def colour_frozen(self) -> bool:
-        """Whether the photos' gains are kept as they stand: from the last level on. A field fine enough can take a
-        photo's gain up as view-dependent colour, and the gains measured against it then confirm themselves and
-        wander (plenoxels/core/photo_colour.py)."""
-        return self.level >= len(self.schedule.resolutions) - 1
 
     def measure_photos(self) -> None:
         """Renders an even lattice of every training photo's pixels with the model as it stands; fits the photos'
@@ -354,10 +349,13 @@ class Fitter:
             # Measured against the photos as they are, which the field has been trained on: gains it has not learnt.
             self.colour.fit(image, rendered, photo, inside)
             self.colour_measures.append(round(self.colour.gain_db(image, rendered, photo, inside), 3))
-            if not self.colour_deciding and not self.fits_colour:  # the photos agree on colour: as they are
+            # DECIDING_MEASURES of them, or as many as a short fit has taken by its last level.
+            self.colour_decided = (len(self.colour_measures) >= DECIDING_MEASURES
+                                   or self.level >= len(self.schedule.resolutions) - 1)
+            if self.colour_decided and not self.fits_colour:  # the photos agree on colour: as they are
                 self.colour = PhotoColour(len(self.train))
                 self.train.coverage = self.train.behind = None
-        elif self.fits_colour and not self.colour_frozen:
+        elif self.fits_colour:
             self.colour.fit(image, rendered, photo, inside)
         if self.error_map is not None:
             common = self.colour.to_common(image, photo, put_in) if self.fits_colour else photo
@@ -421,8 +419,7 @@ class Fitter:
         if not self.options.photo_colour:
             return ""
         if self.colour_gain_db is None:
-            return (f", the photos taken as they are (the fit ended before {DECIDING_MEASURES} measures of their "
-                    f"colours)")
+            return ", the photos taken as they are (the fit ended before it had measured their colours)"
         if not self.fits_colour:
             return (f", the photos agree on colour (gains {self.colour_gain_db:+.2f} dB nearer them at first, under "
                     f"{self.options.photo_colour_min_db:g}): taken as they are")
@@ -492,7 +489,7 @@ class Fitter:
             "background_color": list(self.model.background_color),
             "bg_optim": self.bg_optim.state_dict() if self.bg_optim is not None else None,
             "error_map": self.error_map.state_dict() if self.error_map is not None else None,
-            "colour": {"measures": self.colour_measures, **self.colour.state_dict()},
+            "colour": {"measures": self.colour_measures, "decided": self.colour_decided, **self.colour.state_dict()},
         }
 
     def save_checkpoint(self, path: Path) -> None:
@@ -519,4 +516,5 @@ class Fitter:
             self.error_map.load_state_dict(state["error_map"])
         if state.get("colour") is not None:
             self.colour_measures = list(state["colour"]["measures"])
+            self.colour_decided = state["colour"]["decided"]
             self.colour.load_state_dict(state["colour"])

@@ -176,13 +176,9 @@ def test_a_fit_of_photos_in_several_exposures_finds_each_photos_gains(tmp_path):
         options = TrainOptions(resolutions=[24, 24, 32], steps=[60, 60, 120], batch_size=2048, photo_colour=used,
                                measure_every=40)
         fitter = Fitter(SceneModel.create(scene, ModelOptions(sh_degree=0), 24), options, exposed)
-        measured, measure = [], fitter.measure_photos
-        fitter.measure_photos = lambda: measure() or measured.append((fitter.level, fitter.colour.gain.clone()))
         fitter.run(tmp_path / f"{used}.pt", 1e9)
         fits[used] = fitter
-    # Decided on the first two measures (steps 40 and 60), fitted again until the last level, kept from there on.
-    assert len(fits[True].colour_record()["measures"]) == 2 and [level for level, _ in measured] == [0, 1, 1]
-    torch.testing.assert_close(fits[True].colour.gain, measured[-1][1], atol=0, rtol=0)
+    assert len(fits[True].colour_record()["measures"]) == 2  # decided on the first two (steps 40 and 60)
     found = fits[True].colour.gain.float()
     # The photos' own gains, as near as a fit of 20 dB renders them: in the same order, near their size.
     for channel in range(3):
