@@ -334,7 +334,6 @@ class Fitter:
         measured = self.colour_gain_db
         return self.options.photo_colour and measured is not None and measured >= self.options.photo_colour_min_db
 
-
     def measure_photos(self) -> None:
         """Renders an even lattice of every training photo's pixels with the model as it stands; fits the photos'
         colours where the options say so, and measures the error map against the photos in their common colour."""
@@ -419,7 +418,7 @@ class Fitter:
         if not self.options.photo_colour:
             return ""
         if self.colour_gain_db is None:
-            return ", the photos taken as they are (the fit ended before it had measured their colours)"
+            return ", the photos taken as they are (the fit ended before its measures of their colours had decided)"
         if not self.fits_colour:
             return (f", the photos agree on colour (gains {self.colour_gain_db:+.2f} dB nearer them at first, under "
                     f"{self.options.photo_colour_min_db:g}): taken as they are")
