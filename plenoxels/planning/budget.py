@@ -190,7 +190,7 @@ class TimeBudget:
         # that keeps most of an object's box (its grid not yet cleared) reads as a room's, whose last level is lowered
         # on costs that the later levels' steps then undercut (lego `paper` in 30 minutes: 512 lowered to 432 at step
         # 220, which then had 1.45x its steps).
-        if self.fitter.level < len(candidates) - 1 and len(candidates) == len(self.plan.resolutions):
+        if self.fitter.level < len(candidates) - 1:
             candidates[-1] = max(candidates[-1], self.plan.resolutions[-1])
         resolutions, steps, share = replan(self.left() - SLACK * self.seconds, self.costs, self.facts, self.now,
                                            self.rung, candidates, self.schedule.steps + self.plan.steps[kept:],
