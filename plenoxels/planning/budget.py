@@ -5,8 +5,8 @@
 times, level changes, what each prune keeps and its held-out renders. Every REPLAN_EVERY steps and at each level
 change it re-plans the steps of the levels under way and to come (dropping a level that cannot get half its steps,
 bringing a dropped one back when the costs measured since fit it, and in a scene that fills its box lowering a last
-level too dear for half of them, or raising it back to the plan's once they leave time for it), and it says when the
-fit must stop so that the stage ends by the deadline with a complete model.
+level too dear for half of them), and it says when the fit must stop so that the stage ends by the deadline with a
+complete model.
 """
 from __future__ import annotations
 
@@ -186,12 +186,6 @@ class TimeBudget:
         # early, its last level at twice its steps).
         kept = len(self.schedule.resolutions)
         candidates = self.schedule.resolutions + self.plan.resolutions[kept:]
-        # So does the plan's last resolution where a re-plan lowered it and the fit has not reached it: a first prune
-        # that keeps most of an object's box (its grid not yet cleared) reads as a room's, whose last level is lowered
-        # on costs that the later levels' steps then undercut (lego `paper` in 30 minutes: 512 lowered to 432 at step
-        # 220, which then had 1.45x its steps).
-        if self.fitter.level < len(candidates) - 1:
-            candidates[-1] = max(candidates[-1], self.plan.resolutions[-1])
         resolutions, steps, share = replan(self.left() - SLACK * self.seconds, self.costs, self.facts, self.now,
                                            self.rung, candidates, self.schedule.steps + self.plan.steps[kept:],
                                            measured=not self._at_first_resolution())
@@ -202,14 +196,13 @@ class TimeBudget:
         elif len(resolutions) > kept:
             entry["restored_levels"] = resolutions[kept:]
         elif resolutions[-1] != self.schedule.resolutions[-1]:
-            changed = "lowered_last_level" if resolutions[-1] < self.schedule.resolutions[-1] else "raised_last_level"
-            entry[changed] = [self.schedule.resolutions[-1], resolutions[-1]]
+            entry["lowered_last_level"] = [self.schedule.resolutions[-1], resolutions[-1]]
         # The fitter consults this schedule at every step (Fitter.run).
         self.schedule.resolutions[:] = resolutions
         self.schedule.steps[:] = steps
-        # A steps-only re-plan replaces the one before it, unless either dropped, restored, lowered or raised a level
-        # (that stays in the record).
-        changed_levels = {"dropped_levels", "restored_levels", "lowered_last_level", "raised_last_level"}
+        # A steps-only re-plan replaces the one before it, unless either dropped, restored or lowered a level (that
+        # stays in the record).
+        changed_levels = {"dropped_levels", "restored_levels", "lowered_last_level"}
         if (why == "steps" and self.replans and self.replans[-1]["why"] == "steps"
                 and not changed_levels & (set(entry) | set(self.replans[-1]))):
             self.replans[-1] = entry

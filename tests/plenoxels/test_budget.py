@@ -243,27 +243,3 @@ def test_a_level_a_replan_dropped_comes_back_once_the_measured_steps_leave_time_
     assert replans[0]["dropped_levels"] == [32] and [r for r in replans if r.get("restored_levels") == [32]]
     assert record["resolutions"] == record["budget"]["ran"]["resolutions"] == [16, 24, 32] and record["complete"]
     assert record["steps"] == record["total_steps"] == 3 * 40  # every level at the free costs' twice its steps
-
-
-def test_a_last_level_a_replan_lowered_is_raised_back_once_the_measured_steps_leave_time_for_it(fresh, monkeypatch):
-    """A last level lowered on costs predicted before the fit reached it (a first prune that read an object's box as
-    full) goes back to the plan's resolution once the steps measured since leave time for it, before it starts."""
-    monkeypatch.setattr(budget, "LADDER", (Rung((16, 24, 32), (20, 20, 20)),))
-    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
-    replan, calls = budget.replan, []
-
-    def lowered_at_first(seconds, costs, facts, now, rung, resolutions, steps, measured):
-        calls.append(list(resolutions))
-        if len(calls) == 1:  # the first re-plan lowers the last level, as a full box on dear costs would
-            resolutions = resolutions[:-1] + [resolutions[-1] - 8]
-        return replan(seconds, costs, facts, now, rung, resolutions, steps, measured)
-
-    monkeypatch.setattr(budget, "replan", lowered_at_first)
-    run_stage(fresh, fit, {**BUDGETED, "time_budget": "1m"})
-    record = read_json(fresh / "fit" / "fit.json")
-    replans = record["budget"]["replans"]
-    assert replans[0]["lowered_last_level"] == [32, 24]
-    assert [r for r in replans if r.get("raised_last_level") == [24, 32]]
-    assert calls[1][-1] == 32  # the plan's resolution is the candidate again
-    assert record["resolutions"] == record["budget"]["ran"]["resolutions"] == [16, 24, 32] and record["complete"]
-
