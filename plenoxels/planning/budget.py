@@ -21,8 +21,8 @@ import numpy as np
 import torch
 
 from plenoxels.planning.fit_cost import calibrate
-from plenoxels.planning.fit_plan import (FIRST_KEEP_PRIOR, LADDER, MAX_SHARE, MIN_SHARE, FitFacts, Plan, Rung, choose,
-                                finish_seconds, replan)
+from plenoxels.planning.fit_plan import (FINEST_MAX_SHARE, FIRST_KEEP_PRIOR, LADDER, MAX_SHARE, MIN_SHARE, FitFacts,
+                                         Plan, Rung, choose, finish_seconds, replan)
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.core.train import Fitter, Schedule, coarse_start, pruning_rays
@@ -225,10 +225,10 @@ class TimeBudget:
         note = ""
         if not self.plan.fits:
             note = " (less than the coarsest plan needs: it stops at the deadline)"
-        elif self.plan.share >= MAX_SHARE and not any(
+        elif self.plan.share >= FINEST_MAX_SHARE and not any(
                 self.plan.resolutions[-1] < r.resolutions[-1] <= self.facts.max_resolution for r in LADDER):
-            note = (f" (as fine as the {self.facts.max_resolution}-pixel photos are worth, with twice the steps: more "
-                    f"time would not help)")
+            note = (f" (as fine as the {self.facts.max_resolution}-pixel photos are worth, with {FINEST_MAX_SHARE:g}x "
+                    f"the steps: it ends early)")
         slower = self.calibration.get("slower_now")
         cached = (f" (cached, scaled by {slower:.2f} to the machine's speed now)"
                   if self.calibration["cached"] and slower else "")
@@ -241,7 +241,8 @@ class TimeBudget:
             "seconds": self.seconds, "line": self.line(),
             "why": (f"the finest candidate (plenoxels/planning/fit_plan.py LADDER) no finer than the photos' "
                     f"{self.facts.max_resolution} pixels whose predicted time fits with at least {MIN_SHARE:g}x its "
-                    f"steps, given the most steps that fit, up to {MAX_SHARE:g}x"),
+                    f"steps, given the most steps that fit, up to {MAX_SHARE:g}x ({FINEST_MAX_SHARE:g}x where no finer "
+                    f"grid can take the time)"),
             "chosen": {**dataclasses.asdict(self.plan), "share": round(self.plan.share, 3),
                        "predicted": round(self.plan.predicted, 1)},
             "ran": {"resolutions": list(self.schedule.resolutions), "steps": list(self.schedule.steps)},

@@ -17,7 +17,8 @@ steps for the same time, and a level needs enough steps to converge, but half th
 rung of resolution does. A grid finer than the training photos have pixels across buys nothing: it has no detail to
 learn that the photos show. So the rule is: the finest rung of LADDER no finer than the photos' longest side whose
 predicted time fits with at least MIN_SHARE of its steps, given as many steps as the time allows up to MAX_SHARE of
-them (more steps still help, less than a finer grid would). A budget beyond that ends early.
+them (more steps still help, less than a finer grid would), or up to FINEST_MAX_SHARE where no finer grid can take the
+time: at the finest rung the photos are worth, and once the fit is in its last level. A budget beyond that ends early.
 
 The coarsest rungs start at 32^3: a first level's step marches its whole box, so it is the dearest step of a fit for
 its voxels, and a 32^3 level finds the occupied space for a fraction of a 64^3 one's time, for about the same
@@ -35,6 +36,11 @@ from plenoxels.planning.fit_cost import CostModel
 # MAX_SHARE (past it, time goes further in a finer grid).
 MIN_SHARE = 0.5
 MAX_SHARE = 2.0
+# Where no finer grid can take the time (the finest rung the photos are worth, or a fit already in its last level), the
+# last level's steps may grow to FINEST_MAX_SHARE, the levels before staying at MAX_SHARE: each doubling of lego's
+# 512^3 steps at 800x800 gave about 0.5 dB (bench/README.md, "The papers' protocol"), and a budget that ends early
+# leaves that on the table.
+FINEST_MAX_SHARE = 4.0
 # Priors for the share of a level's voxels that pruning keeps, until a level change has measured it: the first prune
 # (of a first level's whole box) by the scene type, and later ones (of grids pruned before, which keep more of
 # themselves). An object's or a forward capture's box is mostly air in front of and around thin surfaces; an unbounded
@@ -60,7 +66,12 @@ class Rung:
     """Leading levels whose steps stay as they are whatever the share (a first level's early prune)."""
 
     def scaled(self, share: float) -> list[int]:
-        return [n if level < self.fixed else max(1, round(share * n)) for level, n in enumerate(self.steps)]
+        """The steps at a share; past MAX_SHARE only the last level's grow, as that is where the detail is learnt."""
+        steps = [n if level < self.fixed else max(1, round(min(share, MAX_SHARE) * n))
+                 for level, n in enumerate(self.steps)]
+        if share > MAX_SHARE:
+            steps[-1] = max(1, round(share * self.steps[-1]))
+        return steps
 
 
 def _pruned_early(resolutions: tuple[int, ...], steps: tuple[int, ...]) -> Rung:
@@ -199,11 +210,12 @@ def _finest_first(ladder) -> list[Rung]:
 
 def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung, ...] | None = None) -> Plan:
     """The plan for a fit that has not started: the finest rung (no finer than `facts.max_resolution`) whose predicted
-    time fits `seconds` with at least MIN_SHARE of its steps, with the most steps that fit up to MAX_SHARE (of rungs
-    ending at the same resolution, the one that gets the largest share); when none fits, the coarsest rung with the
-    steps that fit (at least one a level)."""
+    time fits `seconds` with at least MIN_SHARE of its steps, with the most steps that fit up to MAX_SHARE
+    (FINEST_MAX_SHARE at the finest rung; of rungs ending at the same resolution, the one that gets the largest share);
+    when none fits, the coarsest rung with the steps that fit (at least one a level)."""
     ladder = _finest_first(ladder or LADDER)
     ladder = [r for r in ladder if r.resolutions[-1] <= facts.max_resolution] or ladder[-1:]
+    top = max(r.resolutions[-1] for r in ladder)
 
     def seconds_for(rung: Rung, share: float) -> float:
         now = facts.outlook(voxels=facts.box_voxels(rung.resolutions[0]))
@@ -214,7 +226,8 @@ def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung
 
     for finest in sorted({r.resolutions[-1] for r in ladder}, reverse=True):
         shares = [(share, rung) for rung in ladder if rung.resolutions[-1] == finest
-                  for share in [_largest_share(lambda s: seconds_for(rung, s) <= seconds, MIN_SHARE, MAX_SHARE)]
+                  for share in [_largest_share(lambda s: seconds_for(rung, s) <= seconds, MIN_SHARE,
+                                               FINEST_MAX_SHARE if finest == top else MAX_SHARE)]
                   if share is not None]
         if shares:
             share, rung = max(shares, key=lambda pair: pair[0])  # the first of equal shares: ladder order
@@ -225,14 +238,15 @@ def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung
 
 def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung: Rung, resolutions: list[int],
            steps: list[int], measured: bool) -> tuple[list[int], list[int], float]:
-    """(resolutions, steps, share) for a fit under way, the levels done kept: the most steps (a share of the rung's,
-    at most MAX_SHARE) whose predicted time fits `seconds`. A level still to come is dropped when keeping it would leave
-    less than MIN_SHARE of the steps: with `measured` costs (once the fit has left its first resolution) any such level;
-    before that only one past the second resolution, as what pruning keeps is still a prior and a first resolution
-    alone, pruned early or not, is never a whole fit. Without that, a first level gives up the steps a level dropped
-    later would have needed, and the fit ends with neither. A level is not dropped where the levels before it, at
-    MAX_SHARE, would end the fit early (leaving budget unused): it stays, with what fits. When no schedule gets
-    MIN_SHARE, the fewest levels allowed get what fits.
+    """(resolutions, steps, share) for a fit under way, the levels done kept: the most steps (a share of the rung's, at
+    most MAX_SHARE, or FINEST_MAX_SHARE with every level kept where no finer grid can take the time) whose predicted
+    time fits `seconds`. A level still to come is dropped when keeping it would leave less than MIN_SHARE of the steps:
+    with `measured` costs (once the fit has left its first resolution) any such level; before that only one past the
+    second resolution, as what pruning keeps is still a prior and a first resolution alone, pruned early or not, is
+    never a whole fit. Without that, a first level gives up the steps a level dropped later would have needed, and the
+    fit ends with neither. A level is not dropped where the levels before it, at MAX_SHARE, would end the fit early
+    (leaving budget unused): it stays, with what fits. When no schedule gets MIN_SHARE, the fewest levels allowed get
+    what fits.
 
     In a scene whose first prune kept more than FULL_BOX of its box, a last level not yet started that would get less
     than MIN_SHARE of its steps (and is not dropped) is lowered, by LOWER_BY, to the finest resolution that gets
@@ -266,8 +280,13 @@ def _replan_levels(seconds: float, costs: CostModel, facts: FitFacts, now: Outlo
     # A first level pruned early goes on at its resolution: the second level is then the one after that.
     second = next((level + 1 for level, r in enumerate(resolutions) if r != resolutions[0]), len(resolutions))
     fewest = now.level + 1 if measured else min(len(resolutions), max(now.level + 1, second))
+    # All levels kept, extra time can only go into steps where the last is the finest rung the photos are worth or
+    # the fit has reached it.
+    finest = (now.level == len(resolutions) - 1 or not any(
+        resolutions[-1] < r.resolutions[-1] <= facts.max_resolution for r in LADDER))
     for levels in range(len(resolutions), fewest - 1, -1):
-        share = _largest_share(fits(levels), MIN_SHARE, MAX_SHARE)
+        cap = FINEST_MAX_SHARE if finest and levels == len(resolutions) else MAX_SHARE
+        share = _largest_share(fits(levels), MIN_SHARE, cap)
         if share is None:
             continue
         if levels < len(resolutions) and share >= MAX_SHARE:  # the fit would end early: the level stays, short

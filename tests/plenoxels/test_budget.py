@@ -13,7 +13,7 @@ from pipeline import config
 from stages.common.json_files import read_json
 from plenoxels.planning import budget
 from plenoxels.planning.fit_cost import CostModel
-from plenoxels.planning.fit_plan import Rung
+from plenoxels.planning.fit_plan import FINEST_MAX_SHARE, Rung
 from plenoxels.core.errors import UserError
 from plenoxels.core.train import Fitter
 from stages import fit
@@ -100,8 +100,8 @@ def test_the_deadline_ends_a_fit_whose_plan_was_too_long_and_it_is_still_complet
     monkeypatch.setattr(Fitter, "prune", lambda self, budget_rows=None: prunes.append(budget_rows)
                         or original(self, budget_rows))
     step = Fitter.train_step
-    # 2 ms more a step: the free calibration's plan (2 x 1200 steps) then outlasts the budget on any machine (a fast
-    # one had run all of its tiny steps before the deadline).
+    # 2 ms more a step: the free calibration's plan (the tiny ladder's only rung, so its finest, at FINEST_MAX_SHARE)
+    # then outlasts the budget on any machine (a fast one had run all of its tiny steps before the deadline).
     monkeypatch.setattr(Fitter, "train_step", lambda self: time.sleep(0.002) or step(self))
     seconds = 4.0
     started = time.time()
@@ -109,7 +109,7 @@ def test_the_deadline_ends_a_fit_whose_plan_was_too_long_and_it_is_still_complet
     assert time.time() - started <= seconds + 3.0
     record = read_json(fresh / "fit" / "fit.json")
     assert record["budget"]["stopped_at_deadline"] and record["complete"]
-    assert record["steps"] < record["total_steps"] == 2 * 1200
+    assert record["steps"] < record["total_steps"] == sum(TINY_LADDER[0].scaled(FINEST_MAX_SHARE))
     assert prunes[-1] is None  # pruned once more at the end, as a complete schedule is
     assert "stopped at the deadline" in summary["line"]
 

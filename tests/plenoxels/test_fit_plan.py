@@ -19,7 +19,8 @@ def test_a_plan_never_predicts_more_than_its_budget_and_more_time_buys_a_finer_g
     for seconds in (20, 30, 45, 60, 90, 120, 180, 300, 600, 1200, 3600):
         plan = fit_plan.choose(seconds, MEASURED, FACTS)
         assert plan.fits and plan.predicted <= seconds, (seconds, plan)
-        assert fit_plan.MIN_SHARE <= plan.share <= fit_plan.MAX_SHARE
+        finest = plan.resolutions[-1] == max(r.resolutions[-1] for r in fit_plan.LADDER)
+        assert fit_plan.MIN_SHARE <= plan.share <= (fit_plan.FINEST_MAX_SHARE if finest else fit_plan.MAX_SHARE)
         rung = next(r for r in fit_plan.LADDER if list(r.resolutions) == plan.resolutions)
         assert plan.steps == rung.scaled(plan.share)
         finer = [r for r in fit_plan.LADDER if r.resolutions[-1] > plan.resolutions[-1]]
@@ -33,7 +34,7 @@ def test_a_plan_never_predicts_more_than_its_budget_and_more_time_buys_a_finer_g
 def test_a_plan_is_no_finer_than_the_photos_have_pixels():
     small_photos = FitFacts(**{**FACTS.__dict__, "max_resolution": 160})
     plan = fit_plan.choose(3600, MEASURED, small_photos)
-    assert plan.resolutions[-1] == 160 and plan.share == fit_plan.MAX_SHARE and plan.predicted < 3600
+    assert plan.resolutions[-1] == 160 and plan.share == fit_plan.FINEST_MAX_SHARE and plan.predicted < 3600
     assert fit_plan.choose(3600, MEASURED, FACTS).resolutions[-1] == max(r.resolutions[-1] for r in fit_plan.LADDER) == 512
 
 
@@ -242,3 +243,21 @@ def test_the_last_pruning_pass_is_predicted_at_the_held_out_renders_measured_rat
         MEASURED, FACTS, Outlook(), 128, 1e5) == pytest.approx(
         2 * MEASURED.pass_seconds(FACTS.prune_rays(128) + FACTS.eval_rays, 128))  # the last pruning pass and the held-out
 
+
+def test_time_left_goes_into_steps_where_no_finer_grid_can_take_it():
+    """Past MAX_SHARE the steps grow, up to FINEST_MAX_SHARE, only where a finer grid is no option: at the finest rung
+    the photos are worth, or once the fit is in its last level. A last level still to come, with finer rungs the
+    photos are worth above it, stays at MAX_SHARE."""
+    rung = next(r for r in fit_plan.LADDER if r.resolutions == (128, 128, 256, 384))
+    resolutions, planned = list(rung.resolutions), rung.scaled(1.0)
+    plenty = 1e6
+    before = Outlook(level=2, step=sum(planned[:2]) + 10, voxels=300_000, dense=False)
+    _, _, share = fit_plan.replan(plenty, MEASURED, FACTS, before, rung, resolutions, planned, measured=True)
+    assert share == fit_plan.MAX_SHARE
+    inside = Outlook(level=3, step=sum(planned[:3]) + 10, voxels=2_000_000, dense=False)
+    kept, steps, share = fit_plan.replan(plenty, MEASURED, FACTS, inside, rung, resolutions, planned, measured=True)
+    assert kept == resolutions and share == fit_plan.FINEST_MAX_SHARE
+    assert steps[:3] == planned[:3] and steps[3] == rung.scaled(fit_plan.FINEST_MAX_SHARE)[3]
+    photos_of_400 = FitFacts(**{**FACTS.__dict__, "max_resolution": 400})
+    _, _, share = fit_plan.replan(plenty, MEASURED, photos_of_400, before, rung, resolutions, planned, measured=True)
+    assert share == fit_plan.FINEST_MAX_SHARE
