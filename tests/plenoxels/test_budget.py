@@ -157,7 +157,9 @@ def test_a_budgeted_fit_resumes_with_its_plan(fresh, monkeypatch):
     run_stage(fresh, fit, values)
     record = read_json(fresh / "fit" / "fit.json")
     assert record["resumed_from_step"] == 100 and record["complete"]
-    assert record["resolutions"] == [16, 32] and record["steps"] == record["total_steps"] == 160  # the plan's 2x
+    # The plan's, its only rung being its finest: 2x the first level's steps, FINEST_MAX_SHARE the last's.
+    assert record["resolutions"] == [16, 32]
+    assert record["steps"] == record["total_steps"] == sum(budget.LADDER[0].scaled(FINEST_MAX_SHARE)) == 80 + 160
     # What the level change's prune kept, measured before the stop, not the scene type's prior.
     first = record["levels"][0]
     assert record["budget"]["kept_share"]["first_prune"] == pytest.approx(first["kept"] / first["pruned_from"], abs=1e-4)
@@ -242,4 +244,5 @@ def test_a_level_a_replan_dropped_comes_back_once_the_measured_steps_leave_time_
     replans = record["budget"]["replans"]
     assert replans[0]["dropped_levels"] == [32] and [r for r in replans if r.get("restored_levels") == [32]]
     assert record["resolutions"] == record["budget"]["ran"]["resolutions"] == [16, 24, 32] and record["complete"]
-    assert record["steps"] == record["total_steps"] == 3 * 40  # every level at the free costs' twice its steps
+    # At the free costs every level gets twice its steps, and the last, once the fit is in it, FINEST_MAX_SHARE.
+    assert record["steps"] == record["total_steps"] == sum(budget.LADDER[0].scaled(FINEST_MAX_SHARE)) == 40 + 40 + 80
