@@ -22,7 +22,7 @@ import torch
 
 from plenoxels.planning.fit_cost import calibrate
 from plenoxels.planning.fit_plan import (FINEST_MAX_SHARE, FIRST_KEEP_PRIOR, LADDER, MAX_SHARE, MIN_SHARE, FitFacts,
-                                         Plan, Rung, choose, finish_seconds, replan)
+                                         Plan, Rung, choose, finest_worth, finish_seconds, replan)
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.core.train import Fitter, Schedule, coarse_start, pruning_rays
@@ -225,8 +225,8 @@ class TimeBudget:
         note = ""
         if not self.plan.fits:
             note = " (less than the coarsest plan needs: it stops at the deadline)"
-        elif self.plan.share >= FINEST_MAX_SHARE and not any(
-                self.plan.resolutions[-1] < r.resolutions[-1] <= self.facts.max_resolution for r in LADDER):
+        elif self.plan.share >= FINEST_MAX_SHARE and finest_worth(self.plan.resolutions[-1],
+                                                                   self.facts.max_resolution, LADDER):
             note = (f" (as fine as the {self.facts.max_resolution}-pixel photos are worth, with {FINEST_MAX_SHARE:g}x "
                     f"the steps: it ends early)")
         slower = self.calibration.get("slower_now")

@@ -204,6 +204,11 @@ class Plan:
         return f"{levels} {'->'.join(map(str, self.resolutions))}, {'+'.join(map(str, self.steps))} steps"
 
 
+def finest_worth(resolution: int, max_resolution: int, ladder: tuple[Rung, ...] | None = None) -> bool:
+    """Whether no rung of the ladder ends finer than `resolution` and still no finer than the photos' pixels."""
+    return not any(resolution < r.resolutions[-1] <= max_resolution for r in ladder or LADDER)
+
+
 def _finest_first(ladder) -> list[Rung]:
     return sorted(ladder, key=lambda r: (r.resolutions[-1], len(r.resolutions)), reverse=True)
 
@@ -282,8 +287,7 @@ def _replan_levels(seconds: float, costs: CostModel, facts: FitFacts, now: Outlo
     fewest = now.level + 1 if measured else min(len(resolutions), max(now.level + 1, second))
     # All levels kept, extra time can only go into steps where the last is the finest rung the photos are worth or
     # the fit has reached it.
-    finest = (now.level == len(resolutions) - 1 or not any(
-        resolutions[-1] < r.resolutions[-1] <= facts.max_resolution for r in LADDER))
+    finest = now.level == len(resolutions) - 1 or finest_worth(resolutions[-1], facts.max_resolution)
     for levels in range(len(resolutions), fewest - 1, -1):
         cap = FINEST_MAX_SHARE if finest and levels == len(resolutions) else MAX_SHARE
         share = _largest_share(fits(levels), MIN_SHARE, cap)
