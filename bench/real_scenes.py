@@ -1,6 +1,6 @@
-"""Real captures at every preset: fox, cup, fern, the synthetic unbounded scene and two phone captures (ball: 127
-frames of a portrait video with their own poses; apple: a 5 s clip, posed by SfM from the frames ingest keeps), with
-all their photos and with a quarter of them, scored on the same held-out views.
+"""Real captures at every preset: fox, cup, fern, the synthetic unbounded scene and room, and two phone captures
+(ball: 127 frames of a portrait video with their own poses; apple: a 5 s clip, posed by SfM from the frames ingest
+keeps), with all their photos and with a quarter of them, scored on the same held-out views.
 
 Each scene goes through the pipeline as a user's folder would (ingest at the preset's size, poses imported from the
 files beside the photos, with points triangulated when they bring none, normalize), cached under
@@ -12,8 +12,10 @@ presets ingest and fit photos of different sizes, and PSNRs at two sizes do not 
 photos, so the comparison never favours the larger ones). The first held-out view is written beside its truth to
 bench/results/real_scenes/<scene>-<preset>-<views>.png.
 
-The synthetic unbounded scene (stages/capture/synthetic.py) is 40 views at 320x240 of an object on an endless textured
-ground inside a textured sphere, written under bench/out/ with its true poses as a transforms.json.
+The synthetic scenes (stages/capture/synthetic.py) are 40 views at 320x240, written under bench/out/ with their true
+poses as a transforms.json: `synthetic_unbounded`, an object on an endless textured ground inside a textured sphere;
+`synthetic_room`, the object on the floor of a closed textured room, seen from inside it (what a phone video of a thing
+on a floor sees).
 
     .venv/bin/python -m bench.real_scenes                                     # every scene, preset and view count
     .venv/bin/python -m bench.real_scenes --scenes fox --presets fast --views all quarter
@@ -58,7 +60,7 @@ from plenoxels.planning.model_trial import MODELS  # noqa: E402
 RESULTS = REPO / "bench" / "results" / "real_scenes.json"
 RENDERS = REPO / "bench" / "results" / "real_scenes"
 CACHE = REPO / "bench" / "out" / "real_scenes"
-SCENES = ("fox", "cup", "fern", "synthetic_unbounded", "ball", "apple")
+SCENES = ("fox", "cup", "fern", "synthetic_unbounded", "synthetic_room", "ball", "apple")
 # Scenes given as one file (a phone's video) rather than a folder of photos.
 FILES = {"apple": "apple.mp4"}
 PRESETS = ("fast", "balanced", "default", "quality")
@@ -71,16 +73,16 @@ MODEL_FLAGS = {"auto": None, "ndc": "ndc", "contracted": "contracted", "backgrou
 
 def scene_folder(name: str, data: Path) -> Path:
     """The photo folder the pipeline is pointed at (a dataset folder for the real scenes)."""
-    if name != "synthetic_unbounded":
+    if not name.startswith("synthetic_"):
         folder = data / name
         if not folder.is_dir():
             raise UserError(f"no {name} scene under {data}; pass --data (the folder that holds {name}/)")
         return folder / FILES[name] if name in FILES else folder
     from stages.capture.synthetic import write_scene
 
-    folder = CACHE / "synthetic_unbounded-photos"
+    folder = CACHE / f"{name}-photos"
     if not (folder / "transforms.json").is_file():
-        write_scene("unbounded", folder, n_views=40, width=320, height=240)
+        write_scene(name.removeprefix("synthetic_"), folder, n_views=40, width=320, height=240)
     return folder
 
 
