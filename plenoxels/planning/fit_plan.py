@@ -221,7 +221,6 @@ def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung
     when none fits, the coarsest rung with the steps that fit (at least one a level)."""
     ladder = _finest_first(ladder or LADDER)
     ladder = [r for r in ladder if r.resolutions[-1] <= facts.max_resolution] or ladder[-1:]
-    top = max(r.resolutions[-1] for r in ladder)
 
     def seconds_for(rung: Rung, share: float) -> float:
         now = facts.outlook(voxels=facts.box_voxels(rung.resolutions[0]))
@@ -231,9 +230,9 @@ def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung
         return Plan(list(rung.resolutions), rung.scaled(share), share, seconds_for(rung, share), share >= MIN_SHARE)
 
     for finest in sorted({r.resolutions[-1] for r in ladder}, reverse=True):
+        cap = FINEST_MAX_SHARE if finest_worth(finest, facts.max_resolution, ladder) else MAX_SHARE
         shares = [(share, rung) for rung in ladder if rung.resolutions[-1] == finest
-                  for share in [_largest_share(lambda s: seconds_for(rung, s) <= seconds, MIN_SHARE,
-                                               FINEST_MAX_SHARE if finest == top else MAX_SHARE)]
+                  for share in [_largest_share(lambda s: seconds_for(rung, s) <= seconds, MIN_SHARE, cap)]
                   if share is not None]
         if shares:
             share, rung = max(shares, key=lambda pair: pair[0])  # the first of equal shares: ladder order
