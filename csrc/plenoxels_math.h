@@ -201,7 +201,8 @@ PLX_HD double finest_slope(const Lattice& L) {
 // On a lattice a ray is marched a piece at a time: between two knot planes it crosses, the map to grid coordinates is
 // linear, so og and dg are the piece's grid-space origin and direction, and its samples a lattice of their own
 // (t_start, dt, n). On a contracted grid (see contract_point) og and dg are the ray's origin and unit direction in the
-// frame before contraction, dt is the step in contracted units and n the most steps the ray may take.
+// frame before contraction, dt is the step in contracted units through the finest cells and n the most steps the ray
+// may take.
 struct RayMarch {
     double og[3], dg[3];  // grid-space origin and direction (per unit of fit-frame distance) of the piece
     double inv_dg[3];     // 1 / dg (0 where dg is 0): where the march meets a block's faces

@@ -8,9 +8,10 @@ namespace plx {
 // The contraction of the frame the rays come in (mip-NeRF 360's, in the max norm as MERF and nerfstudio have it): a
 // point q with |q|_inf <= 1 stays, one beyond moves to (2 - 1/m) q / m with m = |q|_inf, so all of space lies in the
 // cube [-2, 2]^3 that the grid spans, the inner cube [-1, 1]^3 (the foreground) at full resolution and the rest at a
-// resolution falling off as 1/m^2. Rays bend in the contracted frame, so they are marched in their own frame with
-// steps of constant contracted length dt, and each sample integrates density over dt: density is per contracted unit,
-// which is the frame's own unit in the inner cube. Returns |contracted q|_inf.
+// resolution falling off as 1/m^2 (and coarser still where the grid's knots say so). Rays bend in the contracted
+// frame, so they are marched in their own frame with steps of constant length in grid units, and each sample
+// integrates density over its step's contracted length: density is per contracted unit, which is the frame's own unit
+// in the inner cube.
 // The axis of |q|_inf: the first of the largest.
 PLX_HD int major_axis(const double q[3]) {
     const double x = fabs(q[0]), y = fabs(q[1]), z = fabs(q[2]);
@@ -18,6 +19,7 @@ PLX_HD int major_axis(const double q[3]) {
     return y >= z ? 1 : 2;
 }
 
+// Contracts q into c; returns |c|_inf.
 PLX_HD double contract_point(const double q[3], double c[3]) {
     const double m = fabs(q[major_axis(q)]);
     if (m <= 1.0) {
@@ -29,19 +31,38 @@ PLX_HD double contract_point(const double q[3], double c[3]) {
     return 2.0 - 1.0 / m;
 }
 
-// |J(q) u|: contracted length per unit of t along direction u at q. Beyond the inner cube, with k the major axis,
-// m = |q_k| and f(m) = (2 - 1/m) / m: c_k = (2 - 1/m) sign(q_k) moves by u_k / m^2, and every other c_j = f(m) q_j by
-// f(m) u_j + q_j f'(m) sign(q_k) u_k.
-PLX_HD double contracted_speed(const double q[3], const double u[3]) {
+// J(q) u: the contracted point's velocity per unit of t along direction u at q. Beyond the inner cube, with k the
+// major axis, m = |q_k| and f(m) = (2 - 1/m) / m: c_k = (2 - 1/m) sign(q_k) moves by u_k / m^2, and every other
+// c_j = f(m) q_j by f(m) u_j + q_j f'(m) sign(q_k) u_k.
+PLX_HD void contracted_velocity(const double q[3], const double u[3], double v[3]) {
     const int k = major_axis(q);
     const double m = fabs(q[k]);
-    if (m <= 1.0) return sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+    if (m <= 1.0) {
+        for (int a = 0; a < 3; ++a) v[a] = u[a];
+        return;
+    }
     const double f = (2.0 - 1.0 / m) / m, df = (2.0 / m - 2.0) / (m * m);
     const double along = q[k] < 0.0 ? -u[k] : u[k];
+    for (int a = 0; a < 3; ++a) v[a] = a == k ? u[k] / (m * m) : f * u[a] + q[a] * df * along;
+}
+
+// |J(q) u|: contracted length per unit of t along direction u at q.
+PLX_HD double contracted_speed(const double q[3], const double u[3]) {
+    double v[3];
+    contracted_velocity(q, u, v);
+    return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+}
+
+// Grid units per unit of t along direction u at q: the contracted velocity through the lattice's slopes where the
+// contracted point lies (on a lattice of one cell size, the finest slope times contracted_speed).
+PLX_HD double contracted_grid_speed(const Lattice& L, const double q[3], const double u[3]) {
+    double v[3], c[3];
+    contracted_velocity(q, u, v);
+    contract_point(q, c);
     double sum = 0.0;
     for (int a = 0; a < 3; ++a) {
-        const double v = a == k ? u[k] / (m * m) : f * u[a] + q[a] * df * along;
-        sum += v * v;
+        const double s = L.slope[a][lattice_piece(L, a, c[a])] * v[a];
+        sum += s * s;
     }
     return sqrt(sum);
 }
@@ -81,15 +102,15 @@ PLX_HD MarchWalk march_start(const RayMarch& r) {
 // it grows it never shrinks again.
 enum ContractedSample { kInside, kBeyondComingIn, kGone };
 
-// One step of a contracted ray: dt contracted units long at the speed where it starts (at most
-// PLX_CONTRACTED_MAX_STEP of |q|_inf), its sample half way, integrating density over the step's contracted length (by
-// the midpoint rule). Fills the walk's t, delta and p.
+// One step of a contracted ray: `step` grid units long at the grid speed where it starts (contracted_grid_speed; so
+// longer through a coarser shell; at most PLX_CONTRACTED_MAX_STEP of |q|_inf), its sample half way, integrating
+// density over the step's contracted length (by the midpoint rule). Fills the walk's t, delta and p.
 PLX_HD ContractedSample contracted_step(const int res[3], const Lattice& L, const RayMarch& r, MarchWalk* w) {
     double q[3];
     for (int a = 0; a < 3; ++a) q[a] = r.og[a] + w->cursor * r.dg[a];
     const double reach = fabs(q[major_axis(q)]);
     const double cap = PLX_CONTRACTED_MAX_STEP * (reach > 1.0 ? reach : 1.0);
-    const double dt = r.dt / contracted_speed(q, r.dg);
+    const double dt = r.step / contracted_grid_speed(L, q, r.dg);
     w->dt = dt < cap ? dt : cap;
     w->t = w->cursor + 0.5 * w->dt;
     w->cursor += w->dt;

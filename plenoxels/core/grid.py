@@ -5,8 +5,9 @@ g = (p - bbox_min) * (R - 1) / (bbox_max - bbox_min) per axis, so vertex (i, j, 
 coordinates in [0, R-1]; a point is interpolated trilinearly from the 8 vertices of its cell, and an
 unallocated vertex counts as all zeros. A grid may bend that map at `knots`: per axis, fit-frame positions inside the
 box with the share of the lattice below each, so that its cells are fine across a foreground and grow coarser out to
-its surroundings, one lattice throughout (csrc/plenoxels_math.h, Lattice). Shares, not vertex indices, so a grid keeps
-its knots at every resolution.
+its surroundings, one lattice throughout (csrc/plenoxels_math.h, Lattice); on a contracted grid the knots lie in the
+contracted frame, where the inner cube's faces part the foreground from the shell around it. Shares, not vertex indices,
+so a grid keeps its knots at every resolution.
 
 Parameters are stored packed, one padded row per vertex (`data` [N, S]: raw density, then the SH
 coefficients of R, G and B), so the kernels read a whole vertex in one or two cache lines; the row
@@ -105,8 +106,6 @@ class SparseGrid:
         # contraction and bend through the grid.
         self.contracted = bool(contracted)
         self.knots = _check_knots(knots, self.bbox_min, self.bbox_max)
-        if self.contracted and self.warped:
-            raise UserError("a contracted grid has one cell size over its box: it takes no knots")
         _check_resolution(links.shape)
         stride = row_stride(self.sh_degree)
         if data.dim() != 2 or data.shape[1] != stride:

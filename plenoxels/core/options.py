@@ -53,6 +53,10 @@ class ModelOptions(MarchOptions):
     the foreground: its cells there are this many times the foreground's across, so the foreground gets finer cells
     at the same resolution, however far the surroundings reach (1: one cell size over the box; `fast` takes 2;
     bench/README.md, "Cells that follow the scene")."""
+    shell_cells: float = 1.0
+    """A contracted grid: its cells in the shell around the inner cube (the world beyond the foreground box, out to
+    infinity) are this many times the inner cube's across, so the foreground gets finer cells at the same resolution
+    (1: one cell size over the contracted box; bench/README.md, "Cells that follow the scene")."""
     near_share: float = 0.5
     """Contracted grids: rays start this share of the nearest sparse point any camera saw (normalize's near) from their
     camera, so that no haze hangs in front of the lenses."""

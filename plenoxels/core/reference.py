@@ -19,10 +19,11 @@ Rendering one ray (all kernels agree on every step):
 6. rgb = sum_i weight_i c_i + T_final * background; depth = sum_i weight_i t_i; opacity = 1 - T_final.
 
 A contracted grid (unbounded scenes; plenoxels/core/fit_frame.py) spans [-2, 2]^3 of the contracted frame and the rays
-come in the frame before the contraction. Steps 2-3 become a march from t = near: each step is dt = step_size /
-(finest grid scale) contracted units long at the speed |J u| of the contraction where it starts (but no longer than a
-quarter of |q|_inf), its sample half way, until it leaves for infinity, half a step short of the cube's faces and moving
-out (contracted_samples); step 5 integrates each sample over its step's contracted length, step x |J u| at the sample.
+come in the frame before the contraction. Steps 2-3 become a march from t = near: each step is step_size grid units
+long at the speed |S J u| where it starts (J the contraction's Jacobian, S the grid's slopes per axis at the contracted
+point: with knots, coarser cells take longer steps; no longer than a quarter of |q|_inf), its sample half way, until it
+leaves for infinity, half a step through the finest cells short of the cube's faces and moving out
+(contracted_samples); step 5 integrates each sample over its step's contracted length, step x |J u| at the sample.
 """
 from __future__ import annotations
 
@@ -73,8 +74,8 @@ def _major_axis(q: torch.Tensor) -> torch.Tensor:
     return torch.where((a[:, 0] >= a[:, 1]) & (a[:, 0] >= a[:, 2]), 0, torch.where(a[:, 1] >= a[:, 2], 1, 2))[:, None]
 
 
-def _contracted_speed(q: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-    """|J(q) u| per ray [B] (float64), csrc/plenoxels_math.h's contracted_speed term by term."""
+def _contracted_velocity(q: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """J(q) u per ray [B, 3] (float64), csrc/plenoxels_math.h's contracted_velocity term by term."""
     k = _major_axis(q)
     m = q.abs().gather(1, k)[:, 0]
     ms = m.clamp_min(1.0)
@@ -82,15 +83,36 @@ def _contracted_speed(q: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     uk = u.gather(1, k)[:, 0]
     along = torch.where(q.gather(1, k)[:, 0] < 0, -uk, uk)
     v = (f[:, None] * u + q * (df * along)[:, None]).scatter(1, k, (uk / (ms * ms))[:, None])
-    outside = (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2]).sqrt()
-    return torch.where(m <= 1.0, (u[:, 0] * u[:, 0] + u[:, 1] * u[:, 1] + u[:, 2] * u[:, 2]).sqrt(), outside)
+    return torch.where((m <= 1.0)[:, None], u, v)
+
+
+def _norm(v: torch.Tensor) -> torch.Tensor:
+    return (v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2]).sqrt()
+
+
+def _contracted_speed(q: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """|J(q) u| per ray [B] (float64), csrc/plenoxels_math.h's contracted_speed."""
+    return _norm(_contracted_velocity(q, u))
+
+
+def _contracted_grid_speed(grid: SparseGrid, q: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """Grid units per unit of t [B] (float64): J(q) u through the grid's slopes at the contracted point,
+    csrc/plenoxels_math.h's contracted_grid_speed."""
+    c = contract(q)
+    slopes = []
+    for a in range(3):
+        xs, _ = grid.axis_knots(a)
+        piece = sum(((c[:, a] >= x).long() for x in xs[1:-1]), torch.zeros(c.shape[0], dtype=torch.long))
+        slopes.append(torch.tensor(grid.axis_slopes(a), dtype=torch.float64)[piece])
+    return _norm(torch.stack(slopes, dim=1) * _contracted_velocity(q, u))
 
 
 def contracted_samples(grid: SparseGrid, origins, dirs, opts) -> dict:
     """The samples of rays through a contracted grid, stepped as csrc/plenoxels_math.h's contracted_step does: each
-    step dt contracted units (step_size voxels of the grid's finest axis) long at its start's speed, but at most
-    PLX_CONTRACTED_MAX_STEP of |q|_inf (at least 1), its sample half way, integrating density over step x speed at the
-    sample; until max_samples_per_ray steps, or half a step short of the cube's faces and moving out (|q|_inf growing).
+    step step_size voxels long at its start's grid speed (_contracted_grid_speed), but at most PLX_CONTRACTED_MAX_STEP
+    of |q|_inf (at least 1), its sample half way, integrating density over step x speed at the sample; until
+    max_samples_per_ray steps, or half a step (through the finest cells) short of the cube's faces and moving out
+    (|q|_inf growing).
     Per ray `n` and `unit`; per step `t` [B, M], the contracted points `c` [B, M, 3], the lengths `delta` [B, M] and
     which are samples, `valid` [B, M] (not past the ray's end, nor beyond the shell it comes in through from further
     out)."""
@@ -105,7 +127,7 @@ def contracted_samples(grid: SparseGrid, origins, dirs, opts) -> dict:
     for _ in range(opts.max_samples_per_ray):
         q = o + cursor[:, None] * u
         cap = CONTRACTED_MAX_STEP * q.abs().amax(dim=1).clamp_min(1.0)
-        step = torch.minimum(dt / _contracted_speed(q, u), cap)
+        step = torch.minimum(opts.step_size / _contracted_grid_speed(grid, q, u), cap)
         t = cursor + 0.5 * step
         cursor = cursor + step
         at = o + t[:, None] * u

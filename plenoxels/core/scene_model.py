@@ -121,6 +121,7 @@ class SceneModel:
         else:
             if contraction is not None:
                 lo, hi = CONTRACTED_BOX
+                knots = surroundings_knots(INNER_CUBE, CONTRACTED_BOX, options.shell_cells)
             shape = grid_shape(lattice_extent(lo, hi, knots), resolution)
         check_dense_level(shape, options.sh_degree)
         grid = SparseGrid.dense(shape, lo, hi, options.sh_degree, init_density=options.init_density,
@@ -158,12 +159,9 @@ class SceneModel:
         contraction = self.fit_frame.contraction
         if contraction is None or not self.grid.contracted:
             return self
-        lo, hi = self.grid.bbox_min, self.grid.bbox_max
-        first, last = [], []
-        for a, r in enumerate(self.grid.resolution):
-            per_unit = (r - 1) / (hi[a] - lo[a])
-            first.append(max(0, math.floor((-1.0 - lo[a]) * per_unit + 1e-9)))
-            last.append(min(r - 1, math.ceil((1.0 - lo[a]) * per_unit - 1e-9)))
+        faces = self.grid.world_to_grid(torch.tensor(INNER_CUBE, dtype=torch.float64)).tolist()
+        first = [max(0, math.floor(g + 1e-9)) for g in faces[0]]
+        last = [min(r - 1, math.ceil(g - 1e-9)) for g, r in zip(faces[1], self.grid.resolution)]
         return SceneModel(self.grid.crop(tuple(first), tuple(last)), self.scene_type,
                           FitFrame(contraction=contraction.inner()), None, self.background_color, self.render_options,
                           self.transforms)
@@ -335,6 +333,9 @@ def backdrop_check_step(model: "SceneModel", resolutions: list[int], steps: list
     leading = next((level for level, r in enumerate(resolutions) if r != resolutions[0]), len(resolutions))
     return sum(steps[:leading]) if sum(steps[:leading]) >= BACKDROP_CHECK_MIN_STEPS else None
 
+
+# The contracted frame's inner cube: the foreground box, where the contraction is the identity.
+INNER_CUBE = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
 # Knots closer than this share of the surroundings' size to its faces would make cells thinner than the rest: none.
 MIN_SURROUNDINGS_SHARE = 0.02

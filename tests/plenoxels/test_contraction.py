@@ -16,9 +16,14 @@ from plenoxels.core.scene_model import ModelOptions, SceneModel
 ATOL = 2e-5
 
 
-def contracted_grid(res=9, sh_degree=1, holes=0.2, seed=0):
+# Knots in the contracted frame: the inner cube's faces on x, fine cells inside and 3x coarser in the shell; one knot
+# off centre on y; one in the shell on z.
+SHELL_KNOTS = (((-1.0, 0.1), (1.0, 0.9)), ((-0.4, 0.35),), ((1.5, 0.8),))
+
+
+def contracted_grid(res=9, sh_degree=1, holes=0.2, seed=0, knots=None):
     gen = torch.Generator().manual_seed(seed)
-    grid = SparseGrid.dense((res, res, res), *CONTRACTED_BOX, sh_degree, contracted=True)
+    grid = SparseGrid.dense((res, res, res), *CONTRACTED_BOX, sh_degree, contracted=True, knots=knots)
     grid.density.copy_(torch.rand(grid.num_occupied, generator=gen) * 4 - 0.5)
     grid.sh.copy_(torch.randn(grid.sh.shape, generator=gen) * 0.4)
     if holes > 0:
@@ -73,9 +78,10 @@ def test_the_twins_speed_is_the_contractions_derivative():
     torch.testing.assert_close(reference._contracted_speed(q, u), numeric, rtol=1e-6, atol=1e-9)
 
 
+@pytest.mark.parametrize("knots", [None, SHELL_KNOTS], ids=["one cell size", "knots"])
 @pytest.mark.parametrize("sh_degree", [0, 2])
-def test_render_on_a_contracted_grid_matches_twin(sh_degree):
-    grid = contracted_grid(sh_degree=sh_degree, seed=sh_degree)
+def test_render_on_a_contracted_grid_matches_twin(sh_degree, knots):
+    grid = contracted_grid(res=9 if knots is None else 13, sh_degree=sh_degree, seed=sh_degree, knots=knots)
     origins, dirs = awkward_rays()
     background = torch.rand(origins.shape[0], 3, generator=torch.Generator().manual_seed(2))
     opts = RenderOptions(step_size=0.5, sigma_threshold=0.05)
@@ -87,10 +93,14 @@ def test_render_on_a_contracted_grid_matches_twin(sh_degree):
     torch.testing.assert_close(native.rgb, rgb, atol=ATOL, rtol=1e-5)
     torch.testing.assert_close(native.depth, depth, atol=1e-4, rtol=1e-5)
     torch.testing.assert_close(native.opacity, opacity, atol=ATOL, rtol=1e-5)
+    # Steps of step_size voxels of the finest cells, in the shell too.
+    lattice, _ = sample_counts(grid, origins, dirs, opts)
+    assert lattice == int(reference.contracted_samples(grid, origins, dirs, opts)["n"].sum())
 
 
-def test_loss_gradients_and_pruning_weights_on_a_contracted_grid_match_twin():
-    grid = contracted_grid(sh_degree=1, seed=3)
+@pytest.mark.parametrize("knots", [None, SHELL_KNOTS], ids=["one cell size", "knots"])
+def test_loss_gradients_and_pruning_weights_on_a_contracted_grid_match_twin(knots):
+    grid = contracted_grid(res=9 if knots is None else 13, sh_degree=1, seed=3, knots=knots)
     origins, dirs = awkward_rays()
     gen = torch.Generator().manual_seed(4)
     targets, background = torch.rand(origins.shape[0], 3, generator=gen), torch.rand(origins.shape[0], 3, generator=gen)
@@ -100,8 +110,9 @@ def test_loss_gradients_and_pruning_weights_on_a_contracted_grid_match_twin():
                                atol=ATOL, rtol=1e-5)
 
 
-def test_contracted_twin_gradcheck_float64():
-    grid = contracted_grid(res=5, sh_degree=1, holes=0.0, seed=7)
+@pytest.mark.parametrize("knots", [None, SHELL_KNOTS], ids=["one cell size", "knots"])
+def test_contracted_twin_gradcheck_float64(knots):
+    grid = contracted_grid(res=5 if knots is None else 7, sh_degree=1, holes=0.0, seed=7, knots=knots)
     density = (grid.density.double().abs() * 0.3 + 0.2).requires_grad_(True)
     sh = (grid.sh.double() * 0.2).requires_grad_(True)
     origins = torch.tensor([[0.2, 0.1, 0.0], [3.0, -1.0, 0.5], [-0.5, 0.4, -0.3]])
@@ -136,6 +147,16 @@ def test_a_contracted_ray_takes_the_twins_steps_out_to_infinity_and_no_more_than
     inward = reference.contracted_samples(grid, torch.tensor([[50.0, 0.0, 0.0]]), torch.tensor([[-1.0, 0.0, 0.0]]), opts)
     assert float(inward["delta"][0].max()) < 2 * step
     assert int((inward["c"][0, :, 0].abs() < 1).sum()) == 16
+    # A shell of cells twice the inner cube's across takes steps twice as long there: 16 samples out to the inner
+    # cube's face at 8 voxels a unit, then 1/8 contracted units long at their start through the shell at 4 (a little
+    # less at their middle, where the contraction is slower).
+    shell = contracted_grid(res=25, holes=0.0, knots=(((-1.0, 1 / 6), (1.0, 5 / 6)),) * 3)
+    samples = reference.contracted_samples(shell, origins[:1], dirs[:1], opts)
+    c, delta = samples["c"][0], samples["delta"][0]
+    assert int((c[:, 0] < 1).sum()) == 16 and float(delta[c[:, 0] < 1].max()) == pytest.approx(1 / 16)
+    near_face = delta[(c[:, 0] > 1) & (c[:, 0] < 1.5)]
+    assert len(near_face) == 5 and 1.5 / 16 < float(near_face.min()) and float(near_face.max()) < 1 / 8
+    assert sample_counts(shell, origins, dirs, opts)[0] == int(reference.contracted_samples(shell, origins, dirs, opts)["n"].sum())
     capped = RenderOptions(step_size=0.5, max_samples_per_ray=5)
     lattice, _ = sample_counts(grid, origins, dirs, capped)
     assert lattice == int(reference.contracted_samples(grid, origins, dirs, capped)["n"].sum())
@@ -237,3 +258,37 @@ def test_a_contracted_grid_has_no_lattice_and_the_photos_mean_colour_is_their_pi
     rays = RaySet(images, [np.eye(4)] * 2, [k, Intrinsics(fl_x=3.0, fl_y=3.0, cx=2.0, cy=1.5, w=4, h=3)])
     every = np.concatenate([im.reshape(-1, 3) for im in images])
     np.testing.assert_allclose(rays.mean_colour(), every.mean(axis=0), atol=1e-12)
+
+
+def test_a_coarser_shell_gives_the_inner_cube_finer_cells_and_its_foreground_model_keeps_them(tmp_path):
+    plain = SceneModel.create(unbounded_scene(), ModelOptions(), 25)
+    shell = SceneModel.create(unbounded_scene(), ModelOptions(shell_cells=2.0), 25)
+    assert plain.grid.knots == ((), (), ()) and shell.grid.contracted and shell.grid.resolution == (25, 25, 25)
+    # Per axis the inner cube's faces are knots; the cube takes 2 of the 3 fine-cell units of the box.
+    for a in range(3):
+        xs, gs = shell.grid.axis_knots(a)
+        assert xs == [-2.0, -1.0, 1.0, 2.0] and gs == pytest.approx([0, 4, 20, 24])
+        assert shell.grid.axis_slopes(a) == pytest.approx([4, 8, 4])
+    assert shell.grid.coarsening() == pytest.approx(2.0) and plain.grid.scale == (6.0, 6.0, 6.0)
+    # The same content in both: a blob inside the inner cube.
+    for model in (plain, shell):
+        c = model.grid.grid_to_world(model.grid.coords().double())
+        model.grid.density.copy_((8.0 * torch.exp(-((c - 0.1) ** 2).sum(dim=1) / 0.1)).float())
+        model.grid.sh[:, 0] = 1.0
+    # Its foreground model is the inner cube alone, at the shell's finer cells, and renders it as the full model does.
+    inner = shell.foreground_model()
+    assert not inner.grid.contracted and inner.grid.resolution == (17, 17, 17) and not inner.grid.warped
+    assert inner.grid.bbox_min == pytest.approx((-1.0,) * 3) and inner.grid.bbox_max == pytest.approx((1.0,) * 3)
+    lo, hi = shell.region_box()
+    centre = (np.asarray(lo) + np.asarray(hi)) / 2
+    origins = torch.tensor(centre + np.random.default_rng(3).normal(size=(60, 3)) * 3, dtype=torch.float32)
+    dirs = torch.tensor(centre, dtype=torch.float32) - origins
+    full, crop, coarse = shell.render_rays(origins, dirs), inner.render_rays(origins, dirs), plain.render_rays(origins, dirs)
+    assert float(full.opacity.mean()) > 0.3
+    torch.testing.assert_close(full.opacity, crop.opacity, atol=0.02, rtol=0)
+    torch.testing.assert_close(full.opacity, coarse.opacity, atol=0.05, rtol=0)
+    # Saved and loaded, the knots and the renders stay.
+    shell.save(tmp_path)
+    again = SceneModel.load(tmp_path)
+    assert again.grid.knots == shell.grid.knots
+    torch.testing.assert_close(again.render_rays(origins, dirs).rgb, full.rgb)

@@ -261,20 +261,22 @@ def test_render_matches_cpu(degree):
 
 
 @needs_gpu
-def test_contracted_grid_renders_and_differentiates_as_on_cpu():
+@pytest.mark.parametrize("knots", [None, (((-1.0, 0.1), (1.0, 0.9)), ((-0.4, 0.35),), ((1.5, 0.8),))],
+                         ids=["one cell size", "knots"])
+def test_contracted_grid_renders_and_differentiates_as_on_cpu(knots):
     """Bent rays through a contracted grid (unbounded scenes): from inside the inner cube, from the shell and from far
-    away, on both devices."""
+    away, on both devices; with one cell size, and with knots (a coarser shell)."""
     links, data = _grid(1, res=(17, 17, 17), density_scale=1.5)
     gen = torch.Generator().manual_seed(8)
     origins = torch.cat([torch.randn(1500, 3, generator=gen) * 2.0, torch.randn(500, 3, generator=gen) * 40.0])
     dirs = torch.randn(2000, 3, generator=gen)
     background, targets = torch.rand(2000, 3, generator=gen), torch.rand(2000, 3, generator=gen)
     march, box = {**MARCH, "contract": True}, ([-2.0] * 3, [2.0] * 3)
-    cpu, gpu = _render_both(links, data, 1, origins, dirs, background, march, box)
+    cpu, gpu = _render_both(links, data, 1, origins, dirs, background, march, box, knots)
     for g, c in zip(gpu, cpu):
         _close(g, c)
     assert (cpu[2] > 0.5).any() and (cpu[2] < 0.5).any()
-    cpu, gpu = _loss_grad_both(links, data, 1, origins, dirs, targets, background, march, box)
+    cpu, gpu = _loss_grad_both(links, data, 1, origins, dirs, targets, background, march, box, knots)
     assert gpu[0] == pytest.approx(cpu[0], rel=1e-5)
     scale = float(cpu[2].abs().max())
     _close(gpu[2], cpu[2], rtol=1e-3, atol=1e-5 * scale)

@@ -35,7 +35,7 @@ from plenoxels.surface.mesh import (LEVEL_RAY_OPACITY, MARCH_STEP_VOXELS, PEAK_O
                             surface_colours, topology, transform_normals, transform_points)
 from plenoxels.core.ndc import NDCMapping
 from plenoxels.core.render import COLOUR_OFFSET, SH_C0
-from plenoxels.core.scene_model import SceneModel
+from plenoxels.core.scene_model import INNER_CUBE, SceneModel, surroundings_knots
 from plenoxels.surface.views import (Terminations, ViewRender, point_normals, ray_terminations, render_views, seen_vertices,
                                snap_to_level, surface_points)
 from plenoxels.surface.texture import render_mesh
@@ -46,12 +46,12 @@ from stages.settings.export import Settings
 SH_K = 4  # SH degree 1: the export must read only the degree-0 term of each channel
 
 
-def dense_grid(density: np.ndarray, sh: np.ndarray, bbox_min, bbox_max) -> SparseGrid:
+def dense_grid(density: np.ndarray, sh: np.ndarray, bbox_min, bbox_max, knots=None) -> SparseGrid:
     """A fitted-grid stand-in with every vertex allocated: raw density [X,Y,Z], SH [X,Y,Z,3,K]."""
     links = torch.arange(density.size, dtype=torch.int32).reshape(density.shape)
     return SparseGrid.from_values(links, torch.as_tensor(density.reshape(-1), dtype=torch.float32),
                                   torch.as_tensor(sh.reshape(density.size, 3 * SH_K), dtype=torch.float32),
-                                  bbox_min, bbox_max, sh_degree=1)
+                                  bbox_min, bbox_max, sh_degree=1, knots=knots)
 
 
 def lattice_points(res: int, lo, hi) -> np.ndarray:
@@ -554,16 +554,21 @@ def test_an_export_that_would_not_fit_in_memory_stops_before_it_starts_and_a_sma
     summary, folder = run_stage(tmp_path, sphere_field(16), scene, Settings(points=100, texture_size=256), "small")
     assert summary["faces"] > 0 and (folder / "mesh.png").is_file()
 
-def cluttered_sphere_field(res: int, clutter, points_to_world=lambda p: p, lo=(-1, -1, -1), hi=(1, 1, 1)):
-    """sphere_field's sphere plus dense matter (at twice the sphere's peak) wherever clutter(world points) holds."""
+def cluttered_sphere_field(res: int, clutter, points_to_world=lambda p: p, lo=(-1, -1, -1), hi=(1, 1, 1), knots=None):
+    """sphere_field's sphere plus dense matter (at twice the sphere's peak) wherever clutter(world points) holds; on
+    a grid with `knots`, at its own vertices."""
     p_fit = lattice_points(res, lo, hi)
-    p_world = points_to_world(p_fit.reshape(-1, 3)).reshape(p_fit.shape)
     voxel = float(np.mean((np.asarray(hi) - np.asarray(lo)) / (res - 1)))
+    if knots is not None:
+        warped = SparseGrid.dense((res,) * 3, lo, hi, 1, knots=knots)
+        p_fit = warped.grid_to_world(warped.coords().double()).numpy().reshape(p_fit.shape)
+        voxel = 1.0 / max(warped.scale)
+    p_world = points_to_world(p_fit.reshape(-1, 3)).reshape(p_fit.shape)
     peak = 2 * math.log(2) / voxel
     dist = np.linalg.norm(p_world - SPHERE_CENTRE, axis=-1)
     density = peak * expit((SPHERE_RADIUS - dist) / 0.03)
     density = np.where(clutter(p_world), 2 * peak, density)
-    return dense_grid(density, colour_sh(p_world), lo, hi)
+    return dense_grid(density, colour_sh(p_world), lo, hi, knots)
 
 
 def identity_scene(scene_type: str, frames: list[dict]) -> dict:
@@ -571,21 +576,22 @@ def identity_scene(scene_type: str, frames: list[dict]) -> dict:
             "foreground": {"min": [-0.8] * 3, "max": [0.8] * 3}, "frames": frames}
 
 
-def exported_foreground(folder: Path, crop_margin: float) -> tuple[trimesh.Trimesh, np.ndarray]:
-    """The written mesh and points, checked to lie in the foreground box grown by the crop margin, and
-    checked that cropping removed something (the clutter was in the grid)."""
+def exported_foreground(folder: Path, crop_margin: float, sampled_whole: bool = True) -> tuple[trimesh.Trimesh, np.ndarray]:
+    """The written mesh and points, checked to lie in the foreground box grown by the crop margin, and, where the
+    mesh sampled the whole grid (`sampled_whole`: a grid with knots samples the crop box alone), checked that
+    cropping removed something (the clutter was in the grid)."""
     record = read_json(folder / "export.json")
     reach = 0.8 * (1 + 2 * crop_margin)
     mesh = trimesh.load(folder / "mesh.ply", force="mesh", process=False)
     points = np.asarray(trimesh.load(folder / "points.ply").vertices)
     assert np.abs(mesh.vertices).max() <= reach and len(points) > 100 and np.abs(points).max() <= reach
-    assert record["cleaning"]["cropped_faces"] > 0
+    assert record["cleaning"]["cropped_faces"] > 0 or not sampled_whole
     return mesh, points
 
 
-def assert_only_the_sphere(folder: Path, crop_margin: float) -> None:
+def assert_only_the_sphere(folder: Path, crop_margin: float, sampled_whole: bool = True) -> None:
     """The export holds the sphere, whole and in place, and nothing of the clutter around it."""
-    mesh, points = exported_foreground(folder, crop_margin)
+    mesh, points = exported_foreground(folder, crop_margin, sampled_whole)
     truth = trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS).apply_translation(SPHERE_CENTRE)
     scores = mesh_scores(mesh, truth, 0.05 * SPHERE_RADIUS, samples=20_000)
     assert scores["f_score"] > 0.95, scores
@@ -612,13 +618,16 @@ def test_unbounded_scene_exports_the_foreground_only_not_the_ground_or_the_backg
     assert_only_the_sphere(folder, settings.crop_margin)
 
 
-def test_contracted_scene_exports_its_inner_cube_only_not_the_far_world(tmp_path):
+@pytest.mark.parametrize("shell_cells", [1.0, 2.5])
+def test_contracted_scene_exports_its_inner_cube_only_not_the_far_world(tmp_path, shell_cells):
     # A contracted grid holds all of space: a slab just below the foreground box (inside the inner cube) and a
     # far wall and ground out in the contracted shell. Only the sphere may reach the mesh and the points, in the
-    # world frame (the inner frame is moved and scaled from it).
+    # world frame (the inner frame is moved and scaled from it). With a coarser shell, the inner cube's faces are
+    # knots that fall between vertices.
     contraction = Contraction((0.05, -0.1, 0.0), 1.05)
     clutter = lambda p: (p[..., 2] < -0.95) | (p[..., 0] > 4.0) | (p[..., 2] < -3.0)
-    field = cluttered_sphere_field(97, clutter, contraction.to_world, *CONTRACTED_BOX)
+    knots = surroundings_knots(INNER_CUBE, CONTRACTED_BOX, shell_cells)
+    field = cluttered_sphere_field(97, clutter, contraction.to_world, *CONTRACTED_BOX, knots=knots)
     field.contracted = True
     # Every face kept: the ring of views sees little of the sphere's underside at this grid's finer voxels.
     # The level set's own place, as in test_stage_writes_every_file_in_the_input_frame_or_the_normalized_one.
@@ -628,7 +637,7 @@ def test_contracted_scene_exports_its_inner_cube_only_not_the_far_world(tmp_path
               contraction=contraction)
     folder = tmp_path / "contracted" / "export"
     assert read_json(folder / "export.json")["fit_frame"] == "inner cube of a contracted grid"
-    assert_only_the_sphere(folder, settings.crop_margin)
+    assert_only_the_sphere(folder, settings.crop_margin, sampled_whole=knots is None)
 
 
 def test_forward_scene_exports_the_foreground_only_not_the_far_wall(tmp_path):
