@@ -7,7 +7,7 @@ import random
 import threading
 import time
 
-import msgpack
+import msgspec
 import viser
 import zstandard
 from websockets.exceptions import ConnectionClosed
@@ -21,21 +21,22 @@ RENDER = "BackgroundImageMessage"
 
 
 def message_types(raw: bytes) -> list[str]:
-    """The types of the messages in one of viser's frames: two little-endian sizes, then zstd-compressed msgpack."""
+    """The types of the messages in one of viser's frames: two little-endian sizes, then zstd-compressed msgpack
+    (read with msgspec, which viser itself uses: no package beyond the base install)."""
     decompressed, compressed = int.from_bytes(raw[:8], "little"), int.from_bytes(raw[8:16], "little")
     inner = zstandard.ZstdDecompressor().decompress(raw[16:16 + compressed], max_output_size=decompressed)
-    return [m.get("type", "") for m in msgpack.unpackb(inner, strict_map_key=False).get("messages", [])]
+    return [m.get("type", "") for m in msgspec.msgpack.decode(inner).get("messages", [])]
 
 
 def camera_message(rng: random.Random) -> bytes:
     position = [rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(1, 3)]
-    return msgpack.packb({"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": position,
+    return msgspec.msgpack.encode({"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": position,
                           "fov": 0.9, "near": 0.01, "far": 100.0, "image_height": 480, "image_width": 640,
                           "look_at": [0.0, 0.0, 0.0], "up_direction": [0.0, 0.0, 1.0]})
 
 
-MALFORMED = [b"\x00\xffnot msgpack at all", msgpack.packb({"type": "NoSuchMessage", "x": 1}),
-             msgpack.packb({"type": "ViewerCameraMessage", "wxyz": "sideways"}), msgpack.packb([1, 2, 3])]
+MALFORMED = [b"\x00\xffnot msgpack at all", msgspec.msgpack.encode({"type": "NoSuchMessage", "x": 1}),
+             msgspec.msgpack.encode({"type": "ViewerCameraMessage", "wxyz": "sideways"}), msgspec.msgpack.encode([1, 2, 3])]
 
 
 def client(port: int):
