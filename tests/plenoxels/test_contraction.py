@@ -16,7 +16,7 @@ from plenoxels.core.scene_model import ModelOptions, SceneModel
 ATOL = 2e-5
 
 
-# Knots in the contracted frame: the inner cube's faces on x, fine cells inside and 3x coarser in the shell; one knot
+# Knots in the contracted frame: the inner cube's faces on x, fine cells inside and 4x coarser in the shell; one knot
 # off centre on y; one in the shell on z.
 SHELL_KNOTS = (((-1.0, 0.1), (1.0, 0.9)), ((-0.4, 0.35),), ((1.5, 0.8),))
 
