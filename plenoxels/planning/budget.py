@@ -190,7 +190,8 @@ class TimeBudget:
                                            self.rung, candidates, self.schedule.steps + self.plan.steps[kept:],
                                            measured=not self._at_first_resolution())
         entry = {"why": why, "step": self.fitter.step, "seconds_left": round(self.left(), 1), "share": round(share, 3),
-                 "steps": steps, "step_seconds": round(self.now.step_seconds or 0.0, 5)}
+                 "steps": steps, "step_seconds": round(self.now.step_seconds or 0.0, 5), "voxels": self.now.voxels,
+                 "step_ratio": round(self.now.step_ratio, 3)}
         if len(resolutions) < kept:
             entry["dropped_levels"] = self.schedule.resolutions[len(resolutions):]
         elif len(resolutions) > kept:
