@@ -5,8 +5,9 @@ What a prediction adds up, from where the fit stands to its end: steps times sec
 way, what its steps measure, or before they have, the first-level model at its box's voxels; for later levels, the
 cost model at their occupied voxels, times the ratio of this scene's measured steps to the model's; a first level's
 ratio, and that of a first level's early-pruned rest, counts only above 1, as such a level clears its empty space and
-gets cheaper as it goes while a busy machine does not, and until a level at a finer resolution has measured its own,
-it is times what an upsampled grid's steps cost over the model in the calibration), level changes (a pruning
+gets cheaper as it goes while a busy machine does not; until a level at a finer resolution has measured its own, it is
+what an upsampled grid's steps cost over the model in the calibration, times the first resolution's ratio only where
+that is below 1, as a coarse grid's pruned rest runs dearer than the finer levels after it), level changes (a pruning
 pass over the training rays at the old resolution, then upsampling and a checkpoint that grow with the new grid),
 held-out evaluations, checkpoints, and the end (the last pruning pass, the held-out PSNR, the save). A later level's
 voxels are the level before's, times the share pruning keeps, times the upsampling's growth; the share is a prior
@@ -154,8 +155,11 @@ def predict(costs: CostModel, facts: FitFacts, now: Outlook, resolutions: list[i
     """Seconds from where the fit stands to its end for this schedule, whose levels before `now.level` are done."""
     seconds, voxels, start, remaining = 0.0, float(now.voxels), sum(steps[:now.level]), 0
     # A level at another resolution than the first starts from an upsampled grid, whose steps the calibration measured
-    # at costs.upsampled_ratio of its model, until this scene's steps at such a level have been measured.
-    upsampled = now.step_ratio * (costs.upsampled_ratio if now.ratio_at_first else 1.0)
+    # at costs.upsampled_ratio of its model, until this scene's steps at such a level have been measured. The first
+    # resolution's ratio speaks for them only below 1 (a machine faster now than its retime read it): above, it is a
+    # coarse grid's pruned rest still clearing its air, 1.2-2.0x the model where the finer levels after it ran 0.4-1.5x
+    # (bench/README.md, "The time budget").
+    upsampled = min(1.0, now.step_ratio) * costs.upsampled_ratio if now.ratio_at_first else now.step_ratio
     for level in range(now.level, len(resolutions)):
         ratio = now.step_ratio if resolutions[level] == resolutions[0] else upsampled
         if level == now.level:

@@ -66,8 +66,10 @@ def test_a_first_level_is_predicted_at_its_own_cost_model():
 
 def test_an_upsampled_level_is_predicted_at_the_calibrations_ratio_until_the_scene_measures_one():
     """The calibration's upsampled grid costs `upsampled_ratio` times its model: a level at a finer resolution is
-    predicted at that times the scene's ratio until the fit has measured steps at such a level; a first level's
-    early-pruned rest, at the first resolution, is not upsampled."""
+    predicted at that until the fit has measured steps at such a level, whatever the first resolution measured above
+    the model (a coarse grid's pruned rest runs dearer than the finer levels after it), and times the first
+    resolution's ratio where that is below 1 (a machine faster than its retime read it); a first level's early-pruned
+    rest, at the first resolution, is not upsampled."""
     dear = CostModel(**{**MEASURED.__dict__, "upsampled_ratio": 1.5})
     facts = FitFacts(**{**FACTS.__dict__, "checkpoint_every": 1e9, "eval_rays": 0})  # the steps' time alone
     resolutions, steps, voxels = [128, 128, 256], [200, 800, 1500], 300_000
@@ -75,11 +77,18 @@ def test_an_upsampled_level_is_predicted_at_the_calibrations_ratio_until_the_sce
     finer = min(facts.voxel_budget, rest.later_keep * voxels * 8)
     gap = fit_plan.predict(dear, facts, rest, resolutions, steps) - fit_plan.predict(MEASURED, facts, rest, resolutions,
                                                                                  steps)
-    assert gap == pytest.approx(1500 * 1.2 * 0.5 * MEASURED.step_seconds(finer), rel=1e-6)
-    # Right after the level change, before the finer level's steps are measured: its steps at the upsampled ratio.
-    changed = Outlook(level=2, step=1000, voxels=finer, dense=False, step_ratio=1.2)
-    assert fit_plan.predict(dear, facts, changed, resolutions, steps) - fit_plan.predict(
-        MEASURED, facts, changed, resolutions, steps) == pytest.approx(gap, rel=1e-6)
+    assert gap == pytest.approx(1500 * 0.5 * MEASURED.step_seconds(finer), rel=1e-6)
+
+    # Right after the level change, before the finer level's steps are measured: its steps at the upsampled ratio,
+    # the first resolution's ratio counting only below 1.
+    def changed(first_ratio: float) -> float:
+        now = Outlook(level=2, step=1000, voxels=finer, dense=False, step_ratio=first_ratio)
+        return fit_plan.predict(dear, facts, now, resolutions, steps)
+
+    assert changed(2.0) == changed(1.2) == changed(1.0)
+    assert changed(1.0) - fit_plan.predict(MEASURED, facts, Outlook(level=2, step=1000, voxels=finer, dense=False),
+                                           resolutions, steps) == pytest.approx(gap, rel=1e-6)
+    assert changed(1.0) - changed(0.8) == pytest.approx(1500 * 0.2 * 1.5 * MEASURED.step_seconds(finer), rel=1e-6)
     # Measured there: the scene's own ratio, whatever the calibration said.
     measured = Outlook(level=2, step=1100, voxels=finer, dense=False, step_ratio=1.7, ratio_at_first=False)
     assert fit_plan.predict(dear, facts, measured, resolutions, steps) == fit_plan.predict(MEASURED, facts, measured,
@@ -152,7 +161,8 @@ def test_a_replan_follows_the_measured_cost_and_drops_a_level_that_cannot_conver
     assert kept == resolutions and share == pytest.approx(1.0, abs=0.02)
     assert fit_plan.predict(MEASURED, FACTS, now, kept, new_steps) <= fast_left
 
-    now.step_seconds, now.step_ratio = 3 * MEASURED.step_seconds(2_000_000), 3.0  # three times slower than modelled
+    # Measured at the 256 level (upsampled): three times slower than modelled.
+    now.step_seconds, now.step_ratio, now.ratio_at_first = 3 * MEASURED.step_seconds(2_000_000), 3.0, False
     kept, new_steps, share = fit_plan.replan(fast_left, MEASURED, FACTS, now, rung, resolutions, steps, measured=True)
     assert fit_plan.predict(MEASURED, FACTS, now, kept, new_steps) <= fast_left
     assert new_steps[0] == steps[0] and new_steps[1] >= 100  # the levels done stay as they were
@@ -164,7 +174,7 @@ def test_a_replan_keeps_a_short_level_rather_than_end_the_fit_early_without_it()
     levels before, at twice their steps, would end the fit with time unused: it stays, with what fits."""
     rung = next(r for r in fit_plan.LADDER if r.resolutions == (32, 64, 128))
     resolutions, planned = list(rung.resolutions), rung.scaled(0.6)
-    now = Outlook(level=1, step=planned[0] + 20, voxels=50_000, dense=False, step_ratio=1.3,
+    now = Outlook(level=1, step=planned[0] + 20, voxels=50_000, dense=False, step_ratio=1.3, ratio_at_first=False,
                   step_seconds=1.3 * MEASURED.step_seconds(50_000))
 
     def left(levels, share):  # the first level done as planned
