@@ -157,7 +157,7 @@ def predict(costs: CostModel, facts: FitFacts, now: Outlook, resolutions: list[i
     # A level at another resolution than the first starts from an upsampled grid, whose steps the calibration measured
     # at costs.upsampled_ratio of its model, until this scene's steps at such a level have been measured. The first
     # resolution's ratio speaks for them only below 1 (a machine faster now than its retime read it): above, it is a
-    # coarse grid's pruned rest still clearing its air, 1.2-2.0x the model where the finer levels after it ran 0.4-1.5x
+    # coarse grid's pruned rest still clearing its air, up to 2x the model where the finer levels after it ran 0.4-1.6x
     # (bench/README.md, "The time budget").
     upsampled = min(1.0, now.step_ratio) * costs.upsampled_ratio if now.ratio_at_first else now.step_ratio
     for level in range(now.level, len(resolutions)):
