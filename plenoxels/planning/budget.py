@@ -131,9 +131,10 @@ class TimeBudget:
         if self.fitter.step % REPLAN_EVERY == 0 and len(self._intervals) >= 5:
             measured = float(np.mean(self._intervals))
             ratio = measured / self.costs.step_seconds(self.now.voxels, dense=self.now.dense)
-            # A grid at the first resolution, pruned early or not, is still clearing, so it runs cheaper than what
-            # comes after it: its ratio only counts above the calibration as measured. It may undo a retime that
-            # read the machine slower than its steps now run (a stall while it was timed), not call it faster.
+            # A grid at the first resolution, pruned early or not, is still clearing its air, so its steps speak of
+            # its own level, not of the machine: its ratio only counts above the calibration as measured. It may undo
+            # a retime that read the machine slower than its steps now run (a stall while it was timed), not call it
+            # faster. What it says of the finer levels after it, fit_plan.predict decides.
             self.now.ratio_at_first = self._at_first_resolution()
             floor = 1.0 / max(1.0, self.calibration.get("slower_now") or 1.0)
             self.now.step_ratio = max(floor, ratio) if self.now.ratio_at_first else ratio

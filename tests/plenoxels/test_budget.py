@@ -210,7 +210,7 @@ def test_a_rungs_early_prune_stays_at_its_step_and_its_cheap_steps_do_not_speak_
 def test_the_first_levels_steps_can_take_back_a_retime_that_read_the_machine_slower_than_it_runs(fresh, monkeypatch):
     """A cached calibration scaled by a retime that read the machine 4x slower (a stall while it was timed): the first
     level's steps, far cheaper than that, bring the ratio down to the calibration as measured (1/4 of the scaled
-    model), no further, as a grid that is still clearing runs cheaper than the levels after it."""
+    model), no further, as a grid that is still clearing its air speaks of its own level, not of the machine."""
     monkeypatch.setattr(budget, "LADDER", (Rung((16, 32), (20, 20)),))
     # Half a second a step: the tiny scene's steps run under a quarter of that even on a loaded machine (80 ms measured
     # with two test suites sharing two cores).
