@@ -4,9 +4,9 @@
 (plenoxels/planning/fit_plan.py), and, attached to the Fitter, measures what the real scene costs as the fit goes: its step
 times, level changes, what each prune keeps and its held-out renders. Every REPLAN_EVERY steps and at each level
 change it re-plans the steps of the levels under way and to come (dropping a level that cannot get half its steps,
-bringing a dropped one back when the costs measured since fit it, and in a scene that fills its box lowering a last
-level too dear for half of them), and it says when the fit must stop so that the stage ends by the deadline with a
-complete model.
+bringing a dropped one back when the costs measured since fit it, raising a last level to come that would get more
+than MAX_SHARE of its steps, and in a scene that fills its box lowering a last level too dear for half of them), and
+it says when the fit must stop so that the stage ends by the deadline with a complete model.
 """
 from __future__ import annotations
 
@@ -198,13 +198,14 @@ class TimeBudget:
         elif len(resolutions) > kept:
             entry["restored_levels"] = resolutions[kept:]
         elif resolutions[-1] != self.schedule.resolutions[-1]:
-            entry["lowered_last_level"] = [self.schedule.resolutions[-1], resolutions[-1]]
+            moved = "raised" if resolutions[-1] > self.schedule.resolutions[-1] else "lowered"
+            entry[f"{moved}_last_level"] = [self.schedule.resolutions[-1], resolutions[-1]]
         # The fitter consults this schedule at every step (Fitter.run).
         self.schedule.resolutions[:] = resolutions
         self.schedule.steps[:] = steps
-        # A steps-only re-plan replaces the one before it, unless either dropped, restored or lowered a level (that
-        # stays in the record).
-        changed_levels = {"dropped_levels", "restored_levels", "lowered_last_level"}
+        # A steps-only re-plan replaces the one before it, unless either dropped, restored, raised or lowered a level
+        # (that stays in the record).
+        changed_levels = {"dropped_levels", "restored_levels", "raised_last_level", "lowered_last_level"}
         if (why == "steps" and self.replans and self.replans[-1]["why"] == "steps"
                 and not changed_levels & (set(entry) | set(self.replans[-1]))):
             self.replans[-1] = entry

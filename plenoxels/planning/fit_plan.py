@@ -20,6 +20,8 @@ learn that the photos show. So the rule is: the finest rung of LADDER no finer t
 predicted time fits with at least MIN_SHARE of its steps, given as many steps as the time allows up to MAX_SHARE of
 them (more steps still help, less than a finer grid would), or up to FINEST_MAX_SHARE where no finer grid can take the
 time: at the finest rung the photos are worth, and once the fit is in its last level. A budget beyond that ends early.
+A re-plan holds a last level still to come to the same rule on the scene's own costs: raised where they leave it time
+to spare, lowered (in a room) where they leave it less than half its steps.
 
 The coarsest rungs start at 32^3: a first level's step marches its whole box, so it is the dearest step of a fit for
 its voxels, and a 32^3 level finds the occupied space for a fraction of a 64^3 one's time, for about the same
@@ -57,6 +59,13 @@ LATER_KEEP_PRIOR = 0.6
 # small share of its box).
 LOWER_BY = 16
 FULL_BOX = 0.5
+# A last level not yet started that a re-plan gives MAX_SHARE with time to spare (which past it would go into steps, where
+# a finer grid buys more) is raised, by LOWER_BY, to the finest resolution the photos are worth that still gets
+# RAISE_SHARE of its steps: the rule the plan was chosen by, on the scene's own costs, with a margin of twice
+# MIN_SHARE so that a raised level is not dropped for the noise of the steps measured after it. A scene whose first
+# level runs several times cheaper than the calibration's (a contracted room's 32^3 at 0.25x) otherwise pours the
+# time its plan saved into steps of a grid coarser than it could afford (bench/README.md, "The time budget").
+RAISE_SHARE = 1.0
 
 
 @dataclass(frozen=True)
@@ -261,8 +270,14 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     than MIN_SHARE of its steps (and is not dropped) is lowered, by LOWER_BY, to the finest resolution that gets
     MIN_SHARE: the rule the plan was chosen by, now on the scene's own costs. Such a scene's finer levels cost about
     what the calibration's object predicts, and a finer grid short of steps loses to a coarser one with them. On an
-    object it is the other way round, so there the resolution stays the plan's (bench/README.md, "The time budget")."""
+    object it is the other way round, so there the resolution stays the plan's (bench/README.md, "The time budget").
+
+    In any scene, a last level not yet started that gets MAX_SHARE with every level kept, below the finest rung the
+    photos are worth, is raised to the finest resolution (by LOWER_BY, up to that rung) that gets RAISE_SHARE."""
     chosen = _replan_levels(seconds, costs, facts, now, rung, resolutions, steps, measured)
+    if (len(chosen[0]) == len(resolutions) and now.level < len(resolutions) - 1 and chosen[2] >= MAX_SHARE
+            and not finest_worth(resolutions[-1], facts.max_resolution)):
+        return _raised(seconds, costs, facts, now, rung, resolutions, steps, measured) or chosen
     if (chosen[2] >= MIN_SHARE or len(chosen[0]) < len(resolutions) or now.level >= len(resolutions) - 1
             or now.dense or now.first_keep <= FULL_BOX):
         return chosen
@@ -273,15 +288,34 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     return chosen
 
 
+def _raised(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung: Rung, resolutions: list[int],
+            steps: list[int], measured: bool) -> tuple[list[int], list[int], float] | None:
+    """The re-plan with the last level at the finest resolution above its own, by LOWER_BY down from the finest rung
+    the photos are worth, that keeps every level with RAISE_SHARE of the steps (None where none does)."""
+    top = max((r.resolutions[-1] for r in LADDER if r.resolutions[-1] <= facts.max_resolution), default=0)
+    for last in range(top, resolutions[-1], -LOWER_BY):
+        trial = resolutions[:-1] + [last]
+        if predict(costs, facts, now, trial, _schedule(rung, steps, now, RAISE_SHARE, len(trial))) > seconds:
+            continue  # one prediction rules a resolution out before the search for its share
+        raised = _replan_levels(seconds, costs, facts, now, rung, trial, steps, measured)
+        if len(raised[0]) == len(trial) and raised[2] >= RAISE_SHARE:
+            return raised
+    return None
+
+
+def _schedule(rung: Rung, steps: list[int], now: Outlook, share: float, levels: int) -> list[int]:
+    """The first `levels` levels' steps at `share` of the rung's, the levels done as they ran and the level under way
+    no shorter than the steps it has run."""
+    new = rung.scaled(share)[:levels]
+    new[:now.level] = steps[:now.level]
+    new[now.level] = max(now.step - sum(steps[:now.level]), new[now.level])
+    return new
+
+
 def _replan_levels(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung: Rung,
                    resolutions: list[int], steps: list[int], measured: bool) -> tuple[list[int], list[int], float]:
-    done = now.step - sum(steps[:now.level])
-
     def schedule(share: float, levels: int) -> list[int]:
-        new = rung.scaled(share)[:levels]
-        new[:now.level] = steps[:now.level]
-        new[now.level] = max(done, new[now.level])
-        return new
+        return _schedule(rung, steps, now, share, levels)
 
     def fits(levels: int) -> Callable[[float], bool]:
         return lambda s: predict(costs, facts, now, resolutions[:levels], schedule(s, levels)) <= seconds

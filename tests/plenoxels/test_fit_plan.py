@@ -257,17 +257,48 @@ def test_the_last_pruning_pass_is_predicted_at_the_held_out_renders_measured_rat
 def test_time_left_goes_into_steps_where_no_finer_grid_can_take_it():
     """Past MAX_SHARE the steps grow, up to FINEST_MAX_SHARE, only where a finer grid is no option: at the finest rung
     the photos are worth, or once the fit is in its last level. A last level still to come, with finer rungs the
-    photos are worth above it, stays at MAX_SHARE."""
+    photos are worth above it, is raised to the finest of them instead."""
     rung = next(r for r in fit_plan.LADDER if r.resolutions == (128, 128, 256, 384))
     resolutions, planned = list(rung.resolutions), rung.scaled(1.0)
     plenty = 1e6
     before = Outlook(level=2, step=sum(planned[:2]) + 10, voxels=300_000, dense=False)
-    _, _, share = fit_plan.replan(plenty, MEASURED, FACTS, before, rung, resolutions, planned, measured=True)
-    assert share == fit_plan.MAX_SHARE
+    kept, _, share = fit_plan.replan(plenty, MEASURED, FACTS, before, rung, resolutions, planned, measured=True)
+    assert kept == resolutions[:3] + [512] and share == fit_plan.FINEST_MAX_SHARE
     inside = Outlook(level=3, step=sum(planned[:3]) + 10, voxels=2_000_000, dense=False)
     kept, steps, share = fit_plan.replan(plenty, MEASURED, FACTS, inside, rung, resolutions, planned, measured=True)
     assert kept == resolutions and share == fit_plan.FINEST_MAX_SHARE
     assert steps[:3] == planned[:3] and steps[3] == rung.scaled(fit_plan.FINEST_MAX_SHARE)[3]
     photos_of_400 = FitFacts(**{**FACTS.__dict__, "max_resolution": 400})
-    _, _, share = fit_plan.replan(plenty, MEASURED, photos_of_400, before, rung, resolutions, planned, measured=True)
-    assert share == fit_plan.FINEST_MAX_SHARE
+    kept, _, share = fit_plan.replan(plenty, MEASURED, photos_of_400, before, rung, resolutions, planned, measured=True)
+    assert kept == resolutions and share == fit_plan.FINEST_MAX_SHARE
+
+
+def test_a_last_level_to_come_with_time_to_spare_is_raised_to_the_finest_that_gets_its_steps():
+    """A first level measured at a quarter of its model (a contracted room's 32^3): its plan of 32 -> 64 would give
+    the 64 level MAX_SHARE and still leave time, so the re-plan raises that level, by LOWER_BY from the finest rung,
+    to the finest resolution that gets RAISE_SHARE of its steps (one finer does not fit). With time for less than
+    MAX_SHARE, or once the fit is in its last level, the resolution stays."""
+    rung = next(r for r in fit_plan.LADDER if r.resolutions == (32, 64))
+    resolutions, planned = list(rung.resolutions), rung.scaled(1.0)
+    box = FACTS.box_voxels(32)
+    cheap = Outlook(level=0, step=40, voxels=box, dense=True, step_seconds=0.25 * MEASURED.step_seconds(box, dense=True),
+                    first_keep=0.75)
+
+    def at(share: float, last: int, now: Outlook = cheap) -> float:
+        return fit_plan.predict(MEASURED, FACTS, now, [32, last], rung.scaled(share))
+
+    seconds = 3 * at(fit_plan.MAX_SHARE, 64)
+    kept, steps, share = fit_plan.replan(seconds, MEASURED, FACTS, cheap, rung, resolutions, planned, measured=False)
+    assert kept[0] == 32 and 64 < kept[1] < 512 and (512 - kept[1]) % fit_plan.LOWER_BY == 0
+    assert share >= fit_plan.RAISE_SHARE and steps == rung.scaled(share)
+    assert fit_plan.predict(MEASURED, FACTS, cheap, kept, steps) <= seconds
+    assert at(fit_plan.RAISE_SHARE, kept[1] + fit_plan.LOWER_BY) > seconds  # the finest that gets its steps
+
+    # Time for fewer than MAX_SHARE of the steps at 64: it stays, with what fits.
+    kept, steps, share = fit_plan.replan(at(1.5, 64), MEASURED, FACTS, cheap, rung, resolutions, planned,
+                                       measured=False)
+    assert kept == resolutions and share == pytest.approx(1.5, abs=0.01)
+    # In its last level the fit cannot change the grid it is training: the time goes into steps.
+    inside = Outlook(level=1, step=planned[0] + 10, voxels=50_000, dense=False)
+    kept, _, share = fit_plan.replan(seconds, MEASURED, FACTS, inside, rung, resolutions, planned, measured=True)
+    assert kept == resolutions and share == fit_plan.FINEST_MAX_SHARE
