@@ -35,6 +35,10 @@ LEVEL_WARMUP = 3
 # Re-plans aim this share of the budget short of the deadline, so that noise in the step times ends the schedule
 # before the deadline's stop does (which would cut the last level's learning-rate decay short).
 SLACK = 0.02
+# A calibration measured for a budget (the first on a machine, its code or options new) has this share of the budget:
+# past it, the finer points wait for a longer budget (fit_cost.measure). A whole one took 4.6 s on bench/README's
+# 2-core machine B (2026-11-30), a sixth of a 30 s budget, and 33 s there while it ran twice its cores' work.
+CALIBRATION_SHARE = 0.25
 
 
 @dataclasses.dataclass
@@ -77,7 +81,8 @@ class TimeBudget:
                               max_resolution=int(train.sizes.max()),
                               first_keep=FIRST_KEEP_PRIOR[probe.scene_type])
         background = background and {"n_spheres": background["n_spheres"], "width": background["width"]}
-        self.costs, self.calibration = calibrate(options, device, background, say=say)
+        self.costs, self.calibration = calibrate(options, device, background, say=say,
+                                                allowance=CALIBRATION_SHARE * self.left())
         saved = json.loads(plan_file.read_text()) if resume and plan_file is not None and plan_file.is_file() else None
         if saved is not None:  # a resumed fit keeps the plan its checkpoint was made with
             self.rung = Rung(tuple(saved["rung"]["resolutions"]), tuple(saved["rung"]["steps"]),
@@ -235,6 +240,9 @@ class TimeBudget:
         slower = self.calibration.get("slower_now")
         cached = (f" (cached, scaled by {slower:.2f} to the machine's speed now)"
                   if self.calibration["cached"] and slower else "")
+        if self.calibration.get("partial"):
+            cached += (f" (partial: its finer points past {CALIBRATION_SHARE:g} of the budget wait for a longer "
+                       f"one)")
         return (f"budget {_duration(self.seconds)}: {self.plan.describe()}, predicted {self.plan.predicted:.0f} s"
                 f"{note} from a calibration of {self.costs.describe()}{cached} on this machine")
 
@@ -265,6 +273,8 @@ class TimeBudget:
                             "slower_now": self.calibration.get("slower_now"),
                             "retimed": self.calibration.get("retimed"),
                             "key": self.calibration["key"], "measured_in_seconds": self.calibration.get("seconds"),
+                            "partial": self.calibration.get("partial", False),
+                            "allowance": self.calibration.get("allowance"),
                             "load_average": self.calibration.get("load_average"),
                             "when": self.calibration.get("when")},
         }

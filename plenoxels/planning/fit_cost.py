@@ -31,6 +31,7 @@ import dataclasses
 import functools
 import hashlib
 import importlib.util
+import itertools
 import json
 import math
 import os
@@ -242,6 +243,8 @@ def _line(points: list[tuple[int, float]]) -> tuple[float, float]:
     per-voxel cost and predict a finer grid's steps many times slower than they run (bench/README.md, "The time
     budget")."""
     voxels, seconds = np.array([p[0] for p in points], dtype=np.float64), np.array([p[1] for p in points])
+    if len(points) == 1:  # a partial calibration's (see measure): what it measured, per unit, as a CPU's grow
+        return 0.0, float(seconds[0] / max(voxels[0], 1.0))
     slope, fixed = np.polyfit(voxels, seconds, 1)
     if slope <= 0:
         return float(seconds.mean()), 0.0
@@ -277,16 +280,23 @@ class CalibrationObject:
 
 
 def measure(options, device: torch.device, background: dict | None, resolutions=CALIBRATION_RESOLUTIONS,
-            dense_resolutions=DENSE_RESOLUTIONS) -> dict:
+            dense_resolutions=DENSE_RESOLUTIONS, allowance: float | None = None) -> dict:
     """Times the real Fitter with these options (and a background model of `background`'s n_spheres and width) on
     the calibration object: steps and a pruning pass at each resolution, steps of a new model's grid (a first level)
-    at each dense resolution, then one level change. Returns the cost model's fields and what was measured."""
+    at each dense resolution, and one level change. Returns the cost model's fields and what was measured.
+
+    The coarsest of each, and the level change, come first; the finer ones follow, coarse to fine, only while the
+    time spent is under `allowance` (seconds; None: all of them). A budget's calibration comes out of its own time:
+    a short budget's plans are made of coarse rungs, which the coarse points speak for, and a busy machine's whole
+    calibration can take longer than such a budget (33 s against a 12 s one at twice the cores' work). A record
+    short of points is `partial`."""
     started = time.perf_counter()
     calibration = CalibrationObject(options, device, background, resolutions[0])
     fitter_at, views = calibration.fitter_at, calibration.views
     rays = {r: pruning_rays(views.sizes, r, options) for r in resolutions}
-    points, passes = [], []
-    for resolution in resolutions:
+    points, passes, dense_points = [], [], []
+
+    def pruned(resolution: int) -> None:
         fitter = fitter_at([resolution])
         points.append((fitter.model.grid.num_occupied, _time_steps(fitter, device)))
         _sync(device)
@@ -294,16 +304,13 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
         fitter.measure_weights()
         _sync(device)
         passes.append((rays[resolution] * resolution, time.perf_counter() - begun))
-        del fitter
-    fixed, slope = _line(points)
-    dense_points = []
-    for resolution in dense_resolutions:
+
+    def first_level(resolution: int) -> None:
         fitter = fitter_at([resolution], first=True)
         dense_points.append((fitter.model.grid.num_occupied, _time_steps(fitter, device, DENSE_STEPS)))
-        del fitter
-    dense_fixed, dense_slope = _line(dense_points)
-    pass_fixed, pass_per_ray = _line(passes)
 
+    pruned(resolutions[0])
+    first_level(dense_resolutions[0])
     # One level change, from the coarsest grid to twice its resolution, then a checkpoint and a save of the model.
     fitter = fitter_at([resolutions[0], 2 * resolutions[0]])
     fitter.step = fitter.level_end(0)
@@ -320,6 +327,18 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
     change, checkpoint, save = np.diff(clock)
     new_voxels = fitter.model.grid.num_occupied
     upsampled = _time_steps(fitter, device)
+    del fitter
+    finer = [part for pair in itertools.zip_longest(
+        [functools.partial(pruned, r) for r in resolutions[1:]],
+        [functools.partial(first_level, r) for r in dense_resolutions[1:]]) for part in pair if part is not None]
+    for part in finer:
+        if allowance is not None and time.perf_counter() - started >= allowance:
+            break
+        part()
+
+    fixed, slope = _line(points)
+    dense_fixed, dense_slope = _line(dense_points)
+    pass_fixed, pass_per_ray = _line(passes)
     return {
         "costs": {"step_fixed": fixed, "step_per_voxel": slope,
                   "pass_fixed": pass_fixed, "pass_per_ray": pass_per_ray,
@@ -336,6 +355,8 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
                    for r, (_, t) in zip(resolutions, passes)],
         "level_change": {"voxels": new_voxels, "seconds": round(float(change), 4), "step_seconds": round(upsampled, 5),
                          "checkpoint_seconds": round(float(checkpoint), 4), "save_seconds": round(float(save), 4)},
+        "partial": len(points) + len(dense_points) < len(resolutions) + len(dense_resolutions),
+        "allowance": None if allowance is None else round(allowance, 2),
         "seconds": round(time.perf_counter() - started, 2),
         "load_average": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
         "when": time.strftime("%Y-%m-%dT%H:%M:%S"),
@@ -343,18 +364,22 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
 
 
 def calibrate(options, device: torch.device, background: dict | None = None, resolutions=CALIBRATION_RESOLUTIONS,
-              dense_resolutions=DENSE_RESOLUTIONS, say: Callable[[str], None] | None = None) -> tuple[CostModel, dict]:
-    """The cost model for these options on this machine: from the cache when its key matches, with its times scaled by
+              dense_resolutions=DENSE_RESOLUTIONS, say: Callable[[str], None] | None = None,
+              allowance: float | None = None) -> tuple[CostModel, dict]:
+    """The cost model for these options on this machine: from the cache when its key matches (and, for a partial
+    calibration, `allowance` is no longer than the one it was measured in), with its times scaled by
     how much longer the calibration's first step takes now (the fastest of RETIME_ROUNDS timings, and of RETIME_MORE
     more where those read far from the calibration) than it did (a shared host's speed drifts, and a plan from a
-    calibration made at a fast moment starves its last level), else measured (a few seconds) and cached. Returns it and
+    calibration made at a fast moment starves its last level), else measured (a few seconds; within `allowance`
+    seconds where it says, see measure) and cached. Returns it and
     the calibration's record, with `cached`, `file`, `retimed` (the rounds, in seconds) and `slower_now` (that scale; 1
     for a calibration just measured) added."""
     key = calibration_key(options, device, background, resolutions, dense_resolutions)
     path = cache_dir() / f"fit-cost-{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]}.json"
     try:
         record = json.loads(path.read_text())
-        if record.get("key") == key:
+        if record.get("key") == key and (not record.get("partial") or (
+                allowance is not None and allowance <= (record.get("allowance") or 0.0))):
             reference = record["points"][0]
             fitter = CalibrationObject(options, device, background, reference["resolution"]).fitter_at(
                 [reference["resolution"]])
@@ -372,7 +397,7 @@ def calibrate(options, device: torch.device, background: dict | None = None, res
     if say is not None:
         say(f"measuring what the fit costs on this machine ({key['device']}, {key['threads']} threads; once, then "
             f"cached in {path.parent})")
-    record = {"key": key, **measure(options, device, background, resolutions, dense_resolutions)}
+    record = {"key": key, **measure(options, device, background, resolutions, dense_resolutions, allowance)}
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")

@@ -95,6 +95,43 @@ def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(mon
     assert slower.upsampled_ratio == fresh_costs.upsampled_ratio  # a ratio of two times, whatever the speed
 
 
+def test_a_calibration_within_an_allowance_measures_coarse_first_and_again_for_a_longer_one(monkeypatch):
+    """A budget's calibration comes out of its time: within an allowance it measures the coarsest of each part and the
+    level change, then finer points only while time is left; such a partial record serves budgets as short, and a
+    longer one measures again."""
+    options = config.build(fit.Settings, "fit", {"batch_size": 512, "sh_degree": 0})
+    small, first, cpu = (16, 24, 32), (8, 16), torch.device("cpu")
+    timed, measured = [], []
+    original_steps, original_measure = fit_cost._time_steps, fit_cost.measure
+    monkeypatch.setattr(fit_cost, "_time_steps", lambda fitter, device, steps=8: timed.append(
+        fitter.model.grid.num_occupied) or original_steps(fitter, device, steps))
+    monkeypatch.setattr(fit_cost, "measure", lambda *a, **k: measured.append(1) or original_measure(*a, **k))
+
+    costs, record = fit_cost.calibrate(options, cpu, None, small, first, allowance=0.0)
+    assert record["partial"] and not record["cached"] and record["allowance"] == 0.0
+    assert [p["resolution"] for p in record["points"]] == [16] == [p["resolution"] for p in record["passes"]]
+    assert [p["voxels"] for p in record["first_level_points"]] == [8 ** 3]
+    assert record["level_change"]["step_seconds"] > 0 and len(timed) == 3
+    # One point a line: what it measured (rounded to 10 us in the record), per voxel (per ray and vertex for a pass).
+    point = record["points"][0]
+    assert costs.step_seconds(point["voxels"]) == pytest.approx(point["step_seconds"], abs=1e-5)
+    assert costs.step_seconds(8 ** 3, dense=True) == pytest.approx(record["first_level_points"][0]["step_seconds"],
+                                                                   abs=1e-5)
+    assert costs.pass_seconds(record["passes"][0]["rays"], 16) > 0 and costs.upsampled_ratio > 0
+
+    _, record = fit_cost.calibrate(options, cpu, None, small, first, allowance=0.0)
+    assert record["cached"] and record["partial"] and len(measured) == 1  # a budget as short: no more to measure
+    timed.clear()
+    _, record = fit_cost.calibrate(options, cpu, None, small, first)  # no allowance: every point
+    assert len(measured) == 2 and not record["cached"] and not record["partial"]
+    assert [p["resolution"] for p in record["points"]] == list(small)
+    assert [p["voxels"] for p in record["first_level_points"]] == [8 ** 3, 16 ** 3]
+    # Coarse to fine: the coarsest pruned grid, the coarsest first level, the upsampled grid, then the finer ones.
+    assert timed[1] == 8 ** 3 and timed[4] == 16 ** 3 and timed[0] < timed[3] < timed[5]
+    _, record = fit_cost.calibrate(options, cpu, None, small, first, allowance=0.0)
+    assert record["cached"] and not record["partial"] and len(measured) == 2  # a whole one serves any budget
+
+
 @pytest.mark.parametrize("points, grows", [
     ([(49_671, 0.00853), (228_352, 0.01501), (515_119, 0.02129)], True),    # a 2-core CPU's steps: a line
     ([(49_671, 0.00402), (228_352, 0.00423), (515_119, 0.00364)], False),   # an H100's: flat at these sizes
