@@ -61,11 +61,11 @@ LOWER_BY = 16
 FULL_BOX = 0.5
 # A last level not yet started that a re-plan gives MAX_SHARE with time to spare (which past it would go into steps, where
 # a finer grid buys more) is raised, by LOWER_BY, to the finest resolution the photos are worth that still gets
-# RAISE_SHARE of its steps: the rule the plan was chosen by, on the scene's own costs, with a margin of twice
-# MIN_SHARE so that a raised level is not dropped for the noise of the steps measured after it. A scene whose first
-# level runs several times cheaper than the calibration's (a contracted room's 32^3 at 0.25x) otherwise pours the
-# time its plan saved into steps of a grid coarser than it could afford (bench/README.md, "The time budget").
-RAISE_SHARE = 1.0
+# MIN_SHARE of its steps: the rule the plan was chosen by, on the scene's own costs. A scene whose first level runs
+# several times cheaper than the calibration's (a contracted room's 32^3 at 0.25x) otherwise pours the time its plan
+# saved into steps of a grid coarser than it could afford; such a scene's finer levels run cheaper than predicted too
+# (a room's at 0.38-0.63 of the model), so a level raised to half its steps gets more of them as it runs, and more
+# dB than one raised only as far as its whole steps allow (bench/README.md, "The time budget").
 
 
 @dataclass(frozen=True)
@@ -273,7 +273,7 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     object it is the other way round, so there the resolution stays the plan's (bench/README.md, "The time budget").
 
     In any scene, a last level not yet started that gets MAX_SHARE with every level kept, below the finest rung the
-    photos are worth, is raised to the finest resolution (by LOWER_BY, up to that rung) that gets RAISE_SHARE."""
+    photos are worth, is raised to the finest resolution (by LOWER_BY, up to that rung) that gets MIN_SHARE."""
     chosen = _replan_levels(seconds, costs, facts, now, rung, resolutions, steps, measured)
     if (len(chosen[0]) == len(resolutions) and now.level < len(resolutions) - 1 and chosen[2] >= MAX_SHARE
             and not finest_worth(resolutions[-1], facts.max_resolution)):
@@ -291,14 +291,14 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
 def _raised(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung: Rung, resolutions: list[int],
             steps: list[int], measured: bool) -> tuple[list[int], list[int], float] | None:
     """The re-plan with the last level at the finest resolution above its own, by LOWER_BY down from the finest rung
-    the photos are worth, that keeps every level with RAISE_SHARE of the steps (None where none does)."""
+    the photos are worth, that keeps every level with MIN_SHARE of the steps (None where none does)."""
     top = max((r.resolutions[-1] for r in LADDER if r.resolutions[-1] <= facts.max_resolution), default=0)
     for last in range(top, resolutions[-1], -LOWER_BY):
         trial = resolutions[:-1] + [last]
-        if predict(costs, facts, now, trial, _schedule(rung, steps, now, RAISE_SHARE, len(trial))) > seconds:
+        if predict(costs, facts, now, trial, _schedule(rung, steps, now, MIN_SHARE, len(trial))) > seconds:
             continue  # one prediction rules a resolution out before the search for its share
         raised = _replan_levels(seconds, costs, facts, now, rung, trial, steps, measured)
-        if len(raised[0]) == len(trial) and raised[2] >= RAISE_SHARE:
+        if len(raised[0]) == len(trial) and raised[2] >= MIN_SHARE:
             return raised
     return None
 

@@ -273,10 +273,10 @@ def test_time_left_goes_into_steps_where_no_finer_grid_can_take_it():
     assert kept == resolutions and share == fit_plan.FINEST_MAX_SHARE
 
 
-def test_a_last_level_to_come_with_time_to_spare_is_raised_to_the_finest_that_gets_its_steps():
+def test_a_last_level_to_come_with_time_to_spare_is_raised_to_the_finest_that_gets_half_its_steps():
     """A first level measured at a quarter of its model (a contracted room's 32^3): its plan of 32 -> 64 would give
     the 64 level MAX_SHARE and still leave time, so the re-plan raises that level, by LOWER_BY from the finest rung,
-    to the finest resolution that gets RAISE_SHARE of its steps (one finer does not fit). With time for less than
+    to the finest resolution that gets MIN_SHARE of its steps (one finer does not fit). With time for less than
     MAX_SHARE, or once the fit is in its last level, the resolution stays."""
     rung = next(r for r in fit_plan.LADDER if r.resolutions == (32, 64))
     resolutions, planned = list(rung.resolutions), rung.scaled(1.0)
@@ -290,9 +290,9 @@ def test_a_last_level_to_come_with_time_to_spare_is_raised_to_the_finest_that_ge
     seconds = 3 * at(fit_plan.MAX_SHARE, 64)
     kept, steps, share = fit_plan.replan(seconds, MEASURED, FACTS, cheap, rung, resolutions, planned, measured=False)
     assert kept[0] == 32 and 64 < kept[1] < 512 and (512 - kept[1]) % fit_plan.LOWER_BY == 0
-    assert share >= fit_plan.RAISE_SHARE and steps == rung.scaled(share)
+    assert share >= fit_plan.MIN_SHARE and steps == rung.scaled(share)
     assert fit_plan.predict(MEASURED, FACTS, cheap, kept, steps) <= seconds
-    assert at(fit_plan.RAISE_SHARE, kept[1] + fit_plan.LOWER_BY) > seconds  # the finest that gets its steps
+    assert at(fit_plan.MIN_SHARE, kept[1] + fit_plan.LOWER_BY) > seconds  # the finest that gets its steps
 
     # Time for fewer than MAX_SHARE of the steps at 64: it stays, with what fits.
     kept, steps, share = fit_plan.replan(at(1.5, 64), MEASURED, FACTS, cheap, rung, resolutions, planned,
