@@ -243,7 +243,7 @@ def _line(points: list[tuple[int, float]]) -> tuple[float, float]:
     per-voxel cost and predict a finer grid's steps many times slower than they run (bench/README.md, "The time
     budget")."""
     voxels, seconds = np.array([p[0] for p in points], dtype=np.float64), np.array([p[1] for p in points])
-    if len(points) == 1:  # a partial calibration's (see measure): what it measured, per unit, as a CPU's grow
+    if len(points) == 1:  # a partial calibration's one point (see measure): its time per unit, as a CPU's grow
         return 0.0, float(seconds[0] / max(voxels[0], 1.0))
     slope, fixed = np.polyfit(voxels, seconds, 1)
     if slope <= 0:
@@ -371,9 +371,8 @@ def calibrate(options, device: torch.device, background: dict | None = None, res
     how much longer the calibration's first step takes now (the fastest of RETIME_ROUNDS timings, and of RETIME_MORE
     more where those read far from the calibration) than it did (a shared host's speed drifts, and a plan from a
     calibration made at a fast moment starves its last level), else measured (a few seconds; within `allowance`
-    seconds where it says, see measure) and cached. Returns it and
-    the calibration's record, with `cached`, `file`, `retimed` (the rounds, in seconds) and `slower_now` (that scale; 1
-    for a calibration just measured) added."""
+    seconds where it says, see measure) and cached. Returns it and the calibration's record, with `cached`, `file`,
+    `retimed` (the rounds, in seconds) and `slower_now` (that scale; 1 for a calibration just measured) added."""
     key = calibration_key(options, device, background, resolutions, dense_resolutions)
     path = cache_dir() / f"fit-cost-{hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]}.json"
     try:

@@ -59,13 +59,6 @@ LATER_KEEP_PRIOR = 0.6
 # small share of its box).
 LOWER_BY = 16
 FULL_BOX = 0.5
-# A last level not yet started that a re-plan gives MAX_SHARE with time to spare (which past it would go into steps, where
-# a finer grid buys more) is raised, by LOWER_BY, to the finest resolution the photos are worth that still gets
-# MIN_SHARE of its steps: the rule the plan was chosen by, on the scene's own costs. A scene whose first level runs
-# several times cheaper than the calibration's (a contracted room's 32^3 at 0.25x) otherwise pours the time its plan
-# saved into steps of a grid coarser than it could afford; such a scene's finer levels run cheaper than predicted too
-# (a room's at 0.38-0.63 of the model), so a level raised to half its steps gets more of them as it runs, and more
-# dB than one raised only as far as its whole steps allow (bench/README.md, "The time budget").
 
 
 @dataclass(frozen=True)
@@ -272,8 +265,14 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     what the calibration's object predicts, and a finer grid short of steps loses to a coarser one with them. On an
     object it is the other way round, so there the resolution stays the plan's (bench/README.md, "The time budget").
 
-    In any scene, a last level not yet started that gets MAX_SHARE with every level kept, below the finest rung the
-    photos are worth, is raised to the finest resolution (by LOWER_BY, up to that rung) that gets MIN_SHARE."""
+    In any scene, a last level not yet started that gets MAX_SHARE with every level kept (time past it would go into
+    steps, where a finer grid buys more), below the finest rung the photos are worth, is raised to the finest
+    resolution (by LOWER_BY, up to that rung) that gets MIN_SHARE: the rule the plan was chosen by, on the scene's own
+    costs. A scene whose first level runs several times cheaper than the calibration's (a contracted room's 32^3 at
+    0.25x) otherwise pours the time its plan saved into steps of a grid coarser than it could afford, and its finer
+    levels run cheaper than predicted too (0.34-0.88 of the model), so a raised level gets more steps as it runs.
+    Raised before a level's costs are measured, wherever a finer one would get MIN_SHARE, objects lost: their levels
+    got too few steps (bench/README.md, "The time budget")."""
     chosen = _replan_levels(seconds, costs, facts, now, rung, resolutions, steps, measured)
     if (len(chosen[0]) == len(resolutions) and now.level < len(resolutions) - 1 and chosen[2] >= MAX_SHARE
             and not finest_worth(resolutions[-1], facts.max_resolution)):
