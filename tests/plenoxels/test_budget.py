@@ -104,7 +104,7 @@ def test_a_budget_on_a_busy_machine_calibrates_within_its_share_and_ends_on_time
     calibration = read_json(fresh / "fit" / "fit.json")["budget"]["calibration"]
     whole = len(fit_cost.CALIBRATION_RESOLUTIONS) + len(fit_cost.DENSE_RESOLUTIONS) + 1  # the upsampled grid's too
     assert calibration["partial"] and 3 <= len(timings) < whole, (timings, calibration)
-    assert calibration["allowance"] == pytest.approx(budget.CALIBRATION_SHARE * seconds, abs=0.5)
+    assert 0 < calibration["allowance"] <= budget.CALIBRATION_SHARE * seconds  # of what was left of the budget
     assert "partial" in summary["line"] and read_json(fresh / "fit" / "fit.json")["complete"]
 
 
