@@ -89,14 +89,19 @@ def _pruned_early(resolutions: tuple[int, ...], steps: tuple[int, ...]) -> Rung:
 # Candidate schedules, coarse to fine, at the presets' step counts: the presets' levels (fast 64->128, balanced
 # 96->192, default 128->256, quality 128->256->384) and rungs between them made the same way, each first level pruned
 # early as the presets' are (a first level's steps march its whole box until a prune clears it, so an early prune
-# saves time at no cost in quality); at the bottom, two that start at 32^3 (see the module's docstring), 32->64
+# saves time at no cost in quality); at the bottom, three that start at 32^3 (see the module's docstring), 32->64
 # being what a budget too short for any plan gets. The early prune stays at its step whatever the share (`fixed`):
 # scaled down with it, it prunes a grid still diffuse, which keeps more voxels than the plan assumed and upsamples to
 # a finer grid larger than planned, which loses to no early prune at all (bench/README.md, "The time budget").
+# Between 64 and 128 the final grids are 16 apart, as the re-plans' LOWER_BY: there a grid 16 finer costs 1.1-1.5x
+# at half its steps, and a rung 32 finer 2x, so a budget a few seconds short of one rung fell two, and 1 dB with them.
 LADDER = (
     Rung((32, 64), (300, 600)),
+    Rung((32, 80), (400, 800)),
     Rung((48, 96), (500, 1000)),
     Rung((32, 64, 128), (250, 500, 1000)),
+    _pruned_early((64, 96), (500, 1000)),
+    _pruned_early((64, 112), (500, 1000)),
     _pruned_early((64, 128), (500, 1000)),
     _pruned_early((80, 160), (600, 1200)),
     _pruned_early((96, 192), (750, 1500)),

@@ -6,6 +6,7 @@ import pytest
 from plenoxels.planning import fit_plan
 from plenoxels.planning.fit_cost import CostModel
 from plenoxels.planning.fit_plan import FitFacts, Outlook, Rung
+from plenoxels.core.train import coarse_start
 
 # Roughly what this machine measured with the fast preset's options on one thread.
 MEASURED = CostModel(step_fixed=0.018, step_per_voxel=7e-8, pass_per_ray=1.7e-8, change_per_voxel=5e-7,
@@ -36,6 +37,23 @@ def test_a_plan_is_no_finer_than_the_photos_have_pixels():
     plan = fit_plan.choose(3600, MEASURED, small_photos)
     assert plan.resolutions[-1] == 160 and plan.share == fit_plan.FINEST_MAX_SHARE and plan.predicted < 3600
     assert fit_plan.choose(3600, MEASURED, FACTS).resolutions[-1] == max(r.resolutions[-1] for r in fit_plan.LADDER) == 512
+
+
+@pytest.mark.parametrize("first_level_scale", [1.0, 0.75])
+def test_a_little_more_time_never_skips_two_grids_below_128(first_level_scale):
+    """Between 64 and 128 each final grid 16 finer is a plan of its own: a budget a few seconds short of one falls to
+    the grid 16 coarser, not 32 (a room's ladder starts its first levels at 0.75 of theirs, as budget.py makes it)."""
+    ladder = tuple(dataclasses.replace(r, resolutions=tuple(coarse_start(r.resolutions, first_level_scale)))
+                   for r in fit_plan.LADDER)
+    finals, seconds = [], 1.0
+    while seconds < 400:
+        final = fit_plan.choose(seconds, MEASURED, FACTS, ladder).resolutions[-1]
+        if final > 128:
+            break
+        if not finals or final != finals[-1]:
+            finals.append(final)
+        seconds *= 1.01
+    assert finals == [64, 80, 96, 112, 128], finals
 
 
 def test_a_budget_below_the_coarsest_plan_gets_what_fits_of_it():
