@@ -22,10 +22,10 @@ import torch
 
 from plenoxels.planning.fit_cost import calibrate
 from plenoxels.planning.fit_plan import (FINEST_MAX_SHARE, FIRST_KEEP_PRIOR, LADDER, MAX_SHARE, MIN_SHARE, FitFacts,
-                                         Plan, Rung, choose, finest_worth, finish_seconds, replan)
+                                         Plan, Rung, choose, finest_worth, finish_seconds, ladder_at, replan)
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.scene_model import SceneModel
-from plenoxels.core.train import Fitter, Schedule, coarse_start, pruning_rays
+from plenoxels.core.train import Fitter, Schedule, pruning_rays
 from plenoxels.core.ray_set import RaySet
 
 # Re-plan every this many steps; a level's step time is the mean of its latest STEP_WINDOW, after its first few.
@@ -66,9 +66,7 @@ class TimeBudget:
         self.seconds, self.started, self.plan_file = float(clock.seconds), clock.started, clock.plan_file
         plan_file, resume = clock.plan_file, clock.resume
         self.deadline = self.started + self.seconds
-        scale = options.first_level_scale
-        ladder = tuple(dataclasses.replace(rung, resolutions=tuple(coarse_start(rung.resolutions, scale)))
-                       for rung in ladder or LADDER)
+        ladder = ladder_at(options.first_level_scale, ladder or LADDER)
         probe = new_model(8)  # an 8^3 grid: kept, as its shape at each resolution sets a pruning pass's rays
         firsts = {rung.resolutions[0] for rung in ladder}
         box_voxels = {r: int(np.prod(probe.resolution_for(r))) for r in firsts}

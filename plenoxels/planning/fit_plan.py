@@ -29,10 +29,12 @@ quality at the end.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from plenoxels.core.train import coarse_start
 from plenoxels.planning.fit_cost import CostModel
 
 # Shares of a rung's steps a plan may give: at least MIN_SHARE (a level needs enough steps to converge), at most
@@ -114,6 +116,12 @@ LADDER = (
     _pruned_early((128, 256, 512), (1000, 2000, 6000)),
 )
 
+
+def ladder_at(first_level_scale: float, ladder: tuple[Rung, ...] | None = None) -> tuple[Rung, ...]:
+    """The ladder (LADDER unless given) with each rung's first level, and its early-pruned rest, at `first_level_scale`
+    of its resolution (coarse_start), as a fit of that scene type starts."""
+    return tuple(dataclasses.replace(rung, resolutions=tuple(coarse_start(rung.resolutions, first_level_scale)))
+                 for rung in ladder or LADDER)
 
 @dataclass
 class FitFacts:

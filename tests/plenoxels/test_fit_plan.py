@@ -6,7 +6,6 @@ import pytest
 from plenoxels.planning import fit_plan
 from plenoxels.planning.fit_cost import CostModel
 from plenoxels.planning.fit_plan import FitFacts, Outlook, Rung
-from plenoxels.core.train import coarse_start
 
 # Roughly what this machine measured with the fast preset's options on one thread.
 MEASURED = CostModel(step_fixed=0.018, step_per_voxel=7e-8, pass_per_ray=1.7e-8, change_per_voxel=5e-7,
@@ -42,9 +41,8 @@ def test_a_plan_is_no_finer_than_the_photos_have_pixels():
 @pytest.mark.parametrize("first_level_scale", [1.0, 0.75])
 def test_a_little_more_time_never_skips_two_grids_below_128(first_level_scale):
     """Between 64 and 128 each final grid 16 finer is a plan of its own: a budget a few seconds short of one falls to
-    the grid 16 coarser, not 32 (a room's ladder starts its first levels at 0.75 of theirs, as budget.py makes it)."""
-    ladder = tuple(dataclasses.replace(r, resolutions=tuple(coarse_start(r.resolutions, first_level_scale)))
-                   for r in fit_plan.LADDER)
+    the grid 16 coarser, not 32 (a room's ladder starts its first levels at 0.75 of theirs)."""
+    ladder = fit_plan.ladder_at(first_level_scale)
     finals, seconds = [], 1.0
     while seconds < 400:
         final = fit_plan.choose(seconds, MEASURED, FACTS, ladder).resolutions[-1]
