@@ -123,6 +123,7 @@ def ladder_at(first_level_scale: float, ladder: tuple[Rung, ...] | None = None) 
     return tuple(dataclasses.replace(rung, resolutions=tuple(coarse_start(rung.resolutions, first_level_scale)))
                  for rung in ladder or LADDER)
 
+
 @dataclass
 class FitFacts:
     """What a prediction needs to know of the fit besides its schedule."""
