@@ -60,8 +60,16 @@ STEPS = 300
 # least MIN_TRAIN_VIEWS photos left to fit.
 SCORE_VIEWS = 4
 MIN_TRAIN_VIEWS = 8
-# Under a time budget the trial takes at most this share of it, split evenly between the models.
+# Under a time budget the trial takes at most this share of it, split evenly between the models. Each model first
+# runs PROBE_STEPS, and where its share, at the pace of its last PROBE_STEPS - PROBE_WARMUP, would not take it past
+# the trial's early prune (STEPS // 5), no model is scored: a grid not yet pruned is still clearing its air, and its
+# renders of photos it did not fit rank the models by chance (the synthetic room, contracted against bounded +
+# background: -0.36 to +0.71 dB in 23 trials that gave it under 60 steps, one of them a wrong pick whose fit lost 2 dB;
+# +0.07 to +2.9 from 69 steps, but for one -0.08; bench/README.md, "The scene model by trial"). The proxies' pick
+# stands and the share left goes to the fit.
 BUDGET_SHARE = 0.2
+PROBE_STEPS = 8
+PROBE_WARMUP = 3
 # A fit whose held-out PSNR falls this far below its train PSNR has learnt its photos but not the scene (floaters in
 # new views, or an object lost from them). Sound fits of the shared captures stand well within it at every preset,
 # while a fit that lost an object or was fitted on too few photos falls well past it (bench/README.md).
@@ -188,7 +196,9 @@ def run(scene: dict, options, train: RaySet, device: torch.device, asked: list[Q
         seconds: float | None = None, say: Callable[[str], None] = lambda message: None) -> Outcome | None:
     """Fits each model the questions name on the trial's level and keeps the best (see the module's docstring); None
     where too few training photos are left to hold some out. `seconds`: the most the whole trial may take (each model
-    gets its share and is scored where it stands when its share runs out)."""
+    gets its share and is scored where it stands when its share runs out); where a share is too short for a model to
+    reach the level's early prune, the trial stops after its probe and the outcome keeps the proxies' pick with
+    `skipped` saying why."""
     held = score_views(len(train))
     if not held:
         return None
@@ -199,11 +209,27 @@ def run(scene: dict, options, train: RaySet, device: torch.device, asked: list[Q
     base = trial_options(options)
     per_model = seconds / len(models) if seconds else None
     started = time.time()
+    runs = [_Run(scene, replace(base, **MODELS[name]), name, fitted, device) for name in models]
+    record = {"questions": [{"models": list(q.models), "why": q.why} for q in asked], "proxies_pick": default}
+    if per_model is not None:
+        for trial in runs:
+            trial.advance(PROBE_STEPS)
+        short = [trial for trial in runs if trial.projected_steps(per_model) < base.steps[0]]
+        if short:
+            record["probed"] = [trial.probe_record(per_model) for trial in runs]
+            record["seconds"] = round(time.time() - started, 1)
+            record["seconds_allowed"] = round(seconds, 1)
+            record["skipped"] = (f"the budget's {seconds:.0f} s for a trial would take "
+                                 + ", ".join(f"{t.name} about {t.projected_steps(per_model):.0f} steps" for t in short)
+                                 + f", short of the early prune at step {base.steps[0]} before which scores rank "
+                                 "the models by chance")
+            say(f"model trial: kept {default}, normalize's pick: {record['skipped']}")
+            return Outcome(default, record["skipped"], record)
     tried = []
-    for name in models:
-        tried.append(_try(scene, replace(base, **MODELS[name]), name, fitted, scored, device, per_model))
-        say(f"model trial: {name} {tried[-1].held_out_psnr:.2f} dB on {len(held)} training photos it did not fit "
-            f"({tried[-1].steps} steps at {base.resolutions[0]}^3, {tried[-1].seconds:.1f} s)")
+    for trial in runs:
+        tried.append(trial.finish(scored, per_model))
+        say(f"model trial: {trial.name} {tried[-1].held_out_psnr:.2f} dB on {len(held)} training photos it did not "
+            f"fit ({tried[-1].steps} steps at {base.resolutions[0]}^3, {tried[-1].seconds:.1f} s)")
     best = max(tried, key=lambda t: t.held_out_psnr)
     by_default = next(t for t in tried if t.model == default)
     if best.model != default and best.held_out_psnr >= by_default.held_out_psnr + MARGIN_DB:
@@ -215,37 +241,68 @@ def run(scene: dict, options, train: RaySet, device: torch.device, asked: list[Q
         why = (f"{default}, normalize's pick, scored {by_default.held_out_psnr:.2f} dB and no other model beat it by "
                f"the {MARGIN_DB:g} dB margin (best other: " +
                ", ".join(f"{t.model} {t.held_out_psnr:.2f} dB" for t in tried if t is not by_default) + ")")
-    record = {"questions": [{"models": list(q.models), "why": q.why} for q in asked], "proxies_pick": default,
-              "chosen": winner.model, "why": why, "margin_db": MARGIN_DB, "tried": [t.record() for t in tried],
-              "resolution": base.resolutions[0], "steps": base.total_steps, "fitted_photos": len(fitted),
-              "scored_photos": len(held), "seconds": round(time.time() - started, 1),
-              "seconds_allowed": round(seconds, 1) if seconds else None}
+    record.update({"chosen": winner.model, "why": why, "margin_db": MARGIN_DB, "tried": [t.record() for t in tried],
+                   "resolution": base.resolutions[0], "steps": base.total_steps, "fitted_photos": len(fitted),
+                   "scored_photos": len(held), "seconds": round(time.time() - started, 1),
+                   "seconds_allowed": round(seconds, 1) if seconds else None})
     return Outcome(winner.model, why, record)
 
 
-def _try(scene: dict, options, name: str, fitted: RaySet, scored: RaySet, device: torch.device,
-         seconds: float | None) -> Tried:
-    started = time.time()
-    model = SceneModel.create(scene, options, options.resolutions[0], focal_px=float(fitted.k[:, :2].median()),
-                              mean_colour=fitted.mean_colour())
-    fitter = Fitter(model, options, fitted, device)
-    while fitter.step < options.total_steps:
-        if fitter.step == fitter.level_end(fitter.level):
-            fitter.next_level()
-        fitter.train_step()
-        if seconds is not None and time.time() - started > seconds:
-            break
-    per_view = []
-    with torch.no_grad():
-        for i in range(len(scored)):
-            rgb = fitter.model.render_camera(scored.c2w[i].double().cpu().numpy(), scored.intrinsics[i],
-                                             backdrop=scored.backdrop(i))["rgb"]
-            per_view.append(psnr(float(((rgb.cpu() - scored.image(i).cpu()) ** 2).mean())))
-    return Tried(name, float(np.mean(per_view)), fitter.train_psnr(), time.time() - started, fitter.step, per_view)
+class _Run:
+    """One model's trial fit: stepped a few steps at a time, its time kept, scored where it stands."""
+
+    def __init__(self, scene: dict, options, name: str, fitted: RaySet, device: torch.device):
+        started = time.time()
+        self.name, self.options = name, options
+        model = SceneModel.create(scene, options, options.resolutions[0], focal_px=float(fitted.k[:, :2].median()),
+                                  mean_colour=fitted.mean_colour())
+        self.fitter = Fitter(model, options, fitted, device)
+        self.step_seconds: list[float] = []
+        self.seconds = time.time() - started
+
+    def advance(self, steps: int | None = None, seconds: float | None = None) -> None:
+        """`steps` more steps (None: to the level's end), or fewer where its time passes `seconds` in all."""
+        fitter = self.fitter
+        end = min(self.options.total_steps, fitter.step + steps if steps is not None else self.options.total_steps)
+        while fitter.step < end and (seconds is None or self.seconds <= seconds):
+            begun = time.time()
+            if fitter.step == fitter.level_end(fitter.level):
+                fitter.next_level()
+            fitter.train_step()
+            self.step_seconds.append(time.time() - begun)
+            self.seconds += self.step_seconds[-1]
+
+    def projected_steps(self, seconds: float) -> float:
+        """The steps `seconds` in all would give it, its time to here spent and the rest at its latest pace."""
+        pace = float(np.mean(self.step_seconds[PROBE_WARMUP:] or self.step_seconds))
+        return len(self.step_seconds) + max(0.0, seconds - self.seconds) / max(pace, 1e-9)
+
+    def probe_record(self, seconds: float) -> dict:
+        return {"model": self.name, "steps": len(self.step_seconds), "seconds": round(self.seconds, 2),
+                "projected_steps": round(self.projected_steps(seconds))}
+
+    def finish(self, scored: RaySet, seconds: float | None) -> Tried:
+        """Its steps to the level's end or to `seconds` in all, then its PSNR on the photos it did not fit."""
+        self.advance(seconds=seconds)
+        begun = time.time()
+        per_view = []
+        with torch.no_grad():
+            for i in range(len(scored)):
+                rgb = self.fitter.model.render_camera(scored.c2w[i].double().cpu().numpy(), scored.intrinsics[i],
+                                                      backdrop=scored.backdrop(i))["rgb"]
+                per_view.append(psnr(float(((rgb.cpu() - scored.image(i).cpu()) ** 2).mean())))
+        self.seconds += time.time() - begun
+        tried = Tried(self.name, float(np.mean(per_view)), self.fitter.train_psnr(), self.seconds, self.fitter.step,
+                      per_view)
+        self.fitter = None  # its grid and optimiser freed before the next model's steps
+        return tried
 
 
 def summary(record: dict) -> str:
-    """The summary line's words on a trial (its record): what was tried, the scores and the winner."""
+    """The summary line's words on a trial (its record): what was tried, the scores and the winner; or, where none
+    was scored, which model the fit kept and why."""
+    if not record.get("chosen"):
+        return f"{record['proxies_pick']} model, normalize's pick, untried ({record['skipped']})"
     scores = ", ".join(f"{t['model']} {t['held_out_psnr']:.1f}" for t in record["tried"])
     by_default = next(t for t in record["tried"] if t["model"] == record["proxies_pick"])
     chosen = next(t for t in record["tried"] if t["model"] == record["chosen"])

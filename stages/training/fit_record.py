@@ -107,7 +107,7 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
                  f"{cost['share_of_fitting']:.0%} of the fitting time")
         if ending.background_why:
             line += f" (added: {ending.background_why})"
-    if choice.get("chosen"):
+    if choice.get("chosen") or choice.get("questions"):
         line += "; " + model_trial.summary(choice)
     line += fitter.regularisation_summary() + fitter.colour_summary()
     threads = record.get("gradient_threads")

@@ -139,6 +139,24 @@ def test_the_trial_gives_scenery_its_background_model(unbounded, monkeypatch):
     assert "by trial" in model_trial.summary(outcome.record) and "bounded + background" in model_trial.summary(outcome.record)
 
 
+def test_a_budget_too_short_to_reach_the_early_prune_keeps_the_proxies_pick(unbounded, monkeypatch):
+    """Under a budget whose share would stop a model before the trial's early prune, no model is scored: each runs
+    its probe only and the proxies' pick stands, the summary saying so; given the time, the same trial runs every step
+    of its level and overrules them."""
+    monkeypatch.setattr(model_trial, "STEPS", 250)
+    scene = _auto(unbounded[0], beyond_fraction=0.04)
+    asked, train = model_trial.questions(scene, Options(**TRIAL)), _training(scene, unbounded[1])
+    short = model_trial.run(scene, Options(**TRIAL), train, torch.device("cpu"), asked, seconds=0.05)
+    assert short.model == model_trial.proxies_pick(scene) == "bounded + background"
+    assert "tried" not in short.record and "chosen" not in short.record
+    assert "early prune at step 50" in short.record["skipped"]
+    assert [p["steps"] for p in short.record["probed"]] == [model_trial.PROBE_STEPS] * 2
+    assert "untried" in model_trial.summary(short.record) and "bounded + background" in model_trial.summary(short.record)
+    ample = model_trial.run(scene, Options(**TRIAL), train, torch.device("cpu"), asked, seconds=3600.0)
+    assert "probed" not in ample.record and [t["steps"] for t in ample.record["tried"]] == [250, 250]
+    assert ample.model == "contracted", ample.why
+
+
 # ---- the fit stage ---------------------------------------------------------------------------------------------
 STAGE = {"resolutions": [32, 32], "steps": [40, 160], "batch_size": 2048, "image_scale": 1.0, "eval_every": 0,
          "eval_scale": 1.0, "sh_degree": 0, "tv_density": 0.0, "tv_sh": 0.0, "background_spheres": 8,
