@@ -12,6 +12,7 @@ from pathlib import Path
 
 from pipeline.report import Reporter
 from pipeline.stage import StageContext
+from plenoxels.core.files import write_whole
 
 
 @contextmanager
@@ -51,6 +52,16 @@ def recorded() -> str:
 
     changed = git("status", "--porcelain", "--untracked-files=no")
     return f"{time.strftime('%Y-%m-%d')} {git('rev-parse', '--short=7', 'HEAD') or 'unknown'}{'+' if changed else ''}"
+
+
+def write_runs(path: Path, results: dict) -> None:
+    """A results document, its runs one to a line: hundreds of budgeted fits in a few MB (indented, a run's budget
+    record alone takes a hundred lines), and a new run one line of the diff."""
+    head = json.dumps({key: value for key, value in results.items() if key != "runs"})
+    runs = ",\n".join(json.dumps(run) for run in results.get("runs", []))
+    text = head[:-1] + (", " if head != "{}" else "") + '"runs": [\n' + runs + "\n]}\n"
+    json.loads(text)  # a document that reads back, before it replaces the one on disk
+    write_whole(path, lambda tmp: Path(tmp).write_text(text))
 
 
 def budget_of(record: dict) -> dict:

@@ -296,9 +296,8 @@ def main(argv=None) -> int:
 
 
 def run_all(args) -> int:
-    from bench.common import fit_overrides, recorded
+    from bench.common import fit_overrides, recorded, write_runs
     from bench.fit import machine
-    from stages.common.json_files import write_json
 
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"runs": []}
     budget_plot = RESULTS.with_name("real_scenes_budget.png")
@@ -331,7 +330,7 @@ def run_all(args) -> int:
                     key = (name, preset, views, label)
                     results["runs"] = [r for r in results["runs"]
                                        if (r["scene"], r["preset"], r["views"], r["label"]) != key] + [record]
-                    write_json(RESULTS, results)
+                    write_runs(RESULTS, results)
                     print(f"{name} {preset} {views} ({label}): {record['mean']['psnr']:.2f} dB, SSIM "
                           f"{record['mean']['ssim']:.3f}, fit {record['fit_seconds']:.0f} s, {record['summary']}",
                           flush=True)

@@ -200,3 +200,18 @@ def test_real_scenes_runs_scored_at_one_size_compare_whatever_size_they_fit_at()
     # Scored at the same size, fast's smaller photos do not keep it off the budget's front.
     assert budget_verdict(budget, runs, ["after"]) == "below fast (27.00 dB in 80 s)"
     assert budget_verdict({**budget, "mean": {"psnr": 27.5}}, runs, ["after"]) == "on or above the presets' front"
+
+
+def test_real_scenes_results_are_written_a_run_to_a_line_and_read_back_whole(tmp_path):
+    from bench.common import write_runs
+
+    results = {"machine": {"cpu": "test", "cores": 2},
+               "runs": [{"scene": "fox", "budget": {"replans": [{"step": s, "steps": [s, 2 * s]} for s in range(40)]}},
+                        {"scene": "ball", "label": "a label, with \"quotes\"\nand a line break", "mean": {"psnr": 26.5}}]}
+    path = tmp_path / "real_scenes.json"
+    write_runs(path, results)
+    assert json.loads(path.read_text()) == results
+    lines = path.read_text().splitlines()
+    assert len(lines) == 1 + len(results["runs"]) + 1  # the machine, a line a run, the close
+    write_runs(path, {"runs": []})
+    assert json.loads(path.read_text()) == {"runs": []}
