@@ -261,7 +261,7 @@ class _Run:
         self.seconds = time.time() - started
 
     def advance(self, steps: int | None = None, seconds: float | None = None) -> None:
-        """`steps` more steps (None: to the level's end), or fewer where its time passes `seconds` in all."""
+        """`steps` more steps (None: to the trial's last step), or fewer where its time passes `seconds` in all."""
         fitter = self.fitter
         end = min(self.options.total_steps, fitter.step + steps if steps is not None else self.options.total_steps)
         while fitter.step < end and (seconds is None or self.seconds <= seconds):
@@ -282,7 +282,7 @@ class _Run:
                 "projected_steps": round(self.projected_steps(seconds))}
 
     def finish(self, scored: RaySet, seconds: float | None) -> Tried:
-        """Its steps to the level's end or to `seconds` in all, then its PSNR on the photos it did not fit."""
+        """Its steps to the trial's last step or to `seconds` in all, then its PSNR on the photos it did not fit."""
         self.advance(seconds=seconds)
         begun = time.time()
         per_view = []
