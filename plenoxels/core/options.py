@@ -95,6 +95,11 @@ class TrainOptions:
     see, in less time for the same held-out PSNR (bench/README.md, "Fit: quality against cost")."""
     steps: list[int] = field(default_factory=lambda: [200, 800, 1500])
     """Optimiser steps per level."""
+    converged_db: float = 0.0
+    """The last level ends early once it has converged: once its train PSNR rose less than this many dB over the
+    latest quarter of its steps (looked at from half of them on), it runs a tenth of its steps more, over which the
+    learning rates fall to their final values, and the fit ends there (0: every step as set; a time budget runs its
+    plan; bench/README.md, "Fit: quality against cost")."""
     first_level_scale: float = 1.0
     """The first level's resolution (its early-pruned rest too) as this share of the one set, or of a time budget's
     plan (never below 32, or the level's own resolution if that is less). A room seen from inside fills most of its
@@ -198,6 +203,7 @@ class TrainOptions:
                 "resolution prunes the grid without upsampling it)")
         require(len(self.steps) == len(self.resolutions) and all(s >= 1 for s in self.steps),
                 f"{section}.steps must list one positive step count per resolution ({len(self.resolutions)} here)")
+        require(self.converged_db >= 0, f"{section}.converged_db must be >= 0 (0: the last level runs every step)")
         require(0 < self.first_level_scale <= 1,
                 f"{section}.first_level_scale must be in (0, 1] (1: the first level as set)")
         require(self.batch_size >= 1, f"{section}.batch_size must be at least 1")

@@ -63,6 +63,9 @@ class Schedule:
     time budget (plenoxels/planning/budget.py) owns the schedule of its fit and re-plans the levels not yet done."""
     resolutions: list[int]
     steps: list[int]
+    converged_db: float = 0.0
+    """The last level ends once it has converged (Fitter.end_if_converged); 0: it runs its steps. A time budget's
+    schedule runs its plan: ending early would leave its time unused."""
 
     @classmethod
     def as_set(cls, options: TrainOptions) -> Schedule:
@@ -71,8 +74,10 @@ class Schedule:
 
     @classmethod
     def for_fit(cls, options: TrainOptions) -> Schedule:
-        """The options' levels, the first at `first_level_scale` of its resolution (coarse_start)."""
-        return cls(coarse_start(options.resolutions, options.first_level_scale), list(options.steps))
+        """The options' levels, the first at `first_level_scale` of its resolution (coarse_start), the last ending
+        once it has converged where the options say so."""
+        return cls(coarse_start(options.resolutions, options.first_level_scale), list(options.steps),
+                   options.converged_db)
 
     @property
     def total_steps(self) -> int:
@@ -156,6 +161,8 @@ class Fitter:
         self.colour = PhotoColour(len(train))
         self.colour_measures: list[float] = []  # what the gains of each deciding measure brought (dB nearer)
         self.colour_decided = False  # whether those measures have decided if the photos differ in colour
+        self.last_level_psnr: list[float] = []  # the running train PSNR after each step of the last level
+        self.converged: dict | None = None      # where the last level converged and ended early
         self._new_optimiser()
 
     # ---- optimiser state ------------------------------------------------------------------------
@@ -212,6 +219,7 @@ class Fitter:
                     if on_level is not None:
                         on_level(self.model.grid)
                 mse = self.train_step()
+                self.end_if_converged()
                 if on_step is not None:
                     on_step(mse)
                 if eval_every and held_out_psnr is not None and self.step % eval_every == 0:
@@ -288,6 +296,25 @@ class Fitter:
         if self.step % GUARD_EVERY == 0:
             self.check_finite()
         return mse
+
+    def end_if_converged(self) -> None:
+        """In the last level of a schedule that ends on convergence: once the running train PSNR rose less than its
+        `converged_db` over the latest quarter of the level's steps (looked at from half of them on), the level is
+        shortened to end a tenth of its steps from here. The learning rates decay over the whole schedule, so they
+        fall to their final values over that tail, as they would have at the end."""
+        schedule, last = self.schedule, len(self.schedule.steps) - 1
+        if schedule.converged_db <= 0 or self.level != last or self.converged is not None:
+            return
+        done, listed = self.step - sum(schedule.steps[:last]), schedule.steps[last]
+        window, tail = max(LOSS_WINDOW, listed // 4), max(1, listed // 10)
+        self.last_level_psnr = (self.last_level_psnr + [self.train_psnr()])[-(window + 1):]
+        if done < listed // 2 or len(self.last_level_psnr) <= window or done + tail >= listed:
+            return
+        gain = self.last_level_psnr[-1] - self.last_level_psnr[-1 - window]
+        if gain < schedule.converged_db:
+            schedule.steps[last] = done + tail
+            self.converged = {"step": self.step, "gain_db": round(gain, 4), "window": window, "tail": tail,
+                              "steps_listed": listed, "steps_saved": listed - done - tail}
 
     def level_starts(self) -> bool:
         """Whether this step is the first of a level after the first."""
@@ -489,6 +516,7 @@ class Fitter:
             "bg_optim": self.bg_optim.state_dict() if self.bg_optim is not None else None,
             "error_map": self.error_map.state_dict() if self.error_map is not None else None,
             "colour": {"measures": self.colour_measures, "decided": self.colour_decided, **self.colour.state_dict()},
+            "converged": self.converged, "last_level_psnr": self.last_level_psnr,
         }
 
     def save_checkpoint(self, path: Path) -> None:
@@ -513,6 +541,10 @@ class Fitter:
             self.bg_optim.load_state_dict(state["bg_optim"])
         if self.error_map is not None and state.get("error_map") is not None:
             self.error_map.load_state_dict(state["error_map"])
+        self.last_level_psnr = list(state.get("last_level_psnr") or [])
+        self.converged = state.get("converged")
+        if self.converged is not None:  # the last level as it was shortened
+            self.schedule.steps[-1] = self.converged["step"] - sum(self.schedule.steps[:-1]) + self.converged["tail"]
         if state.get("colour") is not None:
             self.colour_measures = list(state["colour"]["measures"])
             self.colour_decided = state["colour"]["decided"]

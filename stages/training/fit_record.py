@@ -62,7 +62,7 @@ def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBu
         "train_psnr": round(fitter.train_psnr(), 3),
         "held_out_psnr": round(final_psnr, 3) if final_psnr is not None else None,
         "held_out_views": len(inputs.held_out.views), "held_out_scale": s.eval_scale,
-        "history": fitter.history, "levels": fitter.levels,
+        "history": fitter.history, "levels": fitter.levels, "converged": fitter.converged,
         "model": model.describe(),
         "memory_bytes": memory,
         "regularisation": fitter.regularisation,
@@ -101,6 +101,10 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
         # A quick estimate (a few views, downscaled); the evaluate stage gives the full figure.
         line += f", held-out ~{final_psnr:.1f} dB ({len(held_out.views)} views at {s.eval_scale:g}x)"
     line += f", {format_duration(fitter.elapsed)}"
+    if fitter.converged is not None:
+        c = fitter.converged
+        line += (f", the last level converged (train PSNR {c['gain_db']:+.3f} dB over its latest {c['window']} steps, "
+                 f"under {s.converged_db:g}): ended {c['steps_saved']} steps early")
     if model.background is not None:
         cost = record["background_cost"]
         line += (f", background model {format_bytes(cost['model_bytes'] + cost['optimiser_bytes'])} with its optimiser, "

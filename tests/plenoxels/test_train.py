@@ -18,7 +18,7 @@ from plenoxels.core.optim import GridGrad
 from plenoxels.core.render import RenderOptions, loss_and_grad
 from plenoxels.core.regularizers import tv_scale_for_views, views_per_point
 from plenoxels.core.scene_model import ModelOptions, SceneModel, background_width_for
-from plenoxels.core.train import (Diverged, Fitter, TrainOptions, decayed_lr, prune_mask, pruning_rays,
+from plenoxels.core.train import (Diverged, Fitter, Schedule, TrainOptions, decayed_lr, prune_mask, pruning_rays,
                                   pruning_stride)
 from plenoxels.core.ray_set import RaySet, coherent_order
 from tests.stages.test_fit import make_scene
@@ -260,6 +260,63 @@ def test_a_repeated_resolution_prunes_the_grid_without_upsampling_it(tmp_path):
         fitter.train_step()
     fitter.next_level()
     assert max(fitter.model.grid.resolution) == 48 and fitter.model.grid.num_occupied > pruned.num_occupied
+
+
+def test_a_last_level_ends_once_its_train_psnr_has_stopped_rising_and_a_resumed_fit_keeps_the_shortened_level(
+        tmp_path, monkeypatch):
+    """The rule on a PSNR that rises 0.01 dB a step to step 250 and is flat after: with the level's window of 100 steps
+    (a quarter of its 400) it ends at the first step whose last 100 rose less than 0.25 dB (326, past half the level),
+    a tail of 40 steps after; never before half the level, not while it rises, not without converged_db, and a fit
+    resumed from a checkpoint after it runs the level as shortened."""
+    root = make_scene(tmp_path, width=32)
+    scene = read_json(root / "normalize" / "scene.json")
+    train = training_rays(root, [f for f in scene["frames"] if f["split"] == "train"])
+
+    def walked(converged_db: float, flat_from: int = 250) -> Fitter:
+        options = TrainOptions(resolutions=[16, 32], steps=[10, 400], batch_size=256, converged_db=converged_db)
+        fitter = Fitter(SceneModel.create(scene, ModelOptions(), 16), options, train, schedule=Schedule.for_fit(options))
+        monkeypatch.setattr(fitter, "train_psnr", lambda: 20 + 0.01 * min(fitter.step, flat_from))
+        fitter.level = 1
+        for step in range(10, 410):
+            fitter.step = step + 1
+            fitter.end_if_converged()
+            if fitter.step == fitter.schedule.total_steps:
+                break
+        return fitter
+
+    ended = walked(0.25)
+    assert ended.converged == {"step": 326, "gain_db": pytest.approx(0.24), "window": 100, "tail": 40,
+                               "steps_listed": 400, "steps_saved": 44}
+    assert ended.schedule.steps == [10, 356] and ended.step == 366
+    assert walked(0.0).schedule.steps == [10, 400] and walked(0.0).converged is None
+    # Still rising: 0.01 dB a step is 1 dB a window. Flat from early on: it ends at half the level, not before.
+    assert walked(0.5, flat_from=10 ** 6).converged is None
+    assert walked(0.5, flat_from=150).converged["step"] == 10 + 200
+    ended.step = 340
+    ended.save_checkpoint(tmp_path / "ended.pt")
+    options = ended.options
+    resumed = Fitter(SceneModel.create(scene, ModelOptions(), 16), options, train, schedule=Schedule.for_fit(options))
+    resumed.load_checkpoint(tmp_path / "ended.pt")
+    assert resumed.schedule.steps == [10, 356] and resumed.converged == ended.converged
+
+
+def test_a_fit_ended_on_convergence_ends_with_its_rates_at_their_final_values(tmp_path):
+    """Through Fitter.run, a last level that counts as converged at once (a threshold no fit stays under) ends a tenth
+    of its steps after half of them, the rates decayed to their final values; a time budget's schedule (none set)
+    runs every step."""
+    root = make_scene(tmp_path, width=32)
+    scene = read_json(root / "normalize" / "scene.json")
+    train = training_rays(root, [f for f in scene["frames"] if f["split"] == "train"])
+    options = TrainOptions(resolutions=[16, 16], steps=[10, 200], batch_size=256, converged_db=100.0)
+    fitter = Fitter(SceneModel.create(scene, ModelOptions(), 16), options, train, schedule=Schedule.for_fit(options))
+    fitter.run(tmp_path / "fit.pt", 1e9)
+    assert fitter.step == fitter.schedule.total_steps == 10 + 100 + 20
+    assert fitter.optim.lr_density == pytest.approx(options.lr_density_final, rel=0.02)
+    assert fitter.optim.lr_sh == pytest.approx(options.lr_sh_final, rel=0.02)
+    planned = Fitter(SceneModel.create(scene, ModelOptions(), 16), options, train,
+                     schedule=Schedule(list(options.resolutions), list(options.steps)))
+    planned.run(tmp_path / "planned.pt", 1e9)
+    assert planned.step == 210 and planned.converged is None
 
 
 # Gains kept whatever their first measure brings: what is checked is that a resumed fit measures them as a whole one.
