@@ -95,6 +95,20 @@ def test_the_calibration_is_cached_reused_and_measured_again_for_another_key(mon
     assert slower.upsampled_ratio == fresh_costs.upsampled_ratio  # a ratio of two times, whatever the speed
 
 
+@pytest.mark.parametrize("model", [{"contract": "on"}, {"ndc": "on"}, {"contract": "off", "ndc": "off"}])
+def test_the_calibration_measures_one_bounded_object_whatever_model_the_fit_takes(model):
+    """The key does not name the fit's model, so every model's calibration is of the same bounded object: its grids
+    span the object's box, a new one's as many vertices as its resolution says, not a contracted or NDC frame's."""
+    options = config.build(fit.Settings, "fit", {"batch_size": 512, "sh_degree": 0, **model})
+    calibration = fit_cost.CalibrationObject(options, torch.device("cpu"), None, 16)
+    for first in (False, True):
+        frame = calibration.fitter_at([16], first=first).model.fit_frame
+        assert frame.contraction is None and frame.ndc is None
+    assert calibration.fitter_at([16], first=True).model.grid.num_occupied == 16 ** 3
+    assert fit_cost.calibration_key(options, torch.device("cpu"), None) == fit_cost.calibration_key(
+        config.build(fit.Settings, "fit", {"batch_size": 512, "sh_degree": 0}), torch.device("cpu"), None)
+
+
 def test_a_calibration_within_an_allowance_measures_coarse_first_and_again_for_a_longer_one(monkeypatch):
     """A budget's calibration comes out of its time: within an allowance it measures the coarsest of each part and the
     level change, then finer points only while time is left; such a partial record serves budgets as short, and a
