@@ -30,7 +30,8 @@ trial on a coarse level, plenoxels/planning/model_trial.py) or one model forced 
 records the model fitted and the trial's record, and the CPU seconds of the fit stage (its trial included) beside its
 wall time, which on a machine other jobs share measures the cost better.
 
-Each run records the date and the commit it measured (`recorded`); a sweep's runs are labelled with them unless
+Each run records the date and the commit it measured (`recorded`) and the machine it ran on (`machine`; the
+document's own `machine` is the newest run's); a sweep's runs are labelled with them unless
 --label names the sweep. With --budgets each run is the preset's detail under fit.time_budget (labelled "budget 30s",
 ..., or "<label> budget 30s": two sweeps in one run, each a curve, such as the product as it is and with a setting
 off); --table then says for each where it stands against the presets' runs labelled --front (one label or several, as
@@ -327,6 +328,7 @@ def run_all(args) -> int:
                     record = spawn(spec)
                     if record is None:
                         continue
+                    record["machine"] = results["machine"]
                     key = (name, preset, views, label)
                     results["runs"] = [r for r in results["runs"]
                                        if (r["scene"], r["preset"], r["views"], r["label"]) != key] + [record]
