@@ -67,6 +67,8 @@ FILES = {"apple": "apple.mp4"}
 PRESETS = ("fast", "balanced", "default", "quality")
 SCORE_SIDE = 320
 VIEWS = {"all": 1, "quarter": 4}
+# --aligned: each held-out view scored again with its colour fitted, its pose aligned, both (bench/pose_alignment.py).
+ALIGNED = ("regained", "aligned", "aligned_regained")
 # --models: the fit's own choice, or each scene model forced (plenoxels/planning/model_trial.py MODELS).
 MODEL_FLAGS = {"auto": None, "ndc": "ndc", "contracted": "contracted", "background": "bounded + background",
                "bounded": "bounded"}
@@ -110,6 +112,7 @@ def one_run(spec: dict) -> dict:
 
     from bench.common import budget_of, fitted
     from bench.fit import resolve
+    from bench.pose_alignment import aligned_scores
     from stages.common.frames import load_frame
     from stages.common.media import write_png
     from stages.scoring.metrics import image_scores, mean_scores, to_uint8
@@ -130,6 +133,8 @@ def one_run(spec: dict) -> dict:
             render = model.render_camera(np.asarray(frame["transform_matrix"]), k, backdrop=frame.get("backdrop"),
                                        photo=frame["name"])["rgb"].numpy()
         views.append({"name": frame["name"], **image_scores(render, truth, with_lpips=False)})
+        if spec.get("aligned"):
+            views[-1].update(aligned_scores(model, frame, k, truth, render, image_scores))
         first = first if first is not None else (truth, render)
     RENDERS.mkdir(parents=True, exist_ok=True)
     gap = np.ones((first[0].shape[0], 4, 3), dtype=np.float32)
@@ -138,6 +143,7 @@ def one_run(spec: dict) -> dict:
     return {"scene": spec["scene"], "preset": spec["preset"], "views": spec["views"], "label": spec["label"],
             "recorded": spec["recorded"], "overrides": spec["overrides"], "type": scene["type"],
             "mean": mean_scores(views), "held_out": views,
+            **{f"mean_{key}": mean_scores([v[key] for v in views]) for key in ALIGNED if spec.get("aligned")},
             "train_images": record["train_images"], "image_size": fit_size, "score_size": [k.w, k.h],
             "fit_seconds": record["seconds"], "wall_seconds": round(wall, 1), "cpu_seconds": round(cpu, 1),
             "scene_model": record.get("scene_model"), "model_choice": record.get("model_choice"),
@@ -224,9 +230,10 @@ def table(results: dict, front: list[str]) -> str:
     return "\n".join(lines)
 
 
-def plot_budgets(results: dict, front: list[str], path: Path) -> None:
-    """Held-out PSNR against fit time: each scene's preset runs with their Pareto front, and its budget sweeps (the runs
-    labelled "budget ..." or "<sweep> budget ..."; probes of other settings under a budget stay in the table)."""
+def plot_budgets(results: dict, front: list[str], path: Path, sweeps: tuple[str, ...] = ()) -> None:
+    """Held-out PSNR against fit time: each scene's preset runs with their Pareto front, and its budget sweep (the runs
+    labelled "budget ..."), with the sweeps named in `sweeps` ("<sweep> budget ..."); the other sweeps and probes of
+    other settings under a budget stay in the table."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -235,7 +242,7 @@ def plot_budgets(results: dict, front: list[str], path: Path) -> None:
     from bench.fit import pareto
 
     runs = results.get("runs", [])
-    budgets = [r for r in runs if sweep_of(r) is not None]
+    budgets = [r for r in runs if sweep_of(r) is not None and sweep_of(r) in ("", *sweeps)]
     groups = sorted({(r["scene"], r["views"], sweep_of(r)) for r in budgets})
     if not groups:
         return
@@ -289,7 +296,11 @@ def main(argv=None) -> int:
                         help="the labels of the preset runs budget runs are compared with (a scene's runs under any; "
                              "default: each scene's newest)")
     parser.add_argument("--table", action="store_true", help="print the results as a Markdown table and exit")
+    parser.add_argument("--plot-sweeps", nargs="+", default=[], metavar="LABEL",
+                        help="budget sweeps (their --label) to draw beside each scene's plain one")
     parser.add_argument("--verbose", action="store_true", help="show each fit's progress")
+    parser.add_argument("--aligned", action="store_true",
+                        help="score each held-out view again with its pose aligned to the field (bench/pose_alignment.py)")
     args = parser.parse_args(argv)
     from bench.common import run_part
 
@@ -305,7 +316,7 @@ def run_all(args) -> int:
     if args.table:
         front = args.front or newest_front(results["runs"])
         print(table(results, front))
-        plot_budgets(results, front, budget_plot)
+        plot_budgets(results, front, budget_plot, tuple(args.plot_sweeps))
         return 0
     overrides = fit_overrides(args.set)
     when = recorded()
@@ -323,7 +334,7 @@ def run_all(args) -> int:
                 for label, run_overrides in variants:
                     spec = {"scene": name, "preset": preset, "views": views, "label": label, "recorded": when,
                             "overrides": run_overrides, "out": str(out), "verbose": args.verbose,
-                            "score_side": args.score_side,
+                            "score_side": args.score_side, "aligned": args.aligned,
                             "label_suffix": "" if label == "as set" else "-" + re.sub(r"[^A-Za-z0-9._-]+", "_", label)}
                     record = spawn(spec)
                     if record is None:
@@ -336,9 +347,11 @@ def run_all(args) -> int:
                     print(f"{name} {preset} {views} ({label}): {record['mean']['psnr']:.2f} dB, SSIM "
                           f"{record['mean']['ssim']:.3f}, fit {record['fit_seconds']:.0f} s, {record['summary']}",
                           flush=True)
+                    for key in ALIGNED if args.aligned else ():
+                        print(f"  {key}: {record[f'mean_{key}']['psnr']:.2f} dB, SSIM {record[f'mean_{key}']['ssim']:.3f}")
     front = args.front or newest_front(results["runs"])
     print(table(results, front))
-    plot_budgets(results, front, budget_plot)
+    plot_budgets(results, front, budget_plot, tuple(args.plot_sweeps))
     return 0
 
 
