@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from plenoxels.core.cameras import Intrinsics, rays_from_camera
+from stages.scoring.metrics import image_scores
 
 RAYS = 8192
 ITERATIONS = 12
@@ -27,36 +29,21 @@ ROTATION_STEP = 3e-4
 TRANSLATION_STEP = 1e-4
 
 
-def rotation(axis_angle: np.ndarray) -> np.ndarray:
-    angle = float(np.linalg.norm(axis_angle))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = axis_angle / angle
-    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
-
-
 def moved(c2w: np.ndarray, motion: np.ndarray, distance: float) -> np.ndarray:
     """The camera moved by `motion` (axis-angle radians, then translation in units of `distance`) in its own frame."""
     local = np.eye(4)
-    local[:3, :3] = rotation(motion[:3])
+    local[:3, :3] = Rotation.from_rotvec(motion[:3]).as_matrix()
     local[:3, 3] = motion[3:] * distance
     return c2w @ local
 
 
-def rendered(model, c2w: np.ndarray, k: Intrinsics, pixels: torch.Tensor | None, photo: str) -> torch.Tensor:
-    """The view's colours [N, 3] (every pixel, or those at flat indices `pixels`), as its photo was taken."""
+def rendered(model, c2w: np.ndarray, k: Intrinsics, pixels: torch.Tensor, photo: str) -> torch.Tensor:
+    """The view's colours [N, 3] at flat pixel indices `pixels` (at most RAYS: one render call), as its photo was
+    taken."""
     origins, dirs = rays_from_camera(c2w, k)
-    origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-    if pixels is not None:
-        origins, dirs = origins[pixels], dirs[pixels]
-    colours, opacities = [], []
-    for start in range(0, origins.shape[0], 1 << 16):
-        with torch.no_grad():
-            result = model.render_rays(origins[start:start + (1 << 16)], dirs[start:start + (1 << 16)])
-        colours.append(result.rgb.clamp(0, 1))
-        opacities.append(result.opacity)
-    return model.as_photographed(torch.cat(colours), photo, torch.cat(opacities)).double()
+    with torch.no_grad():
+        result = model.render_rays(origins.reshape(-1, 3)[pixels], dirs.reshape(-1, 3)[pixels])
+    return model.as_photographed(result.rgb.clamp(0, 1), photo, result.opacity).double()
 
 
 def align(model, c2w: np.ndarray, k: Intrinsics, truth: np.ndarray, photo: str, seed: int = 0) -> dict:
@@ -107,13 +94,14 @@ def channel_gains(render: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return (r * t).sum(0) / np.maximum((r * r).sum(0), 1e-12)
 
 
-def aligned_scores(model, frame: dict, k: Intrinsics, truth: np.ndarray, render: np.ndarray, image_scores) -> dict:
+def aligned_scores(model, frame: dict, k: Intrinsics, truth: np.ndarray, render: np.ndarray) -> dict:
     """The view (`render` at its own pose) scored with each channel's gain fitted to the photo, at its aligned pose,
     and at that pose with the gains fitted."""
     c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
     as_posed = np.clip(render * channel_gains(render, truth), 0, 1).astype(np.float32)
     fit = align(model, c2w, k, truth, frame["name"])
-    render = rendered(model, fit["c2w"], k, None, frame["name"]).reshape(k.h, k.w, 3).float().numpy()
+    with torch.no_grad():
+        render = model.render_camera(fit["c2w"], k, photo=frame["name"])["rgb"].numpy()
     regained = np.clip(render * channel_gains(render, truth), 0, 1).astype(np.float32)
     return {"regained": image_scores(as_posed, truth, with_lpips=False),
             "aligned": {**image_scores(render, truth, with_lpips=False),

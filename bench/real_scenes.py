@@ -134,7 +134,7 @@ def one_run(spec: dict) -> dict:
                                        photo=frame["name"])["rgb"].numpy()
         views.append({"name": frame["name"], **image_scores(render, truth, with_lpips=False)})
         if spec.get("aligned"):
-            views[-1].update(aligned_scores(model, frame, k, truth, render, image_scores))
+            views[-1].update(aligned_scores(model, frame, k, truth, render))
         first = first if first is not None else (truth, render)
     RENDERS.mkdir(parents=True, exist_ok=True)
     gap = np.ones((first[0].shape[0], 4, 3), dtype=np.float32)
