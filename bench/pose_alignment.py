@@ -37,16 +37,21 @@ def moved(c2w: np.ndarray, motion: np.ndarray, distance: float) -> np.ndarray:
     return c2w @ local
 
 
-def rendered(model, c2w: np.ndarray, k: Intrinsics, pixels: torch.Tensor, photo: str) -> torch.Tensor:
-    """The view's colours [N, 3] at flat pixel indices `pixels` (at most RAYS: one render call), as its photo was
-    taken."""
+def rendered(model, c2w: np.ndarray, k: Intrinsics, pixels: torch.Tensor, frame: dict) -> torch.Tensor:
+    """The view's colours [N, 3] at flat pixel indices `pixels` (at most RAYS: one render call), as `frame`'s photo
+    was taken: past the grid its own backdrop where it has one and the model no background (as render_camera)."""
     origins, dirs = rays_from_camera(c2w, k)
     with torch.no_grad():
         result = model.render_rays(origins.reshape(-1, 3)[pixels], dirs.reshape(-1, 3)[pixels])
-    return model.as_photographed(result.rgb.clamp(0, 1), photo, result.opacity).double()
+    colour = result.rgb
+    backdrop = frame.get("backdrop")
+    if backdrop is not None and model.background is None:
+        swap = torch.tensor(backdrop, dtype=torch.float32) - torch.tensor(model.background_color, dtype=torch.float32)
+        colour = colour + (1.0 - result.opacity)[:, None] * swap
+    return model.as_photographed(colour.clamp(0, 1), frame["name"], result.opacity, backdrop).double()
 
 
-def align(model, c2w: np.ndarray, k: Intrinsics, truth: np.ndarray, photo: str, seed: int = 0) -> dict:
+def align(model, c2w: np.ndarray, k: Intrinsics, truth: np.ndarray, frame: dict, seed: int = 0) -> dict:
     """The camera aligned to the field on `RAYS` pixels: its pose, how far it moved, and the subset's PSNR (its gains
     fitted) before and after."""
     pixels = torch.from_numpy(np.random.default_rng(seed).choice(k.w * k.h, min(RAYS, k.w * k.h), replace=False))
@@ -56,7 +61,7 @@ def align(model, c2w: np.ndarray, k: Intrinsics, truth: np.ndarray, photo: str, 
 
     def residual(motion):
         # Each channel's gain fitted on the way: a photo's exposure is not a reason to move its camera.
-        colours = rendered(model, moved(c2w, motion, distance), k, pixels, photo)
+        colours = rendered(model, moved(c2w, motion, distance), k, pixels, frame)
         gains = torch.from_numpy(channel_gains(colours.numpy(), target.numpy()))
         return (colours * gains - target).reshape(-1)
 
@@ -85,7 +90,7 @@ def align(model, c2w: np.ndarray, k: Intrinsics, truth: np.ndarray, photo: str, 
     return {"c2w": moved(c2w, motion, distance),
             "rotation_px": round(float(np.linalg.norm(motion[:3])) / pixel_angle, 3),
             "translation": round(float(np.linalg.norm(motion[3:])), 6),
-            "subset_psnr": [round(-10 * np.log10(start_loss), 3), round(-10 * np.log10(loss), 3)]}
+            "subset_psnr": [round(-10 * np.log10(max(value, 1e-12)), 3) for value in (start_loss, loss)]}
 
 
 def channel_gains(render: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -99,9 +104,9 @@ def aligned_scores(model, frame: dict, k: Intrinsics, truth: np.ndarray, render:
     and at that pose with the gains fitted."""
     c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
     as_posed = np.clip(render * channel_gains(render, truth), 0, 1).astype(np.float32)
-    fit = align(model, c2w, k, truth, frame["name"])
+    fit = align(model, c2w, k, truth, frame)
     with torch.no_grad():
-        render = model.render_camera(fit["c2w"], k, photo=frame["name"])["rgb"].numpy()
+        render = model.render_camera(fit["c2w"], k, backdrop=frame.get("backdrop"), photo=frame["name"])["rgb"].numpy()
     regained = np.clip(render * channel_gains(render, truth), 0, 1).astype(np.float32)
     return {"regained": image_scores(as_posed, truth, with_lpips=False),
             "aligned": {**image_scores(render, truth, with_lpips=False),
