@@ -43,12 +43,9 @@ def rendered(model, c2w: np.ndarray, k: Intrinsics, pixels: torch.Tensor, frame:
     origins, dirs = rays_from_camera(c2w, k)
     with torch.no_grad():
         result = model.render_rays(origins.reshape(-1, 3)[pixels], dirs.reshape(-1, 3)[pixels])
-    colour = result.rgb
     backdrop = frame.get("backdrop")
-    if backdrop is not None and model.background is None:
-        swap = torch.tensor(backdrop, dtype=torch.float32) - torch.tensor(model.background_color, dtype=torch.float32)
-        colour = colour + (1.0 - result.opacity)[:, None] * swap
-    return model.as_photographed(colour.clamp(0, 1), frame["name"], result.opacity, backdrop).double()
+    colour = model.on_backdrop(result.rgb, result.opacity, backdrop).clamp(0, 1)
+    return model.as_photographed(colour, frame["name"], result.opacity, backdrop).double()
 
 
 def align(model, c2w: np.ndarray, k: Intrinsics, truth: np.ndarray, frame: dict, seed: int = 0) -> dict:

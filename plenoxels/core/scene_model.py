@@ -202,23 +202,26 @@ class SceneModel:
         where the fit measured the photos' colours (photo_gains); else, and for a new view, in their common colour."""
         origins, dirs = rays_from_camera(c2w, intrinsics)
         origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-        swap = None
-        if backdrop is not None and self.background is None:
-            swap = torch.tensor(backdrop, dtype=torch.float32) - torch.tensor(self.background_color, dtype=torch.float32)
         rgb, depth, opacity = [], [], []
         for start in range(0, origins.shape[0], chunk):
             o, d = origins[start:start + chunk], dirs[start:start + chunk]
             result = self.render_rays(o, d, opts)
-            colour = result.rgb
-            if swap is not None:
-                colour = colour + (1.0 - result.opacity)[:, None] * swap.to(colour.device)
-            rgb.append(colour.clamp(0.0, 1.0))
+            rgb.append(self.on_backdrop(result.rgb, result.opacity, backdrop).clamp(0.0, 1.0))
             depth.append(self.world_depth(o, d, result))
             opacity.append(result.opacity)
         h, w = intrinsics.h, intrinsics.w
         opacity = torch.cat(opacity)
         rgb = self.as_photographed(torch.cat(rgb), photo, opacity, backdrop)
         return {"rgb": rgb.reshape(h, w, 3), "depth": torch.cat(depth).reshape(h, w), "opacity": opacity.reshape(h, w)}
+
+    def on_backdrop(self, rgb: torch.Tensor, opacity: torch.Tensor, backdrop=None) -> torch.Tensor:
+        """Rendered colours [N, 3] with what shows past the grid put on `backdrop` (an RGB colour: a photo's own
+        backdrop) in place of the model's colour, where the model has no background model; as they are otherwise."""
+        if backdrop is None or self.background is not None:
+            return rgb
+        swap = torch.tensor(backdrop, dtype=rgb.dtype, device=rgb.device) - torch.tensor(self.background_color,
+                                                                                       dtype=rgb.dtype, device=rgb.device)
+        return rgb + (1.0 - opacity)[:, None] * swap
 
     def as_photographed(self, rgb: torch.Tensor, photo: str | None, opacity: torch.Tensor | None = None,
                         backdrop=None) -> torch.Tensor:
