@@ -139,8 +139,9 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
                                                   int64_t degree, Tensor origins,
                                                   Tensor dirs, Tensor targets, Tensor background, double step,
                                                   double stop_transmittance, double near, double sigma_threshold,
-                                                  int64_t max_samples, bool contract, Tensor grad_data, Tensor grad_mask,
-                                                  Tensor grad_rows, int64_t num_touched, Tensor, Tensor) {
+                                                  int64_t max_samples, bool contract, double near_gradient,
+                                                  Tensor grad_data, Tensor grad_mask, Tensor grad_rows, int64_t num_touched,
+                                                  Tensor, Tensor) {
     const c10::cuda::CUDAGuard guard(data.device());
     const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, lattice, degree);
     const plx_cuda::Rays rays = make_rays(origins, dirs, data);
@@ -158,7 +159,7 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
     const float loss_scale = 1.0f / (3.0f * (float)B);
     check_launch(plx_cuda::loss_and_grad(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples, contract),
                                          (int)degree, with_background, targets.data_ptr<float>(), loss_scale,
-                                         sse.data_ptr<double>(), grad_background.data_ptr<float>(),
+                                         (float)near_gradient, sse.data_ptr<double>(), grad_background.data_ptr<float>(),
                                          grad_data.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), stream()),
                  "loss_and_grad");
     const double total = sse.sum().item<double>();

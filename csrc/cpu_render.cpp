@@ -37,7 +37,7 @@ void render_impl(const GridView& g, const MarchOptions& opt, const float* origin
 
 template <int D>
 double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* origins, const float* dirs,
-                      const float* targets, const float* background, int64_t B, float loss_scale,
+                      const float* targets, const float* background, int64_t B, float loss_scale, float near_gradient,
                       float* grad_background, GradTarget* target, ThreadGrads* scratch) {
     constexpr int K = (D + 1) * (D + 1);
     constexpr int S = row_stride(D);
@@ -86,16 +86,17 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
             for (const Sample& s : samples) {
                 const float w = s.t_before * s.alpha;
                 const float t_after = s.t_before * s.transmittance_factor;
+                const float share = plx::near_gradient_scale(s.t, near_gradient);
                 float dsigma = 0.0f;
                 for (int k = 0; k < S; ++k) grow[k] = 0.0f;
                 for (int ch = 0; ch < 3; ++ch) {
                     front[ch] += w * s.colour[ch];
                     const float behind = total[ch] - front[ch];
                     dsigma += dl_drgb[ch] * plx::dcolour_dsigma(s.delta, t_after, s.colour[ch], behind);
-                    const float dc = dl_drgb[ch] * w * plx::colour_relu_grad(s.raw[ch]);
+                    const float dc = share * dl_drgb[ch] * w * plx::colour_relu_grad(s.raw[ch]);
                     for (int k = 0; k < K; ++k) grow[1 + ch * K + k] = dc * basis[k];
                 }
-                grow[0] = dsigma;
+                grow[0] = share * dsigma;
                 for (int c = 0; c < 8; ++c) {
                     if (s.rows[c] < 0) continue;
                     float* dst = sink.row(s.rows[c]);
@@ -191,7 +192,7 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
                                                   int64_t degree, Tensor origins, Tensor dirs, Tensor targets,
                                                   Tensor background, double step, double stop_transmittance,
                                                   double near, double sigma_threshold, int64_t max_samples, bool contract,
-                                                  Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
+                                                  double near_gradient, Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
                                                   int64_t num_touched, Tensor scratch_grad, Tensor scratch_mask) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
     check_rays(origins, dirs);
@@ -210,7 +211,8 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
     double sse = 0.0;
     PLX_DISPATCH_DEGREE(degree, sse = loss_grad_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
                                                         targets.data_ptr<float>(), background.data_ptr<float>(), B,
-                                                        loss_scale, grad_background.data_ptr<float>(), &target, &scratch));
+                                                        loss_scale, (float)near_gradient, grad_background.data_ptr<float>(),
+                                                        &target, &scratch));
     return {sse, grad_background, target.count};
 }
 

@@ -49,9 +49,10 @@ cudaError_t render(const Grid& grid, const March& march, int degree, const Rays&
                    float* opacity, cudaStream_t stream);
 
 // Mean squared error over the batch (sum of squares written per ray into sse_per_ray) and its
-// gradient, added into grad_data; grad_background gets d loss / d background per ray.
+// gradient, added into grad_data (each sample's share plx::near_gradient_scale); grad_background gets d loss /
+// d background per ray.
 cudaError_t loss_and_grad(const Grid& grid, const March& march, int degree, const Rays& rays, const float* targets,
-                          float loss_scale, double* sse_per_ray, float* grad_background, float* grad_data,
+                          float loss_scale, float near_gradient, double* sse_per_ray, float* grad_background, float* grad_data,
                           uint8_t* grad_mask, cudaStream_t stream);
 
 // out[row] = max(out[row], largest compositing weight of any sample that interpolates the row).

@@ -113,7 +113,7 @@ __global__ void render_kernel(Grid g, March opt, Rays rays, float* __restrict__ 
 
 template <int D>
 __global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __restrict__ targets, float loss_scale,
-                                 double* __restrict__ sse, float* __restrict__ grad_background,
+                                 float near_gradient, double* __restrict__ sse, float* __restrict__ grad_background,
                                  float* __restrict__ grad, uint8_t* __restrict__ mask) {
     constexpr int K = (D + 1) * (D + 1);
     constexpr int C = 1 + 3 * K;
@@ -148,6 +148,7 @@ __global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __re
     march<C>(g, r, opt, [&](const Sample& s, float, const float* row) {
         const float w = s.t_before * s.alpha;
         const float t_after = s.t_before * s.transmittance_factor;
+        const float share = plx::near_gradient_scale(s.t, near_gradient);
         float grow[4 * float4s(C)];
 #pragma unroll
         for (int k = C; k < 4 * float4s(C); ++k) grow[k] = 0.0f;
@@ -158,10 +159,10 @@ __global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __re
             front[ch] += w * colour;
             const float behind = total[ch] - front[ch];
             dsigma += dl_drgb[ch] * plx::dcolour_dsigma(s.delta, t_after, colour, behind);
-            const float dc = dl_drgb[ch] * w * plx::colour_relu_grad(raw);
+            const float dc = share * dl_drgb[ch] * w * plx::colour_relu_grad(raw);
             for (int k = 0; k < K; ++k) grow[1 + ch * K + k] = dc * basis[k];
         }
-        grow[0] = dsigma;
+        grow[0] = share * dsigma;
         for (int c = 0; c < 8; ++c) {
             const int32_t row_index = s.rows[c];
             if (row_index < 0) continue;
@@ -398,11 +399,11 @@ cudaError_t render(const Grid& grid, const March& march, int degree, const Rays&
 }
 
 cudaError_t loss_and_grad(const Grid& grid, const March& march, int degree, const Rays& rays, const float* targets,
-                          float loss_scale, double* sse_per_ray, float* grad_background, float* grad_data,
-                          uint8_t* grad_mask, cudaStream_t stream) {
+                          float loss_scale, float near_gradient, double* sse_per_ray, float* grad_background,
+                          float* grad_data, uint8_t* grad_mask, cudaStream_t stream) {
     if (rays.count == 0) return cudaSuccess;
     PLX_CUDA_DEGREE(degree, loss_grad_kernel<D><<<blocks_for(rays.count), kThreads, 0, stream>>>(
-                                grid, march, rays, targets, loss_scale, sse_per_ray, grad_background, grad_data,
+                                grid, march, rays, targets, loss_scale, near_gradient, sse_per_ray, grad_background, grad_data,
                                 grad_mask));
     return cudaGetLastError();
 }

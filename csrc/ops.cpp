@@ -44,9 +44,10 @@ TORCH_LIBRARY(voxfield, m) {
     m.def("sample(Tensor data, Tensor links, Tensor points) -> Tensor");
     // [rgb [B, 3], depth [B], opacity [B]].
     m.def("render(" PLX_GRID ", Tensor origins, Tensor dirs, Tensor? background, " PLX_MARCH ") -> Tensor[]");
-    // (sum of squared errors, d loss / d background [B, 3], touched count); adds d(mse)/d(data).
+    // (sum of squared errors, d loss / d background [B, 3], touched count); adds d(mse)/d(data), each sample's
+    // share scaled down nearer the camera than near_gradient (plx::near_gradient_scale; 0: none).
     m.def("loss_and_grad(" PLX_GRID ", Tensor origins, Tensor dirs, Tensor targets, Tensor background, " PLX_MARCH
-          ", " PLX_GRAD ") -> (float, Tensor, int)");
+          ", float near_gradient, " PLX_GRAD ") -> (float, Tensor, int)");
     // out[row] = max(out[row], largest weight of a sample that reads the row).
     m.def("max_weights(" PLX_GRID ", Tensor origins, Tensor dirs, " PLX_MARCH ", Tensor(a!) out) -> ()");
     // (samples on the rays' lattices inside the box, samples that contributed).

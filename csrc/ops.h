@@ -36,7 +36,7 @@ using loss_and_grad = std::tuple<double, Tensor, int64_t>(
     Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block, Doubles lattice,
     int64_t degree, Tensor origins, Tensor dirs, Tensor targets, Tensor background, double step,
     double stop_transmittance, double near, double sigma_threshold, int64_t max_samples, bool contract,
-    Tensor grad_data, Tensor grad_mask, Tensor grad_rows, int64_t num_touched, Tensor scratch_grad,
+    double near_gradient, Tensor grad_data, Tensor grad_mask, Tensor grad_rows, int64_t num_touched, Tensor scratch_grad,
     Tensor scratch_mask);
 using max_weights = void(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block, Doubles lattice,
                          int64_t degree, Tensor origins, Tensor dirs, double step,

@@ -90,6 +90,16 @@ PLX_HD float sh_colour(const float* coeffs, const float* basis, int K, float* ra
 // d colour / d raw: the relu's gradient (0 at and below 0, as torch's relu).
 PLX_HD float colour_relu_grad(float raw) { return raw > 0.0f ? 1.0f : 0.0f; }
 
+// The share of its photometric gradient a sample at distance t from the camera passes on (Philip and Deschaintre,
+// "Floaters No More", 2023): (t / near_gradient)^2 nearer than near_gradient, else all of it (0: all of it
+// everywhere). The space just in front of one photo's camera takes its own detail from that photo alone; scaled
+// down there, what farther views say of the same space outweighs it, so it cannot fill with floaters.
+PLX_HD float near_gradient_scale(float t, float near_gradient) {
+    if (!(near_gradient > 0.0f) || t >= near_gradient) return 1.0f;
+    const float q = t / near_gradient;
+    return q * q;
+}
+
 // Ray against the box [0, hi] in grid coordinates. Origin og and direction dg are in grid units per
 // unit of t. Returns false if the ray misses or only touches the box (an empty interval).
 // A direction component that is exactly zero keeps the ray inside that slab or outside it for all t.

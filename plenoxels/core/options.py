@@ -171,6 +171,12 @@ class TrainOptions:
     weights set for a coarser grid outweigh the photos on a finer one (0: the weights as set on every level)."""
     lr_background: float = 0.01
     """RMSProp rate of the background model's texels."""
+    near_gradient_distance: float = 1.0
+    """A sample nearer its ray's camera than this (fit-frame units: the normalised scene's, whose foreground box is
+    about 2 across) passes on (distance / this)^2 of its photometric gradient (Philip and Deschaintre, "Floaters No
+    More", 2023): the space just in front of a camera, which few other photos see, then takes what farther views say
+    of it over what one photo alone wants there, and holds no floaters (0: the whole gradient everywhere; NDC fits
+    take none; bench/README.md, "Real captures")."""
     prune_weight: float = 0.002
     """Pruning keeps only vertices that some training ray weighs by more than this (max rendering weight)."""
     prune_density: float = 0.0
@@ -222,6 +228,7 @@ class TrainOptions:
         require(self.tv_reference_resolution >= 0,
                 f"{section}.tv_reference_resolution must be >= 0 (0: the TV weights as set on every level)")
         require(self.lr_background > 0, f"{section}.lr_background must be > 0")
+        require(self.near_gradient_distance >= 0, f"{section}.near_gradient_distance must be >= 0 (0: off)")
         require(self.prune_weight >= 0 and self.prune_dilation >= 0,
                 f"{section}.prune_weight and {section}.prune_dilation must be >= 0")
         require(0 < self.prune_ray_scale <= 1, f"{section}.prune_ray_scale must be in (0, 1]")

@@ -17,6 +17,8 @@ Rendering one ray (all kernels agree on every step):
 5. alpha_i = 1 - exp(-sigma_i dt), T_i = prod_{j<i} (1 - alpha_j), weight_i = T_i alpha_i.
    A sample is used only while T_i >= stop_transmittance (early termination).
 6. rgb = sum_i weight_i c_i + T_final * background; depth = sum_i weight_i t_i; opacity = 1 - T_final.
+7. The loss's gradient reaches a sample's density and coefficients times min(1, (t_i / near_gradient)^2) (none
+   scaled where near_gradient is 0): the values are untouched, only what flows back through them.
 
 A contracted grid (unbounded scenes; plenoxels/core/fit_frame.py) spans [-2, 2]^3 of the contracted frame and the rays
 come in the frame before the contraction. Steps 2-3 become a march from t = near: each step is step_size grid units
@@ -176,15 +178,33 @@ def _samples(grid: SparseGrid, origins, dirs, opts) -> tuple:
     return torch.cat(rays), torch.cat(idxs), torch.cat(ts), torch.cat(gs), torch.cat(deltas), lat["unit"], M
 
 
-def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torch.Tensor) -> dict:
-    """All samples of a batch with their weights and colours (steps 1-5), differentiable in density and sh."""
+class _ScaledGradient(torch.autograd.Function):
+    """x itself, its gradient times `share` [P] (per sample, over x's last axes)."""
+
+    @staticmethod
+    def forward(ctx, x, share):
+        ctx.save_for_backward(share)
+        return x.clone()
+
+    @staticmethod
+    def backward(ctx, g):
+        (share,) = ctx.saved_tensors
+        return g * share.reshape(-1, *[1] * (g.dim() - 1)), None
+
+
+def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torch.Tensor,
+          near_gradient: float = 0.0) -> dict:
+    """All samples of a batch with their weights and colours (steps 1-5), differentiable in density and sh (the
+    gradient scaled near the camera by step 7)."""
     ray, idx, t, g, delta, unit, M = _samples(grid, origins, dirs, opts)
     B = origins.shape[0]
     dtype = density.dtype  # float32 like the kernels; float64 for gradcheck
     hi = torch.tensor(grid.resolution, dtype=dtype) - 1
     g = torch.minimum(g.to(dtype).clamp_min(0), hi)
     rows, weights = corners(grid.links, g)
-    raw = interpolate(grid.links, density[:, None], g, rows, weights)[:, 0]
+    interpolated = interpolate(grid.links, density[:, None], g, rows, weights)[:, 0]
+    share = (t.to(dtype) / near_gradient).clamp_max(1) ** 2 if near_gradient > 0 else None
+    raw = interpolated if share is None else _ScaledGradient.apply(interpolated, share)
     used = raw > opts.sigma_threshold
     sigma = torch.where(used, raw, torch.zeros_like(raw))
     delta = delta.to(dtype)
@@ -196,13 +216,15 @@ def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torc
     weight = torch.where(alive, t_before * alpha, torch.zeros_like(alpha))
     t_final = torch.exp(-(tau * alive).sum(dim=1))
     K = sh_count(grid.sh_degree)
-    coeffs = interpolate(grid.links, sh, g, rows, weights).reshape(-1, 3, K)
+    interpolated_sh = interpolate(grid.links, sh, g, rows, weights).reshape(-1, 3, K)
+    coeffs = interpolated_sh if share is None else _ScaledGradient.apply(interpolated_sh, share)
     basis = sh_basis(grid.sh_degree, unit.to(dtype))[ray]
     colour = torch.relu((coeffs * basis[:, None, :]).sum(-1) + COLOUR_OFFSET)
     colour_pad = torch.zeros(B, M, 3, dtype=dtype).index_put((ray, idx), colour)
     t_pad = torch.zeros(B, M, dtype=dtype).index_put((ray, idx), t.to(dtype))
     return {"weight": weight, "colour": colour_pad, "t": t_pad, "t_final": t_final, "alive": alive,
-            "ray": ray, "idx": idx, "rows": rows, "corner_weights": weights}
+            "ray": ray, "idx": idx, "rows": rows, "corner_weights": weights,
+            "density_samples": interpolated, "sh_samples": interpolated_sh}
 
 
 def render(grid: SparseGrid, origins, dirs, background, opts, density=None, sh=None):
@@ -224,12 +246,13 @@ def _used_rows(m: dict) -> torch.Tensor:
     return torch.unique(rows[rows >= 0]).long()
 
 
-def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts, grad) -> tuple[float, torch.Tensor]:
-    """Mean squared error over the batch's B*3 values; adds its gradient into `grad`."""
+def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts, grad,
+                  near_gradient: float = 0.0) -> tuple[float, torch.Tensor]:
+    """Mean squared error over the batch's B*3 values; adds its gradient (step 7) into `grad`."""
     density = grid.density.detach().clone().requires_grad_(True)
     sh = grid.sh.detach().clone().requires_grad_(True)
     bg = background.detach().clone().requires_grad_(True)
-    m = march(grid, origins, dirs, opts, density, sh)
+    m = march(grid, origins, dirs, opts, density, sh, near_gradient)
     rgb = (m["weight"][..., None] * m["colour"]).sum(dim=1) + m["t_final"][:, None] * bg
     mse = ((rgb - targets) ** 2).mean()
     mse.backward()

@@ -171,11 +171,12 @@ def render(grid: SparseGrid, origins, dirs, background=None, opts: RenderOptions
 
 
 def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts: RenderOptions | None,
-                  grad: GridGrad) -> tuple[float, torch.Tensor]:
+                  grad: GridGrad, near_gradient: float = 0.0) -> tuple[float, torch.Tensor]:
     """Mean squared error over the B*3 colour values, forward and backward in one pass.
 
     Adds d(mse)/d(density) and d(mse)/d(sh) into `grad` for the rows the batch touched, and returns
-    (mse, d(mse)/d(background) [B, 3]).
+    (mse, d(mse)/d(background) [B, 3]). A sample at distance t < near_gradient along its ray passes on
+    (t / near_gradient)^2 of its gradient (0: all of it; `TrainOptions.near_gradient_distance`).
     """
     opts = (opts or RenderOptions()).check()
     device = grid.data.device
@@ -188,7 +189,8 @@ def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts: Re
     if grad.data.shape != grid.data.shape:
         raise ValueError("gradient storage belongs to another grid: make a new GridGrad after prune/upsample")
     sse, grad_background, grad.num_touched = native.ops.loss_and_grad(
-        *_grid_args(grid), origins, dirs, targets, background, *_march_args(opts, grid), grad.data, grad.touched_mask,
+        *_grid_args(grid), origins, dirs, targets, background, *_march_args(opts, grid), float(near_gradient),
+        grad.data, grad.touched_mask,
         grad.touched_rows, grad.num_touched, *grad.scratch())
     return (sse / (3 * b) if b else 0.0), grad_background
 

@@ -274,8 +274,9 @@ class Fitter:
         else:
             background = self.bg_optim.forward(o_w, d_w) if self.bg_optim is not None else self.model.background_rgb(o_w, d_w)
         self.background_seconds += time.perf_counter() - started
+        near_gradient = 0.0 if self.model.fit_frame.ndc is not None else o.near_gradient_distance
         mse, grad_background = loss_and_grad(self.model.grid, o_fit, d_fit, target, background,
-                                             self.model.render_options, self.grad)
+                                             self.model.render_options, self.grad, near_gradient)
         if not math.isfinite(mse):
             raise Diverged(f"the loss became {mse}")
         tv_rows = max(1, round(o.tv_sample_fraction * self.model.grid.num_occupied))

@@ -219,7 +219,7 @@ def _render_both(links, data, degree, origins, dirs, background, march=MARCH, bo
 
 
 def _loss_grad_both(links, data, degree, origins, dirs, targets, background, march=MARCH, box=(BMIN, BMAX),
-                    knots=None):
+                    knots=None, near_gradient=0.0):
     C, G = _native()
     cells, blocks = C.build_occupancy(links, BLOCK)
     n, stride = data.shape
@@ -229,7 +229,7 @@ def _loss_grad_both(links, data, degree, origins, dirs, targets, background, mar
         mask = torch.zeros(n, dtype=torch.uint8)
         rows = torch.zeros(n, dtype=torch.int32)
         args = [data, links, cells, blocks, BLOCK, _lattice(links, box, knots), degree, origins, dirs, targets, background,
-                *_march_args(march), grad, mask, rows, 0]
+                *_march_args(march), near_gradient, grad, mask, rows, 0]
         moved = move(args)
         grad_out, mask_out, rows_out = moved[-4:-1]  # counted from the end: the march's arguments vary
         sse, grad_background, count = core.loss_and_grad(*moved, *native.ops.grad_scratch(grad_out, 64))
@@ -321,6 +321,19 @@ def test_loss_and_grad_match_cpu(degree):
     _close(gpu[2], cpu[2], rtol=1e-3, atol=1e-5 * scale)
     assert torch.equal(gpu[3], cpu[3])
     assert gpu[4] == cpu[4] and len(cpu[4]) > 0
+
+
+@needs_gpu
+def test_near_gradient_scaling_matches_cpu():
+    links, data = _grid(2, density_scale=1.5)
+    origins, dirs = _rays(2000, seed=7)
+    targets, background = torch.rand(origins.shape[0], 3), torch.rand(origins.shape[0], 3)
+    whole, _ = _loss_grad_both(links, data, 2, origins, dirs, targets, background)
+    cpu, gpu = _loss_grad_both(links, data, 2, origins, dirs, targets, background, near_gradient=3.5)
+    scale = float(cpu[2].abs().max())
+    _close(gpu[2], cpu[2], rtol=1e-3, atol=1e-5 * scale)
+    assert gpu[4] == cpu[4] and len(cpu[4]) > 0
+    assert float(cpu[2].abs().sum()) < float(whole[2].abs().sum())  # it scaled something
 
 
 @needs_gpu

@@ -80,6 +80,65 @@ def test_loss_and_grad_native_matches_twin(sh_degree):
     assert bool((native.data[untouched] == 0).all())
 
 
+@pytest.mark.parametrize("sh_degree", [0, 2])
+def test_near_gradient_scaling_matches_twin(sh_degree):
+    # Rays start inside the box, so samples lie on both sides of the distance that scaling ends at.
+    grid = random_grid(sh_degree=sh_degree, seed=40 + sh_degree, holes=0.1)
+    origins, dirs = random_rays(seed=41, spread=0.9)
+    gen = torch.Generator().manual_seed(42)
+    targets, background = torch.rand(origins.shape[0], 3, generator=gen), torch.rand(origins.shape[0], 3, generator=gen)
+    opts = RenderOptions(step_size=0.6)
+    whole, _ = assert_loss_and_grad_match_twin(grid, origins, dirs, targets, background, opts)
+    near, _ = assert_loss_and_grad_match_twin(grid, origins, dirs, targets, background, opts, near_gradient=1.2)
+    far, _ = assert_loss_and_grad_match_twin(grid, origins, dirs, targets, background, opts, near_gradient=1e-6)
+    # A distance shorter than every sample's scales nothing (up to the threads' sums, added in another order), and one
+    # past the rays' first stretch takes most of the gradient of the rows there.
+    torch.testing.assert_close(far.data, whole.data, atol=1e-6 * float(whole.data.abs().max()), rtol=1e-5)
+    near_start = torch.zeros(grid.num_occupied, dtype=torch.bool)
+    unit = dirs / dirs.norm(dim=1, keepdim=True)
+    points = origins[:, None, :] + torch.linspace(0.0, 0.3, 7)[None, :, None] * unit[:, None, :]
+    g = grid.world_to_grid(points.reshape(-1, 3).double()).round().long()
+    inside = ((g >= 0) & (g < torch.tensor(grid.resolution))).all(dim=1)
+    rows = grid.links[g[inside, 0], g[inside, 1], g[inside, 2]].long()
+    near_start[rows[rows >= 0]] = True
+    touched = whole.touched_mask.bool() & near_start
+    assert int(touched.sum()) > 0
+    assert float(near.data[touched].abs().sum()) < 0.5 * float(whole.data[touched].abs().sum())
+
+
+def test_near_gradient_twin_is_the_scaled_chain_rule():
+    # The twin's scaling against its definition: the gradient each sample's density and coefficients receive, times
+    # min(1, (t / near_gradient)^2), carried back through the (linear) interpolation; the values themselves unscaled.
+    grid = random_grid(res=(5, 5, 5), sh_degree=1, seed=50, holes=0.0)
+    origins, dirs = random_rays(n=12, seed=51, spread=0.8)
+    gen = torch.Generator().manual_seed(52)
+    targets, background = torch.rand(12, 3, generator=gen).double(), torch.rand(12, 3, generator=gen).double()
+    opts = RenderOptions(step_size=0.7)
+
+    def loss(near_gradient):
+        density = grid.density.detach().double().requires_grad_(True)
+        sh = grid.sh.detach().double().requires_grad_(True)
+        m = reference.march(grid, origins.double(), dirs.double(), opts, density, sh, near_gradient)
+        m["density_samples"].retain_grad()
+        m["sh_samples"].retain_grad()
+        rgb = (m["weight"][..., None] * m["colour"]).sum(dim=1) + m["t_final"][:, None] * background
+        value = ((rgb - targets) ** 2).mean()
+        value.backward(retain_graph=True)
+        return value, density, sh, m
+
+    scaled_loss, density, sh, _ = loss(1.0)
+    plain_loss, plain_density, plain_sh, m = loss(0.0)
+    assert float(scaled_loss) == float(plain_loss)
+    share = (m["t"][m["ray"], m["idx"]] / 1.0).clamp_max(1) ** 2
+    assert 0 < float(share.min()) < 0.5 and float(share.max()) == 1.0  # samples on both sides of the distance
+    want_density, want_sh = torch.autograd.grad(
+        [m["density_samples"], m["sh_samples"]], [plain_density, plain_sh],
+        [share * m["density_samples"].grad, share[:, None, None] * m["sh_samples"].grad])
+    torch.testing.assert_close(density.grad, want_density, atol=1e-12, rtol=1e-9)
+    torch.testing.assert_close(sh.grad, want_sh, atol=1e-12, rtol=1e-9)
+    assert not torch.allclose(density.grad, plain_density.grad)
+
+
 def gradients_on_threads(grid, threads: int, seeds, seed: int) -> tuple[GridGrad, GridGrad]:
     """The native and twin gradients of the MSE over one batch of random rays per seed, summed, the native ones added
     on `threads` threads (its per-thread tables made there too)."""

@@ -300,6 +300,32 @@ def test_a_last_level_ends_once_its_train_psnr_has_stopped_rising_and_a_resumed_
     assert resumed.schedule.steps == [10, 356] and resumed.converged == ended.converged
 
 
+@pytest.mark.parametrize("ndc", ["off", "on"])
+def test_a_train_step_scales_gradients_near_the_cameras_except_in_ndc(tmp_path, monkeypatch, ndc):
+    """The step hands the kernels `near_gradient_distance` in a metric fit frame; NDC's frame is not metric (its
+    depth runs 0-1 whatever the scene's size), so it gets none."""
+    import plenoxels.core.train as train_module
+    root = make_scene(tmp_path, width=32)
+    scene = read_json(root / "normalize" / "scene.json")
+    frames = [f for f in scene["frames"] if f["split"] == "train"]
+    train = training_rays(root, frames)
+    if ndc == "on":  # the synthetic scene's orbit is no forward capture, but one camera serves as NDC's reference
+        scene["forward"] = {"reference_c2w": frames[0]["transform_matrix"], "near": 0.5}
+    options = TrainOptions(resolutions=[16], steps=[2], batch_size=256, near_gradient_distance=0.7)
+    fitter = Fitter(SceneModel.create(scene, ModelOptions(ndc=ndc), 16), options, train,
+                    schedule=Schedule.for_fit(options))
+    handed = []
+    real = train_module.loss_and_grad
+
+    def recording(*args):
+        handed.append(args[-1])
+        return real(*args)
+
+    monkeypatch.setattr(train_module, "loss_and_grad", recording)
+    fitter.train_step()
+    assert handed == [0.7 if ndc == "off" else 0.0]
+
+
 def test_a_fit_ended_on_convergence_ends_with_its_rates_at_their_final_values(tmp_path):
     """Through Fitter.run, a last level that counts as converged at once (a threshold no fit stays under) ends a tenth
     of its steps after half of them, the rates decayed to their final values; a time budget's schedule (none set)
