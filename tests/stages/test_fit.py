@@ -109,8 +109,11 @@ def test_the_sparsity_prior_leaves_less_density_for_as_good_a_fit(fresh, monkeyp
     prior (unbounded ones, framed by their points)."""
     frame_scene(fresh, silhouette_box=False)
     live, kept, held_out = {}, {}, {}
+    # The prior alone: the gradient scaled down near the cameras leaves the prior (here 1000x a room's) the last word
+    # on the box's space in front of them, 0.3-1.2 dB held-out on this toy; rooms' prior with it: bench/README.md.
     for weight in (0.0, 1e-4):
-        run_stage(fresh, fit, {**QUICK, "resolutions": [32], "steps": [200], "sparsity": weight})
+        run_stage(fresh, fit, {**QUICK, "resolutions": [32], "steps": [200], "sparsity": weight,
+                               "near_gradient_distance": 0.0})
         record = read_json(fresh / "fit" / "fit.json")
         grid = SceneModel.load(fresh / "fit").grid
         live[weight], kept[weight] = int((grid.density > 0).sum()), grid.num_occupied
