@@ -20,8 +20,10 @@ class MarchOptions:
 
     step_size: float = 0.5
     """Ray sample spacing in voxels."""
-    stop_transmittance: float = 1e-4
-    """A ray stops once this little light gets through."""
+    stop_transmittance: float = 0.01
+    """A ray stops once this little light gets through; what lies behind then shows as the background. At 0.01, not
+    1e-4, a fitted room's training ray meets two thirds of the samples (fox 16 against 24) and each preset fits in
+    0.77-0.92x the time at the same held-out PSNR (bench/README.md, "Kernels")."""
 
     def check(self, section: str = "fit") -> None:
         require(self.step_size > 0, f"{section}.step_size must be positive (voxels)")

@@ -12,7 +12,7 @@ from plenoxels.core.background import MultiSphereBackground
 from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.fit_frame import FitFrame
 from plenoxels.core.grid import SparseGrid
-from plenoxels.core.render import COLOUR_OFFSET, SH_C0, max_weights, render as render_grid
+from plenoxels.core.render import COLOUR_OFFSET, SH_C0, RenderOptions, max_weights, render as render_grid
 from plenoxels.core.cameras import rays_from_camera
 from plenoxels.splats.distill import RowAdam, TargetView, WindowErrors, distill, psnr
 from plenoxels.splats.background_splats import splats_from_background
@@ -183,6 +183,11 @@ def ball_grid(res: int = 20) -> SparseGrid:
     return SparseGrid.from_values(links, density, sh.reshape(len(p), 12), (-1, -1, -1), (1, 1, 1), 1)
 
 
+# The hand-made grids below are rendered as splats are, to the same last light: a fitted grid stops its rays where it
+# was fitted to (fit.stop_transmittance), which these grids never were.
+AS_SPLATS = RenderOptions(stop_transmittance=STOP_TRANSMITTANCE)
+
+
 def grid_views(grid: SparseGrid, n: int, size: int = 32) -> list[TargetView]:
     views = []
     for i in range(n):
@@ -190,7 +195,7 @@ def grid_views(grid: SparseGrid, n: int, size: int = 32) -> list[TargetView]:
         c2w = look_at(np.array([2.2 * math.cos(angle), 2.2 * math.sin(angle), 0.8]), (0.0, 0.0, 0.0))
         k = Intrinsics(size * 1.2, size * 1.2, size / 2, size / 2, size, size)
         o, d = rays_from_camera(c2w, k)
-        out = render_grid(grid, o.reshape(-1, 3), d.reshape(-1, 3), torch.ones(size * size, 3))
+        out = render_grid(grid, o.reshape(-1, 3), d.reshape(-1, 3), torch.ones(size * size, 3), AS_SPLATS)
         views.append(TargetView(c2w, k, out.rgb.reshape(size, size, 3)))
     return views
 
@@ -215,7 +220,8 @@ def test_splats_from_a_small_grid_render_like_it_and_distillation_raises_their_p
     for v, a in zip(held, (0.4, 1.3, 2.9)):
         v.c2w = look_at(np.array([2.2 * math.cos(a), 2.2 * math.sin(a), 0.5]), (0.0, 0.0, 0.0))
         o, d = rays_from_camera(v.c2w, v.k)
-        v.rgb = render_grid(grid, o.reshape(-1, 3), d.reshape(-1, 3), torch.ones(o.numel() // 3, 3)).rgb.reshape(v.rgb.shape)
+        v.rgb = render_grid(grid, o.reshape(-1, 3), d.reshape(-1, 3), torch.ones(o.numel() // 3, 3),
+                           AS_SPLATS).rgb.reshape(v.rgb.shape)
     score = lambda s: np.mean([psnr(render(s, v.c2w, v.k)["rgb"], v.rgb) for v in held])  # noqa: E731
     start = score(splats)
     assert start > 18
