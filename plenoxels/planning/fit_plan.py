@@ -88,9 +88,9 @@ def _pruned_early(resolutions: tuple[int, ...], steps: tuple[int, ...]) -> Rung:
     return Rung((resolutions[0],) + resolutions, (early, steps[0] - early) + steps[1:], fixed=1)
 
 
-# Candidate schedules, coarse to fine, at the presets' step counts: the presets' levels (fast 64->128, balanced
-# 96->192, default 128->256, quality 128->256->384) and rungs between them made the same way, each first level pruned
-# early as the presets' are (a first level's steps march its whole box until a prune clears it, so an early prune
+# Candidate schedules, coarse to fine, at the presets' step counts: the presets' levels (balanced 96->192, default
+# 128->256, quality 128->256->384; fast's 64->144 lies between rungs) and rungs made the same way, each first level
+# pruned early as the presets' are (a first level's steps march its whole box until a prune clears it, so an early prune
 # saves time at no cost in quality); at the bottom, three that start at 32^3 (see the module's docstring), 32->64
 # being what a budget too short for any plan gets. The early prune stays at its step whatever the share (`fixed`):
 # scaled down with it, it prunes a grid still diffuse, which keeps more voxels than the plan assumed and upsamples to
