@@ -105,8 +105,9 @@ __global__ void render_kernel(Grid g, March opt, Rays rays, float* __restrict__ 
         acc_depth += w * s.t;
         return s.t_before * s.transmittance_factor;
     });
+    const float light = plx::light_past_grid(t_final, opt.stop_transmittance);  // as the CPU's render
     for (int ch = 0; ch < 3; ++ch)
-        rgb[3 * b + ch] = acc[ch] + (rays.background ? t_final * rays.background[3 * b + ch] : 0.0f);
+        rgb[3 * b + ch] = acc[ch] + (rays.background ? light * rays.background[3 * b + ch] : 0.0f);
     depth[b] = acc_depth;
     opacity[b] = 1.0f - t_final;
 }
@@ -124,14 +125,14 @@ __global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __re
     float basis[16];
     plx::sh_basis(D, r.dir[0], r.dir[1], r.dir[2], basis);
     float acc[3] = {0.0f, 0.0f, 0.0f};
-    const float t_final = march<C>(g, r, opt, [&](const Sample& s, float, const float* row) {
+    const float t_final = plx::light_past_grid(march<C>(g, r, opt, [&](const Sample& s, float, const float* row) {
         const float w = s.t_before * s.alpha;
         for (int ch = 0; ch < 3; ++ch) {
             float raw;
             acc[ch] += w * plx::sh_colour(row + 1 + ch * K, basis, K, &raw);
         }
         return s.t_before * s.transmittance_factor;
-    });
+    }), opt.stop_transmittance);
     float total[3], dl_drgb[3];
     double sq = 0.0;
     for (int ch = 0; ch < 3; ++ch) {

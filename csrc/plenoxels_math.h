@@ -416,6 +416,14 @@ PLX_HD float sample_alpha(float sigma, float delta, float* transmittance_factor)
     return 1.0f - f;
 }
 
+// The light a ray carries past the grid to whatever lies behind it (the background), given the transmittance the march
+// ended with: none once the march stopped below stop_transmittance. Behind the stop nothing counts, the background as
+// little as the samples the march dropped, so a stopped ray's background need not be drawn at all. (Its opacity stays
+// what its samples took, 1 - transmittance: depth divided by opacity is their mean depth.)
+PLX_HD float light_past_grid(float transmittance, float stop_transmittance) {
+    return transmittance >= stop_transmittance ? transmittance : 0.0f;
+}
+
 // d(pixel colour)/d(sigma_i) for one channel, with
 //   t_after = transmittance after sample i, c = its colour,
 //   behind = everything composited behind sample i (later samples plus the background term).
