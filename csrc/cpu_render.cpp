@@ -64,7 +64,7 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
             plx::sh_basis(D, r.dir[0], r.dir[1], r.dir[2], basis);
             samples.clear();
             float acc[3] = {0.0f, 0.0f, 0.0f};
-            const float t_final = plx::light_past_grid(march<S>(g, r, opt, interp, [&](Sample& s, const float* row) {
+            const float t_final = march<S>(g, r, opt, interp, [&](Sample& s, const float* row) {
                 const float w = s.t_before * s.alpha;
                 for (int ch = 0; ch < 3; ++ch) {
                     s.colour[ch] = plx::sh_colour(row + 1 + ch * K, basis, K, &s.raw[ch]);
@@ -78,15 +78,19 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
                 }
                 samples.push_back(s);
                 return s.t_before * s.transmittance_factor;
-            }), opt.stop_transmittance);
-            const float* background = behind_grid(b, t_final);
+            });
+            const float light = plx::light_past_grid(t_final, opt.stop_transmittance);
+            // Behind each sample the background counts at the rate its share answers the density (equal to the share
+            // outside the stop's ramp).
+            const float rate_less_share = plx::light_past_grid_rate(t_final, opt.stop_transmittance) - light;
+            const float* background = behind_grid(b, light);
             float total[3], dl_drgb[3];
             for (int ch = 0; ch < 3; ++ch) {
-                total[ch] = acc[ch] + t_final * background[ch];
+                total[ch] = acc[ch] + light * background[ch];
                 const float err = total[ch] - targets[3 * b + ch];
                 sse += (double)err * err;
                 dl_drgb[ch] = 2.0f * loss_scale * err;
-                grad_background[3 * b + ch] = dl_drgb[ch] * t_final;
+                grad_background[3 * b + ch] = dl_drgb[ch] * light;
             }
             // Backward: walk the same samples again, with what lies behind each one known from the total.
             float front[3] = {0.0f, 0.0f, 0.0f};
@@ -98,7 +102,7 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
                 for (int k = 0; k < S; ++k) grow[k] = 0.0f;
                 for (int ch = 0; ch < 3; ++ch) {
                     front[ch] += w * s.colour[ch];
-                    const float behind = total[ch] - front[ch];
+                    const float behind = total[ch] - front[ch] + rate_less_share * background[ch];
                     dsigma += dl_drgb[ch] * plx::dcolour_dsigma(s.delta, t_after, s.colour[ch], behind);
                     const float dc = share * dl_drgb[ch] * w * plx::colour_relu_grad(s.raw[ch]);
                     for (int k = 0; k < K; ++k) grow[1 + ch * K + k] = dc * basis[k];

@@ -125,22 +125,25 @@ __global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __re
     float basis[16];
     plx::sh_basis(D, r.dir[0], r.dir[1], r.dir[2], basis);
     float acc[3] = {0.0f, 0.0f, 0.0f};
-    const float t_final = plx::light_past_grid(march<C>(g, r, opt, [&](const Sample& s, float, const float* row) {
+    const float t_final = march<C>(g, r, opt, [&](const Sample& s, float, const float* row) {
         const float w = s.t_before * s.alpha;
         for (int ch = 0; ch < 3; ++ch) {
             float raw;
             acc[ch] += w * plx::sh_colour(row + 1 + ch * K, basis, K, &raw);
         }
         return s.t_before * s.transmittance_factor;
-    }), opt.stop_transmittance);
+    });
+    // As the CPU's loss: the background's share, and the rate at which it answers the density.
+    const float light = plx::light_past_grid(t_final, opt.stop_transmittance);
+    const float rate_less_share = plx::light_past_grid_rate(t_final, opt.stop_transmittance) - light;
     float total[3], dl_drgb[3];
     double sq = 0.0;
     for (int ch = 0; ch < 3; ++ch) {
-        total[ch] = acc[ch] + t_final * rays.background[3 * b + ch];
+        total[ch] = acc[ch] + light * rays.background[3 * b + ch];
         const float err = total[ch] - targets[3 * b + ch];
         sq += (double)err * err;
         dl_drgb[ch] = 2.0f * loss_scale * err;
-        grad_background[3 * b + ch] = dl_drgb[ch] * t_final;
+        grad_background[3 * b + ch] = dl_drgb[ch] * light;
     }
     sse[b] = sq;
     // Backward: march the same samples again; what lies behind each one follows from the total.
@@ -158,7 +161,7 @@ __global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __re
             float raw;
             const float colour = plx::sh_colour(row + 1 + ch * K, basis, K, &raw);
             front[ch] += w * colour;
-            const float behind = total[ch] - front[ch];
+            const float behind = total[ch] - front[ch] + rate_less_share * rays.background[3 * b + ch];
             dsigma += dl_drgb[ch] * plx::dcolour_dsigma(s.delta, t_after, colour, behind);
             const float dc = share * dl_drgb[ch] * w * plx::colour_relu_grad(raw);
             for (int k = 0; k < K; ++k) grow[1 + ch * K + k] = dc * basis[k];

@@ -17,8 +17,9 @@ Rendering one ray (all kernels agree on every step):
 5. alpha_i = 1 - exp(-sigma_i dt), T_i = prod_{j<i} (1 - alpha_j), weight_i = T_i alpha_i.
    A sample is used only while T_i >= stop_transmittance (early termination).
 6. rgb = sum_i weight_i c_i + L * background; depth = sum_i weight_i t_i; opacity = 1 - T_final, with T_final the
-   light left after the last used sample and L = T_final, or 0 where T_final fell below stop_transmittance: behind the
-   stop nothing counts, the background as little as the dropped samples (plx::light_past_grid).
+   light left after the last used sample and L what of it reaches the background: T_final from twice
+   stop_transmittance s up, none below s (behind the stop nothing counts, the background as little as the dropped
+   samples), T_final (T_final - s) / s between, so that colours do not jump (render.light_past_grid).
 7. The loss's gradient reaches a sample's density and coefficients times min(1, (t_i / near_gradient)^2) (none
    scaled where near_gradient is 0): the values are untouched, only what flows back through them.
 
@@ -38,7 +39,7 @@ import torch
 from plenoxels.core.background import BACKGROUND_STOP_TRANSMITTANCE
 from plenoxels.core.fit_frame import contract
 from plenoxels.core.grid import SparseGrid, sh_count
-from plenoxels.core.render import COLOUR_OFFSET, ray_samples, sh_basis
+from plenoxels.core.render import COLOUR_OFFSET, light_past_grid, ray_samples, sh_basis
 
 TV_EPS = 1e-9
 # csrc/plenoxels_math.h's PLX_CONTRACTED_MAX_STEP.
@@ -217,7 +218,7 @@ def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torc
     alpha = 1 - torch.exp(-tau)
     weight = torch.where(alive, t_before * alpha, torch.zeros_like(alpha))
     t_final = torch.exp(-(tau * alive).sum(dim=1))
-    light = torch.where(t_final >= opts.stop_transmittance, t_final, torch.zeros_like(t_final))
+    light = light_past_grid(t_final, opts.stop_transmittance)
     K = sh_count(grid.sh_degree)
     interpolated_sh = interpolate(grid.links, sh, g, rows, weights).reshape(-1, 3, K)
     coeffs = interpolated_sh if share is None else _ScaledGradient.apply(interpolated_sh, share)

@@ -57,11 +57,15 @@ class RenderResult:
     opacity: torch.Tensor  # [B] 1 - final transmittance
 
 
-def light_past_grid(opacity: torch.Tensor, stop_transmittance: float) -> torch.Tensor:
-    """What of the colour behind the grid shows on rays that rendered `opacity`: 1 - opacity, none on a ray whose
-    light fell below stop_transmittance (the march stopped it; plx::light_past_grid)."""
-    left = 1.0 - opacity
-    return torch.where(left >= stop_transmittance, left, torch.zeros_like(left))
+def light_past_grid(transmittance: torch.Tensor, stop_transmittance: float) -> torch.Tensor:
+    """What of the colour behind the grid shows on rays that left the grid with `transmittance` (1 - opacity): all of
+    it from twice stop_transmittance up, none below it (the march stopped the ray), a ramp between so that colours do
+    not jump (plx::light_past_grid). Differentiable (the twin's loss takes its gradient)."""
+    s = float(stop_transmittance)
+    if s <= 0:
+        return transmittance
+    ramp = transmittance * ((transmittance - s) / s).clamp(0.0, 1.0)
+    return torch.where(transmittance >= s, ramp, torch.zeros_like(transmittance))
 
 
 def ray_samples(grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opts: RenderOptions) -> dict:
@@ -168,8 +172,8 @@ def _march_args(opts: RenderOptions, grid: SparseGrid) -> tuple:
 
 
 def render(grid: SparseGrid, origins, dirs, background=None, opts: RenderOptions | None = None) -> RenderResult:
-    """rgb = sum_i T_i a_i c_i + T_final * background (None: black), the background left out on a ray the march stopped
-    below stop_transmittance (light_past_grid); opacity = 1 - T_final."""
+    """rgb = sum_i T_i a_i c_i + light_past_grid(T_final) * background (None: black): none on a ray the march stopped
+    below stop_transmittance; opacity = 1 - T_final."""
     opts = (opts or RenderOptions()).check()
     device = grid.data.device
     origins, dirs = _rays(origins, dirs, device)

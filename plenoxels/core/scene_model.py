@@ -248,7 +248,7 @@ class SceneModel:
         """What of the colour behind the grid shows on rays that rendered `opacity` and were stopped at
         `stop_transmittance` (None: as this model's renders are)."""
         stop = self.render_options.stop_transmittance if stop_transmittance is None else stop_transmittance
-        return light_past_grid(opacity, stop)
+        return light_past_grid(1.0 - opacity, stop)
 
     # ---- facts ----------------------------------------------------------------------------------
     def region_box(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
