@@ -1,5 +1,4 @@
-// Rendering on the CPU: colour, depth and opacity of rays; the fused photometric loss and its gradient (with the
-// background spheres drawn in the same pass, only where light gets past the grid); each
+// Rendering on the CPU: colour, depth and opacity of rays; the fused photometric loss and its gradient; each
 // voxel's largest weight along the rays (for pruning); and the sample counts reports quote.
 #include "cpu_kernels.h"
 
@@ -29,21 +28,16 @@ void render_impl(const GridView& g, const MarchOptions& opt, const float* origin
                 acc_depth += w * s.t;
                 return s.t_before * s.transmittance_factor;
             });
-            // What lies behind shows only on a ray the march did not stop (plx::light_past_grid); the opacity is
-            // what the samples took, so depth / opacity stays the samples' mean depth.
-            const float light = plx::light_past_grid(t_final, opt.stop_transmittance);
-            for (int ch = 0; ch < 3; ++ch) rgb[3 * b + ch] = acc[ch] + (background ? light * background[3 * b + ch] : 0.0f);
+            for (int ch = 0; ch < 3; ++ch) rgb[3 * b + ch] = acc[ch] + (background ? t_final * background[3 * b + ch] : 0.0f);
             depth[b] = acc_depth;
             opacity[b] = 1.0f - t_final;
         }
     }
 }
 
-// `behind(b, light)`: the colour [3] behind the grid on ray b, of which `light` shows (0: none, so it need not be
-// drawn): colours drawn beforehand, or the background spheres drawn here, only for the rays the grid lets light past.
-template <int D, typename Behind>
+template <int D>
 double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* origins, const float* dirs,
-                      const float* targets, Behind behind_grid, int64_t B, float loss_scale, float near_gradient,
+                      const float* targets, const float* background, int64_t B, float loss_scale, float near_gradient,
                       float* grad_background, GradTarget* target, ThreadGrads* scratch) {
     constexpr int K = (D + 1) * (D + 1);
     constexpr int S = row_stride(D);
@@ -79,18 +73,13 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
                 samples.push_back(s);
                 return s.t_before * s.transmittance_factor;
             });
-            const float light = plx::light_past_grid(t_final, opt.stop_transmittance);
-            // Behind each sample the background counts at the rate its share answers the density (equal to the share
-            // outside the stop's ramp).
-            const float rate_less_share = plx::light_past_grid_rate(t_final, opt.stop_transmittance) - light;
-            const float* background = behind_grid(b, light);
             float total[3], dl_drgb[3];
             for (int ch = 0; ch < 3; ++ch) {
-                total[ch] = acc[ch] + light * background[ch];
+                total[ch] = acc[ch] + t_final * background[3 * b + ch];
                 const float err = total[ch] - targets[3 * b + ch];
                 sse += (double)err * err;
                 dl_drgb[ch] = 2.0f * loss_scale * err;
-                grad_background[3 * b + ch] = dl_drgb[ch] * light;
+                grad_background[3 * b + ch] = dl_drgb[ch] * t_final;
             }
             // Backward: walk the same samples again, with what lies behind each one known from the total.
             float front[3] = {0.0f, 0.0f, 0.0f};
@@ -102,7 +91,7 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
                 for (int k = 0; k < S; ++k) grow[k] = 0.0f;
                 for (int ch = 0; ch < 3; ++ch) {
                     front[ch] += w * s.colour[ch];
-                    const float behind = total[ch] - front[ch] + rate_less_share * background[ch];
+                    const float behind = total[ch] - front[ch];
                     dsigma += dl_drgb[ch] * plx::dcolour_dsigma(s.delta, t_after, s.colour[ch], behind);
                     const float dc = share * dl_drgb[ch] * w * plx::colour_relu_grad(s.raw[ch]);
                     for (int k = 0; k < K; ++k) grow[1 + ch * K + k] = dc * basis[k];
@@ -220,51 +209,11 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
     GradTarget target{grad_data.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), grad_rows.data_ptr<int32_t>(), num_touched};
     const float loss_scale = B > 0 ? 1.0f / (3.0f * (float)B) : 0.0f;
     double sse = 0.0;
-    const float* drawn = background.data_ptr<float>();
-    const auto behind = [drawn](int64_t b, float) { return drawn + 3 * b; };
     PLX_DISPATCH_DEGREE(degree, sse = loss_grad_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
-                                                        targets.data_ptr<float>(), behind, B,
+                                                        targets.data_ptr<float>(), background.data_ptr<float>(), B,
                                                         loss_scale, (float)near_gradient, grad_background.data_ptr<float>(),
                                                         &target, &scratch));
     return {sse, grad_background, target.count};
-}
-
-std::tuple<double, Tensor, Tensor, int64_t> loss_and_grad_spheres(
-    Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block, c10::ArrayRef<double> lattice,
-    int64_t degree, Tensor origins, Tensor dirs, Tensor targets, Tensor sphere_origins, Tensor sphere_dirs,
-    Tensor centre, Tensor radii, Tensor texture, Tensor far_colour, Tensor layer_texels, Tensor layer_weights,
-    double step, double stop_transmittance, double near, double sigma_threshold, int64_t max_samples, bool contract,
-    double near_gradient, Tensor grad_data, Tensor grad_mask, Tensor grad_rows, int64_t num_touched,
-    Tensor scratch_grad, Tensor scratch_mask) {
-    check_grid(data, links, cell_occ, block_occ, (int)degree);
-    check_rays(origins, dirs);
-    check_float_rows(targets, "targets");
-    check_float_rows(grad_data, "grad data");
-    TORCH_CHECK(targets.sizes() == origins.sizes() && sphere_origins.sizes() == origins.sizes(),
-                "targets and the spheres' rays must be [B,3] like the grid's");
-    TORCH_CHECK(grad_data.sizes() == data.sizes(), "gradient storage does not match the grid");
-    const Spheres spheres = spheres_view(sphere_origins, sphere_dirs, centre, radii, texture, far_colour, layer_texels,
-                                         layer_weights);
-    TORCH_CHECK(spheres.texels != nullptr, "loss_and_grad_spheres needs the layer record its backward reads");
-    ThreadGrads scratch(grad_data, scratch_grad, scratch_mask);
-    const int64_t B = origins.size(0);
-    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, lattice);
-    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract);
-    Tensor grad_background = at::empty({B, 3}, data.options());
-    Tensor background = at::empty({B, 3}, data.options());
-    float* drawn = background.data_ptr<float>();
-    const auto behind = [&spheres, drawn](int64_t b, float light) {
-        sphere_colour(spheres, b, light > 0.0f, drawn + 3 * b);
-        return (const float*)(drawn + 3 * b);
-    };
-    GradTarget target{grad_data.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), grad_rows.data_ptr<int32_t>(), num_touched};
-    const float loss_scale = B > 0 ? 1.0f / (3.0f * (float)B) : 0.0f;
-    double sse = 0.0;
-    PLX_DISPATCH_DEGREE(degree, sse = loss_grad_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
-                                                        targets.data_ptr<float>(), behind, B,
-                                                        loss_scale, (float)near_gradient, grad_background.data_ptr<float>(),
-                                                        &target, &scratch));
-    return {sse, grad_background, background, target.count};
 }
 
 void max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,

@@ -16,10 +16,7 @@ Rendering one ray (all kernels agree on every step):
    (>= 0) are skipped. colour = relu(sum_k sh_k Y_k(u) + 0.5) per channel.
 5. alpha_i = 1 - exp(-sigma_i dt), T_i = prod_{j<i} (1 - alpha_j), weight_i = T_i alpha_i.
    A sample is used only while T_i >= stop_transmittance (early termination).
-6. rgb = sum_i weight_i c_i + L * background; depth = sum_i weight_i t_i; opacity = 1 - T_final, with T_final the
-   light left after the last used sample and L what of it reaches the background: T_final from twice
-   stop_transmittance s up, none below s (behind the stop nothing counts, the background as little as the dropped
-   samples), T_final (T_final - s) / s between, so that colours do not jump (render.light_past_grid).
+6. rgb = sum_i weight_i c_i + T_final * background; depth = sum_i weight_i t_i; opacity = 1 - T_final.
 7. The loss's gradient reaches a sample's density and coefficients times min(1, (t_i / near_gradient)^2) (none
    scaled where near_gradient is 0): the values are untouched, only what flows back through them.
 
@@ -39,7 +36,7 @@ import torch
 from plenoxels.core.background import BACKGROUND_STOP_TRANSMITTANCE
 from plenoxels.core.fit_frame import contract
 from plenoxels.core.grid import SparseGrid, sh_count
-from plenoxels.core.render import COLOUR_OFFSET, light_past_grid, ray_samples, sh_basis
+from plenoxels.core.render import COLOUR_OFFSET, ray_samples, sh_basis
 
 TV_EPS = 1e-9
 # csrc/plenoxels_math.h's PLX_CONTRACTED_MAX_STEP.
@@ -218,7 +215,6 @@ def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torc
     alpha = 1 - torch.exp(-tau)
     weight = torch.where(alive, t_before * alpha, torch.zeros_like(alpha))
     t_final = torch.exp(-(tau * alive).sum(dim=1))
-    light = light_past_grid(t_final, opts.stop_transmittance)
     K = sh_count(grid.sh_degree)
     interpolated_sh = interpolate(grid.links, sh, g, rows, weights).reshape(-1, 3, K)
     coeffs = interpolated_sh if share is None else _ScaledGradient.apply(interpolated_sh, share)
@@ -226,7 +222,7 @@ def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torc
     colour = torch.relu((coeffs * basis[:, None, :]).sum(-1) + COLOUR_OFFSET)
     colour_pad = torch.zeros(B, M, 3, dtype=dtype).index_put((ray, idx), colour)
     t_pad = torch.zeros(B, M, dtype=dtype).index_put((ray, idx), t.to(dtype))
-    return {"weight": weight, "colour": colour_pad, "t": t_pad, "t_final": t_final, "light": light, "alive": alive,
+    return {"weight": weight, "colour": colour_pad, "t": t_pad, "t_final": t_final, "alive": alive,
             "ray": ray, "idx": idx, "rows": rows, "corner_weights": weights,
             "density_samples": interpolated, "sh_samples": interpolated_sh}
 
@@ -238,7 +234,7 @@ def render(grid: SparseGrid, origins, dirs, background, opts, density=None, sh=N
     m = march(grid, origins, dirs, opts, density, sh)
     rgb = (m["weight"][..., None] * m["colour"]).sum(dim=1)
     if background is not None:
-        rgb = rgb + m["light"][:, None] * background
+        rgb = rgb + m["t_final"][:, None] * background
     depth = (m["weight"] * m["t"]).sum(dim=1)
     return rgb, depth, 1 - m["t_final"]
 
@@ -257,7 +253,7 @@ def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts, gr
     sh = grid.sh.detach().clone().requires_grad_(True)
     bg = background.detach().clone().requires_grad_(True)
     m = march(grid, origins, dirs, opts, density, sh, near_gradient)
-    rgb = (m["weight"][..., None] * m["colour"]).sum(dim=1) + m["light"][:, None] * bg
+    rgb = (m["weight"][..., None] * m["colour"]).sum(dim=1) + m["t_final"][:, None] * bg
     mse = ((rgb - targets) ** 2).mean()
     mse.backward()
     rows = _used_rows(m)

@@ -57,17 +57,6 @@ class RenderResult:
     opacity: torch.Tensor  # [B] 1 - final transmittance
 
 
-def light_past_grid(transmittance: torch.Tensor, stop_transmittance: float) -> torch.Tensor:
-    """What of the colour behind the grid shows on rays that left the grid with `transmittance` (1 - opacity): all of
-    it from twice stop_transmittance up, none below it (the march stopped the ray), a ramp between so that colours do
-    not jump (plx::light_past_grid). Differentiable (the twin's loss takes its gradient)."""
-    s = float(stop_transmittance)
-    if s <= 0:
-        return transmittance
-    ramp = transmittance * ((transmittance - s) / s).clamp(0.0, 1.0)
-    return torch.where(transmittance >= s, ramp, torch.zeros_like(transmittance))
-
-
 def ray_samples(grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opts: RenderOptions) -> dict:
     """The sample lattice every kernel marches (steps 1-3 of reference.py's docstring), in float64 so
     that it matches theirs exactly. A ray is clipped to the grid box and to t >= near, then cut at every knot plane it
@@ -172,8 +161,7 @@ def _march_args(opts: RenderOptions, grid: SparseGrid) -> tuple:
 
 
 def render(grid: SparseGrid, origins, dirs, background=None, opts: RenderOptions | None = None) -> RenderResult:
-    """rgb = sum_i T_i a_i c_i + light_past_grid(T_final) * background (None: black): none on a ray the march stopped
-    below stop_transmittance; opacity = 1 - T_final."""
+    """rgb = sum_i T_i a_i c_i + T_final * background (None: black)."""
     opts = (opts or RenderOptions()).check()
     device = grid.data.device
     origins, dirs = _rays(origins, dirs, device)
@@ -205,25 +193,6 @@ def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts: Re
         grad.data, grad.touched_mask,
         grad.touched_rows, grad.num_touched, *grad.scratch())
     return (sse / (3 * b) if b else 0.0), grad_background
-
-
-def loss_and_grad_before_spheres(grid: SparseGrid, origins, dirs, targets, spheres: tuple, opts: RenderOptions | None,
-                                 grad: GridGrad, near_gradient: float = 0.0) -> tuple[float, torch.Tensor, torch.Tensor]:
-    """loss_and_grad with the background spheres behind the grid drawn in the same pass (CPU), only on the rays that
-    light gets past the grid on: a ray the grid stops shows nothing behind it, so drawing its spheres would be waste.
-    `spheres`: the background's arguments on this batch's rays, with the layer record its backward reads
-    (BackgroundOptimiser.on_rays). Returns (mse, d(mse)/d(background) [B, 3], the background drawn [B, 3])."""
-    opts = (opts or RenderOptions()).check()
-    device = grid.data.device
-    origins, dirs = _rays(origins, dirs, device)
-    b = origins.shape[0]
-    targets = _colours(targets, b, "targets", device)
-    if grad.data.shape != grid.data.shape:
-        raise ValueError("gradient storage belongs to another grid: make a new GridGrad after prune/upsample")
-    sse, grad_background, background, grad.num_touched = native.ops.loss_and_grad_spheres(
-        *_grid_args(grid), origins, dirs, targets, *spheres, *_march_args(opts, grid), float(near_gradient),
-        grad.data, grad.touched_mask, grad.touched_rows, grad.num_touched, *grad.scratch())
-    return (sse / (3 * b) if b else 0.0), grad_background, background
 
 
 def max_weights(grid: SparseGrid, origins, dirs, opts: RenderOptions | None = None) -> torch.Tensor:

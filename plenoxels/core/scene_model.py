@@ -44,7 +44,7 @@ from plenoxels.core.memory import check_dense_level
 from plenoxels.core.ndc import NDCMapping
 from plenoxels.core.options import ModelOptions
 from plenoxels.core.photo_colour import PhotoGains
-from plenoxels.core.render import RenderOptions, RenderResult, light_past_grid, render
+from plenoxels.core.render import RenderOptions, RenderResult, render
 
 
 MODEL_FORMAT = "voxfield-scene-model"
@@ -202,38 +202,34 @@ class SceneModel:
         where the fit measured the photos' colours (photo_gains); else, and for a new view, in their common colour."""
         origins, dirs = rays_from_camera(c2w, intrinsics)
         origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-        stop = (opts or self.render_options).stop_transmittance
         rgb, depth, opacity = [], [], []
         for start in range(0, origins.shape[0], chunk):
             o, d = origins[start:start + chunk], dirs[start:start + chunk]
             result = self.render_rays(o, d, opts)
-            rgb.append(self.on_backdrop(result.rgb, result.opacity, backdrop, stop).clamp(0.0, 1.0))
+            rgb.append(self.on_backdrop(result.rgb, result.opacity, backdrop).clamp(0.0, 1.0))
             depth.append(self.world_depth(o, d, result))
             opacity.append(result.opacity)
         h, w = intrinsics.h, intrinsics.w
         opacity = torch.cat(opacity)
-        rgb = self.as_photographed(torch.cat(rgb), photo, opacity, backdrop, stop)
+        rgb = self.as_photographed(torch.cat(rgb), photo, opacity, backdrop)
         return {"rgb": rgb.reshape(h, w, 3), "depth": torch.cat(depth).reshape(h, w), "opacity": opacity.reshape(h, w)}
 
-    def on_backdrop(self, rgb: torch.Tensor, opacity: torch.Tensor, backdrop=None,
-                    stop_transmittance: float | None = None) -> torch.Tensor:
+    def on_backdrop(self, rgb: torch.Tensor, opacity: torch.Tensor, backdrop=None) -> torch.Tensor:
         """Rendered colours [N, 3] with what shows past the grid put on `backdrop` (an RGB colour: a photo's own
-        backdrop) in place of the model's colour, where the model has no background model; as they are otherwise.
-        What shows: light_past_grid of the render's `opacity`, its rays stopped at `stop_transmittance` (None: the
-        model's own)."""
+        backdrop) in place of the model's colour, where the model has no background model; as they are otherwise."""
         if backdrop is None or self.background is not None:
             return rgb
         swap = torch.tensor(backdrop, dtype=rgb.dtype, device=rgb.device) - torch.tensor(self.background_color,
                                                                                        dtype=rgb.dtype, device=rgb.device)
-        return rgb + self.light_past(opacity, stop_transmittance)[:, None] * swap
+        return rgb + (1.0 - opacity)[:, None] * swap
 
     def as_photographed(self, rgb: torch.Tensor, photo: str | None, opacity: torch.Tensor | None = None,
-                        backdrop=None, stop_transmittance: float | None = None) -> torch.Tensor:
+                        backdrop=None) -> torch.Tensor:
         """Colours [..., 3] rendered in the common colour, as capture photo `photo` was taken (its gains, or its
         capture neighbours'; photo_gains); as they are for no photo or where the fit took the photos as they are.
         Where the colour past the object came with the photos as taken (photo_gains.backdrop_as_taken: their masks', or
         each photo's own backdrop), the gains leave that part, the backdrop (`backdrop`, else the model's colour) times
-        what shows of it past the render's `opacity` [...] (on_backdrop), as it is."""
+        one less the render's `opacity` [...], as it is."""
         if photo is None or self.photo_gains is None:
             return rgb
         gain = torch.as_tensor(self.photo_gains.of(photo), dtype=rgb.dtype, device=rgb.device)
@@ -241,14 +237,8 @@ class SceneModel:
             return (rgb * gain).clamp(0, 1)
         colour = torch.as_tensor(backdrop if backdrop is not None else self.background_color, dtype=rgb.dtype,
                                  device=rgb.device)
-        put_in = self.light_past(opacity.to(rgb.dtype), stop_transmittance)[..., None] * colour
+        put_in = (1.0 - opacity.to(rgb.dtype))[..., None] * colour
         return ((rgb - put_in) * gain + put_in).clamp(0, 1)
-
-    def light_past(self, opacity: torch.Tensor, stop_transmittance: float | None = None) -> torch.Tensor:
-        """What of the colour behind the grid shows on rays that rendered `opacity` and were stopped at
-        `stop_transmittance` (None: as this model's renders are)."""
-        stop = self.render_options.stop_transmittance if stop_transmittance is None else stop_transmittance
-        return light_past_grid(1.0 - opacity, stop)
 
     # ---- facts ----------------------------------------------------------------------------------
     def region_box(self) -> tuple[tuple[float, ...], tuple[float, ...]]:

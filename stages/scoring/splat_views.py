@@ -40,8 +40,7 @@ def score_splats(root: Path, splats: Splats, model: SceneModel, frames: list[dic
         # The splats hold the field's common colour: scored as the photo was taken.
         behind = frame.get("backdrop") or model.background_color
         drawn = render(splats, c2w, k, background=behind)
-        # The splats' compositing shows what their opacity leaves of the backdrop, however little.
-        ours = model.as_photographed(drawn["rgb"], frame["name"], drawn["opacity"], behind, 0.0).numpy()
+        ours = model.as_photographed(drawn["rgb"], frame["name"], drawn["opacity"], behind).numpy()
         rows.append((image_psnr(ours, truth), image_psnr(ours, field), image_psnr(field, truth)))
     if not rows:
         return {"views": 0}

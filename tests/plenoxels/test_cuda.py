@@ -91,12 +91,10 @@ def test_cuda_glue_syntax(tmp_path):
     assert result.returncode == 0, result.stderr[-4000:]
 
 
-# Operators with one kernel for every device, and the CPU-only ones: one advises host memory; the grid's loss that draws
-# the background spheres in its own pass (a GPU draws them all beforehand); the splats are distilled and scored on the
-# CPU (their compositing and row Adam).
+# Operators with one kernel for every device, and the CPU-only ones: one advises host memory; the splats are distilled
+# and scored on the CPU (their compositing and row Adam).
 DEVICE_FREE_OPS = {"padded_stride", "num_threads"}
-CPU_ONLY_OPS = {"advise_huge_pages", "loss_and_grad_spheres", "splat_composite", "splat_composite_backward",
-                "adam_rows"}
+CPU_ONLY_OPS = {"advise_huge_pages", "splat_composite", "splat_composite_backward", "adam_rows"}
 
 
 def _declared_ops() -> set[str]:
