@@ -80,9 +80,11 @@ plx_cuda::Grid make_grid(const Tensor& data, const Tensor& links, const Tensor& 
     return g;
 }
 
+// `background_past_grid_only`: the background shows only where light gets past the grid (March.background_stop).
 plx_cuda::March make_march(double step, double stop_transmittance, double near, double sigma_threshold,
-                           int64_t max_samples, bool contract) {
-    return plx_cuda::March{step, (float)stop_transmittance, near, (float)sigma_threshold, (int)max_samples, contract};
+                           int64_t max_samples, bool contract, bool background_past_grid_only = false) {
+    return plx_cuda::March{step, (float)stop_transmittance, near, (float)sigma_threshold, (int)max_samples, contract,
+                           background_past_grid_only ? (float)stop_transmittance : 0.0f};
 }
 
 plx_cuda::Rays make_rays(const Tensor& origins, const Tensor& dirs, const Tensor& like) {
@@ -113,8 +115,9 @@ int64_t compact_touched(const Tensor& grad_mask, Tensor& grad_rows) {
 
 std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
                            c10::ArrayRef<double> lattice, int64_t degree, Tensor origins,
-                           Tensor dirs, std::optional<Tensor> background, double step, double stop_transmittance,
-                           double near, double sigma_threshold, int64_t max_samples, bool contract) {
+                           Tensor dirs, std::optional<Tensor> background, bool past_grid_only, double step,
+                           double stop_transmittance, double near, double sigma_threshold, int64_t max_samples,
+                           bool contract) {
     const c10::cuda::CUDAGuard guard(data.device());
     const plx_cuda::Grid g = make_grid(data, links, cell_occ, block_occ, block, lattice, degree);
     plx_cuda::Rays rays = make_rays(origins, dirs, data);
@@ -127,7 +130,8 @@ std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor bl
     Tensor rgb = at::empty({B, 3}, data.options());
     Tensor depth = at::empty({B}, data.options());
     Tensor opacity = at::empty({B}, data.options());
-    check_launch(plx_cuda::render(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples, contract),
+    check_launch(plx_cuda::render(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples, contract,
+                                                past_grid_only),
                                   (int)degree, rays, rgb.data_ptr<float>(), depth.data_ptr<float>(),
                                   opacity.data_ptr<float>(), stream()),
                  "render");
@@ -137,8 +141,8 @@ std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor bl
 std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ,
                                                   int64_t block, c10::ArrayRef<double> lattice,
                                                   int64_t degree, Tensor origins,
-                                                  Tensor dirs, Tensor targets, Tensor background, double step,
-                                                  double stop_transmittance, double near, double sigma_threshold,
+                                                  Tensor dirs, Tensor targets, Tensor background,
+                                                  bool past_grid_only, double step, double stop_transmittance, double near, double sigma_threshold,
                                                   int64_t max_samples, bool contract, double near_gradient,
                                                   Tensor grad_data, Tensor grad_mask, Tensor grad_rows, int64_t num_touched,
                                                   Tensor, Tensor) {
@@ -157,7 +161,8 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
     plx_cuda::Rays with_background = rays;
     with_background.background = background.data_ptr<float>();
     const float loss_scale = 1.0f / (3.0f * (float)B);
-    check_launch(plx_cuda::loss_and_grad(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples, contract),
+    check_launch(plx_cuda::loss_and_grad(g, make_march(step, stop_transmittance, near, sigma_threshold, max_samples, contract,
+                                                       past_grid_only),
                                          (int)degree, with_background, targets.data_ptr<float>(), loss_scale,
                                          (float)near_gradient, sse.data_ptr<double>(), grad_background.data_ptr<float>(),
                                          grad_data.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), stream()),

@@ -51,6 +51,9 @@ struct MarchOptions {
     float sigma_threshold;
     int max_samples;
     bool contract;  // the grid is in contracted space (plx::contract_point)
+    // Below this transmittance a ray shows nothing of the background (plx::light_past_grid): the march's stop where
+    // the background is the spheres, drawn only where light gets past the grid; 0 where it shows on every ray.
+    float background_stop = 0.0f;
 };
 
 using Ray = plx::RayMarch;
@@ -263,9 +266,11 @@ void merge(GradTarget* target, ThreadGrads* scratch, int threads);
 
 void check_float_rows(const at::Tensor& t, const char* name);
 
+// `background_past_grid_only`: the background shows only where light gets past the grid (MarchOptions.background_stop).
 inline MarchOptions make_options(double step, double stop_transmittance, double near, double sigma_threshold,
-                          int64_t max_samples, bool contract) {
-    return MarchOptions{step, (float)stop_transmittance, near, (float)sigma_threshold, (int)max_samples, contract};
+                                 int64_t max_samples, bool contract, bool background_past_grid_only = false) {
+    return MarchOptions{step, (float)stop_transmittance, near, (float)sigma_threshold, (int)max_samples, contract,
+                        background_past_grid_only ? (float)stop_transmittance : 0.0f};
 }
 
 #define PLX_DISPATCH_DEGREE(degree, ...)                                     \
@@ -306,6 +311,24 @@ inline void add_live_vertex(const int32_t* xyz, int block, const int nb[3], int3
             }
 }
 
+// The multi-sphere background as a kernel reads it along rays (cpu_background.cpp), with the forward's record of each
+// ray's layers for its backward: texel rows [B, K, 4] int32 (-1 where the ray met no layer: a sphere it missed, one
+// behind where it stopped, or every sphere of a ray that drew none) and their bilinear weights [B, K, 4].
+struct Spheres {
+    const float *origins, *dirs, *centre, *radii, *texture, *far_colour;
+    int count, height, width;
+    int32_t* texels = nullptr;
+    float* weights = nullptr;
+};
+
+Spheres spheres_view(const Tensor& origins, const Tensor& dirs, const Tensor& centre, const Tensor& radii,
+                     const Tensor& texture, const Tensor& far_colour, const std::optional<Tensor>& layer_texels,
+                     const std::optional<Tensor>& layer_weights);
+
+// Ray b's background colour into rgb [3], its layers recorded where there is a record; `drawn` false: black, and
+// no layers recorded (a ray the grid stops sees nothing behind it).
+void sphere_colour(const Spheres& s, int64_t b, bool drawn, float rgb[3]);
+
 // The operators' CPU kernels, registered in kernels_cpu.cpp, each of its operator's signature (ops.h).
 plx::op::grad_scratch grad_scratch;
 plx::op::build_occupancy build_occupancy;
@@ -314,6 +337,7 @@ plx::op::row_coords row_coords;
 plx::op::sample sample;
 plx::op::render render;
 plx::op::loss_and_grad loss_and_grad;
+plx::op::loss_and_grad_spheres loss_and_grad_spheres;
 plx::op::max_weights max_weights;
 plx::op::sample_counts sample_counts;
 plx::op::tv_loss_and_grad tv_loss_and_grad;

@@ -1,4 +1,5 @@
-// Rendering on the CPU: colour, depth and opacity of rays; the fused photometric loss and its gradient; each
+// Rendering on the CPU: colour, depth and opacity of rays; the fused photometric loss and its gradient (with the
+// background spheres drawn in the same pass, only where light gets past the grid: opt.background_stop); each
 // voxel's largest weight along the rays (for pruning); and the sample counts reports quote.
 #include "cpu_kernels.h"
 
@@ -28,16 +29,21 @@ void render_impl(const GridView& g, const MarchOptions& opt, const float* origin
                 acc_depth += w * s.t;
                 return s.t_before * s.transmittance_factor;
             });
-            for (int ch = 0; ch < 3; ++ch) rgb[3 * b + ch] = acc[ch] + (background ? t_final * background[3 * b + ch] : 0.0f);
+            // What lies behind shows as plx::light_past_grid has it (the spheres: none on a ray the march stopped);
+            // the opacity is what the samples took, so depth / opacity stays the samples' mean depth.
+            const float light = plx::light_past_grid(t_final, opt.background_stop);
+            for (int ch = 0; ch < 3; ++ch) rgb[3 * b + ch] = acc[ch] + (background ? light * background[3 * b + ch] : 0.0f);
             depth[b] = acc_depth;
             opacity[b] = 1.0f - t_final;
         }
     }
 }
 
-template <int D>
+// `behind(b, light)`: the colour [3] behind the grid on ray b, of which `light` shows (0: none, so it need not be
+// drawn): colours drawn beforehand, or the background spheres drawn here, only for the rays the grid lets light past.
+template <int D, typename Behind>
 double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* origins, const float* dirs,
-                      const float* targets, const float* background, int64_t B, float loss_scale, float near_gradient,
+                      const float* targets, Behind behind_grid, int64_t B, float loss_scale, float near_gradient,
                       float* grad_background, GradTarget* target, ThreadGrads* scratch) {
     constexpr int K = (D + 1) * (D + 1);
     constexpr int S = row_stride(D);
@@ -73,13 +79,18 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
                 samples.push_back(s);
                 return s.t_before * s.transmittance_factor;
             });
+            const float light = plx::light_past_grid(t_final, opt.background_stop);
+            // Behind each sample the background counts at the rate its share answers the density (equal to the share
+            // outside the stop's ramp).
+            const float rate_less_share = plx::light_past_grid_rate(t_final, opt.background_stop) - light;
+            const float* background = behind_grid(b, light);
             float total[3], dl_drgb[3];
             for (int ch = 0; ch < 3; ++ch) {
-                total[ch] = acc[ch] + t_final * background[3 * b + ch];
+                total[ch] = acc[ch] + light * background[ch];
                 const float err = total[ch] - targets[3 * b + ch];
                 sse += (double)err * err;
                 dl_drgb[ch] = 2.0f * loss_scale * err;
-                grad_background[3 * b + ch] = dl_drgb[ch] * t_final;
+                grad_background[3 * b + ch] = dl_drgb[ch] * light;
             }
             // Backward: walk the same samples again, with what lies behind each one known from the total.
             float front[3] = {0.0f, 0.0f, 0.0f};
@@ -91,7 +102,7 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
                 for (int k = 0; k < S; ++k) grow[k] = 0.0f;
                 for (int ch = 0; ch < 3; ++ch) {
                     front[ch] += w * s.colour[ch];
-                    const float behind = total[ch] - front[ch];
+                    const float behind = total[ch] - front[ch] + rate_less_share * background[ch];
                     dsigma += dl_drgb[ch] * plx::dcolour_dsigma(s.delta, t_after, s.colour[ch], behind);
                     const float dc = share * dl_drgb[ch] * w * plx::colour_relu_grad(s.raw[ch]);
                     for (int k = 0; k < K; ++k) grow[1 + ch * K + k] = dc * basis[k];
@@ -166,8 +177,9 @@ void sample_counts_impl(const GridView& g, const MarchOptions& opt, const float*
 
 std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
                            c10::ArrayRef<double> lattice, int64_t degree, Tensor origins,
-                           Tensor dirs, std::optional<Tensor> background, double step, double stop_transmittance,
-                           double near, double sigma_threshold, int64_t max_samples, bool contract) {
+                           Tensor dirs, std::optional<Tensor> background, bool past_grid_only, double step,
+                           double stop_transmittance, double near, double sigma_threshold, int64_t max_samples,
+                           bool contract) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
     check_rays(origins, dirs);
     const int64_t B = origins.size(0);
@@ -178,7 +190,8 @@ std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor bl
         bg = background->data_ptr<float>();
     }
     const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, lattice);
-    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract);
+    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract,
+                                          past_grid_only);
     Tensor rgb = at::empty({B, 3}, data.options());
     Tensor depth = at::empty({B}, data.options());
     Tensor opacity = at::empty({B}, data.options());
@@ -190,8 +203,8 @@ std::vector<Tensor> render(Tensor data, Tensor links, Tensor cell_occ, Tensor bl
 std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ,
                                                   int64_t block, c10::ArrayRef<double> lattice,
                                                   int64_t degree, Tensor origins, Tensor dirs, Tensor targets,
-                                                  Tensor background, double step, double stop_transmittance,
-                                                  double near, double sigma_threshold, int64_t max_samples, bool contract,
+                                                  Tensor background, bool past_grid_only, double step,
+                                                  double stop_transmittance, double near, double sigma_threshold, int64_t max_samples, bool contract,
                                                   double near_gradient, Tensor grad_data, Tensor grad_mask, Tensor grad_rows,
                                                   int64_t num_touched, Tensor scratch_grad, Tensor scratch_mask) {
     check_grid(data, links, cell_occ, block_occ, (int)degree);
@@ -204,16 +217,57 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
     ThreadGrads scratch(grad_data, scratch_grad, scratch_mask);
     const int64_t B = origins.size(0);
     const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, lattice);
-    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract);
+    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract,
+                                          past_grid_only);
     Tensor grad_background = at::empty({B, 3}, data.options());
     GradTarget target{grad_data.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), grad_rows.data_ptr<int32_t>(), num_touched};
     const float loss_scale = B > 0 ? 1.0f / (3.0f * (float)B) : 0.0f;
     double sse = 0.0;
+    const float* drawn = background.data_ptr<float>();
+    const auto behind = [drawn](int64_t b, float) { return drawn + 3 * b; };
     PLX_DISPATCH_DEGREE(degree, sse = loss_grad_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
-                                                        targets.data_ptr<float>(), background.data_ptr<float>(), B,
+                                                        targets.data_ptr<float>(), behind, B,
                                                         loss_scale, (float)near_gradient, grad_background.data_ptr<float>(),
                                                         &target, &scratch));
     return {sse, grad_background, target.count};
+}
+
+std::tuple<double, Tensor, Tensor, int64_t> loss_and_grad_spheres(
+    Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block, c10::ArrayRef<double> lattice,
+    int64_t degree, Tensor origins, Tensor dirs, Tensor targets, Tensor sphere_origins, Tensor sphere_dirs,
+    Tensor centre, Tensor radii, Tensor texture, Tensor far_colour, Tensor layer_texels, Tensor layer_weights,
+    double step, double stop_transmittance, double near, double sigma_threshold, int64_t max_samples, bool contract,
+    double near_gradient, Tensor grad_data, Tensor grad_mask, Tensor grad_rows, int64_t num_touched,
+    Tensor scratch_grad, Tensor scratch_mask) {
+    check_grid(data, links, cell_occ, block_occ, (int)degree);
+    check_rays(origins, dirs);
+    check_float_rows(targets, "targets");
+    check_float_rows(grad_data, "grad data");
+    TORCH_CHECK(targets.sizes() == origins.sizes() && sphere_origins.sizes() == origins.sizes(),
+                "targets and the spheres' rays must be [B,3] like the grid's");
+    TORCH_CHECK(grad_data.sizes() == data.sizes(), "gradient storage does not match the grid");
+    const Spheres spheres = spheres_view(sphere_origins, sphere_dirs, centre, radii, texture, far_colour, layer_texels,
+                                         layer_weights);
+    TORCH_CHECK(spheres.texels != nullptr, "loss_and_grad_spheres needs the layer record its backward reads");
+    ThreadGrads scratch(grad_data, scratch_grad, scratch_mask);
+    const int64_t B = origins.size(0);
+    const GridView g = make_view(data, links, cell_occ, block_occ, (int)block, lattice);
+    const MarchOptions opt = make_options(step, stop_transmittance, near, sigma_threshold, max_samples, contract, true);
+    Tensor grad_background = at::empty({B, 3}, data.options());
+    Tensor background = at::empty({B, 3}, data.options());
+    float* drawn = background.data_ptr<float>();
+    const auto behind = [&spheres, drawn](int64_t b, float light) {
+        sphere_colour(spheres, b, light > 0.0f, drawn + 3 * b);
+        return (const float*)(drawn + 3 * b);
+    };
+    GradTarget target{grad_data.data_ptr<float>(), grad_mask.data_ptr<uint8_t>(), grad_rows.data_ptr<int32_t>(), num_touched};
+    const float loss_scale = B > 0 ? 1.0f / (3.0f * (float)B) : 0.0f;
+    double sse = 0.0;
+    PLX_DISPATCH_DEGREE(degree, sse = loss_grad_impl<D>(g, opt, origins.data_ptr<float>(), dirs.data_ptr<float>(),
+                                                        targets.data_ptr<float>(), behind, B,
+                                                        loss_scale, (float)near_gradient, grad_background.data_ptr<float>(),
+                                                        &target, &scratch));
+    return {sse, grad_background, background, target.count};
 }
 
 void max_weights(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,

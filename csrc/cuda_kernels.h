@@ -35,6 +35,7 @@ struct March {
     float sigma_threshold;
     int max_samples;
     bool contract;  // the grid is in contracted space (plx::contract_point)
+    float background_stop = 0.0f;  // as the CPU's MarchOptions
 };
 
 struct Rays {

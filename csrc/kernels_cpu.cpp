@@ -15,6 +15,7 @@ TORCH_LIBRARY_IMPL(voxfield, CPU, m) {
         return advise_huge_pages(t.data_ptr(), (size_t)t.nbytes());
     });
     PLX_IMPL_DEVICE_OPS(m);
+    PLX_IMPL(m, loss_and_grad_spheres);
     PLX_IMPL(m, adam_rows);
     PLX_IMPL(m, splat_composite);
     PLX_IMPL(m, splat_composite_backward);

@@ -105,8 +105,9 @@ __global__ void render_kernel(Grid g, March opt, Rays rays, float* __restrict__ 
         acc_depth += w * s.t;
         return s.t_before * s.transmittance_factor;
     });
+    const float light = plx::light_past_grid(t_final, opt.background_stop);  // as the CPU's render
     for (int ch = 0; ch < 3; ++ch)
-        rgb[3 * b + ch] = acc[ch] + (rays.background ? t_final * rays.background[3 * b + ch] : 0.0f);
+        rgb[3 * b + ch] = acc[ch] + (rays.background ? light * rays.background[3 * b + ch] : 0.0f);
     depth[b] = acc_depth;
     opacity[b] = 1.0f - t_final;
 }
@@ -132,14 +133,17 @@ __global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __re
         }
         return s.t_before * s.transmittance_factor;
     });
+    // As the CPU's loss: the background's share, and the rate at which it answers the density.
+    const float light = plx::light_past_grid(t_final, opt.background_stop);
+    const float rate_less_share = plx::light_past_grid_rate(t_final, opt.background_stop) - light;
     float total[3], dl_drgb[3];
     double sq = 0.0;
     for (int ch = 0; ch < 3; ++ch) {
-        total[ch] = acc[ch] + t_final * rays.background[3 * b + ch];
+        total[ch] = acc[ch] + light * rays.background[3 * b + ch];
         const float err = total[ch] - targets[3 * b + ch];
         sq += (double)err * err;
         dl_drgb[ch] = 2.0f * loss_scale * err;
-        grad_background[3 * b + ch] = dl_drgb[ch] * t_final;
+        grad_background[3 * b + ch] = dl_drgb[ch] * light;
     }
     sse[b] = sq;
     // Backward: march the same samples again; what lies behind each one follows from the total.
@@ -157,7 +161,7 @@ __global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __re
             float raw;
             const float colour = plx::sh_colour(row + 1 + ch * K, basis, K, &raw);
             front[ch] += w * colour;
-            const float behind = total[ch] - front[ch];
+            const float behind = total[ch] - front[ch] + rate_less_share * rays.background[3 * b + ch];
             dsigma += dl_drgb[ch] * plx::dcolour_dsigma(s.delta, t_after, colour, behind);
             const float dc = share * dl_drgb[ch] * w * plx::colour_relu_grad(raw);
             for (int k = 0; k < K; ++k) grow[1 + ch * K + k] = dc * basis[k];

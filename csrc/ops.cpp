@@ -42,12 +42,21 @@ TORCH_LIBRARY(voxfield, m) {
     m.def("row_coords(Tensor links, int rows) -> Tensor");
     // Trilinear interpolation of every column at grid-frame points [P, 3] -> [P, S]; zeros outside the box.
     m.def("sample(Tensor data, Tensor links, Tensor points) -> Tensor");
-    // [rgb [B, 3], depth [B], opacity [B]].
-    m.def("render(" PLX_GRID ", Tensor origins, Tensor dirs, Tensor? background, " PLX_MARCH ") -> Tensor[]");
+    // [rgb [B, 3], depth [B], opacity [B]]; past_grid_only: the background shows only on rays the grid lets light
+    // past, none on a ray stopped below stop_transmittance (plx::light_past_grid), here and in the loss.
+    m.def("render(" PLX_GRID ", Tensor origins, Tensor dirs, Tensor? background, bool past_grid_only, " PLX_MARCH
+          ") -> Tensor[]");
     // (sum of squared errors, d loss / d background [B, 3], touched count); adds d(mse)/d(data), each sample's
     // share scaled down nearer the camera than near_gradient (plx::near_gradient_scale; 0: none).
-    m.def("loss_and_grad(" PLX_GRID ", Tensor origins, Tensor dirs, Tensor targets, Tensor background, " PLX_MARCH
+    m.def("loss_and_grad(" PLX_GRID ", Tensor origins, Tensor dirs, Tensor targets, Tensor background, "
+          "bool past_grid_only, " PLX_MARCH
           ", float near_gradient, " PLX_GRAD ") -> (float, Tensor, int)");
+    // loss_and_grad with the background spheres (background_render's arguments, on the rays sphere_origins and
+    // sphere_dirs, with its layer record) drawn in the same pass, only on the rays that light gets past the grid on
+    // (CPU only: a GPU draws them all beforehand): (sse, d loss / d background, the background [B, 3], touched count).
+    m.def("loss_and_grad_spheres(" PLX_GRID ", Tensor origins, Tensor dirs, Tensor targets, Tensor sphere_origins, "
+          "Tensor sphere_dirs, Tensor centre, Tensor radii, Tensor texture, Tensor far_colour, Tensor(f!) layer_texels, "
+          "Tensor(g!) layer_weights, " PLX_MARCH ", float near_gradient, " PLX_GRAD ") -> (float, Tensor, Tensor, int)");
     // out[row] = max(out[row], largest weight of a sample that reads the row).
     m.def("max_weights(" PLX_GRID ", Tensor origins, Tensor dirs, " PLX_MARCH ", Tensor(a!) out) -> ()");
     // (samples on the rays' lattices inside the box, samples that contributed).

@@ -30,12 +30,20 @@ using row_coords = Tensor(Tensor links, int64_t rows);
 using sample = Tensor(Tensor data, Tensor links, Tensor points);
 using render = std::vector<Tensor>(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block,
                                    Doubles lattice, int64_t degree, Tensor origins, Tensor dirs,
-                                   MaybeTensor background, double step, double stop_transmittance, double near,
-                                   double sigma_threshold, int64_t max_samples, bool contract);
+                                   MaybeTensor background, bool past_grid_only, double step,
+                                   double stop_transmittance, double near, double sigma_threshold, int64_t max_samples,
+                                   bool contract);
 using loss_and_grad = std::tuple<double, Tensor, int64_t>(
     Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block, Doubles lattice,
-    int64_t degree, Tensor origins, Tensor dirs, Tensor targets, Tensor background, double step,
+    int64_t degree, Tensor origins, Tensor dirs, Tensor targets, Tensor background, bool past_grid_only, double step,
     double stop_transmittance, double near, double sigma_threshold, int64_t max_samples, bool contract,
+    double near_gradient, Tensor grad_data, Tensor grad_mask, Tensor grad_rows, int64_t num_touched, Tensor scratch_grad,
+    Tensor scratch_mask);
+using loss_and_grad_spheres = std::tuple<double, Tensor, Tensor, int64_t>(
+    Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block, Doubles lattice,
+    int64_t degree, Tensor origins, Tensor dirs, Tensor targets, Tensor sphere_origins, Tensor sphere_dirs,
+    Tensor centre, Tensor radii, Tensor texture, Tensor far_colour, Tensor layer_texels, Tensor layer_weights,
+    double step, double stop_transmittance, double near, double sigma_threshold, int64_t max_samples, bool contract,
     double near_gradient, Tensor grad_data, Tensor grad_mask, Tensor grad_rows, int64_t num_touched, Tensor scratch_grad,
     Tensor scratch_mask);
 using max_weights = void(Tensor data, Tensor links, Tensor cell_occ, Tensor block_occ, int64_t block, Doubles lattice,
@@ -81,7 +89,8 @@ using splat_composite_backward = std::vector<Tensor>(Tensor means2d, Tensor coni
 
 // Every operator that runs on a device, each backend's kernels registered with the functions of the same names
 // in the scope of its TORCH_LIBRARY_IMPL block: a backend that lacks one does not compile. (The CPU's block also
-// registers advise_huge_pages, a host-memory helper, and the splat rasterizer's compositing.)
+// registers advise_huge_pages, a host-memory helper, the loss with the background spheres drawn in its pass, and the
+// splat rasterizer's compositing.)
 #define PLX_IMPL_DEVICE_OPS(library) \
     PLX_IMPL(library, grad_scratch); \
     PLX_IMPL(library, build_occupancy); \

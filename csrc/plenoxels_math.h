@@ -416,6 +416,28 @@ PLX_HD float sample_alpha(float sigma, float delta, float* transmittance_factor)
     return 1.0f - f;
 }
 
+// The light a ray carries past the grid to whatever lies behind it (the background), given the transmittance T the
+// march ended with: none once the march stopped below stop_transmittance s, so a stopped ray's background need not be
+// drawn at all; T from 2s up; between, a ramp T (T - s) / s, so that a ray's colour does not jump where the stop
+// begins to take it (a render stays continuous in the camera's pose). s = 0: T on every ray. (The opacity stays 1 - T,
+// what the samples took: depth divided by opacity is their mean depth.) The kernels pass the march's stop as s only
+// where the background is the spheres, which cost a ray more than the grid; a flat colour costs nothing to draw, and
+// cutting it would leave a fit's loss no reason to take a ray's light below the stop (a strong sparsity prior then
+// thins an object until it barely stops its rays).
+PLX_HD float light_past_grid(float transmittance, float stop_transmittance) {
+    if (transmittance >= 2.0f * stop_transmittance) return transmittance;
+    if (transmittance < stop_transmittance) return 0.0f;
+    return transmittance * (transmittance - stop_transmittance) / stop_transmittance;
+}
+
+// T d(light_past_grid)/dT: how the background's share answers the grid's density (d share / d sigma_i is -delta_i
+// times this), which the backward passes use in place of the share itself (equal to it outside the ramp).
+PLX_HD float light_past_grid_rate(float transmittance, float stop_transmittance) {
+    if (transmittance >= 2.0f * stop_transmittance) return transmittance;
+    if (transmittance < stop_transmittance) return 0.0f;
+    return transmittance * (2.0f * transmittance - stop_transmittance) / stop_transmittance;
+}
+
 // d(pixel colour)/d(sigma_i) for one channel, with
 //   t_after = transmittance after sample i, c = its colour,
 //   behind = everything composited behind sample i (later samples plus the background term).

@@ -7,13 +7,14 @@ from plenoxels.core.optim import GridGrad
 from plenoxels.core.render import RenderOptions, loss_and_grad, render
 
 
-def assert_loss_and_grad_match_twin(grid, origins, dirs, targets, background, opts,
-                                    near_gradient: float = 0.0) -> tuple[GridGrad, GridGrad]:
+def assert_loss_and_grad_match_twin(grid, origins, dirs, targets, background, opts, near_gradient: float = 0.0,
+                                    past_grid_only: bool = False) -> tuple[GridGrad, GridGrad]:
     """One batch's fused loss and gradient, native against the twin: the mse, d(mse)/d(background), the touched rows
     and the gradient rows. Returns both gradient stores (native, twin), to add more batches to."""
     native, twin = GridGrad(grid), GridGrad(grid)
-    mse_n, gbg_n = loss_and_grad(grid, origins, dirs, targets, background, opts, native, near_gradient)
-    mse_t, gbg_t = reference.loss_and_grad(grid, origins, dirs, targets, background, opts, twin, near_gradient)
+    mse_n, gbg_n = loss_and_grad(grid, origins, dirs, targets, background, opts, native, near_gradient, past_grid_only)
+    mse_t, gbg_t = reference.loss_and_grad(grid, origins, dirs, targets, background, opts, twin, near_gradient,
+                                           past_grid_only)
     assert mse_n == pytest.approx(mse_t, rel=1e-5)
     torch.testing.assert_close(gbg_n, gbg_t, atol=1e-8, rtol=1e-4)
     assert native.num_touched > 0

@@ -202,6 +202,18 @@ class BackgroundOptimiser:
         o, d = (t.detach().to(dtype=torch.float32).contiguous() for t in (o, d))
         return native.ops.background_render(o, d, bg.centre, bg.radii, bg.texture.data, bg.far_colour, *self.record[2:])
 
+    def on_rays(self, o: torch.Tensor, d: torch.Tensor) -> tuple | None:
+        """The background's arguments on a training batch's rays with a fresh layer record, for a grid's loss that
+        draws the spheres in its own pass only where light gets past the grid (render.loss_and_grad_before_spheres),
+        after which this optimiser's backward reads the record; None on a GPU, which draws every ray beforehand."""
+        bg = self.background
+        if bg.texture.device.type != "cpu":
+            return None
+        shape = (o.shape[0], bg.n_spheres, 4)
+        self.record = (o, d, torch.empty(shape, dtype=torch.int32), torch.empty(shape, dtype=torch.float32))
+        o_f, d_f = (t.detach().to(dtype=torch.float32).contiguous() for t in (o, d))
+        return (o_f, d_f, bg.centre, bg.radii, bg.texture.data, bg.far_colour, *self.record[2:])
+
     def backward(self, o: torch.Tensor, d: torch.Tensor, rgb: torch.Tensor, grad_rgb: torch.Tensor) -> None:
         """Adds d(loss)/d(texels) for rays o, d [B, 3] whose background colours were rgb [B, 3] (the model's
         forward, or this optimiser's, whose record of the layers it then uses), given d(loss)/d(those colours) [B, 3]."""

@@ -16,7 +16,11 @@ Rendering one ray (all kernels agree on every step):
    (>= 0) are skipped. colour = relu(sum_k sh_k Y_k(u) + 0.5) per channel.
 5. alpha_i = 1 - exp(-sigma_i dt), T_i = prod_{j<i} (1 - alpha_j), weight_i = T_i alpha_i.
    A sample is used only while T_i >= stop_transmittance (early termination).
-6. rgb = sum_i weight_i c_i + T_final * background; depth = sum_i weight_i t_i; opacity = 1 - T_final.
+6. rgb = sum_i weight_i c_i + L * background; depth = sum_i weight_i t_i; opacity = 1 - T_final, with T_final the
+   light left after the last used sample and L what of it reaches the background: T_final; where the background
+   shows only past the grid (past_grid_only: the spheres), T_final from twice stop_transmittance s up, none below s
+   (behind the stop nothing counts, the background as little as the dropped samples), T_final (T_final - s) / s
+   between, so that colours do not jump (render.light_past_grid).
 7. The loss's gradient reaches a sample's density and coefficients times min(1, (t_i / near_gradient)^2) (none
    scaled where near_gradient is 0): the values are untouched, only what flows back through them.
 
@@ -36,7 +40,7 @@ import torch
 from plenoxels.core.background import BACKGROUND_STOP_TRANSMITTANCE
 from plenoxels.core.fit_frame import contract
 from plenoxels.core.grid import SparseGrid, sh_count
-from plenoxels.core.render import COLOUR_OFFSET, ray_samples, sh_basis
+from plenoxels.core.render import COLOUR_OFFSET, light_past_grid, ray_samples, sh_basis
 
 TV_EPS = 1e-9
 # csrc/plenoxels_math.h's PLX_CONTRACTED_MAX_STEP.
@@ -227,14 +231,18 @@ def march(grid: SparseGrid, origins, dirs, opts, density: torch.Tensor, sh: torc
             "density_samples": interpolated, "sh_samples": interpolated_sh}
 
 
-def render(grid: SparseGrid, origins, dirs, background, opts, density=None, sh=None):
+def _light(m: dict, opts, past_grid_only: bool) -> torch.Tensor:
+    return light_past_grid(m["t_final"], opts.stop_transmittance if past_grid_only else 0.0)
+
+
+def render(grid: SparseGrid, origins, dirs, background, opts, density=None, sh=None, past_grid_only: bool = False):
     """(rgb [B,3], depth [B], opacity [B]); differentiable in density, sh and background."""
     density = grid.density if density is None else density
     sh = grid.sh if sh is None else sh
     m = march(grid, origins, dirs, opts, density, sh)
     rgb = (m["weight"][..., None] * m["colour"]).sum(dim=1)
     if background is not None:
-        rgb = rgb + m["t_final"][:, None] * background
+        rgb = rgb + _light(m, opts, past_grid_only)[:, None] * background
     depth = (m["weight"] * m["t"]).sum(dim=1)
     return rgb, depth, 1 - m["t_final"]
 
@@ -247,13 +255,13 @@ def _used_rows(m: dict) -> torch.Tensor:
 
 
 def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts, grad,
-                  near_gradient: float = 0.0) -> tuple[float, torch.Tensor]:
+                  near_gradient: float = 0.0, past_grid_only: bool = False) -> tuple[float, torch.Tensor]:
     """Mean squared error over the batch's B*3 values; adds its gradient (step 7) into `grad`."""
     density = grid.density.detach().clone().requires_grad_(True)
     sh = grid.sh.detach().clone().requires_grad_(True)
     bg = background.detach().clone().requires_grad_(True)
     m = march(grid, origins, dirs, opts, density, sh, near_gradient)
-    rgb = (m["weight"][..., None] * m["colour"]).sum(dim=1) + m["t_final"][:, None] * bg
+    rgb = (m["weight"][..., None] * m["colour"]).sum(dim=1) + _light(m, opts, past_grid_only)[:, None] * bg
     mse = ((rgb - targets) ** 2).mean()
     mse.backward()
     rows = _used_rows(m)

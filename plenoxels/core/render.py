@@ -57,6 +57,21 @@ class RenderResult:
     opacity: torch.Tensor  # [B] 1 - final transmittance
 
 
+def light_past_grid(transmittance: torch.Tensor, stop_transmittance: float) -> torch.Tensor:
+    """What of the colour behind the grid shows on rays that left the grid with `transmittance` (1 - opacity): all of
+    it from twice stop_transmittance up, none below it (the march stopped the ray), a ramp between so that colours do
+    not jump; stop 0: all of it on every ray (plx::light_past_grid). Differentiable (the twin's loss takes its
+    gradient). The kernels cut a background this way only where it is the spheres (`past_grid_only`), whose drawing
+    costs a ray more than the grid: a flat colour costs nothing, and a fit whose loss sees nothing behind a stopped ray
+    has no reason to take its light below the stop (under a strong sparsity prior an object thins until it barely
+    stops its rays; bench/README.md, "Kernels")."""
+    s = float(stop_transmittance)
+    if s <= 0:
+        return transmittance
+    ramp = transmittance * ((transmittance - s) / s).clamp(0.0, 1.0)
+    return torch.where(transmittance >= s, ramp, torch.zeros_like(transmittance))
+
+
 def ray_samples(grid: SparseGrid, origins: torch.Tensor, dirs: torch.Tensor, opts: RenderOptions) -> dict:
     """The sample lattice every kernel marches (steps 1-3 of reference.py's docstring), in float64 so
     that it matches theirs exactly. A ray is clipped to the grid box and to t >= near, then cut at every knot plane it
@@ -160,19 +175,24 @@ def _march_args(opts: RenderOptions, grid: SparseGrid) -> tuple:
             int(opts.max_samples_per_ray), grid.contracted)
 
 
-def render(grid: SparseGrid, origins, dirs, background=None, opts: RenderOptions | None = None) -> RenderResult:
-    """rgb = sum_i T_i a_i c_i + T_final * background (None: black)."""
+def render(grid: SparseGrid, origins, dirs, background=None, opts: RenderOptions | None = None,
+           past_grid_only: bool = False) -> RenderResult:
+    """rgb = sum_i T_i a_i c_i + T_final * background (None: black); opacity = 1 - T_final. `past_grid_only` (a
+    background of spheres): light_past_grid(T_final) * background, none on a ray the march stopped below
+    stop_transmittance."""
     opts = (opts or RenderOptions()).check()
     device = grid.data.device
     origins, dirs = _rays(origins, dirs, device)
     background = _colours(background, origins.shape[0], "background", device)
-    rgb, depth, opacity = native.ops.render(*_grid_args(grid), origins, dirs, background, *_march_args(opts, grid))
+    rgb, depth, opacity = native.ops.render(*_grid_args(grid), origins, dirs, background, bool(past_grid_only),
+                                            *_march_args(opts, grid))
     return RenderResult(rgb, depth, opacity)
 
 
 def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts: RenderOptions | None,
-                  grad: GridGrad, near_gradient: float = 0.0) -> tuple[float, torch.Tensor]:
-    """Mean squared error over the B*3 colour values, forward and backward in one pass.
+                  grad: GridGrad, near_gradient: float = 0.0, past_grid_only: bool = False) -> tuple[float, torch.Tensor]:
+    """Mean squared error over the B*3 colour values, forward and backward in one pass, of render's colours (with
+    its `past_grid_only`).
 
     Adds d(mse)/d(density) and d(mse)/d(sh) into `grad` for the rows the batch touched, and returns
     (mse, d(mse)/d(background) [B, 3]). A sample at distance t < near_gradient along its ray passes on
@@ -189,10 +209,31 @@ def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts: Re
     if grad.data.shape != grid.data.shape:
         raise ValueError("gradient storage belongs to another grid: make a new GridGrad after prune/upsample")
     sse, grad_background, grad.num_touched = native.ops.loss_and_grad(
-        *_grid_args(grid), origins, dirs, targets, background, *_march_args(opts, grid), float(near_gradient),
+        *_grid_args(grid), origins, dirs, targets, background, bool(past_grid_only), *_march_args(opts, grid),
+        float(near_gradient),
         grad.data, grad.touched_mask,
         grad.touched_rows, grad.num_touched, *grad.scratch())
     return (sse / (3 * b) if b else 0.0), grad_background
+
+
+def loss_and_grad_before_spheres(grid: SparseGrid, origins, dirs, targets, spheres: tuple, opts: RenderOptions | None,
+                                 grad: GridGrad, near_gradient: float = 0.0) -> tuple[float, torch.Tensor, torch.Tensor]:
+    """loss_and_grad with the background spheres behind the grid drawn in the same pass (CPU), only on the rays that
+    light gets past the grid on (loss_and_grad with past_grid_only): a ray the grid stops shows nothing behind it, so
+    drawing its spheres would be waste.
+    `spheres`: the background's arguments on this batch's rays, with the layer record its backward reads
+    (BackgroundOptimiser.on_rays). Returns (mse, d(mse)/d(background) [B, 3], the background drawn [B, 3])."""
+    opts = (opts or RenderOptions()).check()
+    device = grid.data.device
+    origins, dirs = _rays(origins, dirs, device)
+    b = origins.shape[0]
+    targets = _colours(targets, b, "targets", device)
+    if grad.data.shape != grid.data.shape:
+        raise ValueError("gradient storage belongs to another grid: make a new GridGrad after prune/upsample")
+    sse, grad_background, background, grad.num_touched = native.ops.loss_and_grad_spheres(
+        *_grid_args(grid), origins, dirs, targets, *spheres, *_march_args(opts, grid), float(near_gradient),
+        grad.data, grad.touched_mask, grad.touched_rows, grad.num_touched, *grad.scratch())
+    return (sse / (3 * b) if b else 0.0), grad_background, background
 
 
 def max_weights(grid: SparseGrid, origins, dirs, opts: RenderOptions | None = None) -> torch.Tensor:

@@ -180,7 +180,14 @@ class SceneModel:
         o, d = self.fit_frame.rays(o_world, d_world)
         with torch.no_grad():
             bg = self.background_rgb(o_world, d_world)
-        return render(self.grid, o, d, bg, opts or self.render_options)
+        return render(self.grid, o, d, bg, opts or self.render_options, self.background_past_grid_only)
+
+    @property
+    def background_past_grid_only(self) -> bool:
+        """Whether what lies behind the grid shows only on rays the grid lets light past (render.light_past_grid): so
+        with the background spheres, which then need not be drawn behind the rays the grid stops (most of a room's
+        training rays); a flat colour shows on every ray."""
+        return self.background is not None
 
     def world_depth(self, o_world: torch.Tensor, d_world: torch.Tensor, result: RenderResult) -> torch.Tensor:
         """World distance along each unit ray to its expected termination point (0 where nothing is hit)."""

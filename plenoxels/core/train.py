@@ -35,7 +35,7 @@ from plenoxels.core.photo_colour import COLOUR_RAYS, DECIDING_MEASURES, PhotoCol
 from plenoxels.core.ray_set import RaySet
 from plenoxels.core.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution,
                                     tv_scale_for_views, views_per_point)
-from plenoxels.core.render import loss_and_grad, max_weights, render
+from plenoxels.core.render import loss_and_grad, loss_and_grad_before_spheres, max_weights, render
 from plenoxels.core.scene_model import SceneModel, psnr
 
 # A render this opaque inside a photo's mask shows the object's colour, to measure the photo's gains against.
@@ -151,7 +151,7 @@ class Fitter:
         self.history: list[dict] = []      # held-out PSNR over time
         self.levels: list[dict] = []       # what happened at each level change
         self.recent_mse: list[float] = []
-        self.background_seconds = 0.0       # of this run's steps, spent rendering and training the background
+        self.background_seconds = 0.0       # of this run's steps, spent training the background (and drawing it, on a GPU)
         self.checkpoint_step: int | None = None
         self.regularisation = self._regularisation()
         measured_rays = options.measure_rays if options.error_share > 0 else min(options.measure_rays, COLOUR_RAYS)
@@ -267,16 +267,25 @@ class Fitter:
                                                              colour=self.colour if self.fits_colour else None)]
         o_w, d_w, target = drawn[:3]
         o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
-        started = time.perf_counter()
-        # The background's optimiser renders the batch itself, keeping where each ray met each sphere for its backward.
-        if self.own_backdrops:
-            background = drawn[3]
-        else:
-            background = self.bg_optim.forward(o_w, d_w) if self.bg_optim is not None else self.model.background_rgb(o_w, d_w)
-        self.background_seconds += time.perf_counter() - started
         near_gradient = 0.0 if self.model.fit_frame.ndc is not None else o.near_gradient_distance
-        mse, grad_background = loss_and_grad(self.model.grid, o_fit, d_fit, target, background,
-                                             self.model.render_options, self.grad, near_gradient)
+        # On a CPU the grid's kernel draws the background spheres itself, only on the rays it lets light past (a ray
+        # it stops shows nothing behind it). Elsewhere the background's optimiser renders the whole batch first; either
+        # way it keeps where each ray met each sphere for its backward.
+        spheres = self.bg_optim.on_rays(o_w, d_w) if self.bg_optim is not None and not self.own_backdrops else None
+        if spheres is not None:
+            mse, grad_background, background = loss_and_grad_before_spheres(
+                self.model.grid, o_fit, d_fit, target, spheres, self.model.render_options, self.grad, near_gradient)
+        else:
+            started = time.perf_counter()
+            if self.own_backdrops:
+                background = drawn[3]
+            else:
+                background = (self.bg_optim.forward(o_w, d_w) if self.bg_optim is not None
+                              else self.model.background_rgb(o_w, d_w))
+            self.background_seconds += time.perf_counter() - started
+            mse, grad_background = loss_and_grad(self.model.grid, o_fit, d_fit, target, background,
+                                                 self.model.render_options, self.grad, near_gradient=near_gradient,
+                                                 past_grid_only=self.model.background_past_grid_only)
         if not math.isfinite(mse):
             raise Diverged(f"the loss became {mse}")
         tv_rows = max(1, round(o.tv_sample_fraction * self.model.grid.num_occupied))
@@ -399,7 +408,8 @@ class Fitter:
                 background = (self.backdrops_in_common(i) if self.own_backdrops
                               else self.model.background_rgb(o_w, d_w))
             o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
-            result = render(self.model.grid, o_fit, d_fit, background, self.model.render_options)
+            result = render(self.model.grid, o_fit, d_fit, background, self.model.render_options,
+                            self.model.background_past_grid_only)
             rendered.append(result.rgb.cpu())
             opacity.append(result.opacity.cpu())
             photo.append(self.train.colours(i, r, c).cpu())

@@ -76,8 +76,10 @@ def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBu
         record["gradient_threads"] = {"used": used, "available": available}
     if fitter.bg_optim is not None:
         optimiser_bytes = sum(t.numel() * t.element_size() for t in (fitter.bg_optim.grad, fitter.bg_optim.second_moment))
+        # On a CPU the grid's loss draws the spheres in its own pass: the seconds are then its backward and optimiser.
         record["background_cost"] = {"seconds": round(fitter.background_seconds, 2),
                                      "share_of_fitting": round(fitter.background_seconds / max(fitter.elapsed, 1e-9), 4),
+                                     "drawn_in_the_grids_pass": inputs.device.type == "cpu" and not fitter.own_backdrops,
                                      "model_bytes": memory["background"], "optimiser_bytes": optimiser_bytes}
     if budget is not None:
         record["budget"] = budget.record(ending.at_deadline)
@@ -108,7 +110,8 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
     if model.background is not None:
         cost = record["background_cost"]
         line += (f", background model {format_bytes(cost['model_bytes'] + cost['optimiser_bytes'])} with its optimiser, "
-                 f"{cost['share_of_fitting']:.0%} of the fitting time")
+                 f"{cost['share_of_fitting']:.0%} of the fitting time"
+                 + (" training it (drawn in the grid's pass)" if cost.get("drawn_in_the_grids_pass") else ""))
         if ending.background_why:
             line += f" (added: {ending.background_why})"
     if choice.get("chosen") or choice.get("questions"):

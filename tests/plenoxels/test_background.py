@@ -9,6 +9,9 @@ from plenoxels.core import background as background_module
 from plenoxels.core import reference
 from plenoxels.core.background import BACKGROUND_STOP_TRANSMITTANCE, BackgroundOptimiser, MultiSphereBackground
 from plenoxels.core.errors import UserError
+from plenoxels.core.grid import SparseGrid
+from plenoxels.core.optim import GridGrad
+from plenoxels.core.render import RenderOptions, loss_and_grad, loss_and_grad_before_spheres, render
 
 
 def _random_rays(n: int, seed: int, spread: float = 0.9, dtype=torch.float64):
@@ -224,6 +227,44 @@ def test_the_forward_record_of_layers_gives_the_backward_the_same_texels_and_gra
     blanked.record[2].fill_(-1)
     blanked.backward(o, d, rgb, grad_rgb)
     assert blanked.num_touched == 0 and not bool(blanked.grad.any())
+
+
+def test_the_grids_loss_draws_the_spheres_only_on_rays_it_lets_light_past():
+    gen = torch.Generator().manual_seed(51)
+    grid = SparseGrid.dense((9, 8, 10), (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0), 1)
+    grid.density.copy_(torch.rand(grid.num_occupied, generator=gen) * 8 - 2)
+    grid.sh.copy_(torch.randn(grid.sh.shape, generator=gen) * 0.4)
+    model = _textured(MultiSphereBackground.around_box((-1, -1, -1), (1, 1, 1), n_spheres=4, height=5, width=8), 52)
+    o = torch.randn(300, 3, generator=gen)
+    o = o / o.norm(dim=1, keepdim=True) * 2.5
+    d = torch.randn(300, 3, generator=gen) * 0.8 - o
+    targets = torch.rand(300, 3, generator=gen)
+    opts = RenderOptions(step_size=0.5, stop_transmittance=0.01)
+    stopped = render(grid, o, d, None, opts).opacity > 0.99
+    assert torch.equal(stopped, render(grid, o, d, None, opts, past_grid_only=True).opacity > 0.99)
+    assert 30 < int(stopped.sum()) < 270
+    fused, plain = BackgroundOptimiser(model, lr=0.0), BackgroundOptimiser(model, lr=0.0)
+    fused_grad, plain_grad = GridGrad(grid), GridGrad(grid)
+    mse, grad_background, drawn = loss_and_grad_before_spheres(grid, o, d, targets, fused.on_rays(o, d), opts,
+                                                               fused_grad)
+    assert bool((fused.record[2][stopped][..., 0] < 0).all()) and bool((fused.record[2][~stopped][..., 0] >= 0).any())
+    behind = model(o, d)
+    plain_mse, plain_grad_background = loss_and_grad(grid, o, d, targets, behind, opts, plain_grad,
+                                                     past_grid_only=True)
+    assert mse == pytest.approx(plain_mse, rel=1e-6)
+    assert not bool(drawn[stopped].any()) and torch.equal(drawn[~stopped], behind[~stopped])
+    torch.testing.assert_close(grad_background, plain_grad_background, atol=1e-9, rtol=1e-6)
+    assert not bool(grad_background[stopped].any())
+    assert torch.equal(fused_grad.touched_mask, plain_grad.touched_mask)
+    torch.testing.assert_close(fused_grad.data, plain_grad.data, atol=1e-9, rtol=1e-5)
+    # The texels: the record of the drawn rays' layers against the twin's chain rule through the grid's loss.
+    fused.backward(o, d, drawn, grad_background)
+    twin_grad = GridGrad(grid)
+    _, twin_grad_background = reference.loss_and_grad(grid, o, d, targets, twin(model, o, d).float(), opts, twin_grad,
+                                                      past_grid_only=True)
+    expected = twin_texel_grad(model, o.double(), d.double(), twin_grad_background.double())
+    torch.testing.assert_close(fused.grad.view_as(model.texture).double(), expected,
+                               atol=2e-5 * float(expected.abs().max()), rtol=0)
 
 
 def test_a_backward_of_other_rays_than_the_recorded_ones_intersects_them_itself():

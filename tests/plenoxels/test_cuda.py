@@ -91,10 +91,12 @@ def test_cuda_glue_syntax(tmp_path):
     assert result.returncode == 0, result.stderr[-4000:]
 
 
-# Operators with one kernel for every device, and the CPU-only ones: one advises host memory; the splats are distilled
-# and scored on the CPU (their compositing and row Adam).
+# Operators with one kernel for every device, and the CPU-only ones: one advises host memory; the grid's loss that draws
+# the background spheres in its own pass (a GPU draws them all beforehand); the splats are distilled and scored on the
+# CPU (their compositing and row Adam).
 DEVICE_FREE_OPS = {"padded_stride", "num_threads"}
-CPU_ONLY_OPS = {"advise_huge_pages", "splat_composite", "splat_composite_backward", "adam_rows"}
+CPU_ONLY_OPS = {"advise_huge_pages", "loss_and_grad_spheres", "splat_composite", "splat_composite_backward",
+                "adam_rows"}
 
 
 def _declared_ops() -> set[str]:
@@ -210,16 +212,17 @@ def _close(gpu, cpu, rtol=1e-4, atol=1e-5):
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=rtol, atol=atol)
 
 
-def _render_both(links, data, degree, origins, dirs, background, march=MARCH, box=(BMIN, BMAX), knots=None):
+def _render_both(links, data, degree, origins, dirs, background, march=MARCH, box=(BMIN, BMAX), knots=None,
+                 past_grid_only=False):
     C, G = _native()
     cells, blocks = C.build_occupancy(links, BLOCK)
     args = [data, links, cells, blocks, BLOCK, _lattice(links, box, knots), degree, origins, dirs, background,
-            *_march_args(march)]
+            past_grid_only, *_march_args(march)]
     return C.render(*args), G.render(*_cuda(args))
 
 
 def _loss_grad_both(links, data, degree, origins, dirs, targets, background, march=MARCH, box=(BMIN, BMAX),
-                    knots=None, near_gradient=0.0):
+                    knots=None, near_gradient=0.0, past_grid_only=False):
     C, G = _native()
     cells, blocks = C.build_occupancy(links, BLOCK)
     n, stride = data.shape
@@ -229,7 +232,7 @@ def _loss_grad_both(links, data, degree, origins, dirs, targets, background, mar
         mask = torch.zeros(n, dtype=torch.uint8)
         rows = torch.zeros(n, dtype=torch.int32)
         args = [data, links, cells, blocks, BLOCK, _lattice(links, box, knots), degree, origins, dirs, targets, background,
-                *_march_args(march), near_gradient, grad, mask, rows, 0]
+                past_grid_only, *_march_args(march), near_gradient, grad, mask, rows, 0]
         moved = move(args)
         grad_out, mask_out, rows_out = moved[-4:-1]  # counted from the end: the march's arguments vary
         sse, grad_background, count = core.loss_and_grad(*moved, *native.ops.grad_scratch(grad_out, 64))
@@ -320,6 +323,29 @@ def test_loss_and_grad_match_cpu(degree):
     assert scale > 0
     _close(gpu[2], cpu[2], rtol=1e-3, atol=1e-5 * scale)
     assert torch.equal(gpu[3], cpu[3])
+    assert gpu[4] == cpu[4] and len(cpu[4]) > 0
+
+
+@needs_gpu
+def test_a_background_past_the_grid_only_matches_cpu():
+    """The spheres' rule (none behind a stopped ray, the ramp above the stop) in the render and the loss, on a march
+    that stops many rays."""
+    links, data = _grid(2, density_scale=1.5)
+    origins, dirs = _rays(2000, seed=11)
+    targets, background = torch.rand(origins.shape[0], 3), torch.rand(origins.shape[0], 3)
+    march = {**MARCH, "stop_transmittance": 0.05}
+    cpu, gpu = _render_both(links, data, 2, origins, dirs, background, march, past_grid_only=True)
+    for g, c in zip(gpu, cpu):
+        _close(g, c)
+    everywhere, _ = _render_both(links, data, 2, origins, dirs, background, march)
+    stopped = 1 - cpu[2] < 0.05
+    assert bool(stopped.any()) and bool((everywhere[0][stopped] > cpu[0][stopped]).any())
+    cpu, gpu = _loss_grad_both(links, data, 2, origins, dirs, targets, background, march, past_grid_only=True)
+    assert gpu[0] == pytest.approx(cpu[0], rel=1e-5)
+    _close(gpu[1], cpu[1])
+    assert not bool(cpu[1][stopped].any())
+    scale = float(cpu[2].abs().max())
+    _close(gpu[2], cpu[2], rtol=1e-3, atol=1e-5 * scale)
     assert gpu[4] == cpu[4] and len(cpu[4]) > 0
 
 

@@ -13,7 +13,8 @@ from plenoxels.core.grid import OCCUPANCY_BLOCK
 from plenoxels.core.optim import GridGrad, SparseRMSProp
 from plenoxels.core.regularizers import SPARSITY_THICKNESS, sample_rows, sparsity_loss_and_grad, tv_loss_and_grad
 from plenoxels.core.render import RenderOptions
-from plenoxels.core.render import COLOUR_OFFSET, SH_C0, loss_and_grad, max_weights, ray_samples, render, sample_counts
+from plenoxels.core.render import COLOUR_OFFSET, SH_C0, light_past_grid, loss_and_grad, max_weights, ray_samples, render
+from plenoxels.core.render import sample_counts
 from twin_checks import assert_loss_and_grad_match_twin, assert_render_matches_twin
 
 ATOL = 2e-5
@@ -58,6 +59,39 @@ def test_render_without_background_is_black_behind():
     black = render(grid, origins, dirs, None)
     white = render(grid, origins, dirs, torch.ones(origins.shape[0], 3))
     torch.testing.assert_close(white.rgb - black.rgb, (1 - black.opacity)[:, None].expand(-1, 3), atol=1e-6, rtol=0)
+
+
+def test_a_background_past_the_grid_only_shows_nothing_behind_a_stopped_ray_which_keeps_its_opacity():
+    grid = random_grid(seed=13)
+    origins, dirs = random_rays(n=200, seed=14)
+    stop = 0.05
+    opts = RenderOptions(step_size=0.4, stop_transmittance=stop)
+    black = render(grid, origins, dirs, None, opts, past_grid_only=True)
+    white = render(grid, origins, dirs, torch.ones(origins.shape[0], 3), opts, past_grid_only=True)
+    everywhere = render(grid, origins, dirs, torch.ones(origins.shape[0], 3), opts)
+    left = 1 - black.opacity
+    stopped, ramp = left < stop, (left >= stop) & (left < 2 * stop)
+    assert 10 < int(stopped.sum()) < 190 and bool((left > 0.8).any()) and int(ramp.sum()) >= 3
+    assert bool((left[stopped] > 0).all())                    # the opacity is what the samples took, short of 1
+    assert torch.equal(white.rgb[stopped], black.rgb[stopped])
+    assert torch.equal(white.opacity, everywhere.opacity) and bool((everywhere.rgb[stopped] > white.rgb[stopped]).all())
+    shown = (white.rgb - black.rgb)[:, 0]
+    torch.testing.assert_close(shown, light_past_grid(left, stop), atol=1e-6, rtol=0)
+    assert bool((shown[ramp] < left[ramp]).all()) and bool((shown[ramp] > 0).all())  # the ramp up to the stop
+    with torch.no_grad():
+        rgb, _, opacity = reference.render(grid, origins, dirs, torch.ones(origins.shape[0], 3), opts,
+                                           past_grid_only=True)
+    torch.testing.assert_close(white.rgb, rgb, atol=ATOL, rtol=1e-5)
+    torch.testing.assert_close(white.opacity, opacity, atol=ATOL, rtol=1e-5)
+    gen = torch.Generator().manual_seed(15)
+    targets, background = torch.rand(200, 3, generator=gen), torch.rand(200, 3, generator=gen)
+    _, grad_background = loss_and_grad(grid, origins, dirs, targets, background, opts, GridGrad(grid),
+                                       past_grid_only=True)
+    assert not bool(grad_background[stopped].any()) and bool(grad_background[~stopped].any())
+    # The density's gradient on the ramp (the background's share answering it at its own rate) against autograd.
+    assert_loss_and_grad_match_twin(grid, origins[ramp], dirs[ramp], targets[ramp], background[ramp], opts,
+                                    past_grid_only=True)
+    assert_loss_and_grad_match_twin(grid, origins, dirs, targets, background, opts, past_grid_only=True)
 
 
 @pytest.mark.parametrize("sh_degree", [0, 2, 3])

@@ -317,9 +317,9 @@ def test_a_train_step_scales_gradients_near_the_cameras_except_in_ndc(tmp_path, 
     handed = []
     real = train_module.loss_and_grad
 
-    def recording(*args):
-        handed.append(args[-1])
-        return real(*args)
+    def recording(*args, **kwargs):
+        handed.append(kwargs["near_gradient"])
+        return real(*args, **kwargs)
 
     monkeypatch.setattr(train_module, "loss_and_grad", recording)
     fitter.train_step()
