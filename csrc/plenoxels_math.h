@@ -422,8 +422,7 @@ PLX_HD float sample_alpha(float sigma, float delta, float* transmittance_factor)
 // begins to take it (a render stays continuous in the camera's pose). s = 0: T on every ray. (The opacity stays 1 - T,
 // what the samples took: depth divided by opacity is their mean depth.) The kernels pass the march's stop as s only
 // where the background is the spheres, which cost a ray more than the grid; a flat colour costs nothing to draw, and
-// cutting it would leave a fit's loss no reason to take a ray's light below the stop (a strong sparsity prior then
-// thins an object until it barely stops its rays).
+// cut it cost an object's fit under a strong sparsity prior 0.5 dB held-out (bench/README.md, "Real captures").
 PLX_HD float light_past_grid(float transmittance, float stop_transmittance) {
     if (transmittance >= 2.0f * stop_transmittance) return transmittance;
     if (transmittance < stop_transmittance) return 0.0f;

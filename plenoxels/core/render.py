@@ -62,9 +62,8 @@ def light_past_grid(transmittance: torch.Tensor, stop_transmittance: float) -> t
     it from twice stop_transmittance up, none below it (the march stopped the ray), a ramp between so that colours do
     not jump; stop 0: all of it on every ray (plx::light_past_grid). Differentiable (the twin's loss takes its
     gradient). The kernels cut a background this way only where it is the spheres (`past_grid_only`), whose drawing
-    costs a ray more than the grid: a flat colour costs nothing, and a fit whose loss sees nothing behind a stopped ray
-    has no reason to take its light below the stop (under a strong sparsity prior an object thins until it barely
-    stops its rays; bench/README.md, "Kernels")."""
+    costs a ray more than the grid: a flat colour costs nothing, and cut it cost an object's fit under a strong sparsity
+    prior 0.5 dB held-out (bench/README.md, "Real captures", the background's row)."""
     s = float(stop_transmittance)
     if s <= 0:
         return transmittance
