@@ -142,7 +142,8 @@ std::tuple<double, Tensor, int64_t> loss_and_grad(Tensor data, Tensor links, Ten
                                                   int64_t block, c10::ArrayRef<double> lattice,
                                                   int64_t degree, Tensor origins,
                                                   Tensor dirs, Tensor targets, Tensor background,
-                                                  bool past_grid_only, double step, double stop_transmittance, double near, double sigma_threshold,
+                                                  bool past_grid_only, double step, double stop_transmittance,
+                                                  double near, double sigma_threshold,
                                                   int64_t max_samples, bool contract, double near_gradient,
                                                   Tensor grad_data, Tensor grad_mask, Tensor grad_rows, int64_t num_touched,
                                                   Tensor, Tensor) {

@@ -79,7 +79,7 @@ def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBu
         # On a CPU the grid's loss draws the spheres in its own pass: the seconds are then its backward and optimiser.
         record["background_cost"] = {"seconds": round(fitter.background_seconds, 2),
                                      "share_of_fitting": round(fitter.background_seconds / max(fitter.elapsed, 1e-9), 4),
-                                     "drawn_in_the_grids_pass": inputs.device.type == "cpu" and not fitter.own_backdrops,
+                                     "drawn_in_the_grids_pass": inputs.device.type == "cpu",
                                      "model_bytes": memory["background"], "optimiser_bytes": optimiser_bytes}
     if budget is not None:
         record["budget"] = budget.record(ending.at_deadline)
