@@ -52,6 +52,10 @@ BAKE_CHUNK = 1 << 18
 TEXEL_CHUNK = 1 << 19
 # A baked ray at least this opaque gives its colour; fainter ones take the degree-0 colour at the surface.
 BAKE_MIN_OPACITY = 0.05
+# Faces charted together at most: xatlas merges neighbouring charts at a cost that grows faster than their count
+# (jpcy/xatlas#103), and a marching-cubes surface starts as thousands of small ones, so the mesh is charted in spatial
+# pieces of this many faces and packed as one atlas (bench/README.md, "Export").
+CHART_PIECE_FACES = 8192
 
 
 @dataclass
@@ -67,16 +71,32 @@ class Atlas:
 
 
 def unwrap(vertices: np.ndarray, faces: np.ndarray, resolution: int) -> Atlas:
-    """xatlas charts and packs the mesh into about `resolution` texels on a side, GUTTER_TEXELS + 1 texels apart."""
+    """xatlas charts and packs the mesh into about `resolution` texels on a side, GUTTER_TEXELS + 1 texels apart:
+    charted in pieces of at most CHART_PIECE_FACES faces (no chart crosses from one to the next), packed together."""
+    vertices, faces = np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64)
+    pieces = chart_pieces(vertices[faces].mean(axis=1) if len(faces) else np.zeros((0, 3)), CHART_PIECE_FACES)
     atlas = xatlas.Atlas()
-    atlas.add_mesh(np.ascontiguousarray(vertices, dtype=np.float32), np.ascontiguousarray(faces, dtype=np.uint32))
+    piece_vertices = []
+    for piece in pieces:
+        used, local = np.unique(faces[piece], return_inverse=True)
+        piece_vertices.append(used)
+        atlas.add_mesh(np.ascontiguousarray(vertices[used], dtype=np.float32),
+                       np.ascontiguousarray(local.reshape(-1, 3), dtype=np.uint32))
     pack = xatlas.PackOptions()
     pack.resolution = resolution
     pack.padding = GUTTER_TEXELS + 1
     pack.bilinear = True
     atlas.generate(xatlas.ChartOptions(), pack)
-    vertex_map, atlas_faces, uv = (np.asarray(a) for a in atlas[0])
-    vertex_map, atlas_faces, uv = vertex_map.astype(np.int64), atlas_faces.astype(np.int64), uv.astype(np.float64)
+    vertex_map, uv = [], []
+    atlas_faces = np.zeros((len(faces), 3), dtype=np.int64)
+    start = 0
+    for i, (piece, used) in enumerate(zip(pieces, piece_vertices)):
+        piece_map, piece_faces, piece_uv = (np.asarray(a) for a in atlas[i])
+        vertex_map.append(used[piece_map.astype(np.int64)])
+        uv.append(piece_uv.astype(np.float64))
+        atlas_faces[piece] = piece_faces.astype(np.int64) + start
+        start += len(piece_map)
+    vertex_map, uv = np.concatenate(vertex_map), np.concatenate(uv)
     # xatlas charts no face it finds degenerate (marching cubes leaves slivers) and leaves its corners at UV (0, 0):
     # give each such corner its vertex's UV in a chart, so even a sliver shows its own surface's colour.
     corners = uv[atlas_faces]
@@ -89,6 +109,20 @@ def unwrap(vertices: np.ndarray, faces: np.ndarray, resolution: int) -> Atlas:
     uv[fix] = in_chart[vertex_map[fix]]
     return Atlas(vertex_map, atlas_faces, uv, (int(atlas.width), int(atlas.height)), int(atlas.chart_count),
                  charted_faces)
+
+
+def chart_pieces(centres: np.ndarray, most: int) -> list[np.ndarray]:
+    """Face indices [n] split in halves along their centres' [F, 3] longest extent until each holds at most `most`."""
+    pieces, done = [np.arange(len(centres))], []
+    while pieces:
+        piece = pieces.pop()
+        if len(piece) <= most:
+            done.append(piece)
+            continue
+        axis = int(np.argmax(np.ptp(centres[piece], axis=0)))
+        ordered = piece[np.argsort(centres[piece, axis], kind="stable")]
+        pieces += [ordered[len(ordered) // 2:], ordered[:len(ordered) // 2]]
+    return done
 
 
 def uv_to_pixels(uv: np.ndarray, size: tuple[int, int]) -> np.ndarray:

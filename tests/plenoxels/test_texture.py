@@ -73,6 +73,33 @@ def test_rasterizer_covers_exactly_the_pixel_centres_inside_with_weights_that_re
     assert (weights[gutter] >= -1e-12).all() and np.allclose(weights[gutter].sum(axis=1), 1.0)
 
 
+def test_a_mesh_charted_in_pieces_packs_them_into_one_atlas_without_overlap(monkeypatch):
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    monkeypatch.setattr(texture, "CHART_PIECE_FACES", 200)
+    atlas = unwrap(mesh.vertices, mesh.faces, 128)
+    assert np.array_equal(atlas.vertex_map[atlas.faces], mesh.faces) and atlas.charted.all()
+    assert atlas.charts >= 8  # 1280 faces in pieces of at most 200
+    # Every texel centre lies inside at most one face's UV triangle: the pieces' charts share the atlas.
+    corners = texture.uv_to_pixels(atlas.uv, atlas.size)[atlas.faces]
+    covered = np.zeros(atlas.size[::-1], dtype=np.int64)
+    for tri in corners:
+        lo, hi = np.floor(tri.min(axis=0)).astype(int), np.ceil(tri.max(axis=0)).astype(int)
+        x, y = np.meshgrid(np.arange(lo[0], hi[0]) + 0.5, np.arange(lo[1], hi[1]) + 0.5)
+        p = np.stack([x.ravel(), y.ravel()], axis=1)
+        side, to = np.stack([tri[(k + 1) % 3] - tri[k] for k in range(3)]), p[None] - tri[:, None]
+        edges = side[:, None, 0] * to[..., 1] - side[:, None, 1] * to[..., 0]
+        inside = (edges > 1e-9).all(axis=0) | (edges < -1e-9).all(axis=0)
+        np.add.at(covered, (p[inside, 1].astype(int), p[inside, 0].astype(int)), 1)
+    assert covered.max() == 1 and covered.sum() > 0.3 * covered.size
+    # The pieces are the mesh cut in halves along its longest extent: each face once, each piece whole and compact.
+    centres = mesh.triangles_center
+    pieces = texture.chart_pieces(centres, 200)
+    assert len(pieces) == 8 and max(map(len, pieces)) <= 200
+    assert np.array_equal(np.sort(np.concatenate(pieces)), np.arange(len(mesh.faces)))
+    spread = np.mean([np.linalg.norm(centres[piece] - centres[piece].mean(axis=0), axis=1).mean() for piece in pieces])
+    assert spread < 0.5 * np.linalg.norm(centres - centres.mean(axis=0), axis=1).mean()
+
+
 def face_centres(mesh: trimesh.Trimesh, atlas) -> tuple[np.ndarray, np.ndarray]:
     """The centres [F', 3] of the faces xatlas charted, and their UVs [F', 2] (marching cubes leaves a few slivers of
     next to no area, which it does not chart)."""
