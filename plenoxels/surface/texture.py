@@ -73,8 +73,8 @@ class Atlas:
 def unwrap(vertices: np.ndarray, faces: np.ndarray, resolution: int) -> Atlas:
     """xatlas charts and packs the mesh into about `resolution` texels on a side, GUTTER_TEXELS + 1 texels apart:
     charted in pieces of at most CHART_PIECE_FACES faces (no chart crosses from one to the next), packed together."""
-    vertices, faces = np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64)
-    pieces = chart_pieces(vertices[faces].mean(axis=1) if len(faces) else np.zeros((0, 3)), CHART_PIECE_FACES)
+    vertices, faces = np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    pieces = chart_pieces(vertices[faces].mean(axis=1), CHART_PIECE_FACES)
     atlas = xatlas.Atlas()
     piece_vertices = []
     for piece in pieces:
