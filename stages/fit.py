@@ -37,6 +37,7 @@ from stages.training.fit_record import Ending, FitInputs, budget_summary, fit_re
 from stages.training.views import HeldOut, load_training, training_frames
 from plenoxels.planning.budget import BudgetClock, TimeBudget
 from plenoxels.planning import model_trial
+from plenoxels.planning.fit_plan import photo_scale
 from plenoxels.core.errors import UserError
 from plenoxels.core.native import resolve_device
 from plenoxels.core.scene_model import BACKDROP_MIN_TRAIN_PSNR, SceneModel, backdrop_check_step
@@ -57,6 +58,8 @@ def run(ctx) -> dict:
         ctx.report.info(f"fitting on {device}")
     scene = read_json(ctx.upstream["normalize"] / SCENE_JSON)
     train_frames, held_out_frames = training_frames(scene, ctx.report)
+    if s.budget_seconds:
+        s = budget_photo_scale(s, train_frames, ctx.report)
     train = load_training(ctx.out, train_frames, s.image_scale, s.background_color, ctx.report,
                           with_masks=s.photo_colour)
     held_out = HeldOut(ctx.out, held_out_frames, s.eval_views, s.eval_scale, s.background_color)
@@ -70,6 +73,18 @@ def run(ctx) -> dict:
     if fitted is None:  # an object fit whose photos' backdrop is no one colour: again, with a background model
         fitted = fit(ctx, s, inputs, background_added(ctx))
     return fitted
+
+
+def budget_photo_scale(s: Settings, train_frames: list[dict], report) -> Settings:
+    """The settings with the share of their size a time budget fits the photos at (fit_plan.photo_scale): more than
+    image_scale where that would leave them coarser than the preset's own finest grid."""
+    longest = max((max(int(f["w"]), int(f["h"])) for f in train_frames), default=0)
+    scale = photo_scale(longest, s.image_scale, s.resolutions[-1])
+    if scale <= s.image_scale:
+        return s
+    report.info(f"photos at {scale:.2f} of their size, not fit.image_scale's {s.image_scale:g}: {round(longest * scale)} "
+                f"pixels, as fine as the preset's own {s.resolutions[-1]}^3 grid, which the budget's grid may then reach")
+    return replace(s, image_scale=round(scale, 4))
 
 
 def background_added(ctx) -> str:

@@ -226,6 +226,16 @@ class Plan:
         return f"{levels} {'->'.join(map(str, self.resolutions))}, {'+'.join(map(str, self.steps))} steps"
 
 
+def photo_scale(longest_side: int, image_scale: float, finest: int) -> float:
+    """The share of their size a budgeted fit takes its photos at: `image_scale`, or more (whole at most) where their
+    longest side (`longest_side` pixels, as ingested) would otherwise fall below `finest`, the finest grid the preset
+    fits without a budget. A plan goes no finer than its photos' pixels, so small photos at a preset's downscale would
+    hold a long budget's grid below the preset's own; a step costs the same whatever their size (a batch is so many
+    rays). Larger photos than that buy a budget nothing: lego's 800-pixel photos at 512 pixels, not 400, took 448^3 and
+    512^3 grids that scored lower at 5 and 10 minutes (bench/README.md, "The time budget")."""
+    return min(1.0, max(image_scale, finest / max(longest_side, 1)))
+
+
 def finest_worth(resolution: int, max_resolution: int, ladder: tuple[Rung, ...] | None = None) -> bool:
     """Whether no rung of the ladder ends finer than `resolution` and still no finer than the photos' pixels."""
     return not any(resolution < r.resolutions[-1] <= max_resolution for r in ladder or LADDER)

@@ -33,7 +33,9 @@ class Settings(TrainOptions, ModelOptions):
     """Seconds between checkpoints."""
     time_budget: float | str = 0.0
     """Finish the fit within this time (90s, 5m, 2m30s or seconds; 0: off), with levels, resolutions and steps
-    chosen for it by a cost model measured on this machine (fit.resolutions and fit.steps are then ignored)."""
+    chosen for it by a cost model measured on this machine (in place of fit.resolutions and fit.steps), and the
+    photos taken at image_scale or more, up to whole, where image_scale would leave them coarser than fit.resolutions'
+    finest level (plenoxels/planning/fit_plan.py, photo_scale)."""
 
     @property
     def budget_seconds(self) -> float:

@@ -186,6 +186,22 @@ def test_a_budgeted_fit_resumes_with_its_plan(fresh, monkeypatch):
     assert first["kept"] / first["pruned_from"] != pytest.approx(record["budget"]["kept_share"]["first_prune_prior"])
 
 
+@pytest.mark.parametrize("budget_seconds, finest, scale", [("1m", 64, 1.0), ("1m", 16, 0.5), (0, 64, 0.5)])
+def test_a_budget_fits_photos_coarser_than_the_presets_finest_grid_at_up_to_their_own_size(fresh, monkeypatch,
+                                                                                         budget_seconds, finest, scale):
+    """The tiny scene's 48-pixel photos at fit.image_scale 0.5 are 24 pixels across: coarser than a preset's 64^3 grid,
+    so a budget fits them whole and records the scale, which evaluate renders at; beside a 16^3 grid, or without a
+    budget, the setting holds."""
+    monkeypatch.setattr(budget, "LADDER", (Rung((16, 32), (20, 20)),))
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
+    run_stage(fresh, fit, {**BUDGETED, "image_scale": 0.5, "time_budget": budget_seconds,
+                           "resolutions": [16, finest], "steps": [20, 20]})
+    frames = [f for f in read_json(fresh / "normalize" / "scene.json")["frames"] if f["split"] == "train"]
+    whole = sum(f["w"] * f["h"] for f in frames)
+    assert read_json(fresh / "fit" / "model.json")["fit_settings"]["image_scale"] == scale
+    assert read_json(fresh / "fit" / "fit.json")["train_pixels"] == pytest.approx(whole * scale ** 2, rel=0.1)
+
+
 @pytest.mark.parametrize("scene_type", ["object", "unbounded"])
 def test_a_budgeted_fit_plans_with_its_scene_types_prior_for_the_first_prune(fresh, monkeypatch, scene_type):
     monkeypatch.setattr(budget, "LADDER", (Rung((16, 32), (20, 20)),))

@@ -318,3 +318,19 @@ def test_a_last_level_to_come_with_time_to_spare_is_raised_to_the_finest_that_ge
     inside = Outlook(level=1, step=planned[0] + 10, voxels=50_000, dense=False)
     kept, _, share = fit_plan.replan(seconds, MEASURED, FACTS, inside, rung, resolutions, planned, measured=True)
     assert kept == resolutions and share == fit_plan.FINEST_MAX_SHARE
+
+
+
+def test_a_budget_takes_photos_smaller_than_the_presets_finest_grid_whole():
+    assert fit_plan.photo_scale(160, 0.5, 256) == 1.0
+    assert fit_plan.photo_scale(160, 1.0, 256) == 1.0
+
+
+def test_a_budget_takes_photos_as_fine_as_the_presets_finest_grid_and_no_finer():
+    scale = fit_plan.photo_scale(320, 0.5, 256)
+    assert 0.5 < scale < 1.0 and 320 * scale == pytest.approx(256)
+
+
+def test_a_budget_keeps_the_presets_share_where_its_photos_already_reach_its_finest_grid():
+    assert fit_plan.photo_scale(800, 0.5, 256) == 0.5
+    assert fit_plan.photo_scale(1920, 0.75, 384) == 0.75
