@@ -534,7 +534,9 @@ def contradicting_first_attempts(monkeypatch, attempts: int) -> None:
 
 def test_a_model_that_contradicts_its_matches_is_made_again_safer_and_the_summary_says_so(scene, truth, tmp_path, monkeypatch):
     contradicting_first_attempts(monkeypatch, 1)
-    manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.matching=sequential")
+    # One thread: with two, the mapper's timing left one of the 24 views unregistered on some runs.
+    manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.matching=sequential",
+                         "poses.threads=1")
     summary = manifest["summary"]
     assert [a["attempt"] for a in summary["attempts"]] == ["as set", "exhaustive matching"]
     assert summary["attempt"] == "exhaustive matching" and summary["matching"] == "exhaustive"
