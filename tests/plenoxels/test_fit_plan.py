@@ -320,7 +320,6 @@ def test_a_last_level_to_come_with_time_to_spare_is_raised_to_the_finest_that_ge
     assert kept == resolutions and share == fit_plan.FINEST_MAX_SHARE
 
 
-
 def test_a_budget_takes_photos_smaller_than_the_presets_finest_grid_whole():
     assert fit_plan.photo_scale(160, 0.5, 256) == 1.0
     assert fit_plan.photo_scale(160, 1.0, 256) == 1.0
