@@ -144,6 +144,10 @@ class TrainOptions:
     """RMSProp rate of the density at the end."""
     lr_density_delay: float = 0.1
     """Share of the steps over which the density rate ramps up from 1% (0: none)."""
+    lr_per_level: bool = True
+    """Each level after the first decays the rates from their start values to their final ones over its own steps,
+    not once over the whole fit: the finest level, where the detail is learnt, starts at the full rates (lego at
+    `default` +0.3 dB; bench/README.md, "Fit: quality against cost"). The first level keeps the whole fit's ramp."""
     lr_sh: float = 0.05
     """RMSProp rate of the SH coefficients at the start, decayed exponentially to lr_sh_final."""
     lr_sh_final: float = 5e-3

@@ -87,6 +87,16 @@ class Schedule:
         """The step at which `level` ends."""
         return sum(self.steps[:level + 1])
 
+    def rate_progress(self, step: int, level: int, per_level: bool) -> tuple[float, bool]:
+        """How far the rates have decayed at `step` of `level` (0 at their start values, 1 at their final ones), and
+        whether the density's ramp up applies: over the whole fit, or with `per_level` over each level after the first
+        on its own, with no ramp (the first level keeps the whole fit's ramp and decay: it starts from nothing, its
+        successors from a fitted grid)."""
+        if not per_level or level == 0:
+            return step / max(1, self.total_steps), True
+        start = self.level_end(level - 1)
+        return (step - start) / max(1, self.steps[level]), False
+
 
 def decayed_lr(initial: float, final: float, progress: float, delay: float = 0.0) -> float:
     """Exponential (log-linear) decay from `initial` to `final` as progress goes 0 -> 1; with a delay,
@@ -256,8 +266,8 @@ class Fitter:
     def train_step(self) -> float:
         """One optimiser step on one batch; returns its MSE."""
         o = self.options
-        progress = self.step / max(1, self.schedule.total_steps)
-        self.optim.set_lr(decayed_lr(o.lr_density, o.lr_density_final, progress, o.lr_density_delay),
+        progress, ramp = self.schedule.rate_progress(self.step, self.level, o.lr_per_level)
+        self.optim.set_lr(decayed_lr(o.lr_density, o.lr_density_final, progress, o.lr_density_delay if ramp else 0.0),
                           decayed_lr(o.lr_sh, o.lr_sh_final, progress))
         if self.measures() and self.step > 0 and (self.step % o.measure_every == 0 or self.level_starts()):
             self.measure_photos()

@@ -92,6 +92,39 @@ def test_learning_rate_schedule():
     assert decayed_lr(30.0, 0.05, 0.2, delay=0.2) == pytest.approx(decayed_lr(30.0, 0.05, 0.2))
 
 
+def test_each_level_after_the_first_decays_the_rates_over_its_own_steps(tmp_path):
+    schedule = Schedule([16, 32, 64], [100, 200, 300])
+    # Over the whole fit: one decay, the density's ramp over its first steps.
+    assert schedule.rate_progress(0, 0, per_level=False) == (0.0, True)
+    assert schedule.rate_progress(300, 2, per_level=False) == (0.5, True)
+    # Per level: the first level as over the whole fit, each later one from its start values to its final ones.
+    assert schedule.rate_progress(50, 0, per_level=True) == (50 / 600, True)
+    assert schedule.rate_progress(100, 1, per_level=True) == (0.0, False)
+    assert schedule.rate_progress(200, 1, per_level=True) == (0.5, False)
+    assert schedule.rate_progress(450, 2, per_level=True) == (0.5, False)
+
+    root = make_scene(tmp_path, width=32)
+    scene = read_json(root / "normalize" / "scene.json")
+    train = training_rays(root, [f for f in scene["frames"] if f["split"] == "train"])
+
+    def density_rates(per_level: bool) -> list[float]:
+        options = TrainOptions(resolutions=[16, 32], steps=[20, 20], batch_size=256, lr_per_level=per_level)
+        fitter = Fitter(SceneModel.create(scene, ModelOptions(), 16), options, train, schedule=Schedule.as_set(options))
+        rates = []
+        fitter.run(tmp_path / f"rates-{per_level}.pt", 1e9, on_step=lambda _: rates.append(fitter.optim.lr_density))
+        return rates
+
+    options = TrainOptions()
+    per_level, whole = density_rates(True), density_rates(False)
+    assert per_level[:20] == whole[:20]
+    # The second level starts at the density's full rate (no ramp) and falls to its final one; over the whole fit
+    # it would go on from halfway.
+    assert per_level[20] == pytest.approx(options.lr_density)
+    assert per_level[-1] == pytest.approx(decayed_lr(options.lr_density, options.lr_density_final, 19 / 20))
+    assert whole[20] == pytest.approx(decayed_lr(options.lr_density, options.lr_density_final, 0.5))
+    assert all(a > b for a, b in zip(per_level[20:], per_level[21:]))
+
+
 def test_coherent_batches_are_the_same_rays_in_an_order_that_keeps_neighbours_together(tmp_path):
     root = make_scene(tmp_path)
     frames = [f for f in read_json(root / "normalize" / "scene.json")["frames"] if f["split"] == "train"]
