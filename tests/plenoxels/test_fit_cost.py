@@ -125,7 +125,7 @@ def test_a_calibration_within_an_allowance_measures_coarse_first_and_again_for_a
     assert record["partial"] and not record["cached"] and record["allowance"] == 0.0
     assert [p["resolution"] for p in record["points"]] == [16] == [p["resolution"] for p in record["passes"]]
     assert [p["voxels"] for p in record["first_level_points"]] == [8 ** 3]
-    assert record["level_change"]["step_seconds"] > 0 and len(timed) == 3
+    assert record["level_change"]["step_seconds"] > 0 and len(timed) == 4  # and the coarsest grid again
     # One point a line: what it measured (rounded to 10 us in the record), per voxel (per ray and vertex for a pass).
     point = record["points"][0]
     assert costs.step_seconds(point["voxels"]) == pytest.approx(point["step_seconds"], abs=1e-5)
@@ -142,8 +142,33 @@ def test_a_calibration_within_an_allowance_measures_coarse_first_and_again_for_a
     assert [p["voxels"] for p in record["first_level_points"]] == [8 ** 3, 16 ** 3]
     # Coarse to fine: the coarsest pruned grid, the coarsest first level, the upsampled grid, then the finer ones.
     assert timed[1] == 8 ** 3 and timed[4] == 16 ** 3 and timed[0] < timed[3] < timed[5]
+    assert len(timed) == 7 and timed[6] == timed[0]  # the coarsest grid timed again, last
     _, record = fit_cost.calibrate(options, cpu, None, small, first, allowance=0.0)
     assert record["cached"] and not record["partial"] and len(measured) == 2  # a whole one serves any budget
+
+
+@pytest.mark.parametrize("first, again", [(0.020, 0.010), (0.010, 0.030)])
+def test_the_calibration_keeps_the_faster_of_two_timings_of_its_coarsest_grid(monkeypatch, first, again):
+    """The coarsest grid's steps are timed first, at the fit's own start, and a cached calibration is rescaled by
+    that point: one slow timing kept would flatten the line and read the machine faster at every later fit."""
+    options = config.build(fit.Settings, "fit", {"batch_size": 512, "sh_degree": 0})
+    small, dense, cpu = (16, 24, 32), (8, 16), torch.device("cpu")
+    coarsest = fit_cost.CalibrationObject(options, cpu, None, 16).fitter_at([16]).model.grid.num_occupied
+    timings = {coarsest: [first, again]}
+
+    def timed(fitter, device, steps=8):
+        voxels = fitter.model.grid.num_occupied
+        return timings[voxels].pop(0) if voxels in timings else 0.01 + 4e-8 * voxels
+
+    monkeypatch.setattr(fit_cost, "_time_steps", timed)
+    costs, record = fit_cost.calibrate(options, cpu, None, small, dense)
+    assert timings[coarsest] == []  # timed twice
+    assert record["points"][0]["step_seconds"] == pytest.approx(min(first, again))
+    later = record["points"][1:]
+    assert [p["step_seconds"] for p in later] == pytest.approx([0.01 + 4e-8 * p["voxels"] for p in later], abs=1e-5)
+    # The line through the kept points reads the finest grid as it was timed, not flattened by the slow one.
+    finest = record["points"][-1]
+    assert costs.step_seconds(finest["voxels"]) == pytest.approx(finest["step_seconds"], rel=0.05)
 
 
 @pytest.mark.parametrize("points, grows", [
