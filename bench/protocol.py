@@ -8,8 +8,9 @@ paper's figures and a reproduction's.
   poses_bounds.npy, every 8th photo held out (0, 8, 16, ...).
 
 Each run is `pipeline run` up to evaluate in a process of its own (its peak memory is its own), with the preset and
-an optional time budget, in bench/out/protocol/<scene>-<run>/. Runs that differ only in the fit reuse the earlier
-stages (ingest, poses, normalize) of the first.
+an optional time budget, in bench/out/protocol/<scene>-<run>/. A new run starts from the stages before the fit
+(ingest, poses, normalize) of an earlier run of its scene, this invocation's first or, where that has none yet, a
+previous invocation's (a curve run one budget at a time): the pipeline's cache re-runs any whose key differs.
 
 Ablations (the paper's Tables 3 and 4, on the scene named): `--ablation resolution` fits the preset with its levels
 capped at 32, 64, 128, 256 and 512 vertices (the capped levels' steps go to the last level kept); `--ablation views`
@@ -25,6 +26,7 @@ TV the fit sets itself (high; plenoxels.core.regularizers.tv_scale_for_views).
 from __future__ import annotations
 
 import argparse
+import glob
 import json
 import os
 import re
@@ -46,6 +48,7 @@ CACHE = REPO / "bench" / "out" / "protocol"
 # Run without --scene (as `make bench` does): the project's shared scenes that follow a protocol, where present.
 DEFAULT_SCENES = {"lego": REPO.parent / "shared" / "data" / "lego", "fern": REPO.parent / "shared" / "data" / "fern"}
 ABLATION_RESOLUTIONS = (32, 64, 128, 256, 512)
+BEFORE_FIT = ("ingest", "poses", "normalize")  # the stages every run of a scene shares, unless its settings differ
 FEW_VIEWS_EVERY = 4
 
 # What others report for these scenes at this protocol. The paper: Fridovich-Keil, Yu et al., CVPR 2022 (Table 2, 4 and
@@ -168,6 +171,18 @@ def runs_to_do(args, kind: str, name: str, folder: Path) -> list[dict]:
     return runs
 
 
+def earlier_run(scene: str, out: Path, first: Path) -> Path | None:
+    """The folder of an earlier run of `scene` whose stages before the fit a run in `out` can start from: `first`
+    (this invocation's first run) where it has them, else the latest finished one of the scene's other runs."""
+    def finished(folder: Path) -> bool:
+        return folder != out and all((folder / stage / "manifest.json").is_file() for stage in BEFORE_FIT)
+
+    if finished(first):
+        return first
+    others = [folder for folder in CACHE.glob(f"{glob.escape(scene)}-*") if finished(folder)]
+    return max(others, key=lambda folder: (folder / "normalize" / "manifest.json").stat().st_mtime, default=None)
+
+
 def slug(text: str) -> str:
     return re.sub(r"[^a-z0-9]+", "_", text.lower()).strip("_")
 
@@ -260,12 +275,10 @@ def run_all(args) -> int:
     failed = 0
     for run in todo:
         out = CACHE / f"{run['scene']}-{slug(run['label'])}"
-        first = CACHE / f"{run['scene']}-{slug(todo[0]['label'])}"
-        if not out.exists() and first.exists() and out != first:
-            # The stages before the fit are the same for every run of a scene: start from the first run's.
-            for stage in ("ingest", "poses", "normalize"):
-                if (first / stage).is_dir():
-                    shutil.copytree(first / stage, out / stage)
+        earlier = earlier_run(run["scene"], out, first=CACHE / f"{run['scene']}-{slug(todo[0]['label'])}")
+        if not out.exists() and earlier is not None:
+            for stage in BEFORE_FIT:
+                shutil.copytree(earlier / stage, out / stage)
         print(f"[protocol] {run['scene']}: {run['label']}", flush=True)
         load_before, measured_at = os.getloadavg(), commit()  # the code the run measures, whatever HEAD is by its end
         result = run_child("bench.protocol", {**run, "out": str(out), "verbose": args.verbose}, run["label"])

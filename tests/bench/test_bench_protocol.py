@@ -95,3 +95,12 @@ def test_a_run_scores_the_test_split_and_its_table_names_the_machine_and_commit(
     assert run["commit"] and run["machine"]["cores"] >= 1
     text = table(json.loads(results.read_text()))
     assert "| fast, resolutions=[16,32] steps=[20,20] |" in text and run["commit"] in text
+
+    # A later invocation (a curve run one budget at a time) starts from the earlier run's stages before the fit.
+    assert protocol.main(argv[:-1] + ["steps=[20,30]"]) == 0
+    first, later = (tmp_path / "out" / f"tiny-{protocol.slug(label)}" for label in
+                    ("fast, resolutions=[16,32] steps=[20,20]", "fast, resolutions=[16,32] steps=[20,30]"))
+    for stage in ("ingest", "poses", "normalize"):
+        assert read_json(later / stage / "manifest.json")["run_id"] == read_json(first / stage / "manifest.json")["run_id"]
+    assert read_json(later / "fit" / "manifest.json")["run_id"] != read_json(first / "fit" / "manifest.json")["run_id"]
+    assert len(json.loads(results.read_text())["runs"]) == 2
