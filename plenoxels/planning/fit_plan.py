@@ -49,12 +49,12 @@ MAX_SHARE = 2.0
 FINEST_MAX_SHARE = 4.0
 # Priors for the share of a level's voxels that pruning keeps, until a level change has measured it: the first prune
 # (of a first level's whole box) by the scene type, and later ones (of grids pruned before, which keep more of
-# themselves). An object's or a forward capture's box is mostly air in front of and around thin surfaces; an unbounded
-# scene's box is the room the cameras stand in, seen from every side, and keeps most of itself. Too high a prior picks
-# a coarser plan than the time allows (re-plans then give it more steps), too low a finer one (re-plans then give it
-# fewer, and a room planned on an object's prior runs a fraction of its steps). Evidence: bench/README.md, "The time
-# budget".
-FIRST_KEEP_PRIOR = {"object": 0.2, "forward": 0.2, "unbounded": 0.75}
+# themselves). An object's box is mostly air around thin surfaces; a forward capture's box is its cameras' frustum in
+# NDC, filled with the scene out to the far plane (fern's first prunes keep 67-83%), and an unbounded scene's box is
+# the room the cameras stand in, seen from every side: both keep most of themselves. Too high a prior picks a coarser
+# plan than the time allows (re-plans then give it more steps), too low a finer one (re-plans then give it fewer, and
+# a room planned on an object's prior runs a fraction of its steps). Evidence: bench/README.md, "The time budget".
+FIRST_KEEP_PRIOR = {"object": 0.2, "forward": 0.7, "unbounded": 0.75}
 LATER_KEEP_PRIOR = 0.6
 # A last level too dear for half its steps is lowered this many vertices at a time (see replan), in a scene whose
 # first prune kept more than FULL_BOX of its box: a room seen from inside, not an object on a backdrop (which keeps a

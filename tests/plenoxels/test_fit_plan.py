@@ -150,10 +150,12 @@ def test_of_rungs_ending_at_one_resolution_the_plan_takes_the_one_that_gets_the_
     assert fewest(Rung((64, 128), (100, 200))) < fewest(three) < fewest(Rung((64, 128), (5000, 10000)))
 
 
-def test_a_scene_that_fills_its_box_is_planned_coarser_for_the_same_budget():
-    """An unbounded scene's first prune keeps most of its box (the room), so its later levels cost more than an
-    object's: the same budget buys it a coarser or shorter plan, which its prediction says fits."""
-    room = FitFacts(**{**FACTS.__dict__, "first_keep": fit_plan.FIRST_KEEP_PRIOR["unbounded"]})
+@pytest.mark.parametrize("scene_type", ["unbounded", "forward"])
+def test_a_scene_that_fills_its_box_is_planned_coarser_for_the_same_budget(scene_type):
+    """An unbounded scene's first prune keeps most of its box (the room), as does a forward capture's (its frustum, the
+    scene out to the far plane), so its later levels cost more than an object's: the same budget buys it a coarser or
+    shorter plan, which its prediction says fits."""
+    room = FitFacts(**{**FACTS.__dict__, "first_keep": fit_plan.FIRST_KEEP_PRIOR[scene_type]})
     assert room.first_keep > FACTS.first_keep
     coarser = 0
     for seconds in (60, 120, 300):
