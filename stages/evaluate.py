@@ -12,8 +12,9 @@ the fit's background colour exactly as the fit saw its training photos. Views wi
 (`psnr_masked`, `ssim_masked`: over the mask's pixels only, as the DTU protocol scores object captures), since the
 whole image's score counts a backdrop any empty render matches. Where the fit measured each photo's colour
 (`fit.photo_colour`: a phone's exposure and white balance) and the gains follow the capture's order, a held-out view is
-rendered in the colour its neighbours in that order were taken in (plenoxels/core/photo_colour.py, PhotoGains), from
-none of its own pixels; the video is in the photos' common colour. SSIM is scikit-image's
+rendered in the colour its neighbours in that order were taken in (plenoxels/core/photo_colour.py, PhotoGains), and
+in their light across the frame where that follows the order too (`fit.photo_colour_cells`), from none of its own
+pixels; the video is in the photos' common colour. SSIM is scikit-image's
 structural_similarity (Gaussian-weighted, as in Wang et al. 2004) on RGB in [0, 1]; LPIPS is v0.1 with
 AlexNet (stages/scoring/lpips.py), left out with a warning when its weights are not installed.
 """
@@ -57,6 +58,8 @@ def run(ctx) -> dict:
 
     # Where the photos' gains follow the order they were taken in, not where they scatter (PhotoGains.follows_order).
     in_neighbours_colour = model.photo_gains is not None and model.photo_gains.follows_order
+    # And where the light across their frames follows it too (PhotoGains.fields_follow_order).
+    in_neighbours_light = model.photo_gains is not None and model.photo_gains.fields_follow_order
     for folder in ("renders", "gt", "depth"):
         (ctx.work / folder).mkdir()
     views, sheet_rows, captions = [], [], []
@@ -104,14 +107,18 @@ def run(ctx) -> dict:
     mean = mean_scores(views)
     write_json(ctx.work / METRICS_JSON, {"views": views, "mean": mean, "scale": scale, "count": len(views),
                                            "render_seconds": round(render_seconds, 2), "video": video,
-                                           "colour": "capture neighbours' gains" if in_neighbours_colour else "common",
+                                           "colour": ("capture neighbours' gains across the frame" if in_neighbours_light
+                                                      else "capture neighbours' gains" if in_neighbours_colour
+                                                      else "common"),
                                            "ssim": "skimage.metrics.structural_similarity, gaussian, data_range 1",
                                            "lpips": "AlexNet, v0.1 (stages/scoring/lpips.py)" if with_lpips else None})
     if mean:
         lpips = f", LPIPS {mean['lpips']:.3f}" if "lpips" in mean else ""
         line = (f"PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.3f}{lpips} on {len(views)} held-out views "
                 f"at {views[0]['width']}x{views[0]['height']}")
-        if in_neighbours_colour:
+        if in_neighbours_light:
+            line += " (each in the colour and light across the frame of its neighbours in the capture)"
+        elif in_neighbours_colour:
             line += " (each in the colour of its neighbours in the capture)"
         if "psnr_masked" in mean:
             line += f"; inside their masks PSNR {mean['psnr_masked']:.2f} dB, SSIM {mean['ssim_masked']:.3f}"

@@ -211,7 +211,7 @@ def finish(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeB
     """Saves the model, writes fit.json and returns the stage's result with its summary line."""
     s: Settings = fitter.options
     schedule, model, held_out = fitter.schedule, fitter.model, inputs.held_out
-    model.photo_gains = photo_gains(fitter, inputs)
+    model.photo_gains = photo_gains(fitter, inputs, across_frames=True)
     final_psnr = held_out.psnr(model) if held_out else None
     model.save(ctx.work, extra={"fit_settings": {"resolutions": schedule.resolutions, "steps": schedule.steps,
                                                  **{k: getattr(s, k) for k in ("sh_degree", "image_scale", "step_size")}}})

@@ -125,6 +125,11 @@ class TrainOptions:
     first measures of them (plenoxels/core/photo_colour.py, DECIDING_MEASURES), for the fit to fit them; below, the
     photos agree on colour, and gains would take up the field's own errors instead (lego -0.8 dB held-out), so they
     are taken as they are (bench/README.md, "Object captures")."""
+    photo_colour_cells: int = 8
+    """Where the fit fits the photos' colours: cells along a photo's longer side of the lattice of gains measured
+    across each photo's frame once the fit ends, for light that differs across a frame from photo to photo (a
+    capturer's shadow, a glossy floor's glow; plenoxels/core/photo_colour.py, gain_fields). A held-out photo takes its
+    capture neighbours' lattices where the capture's order explains them. 1: one gain per photo."""
     error_share: float = 0.0
     """Share of each batch of random rays drawn where the render still disagrees with the photos, in proportion to
     the RMS error of each block of pixels (plenoxels/core/error_map.py); the rest are uniform (0: every ray uniform;
@@ -221,6 +226,7 @@ class TrainOptions:
         require(self.batch_size >= 1, f"{section}.batch_size must be at least 1")
         require(self.tile_size >= 1, f"{section}.tile_size must be at least 1")
         require(0 <= self.error_share <= 1, f"{section}.error_share must be in [0, 1] (0: every ray uniform)")
+        require(self.photo_colour_cells >= 1, f"{section}.photo_colour_cells must be at least 1")
         require(self.measure_every >= 1 and self.measure_rays >= 1,
                 f"{section}.measure_every and {section}.measure_rays must be at least 1")
         require(self.lr_density > 0 and self.lr_density_final > 0 and self.lr_sh > 0 and self.lr_sh_final > 0,

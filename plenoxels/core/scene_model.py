@@ -43,7 +43,7 @@ from plenoxels.core.grid import SparseGrid, knots_record
 from plenoxels.core.memory import check_dense_level
 from plenoxels.core.ndc import NDCMapping
 from plenoxels.core.options import ModelOptions
-from plenoxels.core.photo_colour import PhotoGains
+from plenoxels.core.photo_colour import PhotoGains, field_image
 from plenoxels.core.render import RenderOptions, RenderResult, render
 
 
@@ -218,8 +218,8 @@ class SceneModel:
             opacity.append(result.opacity)
         h, w = intrinsics.h, intrinsics.w
         opacity = torch.cat(opacity)
-        rgb = self.as_photographed(torch.cat(rgb), photo, opacity, backdrop)
-        return {"rgb": rgb.reshape(h, w, 3), "depth": torch.cat(depth).reshape(h, w), "opacity": opacity.reshape(h, w)}
+        rgb = self.as_photographed(torch.cat(rgb).reshape(h, w, 3), photo, opacity.reshape(h, w), backdrop)
+        return {"rgb": rgb, "depth": torch.cat(depth).reshape(h, w), "opacity": opacity.reshape(h, w)}
 
     def on_backdrop(self, rgb: torch.Tensor, opacity: torch.Tensor, backdrop=None) -> torch.Tensor:
         """Rendered colours [N, 3] with what shows past the grid put on `backdrop` (an RGB colour: a photo's own
@@ -236,10 +236,15 @@ class SceneModel:
         capture neighbours'; photo_gains); as they are for no photo or where the fit took the photos as they are.
         Where the colour past the object came with the photos as taken (photo_gains.backdrop_as_taken: their masks', or
         each photo's own backdrop), the gains leave that part, the backdrop (`backdrop`, else the model's colour) times
-        one less the render's `opacity` [...], as it is."""
+        one less the render's `opacity` [...], as it is. An image [h, w, 3] takes the photo's gain lattice across its
+        frame where the fit measured one (PhotoGains.field_of)."""
         if photo is None or self.photo_gains is None:
             return rgb
-        gain = torch.as_tensor(self.photo_gains.of(photo), dtype=rgb.dtype, device=rgb.device)
+        field = self.photo_gains.field_of(photo) if rgb.dim() == 3 else None
+        if field is not None:
+            gain = field_image(field, rgb.shape[0], rgb.shape[1]).reshape(rgb.shape).to(rgb)
+        else:
+            gain = torch.as_tensor(self.photo_gains.of(photo), dtype=rgb.dtype, device=rgb.device)
         if not self.photo_gains.backdrop_as_taken or self.background is not None:
             return (rgb * gain).clamp(0, 1)
         colour = torch.as_tensor(backdrop if backdrop is not None else self.background_color, dtype=rgb.dtype,

@@ -38,13 +38,16 @@ class Ending:
     background_why: str = ""        # why a background model was added ("" when it was not)
 
 
-def photo_gains(fitter: Fitter, inputs: FitInputs) -> PhotoGains | None:
+def photo_gains(fitter: Fitter, inputs: FitInputs, across_frames: bool = False) -> PhotoGains | None:
     """The photos' colours as the fit measured them (None where it took the photos as they are): a held-out photo's
-    in its capture neighbours' colour."""
+    in its capture neighbours' colour. `across_frames`: with each photo's gains across its frame, measured now (the
+    fit's end: Fitter.gain_fields)."""
     if not fitter.fits_colour:
         return None
+    fields = fitter.gain_fields() if across_frames else None
     return PhotoGains([f["name"] for f in inputs.scene.get("frames") or []],
-                      dict(zip(inputs.train_names, fitter.colour.gain.tolist())), fitter.backdrop_as_taken)
+                      dict(zip(inputs.train_names, fitter.colour.gain.tolist())), fitter.backdrop_as_taken,
+                      None if fields is None else dict(zip(inputs.train_names, fields.numpy())))
 
 
 def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBudget | None,

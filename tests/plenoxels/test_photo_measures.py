@@ -6,7 +6,7 @@ import torch
 from stages.common.json_files import read_json
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.error_map import ErrorMap, measure_stride
-from plenoxels.core.photo_colour import PhotoColour, PhotoGains
+from plenoxels.core.photo_colour import PhotoColour, PhotoGains, field_image, gain_fields, lattice_shape
 from plenoxels.core.scene_model import ModelOptions, SceneModel
 from plenoxels.core.train import Fitter, TrainOptions
 from plenoxels.core.ray_set import RaySet
@@ -187,3 +187,69 @@ def test_a_fit_of_photos_in_several_exposures_finds_each_photos_gains(tmp_path):
     record = fits[True].colour_record()
     assert record["used"] and record["gain_db"] > 0.5 and min(record["gain_min"]) < 0.95 < 1.05 < max(record["gain_max"])
     assert not fits[False].colour_record()["used"] and bool(fits[False].colour.gain.eq(1).all())
+
+
+def test_each_photos_gains_across_its_frame_are_found_and_spread_back_over_it():
+    """Photos whose light differs across the frame (a shadow on one side, a glow on the other): the lattice of gains
+    measured from a sparse lattice of pixels is the one that made them, clipped pixels say nothing of it, a cell no
+    pixel sees keeps its photo's gain, and the lattice spread back over the frame takes the render to the photo."""
+    gen = torch.Generator().manual_seed(3)
+    photos, h, w, shape = 3, 120, 90, (4, 3)
+    assert lattice_shape(torch.tensor([[h, w]] * photos), 4) == shape  # portrait: 4 rows, 3 columns in proportion
+    field = 0.6 + 0.8 * torch.rand(photos, *shape, 3, generator=gen, dtype=torch.float64)
+    spread = torch.stack([field_image(f.numpy(), h, w) for f in field]).reshape(photos, h, w, 3)
+    rendered = 0.1 + 0.5 * torch.rand(photos, h, w, 3, generator=gen, dtype=torch.float64)
+    photo = (spread * rendered).clamp(0, 1)
+    clipped = photo >= 1
+    photo[:, :24] = torch.where(torch.rand(photos, 24, w, 1, generator=gen) < 0.3, 1.0, photo[:, :24])  # blown out
+    image, row, col = (t.reshape(-1) for t in torch.meshgrid(torch.arange(photos), torch.arange(h), torch.arange(w),
+                                                             indexing="ij"))
+    sizes = torch.tensor([[h, w]] * photos)
+    gains = torch.ones(photos, 3, dtype=torch.float64)
+    measured = gain_fields(image, row, col, sizes, rendered[image, row, col], photo[image, row, col], gains, shape)
+    torch.testing.assert_close(measured, field, atol=0.02, rtol=0)
+    back = torch.stack([field_image(f.numpy(), h, w) for f in measured]).reshape(photos, h, w, 3) * rendered
+    good = ~clipped & (photo < 1)
+    assert float((back - photo)[good].abs().max()) < 0.02
+    # Photo 1's pixels in its right-hand column of cells alone are all blown out: those cells keep its own gain.
+    photo[1, :, 2 * w // 3:] = 1.0
+    gains[1] = torch.tensor([0.9, 1.0, 1.1], dtype=torch.float64)
+    measured = gain_fields(image, row, col, sizes, rendered[image, row, col], photo[image, row, col], gains, shape)
+    far = measured[1, :, 2]
+    assert float((far.log() - gains[1].log()).abs().max()) < float((field[1, :, 2].log() - gains[1].log()).abs().max())
+    torch.testing.assert_close(measured[0], field[0], atol=0.01, rtol=0)
+
+
+def test_a_held_out_photo_takes_its_neighbours_lattices_where_they_follow_the_capture():
+    """A shadow that moves across the frame as the camera turns: neighbours' lattices predict a photo's better than
+    their gains, so a photo not fitted takes the lattice between them; lattices that say nothing of each other leave
+    a held-out photo in its neighbours' gain."""
+    order = [f"{i:03d}" for i in range(40)]
+    held_out = order[5::10]
+    rows, cols = np.meshgrid(np.linspace(0, 1, 4), np.linspace(0, 1, 3), indexing="ij")
+
+    def shadow(i):
+        centre = i / 39
+        return np.repeat((1.0 - 0.4 * np.exp(-((cols - centre) ** 2 + (rows - 0.5) ** 2) / 0.1))[..., None], 3, axis=2)
+
+    fitted = [name for name in order if name not in held_out]
+    fields = {name: shadow(order.index(name)) for name in fitted}
+    gains = {name: fields[name].mean(axis=(0, 1)) for name in fitted}
+    moving = PhotoGains(order, gains, fields=fields)
+    assert moving.fields_follow_order
+    np.testing.assert_allclose(moving.field_of("014"), fields["014"])  # a measured photo keeps its own
+    np.testing.assert_allclose(moving.field_of("015"), (fields["014"] + fields["016"]) / 2)
+    assert moving.field_of("elsewhere") is None  # a camera of no photo: no lattice
+    again = PhotoGains.from_record(moving.record())
+    assert again.fields_follow_order and np.allclose(again.field_of("015"), moving.field_of("015"), atol=1e-4)
+    assert PhotoGains(order, gains).field_of("015") is None  # one gain a photo measured: none
+    # The exposure drifts along the capture, but the light across each frame is its own, unlike its neighbours'
+    # (photos of a room taken from here and there): their gain is the better guess, and a held-out photo keeps it.
+    rng = np.random.default_rng(0)
+    drift = {name: np.full(3, 0.8 + 0.01 * order.index(name)) for name in fitted}
+    own_light = {name: drift[name] * np.exp(0.2 * rng.standard_normal((4, 3, 3))) for name in fitted}
+    scattered = PhotoGains(order, drift, fields=own_light)
+    assert scattered.follows_order and not scattered.fields_follow_order
+    assert scattered.field_of("015") is None
+    np.testing.assert_allclose(scattered.of("015"), [0.95] * 3)
+    np.testing.assert_allclose(scattered.field_of(fitted[3]), own_light[fitted[3]])  # a measured photo keeps its own

@@ -190,3 +190,45 @@ def test_masked_photos_take_their_gains_on_the_object_alone(tmp_path):
     # bring the held-out views, the measured ones bring most.
     brought, could = metrics["mean"]["psnr_masked"] - np.mean(common), np.mean(oracle) - np.mean(common)
     assert could > 0.3 and brought > 0.7 * could, (brought, could)
+
+
+def test_light_that_sweeps_across_the_frames_is_rendered_as_the_neighbours_saw_it(tmp_path):
+    """Photos whose light falls off across the frame, to the right in the first and to the left in the last (a
+    capturer's shadow, a lamp's glow as the camera turns): the fit measures each photo's gains across its frame, which
+    follow the sweep; a held-out view is rendered with the lattice between its neighbours' and scores nearer its
+    photo, inside its mask, than with their one gain a photo."""
+    root = make_scene(tmp_path, views=20, width=64, alpha=True)
+    scene = read_json(root / "normalize" / "scene.json")
+    slopes = np.linspace(-1.6, 1.6, len(scene["frames"]))
+    for frame, slope in zip(scene["frames"], slopes):
+        photo = iio.imread(root / frame["file_path"]) / 255.0
+        across = 1.0 + slope * (np.linspace(0, 1, photo.shape[1]) - 0.5)
+        photo[..., :3] = np.clip(photo[..., :3] * across[None, :, None], 0, 1)
+        iio.imwrite(root / frame["file_path"], np.round(photo * 255).astype(np.uint8))
+    run_stage(root, fit, {**QUICK, "photo_colour": True, "photo_colour_min_db": -100.0, "photo_colour_cells": 4,
+                          "measure_every": 40, "sh_degree": 0, "steps": [400, 400], "resolutions": [32, 64]})
+    run_stage(root, evaluate, {"video_frames": 0, "sheet_side": 40})
+    metrics = read_json(root / "evaluate" / "metrics.json")
+    assert metrics["colour"] == "capture neighbours' gains across the frame"
+    model = SceneModel.load(root / "fit")
+    lattices = model.photo_gains
+    assert lattices.fields_follow_order
+    # Each training photo's lattice falls the way its light does: its left column over its right one.
+    fitted = [(frame["name"], slope) for frame, slope in zip(scene["frames"], slopes) if frame["name"] in lattices.fields]
+    falls = [np.log(lattices.fields[name][:, 0] / lattices.fields[name][:, -1]).mean() for name, _ in fitted]
+    assert np.corrcoef(falls, [-slope for _, slope in fitted])[0, 1] > 0.8
+    record = lattices.record()
+    one_gain = PhotoGains(record["order"], record["gains"], record["backdrop_as_taken"])
+    by_lattice, by_gain = [], []
+    for frame, view in zip([f for f in scene["frames"] if f["split"] == "test"], metrics["views"]):
+        truth, k, mask = read_frame(root, frame, 1.0, model.background_color)
+        mask = mask > 0.5
+        c2w = np.asarray(frame["transform_matrix"])
+        with_lattice = model.render_camera(c2w, k, photo=frame["name"])["rgb"].numpy()
+        by_lattice.append(-10 * math.log10(np.mean((with_lattice[mask] - truth[mask]) ** 2)))
+        assert abs(view["psnr_masked"] - by_lattice[-1]) < 0.05  # evaluate scored this render
+        model.photo_gains = one_gain
+        with_gain = model.render_camera(c2w, k, photo=frame["name"])["rgb"].numpy()
+        model.photo_gains = lattices
+        by_gain.append(-10 * math.log10(np.mean((with_gain[mask] - truth[mask]) ** 2)))
+    assert np.mean(by_lattice) > np.mean(by_gain), (by_lattice, by_gain)
