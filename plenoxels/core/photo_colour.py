@@ -110,6 +110,14 @@ def lattice_shape(sizes: torch.Tensor, cells: int) -> tuple[int, int]:
     return (cells, short) if h >= w else (short, cells)
 
 
+def gain_field_lattice(sizes: torch.Tensor, cells: int) -> tuple[tuple[int, int], int]:
+    """The cells of the photos' gain lattices (lattice_shape) and the stride of the pixels they are measured on:
+    about CELL_PIXELS a cell of the median photo."""
+    shape = lattice_shape(sizes, cells)
+    pixels = float(sizes.double().prod(dim=1).median())
+    return shape, max(1, int(math.sqrt(pixels / (CELL_PIXELS * shape[0] * shape[1]))))
+
+
 def lattice_weights(v: torch.Tensor, u: torch.Tensor, shape: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """Bilinear weights of pixels at normalised positions v, u [B] in [0, 1] (row, column) on a lattice of cell centres
     `shape`, clamped at its borders as torch's bilinear interpolation with align_corners=False: (flat cell index [B, 4],

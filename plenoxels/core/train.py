@@ -31,8 +31,8 @@ from plenoxels.core.grid import SparseGrid, sh_count
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.optim import GridGrad, SparseRMSProp
 from plenoxels.core.options import TrainOptions
-from plenoxels.core.photo_colour import (CELL_PIXELS, COLOUR_RAYS, DECIDING_MEASURES, PhotoColour, gain_fields,
-                                         lattice_shape)
+from plenoxels.core.photo_colour import (COLOUR_RAYS, DECIDING_MEASURES, PhotoColour, gain_field_lattice,
+                                         gain_fields)
 from plenoxels.core.ray_set import RaySet
 from plenoxels.core.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution,
                                     tv_scale_for_views, views_per_point)
@@ -410,19 +410,26 @@ class Fitter:
 
     def gain_fields(self) -> torch.Tensor | None:
         """Each training photo's gains across its frame [P, rows, cols, 3] against the model as it stands, measured
-        on about CELL_PIXELS pixels a cell (photo_colour.gain_fields); None where the fit takes the photos as they are
+        (photo_colour.gain_fields, on gain_field_lattice's pixels); None where the fit takes the photos as they are
         or measures one gain a photo (photo_colour_cells 1)."""
         if not self.fits_colour or self.options.photo_colour_cells <= 1:
             return None
-        shape = lattice_shape(self.train.sizes, self.options.photo_colour_cells)
-        pixels = float(self.train.sizes.double().prod(dim=1).median())
-        image, row, col = self.train.lattice(max(1, int(math.sqrt(pixels / (CELL_PIXELS * shape[0] * shape[1])))))
+        shape, stride = gain_field_lattice(self.train.sizes, self.options.photo_colour_cells)
+        image, row, col = self.train.lattice(stride)
         rendered, photo, opacity = self.render_pixels(image, row, col)
         inside = self.train.inside(*(t.to(self.device) for t in (image, row, col)))
         inside = None if inside is None else inside.cpu()
         if self.backdrop_as_taken:
             inside = (opacity > OPAQUE) & (True if inside is None else inside)
         return gain_fields(image, row, col, self.train.sizes.cpu(), rendered, photo, self.colour.gain, shape, inside)
+
+    def gain_field_rays(self) -> int:
+        """Rays gain_fields renders at the fit's end: 0 where it takes the photos as they are (the time budget keeps
+        this much time for it)."""
+        if not (self.fits_colour or self.colour_deciding) or self.options.photo_colour_cells <= 1:
+            return 0
+        stride = gain_field_lattice(self.train.sizes, self.options.photo_colour_cells)[1]
+        return int(((self.train.sizes + stride - 1 - stride // 2) // stride).prod(dim=1).sum())
 
     def render_pixels(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The render and the photo's colour [B, 3] and the render's opacity [B] at these training pixels, on the

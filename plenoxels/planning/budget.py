@@ -108,6 +108,7 @@ class TimeBudget:
         """Follows `fitter` from here; a resumed fit has already used `fitter.elapsed` of the budget, and its level
         changes have measured what its prunes keep."""
         self.fitter = fitter
+        self.facts.finish_rays = fitter.gain_field_rays
         self.deadline = self.started + self.seconds - fitter.elapsed
         start = sum(self.schedule.steps[:fitter.level])
         self.schedule.steps[fitter.level] = max(self.schedule.steps[fitter.level], fitter.step - start)

@@ -135,6 +135,7 @@ class FitFacts:
     voxel_budget: int
     max_resolution: int = 1 << 30      # the finest final resolution worth fitting: the photos' longest side
     first_keep: float = FIRST_KEEP_PRIOR["object"]  # the first prune's kept share until it is measured (by scene type)
+    finish_rays: Callable[[], int] = lambda: 0  # rays rendered once as the fit ends (the photos' gains across frames)
 
     def outlook(self, **where) -> "Outlook":
         """The state of a fit of this scene at `where`, with the scene's prior for what the first prune keeps."""
@@ -161,10 +162,13 @@ def finish_seconds(costs: CostModel, facts: FitFacts, now: Outlook, resolution: 
                    stop: bool = False) -> float:
     """The end of a fit at this resolution and size: the last pruning pass (of a pruned grid, as the calibration's
     are, at the ratio this scene's held-out renders through the same grid measured against the model), the held-out
-    PSNR and the save; after a `stop`, the checkpoint the stop writes first."""
+    PSNR, the photos' gains across their frames where the fit measures them, and the save; after a `stop`, the
+    checkpoint the stop writes first."""
+    finish_rays = facts.finish_rays()
     return (now.eval_ratio * costs.pass_seconds(facts.prune_rays(resolution), resolution)
             + costs.save_per_voxel * voxels
             + now.eval_ratio * costs.pass_seconds(facts.eval_rays, resolution)
+            + (now.eval_ratio * costs.pass_seconds(finish_rays, resolution) if finish_rays else 0.0)
             + (costs.checkpoint_per_voxel * voxels if stop else 0.0))
 
 

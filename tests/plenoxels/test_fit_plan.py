@@ -270,6 +270,10 @@ def test_the_last_pruning_pass_is_predicted_at_the_held_out_renders_measured_rat
     assert fit_plan.finish_seconds(MEASURED, FACTS, slower, 128, 1e5) - fit_plan.finish_seconds(
         MEASURED, FACTS, Outlook(), 128, 1e5) == pytest.approx(
         2 * MEASURED.pass_seconds(FACTS.prune_rays(128) + FACTS.eval_rays, 128))  # the last pruning pass and the held-out
+    # A fit that measures its photos' gains across their frames as it ends keeps the time of that pass too.
+    lattice = dataclasses.replace(FACTS, finish_rays=lambda: 300_000)
+    assert fit_plan.finish_seconds(MEASURED, lattice, slower, 128, 1e5) - fit_plan.finish_seconds(
+        MEASURED, FACTS, slower, 128, 1e5) == pytest.approx(3.0 * MEASURED.pass_seconds(300_000, 128))
 
 
 def test_time_left_goes_into_steps_where_no_finer_grid_can_take_it():

@@ -6,7 +6,8 @@ import torch
 from stages.common.json_files import read_json
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.error_map import ErrorMap, measure_stride
-from plenoxels.core.photo_colour import PhotoColour, PhotoGains, field_image, gain_fields, lattice_shape
+from plenoxels.core.photo_colour import (PhotoColour, PhotoGains, field_image, gain_field_lattice, gain_fields,
+                                         lattice_shape)
 from plenoxels.core.scene_model import ModelOptions, SceneModel
 from plenoxels.core.train import Fitter, TrainOptions
 from plenoxels.core.ray_set import RaySet
@@ -187,6 +188,11 @@ def test_a_fit_of_photos_in_several_exposures_finds_each_photos_gains(tmp_path):
     record = fits[True].colour_record()
     assert record["used"] and record["gain_db"] > 0.5 and min(record["gain_min"]) < 0.95 < 1.05 < max(record["gain_max"])
     assert not fits[False].colour_record()["used"] and bool(fits[False].colour.gain.eq(1).all())
+    # As it ends, the fit measures each photo's gains across its frame on the pixels the time budget kept time for.
+    stride = gain_field_lattice(exposed.sizes, options.photo_colour_cells)[1]
+    assert fits[True].gain_field_rays() == exposed.lattice(stride)[0].numel() > 0 == fits[False].gain_field_rays()
+    assert fits[True].gain_fields().shape == (len(exposed), *lattice_shape(exposed.sizes, options.photo_colour_cells), 3)
+    assert fits[False].gain_fields() is None
 
 
 def test_each_photos_gains_across_its_frame_are_found_and_spread_back_over_it():
