@@ -129,7 +129,8 @@ class TrainOptions:
     """Where the fit fits the photos' colours: cells along a photo's longer side of the lattice of gains measured
     across each photo's frame once the fit ends, for light that differs across a frame from photo to photo (a
     capturer's shadow, a glossy floor's glow; plenoxels/core/photo_colour.py, gain_fields). A held-out photo takes its
-    capture neighbours' lattices where the capture's order explains them. 1: one gain per photo."""
+    capture neighbours' lattices where they predict the training photos' own better than their gains do
+    (PhotoGains.fields_follow_order). 1: one gain per photo."""
     error_share: float = 0.0
     """Share of each batch of random rays drawn where the render still disagrees with the photos, in proportion to
     the RMS error of each block of pixels (plenoxels/core/error_map.py); the rest are uniform (0: every ray uniform;

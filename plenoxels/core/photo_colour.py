@@ -23,9 +23,10 @@ Light differs across a frame as well as between frames: a phone video of an obje
 capturer's shadow and the ceiling lights' glow across the boards from frame to frame, which no one field reproduces
 (ball's floor in front of the camera is 40% of its held-out pixels and half their error). At the fit's end each
 photo's gain is measured again on a coarse lattice of cells across its frame (gain_fields, `fit.photo_colour_cells`
-along its longer side), against the finished field; a held-out photo takes its neighbours' lattices where the capture's
-order explains them as it does the gains. Measured after the fit, not during it: the field is trained against each
-photo's one gain, so a lattice cannot take up what the field should learn.
+along its longer side), against the finished field; a held-out photo takes its neighbours' lattices where the training
+photos' own, each left out in turn, lie nearer their neighbours' than what a held-out photo takes otherwise. Measured
+after the fit, not during it: the field is trained against each photo's one gain, so a lattice takes up nothing the
+field should learn (trained in the lattices, ball's field read no nearer its held-out photos; bench/README.md).
 
 Where masks cut the object out, what lies outside them is the colour the masks put there, which no exposure took: the
 gains are measured inside the masks and apply to the object's part of each pixel alone (`put_in`, the masks' share).
