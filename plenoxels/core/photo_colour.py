@@ -121,7 +121,7 @@ def gain_field_lattice(sizes: torch.Tensor, cells: int) -> tuple[tuple[int, int]
 
 def lattice_weights(v: torch.Tensor, u: torch.Tensor, shape: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """Bilinear weights of pixels at normalised positions v, u [B] in [0, 1] (row, column) on a lattice of cell centres
-    `shape`, clamped at its borders as torch's bilinear interpolation with align_corners=False: (flat cell index [B, 4],
+    `shape`, clamped at its borders: (flat cell index [B, 4],
     weight [B, 4])."""
     rows, cols = shape
     y = (v * rows - 0.5).clamp(0, rows - 1)
@@ -179,11 +179,13 @@ def gain_fields(image: torch.Tensor, row: torch.Tensor, col: torch.Tensor, sizes
 
 
 def field_image(field: np.ndarray, h: int, w: int) -> torch.Tensor:
-    """A gain lattice [rows, cols, 3] spread over an image of h x w pixels [h * w, 3] (bilinear between cell centres, as
-    gain_fields weighs its pixels)."""
-    grid = torch.as_tensor(np.asarray(field), dtype=torch.float64).permute(2, 0, 1)[None]
-    spread = torch.nn.functional.interpolate(grid, size=(h, w), mode="bilinear", align_corners=False)
-    return spread[0].permute(1, 2, 0).reshape(h * w, 3)
+    """A gain lattice [rows, cols, 3] spread over an image of h x w pixels [h * w, 3], with the bilinear weights
+    gain_fields measures it by."""
+    field = torch.as_tensor(np.asarray(field), dtype=torch.float64)
+    v, u = torch.meshgrid((torch.arange(h, dtype=torch.float64) + 0.5) / h,
+                          (torch.arange(w, dtype=torch.float64) + 0.5) / w, indexing="ij")
+    index, weight = lattice_weights(v.reshape(-1), u.reshape(-1), tuple(field.shape[:2]))
+    return (weight[..., None] * field.reshape(-1, 3)[index]).sum(dim=1)
 
 
 def _measured(photo: torch.Tensor, inside: torch.Tensor | None) -> torch.Tensor:
