@@ -3,9 +3,10 @@
 batches of the full fit), on the CPU unless `--set device=cuda` names the GPU.
 
 The parts: the render's loss and gradient (the native kernel with its per-thread gradient merge), total variation,
-the optimiser step, the background model (its render, gradient and step, in scenes that have one), drawing the batch,
-the guard that checks the parameters are finite, and the rest of the step. Each is timed around its call inside a
-train step, so the times add up to the step's. On a GPU each part waits for the device before and after it (the
+the optimiser step, the background model (its render, gradient and step, in scenes that have one; on a CPU the grid's
+pass draws the spheres, so there they count in the render), drawing the batch, the guard that checks the parameters
+are finite, and the rest of the step. Each is timed around its call inside a train step, so the times add up to the
+step's. On a GPU each part waits for the device before and after it (the
 kernels are asynchronous), so a part's time is its own, and the step loses what the parts would have overlapped.
 
     python -m bench.step_parts [--scene lego] [--steps 200,300,300] [--label NAME] [--data ../shared/data]
@@ -87,6 +88,8 @@ def timed_fit(name: str, data: Path, steps: list[int], overrides: dict) -> dict:
         setattr(owner, name, timed)
 
     wrap(train, "loss_and_grad", "render")
+    # On a CPU a scene with background spheres renders them in the grid's pass: that call is the render too.
+    wrap(train, "loss_and_grad_before_spheres", "render")
     wrap(train, "tv_loss_and_grad", "tv")
     wrap(train.RaySet, "batch", "batch")
     wrap(train.Fitter, "check_finite", "guard")
