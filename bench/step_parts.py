@@ -6,8 +6,8 @@ The parts: the render's loss and gradient (the native kernel with its per-thread
 the optimiser step, the background model (its render, gradient and step, in scenes that have one; on a CPU the grid's
 pass draws the spheres, so there they count in the render), drawing the batch, the guard that checks the parameters
 are finite, and the rest of the step. Each is timed around its call inside a train step, so the times add up to the
-step's. On a GPU each part waits for the device before and after it (the
-kernels are asynchronous), so a part's time is its own, and the step loses what the parts would have overlapped.
+step's. On a GPU each part waits for the device before and after it (the kernels are asynchronous), so a part's time
+is its own, and the step loses what the parts would have overlapped.
 
     python -m bench.step_parts [--scene lego] [--steps 200,300,300] [--label NAME] [--data ../shared/data]
         [--set key=value ...]   # a fit setting, e.g. device=cuda or batch_size=32768
