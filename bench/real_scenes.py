@@ -10,7 +10,7 @@ overlay), in a process of its own (its peak memory is its own), on all the train
 the evaluate stage does, at one size whatever the preset: the photo with its longest side --score-side pixels (the
 presets ingest and fit photos of different sizes, and PSNRs at two sizes do not compare; 320, about `fast`'s fit
 photos, so the comparison never favours the larger ones). The first held-out view is written beside its truth to
-bench/results/real_scenes/<scene>-<preset>-<views>.png.
+bench/out/real_scenes/renders/<scene>-<preset>-<views>.png (not committed: 0.3 MB each, one a run).
 
 The synthetic scenes (stages/capture/synthetic.py) are 40 views at 320x240, written under bench/out/ with their true
 poses as a transforms.json: `synthetic_unbounded`, an object on an endless textured ground inside a textured sphere;
@@ -59,8 +59,8 @@ from plenoxels.core.errors import UserError  # noqa: E402
 from plenoxels.planning.model_trial import MODELS  # noqa: E402
 
 RESULTS = REPO / "bench" / "results" / "real_scenes.json"
-RENDERS = REPO / "bench" / "results" / "real_scenes"
 CACHE = REPO / "bench" / "out" / "real_scenes"
+RENDERS = CACHE / "renders"
 SCENES = ("fox", "cup", "fern", "synthetic_unbounded", "synthetic_room", "ball", "apple")
 # Scenes given as one file (a phone's video) rather than a folder of photos.
 FILES = {"apple": "apple.mp4"}
