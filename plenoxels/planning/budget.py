@@ -21,8 +21,8 @@ import numpy as np
 import torch
 
 from plenoxels.planning.fit_cost import calibrate
-from plenoxels.planning.fit_plan import (BACKGROUND_MIN_SHARE, FINEST_MAX_SHARE, FIRST_KEEP_PRIOR, LADDER, MAX_SHARE,
-                                         MIN_SHARE, FitFacts, Plan, Rung, choose, finest_worth, finish_seconds,
+from plenoxels.planning.fit_plan import (FINEST_MAX_SHARE, FIRST_KEEP_PRIOR, LADDER, MAX_SHARE, MIN_SHARE,
+                                         BACKGROUND_MIN_SHARE, FitFacts, Plan, Rung, choose, finest_worth, finish_seconds,
                                          ladder_at, replan)
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.scene_model import SceneModel

@@ -289,7 +289,7 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
            steps: list[int], measured: bool) -> tuple[list[int], list[int], float]:
     """(resolutions, steps, share) for a fit under way, the levels done kept: the most steps (a share of the rung's, at
     most MAX_SHARE, or FINEST_MAX_SHARE with every level kept where no finer grid can take the time) whose predicted
-    time fits `seconds`. MIN_SHARE here is the fit's least share (`facts.min_share`). A level still to come is dropped
+    time fits `seconds`. MIN_SHARE here is the scene's least share (`facts.min_share`). A level still to come is dropped
     when keeping it would leave less than MIN_SHARE of the steps: with `measured` costs (once the fit has left its first
     resolution) any such level; before that only one past the second resolution, as what pruning keeps is still a prior
     and a first resolution alone, pruned early or not, is never a whole fit. Without that, a first level gives up the
