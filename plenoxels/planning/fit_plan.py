@@ -40,13 +40,6 @@ from plenoxels.planning.fit_cost import CostModel
 # Shares of a rung's steps a plan may give: at least MIN_SHARE (a level needs enough steps to converge), at most
 # MAX_SHARE (past it, time goes further in a finer grid).
 MIN_SHARE = 0.5
-# The least share where the fit has the background spheres behind a bounded grid (a room's foreground box: a phone's
-# capture of a thing on a floor): there a finer last level short of steps loses to a coarser one with them. One run
-# after the other (B, 2026-12-04): fox at 2 / 5 minutes 29.16 / 29.60 dB in 1.3 / 2.1 GiB (192^3, 256^3) against 28.94
-# / 29.38 in 2.2 / 3.8 GiB (256^3, 384^3), SSIM 0.006-0.008 lower; ball at 5 minutes 27.16 against 27.10 dB in 2.3
-# against 2.8 GiB. A contracted room keeps MIN_SHARE: its cells spread over all of space, and the synthetic room at 2
-# minutes lost 0.93 dB with a share of 1 (128^3 against 160^3) (bench/README.md, "The time budget").
-BACKGROUND_MIN_SHARE = 1.0
 MAX_SHARE = 2.0
 # Where no finer grid can take the time (the finest rung the photos are worth, or a fit already in its last level), the
 # last level's steps may grow to FINEST_MAX_SHARE, the levels before staying at MAX_SHARE: each doubling of lego's
@@ -142,7 +135,6 @@ class FitFacts:
     voxel_budget: int
     max_resolution: int = 1 << 30      # the finest final resolution worth fitting: the photos' longest side
     first_keep: float = FIRST_KEEP_PRIOR["object"]  # the first prune's kept share until it is measured (by scene type)
-    min_share: float = MIN_SHARE       # the least share of a rung's steps a plan gives (by the fit's model)
     finish_rays: Callable[[], int] = lambda: 0  # rays rendered once as the fit ends (the photos' gains across frames)
 
     def outlook(self, **where) -> "Outlook":
@@ -231,7 +223,7 @@ class Plan:
     steps: list[int]
     share: float       # of the rung's steps
     predicted: float   # seconds from when it was made to the end of the fit
-    fits: bool         # whether it fits with at least its facts' min_share of its steps
+    fits: bool         # whether it fits with at least MIN_SHARE of its steps
 
     def describe(self) -> str:
         levels = f"{len(self.resolutions)} level{'s' if len(self.resolutions) > 1 else ''}"
@@ -259,9 +251,9 @@ def _finest_first(ladder) -> list[Rung]:
 
 def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung, ...] | None = None) -> Plan:
     """The plan for a fit that has not started: the finest rung (no finer than `facts.max_resolution`) whose predicted
-    time fits `seconds` with at least `facts.min_share` of its steps (MIN_SHARE, or BACKGROUND_MIN_SHARE), with the most
-    steps that fit up to MAX_SHARE (FINEST_MAX_SHARE at the finest rung; of rungs ending at the same resolution, the one
-    that gets the largest share); when none fits, the coarsest rung with the steps that fit (at least one a level)."""
+    time fits `seconds` with at least MIN_SHARE of its steps, with the most steps that fit up to MAX_SHARE
+    (FINEST_MAX_SHARE at the finest rung; of rungs ending at the same resolution, the one that gets the largest share);
+    when none fits, the coarsest rung with the steps that fit (at least one a level)."""
     ladder = _finest_first(ladder or LADDER)
     ladder = [r for r in ladder if r.resolutions[-1] <= facts.max_resolution] or ladder[-1:]
 
@@ -270,32 +262,31 @@ def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung
         return predict(costs, facts, now, list(rung.resolutions), rung.scaled(share))
 
     def plan(rung: Rung, share: float) -> Plan:
-        fits = share >= facts.min_share
-        return Plan(list(rung.resolutions), rung.scaled(share), share, seconds_for(rung, share), fits)
+        return Plan(list(rung.resolutions), rung.scaled(share), share, seconds_for(rung, share), share >= MIN_SHARE)
 
     for finest in sorted({r.resolutions[-1] for r in ladder}, reverse=True):
         cap = FINEST_MAX_SHARE if finest_worth(finest, facts.max_resolution, ladder) else MAX_SHARE
         shares = [(share, rung) for rung in ladder if rung.resolutions[-1] == finest
-                  for share in [_largest_share(lambda s: seconds_for(rung, s) <= seconds, facts.min_share, cap)]
+                  for share in [_largest_share(lambda s: seconds_for(rung, s) <= seconds, MIN_SHARE, cap)]
                   if share is not None]
         if shares:
             share, rung = max(shares, key=lambda pair: pair[0])  # the first of equal shares: ladder order
             return plan(rung, share)
     coarsest = ladder[-1]
-    return plan(coarsest, _largest_share(lambda s: seconds_for(coarsest, s) <= seconds, 0.0, facts.min_share) or 0.0)
+    return plan(coarsest, _largest_share(lambda s: seconds_for(coarsest, s) <= seconds, 0.0, MIN_SHARE) or 0.0)
 
 
 def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung: Rung, resolutions: list[int],
            steps: list[int], measured: bool) -> tuple[list[int], list[int], float]:
     """(resolutions, steps, share) for a fit under way, the levels done kept: the most steps (a share of the rung's, at
     most MAX_SHARE, or FINEST_MAX_SHARE with every level kept where no finer grid can take the time) whose predicted
-    time fits `seconds`. MIN_SHARE here is the scene's least share (`facts.min_share`). A level still to come is dropped
-    when keeping it would leave less than MIN_SHARE of the steps: with `measured` costs (once the fit has left its first
-    resolution) any such level; before that only one past the second resolution, as what pruning keeps is still a prior
-    and a first resolution alone, pruned early or not, is never a whole fit. Without that, a first level gives up the
-    steps a level dropped later would have needed, and the fit ends with neither. A level is not dropped where the
-    levels before it, at MAX_SHARE, would end the fit early (leaving budget unused): it stays, with what fits. When no
-    schedule gets MIN_SHARE, the fewest levels allowed get what fits.
+    time fits `seconds`. A level still to come is dropped when keeping it would leave less than MIN_SHARE of the steps:
+    with `measured` costs (once the fit has left its first resolution) any such level; before that only one past the
+    second resolution, as what pruning keeps is still a prior and a first resolution alone, pruned early or not, is
+    never a whole fit. Without that, a first level gives up the steps a level dropped later would have needed, and the
+    fit ends with neither. A level is not dropped where the levels before it, at MAX_SHARE, would end the fit early
+    (leaving budget unused): it stays, with what fits. When no schedule gets MIN_SHARE, the fewest levels allowed get
+    what fits.
 
     In a scene whose first prune kept more than FULL_BOX of its box, a last level not yet started that would get less
     than MIN_SHARE of its steps (and is not dropped) is lowered, by LOWER_BY, to the finest resolution that gets
@@ -315,12 +306,12 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     if (len(chosen[0]) == len(resolutions) and now.level < len(resolutions) - 1 and chosen[2] >= MAX_SHARE
             and not finest_worth(resolutions[-1], facts.max_resolution)):
         return _raised(seconds, costs, facts, now, rung, resolutions, steps, measured) or chosen
-    if (chosen[2] >= facts.min_share or len(chosen[0]) < len(resolutions) or now.level >= len(resolutions) - 1
+    if (chosen[2] >= MIN_SHARE or len(chosen[0]) < len(resolutions) or now.level >= len(resolutions) - 1
             or now.dense or now.first_keep <= FULL_BOX):
         return chosen
     for last in range(resolutions[-1] - LOWER_BY, resolutions[-2], -LOWER_BY):
         lowered = _replan_levels(seconds, costs, facts, now, rung, resolutions[:-1] + [last], steps, measured)
-        if lowered[2] >= facts.min_share and len(lowered[0]) == len(resolutions):
+        if lowered[2] >= MIN_SHARE and len(lowered[0]) == len(resolutions):
             return lowered
     return chosen
 
@@ -332,10 +323,10 @@ def _raised(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, run
     top = max((r.resolutions[-1] for r in LADDER if r.resolutions[-1] <= facts.max_resolution), default=0)
     for last in range(top, resolutions[-1], -LOWER_BY):
         trial = resolutions[:-1] + [last]
-        if predict(costs, facts, now, trial, _schedule(rung, steps, now, facts.min_share, len(trial))) > seconds:
+        if predict(costs, facts, now, trial, _schedule(rung, steps, now, MIN_SHARE, len(trial))) > seconds:
             continue  # one prediction rules a resolution out before the search for its share
         raised = _replan_levels(seconds, costs, facts, now, rung, trial, steps, measured)
-        if len(raised[0]) == len(trial) and raised[2] >= facts.min_share:
+        if len(raised[0]) == len(trial) and raised[2] >= MIN_SHARE:
             return raised
     return None
 
@@ -365,12 +356,12 @@ def _replan_levels(seconds: float, costs: CostModel, facts: FitFacts, now: Outlo
     finest = now.level == len(resolutions) - 1 or finest_worth(resolutions[-1], facts.max_resolution)
     for levels in range(len(resolutions), fewest - 1, -1):
         cap = FINEST_MAX_SHARE if finest and levels == len(resolutions) else MAX_SHARE
-        share = _largest_share(fits(levels), facts.min_share, cap)
+        share = _largest_share(fits(levels), MIN_SHARE, cap)
         if share is None:
             continue
         if levels < len(resolutions) and share >= MAX_SHARE:  # the fit would end early: the level stays, short
             levels += 1
-            share = _largest_share(fits(levels), 0.0, facts.min_share) or 0.0
+            share = _largest_share(fits(levels), 0.0, MIN_SHARE) or 0.0
         return resolutions[:levels], schedule(share, levels), share
-    share = _largest_share(fits(fewest), 0.0, facts.min_share) or 0.0
+    share = _largest_share(fits(fewest), 0.0, MIN_SHARE) or 0.0
     return resolutions[:fewest], schedule(share, fewest), share

@@ -339,21 +339,3 @@ def test_a_budget_takes_photos_as_fine_as_the_presets_finest_grid_and_no_finer()
 def test_a_budget_keeps_the_presets_share_where_its_photos_already_reach_its_finest_grid():
     assert fit_plan.photo_scale(800, 0.5, 256) == 0.5
     assert fit_plan.photo_scale(1920, 0.75, 384) == 0.75
-
-
-def test_a_grid_with_the_background_spheres_plans_more_steps_and_so_never_a_finer_grid():
-    """A bounded grid with the background spheres (a room's foreground box) gives each level at least
-    BACKGROUND_MIN_SHARE of the steps: where an object's plan reaches a finer grid on fewer steps, the room's stays a
-    rung coarser with more of them."""
-    room = FitFacts(**{**FACTS.__dict__, "min_share": fit_plan.BACKGROUND_MIN_SHARE})
-    assert room.min_share > fit_plan.MIN_SHARE
-    coarser = 0
-    for seconds in (30, 60, 120, 300, 600, 1200):
-        ours, objects = fit_plan.choose(seconds, MEASURED, room), fit_plan.choose(seconds, MEASURED, FACTS)
-        assert ours.fits and ours.predicted <= seconds and ours.share >= room.min_share, (seconds, ours)
-        assert ours.resolutions[-1] <= objects.resolutions[-1], (seconds, ours, objects)
-        coarser += ours.resolutions[-1] < objects.resolutions[-1]
-        for other in (r for r in fit_plan.LADDER if r.resolutions[-1] > ours.resolutions[-1]):
-            now = Outlook(voxels=room.box_voxels(other.resolutions[0]))
-            assert fit_plan.predict(MEASURED, room, now, list(other.resolutions), other.scaled(room.min_share)) > seconds
-    assert coarser >= 3, coarser
