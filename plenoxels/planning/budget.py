@@ -21,8 +21,9 @@ import numpy as np
 import torch
 
 from plenoxels.planning.fit_cost import calibrate
-from plenoxels.planning.fit_plan import (FINEST_MAX_SHARE, FIRST_KEEP_PRIOR, LADDER, MAX_SHARE, MIN_SHARE, FitFacts,
-                                         Plan, Rung, choose, finest_worth, finish_seconds, ladder_at, replan)
+from plenoxels.planning.fit_plan import (COARSE_LAST, FINE_MIN_SHARE, FINEST_MAX_SHARE, FIRST_KEEP_PRIOR, LADDER,
+                                         MAX_SHARE, MIN_SHARE, FitFacts, Plan, Rung, choose, finest_worth,
+                                         finish_seconds, ladder_at, replan)
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.core.train import Fitter, Schedule, pruning_rays
@@ -77,7 +78,9 @@ class TimeBudget:
                               eval_every=options.eval_every, checkpoint_every=options.checkpoint_every,
                               voxel_budget=min(options.voxel_budget, voxels_that_fit(options.sh_degree)),
                               max_resolution=int(train.sizes.max()),
-                              first_keep=FIRST_KEEP_PRIOR[probe.scene_type])
+                              first_keep=FIRST_KEEP_PRIOR[probe.scene_type],
+                              fine_min_share=MIN_SHARE if background is None or probe.grid.contracted
+                              else FINE_MIN_SHARE)
         background = background and {"n_spheres": background["n_spheres"], "width": background["width"]}
         self.costs, self.calibration = calibrate(options, device, background, say=say,
                                                 allowance=CALIBRATION_SHARE * self.left())
@@ -251,7 +254,7 @@ class TimeBudget:
             "seconds": self.seconds, "line": self.line(),
             "why": (f"the finest candidate (plenoxels/planning/fit_plan.py LADDER) no finer than the photos' "
                     f"{self.facts.max_resolution} pixels whose predicted time fits with at least {MIN_SHARE:g}x its "
-                    f"steps, given the most steps that fit, up to {MAX_SHARE:g}x ({FINEST_MAX_SHARE:g}x where no finer "
+                    f"steps ({self.facts.fine_min_share:g}x ending finer than {COARSE_LAST}^3), given the most steps that fit, up to {MAX_SHARE:g}x ({FINEST_MAX_SHARE:g}x where no finer "
                     f"grid can take the time)"),
             "chosen": {**dataclasses.asdict(self.plan), "share": round(self.plan.share, 3),
                        "predicted": round(self.plan.predicted, 1)},

@@ -17,7 +17,8 @@ Which plan (bench/README.md, "Fit: quality against cost" and "The time budget"):
 steps for the same time, and a level needs enough steps to converge, but half the presets' steps lose less than one
 rung of resolution does. A grid finer than the training photos have pixels across buys nothing: it has no detail to
 learn that the photos show. So the rule is: the finest rung of LADDER no finer than the photos' longest side whose
-predicted time fits with at least MIN_SHARE of its steps, given as many steps as the time allows up to MAX_SHARE of
+predicted time fits with at least MIN_SHARE of its steps (FINE_MIN_SHARE for a rung finer than COARSE_LAST where the
+fit has a bounded grid and the background spheres), given as many steps as the time allows up to MAX_SHARE of
 them (more steps still help, less than a finer grid would), or up to FINEST_MAX_SHARE where no finer grid can take the
 time: at the finest rung the photos are worth, and once the fit is in its last level. A budget beyond that ends early.
 A re-plan holds a last level still to come to the same rule on the scene's own costs: raised where they leave it time
@@ -41,6 +42,15 @@ from plenoxels.planning.fit_cost import CostModel
 # MAX_SHARE (past it, time goes further in a finer grid).
 MIN_SHARE = 0.5
 MAX_SHARE = 2.0
+# The least share of a plan whose last level is finer than COARSE_LAST where the fit has the background spheres behind a
+# bounded grid (a room's foreground box: a phone's capture of a thing on a floor): there a finer last level short of
+# steps loses to a coarser one with them. One run after the other (B, 2026-12-04): fox at 2 / 5 minutes 29.16 / 29.60
+# dB in 1.3 / 2.1 GiB (192^3, 256^3) against 28.94 / 29.38 in 2.2 / 3.8 GiB (256^3, 384^3); ball at 5 minutes 27.16
+# against 27.10 dB. At or below COARSE_LAST the trade goes the other way: fox at 30 s planned 64^3 with a share of 1,
+# 25.81-26.07 dB, against 27.07 at 128^3 with half. A contracted room keeps MIN_SHARE everywhere: its cells spread over
+# all of space, and the synthetic room at 2 minutes lost 0.93 dB with a share of 1 (bench/README.md, "The time budget").
+FINE_MIN_SHARE = 1.0
+COARSE_LAST = 128
 # Where no finer grid can take the time (the finest rung the photos are worth, or a fit already in its last level), the
 # last level's steps may grow to FINEST_MAX_SHARE, the levels before staying at MAX_SHARE: each doubling of lego's
 # 512^3 steps at 800x800 gave about 0.5 dB, and a budget that ends early leaves that on the table: lego at the papers'
@@ -136,6 +146,11 @@ class FitFacts:
     max_resolution: int = 1 << 30      # the finest final resolution worth fitting: the photos' longest side
     first_keep: float = FIRST_KEEP_PRIOR["object"]  # the first prune's kept share until it is measured (by scene type)
     finish_rays: Callable[[], int] = lambda: 0  # rays rendered once as the fit ends (the photos' gains across frames)
+    fine_min_share: float = MIN_SHARE  # the least share of a plan ending finer than COARSE_LAST (by the fit's model)
+
+    def least_share(self, last_resolution: int) -> float:
+        """The least share of its rung's steps a plan ending at `last_resolution` may give."""
+        return self.fine_min_share if last_resolution > COARSE_LAST else MIN_SHARE
 
     def outlook(self, **where) -> "Outlook":
         """The state of a fit of this scene at `where`, with the scene's prior for what the first prune keeps."""
@@ -223,7 +238,7 @@ class Plan:
     steps: list[int]
     share: float       # of the rung's steps
     predicted: float   # seconds from when it was made to the end of the fit
-    fits: bool         # whether it fits with at least MIN_SHARE of its steps
+    fits: bool         # whether it fits with at least its least share of its steps (FitFacts.least_share)
 
     def describe(self) -> str:
         levels = f"{len(self.resolutions)} level{'s' if len(self.resolutions) > 1 else ''}"
@@ -251,7 +266,8 @@ def _finest_first(ladder) -> list[Rung]:
 
 def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung, ...] | None = None) -> Plan:
     """The plan for a fit that has not started: the finest rung (no finer than `facts.max_resolution`) whose predicted
-    time fits `seconds` with at least MIN_SHARE of its steps, with the most steps that fit up to MAX_SHARE
+    time fits `seconds` with at least its least share of its steps (MIN_SHARE, or `facts.fine_min_share` for a rung
+    ending finer than COARSE_LAST), with the most steps that fit up to MAX_SHARE
     (FINEST_MAX_SHARE at the finest rung; of rungs ending at the same resolution, the one that gets the largest share);
     when none fits, the coarsest rung with the steps that fit (at least one a level)."""
     ladder = _finest_first(ladder or LADDER)
@@ -262,18 +278,21 @@ def choose(seconds: float, costs: CostModel, facts: FitFacts, ladder: tuple[Rung
         return predict(costs, facts, now, list(rung.resolutions), rung.scaled(share))
 
     def plan(rung: Rung, share: float) -> Plan:
-        return Plan(list(rung.resolutions), rung.scaled(share), share, seconds_for(rung, share), share >= MIN_SHARE)
+        fits = share >= facts.least_share(rung.resolutions[-1])
+        return Plan(list(rung.resolutions), rung.scaled(share), share, seconds_for(rung, share), fits)
 
     for finest in sorted({r.resolutions[-1] for r in ladder}, reverse=True):
         cap = FINEST_MAX_SHARE if finest_worth(finest, facts.max_resolution, ladder) else MAX_SHARE
+        least = facts.least_share(finest)
         shares = [(share, rung) for rung in ladder if rung.resolutions[-1] == finest
-                  for share in [_largest_share(lambda s: seconds_for(rung, s) <= seconds, MIN_SHARE, cap)]
+                  for share in [_largest_share(lambda s: seconds_for(rung, s) <= seconds, least, cap)]
                   if share is not None]
         if shares:
             share, rung = max(shares, key=lambda pair: pair[0])  # the first of equal shares: ladder order
             return plan(rung, share)
     coarsest = ladder[-1]
-    return plan(coarsest, _largest_share(lambda s: seconds_for(coarsest, s) <= seconds, 0.0, MIN_SHARE) or 0.0)
+    least = facts.least_share(coarsest.resolutions[-1])
+    return plan(coarsest, _largest_share(lambda s: seconds_for(coarsest, s) <= seconds, 0.0, least) or 0.0)
 
 
 def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung: Rung, resolutions: list[int],
@@ -286,7 +305,8 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     never a whole fit. Without that, a first level gives up the steps a level dropped later would have needed, and the
     fit ends with neither. A level is not dropped where the levels before it, at MAX_SHARE, would end the fit early
     (leaving budget unused): it stays, with what fits. When no schedule gets MIN_SHARE, the fewest levels allowed get
-    what fits.
+    what fits. A fine least share (FitFacts.fine_min_share) chooses and raises last levels but never drops or lowers
+    one: a fit that runs slower than planned keeps its levels down to MIN_SHARE.
 
     In a scene whose first prune kept more than FULL_BOX of its box, a last level not yet started that would get less
     than MIN_SHARE of its steps (and is not dropped) is lowered, by LOWER_BY, to the finest resolution that gets
@@ -296,8 +316,8 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
 
     In any scene, a last level not yet started that gets MAX_SHARE with every level kept (time past it would go into
     steps, where a finer grid buys more), below the finest rung the photos are worth, is raised to the finest
-    resolution (by LOWER_BY, up to that rung) that gets MIN_SHARE: the rule the plan was chosen by, on the scene's own
-    costs. A scene whose first level runs several times cheaper than the calibration's (a contracted room's 32^3 at
+    resolution (by LOWER_BY, up to that rung) that gets its least share (FitFacts.least_share): the rule the plan was
+    chosen by, on the scene's own costs. A scene whose first level runs several times cheaper than the calibration's (a contracted room's 32^3 at
     0.25x) otherwise pours the time its plan saved into steps of a grid coarser than it could afford, and its finer
     levels run cheaper than predicted too (0.34-0.88 of the model), so a raised level gets more steps as it runs.
     Raised before a level's costs are measured, wherever a finer one would get MIN_SHARE, objects lost: their levels
@@ -319,14 +339,14 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
 def _raised(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung: Rung, resolutions: list[int],
             steps: list[int], measured: bool) -> tuple[list[int], list[int], float] | None:
     """The re-plan with the last level at the finest resolution above its own, by LOWER_BY down from the finest rung
-    the photos are worth, that keeps every level with MIN_SHARE of the steps (None where none does)."""
+    the photos are worth, that keeps every level with its least share of the steps (None where none does)."""
     top = max((r.resolutions[-1] for r in LADDER if r.resolutions[-1] <= facts.max_resolution), default=0)
     for last in range(top, resolutions[-1], -LOWER_BY):
-        trial = resolutions[:-1] + [last]
-        if predict(costs, facts, now, trial, _schedule(rung, steps, now, MIN_SHARE, len(trial))) > seconds:
+        trial, least = resolutions[:-1] + [last], facts.least_share(last)
+        if predict(costs, facts, now, trial, _schedule(rung, steps, now, least, len(trial))) > seconds:
             continue  # one prediction rules a resolution out before the search for its share
         raised = _replan_levels(seconds, costs, facts, now, rung, trial, steps, measured)
-        if len(raised[0]) == len(trial) and raised[2] >= MIN_SHARE:
+        if len(raised[0]) == len(trial) and raised[2] >= least:
             return raised
     return None
 

@@ -203,13 +203,19 @@ def test_a_budget_fits_photos_coarser_than_the_presets_finest_grid_at_up_to_thei
 
 
 @pytest.mark.parametrize("scene_type", ["object", "unbounded"])
-def test_a_budgeted_fit_plans_with_its_scene_types_prior_for_the_first_prune(fresh, monkeypatch, scene_type):
+def test_a_budgeted_fit_plans_with_its_scene_types_priors(fresh, monkeypatch, scene_type):
+    """The first prune's kept share by scene type, and the least share of a fine rung's steps a plan gives by the model
+    (a bounded grid with the background spheres: more)."""
     monkeypatch.setattr(budget, "LADDER", (Rung((16, 32), (20, 20)),))
     monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
     scene = read_json(fresh / "normalize" / "scene.json")
     (fresh / "normalize" / "scene.json").write_text(json.dumps({**scene, "type": scene_type}))
     run_stage(fresh, fit, {**BUDGETED, "time_budget": "1m"})
-    kept = read_json(fresh / "fit" / "fit.json")["budget"]["kept_share"]
+    record = read_json(fresh / "fit" / "fit.json")["budget"]
+    model = read_json(fresh / "fit" / "model.json")
+    fine = budget.FINE_MIN_SHARE if model["background"] and not model["contraction"] else budget.MIN_SHARE
+    assert f"({fine:g}x ending finer than {budget.COARSE_LAST}^3)" in record["why"]
+    kept = record["kept_share"]
     assert kept["first_prune_prior"] == budget.FIRST_KEEP_PRIOR[scene_type]
     assert kept["first_prune"] != kept["first_prune_prior"]  # measured at the level change, in place of the prior
 

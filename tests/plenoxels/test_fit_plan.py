@@ -339,3 +339,37 @@ def test_a_budget_takes_photos_as_fine_as_the_presets_finest_grid_and_no_finer()
 def test_a_budget_keeps_the_presets_share_where_its_photos_already_reach_its_finest_grid():
     assert fit_plan.photo_scale(800, 0.5, 256) == 0.5
     assert fit_plan.photo_scale(1920, 0.75, 384) == 0.75
+
+
+def test_a_grid_with_the_background_spheres_plans_more_steps_for_a_fine_grid_and_never_a_finer_one():
+    """A bounded grid with the background spheres (a room's foreground box) gives a plan ending finer than COARSE_LAST
+    at least its fine least share of the steps: where an object's plan reaches a finer grid on fewer steps, the room's
+    stays a rung coarser with more of them. At or below COARSE_LAST both plan alike."""
+    room = dataclasses.replace(FACTS, fine_min_share=1.0)
+    assert room.least_share(fit_plan.COARSE_LAST) == fit_plan.MIN_SHARE < room.least_share(fit_plan.COARSE_LAST + 1)
+    coarser = alike = 0
+    for seconds in (10, 20, 30, 60, 120, 300, 600, 1200):
+        ours, objects = fit_plan.choose(seconds, MEASURED, room), fit_plan.choose(seconds, MEASURED, FACTS)
+        assert ours.fits and ours.predicted <= seconds, (seconds, ours)
+        assert ours.share >= room.least_share(ours.resolutions[-1]), (seconds, ours)
+        assert ours.resolutions[-1] <= objects.resolutions[-1], (seconds, ours, objects)
+        if objects.resolutions[-1] <= fit_plan.COARSE_LAST:
+            assert ours == objects, (seconds, ours, objects)
+            alike += 1
+        coarser += ours.resolutions[-1] < objects.resolutions[-1]
+        for other in (r for r in fit_plan.LADDER if r.resolutions[-1] > ours.resolutions[-1]):
+            now = Outlook(voxels=room.box_voxels(other.resolutions[0]))
+            least = room.least_share(other.resolutions[-1])
+            assert fit_plan.predict(MEASURED, room, now, list(other.resolutions), other.scaled(least)) > seconds
+    assert coarser >= 3 and alike >= 1, (coarser, alike)
+
+
+def test_a_fine_least_share_never_drops_a_planned_level():
+    """A fit running slower than its plan keeps its fine last level down to MIN_SHARE of the steps, as any fit does."""
+    room = dataclasses.replace(FACTS, fine_min_share=1.0)
+    rung = Rung((64, 64, 256), (120, 500, 1000), 0)
+    now = Outlook(level=1, step=400, voxels=2_000_000, dense=False, step_seconds=0.05)
+    for seconds in (700, 900):  # time for 0.58 and 0.75 of the steps
+        kept = fit_plan.replan(seconds, MEASURED, room, now, rung, [64, 64, 256], [120, 500, 1000], True)
+        assert kept[0] == [64, 64, 256] and fit_plan.MIN_SHARE <= kept[2] < room.fine_min_share, kept
+        assert kept == fit_plan.replan(seconds, MEASURED, FACTS, now, rung, [64, 64, 256], [120, 500, 1000], True)
