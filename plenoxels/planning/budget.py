@@ -254,8 +254,8 @@ class TimeBudget:
             "seconds": self.seconds, "line": self.line(),
             "why": (f"the finest candidate (plenoxels/planning/fit_plan.py LADDER) no finer than the photos' "
                     f"{self.facts.max_resolution} pixels whose predicted time fits with at least {MIN_SHARE:g}x its "
-                    f"steps ({self.facts.fine_min_share:g}x ending finer than {COARSE_LAST}^3), given the most steps that fit, up to {MAX_SHARE:g}x ({FINEST_MAX_SHARE:g}x where no finer "
-                    f"grid can take the time)"),
+                    f"steps ({self.facts.fine_min_share:g}x ending finer than {COARSE_LAST}^3), given the most steps "
+                    f"that fit, up to {MAX_SHARE:g}x ({FINEST_MAX_SHARE:g}x where no finer grid can take the time)"),
             "chosen": {**dataclasses.asdict(self.plan), "share": round(self.plan.share, 3),
                        "predicted": round(self.plan.predicted, 1)},
             "ran": {"resolutions": list(self.schedule.resolutions), "steps": list(self.schedule.steps)},

@@ -44,11 +44,12 @@ MIN_SHARE = 0.5
 MAX_SHARE = 2.0
 # The least share of a plan whose last level is finer than COARSE_LAST where the fit has the background spheres behind a
 # bounded grid (a room's foreground box: a phone's capture of a thing on a floor): there a finer last level short of
-# steps loses to a coarser one with them. One run after the other (B, 2026-12-04): fox at 2 / 5 minutes 29.16 / 29.60
-# dB in 1.3 / 2.1 GiB (192^3, 256^3) against 28.94 / 29.38 in 2.2 / 3.8 GiB (256^3, 384^3); ball at 5 minutes 27.16
-# against 27.10 dB. At or below COARSE_LAST the trade goes the other way: fox at 30 s planned 64^3 with a share of 1,
-# 25.81-26.07 dB, against 27.07 at 128^3 with half. A contracted room keeps MIN_SHARE everywhere: its cells spread over
-# all of space, and the synthetic room at 2 minutes lost 0.93 dB with a share of 1 (bench/README.md, "The time budget").
+# steps loses to a coarser one with them. One run after the other (B, 2026-12-04, a share of 1 at every rung by a switch
+# on 3c97059, against half): fox at 2 / 5 minutes 29.16 / 29.60 dB in 1.3 / 2.1 GiB (192^3, 256^3) against 28.94 /
+# 29.38 in 2.2 / 3.8 GiB (256^3, 384^3); ball at 5 minutes 27.16 against 27.10 dB. At or below COARSE_LAST the trade
+# goes the other way: fox at 30 s planned 64^3 with a share of 1, 25.81-26.07 dB, against 2cec6ea's 27.07 at 112^3
+# beside it. A contracted room keeps MIN_SHARE everywhere: its cells spread over all of space, and the synthetic room
+# at 2 minutes lost 0.93 dB with a share of 1 (bench/README.md, "The time budget").
 FINE_MIN_SHARE = 1.0
 COARSE_LAST = 128
 # Where no finer grid can take the time (the finest rung the photos are worth, or a fit already in its last level), the
@@ -317,9 +318,10 @@ def replan(seconds: float, costs: CostModel, facts: FitFacts, now: Outlook, rung
     In any scene, a last level not yet started that gets MAX_SHARE with every level kept (time past it would go into
     steps, where a finer grid buys more), below the finest rung the photos are worth, is raised to the finest
     resolution (by LOWER_BY, up to that rung) that gets its least share (FitFacts.least_share): the rule the plan was
-    chosen by, on the scene's own costs. A scene whose first level runs several times cheaper than the calibration's (a contracted room's 32^3 at
-    0.25x) otherwise pours the time its plan saved into steps of a grid coarser than it could afford, and its finer
-    levels run cheaper than predicted too (0.34-0.88 of the model), so a raised level gets more steps as it runs.
+    chosen by, on the scene's own costs. A scene whose first level runs several times cheaper than the calibration's
+    (a contracted room's 32^3 at 0.25x) otherwise pours the time its plan saved into steps of a grid coarser than it
+    could afford, and its finer levels run cheaper than predicted too (0.34-0.88 of the model), so a raised level gets
+    more steps as it runs.
     Raised before a level's costs are measured, wherever a finer one would get MIN_SHARE, objects lost: their levels
     got too few steps (bench/README.md, "The time budget")."""
     chosen = _replan_levels(seconds, costs, facts, now, rung, resolutions, steps, measured)
