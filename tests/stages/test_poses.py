@@ -570,8 +570,8 @@ def test_photos_that_do_not_hold_together_at_their_size_are_posed_from_smaller_f
     assert summary["registered"] == N_VIEWS
     errors = pose_errors(tmp_path / "out", truth)
     # Features at two thirds of the photos' size place each match half as coarsely again as the photos' own: the
-    # worst view (one registered with looser thresholds) lands 0.42-0.53 degrees off from machine to machine, so half
-    # a degree would be a draw; a wrong pose is off by tens of degrees.
+    # worst view lands 0.42-0.53 degrees off from machine to machine, so half a degree would be a draw; a wrong pose
+    # is off by tens of degrees.
     assert errors["rotation_error_deg_median"] < 0.3 and errors["rotation_error_deg_max"] < 1.0, errors
     assert errors["centre_error_share_max"] < 0.02, errors
 
