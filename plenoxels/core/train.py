@@ -503,14 +503,15 @@ class Fitter:
         return psnr(sum(self.recent_mse) / len(self.recent_mse)) if self.recent_mse else float("nan")
 
     # ---- structure changes ----------------------------------------------------------------------
-    def measure_weights(self) -> torch.Tensor:
-        origins, dirs = self.train.strided_rays(
-            pruning_stride(self.train.sizes, max(self.model.grid.resolution), self.options))
-        weights = torch.zeros(self.model.grid.num_occupied, device=self.device)
+    def measure_weights(self, grid: SparseGrid | None = None) -> torch.Tensor:
+        """Each vertex's largest weight along the rays of a pruning pass, on `grid` (the model's unless given)."""
+        grid = self.model.grid if grid is None else grid
+        origins, dirs = self.train.strided_rays(pruning_stride(self.train.sizes, max(grid.resolution), self.options))
+        weights = torch.zeros(grid.num_occupied, device=self.device)
         for start in range(0, origins.shape[0], RAY_CHUNK):
             o, d = self.model.fit_frame.rays(origins[start:start + RAY_CHUNK].to(self.device),
                                              dirs[start:start + RAY_CHUNK].to(self.device))
-            weights = torch.maximum(weights, max_weights(self.model.grid, o, d, self.model.render_options))
+            weights = torch.maximum(weights, max_weights(grid, o, d, self.model.render_options))
         return weights
 
     def prune(self, budget_rows: int | None = None) -> dict:
@@ -543,6 +544,12 @@ class Fitter:
                 keep[torch.topk(grid.density, budget).indices] = True
                 grid, rows = grid.prune(keep)
                 old_rows = old_rows[rows]
+            if self.options.prune_upsampled:
+                # Before the optimiser's state and the gradients are made for it: a fine grid's peak memory.
+                keep = prune_mask(grid, self.measure_weights(grid), self.options)
+                if bool(keep.any()):
+                    grid, rows = grid.prune(keep)
+                    old_rows = old_rows[rows]
             self._replace_grid(grid, old_rows)
         grid = self.model.grid
         self.levels.append({"step": self.step, "pruned_from": pruned["before"], "kept": pruned["after"],

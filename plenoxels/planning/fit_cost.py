@@ -159,7 +159,7 @@ def calibration_key(options, device: torch.device, background: dict | None,
     ModelOptions) that set what a step costs, and the fit's background model (n_spheres, width; None: none)."""
     cost_options = {name: getattr(options, name) for name in (
         "batch_size", "batch_mode", "tile_size", "coherent_batches", "sh_degree", "step_size", "stop_transmittance",
-        "tv_sample_fraction", "prune_ray_scale", "prune_rays_per_cell")}
+        "tv_sample_fraction", "prune_ray_scale", "prune_rays_per_cell", "prune_upsampled")}
     return {
         "version": CACHE_VERSION, "cpu": processor_name(),
         "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,

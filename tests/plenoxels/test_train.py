@@ -295,6 +295,37 @@ def test_a_repeated_resolution_prunes_the_grid_without_upsampling_it(tmp_path):
     assert max(fitter.model.grid.resolution) == 48 and fitter.model.grid.num_occupied > pruned.num_occupied
 
 
+def test_an_upsampled_grid_keeps_what_its_own_pruning_pass_finds_and_its_rows_state(tmp_path):
+    """An upsample then prunes on the finer grid's own render, before it trains: what is left is the upsampled grid's
+    rows that the pass keeps, with their values and the optimiser state of the coarse vertex nearest each; the same
+    upsample unpruned holds more rows for no better render of the training photos."""
+    root = make_scene(tmp_path, width=160)
+    scene = read_json(root / "normalize" / "scene.json")
+    frames = [f for f in scene["frames"] if f["split"] == "train"]
+    train = training_rays(root, frames)
+
+    options = TrainOptions(resolutions=[32, 32, 64], steps=[100, 60, 60], batch_size=2048, prune_upsampled=True)
+    kept = Fitter(SceneModel.create(scene, ModelOptions(), 32), options, train)
+    for _ in range(160):
+        kept.train_step()
+        if kept.step == 100:
+            kept.next_level()
+    whole = copy.deepcopy(kept)  # the same fit up to the upsample
+    whole.options = dataclasses.replace(options, prune_upsampled=False)
+    kept.next_level()
+    whole.next_level()
+    upsampled, fine = whole.model.grid, kept.model.grid  # the upsample as it was before its own pass, and after
+    keep = prune_mask(upsampled, kept.measure_weights(upsampled), options)
+    assert max(fine.resolution) == 64 and fine.num_occupied == int(keep.sum()) < 0.8 * upsampled.num_occupied
+    assert torch.equal(fine.data, upsampled.data[keep])
+    assert torch.equal(kept.optim.second_moment, whole.optim.second_moment[keep])
+    assert kept.levels[-1]["occupied"] == fine.num_occupied
+    for fitter in (kept, whole):
+        for _ in range(60):
+            fitter.train_step()
+    assert kept.train_psnr() > whole.train_psnr() - 0.3
+
+
 def test_a_last_level_ends_once_its_train_psnr_has_stopped_rising_and_a_resumed_fit_keeps_the_shortened_level(
         tmp_path, monkeypatch):
     """The rule on a PSNR that rises 0.01 dB a step to step 250 and is flat after: with the level's window of 100 steps
