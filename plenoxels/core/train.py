@@ -531,10 +531,9 @@ class Fitter:
         """Prune, upsample to the next resolution within the voxel budget (at the same resolution: prune only), carry
         the optimiser state."""
         budget = min(self.options.voxel_budget, voxels_that_fit(self.model.grid.sh_degree))
-        old_res = max(self.model.grid.resolution)
         self.level += 1
         new_shape = self.model.resolution_for(self.schedule.resolutions[self.level])
-        growth = (max(new_shape) / old_res) ** 3
+        growth = (max(new_shape) / max(self.model.grid.resolution)) ** 3
         pruned = self.prune(budget_rows=max(1, int(budget / growth)))
         if tuple(new_shape) != self.model.grid.resolution:
             grid, old_rows = self.model.grid.upsample(new_shape)
@@ -544,12 +543,10 @@ class Fitter:
                 keep[torch.topk(grid.density, budget).indices] = True
                 grid, rows = grid.prune(keep)
                 old_rows = old_rows[rows]
-            if self.options.prune_upsampled:
-                # Before the optimiser's state and the gradients are made for it: a fine grid's peak memory.
+            if self.options.prune_upsampled:  # before the optimiser's state and gradients are made for it
                 keep = prune_mask(grid, self.measure_weights(grid), self.options)
-                if bool(keep.any()):
-                    grid, rows = grid.prune(keep)
-                    old_rows = old_rows[rows]
+                grid, rows = grid.prune(keep) if bool(keep.any()) else (grid, torch.arange(len(old_rows)))
+                old_rows = old_rows[rows.to(old_rows.device)]
             self._replace_grid(grid, old_rows)
         grid = self.model.grid
         self.levels.append({"step": self.step, "pruned_from": pruned["before"], "kept": pruned["after"],
