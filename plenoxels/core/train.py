@@ -534,15 +534,15 @@ class Fitter:
         self.level += 1
         new_shape = self.model.resolution_for(self.schedule.resolutions[self.level])
         growth = (max(new_shape) / max(self.model.grid.resolution)) ** 3
-        pruned = self.prune(budget_rows=max(1, int(budget / growth)))
+        pruned, upsampled = self.prune(budget_rows=max(1, int(budget / growth))), None
         if tuple(new_shape) != self.model.grid.resolution:
             grid, old_rows = self.model.grid.upsample(new_shape)
-            if grid.num_occupied > budget:
-                # The estimate of the growth was short: drop the emptiest new vertices.
+            if grid.num_occupied > budget:  # the estimate of the growth was short: drop the emptiest new vertices
                 keep = torch.zeros(grid.num_occupied, dtype=torch.bool, device=grid.data.device)
                 keep[torch.topk(grid.density, budget).indices] = True
                 grid, rows = grid.prune(keep)
                 old_rows = old_rows[rows]
+            upsampled = grid.num_occupied
             if self.options.prune_upsampled:  # before the optimiser's state and gradients are made for it
                 keep = prune_mask(grid, self.measure_weights(grid), self.options)
                 grid, rows = grid.prune(keep) if bool(keep.any()) else (grid, torch.arange(len(old_rows)))
@@ -550,7 +550,7 @@ class Fitter:
             self._replace_grid(grid, old_rows)
         grid = self.model.grid
         self.levels.append({"step": self.step, "pruned_from": pruned["before"], "kept": pruned["after"],
-                            "resolution": list(grid.resolution), "occupied": grid.num_occupied,
+                            "resolution": list(grid.resolution), "upsampled": upsampled, "occupied": grid.num_occupied,
                             "memory_bytes": grid.memory_bytes(), "tv_scale": self.tv_level_scale()})
 
     # ---- checkpoints ----------------------------------------------------------------------------

@@ -22,8 +22,8 @@ import torch
 
 from plenoxels.planning.fit_cost import calibrate
 from plenoxels.planning.fit_plan import (COARSE_LAST, FINE_MIN_SHARE, FINEST_MAX_SHARE, FIRST_KEEP_PRIOR, LADDER,
-                                         MAX_SHARE, MIN_SHARE, FitFacts, Plan, Rung, choose, finest_worth,
-                                         finish_seconds, ladder_at, replan)
+                                         MAX_SHARE, MIN_SHARE, FitFacts, Plan, Rung, change_seconds, choose,
+                                         finest_worth, finish_seconds, ladder_at, replan)
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.core.train import Fitter, Schedule, pruning_rays
@@ -80,7 +80,7 @@ class TimeBudget:
                               max_resolution=int(train.sizes.max()),
                               first_keep=FIRST_KEEP_PRIOR[probe.scene_type],
                               fine_min_share=MIN_SHARE if background is None or probe.grid.contracted
-                              else FINE_MIN_SHARE)
+                              else FINE_MIN_SHARE, prune_upsampled=options.prune_upsampled)
         background = background and {"n_spheres": background["n_spheres"], "width": background["width"]}
         self.costs, self.calibration = calibrate(options, device, background, say=say,
                                                 allowance=CALIBRATION_SHARE * self.left())
@@ -119,6 +119,9 @@ class TimeBudget:
         measured = {"first_keep": kept[0]} if kept else {}
         if len(kept) > 1:
             measured["later_keep"] = kept[-1]
+        upsamples = [entry["occupied"] / entry["upsampled"] for entry in fitter.levels if entry.get("upsampled")]
+        if upsamples and self.facts.prune_upsampled:
+            measured["upsample_keep"] = upsamples[-1]
         self.now = self.facts.outlook(level=fitter.level, step=fitter.step, voxels=fitter.model.grid.num_occupied,
                                       dense=not fitter.levels, **measured)
         self._last = time.perf_counter()
@@ -153,15 +156,17 @@ class TimeBudget:
         fitter = self.fitter
         change, self._eval_seconds = time.perf_counter() - self._last - self._eval_seconds, 0.0
         entry = fitter.levels[-1]
-        before = self.schedule.resolutions[fitter.level - 1]
-        predicted = (self.costs.pass_seconds(self.facts.prune_rays(before), before)
-                     + (self.costs.change_per_voxel + self.costs.checkpoint_per_voxel) * entry["occupied"])
+        before, after = self.schedule.resolutions[fitter.level - 1], self.schedule.resolutions[fitter.level]
+        predicted = change_seconds(self.costs, self.facts, before, after, entry.get("upsampled") or entry["occupied"],
+                                   entry["occupied"])
         self.now.change_ratio = change / max(predicted, 1e-9)
         kept = _kept_share(entry)
         if self.now.dense:
             self.now.first_keep = kept
         else:
             self.now.later_keep = kept
+        if entry.get("upsampled") and self.facts.prune_upsampled:
+            self.now.upsample_keep = entry["occupied"] / entry["upsampled"]
         if self._intervals:
             self.level_seconds.append(round(float(np.mean(self._intervals)), 5))
         self.now.level, self.now.voxels, self.now.dense = fitter.level, entry["occupied"], False
@@ -265,7 +270,9 @@ class TimeBudget:
                                  "level_change": round(self.now.change_ratio, 3),
                                  "held_out": round(self.now.eval_ratio, 3)},
             "kept_share": {"first_prune": round(self.now.first_keep, 4), "later_prunes": round(self.now.later_keep, 4),
-                           "first_prune_prior": self.facts.first_keep},
+                           "first_prune_prior": self.facts.first_keep,
+                           **({"upsampled_grids": round(self.now.upsample_keep, 4)} if self.facts.prune_upsampled
+                              else {})},
             "replans": self.replans,
             "calibration": {"costs": dataclasses.asdict(self.costs), "points": self.calibration.get("points"),
                             "first_level_points": self.calibration.get("first_level_points"),

@@ -84,7 +84,8 @@ class CostModel:
     pass_per_ray: float
     """Seconds per ray and per vertex of resolution of a pass that marches the grid (pruning, held-out renders)."""
     change_per_voxel: float
-    """Seconds per voxel of the new grid at a level change, beyond its pruning pass (upsampling, optimiser state)."""
+    """Seconds per voxel of the upsampled grid at a level change, beyond its pruning passes (upsampling, optimiser
+    state)."""
     checkpoint_per_voxel: float
     """Seconds per voxel to write a checkpoint (at each level change, every checkpoint_every seconds, at a stop)."""
     save_per_voxel: float
@@ -331,7 +332,7 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
         fitter.model.save(Path(tmp))
         clock.append(time.perf_counter())
     change, checkpoint, save = np.diff(clock)
-    new_voxels = fitter.model.grid.num_occupied
+    new_voxels, upsampled_voxels = fitter.model.grid.num_occupied, fitter.levels[-1]["upsampled"]
     upsampled = _time_steps(fitter, device)
     del fitter
     finer = [part for pair in itertools.zip_longest(
@@ -352,11 +353,15 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
     fixed, slope = _line(points)
     dense_fixed, dense_slope = _line(dense_points)
     pass_fixed, pass_per_ray = _line(passes)
+    # The level change's own passes: the pruning pass at the coarse resolution, and with fit.prune_upsampled the
+    # upsampled grid's at the fine one (priced as a pass, not per voxel of what it leaves: fit_plan.change_seconds).
+    passes_in_change = sum(pass_fixed + pass_per_ray * pruning_rays(views.sizes, r, options) * r
+                           for r in ((resolutions[0], 2 * resolutions[0]) if options.prune_upsampled
+                                     else (resolutions[0],)))
     return {
         "costs": {"step_fixed": fixed, "step_per_voxel": slope,
                   "pass_fixed": pass_fixed, "pass_per_ray": pass_per_ray,
-                  "change_per_voxel": max(0.0, change - pass_fixed
-                                          - pass_per_ray * rays[resolutions[0]] * resolutions[0]) / new_voxels,
+                  "change_per_voxel": max(0.0, change - passes_in_change) / upsampled_voxels,
                   "checkpoint_per_voxel": checkpoint / new_voxels, "save_per_voxel": save / new_voxels,
                   "dense_fixed": dense_fixed, "dense_per_voxel": dense_slope,
                   "upsampled_ratio": upsampled / (fixed + slope * new_voxels)},
@@ -366,7 +371,8 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
                                for r, (n, t) in zip(dense_resolutions, dense_points)],
         "passes": [{"resolution": r, "rays": rays[r], "seconds": round(t, 5)}
                    for r, (_, t) in zip(resolutions, passes)],
-        "level_change": {"voxels": new_voxels, "seconds": round(float(change), 4), "step_seconds": round(upsampled, 5),
+        "level_change": {"voxels": new_voxels, "upsampled_voxels": upsampled_voxels, "seconds": round(float(change), 4),
+                         "step_seconds": round(upsampled, 5),
                          "checkpoint_seconds": round(float(checkpoint), 4), "save_seconds": round(float(save), 4)},
         "partial": len(points) + len(dense_points) < len(resolutions) + len(dense_resolutions),
         "allowance": None if allowance is None else round(allowance, 2),

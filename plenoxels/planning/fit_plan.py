@@ -8,10 +8,11 @@ ratio, and that of a first level's early-pruned rest, counts only above 1, as su
 gets cheaper as it goes while a busy machine does not; until a level at a finer resolution has measured its own, it is
 what an upsampled grid's steps cost over the model in the calibration, times the first resolution's ratio only where
 that is below 1, as a coarse grid's pruned rest runs dearer than the finer levels after it), level changes (a pruning
-pass over the training rays at the old resolution, then upsampling and a checkpoint that grow with the new grid),
-held-out evaluations, checkpoints, and the end (the last pruning pass, the held-out PSNR, the save). A later level's
-voxels are the level before's, times the share pruning keeps, times the upsampling's growth; the share is a prior
-until a level change has measured it.
+pass over the training rays at the old resolution, then upsampling and a checkpoint that grow with the new grid, and
+with fit.prune_upsampled a pruning pass at the new resolution), held-out evaluations, checkpoints, and the end (the
+last pruning pass, the held-out PSNR, the save). A later level's voxels are the level before's, times the share
+pruning keeps, times the upsampling's growth, times (with fit.prune_upsampled) the share the upsampled grid's own
+pass keeps; each share is a prior until a level change has measured it.
 
 Which plan (bench/README.md, "Fit: quality against cost" and "The time budget"): grid resolution buys more than
 steps for the same time, and a level needs enough steps to converge, but half the presets' steps lose less than one
@@ -67,6 +68,9 @@ FINEST_MAX_SHARE = 4.0
 # a room planned on an object's prior runs a fraction of its steps). Evidence: bench/README.md, "The time budget".
 FIRST_KEEP_PRIOR = {"object": 0.2, "forward": 0.7, "unbounded": 0.75}
 LATER_KEEP_PRIOR = 0.6
+# The share of an upsampled grid that its own pruning pass keeps (fit.prune_upsampled), until a level change has
+# measured it: the coarse grid's dilation carried up to the finer cells is a shell the finer surfaces do not reach.
+UPSAMPLE_KEEP_PRIOR = 0.6
 # A last level too dear for half its steps is lowered this many vertices at a time (see replan), in a scene whose
 # first prune kept more than FULL_BOX of its box: a room seen from inside, not an object on a backdrop (which keeps a
 # small share of its box).
@@ -148,6 +152,7 @@ class FitFacts:
     first_keep: float = FIRST_KEEP_PRIOR["object"]  # the first prune's kept share until it is measured (by scene type)
     finish_rays: Callable[[], int] = lambda: 0  # rays rendered once as the fit ends (the photos' gains across frames)
     fine_min_share: float = MIN_SHARE  # the least share of a plan ending finer than COARSE_LAST (by the fit's model)
+    prune_upsampled: bool = False      # each upsampled grid is pruned on its own render before it trains
 
     def least_share(self, last_resolution: int) -> float:
         """The least share of its rung's steps a plan ending at `last_resolution` may give."""
@@ -172,6 +177,19 @@ class Outlook:
     eval_ratio: float = 1.0            # this scene's measured held-out evaluations over the model's
     first_keep: float = FIRST_KEEP_PRIOR["object"]
     later_keep: float = LATER_KEEP_PRIOR
+    upsample_keep: float = UPSAMPLE_KEEP_PRIOR  # of an upsampled grid, by its own pruning pass (fit.prune_upsampled)
+
+
+def change_seconds(costs: CostModel, facts: FitFacts, before: int, after: int, upsampled: float,
+                   voxels: float) -> float:
+    """A level change from resolution `before` to `after` at the model's costs: the pruning pass at `before`, the
+    upsample to `upsampled` voxels (the pruned grid's where `after` is `before`), and where the fit prunes an
+    upsampled grid on its own render, that pass at `after`; then the checkpoint of the `voxels` left."""
+    seconds = (costs.pass_seconds(facts.prune_rays(before), before) + costs.change_per_voxel * upsampled
+               + costs.checkpoint_per_voxel * voxels)
+    if facts.prune_upsampled and after != before:
+        seconds += costs.pass_seconds(facts.prune_rays(after), after)
+    return seconds
 
 
 def finish_seconds(costs: CostModel, facts: FitFacts, now: Outlook, resolution: int, voxels: float,
@@ -202,11 +220,11 @@ def predict(costs: CostModel, facts: FitFacts, now: Outlook, resolutions: list[i
         if level == now.level:
             step = now.step_seconds or ratio * costs.step_seconds(voxels, dense=now.dense)
         else:
+            before, after = resolutions[level - 1], resolutions[level]
             kept = (now.first_keep if level == 1 else now.later_keep) * voxels
-            voxels = min(facts.voxel_budget, kept * (resolutions[level] / resolutions[level - 1]) ** 3)
-            seconds += now.change_ratio * (costs.pass_seconds(facts.prune_rays(resolutions[level - 1]),
-                                                              resolutions[level - 1])
-                                           + (costs.change_per_voxel + costs.checkpoint_per_voxel) * voxels)
+            grown = min(facts.voxel_budget, kept * (after / before) ** 3)
+            voxels = grown * (now.upsample_keep if facts.prune_upsampled and after != before else 1.0)
+            seconds += now.change_ratio * change_seconds(costs, facts, before, after, grown, voxels)
             step = ratio * costs.step_seconds(voxels)
         end = start + steps[level]
         first = max(start, now.step)

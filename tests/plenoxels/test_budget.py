@@ -13,7 +13,7 @@ from pipeline import config
 from stages.common.json_files import read_json
 from plenoxels.planning import budget
 from plenoxels.planning.fit_cost import CostModel
-from plenoxels.planning.fit_plan import FINEST_MAX_SHARE, Rung
+from plenoxels.planning.fit_plan import FINEST_MAX_SHARE, UPSAMPLE_KEEP_PRIOR, Rung
 from plenoxels.core.errors import UserError
 from plenoxels.core.train import Fitter
 from stages import fit
@@ -290,3 +290,28 @@ def test_a_level_a_replan_dropped_comes_back_once_the_measured_steps_leave_time_
     assert record["resolutions"] == record["budget"]["ran"]["resolutions"] == [16, 24, 32] and record["complete"]
     # At the free costs every level gets twice its steps, and the last, once the fit is in it, FINEST_MAX_SHARE.
     assert record["steps"] == record["total_steps"] == sum(budget.LADDER[0].scaled(FINEST_MAX_SHARE)) == 40 + 40 + 80
+
+
+def test_a_budget_measures_what_an_upsampled_grids_own_pruning_keeps_and_prices_its_pass(fresh, monkeypatch):
+    """With fit.prune_upsampled the upsampled grid is pruned on its own render: the level change is priced with that
+    pass and the upsample's voxels (not the fewer it leaves), and the share it kept replaces the prior for the levels
+    after it; a level change at the same resolution (the early prune) measures no such share."""
+    monkeypatch.setattr(budget, "LADDER", (Rung((16, 16, 32), (20, 40, 40), fixed=1),))
+    monkeypatch.setattr(budget, "calibrate", lambda *a, **k: (FREE, {"cached": True, "file": "-", "key": {}}))
+    changes, keeps = [], []
+    change_seconds, replan = budget.change_seconds, budget.replan
+    monkeypatch.setattr(budget, "change_seconds", lambda costs, facts, *args: changes.append(
+        (facts.prune_upsampled, *args)) or change_seconds(costs, facts, *args))
+    monkeypatch.setattr(budget, "replan", lambda *args, **kwargs: keeps.append(
+        (args[3].level, args[3].upsample_keep)) or replan(*args, **kwargs))
+    run_stage(fresh, fit, {**BUDGETED, "time_budget": "30s", "prune_upsampled": True})
+    record = read_json(fresh / "fit" / "fit.json")
+    first, second = record["levels"]
+    assert first["upsampled"] is None and first["occupied"] == first["kept"]
+    assert second["upsampled"] > second["occupied"] > 0 and second["upsampled"] >= second["kept"]
+    assert changes == [(True, 16, 16, first["occupied"], first["occupied"]),
+                       (True, 16, 32, second["upsampled"], second["occupied"])]
+    share = second["occupied"] / second["upsampled"]
+    assert record["budget"]["kept_share"]["upsampled_grids"] == pytest.approx(share, abs=1e-4)
+    assert {keep for level, keep in keeps if level < 2} == {UPSAMPLE_KEEP_PRIOR}
+    assert {keep for level, keep in keeps if level == 2} == {share}

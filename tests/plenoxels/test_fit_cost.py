@@ -187,3 +187,20 @@ def test_the_step_line_reads_the_calibration_points_within_a_fifth(points, grows
     for voxels, seconds in points[-1:] if grows and fixed == 0 else points:
         assert model.step_seconds(voxels) == pytest.approx(seconds, rel=0.2), (voxels, seconds, fixed, per_voxel)
 
+
+
+@pytest.mark.parametrize("prune_upsampled", [False, True])
+def test_a_level_changes_cost_per_voxel_is_of_the_upsample_beyond_its_pruning_passes(prune_upsampled):
+    """The calibration's level change prunes the coarse grid and upsamples it, and with fit.prune_upsampled prunes the
+    upsample on its own render: its cost per voxel is what is left after the passes (priced on the pass line, as a
+    plan prices them), per voxel of the upsample, not of the fewer voxels its own pass leaves."""
+    options = config.build(fit.Settings, "fit", {"batch_size": 512, "sh_degree": 0,
+                                                   "prune_upsampled": prune_upsampled})
+    small, first = (16, 24, 32), (8, 16)  # the change goes from 16 to 32: both passes' rays are in the record
+    costs, record = fit_cost.calibrate(options, torch.device("cpu"), None, small, first)
+    change, passes = record["level_change"], {p["resolution"]: p["rays"] for p in record["passes"]}
+    assert change["upsampled_voxels"] > change["voxels"] if prune_upsampled else (
+        change["upsampled_voxels"] == change["voxels"])
+    in_passes = sum(costs.pass_seconds(passes[r], r) for r in ((16, 32) if prune_upsampled else (16,)))
+    assert costs.change_per_voxel * change["upsampled_voxels"] == pytest.approx(
+        max(0.0, change["seconds"] - in_passes), abs=1e-4)

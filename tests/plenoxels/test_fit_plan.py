@@ -373,3 +373,30 @@ def test_a_fine_least_share_never_drops_a_planned_level():
         kept = fit_plan.replan(seconds, MEASURED, room, now, rung, [64, 64, 256], [120, 500, 1000], True)
         assert kept[0] == [64, 64, 256] and fit_plan.MIN_SHARE <= kept[2] < room.fine_min_share, kept
         assert kept == fit_plan.replan(seconds, MEASURED, FACTS, now, rung, [64, 64, 256], [120, 500, 1000], True)
+
+
+def test_an_upsampled_grids_own_pruning_pass_is_priced_as_a_pass_and_its_steps_at_what_it_keeps():
+    """With fit.prune_upsampled a level change to a finer resolution adds a pruning pass at that resolution, and the
+    level's steps, checkpoints and save are predicted at the share of the upsample that pass keeps; a change at the
+    same resolution (an early prune) has no such pass. Cheaper finer levels buy a plan at least as fine."""
+    facts = FitFacts(**{**FACTS.__dict__, "checkpoint_every": 1e9, "eval_rays": 0})  # steps, changes and the end
+    pruned = FitFacts(**{**facts.__dict__, "prune_upsampled": True})
+    resolutions, steps, voxels = [128, 128, 256], [200, 800, 1500], 300_000
+    now = Outlook(level=1, step=400, voxels=voxels, dense=False, upsample_keep=0.4)
+    grown = now.later_keep * voxels * 8
+    gap = fit_plan.predict(MEASURED, facts, now, resolutions, steps) - fit_plan.predict(MEASURED, pruned, now,
+                                                                                     resolutions, steps)
+    saved_per_voxel = 1500 * MEASURED.step_per_voxel + MEASURED.checkpoint_per_voxel + MEASURED.save_per_voxel
+    assert gap == pytest.approx(saved_per_voxel * 0.6 * grown - MEASURED.pass_seconds(170_000, 256), rel=1e-6)
+    # The same resolution only: the early prune is not an upsample.
+    first = Outlook(voxels=FACTS.box_voxels(128))
+    assert fit_plan.predict(MEASURED, facts, first, resolutions[:2], steps[:2]) == fit_plan.predict(
+        MEASURED, pruned, first, resolutions[:2], steps[:2])
+    # What it keeps as measured: more kept, more time.
+    kept_more = dataclasses.replace(now, upsample_keep=0.9)
+    assert fit_plan.predict(MEASURED, pruned, kept_more, resolutions, steps) > fit_plan.predict(
+        MEASURED, pruned, now, resolutions, steps)
+    for seconds in (60, 240, 900):
+        mine, before = fit_plan.choose(seconds, MEASURED, pruned), fit_plan.choose(seconds, MEASURED, facts)
+        assert mine.predicted <= seconds
+        assert (mine.resolutions[-1], mine.share) >= (before.resolutions[-1], before.share), (seconds, mine, before)
