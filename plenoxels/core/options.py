@@ -204,14 +204,14 @@ class TrainOptions:
     prune in a fraction of the time, and a voxel still meets rays from several photos."""
     prune_final: bool = True
     """Prune the same way after the last level too (smaller model, fewer floaters)."""
-    prune_upsampled: bool = False
+    prune_upsampled: bool = True
     """Prune an upsampled grid the same way before it trains, on its own render (its dilation in its own, finer
     voxels): the coarser grid's dilation, carried up, holds a shell of vertices the finer grid's surfaces never reach.
-    On fixed plans, one run after the other: the synthetic room 64->64->160 21.34 against 21.42 dB in 0.79x the time
-    and 1.5 against 1.9 GiB, fox 72->72->192 29.50 against 29.22 in 1.0 against 1.3 GiB, lego `default` 32.24
-    against 32.26 in 1.20 against 1.30 GiB. Off: a time budget prices a level change as the coarser grid's pruning
-    pass plus a cost per voxel the upsample makes, so a calibration reads this pass as 3x that cost and plans coarser
-    grids (fox at 1 minute 128^3 against 160^3, 28.48 against 28.67 dB; bench/README.md, "The time budget")."""
+    A time budget prices it as a pass at the finer resolution and plans the level on the share it keeps. Budgets one
+    run after the other, each from its own cold calibration: fox at 30 s / 1 / 2 minutes 28.13 / 28.81 / 29.44 dB
+    against 27.86 / 28.67 / 29.32 (2 minutes in 1.2 against 1.8 GiB), the synthetic room at 2 minutes 22.67 against
+    22.07 (192^3 against 160^3), ball at 1 minute 26.87 against 26.84; fixed plans: lego `default` 32.24 against
+    32.26 in 1.20 against 1.30 GiB (bench/README.md, "The time budget")."""
     voxel_budget: int = 16_000_000
     """Most occupied vertices after an upsample."""
     seed: int = 0
