@@ -208,10 +208,10 @@ class TrainOptions:
     """Prune an upsampled grid the same way before it trains, on its own render (its dilation in its own, finer
     voxels): the coarser grid's dilation, carried up, holds a shell of vertices the finer grid's surfaces never reach.
     A time budget prices it as a pass at the finer resolution and plans the level on the share it keeps. Budgets one
-    run after the other, each from its own cold calibration: fox at 30 s / 1 / 2 minutes 28.13 / 28.81 / 29.44 dB
-    against 27.86 / 28.67 / 29.32 (2 minutes in 1.2 against 1.8 GiB), the synthetic room at 2 minutes 22.67 against
-    22.07 (192^3 against 160^3), ball at 1 minute 26.87 against 26.84; fixed plans: lego `default` 32.24 against
-    32.26 in 1.20 against 1.30 GiB (bench/README.md, "The time budget")."""
+    run after the other, each from its own cold calibration (B, 2026-12-04, 541b3f7): fox at 30 s / 1 / 2 minutes
+    28.13 / 28.81 / 29.44 dB against 27.86 / 28.67 / 29.32 (2 minutes in 1.2 against 1.8 GiB), the synthetic room at
+    2 minutes 22.67 against 22.07 (192^3 against 160^3), ball at 1 minute 26.87 against 26.84; fixed plans: lego
+    `default` 32.24 against 32.26 in 1.20 against 1.30 GiB (bench/README.md, "The time budget")."""
     voxel_budget: int = 16_000_000
     """Most occupied vertices after an upsample."""
     seed: int = 0

@@ -23,7 +23,7 @@ import torch
 from plenoxels.planning.fit_cost import calibrate
 from plenoxels.planning.fit_plan import (COARSE_LAST, FINE_MIN_SHARE, FINEST_MAX_SHARE, FIRST_KEEP_PRIOR, LADDER,
                                          MAX_SHARE, MIN_SHARE, FitFacts, Plan, Rung, change_seconds, choose,
-                                         finest_worth, finish_seconds, ladder_at, replan)
+                                         finest_worth, finish_seconds, ladder_at, replan, upsample_band)
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.core.train import Fitter, Schedule, pruning_rays
@@ -115,13 +115,12 @@ class TimeBudget:
         self.deadline = self.started + self.seconds - fitter.elapsed
         start = sum(self.schedule.steps[:fitter.level])
         self.schedule.steps[fitter.level] = max(self.schedule.steps[fitter.level], fitter.step - start)
-        kept = [_kept_share(entry) for entry in fitter.levels]
-        measured = {"first_keep": kept[0]} if kept else {}
-        if len(kept) > 1:
-            measured["later_keep"] = kept[-1]
-        upsamples = [entry["occupied"] / entry["upsampled"] for entry in fitter.levels if entry.get("upsampled")]
-        if upsamples and self.facts.prune_upsampled:
-            measured["upsample_keep"] = upsamples[-1]
+        measured, resolutions = {}, self.schedule.resolutions
+        for level, entry in enumerate(fitter.levels):
+            measured[self._keep_measured(level + 1)] = _kept_share(entry)
+            if entry.get("upsampled") and self.facts.prune_upsampled:
+                measured["upsample_band"] = upsample_band(entry["occupied"] / entry["upsampled"],
+                                                          resolutions[level + 1] / resolutions[level])
         self.now = self.facts.outlook(level=fitter.level, step=fitter.step, voxels=fitter.model.grid.num_occupied,
                                       dense=not fitter.levels, **measured)
         self._last = time.perf_counter()
@@ -160,13 +159,9 @@ class TimeBudget:
         predicted = change_seconds(self.costs, self.facts, before, after, entry.get("upsampled") or entry["occupied"],
                                    entry["occupied"])
         self.now.change_ratio = change / max(predicted, 1e-9)
-        kept = _kept_share(entry)
-        if self.now.dense:
-            self.now.first_keep = kept
-        else:
-            self.now.later_keep = kept
+        setattr(self.now, self._keep_measured(fitter.level), _kept_share(entry))
         if entry.get("upsampled") and self.facts.prune_upsampled:
-            self.now.upsample_keep = entry["occupied"] / entry["upsampled"]
+            self.now.upsample_band = upsample_band(entry["occupied"] / entry["upsampled"], after / before)
         if self._intervals:
             self.level_seconds.append(round(float(np.mean(self._intervals)), 5))
         self.now.level, self.now.voxels, self.now.dense = fitter.level, entry["occupied"], False
@@ -187,6 +182,14 @@ class TimeBudget:
                                                                          max(model.grid.resolution)), 1e-9)
             return value
         return run
+
+    def _keep_measured(self, level: int) -> str:
+        """The Outlook share that the prune at the change to `level` measures: the first prune's, that of a level
+        which began as an upsample pruned on its own render (fit.prune_upsampled), or a later prune's."""
+        if level == 1:
+            return "first_keep"
+        began_upsampled = self.fitter.levels[level - 2].get("upsampled") if self.fitter else None
+        return "settled_keep" if self.facts.prune_upsampled and began_upsampled else "later_keep"
 
     def _at_first_resolution(self) -> bool:
         """Whether the fit is still at its first level's resolution (its early-pruned rest included)."""
@@ -271,8 +274,11 @@ class TimeBudget:
                                  "held_out": round(self.now.eval_ratio, 3)},
             "kept_share": {"first_prune": round(self.now.first_keep, 4), "later_prunes": round(self.now.later_keep, 4),
                            "first_prune_prior": self.facts.first_keep,
-                           **({"upsampled_grids": round(self.now.upsample_keep, 4)} if self.facts.prune_upsampled
-                              else {})},
+                           **({"settled_prunes": round(self.now.settled_keep, 4),
+                               "upsampled_grids": [round(e["occupied"] / e["upsampled"], 4)
+                                                   for e in self.fitter.levels if e.get("upsampled")],
+                               "upsampled_band": round(self.now.upsample_band, 4)}
+                              if self.facts.prune_upsampled else {})},
             "replans": self.replans,
             "calibration": {"costs": dataclasses.asdict(self.costs), "points": self.calibration.get("points"),
                             "first_level_points": self.calibration.get("first_level_points"),

@@ -12,7 +12,7 @@ pass over the training rays at the old resolution, then upsampling and a checkpo
 with fit.prune_upsampled a pruning pass at the new resolution), held-out evaluations, checkpoints, and the end (the
 last pruning pass, the held-out PSNR, the save). A later level's voxels are the level before's, times the share
 pruning keeps, times the upsampling's growth, times (with fit.prune_upsampled) the share the upsampled grid's own
-pass keeps; each share is a prior until a level change has measured it.
+pass keeps (a shell's, by the growth: upsample_keep); each share is a prior until a level change has measured it.
 
 Which plan (bench/README.md, "Fit: quality against cost" and "The time budget"): grid resolution buys more than
 steps for the same time, and a level needs enough steps to converge, but half the presets' steps lose less than one
@@ -68,10 +68,15 @@ FINEST_MAX_SHARE = 4.0
 # a room planned on an object's prior runs a fraction of its steps). Evidence: bench/README.md, "The time budget".
 FIRST_KEEP_PRIOR = {"object": 0.2, "forward": 0.7, "unbounded": 0.75}
 LATER_KEEP_PRIOR = 0.6
-# The share of an upsampled grid that its own pruning pass keeps (fit.prune_upsampled), until a level change has
-# measured it: the coarse grid's dilation carried up to the finer cells is a shell the finer surfaces do not reach.
-# Measured (B, 2026-12-04): fox 0.46-0.61, ball 0.44, the synthetic room 0.33, lego `default` 0.75.
-UPSAMPLE_KEEP_PRIOR = 0.5
+# With fit.prune_upsampled, what an upsampled grid's own pruning pass keeps (upsample_keep) is a shell's share: its
+# surfaces' band (UPSAMPLE_BAND_PRIOR of the dilation's thickness on each side, in the coarse grid's cells, until a
+# level change has measured it) grows with the cells, the dilation around it does not. Measured (B, 2026-12-04, e16e1cb):
+# lego 0.22 (128->256, keeping 0.59) and 0.25 (256->384, 0.73: the band read at 256 predicts 0.73), fox 0.19-0.60,
+# ball 0.12, the synthetic room 0 (its pass kept 0.33 of 72->192, about the 0.375 of a band of none). A grid that began
+# as such an upsample is tight already: the prune that ends its level keeps SETTLED_KEEP_PRIOR of it until measured
+# (lego 0.97, where the same prune of an upsample left whole keeps 0.6-0.7).
+UPSAMPLE_BAND_PRIOR = 0.25
+SETTLED_KEEP_PRIOR = 0.95
 # A last level too dear for half its steps is lowered this many vertices at a time (see replan), in a scene whose
 # first prune kept more than FULL_BOX of its box: a room seen from inside, not an object on a backdrop (which keeps a
 # small share of its box).
@@ -178,7 +183,22 @@ class Outlook:
     eval_ratio: float = 1.0            # this scene's measured held-out evaluations over the model's
     first_keep: float = FIRST_KEEP_PRIOR["object"]
     later_keep: float = LATER_KEEP_PRIOR
-    upsample_keep: float = UPSAMPLE_KEEP_PRIOR  # of an upsampled grid, by its own pruning pass (fit.prune_upsampled)
+    upsample_band: float = UPSAMPLE_BAND_PRIOR  # surfaces' band an upsampled grid's own pass keeps (upsample_keep)
+    settled_keep: float = SETTLED_KEEP_PRIOR    # pruning's share of a level that began as such an upsample
+
+
+def upsample_keep(band: float, growth: float) -> float:
+    """The share of an upsampled grid that its own pruning pass keeps (fit.prune_upsampled), its cells `growth` times
+    finer: a shell around the surfaces whose band (`band` times the dilation on each side, in the coarse cells) grows
+    with the cells, while the dilation around it is as many cells as before."""
+    return 1.0 if growth <= 1 else (growth * band + 1) / (growth * (band + 1))
+
+
+def upsample_band(keep: float, growth: float) -> float:
+    """The band (upsample_keep's) of an upsample `growth` times finer whose own pass kept `keep` of it."""
+    if growth <= 1 or keep >= 1:
+        return 1e6  # kept whole: a band that fills the shell
+    return max(0.0, (keep * growth - 1) / (growth * (1 - keep)))
 
 
 def change_seconds(costs: CostModel, facts: FitFacts, before: int, after: int, upsampled: float,
@@ -222,9 +242,10 @@ def predict(costs: CostModel, facts: FitFacts, now: Outlook, resolutions: list[i
             step = now.step_seconds or ratio * costs.step_seconds(voxels, dense=now.dense)
         else:
             before, after = resolutions[level - 1], resolutions[level]
-            kept = (now.first_keep if level == 1 else now.later_keep) * voxels
+            settled = facts.prune_upsampled and level > 1 and resolutions[level - 2] != before
+            kept = (now.first_keep if level == 1 else now.settled_keep if settled else now.later_keep) * voxels
             grown = min(facts.voxel_budget, kept * (after / before) ** 3)
-            voxels = grown * (now.upsample_keep if facts.prune_upsampled and after != before else 1.0)
+            voxels = grown * (upsample_keep(now.upsample_band, after / before) if facts.prune_upsampled else 1.0)
             seconds += now.change_ratio * change_seconds(costs, facts, before, after, grown, voxels)
             step = ratio * costs.step_seconds(voxels)
         end = start + steps[level]

@@ -13,7 +13,7 @@ from pipeline import config
 from stages.common.json_files import read_json
 from plenoxels.planning import budget
 from plenoxels.planning.fit_cost import CostModel
-from plenoxels.planning.fit_plan import FINEST_MAX_SHARE, UPSAMPLE_KEEP_PRIOR, Rung
+from plenoxels.planning.fit_plan import FINEST_MAX_SHARE, UPSAMPLE_BAND_PRIOR, Rung, upsample_band
 from plenoxels.core.errors import UserError
 from plenoxels.core.train import Fitter
 from stages import fit
@@ -303,7 +303,7 @@ def test_a_budget_measures_what_an_upsampled_grids_own_pruning_keeps_and_prices_
     monkeypatch.setattr(budget, "change_seconds", lambda costs, facts, *args: changes.append(
         (facts.prune_upsampled, *args)) or change_seconds(costs, facts, *args))
     monkeypatch.setattr(budget, "replan", lambda *args, **kwargs: keeps.append(
-        (args[3].level, args[3].upsample_keep)) or replan(*args, **kwargs))
+        (args[3].level, args[3].upsample_band)) or replan(*args, **kwargs))
     run_stage(fresh, fit, {**BUDGETED, "time_budget": "30s", "prune_upsampled": True})
     record = read_json(fresh / "fit" / "fit.json")
     first, second = record["levels"]
@@ -312,6 +312,6 @@ def test_a_budget_measures_what_an_upsampled_grids_own_pruning_keeps_and_prices_
     assert changes == [(True, 16, 16, first["occupied"], first["occupied"]),
                        (True, 16, 32, second["upsampled"], second["occupied"])]
     share = second["occupied"] / second["upsampled"]
-    assert record["budget"]["kept_share"]["upsampled_grids"] == pytest.approx(share, abs=1e-4)
-    assert {keep for level, keep in keeps if level < 2} == {UPSAMPLE_KEEP_PRIOR}
-    assert {keep for level, keep in keeps if level == 2} == {share}
+    assert record["budget"]["kept_share"]["upsampled_grids"] == [pytest.approx(share, abs=1e-4)]
+    assert {band for level, band in keeps if level < 2} == {UPSAMPLE_BAND_PRIOR}
+    assert {band for level, band in keeps if level == 2} == {upsample_band(share, 2.0)}

@@ -382,21 +382,57 @@ def test_an_upsampled_grids_own_pruning_pass_is_priced_as_a_pass_and_its_steps_a
     facts = FitFacts(**{**FACTS.__dict__, "checkpoint_every": 1e9, "eval_rays": 0})  # steps, changes and the end
     pruned = FitFacts(**{**facts.__dict__, "prune_upsampled": True})
     resolutions, steps, voxels = [128, 128, 256], [200, 800, 1500], 300_000
-    now = Outlook(level=1, step=400, voxels=voxels, dense=False, upsample_keep=0.4)
-    grown = now.later_keep * voxels * 8
+    now = Outlook(level=1, step=400, voxels=voxels, dense=False, upsample_band=0.3)
+    grown, keep = now.later_keep * voxels * 8, fit_plan.upsample_keep(0.3, 2.0)
     gap = fit_plan.predict(MEASURED, facts, now, resolutions, steps) - fit_plan.predict(MEASURED, pruned, now,
                                                                                      resolutions, steps)
     saved_per_voxel = 1500 * MEASURED.step_per_voxel + MEASURED.checkpoint_per_voxel + MEASURED.save_per_voxel
-    assert gap == pytest.approx(saved_per_voxel * 0.6 * grown - MEASURED.pass_seconds(170_000, 256), rel=1e-6)
+    assert gap == pytest.approx(saved_per_voxel * (1 - keep) * grown - MEASURED.pass_seconds(170_000, 256), rel=1e-6)
     # The same resolution only: the early prune is not an upsample.
     first = Outlook(voxels=FACTS.box_voxels(128))
     assert fit_plan.predict(MEASURED, facts, first, resolutions[:2], steps[:2]) == fit_plan.predict(
         MEASURED, pruned, first, resolutions[:2], steps[:2])
-    # What it keeps as measured: more kept, more time.
-    kept_more = dataclasses.replace(now, upsample_keep=0.9)
-    assert fit_plan.predict(MEASURED, pruned, kept_more, resolutions, steps) > fit_plan.predict(
+    # A wider band of surfaces as measured: more kept, more time.
+    wider = dataclasses.replace(now, upsample_band=1.0)
+    assert fit_plan.predict(MEASURED, pruned, wider, resolutions, steps) > fit_plan.predict(
         MEASURED, pruned, now, resolutions, steps)
     for seconds in (60, 240, 900):
         mine, before = fit_plan.choose(seconds, MEASURED, pruned), fit_plan.choose(seconds, MEASURED, facts)
         assert mine.predicted <= seconds
         assert (mine.resolutions[-1], mine.share) >= (before.resolutions[-1], before.share), (seconds, mine, before)
+
+
+@pytest.mark.parametrize("band", [0.0, 0.22, 1.0, 5.0])
+def test_what_an_upsamples_own_pass_keeps_is_a_shells_share_read_back_from_one_growth_for_another(band):
+    """The band of surfaces grows with the cells and the dilation does not: a finer upsample keeps less of itself, a
+    band of none keeps one over the growth, and the band read from one upsample's share predicts another's (lego's
+    0.59 at 128->256 read 0.73 at 256->384, as its pass then kept)."""
+    shares = [fit_plan.upsample_keep(band, growth) for growth in (1.0, 1.5, 2.0, 2.5, 3.0)]
+    assert shares[0] == 1.0 and all(a > b for a, b in zip(shares, shares[1:])) and all(0 < s <= 1 for s in shares)
+    assert fit_plan.upsample_keep(0.0, 2.5) == pytest.approx(1 / 2.5)
+    for growth in (1.5, 2.0, 2.5):
+        share = fit_plan.upsample_keep(band, growth)
+        assert fit_plan.upsample_band(share, growth) == pytest.approx(band, abs=1e-9)
+    assert fit_plan.upsample_keep(fit_plan.upsample_band(0.59, 2.0), 1.5) == pytest.approx(0.73, abs=0.01)
+    assert fit_plan.upsample_band(0.3, 2.5) == 0.0  # kept less than a band of none: none
+
+
+def test_a_level_that_began_as_a_pruned_upsample_is_predicted_to_keep_more_at_its_own_prune():
+    """With fit.prune_upsampled a grid that began as an upsample pruned on its own render is tight: the prune that
+    ends its level keeps the settled share, where a level at the first resolution (its early-pruned rest) keeps the
+    later prunes' share."""
+    facts = FitFacts(**{**FACTS.__dict__, "checkpoint_every": 1e9, "eval_rays": 0, "prune_upsampled": True})
+    resolutions, steps = [128, 128, 256, 384], [200, 800, 1000, 1000]
+    at_256 = Outlook(level=2, step=1000, voxels=1_000_000, dense=False, later_keep=0.6)
+
+    def predicted(**keep) -> float:
+        return fit_plan.predict(MEASURED, facts, dataclasses.replace(at_256, **keep), resolutions, steps)
+
+    assert predicted(settled_keep=0.97) > predicted(settled_keep=0.6)
+    assert predicted(later_keep=0.9) == predicted()  # the 384 level's voxels follow the settled share only
+    at_rest = Outlook(level=1, step=400, voxels=300_000, dense=False)
+    rest = fit_plan.predict(MEASURED, facts, at_rest, resolutions[:3], steps[:3])
+    assert fit_plan.predict(MEASURED, facts, dataclasses.replace(at_rest, settled_keep=0.3), resolutions[:3],
+                            steps[:3]) == rest
+    assert fit_plan.predict(MEASURED, facts, dataclasses.replace(at_rest, later_keep=0.3), resolutions[:3],
+                            steps[:3]) < rest
