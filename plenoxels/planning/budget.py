@@ -188,7 +188,7 @@ class TimeBudget:
         which began as an upsample pruned on its own render (fit.prune_upsampled), or a later prune's."""
         if level == 1:
             return "first_keep"
-        began_upsampled = self.fitter.levels[level - 2].get("upsampled") if self.fitter else None
+        began_upsampled = self.fitter.levels[level - 2].get("upsampled")
         return "settled_keep" if self.facts.prune_upsampled and began_upsampled else "later_keep"
 
     def _at_first_resolution(self) -> bool:

@@ -70,11 +70,11 @@ FIRST_KEEP_PRIOR = {"object": 0.2, "forward": 0.7, "unbounded": 0.75}
 LATER_KEEP_PRIOR = 0.6
 # With fit.prune_upsampled, what an upsampled grid's own pruning pass keeps (upsample_keep) is a shell's share: its
 # surfaces' band (UPSAMPLE_BAND_PRIOR of the dilation's thickness on each side, in the coarse grid's cells, until a
-# level change has measured it) grows with the cells, the dilation around it does not. Measured (B, 2026-12-04, e16e1cb):
-# lego 0.22 (128->256, keeping 0.59) and 0.25 (256->384, 0.73: the band read at 256 predicts 0.73), fox 0.19-0.60,
-# ball 0.12, the synthetic room 0 (its pass kept 0.33 of 72->192, about the 0.375 of a band of none). A grid that began
-# as such an upsample is tight already: the prune that ends its level keeps SETTLED_KEEP_PRIOR of it until measured
-# (lego 0.97, where the same prune of an upsample left whole keeps 0.6-0.7).
+# level change has measured it) grows with the cells, the dilation around it does not. Measured (B, 2026-12-04,
+# e16e1cb): lego 0.22 (128->256, keeping 0.59) and 0.25 (256->384, 0.73: the band read at 256 predicts 0.73), fox
+# 0.19-0.60, ball 0.12, the synthetic room 0 (its pass kept 0.33 of 72->192, about the 0.375 of a band of none). A grid
+# that began as such an upsample is tight already: the prune that ends its level keeps SETTLED_KEEP_PRIOR of it until
+# measured (lego 0.97, where the same prune of an upsample left whole keeps 0.6-0.7).
 UPSAMPLE_BAND_PRIOR = 0.25
 SETTLED_KEEP_PRIOR = 0.95
 # A last level too dear for half its steps is lowered this many vertices at a time (see replan), in a scene whose
