@@ -121,6 +121,12 @@ class CostModel:
         return line + f", {self.upsampled_ratio:.2f}x on an upsampled grid"
 
 
+def change_passes(before: int, after: int, prune_upsampled: bool) -> tuple[int, ...]:
+    """The resolutions of the pruning passes a level change from `before` to `after` runs: the coarse grid's, and
+    where the fit prunes each upsampled grid on its own render (fit.prune_upsampled), the finer one's."""
+    return (before, after) if prune_upsampled and after != before else (before,)
+
+
 def cache_dir() -> Path:
     """Where calibrations are kept: $XDG_CACHE_HOME/voxfield, else ~/.cache/voxfield."""
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "voxfield"
@@ -353,11 +359,9 @@ def measure(options, device: torch.device, background: dict | None, resolutions=
     fixed, slope = _line(points)
     dense_fixed, dense_slope = _line(dense_points)
     pass_fixed, pass_per_ray = _line(passes)
-    # The level change's own passes: the pruning pass at the coarse resolution, and with fit.prune_upsampled the
-    # upsampled grid's at the fine one (priced as a pass, not per voxel of what it leaves: fit_plan.change_seconds).
+    # The level change's own passes, priced as passes (fit_plan.change_seconds), not per voxel of what they leave.
     passes_in_change = sum(pass_fixed + pass_per_ray * pruning_rays(views.sizes, r, options) * r
-                           for r in ((resolutions[0], 2 * resolutions[0]) if options.prune_upsampled
-                                     else (resolutions[0],)))
+                           for r in change_passes(resolutions[0], 2 * resolutions[0], options.prune_upsampled))
     return {
         "costs": {"step_fixed": fixed, "step_per_voxel": slope,
                   "pass_fixed": pass_fixed, "pass_per_ray": pass_per_ray,

@@ -37,7 +37,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from plenoxels.core.train import coarse_start
-from plenoxels.planning.fit_cost import CostModel
+from plenoxels.planning.fit_cost import CostModel, change_passes
 
 # Shares of a rung's steps a plan may give: at least MIN_SHARE (a level needs enough steps to converge), at most
 # MAX_SHARE (past it, time goes further in a finer grid).
@@ -206,11 +206,8 @@ def change_seconds(costs: CostModel, facts: FitFacts, before: int, after: int, u
     """A level change from resolution `before` to `after` at the model's costs: the pruning pass at `before`, the
     upsample to `upsampled` voxels (the pruned grid's where `after` is `before`), and where the fit prunes an
     upsampled grid on its own render, that pass at `after`; then the checkpoint of the `voxels` left."""
-    seconds = (costs.pass_seconds(facts.prune_rays(before), before) + costs.change_per_voxel * upsampled
-               + costs.checkpoint_per_voxel * voxels)
-    if facts.prune_upsampled and after != before:
-        seconds += costs.pass_seconds(facts.prune_rays(after), after)
-    return seconds
+    return (sum(costs.pass_seconds(facts.prune_rays(r), r) for r in change_passes(before, after, facts.prune_upsampled))
+            + costs.change_per_voxel * upsampled + costs.checkpoint_per_voxel * voxels)
 
 
 def finish_seconds(costs: CostModel, facts: FitFacts, now: Outlook, resolution: int, voxels: float,
