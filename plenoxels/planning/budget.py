@@ -22,8 +22,8 @@ import torch
 
 from plenoxels.planning.fit_cost import calibrate
 from plenoxels.planning.fit_plan import (COARSE_LAST, FINE_MIN_SHARE, FINEST_MAX_SHARE, FIRST_KEEP_PRIOR, LADDER,
-                                         MAX_SHARE, MIN_SHARE, FitFacts, Plan, Rung, change_seconds, choose,
-                                         finest_worth, finish_seconds, ladder_at, replan, upsample_band)
+                                         MAX_SHARE, MIN_SHARE, FitFacts, Plan, Rung, began_upsampled, change_seconds,
+                                         choose, finest_worth, finish_seconds, ladder_at, replan, upsample_band)
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.core.train import Fitter, Schedule, pruning_rays
@@ -188,8 +188,8 @@ class TimeBudget:
         which began as an upsample pruned on its own render (fit.prune_upsampled), or a later prune's."""
         if level == 1:
             return "first_keep"
-        began_upsampled = self.fitter.levels[level - 2].get("upsampled")
-        return "settled_keep" if self.facts.prune_upsampled and began_upsampled else "later_keep"
+        settled = self.facts.prune_upsampled and began_upsampled(self.schedule.resolutions, level)
+        return "settled_keep" if settled else "later_keep"
 
     def _at_first_resolution(self) -> bool:
         """Whether the fit is still at its first level's resolution (its early-pruned rest included)."""

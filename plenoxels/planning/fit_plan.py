@@ -201,6 +201,12 @@ def upsample_band(keep: float, growth: float) -> float:
     return max(0.0, (keep * growth - 1) / (growth * (1 - keep)))
 
 
+def began_upsampled(resolutions: list[int], level: int) -> bool:
+    """Whether the level before `level` began as an upsample (its resolution finer than the one before it): with
+    fit.prune_upsampled, the prune at the change to `level` is then of a grid pruned once already (settled_keep)."""
+    return level > 1 and resolutions[level - 2] != resolutions[level - 1]
+
+
 def change_seconds(costs: CostModel, facts: FitFacts, before: int, after: int, upsampled: float,
                    voxels: float) -> float:
     """A level change from resolution `before` to `after` at the model's costs: the pruning pass at `before`, the
@@ -239,7 +245,7 @@ def predict(costs: CostModel, facts: FitFacts, now: Outlook, resolutions: list[i
             step = now.step_seconds or ratio * costs.step_seconds(voxels, dense=now.dense)
         else:
             before, after = resolutions[level - 1], resolutions[level]
-            settled = facts.prune_upsampled and level > 1 and resolutions[level - 2] != before
+            settled = facts.prune_upsampled and began_upsampled(resolutions, level)
             kept = (now.first_keep if level == 1 else now.settled_keep if settled else now.later_keep) * voxels
             grown = min(facts.voxel_budget, kept * (after / before) ** 3)
             voxels = grown * (upsample_keep(now.upsample_band, after / before) if facts.prune_upsampled else 1.0)
