@@ -345,6 +345,7 @@ plx::op::rmsprop_step rmsprop_step;
 plx::op::background_render background_render;
 plx::op::background_backward background_backward;
 plx::op::adam_rows adam_rows;
+plx::op::pixel_rays pixel_rays;
 plx::op::splat_composite splat_composite;
 plx::op::splat_composite_backward splat_composite_backward;
 

@@ -86,6 +86,13 @@ TORCH_LIBRARY(voxfield, m) {
     m.def("adam_rows(Tensor(a!) data, Tensor(b!) first, Tensor(c!) second, Tensor(d!) steps, Tensor rows, "
           "Tensor grad, Tensor rates, Tensor row_factor, int scaled_begin, int scaled_end, float beta1, float beta2, "
           "float eps) -> ()");
+    // A training batch's rays (CPU only: a GPU makes them from the ray set's tables in a few launches): [order [B],
+    // image [B], origins [B, 3], unit dirs [B, 3], colours [B, 3]] of the photos' pixels at flat indices `pixel` [B]
+    // into pixels uint8 [P, 3] (the photos side by side from offsets [N + 1], of sizes [N, 2] (h, w)), with
+    // intrinsics [N, 4] (fl_x, fl_y, cx, cy) and c2w [N, 4, 4]; output i is pixel order[i]: the pixels' order, or with
+    // coherent the Morton order of each ray's point closest to the origin within [-extent, extent]^3 (stable).
+    m.def("pixel_rays(Tensor pixel, Tensor intrinsics, Tensor c2w, Tensor pixels, Tensor offsets, Tensor sizes, "
+          "bool coherent, float extent) -> Tensor[]");
     // Splats composited over the window (x0, y0, w, h) of an image (CPU only: splats are distilled on the CPU), from
     // their projections (means2d [M, 2] in pixel-index coordinates, conics [M, 3], colours [M, 3], opacities [M],
     // radii [M] of their 3 sigma boxes) and order [M] (front to back): [rgb [h*w, 3], opacity [h*w], ends [h*w]

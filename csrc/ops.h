@@ -74,6 +74,8 @@ using background_backward = int64_t(Tensor origins, Tensor dirs, Tensor centre, 
 using adam_rows = void(Tensor data, Tensor first, Tensor second, Tensor steps, Tensor rows, Tensor grad, Tensor rates,
                        Tensor row_factor, int64_t scaled_begin, int64_t scaled_end, double beta1, double beta2,
                        double eps);
+using pixel_rays = std::vector<Tensor>(Tensor pixel, Tensor intrinsics, Tensor c2w, Tensor pixels, Tensor offsets,
+                                         Tensor sizes, bool coherent, double extent);
 using splat_composite = std::vector<Tensor>(Tensor means2d, Tensor conics, Tensor colours, Tensor opacities,
                                             Tensor radii, Tensor order, int64_t x0, int64_t y0, int64_t w, int64_t h,
                                             Tensor background);

@@ -1,6 +1,7 @@
 """The training photos' pixels as rays: a RaySet holds every photo's pixels with its camera, makes the world ray of
 any pixel, and draws the fit's batches (random pixels, square tiles, a share from an error map), ordered so that rays
-passing near each other sit together."""
+passing near each other sit together. On the CPU a batch's rays, colours and order are made in one native pass
+(torch.ops.voxfield.pixel_rays); on a GPU by torch's operators on the set's tables (`torch_pixel_rays`, the same rays)."""
 from __future__ import annotations
 
 import copy
@@ -8,6 +9,7 @@ import copy
 import numpy as np
 import torch
 
+from plenoxels.core import native
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.error_map import ErrorMap
 from plenoxels.core.photo_colour import PhotoColour
@@ -89,12 +91,21 @@ class RaySet:
 
     def rays(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """World origins and unit directions [B, 3] through pixel centres (plenoxels.core.cameras convention)."""
-        k = self.k[image]
-        d_cam = torch.stack([(col.float() + 0.5 - k[:, 2]) / k[:, 0], -(row.float() + 0.5 - k[:, 3]) / k[:, 1],
-                             -torch.ones_like(k[:, 0])], dim=-1)
-        c2w = self.c2w[image]
-        d = torch.einsum("bij,bj->bi", c2w[:, :3, :3], d_cam)
-        return c2w[:, :3, 3].contiguous(), (d / d.norm(dim=-1, keepdim=True)).contiguous()
+        _, _, o, d, _ = self.pixel_rays(self.flat(image, row, col))
+        return o, d
+
+    def flat(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
+        """The flat indices [B] of these pixels into the set's table of pixels."""
+        return self.offsets[image] + row * self.sizes[image, 1] + col
+
+    def pixel_rays(self, pixel: torch.Tensor, coherent: bool = False) -> tuple[torch.Tensor, ...]:
+        """(order [B], image [B], world origins, unit directions [B, 3], colours [B, 3] in [0, 1]) of the pixels at
+        flat indices `pixel`, output i being pixel order[i]: the pixels' own order, or with `coherent` coherent_order's
+        (ties in the pixels' order)."""
+        if self.device.type == "cpu":
+            return tuple(native.ops.pixel_rays(pixel.long().contiguous(), self.k, self.c2w, self.pixels, self.offsets,
+                                               self.sizes, coherent, COHERENT_EXTENT))
+        return torch_pixel_rays(self, pixel, coherent)
 
     def batch(self, size: int, mode: str, tile: int, generator: torch.Generator, coherent: bool = False,
               with_backdrops: bool = False, error_map: ErrorMap | None = None, error_share: float = 0.0,
@@ -107,14 +118,9 @@ class RaySet:
         device = self.device
         if mode == "rays":
             by_error = round(size * error_share) if error_map is not None and error_map.measured else 0
-            flat = torch.randint(self.num_pixels, (size - by_error,), generator=generator).to(device)
-            image = torch.searchsorted(self.offsets, flat, right=True) - 1
-            local = flat - self.offsets[image]
-            w = self.sizes[image, 1]
-            row, col = local // w, local % w
+            pixel = torch.randint(self.num_pixels, (size - by_error,), generator=generator).to(device)
             if by_error:
-                drawn = [t.to(device) for t in error_map.draw(by_error, generator)]
-                image, row, col = (torch.cat([a, b]) for a, b in zip((image, row, col), drawn))
+                pixel = torch.cat([pixel, self.flat(*(t.to(device) for t in error_map.draw(by_error, generator)))])
         else:
             n_tiles = max(1, size // (tile * tile))
             image = torch.multinomial(self.image_pixels, n_tiles, replacement=True, generator=generator).to(device)
@@ -125,17 +131,13 @@ class RaySet:
             dy, dx = torch.meshgrid(torch.arange(tile, device=device), torch.arange(tile, device=device), indexing="ij")
             dy, dx = dy.reshape(1, -1), dx.reshape(1, -1)
             inside = (dy < th[:, None]) & (dx < tw[:, None])
-            image = image[:, None].expand(-1, tile * tile)[inside]
-            row = (top[:, None] + dy)[inside]
-            col = (left[:, None] + dx)[inside]
-        o, d = self.rays(image, row, col)
-        target = self.colours(image, row, col)
-        drawn = [o, d, target if colour is None else colour.to_common(image, target, self.put_in(image, row, col))]
+            pixel = (self.offsets[image][:, None] + (top[:, None] + dy) * w[:, None] + left[:, None] + dx)[inside]
+        order, image, o, d, target = self.pixel_rays(pixel, coherent and mode == "rays")
+        if colour is not None:
+            target = colour.to_common(image, target, self.put_in_at(image, pixel[order]))
+        drawn = [o, d, target]
         if with_backdrops:  # as the photos' colours are: in their common colour where `colour` takes them there
             drawn.append(self.backdrops[image] if colour is None else colour.to_common(image, self.backdrops[image]))
-        if coherent and mode == "rays":
-            order = coherent_order(o, d)
-            drawn = [t[order] for t in drawn]
         return tuple(drawn)
 
     def lattice(self, stride: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -152,21 +154,24 @@ class RaySet:
 
     def colours(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
         """The photos' colours [B, 3] in [0, 1] at these pixels (on this set's device)."""
-        return self.pixels[self.offsets[image] + row * self.sizes[image, 1] + col].float() / 255.0
+        return self.pixels[self.flat(image, row, col)].float() / 255.0
 
     def put_in(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor | None:
         """The part of the photos' colours [B, 3] at these pixels that their masks put there (the colour behind the
         photo times one less the mask's coverage); None where the set keeps no masks."""
+        return self.put_in_at(image, self.flat(image, row, col))
+
+    def put_in_at(self, image: torch.Tensor, pixel: torch.Tensor) -> torch.Tensor | None:
+        """put_in of the pixels at flat indices `pixel` of these images."""
         if self.coverage is None:
             return None
-        outside = 1.0 - self.coverage[self.offsets[image] + row * self.sizes[image, 1] + col].float() / 255.0
-        return outside[:, None] * self.behind[image]
+        return (1.0 - self.coverage[pixel].float() / 255.0)[:, None] * self.behind[image]
 
     def inside(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor | None:
         """Whether each of these pixels lies wholly inside its photo's mask [B] (None where the set keeps no masks)."""
         if self.coverage is None:
             return None
-        return self.coverage[self.offsets[image] + row * self.sizes[image, 1] + col] == 255
+        return self.coverage[self.flat(image, row, col)] == 255
 
     def strided_rays(self, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Rays through a regular subset of every image's pixels (every stride-th row and column)."""
@@ -174,15 +179,37 @@ class RaySet:
         return self.rays(image, row, col)
 
 
-def coherent_order(origins: torch.Tensor, dirs: torch.Tensor, extent: float = 2.0) -> torch.Tensor:
+# The coherent order's cube: rays' closest points beyond it share its faces (the normalised frame puts the foreground
+# inside [-1, 1]^3).
+COHERENT_EXTENT = 2.0
+
+
+def torch_pixel_rays(rays: RaySet, pixel: torch.Tensor, coherent: bool = False) -> tuple[torch.Tensor, ...]:
+    """RaySet.pixel_rays made of torch's operators, on any device: what the native pass computes on the CPU."""
+    image = torch.searchsorted(rays.offsets, pixel, right=True) - 1
+    local = pixel - rays.offsets[image]
+    w = rays.sizes[image, 1]
+    k = rays.k[image]
+    d_cam = torch.stack([((local % w).float() + 0.5 - k[:, 2]) / k[:, 0],
+                         -(((local // w).float() + 0.5 - k[:, 3]) / k[:, 1]), -torch.ones_like(k[:, 0])], dim=-1)
+    c2w = rays.c2w[image]
+    d = (c2w[:, :3, :3] * d_cam[:, None, :]).sum(-1)
+    o, d = c2w[:, :3, 3].contiguous(), (d / d.norm(dim=-1, keepdim=True)).contiguous()
+    colours = rays.pixels[pixel].float() / 255.0
+    order = coherent_order(o, d) if coherent else torch.arange(pixel.shape[0], device=pixel.device)
+    return order, image[order], o[order], d[order], colours[order]
+
+
+def coherent_order(origins: torch.Tensor, dirs: torch.Tensor, extent: float = COHERENT_EXTENT) -> torch.Tensor:
     """A permutation that puts rays passing near each other next to each other: by the Morton code (a space-filling
     curve, 10 bits per axis) of each ray's point closest to the scene's centre, which the normalised frame puts at the
-    origin with the foreground inside [-1, 1]^3 (points beyond `extent` share the faces of the curve's cube)."""
+    origin with the foreground inside [-1, 1]^3 (points beyond `extent` share the faces of the curve's cube); a stable
+    sort, so that rays of one code keep their order."""
     unit = dirs / dirs.norm(dim=1, keepdim=True)
     closest = origins - unit * (origins * unit).sum(1, keepdim=True)
     cell = ((closest.clamp(-extent, extent) + extent) / (2 * extent) * 1023).long()
     spread = _every_third_bit(cell)
-    return torch.argsort(spread[:, 0] | (spread[:, 1] << 1) | (spread[:, 2] << 2))
+    return torch.argsort(spread[:, 0] | (spread[:, 1] << 1) | (spread[:, 2] << 2), stable=True)
 
 
 def _every_third_bit(v: torch.Tensor) -> torch.Tensor:

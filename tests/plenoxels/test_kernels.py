@@ -3,11 +3,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
 from plenoxels.core import native
 from plenoxels.core import reference
+from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.grid import SparseGrid
 from plenoxels.core.grid import OCCUPANCY_BLOCK
 from plenoxels.core.optim import GridGrad, SparseRMSProp
@@ -15,6 +17,7 @@ from plenoxels.core.regularizers import SPARSITY_THICKNESS, sample_rows, sparsit
 from plenoxels.core.render import RenderOptions
 from plenoxels.core.render import COLOUR_OFFSET, SH_C0, light_past_grid, loss_and_grad, max_weights, ray_samples, render
 from plenoxels.core.render import sample_counts
+from plenoxels.core.ray_set import RaySet, coherent_order, torch_pixel_rays
 from twin_checks import assert_loss_and_grad_match_twin, assert_render_matches_twin
 
 ATOL = 2e-5
@@ -538,3 +541,56 @@ def test_live_block_flags_stay_exact_when_threads_share_blocks():
     assert stale_steps == 0, f"{stale_steps} of 100 steps left a live block flagged empty"
     fresh = SparseGrid(grid.links, grid.data.clone(), grid.bbox_min, grid.bbox_max, grid.sh_degree)
     assert torch.equal(blocks, fresh.live_blocks()[1])
+
+
+def photos_of_four_sizes(seed: int = 0) -> RaySet:
+    """Four photos of random pixels and sizes (one of 5x7), random cameras looking near the centre from 1 to 7 units."""
+    rng = np.random.default_rng(seed)
+    sizes = [(37, 53), (64, 48), (5, 7), (120, 90)]
+    images = [rng.integers(0, 256, (h, w, 3), dtype=np.uint8) for h, w in sizes]
+    c2ws = [look_at(rng.normal(size=3) * 3, rng.normal(size=3) * 0.3) for _ in sizes]
+    ks = [Intrinsics(float(rng.uniform(20, 200)), float(rng.uniform(20, 200)), w * rng.uniform(0.3, 0.7),
+                     h * rng.uniform(0.3, 0.7), w, h) for h, w in sizes]
+    return RaySet(images, c2ws, ks)
+
+
+@pytest.mark.parametrize("coherent", [False, True])
+def test_a_batchs_rays_in_one_native_pass_are_the_twins(coherent):
+    # Random pixels of every photo and the first and last of each (where one photo's run of pixels meets the next):
+    # the same order, photos, rays and colours as the torch operators (the twin, and the GPU's path) make.
+    photos = photos_of_four_sizes()
+    ends = torch.cat([photos.offsets[:-1], photos.offsets[1:] - 1])
+    pixel = torch.cat([torch.randint(photos.num_pixels, (20000,), generator=torch.Generator().manual_seed(1)), ends])
+    got = photos.pixel_rays(pixel, coherent)
+    want = torch_pixel_rays(photos, pixel, coherent)
+    order, image, o, d, rgb = got
+    assert torch.equal(order, want[0]) and torch.equal(image, want[1])
+    torch.testing.assert_close(o, want[2], atol=0, rtol=0)
+    torch.testing.assert_close(d, want[3], atol=3e-7, rtol=0)
+    torch.testing.assert_close(rgb, want[4], atol=0, rtol=0)
+    # Each output is its pixel's ray: through the pixel's centre from the camera, and the pixel's colour.
+    for n in range(len(photos)):
+        mine = image == n
+        local = pixel[order][mine] - photos.offsets[n]
+        w, k, c2w = photos.intrinsics[n].w, photos.k[n].double(), photos.c2w[n].double()
+        cam = torch.stack([((local % w).double() + 0.5 - k[2]) / k[0], -((local // w).double() + 0.5 - k[3]) / k[1],
+                           -torch.ones(len(local), dtype=torch.float64)], dim=1)
+        world = torch.nn.functional.normalize(cam @ c2w[:3, :3].T, dim=1)
+        torch.testing.assert_close(d[mine].double(), world, atol=1e-6, rtol=0)
+        assert torch.equal(o[mine], photos.c2w[n, :3, 3].expand(int(mine.sum()), 3))
+        assert torch.equal(rgb[mine], photos.image(n).reshape(-1, 3)[local])
+    if coherent:  # by the Morton code of each ray's closest point, ties in the pixels' order
+        assert torch.equal(order.sort().values, torch.arange(len(pixel)))
+        assert torch.equal(coherent_order(o, d), torch.arange(len(pixel)))
+        assert not torch.equal(order, torch.arange(len(pixel)))
+    else:
+        assert torch.equal(order, torch.arange(len(pixel)))
+
+
+def test_a_batchs_native_rays_refuse_a_pixel_outside_the_photos_and_take_an_empty_batch():
+    photos = photos_of_four_sizes()
+    for outside in (-1, photos.num_pixels):
+        with pytest.raises(RuntimeError, match="outside the photos"):
+            photos.pixel_rays(torch.tensor([0, outside]))
+    order, image, o, d, rgb = photos.pixel_rays(torch.zeros(0, dtype=torch.int64), coherent=True)
+    assert order.shape == image.shape == (0,) and o.shape == d.shape == rgb.shape == (0, 3)
