@@ -115,14 +115,14 @@ class TimeBudget:
         self.deadline = self.started + self.seconds - fitter.elapsed
         start = sum(self.schedule.steps[:fitter.level])
         self.schedule.steps[fitter.level] = max(self.schedule.steps[fitter.level], fitter.step - start)
-        measured, resolutions = {}, self.schedule.resolutions
-        for level, entry in enumerate(fitter.levels):
-            measured[self._keep_measured(level + 1)] = _kept_share(entry)
-            if entry.get("upsampled") and self.facts.prune_upsampled:
-                measured["upsample_band"] = upsample_band(entry["occupied"] / entry["upsampled"],
-                                                          resolutions[level + 1] / resolutions[level])
+        resolutions = self.schedule.resolutions
         self.now = self.facts.outlook(level=fitter.level, step=fitter.step, voxels=fitter.model.grid.num_occupied,
-                                      dense=not fitter.levels, **measured)
+                                      dense=not fitter.levels)
+        for level, entry in enumerate(fitter.levels):
+            self.now.kept(self._keep_measured(level + 1), _kept_share(entry))
+            if entry.get("upsampled") and self.facts.prune_upsampled:
+                self.now.upsample_band = upsample_band(entry["occupied"] / entry["upsampled"],
+                                                       resolutions[level + 1] / resolutions[level])
         self._last = time.perf_counter()
 
     def due(self) -> bool:
@@ -159,7 +159,7 @@ class TimeBudget:
         predicted = change_seconds(self.costs, self.facts, before, after, entry.get("upsampled") or entry["occupied"],
                                    entry["occupied"])
         self.now.change_ratio = change / max(predicted, 1e-9)
-        setattr(self.now, self._keep_measured(fitter.level), _kept_share(entry))
+        self.now.kept(self._keep_measured(fitter.level), _kept_share(entry))
         if entry.get("upsampled") and self.facts.prune_upsampled:
             self.now.upsample_band = upsample_band(entry["occupied"] / entry["upsampled"], after / before)
         if self._intervals:

@@ -436,3 +436,26 @@ def test_a_level_that_began_as_a_pruned_upsample_is_predicted_to_keep_more_at_it
                             steps[:3]) == rest
     assert fit_plan.predict(MEASURED, facts, dataclasses.replace(at_rest, later_keep=0.3), resolutions[:3],
                             steps[:3]) < rest
+
+
+def test_a_first_prune_that_keeps_most_of_its_box_speaks_for_the_later_prunes_until_one_is_measured():
+    """A room seen from inside keeps most of itself at its first prune and again at the next: its early-pruned first
+    resolution's rest is predicted to keep the first prune's share, not the prior's, and so its finer levels to be as
+    large as they will be. An object's first prune clears its box's air, and the prior stands for its rest."""
+    facts = FitFacts(**{**FACTS.__dict__, "checkpoint_every": 1e9, "eval_rays": 0})
+    resolutions, steps = [48, 48, 128], [100, 200, 500]
+
+    def after_first_prune(share: float) -> Outlook:
+        now = Outlook(level=1, step=100, voxels=int(share * 48 ** 3), dense=False)
+        now.kept("first_keep", share)
+        return now
+
+    room, thing = after_first_prune(0.97), after_first_prune(0.2)
+    assert room.later_keep == 0.97 and thing.later_keep == fit_plan.LATER_KEEP_PRIOR
+    on_prior = dataclasses.replace(room, later_keep=fit_plan.LATER_KEEP_PRIOR)
+    assert (fit_plan.predict(MEASURED, facts, room, resolutions, steps)
+            > fit_plan.predict(MEASURED, facts, on_prior, resolutions, steps))
+    room.kept("later_keep", 0.7)  # measured: it stands
+    assert room.later_keep == 0.7 and room.first_keep == 0.97
+    room.kept("first_keep", 0.5)  # a first share below a measured later one leaves it
+    assert room.later_keep == 0.7
