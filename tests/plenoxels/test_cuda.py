@@ -92,11 +92,11 @@ def test_cuda_glue_syntax(tmp_path):
 
 
 # Operators with one kernel for every device, and the CPU-only ones: one advises host memory; the grid's loss that draws
-# the background spheres in its own pass (a GPU draws them all beforehand); the splats are distilled and scored on the
-# CPU (their compositing and row Adam).
+# the background spheres in its own pass (a GPU draws them all beforehand); a batch's rays (a GPU makes them with torch's
+# operators on the ray set's tables); the splats are distilled and scored on the CPU (their compositing and row Adam).
 DEVICE_FREE_OPS = {"padded_stride", "num_threads"}
-CPU_ONLY_OPS = {"advise_huge_pages", "loss_and_grad_spheres", "splat_composite", "splat_composite_backward",
-                "adam_rows"}
+CPU_ONLY_OPS = {"advise_huge_pages", "loss_and_grad_spheres", "pixel_rays", "splat_composite",
+                "splat_composite_backward", "adam_rows"}
 
 
 def _declared_ops() -> set[str]:
