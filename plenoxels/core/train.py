@@ -437,7 +437,7 @@ class Fitter:
         rendered, photo, opacity = [], [], []
         for start in range(0, image.shape[0], RAY_CHUNK):
             i, r, c = (t[start:start + RAY_CHUNK].to(self.device) for t in (image, row, col))
-            o_w, d_w = self.train.rays(i, r, c)
+            _, _, o_w, d_w, colours = self.train.pixel_rays(self.train.flat(i, r, c))  # the photo's colours with them
             with torch.no_grad():
                 background = (self.backdrops_in_common(i) if self.own_backdrops
                               else self.model.background_rgb(o_w, d_w))
@@ -446,7 +446,7 @@ class Fitter:
                             self.model.background_past_grid_only)
             rendered.append(result.rgb.cpu())
             opacity.append(result.opacity.cpu())
-            photo.append(self.train.colours(i, r, c).cpu())
+            photo.append(colours.cpu())
         return torch.cat(rendered), torch.cat(photo), torch.cat(opacity)
 
     def check_finite(self) -> None:
