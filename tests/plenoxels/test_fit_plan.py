@@ -189,23 +189,24 @@ def test_a_replan_follows_the_measured_cost_and_drops_a_level_that_cannot_conver
 
 def test_a_replan_keeps_a_short_level_rather_than_end_the_fit_early_without_it():
     """After a level change, steps dearer than modelled leave the last level less than half its steps; without it the
-    levels before, at twice their steps, would end the fit with time unused: it stays, with what fits (lowered to the
-    finest resolution that gets half its steps)."""
+    levels before, at twice their steps, would end the fit with time unused: it stays, lowered to the finest
+    resolution that gets half its steps."""
     rung = next(r for r in fit_plan.LADDER if r.resolutions == (32, 64, 128))
     resolutions, planned = list(rung.resolutions), rung.scaled(0.6)
     now = Outlook(level=1, step=planned[0] + 20, voxels=50_000, dense=False, step_ratio=1.3, ratio_at_first=False,
                   step_seconds=1.3 * MEASURED.step_seconds(50_000))
 
-    def left(levels, share):  # the first level done as planned
+    def left(levels, share, last=resolutions[-1]):  # the first level done as planned
         steps = planned[:1] + rung.scaled(share)[1:]
-        return fit_plan.predict(MEASURED, FACTS, now, resolutions[:levels], steps[:levels])
+        return fit_plan.predict(MEASURED, FACTS, now, (resolutions[:-1] + [last])[:levels], steps[:levels])
 
     two_at_most, three_at_least = left(2, fit_plan.MAX_SHARE), left(3, fit_plan.MIN_SHARE)
     assert two_at_most < three_at_least
     seconds = (two_at_most + three_at_least) / 2
     kept, steps, share = fit_plan.replan(seconds, MEASURED, FACTS, now, rung, resolutions, planned, measured=True)
-    assert kept[:2] == resolutions[:2] and len(kept) == 3 and share > 0
-    assert kept[2] == resolutions[2] or (kept[2] < resolutions[2] and share >= fit_plan.MIN_SHARE)
+    assert kept[:2] == resolutions[:2] and kept[2] < resolutions[2] and share >= fit_plan.MIN_SHARE
+    assert (resolutions[2] - kept[2]) % fit_plan.LOWER_BY == 0
+    assert left(3, fit_plan.MIN_SHARE, kept[2] + fit_plan.LOWER_BY) > seconds  # one rung finer does not get half
     assert fit_plan.predict(MEASURED, FACTS, now, kept, steps) <= seconds
     # Where the levels before would use the time, the level is dropped, as before.
     seconds = two_at_most * 0.99
