@@ -152,10 +152,6 @@ class RaySet:
             col.append(c.reshape(-1))
         return torch.cat(image), torch.cat(row), torch.cat(col)
 
-    def colours(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
-        """The photos' colours [B, 3] in [0, 1] at these pixels (on this set's device)."""
-        return self.pixels[self.flat(image, row, col)].float() / 255.0
-
     def put_in(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor | None:
         """The part of the photos' colours [B, 3] at these pixels that their masks put there (the colour behind the
         photo times one less the mask's coverage); None where the set keeps no masks."""
