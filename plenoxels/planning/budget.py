@@ -5,8 +5,8 @@
 times, level changes, what each prune keeps and its held-out renders. Every REPLAN_EVERY steps and at each level
 change it re-plans the steps of the levels under way and to come (dropping a level that cannot get half its steps,
 bringing a dropped one back when the costs measured since fit it, raising a last level to come that would get more
-than MAX_SHARE of its steps, and lowering a last level too dear for half of them), and
-it says when the fit must stop so that the stage ends by the deadline with a complete model.
+than MAX_SHARE of its steps, and lowering a last level too dear for half of them), and it says when the fit must
+stop so that the stage ends by the deadline with a complete model.
 """
 from __future__ import annotations
 

@@ -58,7 +58,8 @@ def test_masked_photos_are_measured_inside_their_masks_and_keep_what_the_masks_p
     assert int(inside.sum()) == photos * 6 * 7
     # The render: the object in the common colour, the backdrop behind it where the mask is not.
     common = (coverage[..., None] * object_colour + (1 - coverage[..., None]) * behind[:, None, None])[image, row, col]
-    pixels = rays.pixel_rays(rays.flat(image, row, col))[4].double()
+    *_, pixels = rays.pixel_rays(rays.flat(image, row, col))  # each pixel's photo colour comes last, with its ray
+    pixels = pixels.double()
     colour = PhotoColour(photos)
     colour.fit(image, common, pixels, inside)
     torch.testing.assert_close(colour.gain, gain / gain.mean(0), atol=0.01, rtol=0)
