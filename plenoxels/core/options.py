@@ -131,6 +131,11 @@ class TrainOptions:
     capturer's shadow, a glossy floor's glow; plenoxels/core/photo_colour.py, gain_fields). A held-out photo takes its
     capture neighbours' lattices where they predict the training photos' own better than their gains do
     (PhotoGains.fields_follow_order). 1: one gain per photo."""
+    empty_backdrop: bool = True
+    """Where the photos come with masks and the model shows one colour past an object (no background model), a ray
+    through a pixel no mask covers sees a random colour past the grid and is trained toward it: what the photos show
+    empty the fit leaves empty. Against the photos' own backdrop colour, haze of that colour costs nothing (a skirt
+    under lego's baseplate, white where the photos see it, grey from below; bench/README.md, "The papers' protocol")."""
     error_share: float = 0.0
     """Share of each batch of random rays drawn where the render still disagrees with the photos, in proportion to
     the RMS error of each block of pixels (plenoxels/core/error_map.py); the rest are uniform (0: every ray uniform;

@@ -27,7 +27,8 @@ class RaySet:
     """
 
     def __init__(self, images: list[np.ndarray], c2ws: list[np.ndarray], intrinsics: list[Intrinsics],
-                 backdrops: list | None = None, masks: list[np.ndarray] | None = None, behind: list | None = None):
+                 backdrops: list | None = None, masks: list[np.ndarray] | None = None, behind: list | None = None,
+                 empty: list[np.ndarray] | None = None):
         # Each photo's own backdrop colour (RGB in [0, 1]) where the photos of an object show it on backdrops of
         # different colours: what a ray of that photo sees past the grid. None: the model's one colour or background.
         self.backdrops = torch.tensor(np.asarray(backdrops, dtype=np.float32).reshape(-1, 3)) if backdrops else None
@@ -35,6 +36,8 @@ class RaySet:
         # each pixel's coverage by its mask (uint8 [P]) and the colour composited behind each photo [N, 3].
         self.coverage = torch.cat([torch.from_numpy(as_bytes(m).reshape(-1)) for m in masks]) if masks else None
         self.behind = torch.tensor(np.asarray(behind, dtype=np.float32).reshape(-1, 3)) if masks else None
+        # Whether no mask covers each pixel at all (bool [P]), where the fit trains such rays toward random backdrops.
+        self.empty = torch.cat([torch.from_numpy(e.reshape(-1).astype(bool)) for e in empty]) if empty else None
         self.sizes = torch.tensor([[k.h, k.w] for k in intrinsics], dtype=torch.int64)
         counts = self.sizes[:, 0] * self.sizes[:, 1]
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.int64), counts.cumsum(0)])
@@ -52,7 +55,7 @@ class RaySet:
         moved = copy.copy(self)
         for name in ("sizes", "offsets", "pixels", "c2w", "k"):  # not image_pixels
             setattr(moved, name, getattr(self, name).to(device))
-        for name in ("backdrops", "coverage", "behind"):
+        for name in ("backdrops", "coverage", "behind", "empty"):
             if getattr(self, name) is not None:
                 setattr(moved, name, getattr(self, name).to(device))
         return moved
@@ -80,10 +83,13 @@ class RaySet:
         masks = None
         if self.coverage is not None:
             masks = [self.coverage[self.offsets[i]:self.offsets[i + 1]].cpu().numpy() for i in indices]
+        empty = None
+        if self.empty is not None:
+            empty = [self.empty[self.offsets[i]:self.offsets[i + 1]].cpu().numpy() for i in indices]
         return RaySet([self.image(i).cpu().numpy() for i in indices], [self.c2w[i].double().cpu().numpy() for i in indices],
                       [self.intrinsics[i] for i in indices],
                       None if self.backdrops is None else self.backdrops[indices].cpu().tolist(),
-                      masks, None if masks is None else self.behind[indices].cpu().tolist())
+                      masks, None if masks is None else self.behind[indices].cpu().tolist(), empty)
 
     def backdrop(self, index: int) -> list[float] | None:
         """Photo `index`'s own backdrop colour (None where the photos have none of their own)."""
@@ -109,9 +115,10 @@ class RaySet:
 
     def batch(self, size: int, mode: str, tile: int, generator: torch.Generator, coherent: bool = False,
               with_backdrops: bool = False, error_map: ErrorMap | None = None, error_share: float = 0.0,
-              colour: PhotoColour | None = None):
+              colour: PhotoColour | None = None, with_empty: bool = False):
         """A training batch: world origins, directions [B, 3] and target colours [B, 3] in [0, 1], and with
-        `with_backdrops` each ray's photo's backdrop colour [B, 3] after them; with `coherent`, random rays come ordered
+        `with_backdrops` each ray's photo's backdrop colour [B, 3] after them, with `with_empty` whether no mask covers
+        each ray's pixel [B] (None where the set keeps no such record) last; with `coherent`, random rays come ordered
         by coherent_order. Random rays: `error_share` of them drawn from `error_map` once it is measured. With `colour`
         the target colours are the photos' taken back to their common colour. `generator` is a CPU generator; the batch
         is on this set's device."""
@@ -138,6 +145,8 @@ class RaySet:
         drawn = [o, d, target]
         if with_backdrops:  # as the photos' colours are: in their common colour where `colour` takes them there
             drawn.append(self.backdrops[image] if colour is None else colour.to_common(image, self.backdrops[image]))
+        if with_empty:
+            drawn.append(None if self.empty is None else self.empty[pixel[order]])
         return tuple(drawn)
 
     def lattice(self, stride: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -214,3 +223,17 @@ def _every_third_bit(v: torch.Tensor) -> torch.Tensor:
     v = (v | (v << 8)) & 0x0300F00F
     v = (v | (v << 4)) & 0x030C30C3
     return (v | (v << 2)) & 0x09249249
+
+
+def random_where_empty(empty: torch.Tensor, background: torch.Tensor, target: torch.Tensor,
+                       generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """The backdrops [B, 3] and targets [B, 3] of a batch whose rays through pixels no mask covers (`empty` [B]) see
+    a random colour past the grid and are trained toward it: such a ray is right only where the field leaves it
+    empty, whatever colour the photos' own backdrop is."""
+    count = int(empty.sum())
+    if count == 0:
+        return background, target
+    colours = torch.rand(count, 3, generator=generator).to(target.device)
+    background, target = background.expand_as(target).clone(), target.clone()
+    background[empty], target[empty] = colours, colours
+    return background, target

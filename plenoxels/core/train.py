@@ -33,7 +33,7 @@ from plenoxels.core.optim import GridGrad, SparseRMSProp
 from plenoxels.core.options import TrainOptions
 from plenoxels.core.photo_colour import (COLOUR_RAYS, DECIDING_MEASURES, PhotoColour, gain_field_lattice,
                                          gain_fields)
-from plenoxels.core.ray_set import RaySet
+from plenoxels.core.ray_set import RaySet, random_where_empty
 from plenoxels.core.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution,
                                     tv_scale_for_views, views_per_point)
 from plenoxels.core.render import loss_and_grad, loss_and_grad_before_spheres, max_weights, render
@@ -136,10 +136,8 @@ def budget_mask(grid: SparseGrid, keep: torch.Tensor, weights: torch.Tensor, bud
     """Narrows `keep` to the `budget_rows` rows with the largest weights when it holds more."""
     if int(keep.sum()) <= budget_rows:
         return keep
-    score = torch.where(keep, weights, torch.full_like(weights, -1.0))
-    top = torch.topk(score, budget_rows).indices
     narrowed = torch.zeros_like(keep)
-    narrowed[top] = True
+    narrowed[torch.topk(torch.where(keep, weights, torch.full_like(weights, -1.0)), budget_rows).indices] = True
     return narrowed
 
 
@@ -272,11 +270,10 @@ class Fitter:
                           decayed_lr(o.lr_sh, o.lr_sh_final, progress))
         if self.measures() and self.step > 0 and (self.step % o.measure_every == 0 or self.level_starts()):
             self.measure_photos()
-        drawn = [t.to(self.device) for t in self.train.batch(o.batch_size, o.batch_mode, o.tile_size, self.generator,
-                                                             o.coherent_batches, with_backdrops=self.own_backdrops,
-                                                             error_map=self.error_map, error_share=o.error_share,
-                                                             colour=self.colour if self.fits_colour else None)]
-        o_w, d_w, target = drawn[:3]
+        drawn = [t.to(self.device) for t in self.train.batch(
+            o.batch_size, o.batch_mode, o.tile_size, self.generator, o.coherent_batches, self.own_backdrops,
+            self.error_map, o.error_share, self.colour if self.fits_colour else None, self.empty_backdrop)]
+        o_w, d_w, target, empty = *drawn[:3], (drawn[-1] if self.empty_backdrop else None)
         o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
         near_gradient = 0.0 if self.model.fit_frame.ndc is not None else o.near_gradient_distance
         # On a CPU the grid's kernel draws the background spheres itself, only on the rays it lets light past (a ray
@@ -294,6 +291,8 @@ class Fitter:
                 background = (self.bg_optim.forward(o_w, d_w) if self.bg_optim is not None
                               else self.model.background_rgb(o_w, d_w))
             self.background_seconds += time.perf_counter() - started
+            if empty is not None:
+                background, target = random_where_empty(empty, background, target, self.generator)
             mse, grad_background = loss_and_grad(self.model.grid, o_fit, d_fit, target, background,
                                                  self.model.render_options, self.grad, near_gradient=near_gradient,
                                                  past_grid_only=self.model.background_past_grid_only)
@@ -349,6 +348,11 @@ class Fitter:
     def own_backdrops(self) -> bool:
         """Whether each photo shows its own backdrop colour past the grid (RaySet.backdrops), not a background model."""
         return self.train.backdrops is not None and self.bg_optim is None
+
+    @property
+    def empty_backdrop(self) -> bool:
+        """TrainOptions.empty_backdrop where it applies: an object's fit (no background model), every photo masked."""
+        return self.options.empty_backdrop and self.train.empty is not None and self.model.background is None
 
     @property
     def backdrop_as_taken(self) -> bool:
@@ -424,16 +428,14 @@ class Fitter:
         return gain_fields(image, row, col, self.train.sizes.cpu(), rendered, photo, self.colour.gain, shape, inside)
 
     def gain_field_rays(self) -> int:
-        """Rays gain_fields renders at the fit's end: 0 where it takes the photos as they are (the time budget keeps
-        this much time for it)."""
+        """Rays gain_fields renders at the fit's end, which a budget keeps time for (0: photos taken as they are)."""
         if not (self.fits_colour or self.colour_deciding) or self.options.photo_colour_cells <= 1:
             return 0
         stride = gain_field_lattice(self.train.sizes, self.options.photo_colour_cells)[1]
         return int(((self.train.sizes + stride - 1 - stride // 2) // stride).prod(dim=1).sum())
 
     def render_pixels(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """The render and the photo's colour [B, 3] and the render's opacity [B] at these training pixels, on the
-        CPU."""
+        """The render, the photo's colour [B, 3] and the render's opacity [B] at these training pixels, on the CPU."""
         rendered, photo, opacity = [], [], []
         for start in range(0, image.shape[0], RAY_CHUNK):
             i, r, c = (t[start:start + RAY_CHUNK].to(self.device) for t in (image, row, col))
@@ -452,9 +454,8 @@ class Fitter:
     def check_finite(self) -> None:
         columns = 1 + 3 * sh_count(self.model.grid.sh_degree)
         data = self.model.grid.data
-        # The whole table's extremes first (a NaN or an infinity shows in them): one aminmax pass over the table is
-        # far cheaper on the CPU than isfinite().all() over the parameter columns. Only where they are not finite are
-        # the parameter columns read, so a row's padding never counts.
+        # The whole table's extremes first (a NaN or an infinity shows in them): one aminmax pass is far cheaper on the
+        # CPU than isfinite().all(). Only where they are not finite are the parameter columns read (never the padding).
         extremes_finite = data.numel() > 0 and all(math.isfinite(float(x)) for x in torch.aminmax(data))
         if not extremes_finite and not bool(torch.isfinite(data[:, :columns]).all()):
             raise Diverged("a grid parameter became NaN or infinite")
@@ -495,9 +496,8 @@ class Fitter:
             return (f", the photos agree on colour (gains {self.colour_gain_db:+.2f} dB nearer them at first, under "
                     f"{self.options.photo_colour_min_db:g}): taken as they are")
         gains = self.colour.describe()
-        brought = f", {self.colour_gain_db:+.1f} dB at first"
-        return (f", each photo's colour fitted (gains {min(gains['gain_min']):.2f}-{max(gains['gain_max']):.2f}"
-                f"{brought}; train PSNR in the common colour)")
+        return (f", each photo's colour fitted (gains {min(gains['gain_min']):.2f}-{max(gains['gain_max']):.2f}, "
+                f"{self.colour_gain_db:+.1f} dB at first; train PSNR in the common colour)")
 
     def train_psnr(self) -> float:
         return psnr(sum(self.recent_mse) / len(self.recent_mse)) if self.recent_mse else float("nan")
@@ -558,8 +558,7 @@ class Fitter:
         return {
             "step": self.step, "level": self.level, "elapsed": self.elapsed, "history": self.history,
             "levels": self.levels, "recent_mse": self.recent_mse, "generator": self.generator.get_state(),
-            "grid": self.model.grid.state_dict(),
-            "optim": self.optim.state_dict(),
+            "grid": self.model.grid.state_dict(), "optim": self.optim.state_dict(),
             "background": self.model.background.state_dict() if self.model.background is not None else None,
             "background_color": list(self.model.background_color),
             "bg_optim": self.bg_optim.state_dict() if self.bg_optim is not None else None,

@@ -73,6 +73,7 @@ def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBu
         "background_added": ending.background_why or None,
         "scene_model": model_trial.model_name(model), "model_choice": inputs.choice or {},
         "own_backdrops": fitter.train.backdrops is not None and model.background is None,
+        "empty_backdrop": fitter.empty_backdrop,
     }
     if inputs.device.type == "cpu":
         used, available = fitter.grad.threads()
@@ -126,6 +127,8 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
                  f"threads (a gradient table per thread would pass their share of the memory)")
     if record["own_backdrops"]:
         line += ", each photo's own backdrop colour past the grid"
+    if record["empty_backdrop"]:
+        line += ", random backdrops where the masks are empty"
     if model.fit_frame.ndc is not None:
         line += ", in NDC"
     if model.fit_frame.contraction is not None:

@@ -60,19 +60,22 @@ def training_frames(scene: dict, report) -> tuple[list[dict], list[dict]]:
 
 
 def load_training(root: Path, frames: list[dict], scale: float, background_color, report,
-                  with_masks: bool = False) -> RaySet:
+                  with_masks: bool = False, with_empty: bool = False) -> RaySet:
     """The training frames' pixels (masks composited onto `background_color`), cameras and, where normalize found
     each photo's own backdrop colour, those; `with_masks`, the masks too where the photos have them (what the fit's
-    measure of each photo's colour leaves out). Each photo is turned to bytes as it is read, so the floats of one photo
-    at a time are held, never of all (lego's 100 photos at 800x800: 0.2 GB, not 0.8)."""
-    images, c2ws, ks, masks = [], [], [], []
+    measure of each photo's colour leaves out); `with_empty`, where every photo has a mask, the pixels none covers.
+    Each photo is turned to bytes as it is read, so the floats of one photo at a time are held, never of all (lego's
+    100 photos at 800x800: 0.2 GB, not 0.8)."""
+    images, c2ws, ks, masks, empty = [], [], [], [], []
     loaded = load_frames(root, frames, scale, background_color)
     for frame, (image, k, mask) in zip(frames, report.track(loaded, total=len(frames), desc="loading training images")):
         images.append(as_bytes(image))
         c2ws.append(np.asarray(frame["transform_matrix"], dtype=np.float64))
         ks.append(k)
         masks.append(as_bytes(mask) if with_masks and mask is not None else None)
+        empty.append(as_bytes(mask) == 0 if with_empty and mask is not None else None)
     backdrops = [frame.get("backdrop") for frame in frames]
     behind = [frame.get("backdrop") or background_color for frame in frames]
     return RaySet(images, c2ws, ks, backdrops if all(b is not None for b in backdrops) else None,
-                  masks if all(m is not None for m in masks) else None, behind)
+                  masks if all(m is not None for m in masks) else None, behind,
+                  empty if all(e is not None for e in empty) else None)
