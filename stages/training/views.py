@@ -72,8 +72,9 @@ def load_training(root: Path, frames: list[dict], scale: float, background_color
         images.append(as_bytes(image))
         c2ws.append(np.asarray(frame["transform_matrix"], dtype=np.float64))
         ks.append(k)
-        masks.append(as_bytes(mask) if with_masks and mask is not None else None)
-        empty.append(as_bytes(mask) == 0 if with_empty and mask is not None else None)
+        mask = None if mask is None else as_bytes(mask)
+        masks.append(mask if with_masks else None)
+        empty.append(mask == 0 if with_empty and mask is not None else None)
     backdrops = [frame.get("backdrop") for frame in frames]
     behind = [frame.get("backdrop") or background_color for frame in frames]
     return RaySet(images, c2ws, ks, backdrops if all(b is not None for b in backdrops) else None,
