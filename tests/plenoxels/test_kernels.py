@@ -13,7 +13,8 @@ from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.grid import SparseGrid
 from plenoxels.core.grid import OCCUPANCY_BLOCK
 from plenoxels.core.optim import GridGrad, SparseRMSProp
-from plenoxels.core.regularizers import SPARSITY_THICKNESS, sample_rows, sparsity_loss_and_grad, tv_loss_and_grad
+from plenoxels.core.regularizers import (SAMPLE_RUN_ROWS, SPARSITY_THICKNESS, sample_rows, sparsity_loss_and_grad,
+                                         tv_loss_and_grad)
 from plenoxels.core.render import RenderOptions
 from plenoxels.core.render import COLOUR_OFFSET, SH_C0, light_past_grid, loss_and_grad, max_weights, ray_samples, render
 from plenoxels.core.render import sample_counts
@@ -286,6 +287,25 @@ def test_tv_native_matches_twin(fraction):
     assert loss_n == pytest.approx(loss_t, rel=1e-5)
     assert set(native.touched().tolist()) == set(twin.touched().tolist())
     torch.testing.assert_close(native.data, twin.data, atol=1e-7, rtol=1e-4)
+
+
+def test_regularisers_draw_runs_of_neighbouring_rows_and_every_row_as_often():
+    grid = random_grid(seed=16, holes=0.2)
+    n = grid.num_occupied
+    m = round(0.1 * n)
+    generator, counts, draws = torch.Generator().manual_seed(4), torch.zeros(n), 3000
+    for _ in range(draws):
+        rows = sample_rows(grid, 0.1, generator)
+        assert rows.shape == (m,) and int(rows.min()) >= 0 and int(rows.max()) < n
+        counts += torch.bincount(rows, minlength=n)
+    # Each row about draws * m / n times, the last rows (where runs wrap to the first) as often as any.
+    expected = draws * m / n
+    assert float(counts.min()) > 0.7 * expected and float(counts.max()) < 1.3 * expected
+    assert abs(float(counts[-SAMPLE_RUN_ROWS:].mean()) / expected - 1) < 0.1
+    # Runs of consecutive rows: within a run, each row is the one after the row before it.
+    steps = (rows[1:] - rows[:-1]) % n
+    assert float((steps == 1).float().mean()) > 1 - 2 / SAMPLE_RUN_ROWS
+    assert sample_rows(grid, 1.0).tolist() == list(range(n))
 
 
 def test_the_sparsity_prior_matches_autograd_and_spares_what_has_no_density():
