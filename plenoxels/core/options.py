@@ -170,7 +170,7 @@ class TrainOptions:
     tv_sh: float = 1e-8
     """TV weight of the SH coefficients per sampled vertex."""
     tv_sample_fraction: float = 0.01
-    """Share of the occupied vertices the TV term looks at each step, drawn in runs of neighbouring rows
+    """Share of the occupied vertices the TV term looks at each step, drawn in runs of neighbouring rows on large grids
     (plenoxels/core/regularizers.py, SAMPLE_RUN_ROWS)."""
     sparsity: float = 0.0
     """Weight of a Cauchy prior that density is zero, per vertex of a random sample as large as TV's, at the first

@@ -15,22 +15,27 @@ from plenoxels.core.grid import SparseGrid
 from plenoxels.core.optim import GridGrad
 
 
-# Rows a regulariser's sample takes in runs of this many consecutive rows. A grid's rows lie in raster order, so a
-# run's rows, their +z neighbours and their +x and +y neighbours each sit together in the tables: a run costs a few
-# streams of memory, where as many rows drawn one by one cost a miss each in tables of hundreds of MB.
+# Rows a regulariser's sample takes in runs of this many consecutive rows, on grids of at least SAMPLE_RUNS_FROM rows.
+# A grid's rows lie in raster order, so a run's rows, their +z neighbours and their +x and +y neighbours each sit
+# together in the tables: a run costs a few streams of memory, where as many rows drawn one by one cost a miss each in
+# tables of hundreds of MB (bench/README.md, "A train step's parts"). A smaller grid's tables stay in cache, and its rows
+# are drawn one by one: a first level's, where the sparsity prior acts, as its toy test fits it.
 SAMPLE_RUN_ROWS = 32
+SAMPLE_RUNS_FROM = 1 << 20
 
 
-def sample_rows(grid: SparseGrid, sample_fraction: float, generator: torch.Generator | None = None) -> torch.Tensor:
-    """All rows for a fraction >= 1, else round(fraction * N) rows: runs of SAMPLE_RUN_ROWS consecutive rows (wrapping
-    past the last) from starts drawn uniformly, with replacement, so every row is as likely to be drawn."""
+def sample_rows(grid: SparseGrid, sample_fraction: float, generator: torch.Generator | None = None,
+                in_runs: bool = True) -> torch.Tensor:
+    """All rows for a fraction >= 1, else round(fraction * N) rows drawn with replacement, every row as likely: in runs
+    of SAMPLE_RUN_ROWS consecutive rows (wrapping past the last) from starts drawn uniformly where the grid has
+    SAMPLE_RUNS_FROM rows or more and `in_runs` allows, else one by one."""
     n = grid.num_occupied
     if sample_fraction >= 1.0:
         return torch.arange(n, dtype=torch.int64)
     if sample_fraction <= 0.0 or n == 0:
         return torch.zeros(0, dtype=torch.int64)
     m = max(1, round(sample_fraction * n))
-    run = min(SAMPLE_RUN_ROWS, m)
+    run = min(SAMPLE_RUN_ROWS if in_runs and n >= SAMPLE_RUNS_FROM else 1, m)
     starts = torch.randint(n, (-(-m // run),), generator=generator, dtype=torch.int64)
     return ((starts[:, None] + torch.arange(run, dtype=torch.int64)) % n).reshape(-1)[:m]
 
@@ -64,7 +69,9 @@ def sparsity_loss_and_grad(grid: SparseGrid, grad: GridGrad, weight: float, samp
     added into `grad`. The voxel length makes it the same prior on every level."""
     if weight == 0:
         return 0.0  # before drawing rows: a fit without the prior draws the batches it always drew
-    rows = torch.unique(sample_rows(grid, sample_fraction, generator).to(grid.data.device))
+    # One by one on any grid: runs of rows pulled to zero together left a toy's first level a worse start (held-out 19.4
+    # against 20.9 dB, tests/stages/test_fit.py's sparsity test with every draw in runs).
+    rows = torch.unique(sample_rows(grid, sample_fraction, generator, in_runs=False).to(grid.data.device))
     if rows.shape[0] == 0:
         return 0.0
     voxel = 1.0 / min(grid.scale)  # the longest vertex spacing, in fit-frame units

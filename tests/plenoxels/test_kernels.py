@@ -13,6 +13,7 @@ from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.grid import SparseGrid
 from plenoxels.core.grid import OCCUPANCY_BLOCK
 from plenoxels.core.optim import GridGrad, SparseRMSProp
+from plenoxels.core import regularizers
 from plenoxels.core.regularizers import (SAMPLE_RUN_ROWS, SPARSITY_THICKNESS, sample_rows, sparsity_loss_and_grad,
                                          tv_loss_and_grad)
 from plenoxels.core.render import RenderOptions
@@ -289,9 +290,14 @@ def test_tv_native_matches_twin(fraction):
     torch.testing.assert_close(native.data, twin.data, atol=1e-7, rtol=1e-4)
 
 
-def test_regularisers_draw_runs_of_neighbouring_rows_and_every_row_as_often():
+def test_regularisers_draw_runs_of_neighbouring_rows_and_every_row_as_often(monkeypatch):
     grid = random_grid(seed=16, holes=0.2)
     n = grid.num_occupied
+    # Below SAMPLE_RUNS_FROM rows, and for the sparsity prior on any grid, rows are drawn one by one.
+    for rows in (sample_rows(grid, 0.5, torch.Generator().manual_seed(4)),
+                 sample_rows(grid, 0.5, torch.Generator().manual_seed(4), in_runs=False)):
+        assert float((((rows[1:] - rows[:-1]) % n) == 1).float().mean()) < 0.05
+    monkeypatch.setattr(regularizers, "SAMPLE_RUNS_FROM", n)
     m = round(0.1 * n)
     generator, counts, draws = torch.Generator().manual_seed(4), torch.zeros(n), 3000
     for _ in range(draws):
