@@ -18,8 +18,8 @@ from plenoxels.core.optim import GridGrad
 # Rows a regulariser's sample takes in runs of this many consecutive rows, on grids of at least SAMPLE_RUNS_FROM rows.
 # A grid's rows lie in raster order, so a run's rows, their +z neighbours and their +x and +y neighbours each sit
 # together in the tables: a run costs a few streams of memory, where as many rows drawn one by one cost a miss each in
-# tables of hundreds of MB (bench/README.md, "A train step's parts"). A smaller grid's tables stay in cache, and its rows
-# are drawn one by one: a first level's, where the sparsity prior acts, as its toy test fits it.
+# tables of hundreds of MB (bench/README.md, "A train step's parts"). A smaller grid's tables stay in cache: its rows
+# are drawn one by one.
 SAMPLE_RUN_ROWS = 32
 SAMPLE_RUNS_FROM = 1 << 20
 
