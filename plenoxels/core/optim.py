@@ -6,6 +6,8 @@ ever zeroes or scans the whole grid.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
 from plenoxels.core import native
@@ -138,3 +140,20 @@ class SparseRMSProp:
         self.lr_density, self.lr_sh = state["lr_density"], state["lr_sh"]
         self.beta, self.eps = state["beta"], state["eps"]
         self.second_moment = state["second_moment"].to(self.grid.data.device).clone()
+
+
+def decayed_lr(initial: float, final: float, progress: float, delay: float = 0.0) -> float:
+    """Exponential (log-linear) decay from `initial` to `final` as progress goes 0 -> 1; with a delay,
+    the rate first ramps up from 1% along a quarter sine (as svox2 does)."""
+    progress = min(max(progress, 0.0), 1.0)
+    rate = math.exp(math.log(initial) * (1 - progress) + math.log(final) * progress)
+    if delay > 0:
+        rate *= 0.01 + 0.99 * math.sin(0.5 * math.pi * min(progress / delay, 1.0))
+    return rate
+
+
+def density_rate_scale(resolution: int, reference: int) -> float:
+    """What a level at `resolution` multiplies the density's rates by: resolution / reference above the reference
+    resolution, else 1 (and always 1 when reference is 0). The density that makes a cell opaque in one step through
+    it grows as the cell shrinks (optical depth is density times distance), while RMSProp steps it by about its rate."""
+    return resolution / reference if 0 < reference < resolution else 1.0

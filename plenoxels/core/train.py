@@ -29,7 +29,7 @@ from plenoxels.core.errors import UserError
 from plenoxels.core.files import write_whole
 from plenoxels.core.grid import SparseGrid, sh_count
 from plenoxels.core.memory import voxels_that_fit
-from plenoxels.core.optim import GridGrad, SparseRMSProp
+from plenoxels.core.optim import GridGrad, SparseRMSProp, decayed_lr, density_rate_scale
 from plenoxels.core.options import TrainOptions
 from plenoxels.core.photo_colour import (COLOUR_RAYS, DECIDING_MEASURES, PhotoColour, gain_field_lattice,
                                          gain_fields)
@@ -97,16 +97,6 @@ class Schedule:
             return step / max(1, self.total_steps), True
         start = self.level_end(level - 1)
         return (step - start) / max(1, self.steps[level]), False
-
-
-def decayed_lr(initial: float, final: float, progress: float, delay: float = 0.0) -> float:
-    """Exponential (log-linear) decay from `initial` to `final` as progress goes 0 -> 1; with a delay,
-    the rate first ramps up from 1% along a quarter sine (as svox2 does)."""
-    progress = min(max(progress, 0.0), 1.0)
-    rate = math.exp(math.log(initial) * (1 - progress) + math.log(final) * progress)
-    if delay > 0:
-        rate *= 0.01 + 0.99 * math.sin(0.5 * math.pi * min(progress / delay, 1.0))
-    return rate
 
 
 def pruning_stride(sizes: torch.Tensor, resolution: int, options: TrainOptions) -> int:
@@ -266,8 +256,8 @@ class Fitter:
         """One optimiser step on one batch; returns its MSE."""
         o = self.options
         progress, ramp = self.schedule.rate_progress(self.step, self.level, o.lr_per_level)
-        self.optim.set_lr(decayed_lr(o.lr_density, o.lr_density_final, progress, o.lr_density_delay if ramp else 0.0),
-                          decayed_lr(o.lr_sh, o.lr_sh_final, progress))
+        density_rate = decayed_lr(o.lr_density, o.lr_density_final, progress, o.lr_density_delay if ramp else 0.0)
+        self.optim.set_lr(density_rate * self.density_rate_scale(), decayed_lr(o.lr_sh, o.lr_sh_final, progress))
         if self.measures() and self.step > 0 and (self.step % o.measure_every == 0 or self.level_starts()):
             self.measure_photos()
         drawn = [t.to(self.device) for t in self.train.batch(
@@ -469,6 +459,10 @@ class Fitter:
         many cells across) and caps its depth, while its cells stay the size that entry gives them."""
         return tv_scale_for_resolution(self.schedule.resolutions[self.level], self.options.tv_reference_resolution)
 
+    def density_rate_scale(self) -> float:
+        """What the level's resolution multiplies the density's rates by (lr_density_reference_resolution)."""
+        return density_rate_scale(self.schedule.resolutions[self.level], self.options.lr_density_reference_resolution)
+
     def regularisation_summary(self) -> str:
         """The fit summary's words on how TV was set for this capture ("" when as set)."""
         words, record = "", self.regularisation
@@ -477,6 +471,9 @@ class Fitter:
         if self.tv_level_scale() < 1.0:
             words += (f", TV x{self.tv_level_scale():.3g} on the last level "
                       f"(finer than {self.options.tv_reference_resolution}^3)")
+        if self.density_rate_scale() > 1.0:
+            words += (f", density rates x{self.density_rate_scale():.3g} on the last level "
+                      f"(finer than {self.options.lr_density_reference_resolution}^3)")
         return words
 
     def colour_record(self) -> dict:

@@ -12,6 +12,7 @@ from stages.common.frames import load_frame
 from stages.common.json_files import read_json
 from stages.scoring.metrics import image_psnr
 from plenoxels.core.cameras import Intrinsics, look_at, rays_from_camera
+from plenoxels.core.errors import UserError
 from plenoxels.core.grid import SparseGrid
 from plenoxels.core.native import cuda_ready
 from plenoxels.core.optim import GridGrad
@@ -147,6 +148,32 @@ def test_each_level_after_the_first_decays_the_rates_over_its_own_steps(tmp_path
     assert per_level[-1] == pytest.approx(decayed_lr(options.lr_density, options.lr_density_final, 19 / 20))
     assert whole[20] == pytest.approx(decayed_lr(options.lr_density, options.lr_density_final, 0.5))
     assert all(a > b for a, b in zip(per_level[20:], per_level[21:]))
+
+
+def test_a_level_finer_than_the_density_rates_reference_steps_its_density_in_proportion(tmp_path):
+    """lr_density_reference_resolution: a level finer than it takes the density's rates times (its resolution / the
+    reference) at every step; coarser levels, the SH rates and every level with the reference at 0 keep them."""
+    root = make_scene(tmp_path, width=32)
+    scene = read_json(root / "normalize" / "scene.json")
+    train = training_rays(root, [f for f in scene["frames"] if f["split"] == "train"])
+
+    def rates(reference: int) -> list[tuple[float, float]]:
+        options = TrainOptions(resolutions=[16, 32], steps=[10, 10], batch_size=256,
+                               lr_density_reference_resolution=reference)
+        fitter = Fitter(SceneModel.create(scene, ModelOptions(), 16), options, train, schedule=Schedule.as_set(options))
+        seen = []
+        fitter.run(tmp_path / f"rates-{reference}.pt", 1e9,
+                   on_step=lambda _: seen.append((fitter.optim.lr_density, fitter.optim.lr_sh)))
+        return seen
+
+    as_set, referenced = rates(0), rates(16)
+    assert len(as_set) == len(referenced) == 20
+    assert referenced[:10] == as_set[:10]
+    for (density, sh), (density_as_set, sh_as_set) in zip(referenced[10:], as_set[10:]):
+        assert density == pytest.approx(2 * density_as_set) and sh == sh_as_set
+    assert rates(32) == as_set  # no level finer than the reference
+    with pytest.raises(UserError, match="lr_density_reference_resolution"):
+        TrainOptions(lr_density_reference_resolution=-1).check()
 
 
 def test_coherent_batches_are_the_same_rays_in_an_order_that_keeps_neighbours_together(tmp_path):

@@ -209,6 +209,14 @@ def test_tv_weights_fall_with_the_square_of_the_resolution_above_the_reference(f
         config.build(fit.Settings, "fit", {"tv_reference_resolution": -1})
 
 
+def test_the_summary_says_when_a_level_finer_than_the_reference_steps_its_density_faster(fresh):
+    summary = run_stage(fresh, fit, {**QUICK, "steps": [5, 5], "lr_density_reference_resolution": 16})
+    assert "density rates x2 on the last level (finer than 16^3)" in summary["line"]
+    assert "density rates" not in run_stage(fresh, fit, {**QUICK, "steps": [5, 5]})["line"]
+    with pytest.raises(UserError, match="fit.lr_density_reference_resolution"):
+        config.build(fit.Settings, "fit", {"lr_density_reference_resolution": -1})
+
+
 def test_a_fit_whose_per_thread_tables_would_pass_their_memory_share_adds_gradients_on_fewer_threads(fresh,
                                                                                                    monkeypatch):
     import plenoxels.core.optim as optim
