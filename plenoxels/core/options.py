@@ -155,10 +155,11 @@ class TrainOptions:
     """RMSProp rate of the density at the end."""
     lr_density_delay: float = 0.1
     """Share of the steps over which the density rate ramps up from 1% (0: none)."""
-    lr_density_reference_resolution: int = 0
+    lr_density_reference_resolution: int = 128
     """A level finer than this (its entry in `resolutions`) steps its density at its rates times (its resolution /
     this): the density that makes a cell opaque grows as the cell shrinks, while a rate steps it by fixed amounts, so
-    rates set for a coarser grid leave a finer one's surfaces a few cells thick (0: the rates as set on every level)."""
+    rates set for a coarser grid leave a finer one's surfaces many cells thick (lego's 30 at 512^3; bench/README.md,
+    "The papers' protocol") (0: the rates as set on every level)."""
     lr_per_level: bool = True
     """Each level after the first decays the rates from their start values to their final ones over its own steps,
     not once over the whole fit: the finest level, where the detail is learnt, starts at the full rates (lego at
@@ -253,7 +254,7 @@ class TrainOptions:
                 "positive")
         require(0 <= self.lr_density_delay < 1, f"{section}.lr_density_delay must be in [0, 1)")
         require(self.lr_density_reference_resolution >= 0,
-                f"{section}.lr_density_reference_resolution must be >= 0 (0: the density's rates as set on every level)")
+                f"{section}.lr_density_reference_resolution must be >= 0 (0: the density's rates as set everywhere)")
         require(0 <= self.rmsprop_beta < 1, f"{section}.rmsprop_beta must be in [0, 1)")
         require(self.tv_density >= 0 and self.tv_sh >= 0, f"{section}.tv_density and {section}.tv_sh must be >= 0")
         require(0 < self.tv_sample_fraction <= 1, f"{section}.tv_sample_fraction must be in (0, 1]")
