@@ -464,7 +464,7 @@ class Fitter:
         return density_rate_scale(self.schedule.resolutions[self.level], self.options.lr_density_reference_resolution)
 
     def regularisation_summary(self) -> str:
-        """The fit summary's words on how TV was set for this capture ("" when as set)."""
+        """The fit summary's words on how TV and the density's rates were set for this capture ("" when as set)."""
         words, record = "", self.regularisation
         if record["tv_scale"] > 1.0:
             words += f", TV x{record['tv_scale']:.3g} for few views ({record['views_per_point']:.1f} per point)"
