@@ -15,12 +15,11 @@ from plenoxels.core.cameras import Intrinsics, look_at, rays_from_camera
 from plenoxels.core.errors import UserError
 from plenoxels.core.grid import SparseGrid
 from plenoxels.core.native import cuda_ready
-from plenoxels.core.optim import GridGrad
+from plenoxels.core.optim import GridGrad, decayed_lr
 from plenoxels.core.render import RenderOptions, loss_and_grad
 from plenoxels.core.regularizers import tv_scale_for_views, views_per_point
 from plenoxels.core.scene_model import ModelOptions, SceneModel, background_width_for
-from plenoxels.core.train import (Diverged, Fitter, Schedule, TrainOptions, decayed_lr, prune_mask, pruning_rays,
-                                  pruning_stride)
+from plenoxels.core.train import Diverged, Fitter, Schedule, TrainOptions, prune_mask, pruning_rays, pruning_stride
 from plenoxels.core.ray_set import RaySet, coherent_order, random_where_empty
 from tests.stages.test_fit import make_scene
 
