@@ -20,7 +20,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 
 from plenoxels.core import native
 from plenoxels.core.errors import UserError
@@ -81,23 +80,48 @@ def large_table(t: torch.Tensor) -> torch.Tensor:
     t = t.contiguous()
     if t.device.type != "cpu" or t.numel() * t.element_size() < HUGE_PAGE_MIN_BYTES:
         return t
-    fresh = torch.empty(t.shape, dtype=t.dtype)  # not yet touched: pages are faulted in after the advice
-    native.ops.advise_huge_pages(fresh)
-    return fresh.copy_(t)
+    return large_empty(t.shape, t.dtype).copy_(t)
+
+
+def large_empty(shape, dtype: torch.dtype, device="cpu") -> torch.Tensor:
+    """An uninitialised table; on the CPU, advised for huge pages where it is large (see large_table) before any page
+    of it is touched."""
+    fresh = torch.empty(shape, dtype=dtype, device=device)
+    if fresh.device.type == "cpu" and fresh.numel() * fresh.element_size() >= HUGE_PAGE_MIN_BYTES:
+        native.ops.advise_huge_pages(fresh)
+    return fresh
+
+
+def large_rows(table: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """table[rows] gathered straight into a table laid out as large_table lays it out, with no copy between."""
+    fresh = large_empty((rows.shape[0], *table.shape[1:]), table.dtype, table.device)
+    return torch.index_select(table, 0, rows.to(device=table.device, dtype=torch.long), out=fresh)
 
 
 def large_zeros(like: torch.Tensor) -> torch.Tensor:
     """zeros_like for tables the kernels access at random (see large_table), without a second copy."""
     if like.device.type != "cpu" or like.numel() * like.element_size() < HUGE_PAGE_MIN_BYTES:
         return torch.zeros_like(like)
-    fresh = torch.empty(like.shape, dtype=like.dtype)
-    native.ops.advise_huge_pages(fresh)
-    return fresh.zero_()
+    return large_empty(like.shape, like.dtype).zero_()
+
+
+def dilated(volume: torch.Tensor, radius: int) -> torch.Tensor:
+    """A boolean volume grown by `radius` voxels in every direction (a cube of 2 * radius + 1 around each true voxel),
+    axis by axis, in the volume's own bytes rather than as floats through a max pool."""
+    grown = volume.clone()
+    for axis in range(3):
+        src, n = grown.clone(), grown.shape[axis]
+        for shift in range(1, min(radius, n - 1) + 1):
+            grown.narrow(axis, shift, n - shift).logical_or_(src.narrow(axis, 0, n - shift))
+            grown.narrow(axis, 0, n - shift).logical_or_(src.narrow(axis, shift, n - shift))
+    return grown
 
 
 class SparseGrid:
     def __init__(self, links: torch.Tensor, data: torch.Tensor, bbox_min, bbox_max, sh_degree: int,
-                 contracted: bool = False, knots: Knots | None = None):
+                 contracted: bool = False, knots: Knots | None = None, owned: bool = False):
+        """`owned`: `links` and `data` were made for this grid alone, laid out as large_table lays them out (int32
+        and float32, contiguous): kept as they are, not copied."""
         if not 0 <= int(sh_degree) <= 3:
             raise UserError(f"sh_degree must be 0, 1, 2 or 3, got {sh_degree}")
         self.sh_degree = int(sh_degree)
@@ -110,8 +134,8 @@ class SparseGrid:
         stride = row_stride(self.sh_degree)
         if data.dim() != 2 or data.shape[1] != stride:
             raise ValueError(f"packed data must be [N, {stride}] for SH degree {sh_degree}, got {tuple(data.shape)}")
-        self._links = large_table(links.to(torch.int32))
-        self.data = large_table(data.to(torch.float32))
+        self._links = links if owned else large_table(links.to(torch.int32))
+        self.data = data if owned else large_table(data.to(torch.float32))
         self._cells = None
         self._live = None  # (counts, blocks, (data pointer, data version) they were computed for)
         self._coords = None
@@ -289,10 +313,10 @@ class SparseGrid:
         new_index[old_rows] = torch.arange(old_rows.shape[0], dtype=torch.int32, device=self._links.device)
         flat = self._links.reshape(-1)
         occupied = flat >= 0
-        links = torch.full_like(flat, -1)
-        links[occupied] = new_index[flat[occupied].long()]
-        grid = SparseGrid(links.reshape(self._links.shape), self.data[old_rows], self.bbox_min, self.bbox_max,
-                          self.sh_degree, self.contracted, self.knots)
+        links = large_empty(self._links.shape, torch.int32, self._links.device).fill_(-1)
+        links.view(-1)[occupied] = new_index[flat[occupied].long()]
+        grid = SparseGrid(links, large_rows(self.data, old_rows),
+                          self.bbox_min, self.bbox_max, self.sh_degree, self.contracted, self.knots, owned=True)
         return grid, old_rows
 
     def crop(self, first: tuple[int, int, int], last: tuple[int, int, int]) -> "SparseGrid":
@@ -324,13 +348,13 @@ class SparseGrid:
         keep = keep.to(device=self._links.device, dtype=torch.bool).reshape(-1)
         if radius <= 0:
             return keep.clone()
-        volume = torch.zeros(self.resolution, dtype=torch.float32, device=self._links.device)
-        xyz = self.coords().long()
-        kept = xyz[keep]
-        volume[kept[:, 0], kept[:, 1], kept[:, 2]] = 1.0
-        size = 2 * radius + 1
-        grown = F.max_pool3d(volume[None, None], kernel_size=size, stride=1, padding=radius)[0, 0]
-        return grown[xyz[:, 0], xyz[:, 1], xyz[:, 2]] > 0
+        occupied = self._links >= 0
+        rows = self._links[occupied].long()
+        volume = torch.zeros(self.resolution, dtype=torch.bool, device=self._links.device)
+        volume[occupied] = keep[rows]
+        grown = torch.empty_like(keep)
+        grown[rows] = dilated(volume, radius)[occupied]
+        return grown
 
     def upsample(self, resolution, chunk_points: int = 1 << 19) -> tuple["SparseGrid", torch.Tensor]:
         """Trilinear resample to a new resolution over the same box.
@@ -358,26 +382,21 @@ class SparseGrid:
             for corner in range(8):
                 dx, dy, dz = (corner >> 2) & 1, (corner >> 1) & 1, corner & 1
                 allocated[x0 : x0 + slab] |= alive[cx + dx][:, cells[1] + dy][:, :, cells[2] + dz]
-        grown = allocated.clone()
-        for axis in range(3):  # one-voxel dilation, axis by axis (a 3x3x3 cube in the end)
-            src = grown.clone()
-            n = res[axis]
-            grown.narrow(axis, 1, n - 1).logical_or_(src.narrow(axis, 0, n - 1))
-            grown.narrow(axis, 0, n - 1).logical_or_(src.narrow(axis, 1, n - 1))
+        grown = dilated(allocated, 1)
         vertices = torch.nonzero(grown)
-        links = torch.full(res, -1, dtype=torch.int32)
+        links = large_empty(res, torch.int32).fill_(-1)
         links[grown] = torch.arange(vertices.shape[0], dtype=torch.int32)
-        values, nearest = [], []
-        for chunk in torch.split(vertices, chunk_points):
-            g = chunk.double() * ratio
+        data = large_empty((vertices.shape[0], row_stride(self.sh_degree)), torch.float32)
+        old_rows = torch.empty(vertices.shape[0], dtype=torch.int64)
+        for start in range(0, vertices.shape[0], chunk_points):  # each chunk's values straight into the new table
+            g = vertices[start : start + chunk_points].double() * ratio
             clamped = torch.minimum(g.clamp_min(0), old - 1)  # the last new vertex lands on the old box's face
-            values.append(native.ops.sample(self.data, self._links, clamped.to(torch.float32).contiguous()))
+            rows = slice(start, start + g.shape[0])
+            data[rows] = native.ops.sample(self.data, self._links, clamped.to(torch.float32).contiguous())
             near = torch.minimum(g.round().long(), old.long() - 1)
-            nearest.append(self._links[near[:, 0], near[:, 1], near[:, 2]].long())
-        data = torch.cat(values) if values else torch.zeros(0, row_stride(self.sh_degree))
-        old_rows = torch.cat(nearest) if nearest else torch.zeros(0, dtype=torch.int64)
+            old_rows[rows] = self._links[near[:, 0], near[:, 1], near[:, 2]]
         return SparseGrid(links, data, self.bbox_min, self.bbox_max, self.sh_degree, self.contracted,
-                          self.knots), old_rows
+                          self.knots, owned=True), old_rows
 
     # ---- persistence --------------------------------------------------------------------------
     def state_dict(self) -> dict:

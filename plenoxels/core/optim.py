@@ -11,7 +11,7 @@ import math
 import torch
 
 from plenoxels.core import native
-from plenoxels.core.grid import OCCUPANCY_BLOCK, SparseGrid, large_zeros, sh_count
+from plenoxels.core.grid import OCCUPANCY_BLOCK, SparseGrid, large_rows, large_zeros, sh_count
 from plenoxels.core.memory import usable_memory
 
 
@@ -124,9 +124,11 @@ class SparseRMSProp:
         old_rows = old_rows.long()
         if old_rows.shape[0] != new_grid.num_occupied:
             raise ValueError("old_rows must have one entry per row of the new grid")
-        state = large_zeros(new_grid.data)
-        has = old_rows >= 0
-        state[has] = self.second_moment[old_rows[has]]
+        if self.second_moment.shape[0] == 0:
+            state = large_zeros(new_grid.data)
+        else:  # gathered straight into its table, with no second table beside it
+            state = large_rows(self.second_moment, old_rows.clamp_min(0))
+            state[old_rows < 0] = 0.0
         self.second_moment = state
         self.grid = new_grid
 

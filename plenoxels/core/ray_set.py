@@ -149,11 +149,12 @@ class RaySet:
             drawn.append(None if self.empty is None else self.empty[pixel[order]])
         return tuple(drawn)
 
-    def lattice(self, stride: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """A regular subset of every image's pixels, every stride-th row and column from stride // 2: (image, row,
-        column) [P], on the CPU."""
+    def lattice(self, stride: int, images: range | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """A regular subset of every image's pixels (or of `images`'), every stride-th row and column from
+        stride // 2: (image, row, column) [P], on the CPU."""
         image, row, col = [], [], []
-        for i, (h, w) in enumerate(self.sizes.tolist()):
+        for i in images if images is not None else range(len(self.sizes)):
+            h, w = self.sizes[i].tolist()
             r, c = torch.meshgrid(torch.arange(stride // 2, h, stride), torch.arange(stride // 2, w, stride),
                                   indexing="ij")
             image.append(torch.full((r.numel(),), i))
@@ -178,10 +179,20 @@ class RaySet:
             return None
         return self.coverage[self.flat(image, row, col)] == 255
 
-    def strided_rays(self, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Rays through a regular subset of every image's pixels (every stride-th row and column)."""
-        image, row, col = (t.to(self.device) for t in self.lattice(stride))
+    def strided_rays(self, stride: int, images: range | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rays through a regular subset of every image's pixels (or of `images`'; every stride-th row and column)."""
+        image, row, col = (t.to(self.device) for t in self.lattice(stride, images))
         return self.rays(image, row, col)
+
+    def strided_ray_chunks(self, stride: int, rays: int):
+        """strided_rays' rays, a run of whole images at a time of at least `rays` rays (the last run fewer): a pass
+        over many large photos never holds all their rays at once."""
+        first, count = 0, 0
+        for i, (h, w) in enumerate(self.sizes.tolist()):
+            count += -(-(h - stride // 2) // stride) * -(-(w - stride // 2) // stride)
+            if count >= rays or i == len(self.sizes) - 1:
+                yield self.strided_rays(stride, range(first, i + 1))
+                first, count = i + 1, 0
 
 
 # The coherent order's cube: rays' closest points beyond it share its faces (the normalised frame puts the foreground

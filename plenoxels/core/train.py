@@ -503,16 +503,18 @@ class Fitter:
     def measure_weights(self, grid: SparseGrid | None = None) -> torch.Tensor:
         """Each vertex's largest weight along the rays of a pruning pass, on `grid` (the model's unless given)."""
         grid = self.model.grid if grid is None else grid
-        origins, dirs = self.train.strided_rays(pruning_stride(self.train.sizes, max(grid.resolution), self.options))
+        stride = pruning_stride(self.train.sizes, max(grid.resolution), self.options)
         weights = torch.zeros(grid.num_occupied, device=self.device)
-        for start in range(0, origins.shape[0], RAY_CHUNK):
-            o, d = self.model.fit_frame.rays(origins[start:start + RAY_CHUNK].to(self.device),
-                                             dirs[start:start + RAY_CHUNK].to(self.device))
-            weights = torch.maximum(weights, max_weights(grid, o, d, self.model.render_options))
+        for origins, dirs in self.train.strided_ray_chunks(stride, 16 * RAY_CHUNK):
+            for start in range(0, origins.shape[0], RAY_CHUNK):
+                o, d = self.model.fit_frame.rays(origins[start:start + RAY_CHUNK].to(self.device),
+                                                 dirs[start:start + RAY_CHUNK].to(self.device))
+                weights = torch.maximum(weights, max_weights(grid, o, d, self.model.render_options))
         return weights
 
     def prune(self, budget_rows: int | None = None) -> dict:
         before = self.model.grid.num_occupied
+        self.grad = None  # its tables (each thread's copies too) freed before the pass and the new grid's tables
         weights = self.measure_weights()
         keep = prune_mask(self.model.grid, weights, self.options)
         if budget_rows is not None:

@@ -137,6 +137,19 @@ def test_dilate_grows_by_one_voxel():
     assert torch.equal(grid.dilate(keep, radius=0), keep)
 
 
+def test_dilate_reaches_every_allocated_vertex_within_the_radius():
+    """Against the Chebyshev distance itself, on a sparse grid whose empty vertices must stay out of the mask."""
+    generator = torch.Generator().manual_seed(3)
+    grid = SparseGrid.dense((9, 7, 8), (0, 0, 0), (1, 1, 1), 0)
+    grid, _ = grid.prune(torch.rand(grid.num_occupied, generator=generator) < 0.7)
+    xyz = grid.coords().long()
+    for radius in (1, 2, 3):
+        keep = torch.rand(grid.num_occupied, generator=generator) < 0.02
+        distance = (xyz[:, None, :] - xyz[None, keep, :]).abs().amax(dim=2)
+        expected = (distance <= radius).any(dim=1) if bool(keep.any()) else keep
+        assert torch.equal(grid.dilate(keep, radius), expected)
+
+
 def test_save_load_round_trip(tmp_path):
     grid = linear_grid((4, 5, 3), sh_degree=3)
     grid, _ = grid.prune(grid.density > 2.5)

@@ -286,6 +286,13 @@ def test_a_pruning_pass_marches_rays_by_the_grid_not_the_photos_and_keeps_what_t
     assert stride > 1
     assert pruning_rays(train.sizes, 32, options) == train.strided_rays(stride)[0].shape[0] >= wanted
     assert train.strided_rays(stride + 1)[0].shape[0] < wanted
+    # A pass in runs of whole photos marches the same rays in the same order, each run but the last the rays asked.
+    whole = train.strided_rays(stride)
+    per_photo = train.strided_rays(stride, range(1))[0].shape[0]
+    runs = list(train.strided_ray_chunks(stride, 2 * per_photo + 1))  # three photos a run
+    assert len(runs) == -(-len(train.sizes) // 3) and all(r[0].shape[0] == 3 * per_photo for r in runs[:-1])
+    for got, want in zip((torch.cat([r[i] for r in runs]) for i in range(2)), whole):
+        assert torch.equal(got, want)
     # A finer grid needs more rays, up to every pixel at prune_ray_scale; 0 asks for that always.
     assert pruning_stride(train.sizes, 64, options) < stride
     assert pruning_stride(train.sizes, 256, options) == 1
