@@ -189,10 +189,15 @@ class RaySet:
         over many large photos never holds all their rays at once."""
         first, count = 0, 0
         for i, (h, w) in enumerate(self.sizes.tolist()):
-            count += -(-(h - stride // 2) // stride) * -(-(w - stride // 2) // stride)
+            count += lattice_pixels(h, w, stride)
             if count >= rays or i == len(self.sizes) - 1:
                 yield self.strided_rays(stride, range(first, i + 1))
                 first, count = i + 1, 0
+
+
+def lattice_pixels(h: int, w: int, stride: int) -> int:
+    """How many of an h x w photo's pixels RaySet.lattice takes at this stride."""
+    return -(-(h - stride // 2) // stride) * -(-(w - stride // 2) // stride)
 
 
 # The coherent order's cube: rays' closest points beyond it share its faces (the normalised frame puts the foreground

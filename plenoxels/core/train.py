@@ -33,7 +33,7 @@ from plenoxels.core.optim import GridGrad, SparseRMSProp, decayed_lr, density_ra
 from plenoxels.core.options import TrainOptions
 from plenoxels.core.photo_colour import (COLOUR_RAYS, DECIDING_MEASURES, PhotoColour, gain_field_lattice,
                                          gain_fields)
-from plenoxels.core.ray_set import RaySet, random_where_empty
+from plenoxels.core.ray_set import RaySet, lattice_pixels, random_where_empty
 from plenoxels.core.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution,
                                     tv_scale_for_views, views_per_point)
 from plenoxels.core.render import loss_and_grad, loss_and_grad_before_spheres, max_weights, render
@@ -112,8 +112,7 @@ def pruning_stride(sizes: torch.Tensor, resolution: int, options: TrainOptions) 
 def pruning_rays(sizes: torch.Tensor, resolution: int, options: TrainOptions) -> int:
     """How many rays a pruning pass at this resolution marches (as RaySet.strided_rays takes them)."""
     stride = pruning_stride(sizes, resolution, options)
-    return sum(math.ceil((h - stride // 2) / stride) * math.ceil((w - stride // 2) / stride)
-               for h, w in sizes.tolist())
+    return sum(lattice_pixels(h, w, stride) for h, w in sizes.tolist())
 
 
 def prune_mask(grid: SparseGrid, weights: torch.Tensor, options: TrainOptions) -> torch.Tensor:
