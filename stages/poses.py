@@ -3,10 +3,10 @@
 
 Writes poses/transforms.json (nerfstudio layout, OpenGL camera-to-world in the frame the poses came
 in), poses/images/ (undistorted pinhole PNGs, the ingested names), poses/masks/ (when ingest kept
-masks), poses/sparse/ (the undistorted COLMAP model, binary) and poses/points.npz (sparse points and
-their observations). SfM and imports both end as a distorted COLMAP model at the ingested image size,
-and one path (stages/sfm/outputs.py) undistorts and writes it, so later stages never know where the
-poses came from.
+masks), poses/sparse/ (the undistorted COLMAP model, binary) and poses/points.npz (points triangulated
+between nearby photos at the final poses, and their observations). SfM and imports both end as a distorted COLMAP
+model at the ingested image size, and one path (stages/sfm/outputs.py) undistorts and writes it, so later stages
+never know where the poses came from.
 """
 from __future__ import annotations
 
@@ -96,13 +96,14 @@ def run(ctx) -> dict:
         line += f" (no pose: {short_list(left_out)})"
     if points:
         line += f", {points} points, mean reprojection error {error:.2f} px, mean track length {track:.1f}"
-    elif written.get("triangulated"):
-        points = written["triangulated"]["points"]
-        line += f", {points} points triangulated from {written['triangulated']['pairs']} pairs of nearby photos"
     if source == "sfm":
         line += f" ({info['matching']} matching: {info['pairs_verified']}/{info['pairs_matched']} pairs verified)"
         if info.get("masked_images"):
             line += f", features only inside the masks of {info['masked_images']} images"
+    if written.get("triangulated"):
+        line += (f"{';' if points else ','} {written['triangulated']['points']} points triangulated from "
+                 f"{written['triangulated']['pairs']} pairs of nearby photos")
+        points = points or written["triangulated"]["points"]
     if info.get("denser"):
         line += (f"; the ingested {info['denser']['first_frames']} frames did not hold together, so these poses come "
                  f"from the clip read again with a frame each {info['denser']['motion']:.1%} of the view's diagonal, "

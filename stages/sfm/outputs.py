@@ -1,6 +1,6 @@
 """The poses stage's output from a distorted COLMAP model (SfM's or an import's): undistorted pinhole images and
-masks, the undistorted model, transforms.json (nerfstudio layout, OpenGL camera-to-world) and points.npz (sparse
-points and their observations), so later stages never know where the poses came from."""
+masks, the undistorted model, transforms.json (nerfstudio layout, OpenGL camera-to-world) and points.npz (points
+triangulated between nearby photos, and their observations), so later stages never know where the poses came from."""
 from __future__ import annotations
 
 import shutil
@@ -88,18 +88,21 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
         "original_camera": originals[0], "source": source,
         "source_path": str(source_path) if source_path else None, "frames": frames})
     written = {"frames": len(frames), "width": shared["w"], "height": shared["h"]}
-    if undistorted.num_points3D() or bounds:
-        # SfM's points, an imported model's, or none where the poses bring their depth range (LLFF's bounds).
+    if bounds:
+        # LLFF's poses bring each photo's depth range, which is all normalize would take from points.
         write_points(out / POINTS_NPZ, undistorted, frame_index)
-    else:
-        # Imported poses with no points and no depths: triangulate some from the photos, so normalize sees where the
-        # content lies.
-        report.info("triangulating points from the photos for the imported poses")
-        points = triangulate([np.asarray(Image.open(out / f["file_path"]).convert("RGB")) for f in frames],
-                             np.stack([np.asarray(f["transform_matrix"]) for f in frames]),
-                             [Intrinsics.from_frame({**shared, **f}) for f in frames])
-        np.savez(out / POINTS_NPZ, **points.arrays())
-        written["triangulated"] = {"points": len(points.xyz), "pairs": points.pairs}
+        return written
+    # Points from pairs of nearby photos at the final poses, whatever the poses came from. SfM's points are one a
+    # track, spread over whatever textured surface it matched (a wooden floor around a ball); pairs count a surface
+    # once for each pair of nearby photos that sees it, so the bulk normalize boxes is what the photos are about, and
+    # the box does not depend on where the poses came from (bench/README.md, "How normalize boxes a room"). The SfM
+    # model's own points stay in sparse/.
+    report.info("triangulating points between nearby photos for the scene's box and depths")
+    points = triangulate([np.asarray(Image.open(out / f["file_path"]).convert("RGB")) for f in frames],
+                         np.stack([np.asarray(f["transform_matrix"]) for f in frames]),
+                         [Intrinsics.from_frame({**shared, **f}) for f in frames])
+    np.savez(out / POINTS_NPZ, **points.arrays())
+    written["triangulated"] = {"points": len(points.xyz), "pairs": points.pairs}
     return written
 
 

@@ -20,6 +20,9 @@ from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from stages.sfm import reconstruct
 from stages.sfm.compare import compare_poses
+from stages.framing.options import SceneOptions
+from stages.framing.scene_frame import normalize_scene
+from stages.framing.sightings import read_points
 from stages.sfm.exif import FULL_FRAME_DIAGONAL_MM, exif_focal
 from stages.sfm.triangulate import neighbour_pairs
 from stages.sfm.model_checks import MAX_CONTRADICTED_SHARE, contradicted_images, detached_images
@@ -110,6 +113,25 @@ def test_sfm_registers_every_view_and_matches_the_true_poses(scene, truth, tmp_p
         uv, depth = project(points["xyz"][seen], np.array(frame["transform_matrix"]), k)
         assert len(seen) > 20 and (depth > 0).all()
         assert ((uv > -1) & (uv < [k.w + 1, k.h + 1])).all()
+
+
+def test_normalize_boxes_a_room_alike_whether_sfm_posed_it_or_its_poses_came_with_it(tmp_path):
+    # SfM's points are one a track, spread over whatever it matched (SfM's own boxed this room's surroundings 18% too
+    # tall); points.npz is triangulated between nearby photos whatever the poses came from, so the foreground and
+    # surroundings boxes, in units of the cameras' distance, come out the same either way.
+    room = write_scene("room", tmp_path / "room", n_views=N_VIEWS, width=WIDTH, height=HEIGHT, seed=0, supersample=1)
+    run_poses(room / "images", tmp_path / "sfm", "poses.source=sfm")
+    shutil.copytree(room / "images", tmp_path / "capture" / "images")
+    shutil.copy(room / "transforms.json", tmp_path / "capture" / "transforms.json")
+    run_poses(tmp_path / "capture", tmp_path / "imported")
+    sizes = []
+    for out in (tmp_path / "sfm" / "poses", tmp_path / "imported" / "poses"):
+        with np.load(out / "points.npz") as points:
+            assert (points["track_length"] == 2).all()
+        framed = normalize_scene(read_json(out / "transforms.json"), read_points(out / "points.npz"), SceneOptions())
+        sizes.append([np.subtract(framed[box]["max"], framed[box]["min"]) / framed["measured"]["camera_distance"]
+                      for box in ("foreground", "surroundings")])
+    np.testing.assert_allclose(sizes[0], sizes[1], rtol=0.05)
 
 
 def test_global_mapper_registers_every_view_accurately(scene, truth, tmp_path):
@@ -375,7 +397,7 @@ def test_blender_import_uses_the_file_whose_paths_match_the_photos(scene, truth,
         assert mask.shape == alpha.shape and np.abs(mask.astype(int) - alpha).mean() < 2.0
 
 
-def test_colmap_import_keeps_poses_points_and_scales_the_camera(scene, truth, tmp_path):
+def test_colmap_import_keeps_poses_and_points_and_scales_the_camera(scene, truth, tmp_path):
     stems = photos(scene, tmp_path / "capture" / "images")
     want = frames_by_name(truth)
     k = Intrinsics(truth["fl_x"], truth["fl_y"], truth["cx"], truth["cy"], WIDTH, HEIGHT).scaled(2.0)
@@ -403,12 +425,13 @@ def test_colmap_import_keeps_poses_points_and_scales_the_camera(scene, truth, tm
     assert_poses_equal(transforms, truth, stems)
     assert (transforms["w"], transforms["h"]) == (WIDTH, HEIGHT)
     assert transforms["fl_x"] == pytest.approx(truth["fl_x"], rel=1e-6) and transforms["cx"] == pytest.approx(truth["cx"])
-    points = np.load(out / "points.npz")
-    order = np.argsort(points["xyz"][:, 0])
-    np.testing.assert_allclose(points["xyz"][order], xyz[np.argsort(xyz[:, 0])], atol=1e-9)
-    assert (points["track_length"] == len(stems)).all() and len(points["obs_frame"]) == len(stems) * len(xyz)
+    # The model keeps its own points; points.npz holds those triangulated between nearby photos, as for any poses.
+    model_points = np.array([p.xyz for p in pycolmap.Reconstruction(out / "sparse").points3D.values()])
+    np.testing.assert_allclose(model_points[np.argsort(model_points[:, 0])], xyz[np.argsort(xyz[:, 0])], atol=1e-9)
     assert manifest["summary"]["mean_reprojection_error"] < 1e-6
     assert pycolmap.Reconstruction(out / "sparse").num_reg_images() == len(stems)
+    with np.load(out / "points.npz") as points:
+        assert "points triangulated" in manifest["summary"]["line"] and (points["track_length"] == 2).all()
 
 
 def test_llff_import_scales_the_focal_and_keeps_bounds(scene, truth, tmp_path):
