@@ -13,7 +13,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 PARTS = ("kernels", "step_parts", "background", "poses", "normalize", "fit", "scaling", "scene_models", "real_scenes",
-         "grid_ceiling", "export", "object_captures", "cuda",
+         "sfm_captures", "grid_ceiling", "export", "object_captures", "cuda",
          "protocol", "lpips_reference", "peers", "faults")
 COMBINED = REPO / "bench" / "results.json"
 

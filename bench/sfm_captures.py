@@ -1,0 +1,98 @@
+"""Captures as a user hands them over, posed by SfM: each scene's photos (or a video) through the whole pipeline at a
+preset, ingest to evaluate, with the pose files that come with it ignored (`poses.source=sfm`). What the other parts
+measure from a scene's own poses, this one measures as a new user meets it.
+
+Scenes: fox, cup and ball (their photo folders), apple (its 5 s clip) and ball_video (ball's 127 frames written as an
+8 fps MP4 under bench/out/sfm_captures/, a 16 s phone video). Each run records the evaluate stage's held-out PSNR,
+SSIM and LPIPS (every 8th frame held out, at the fit's image scale), the fit's seconds and grid, the poses' points
+and the foreground box in units of the cameras' distance (what sets the cells' size). Writes
+bench/results/sfm_captures.json (a run replaces the one of the same scene, preset and label).
+
+    .venv/bin/python -m bench.sfm_captures [--scenes fox cup ball apple ball_video] [--preset fast] [--label L]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import recorded, write_runs
+from bench.fit import machine
+
+REPO = Path(__file__).resolve().parent.parent
+OUT = REPO / "bench" / "out" / "sfm_captures"
+RESULTS = REPO / "bench" / "results" / "sfm_captures.json"
+SCENES = ("fox", "cup", "ball", "apple", "ball_video")
+VIDEO_FPS = 8
+
+
+def scene_input(name: str, data: Path) -> Path:
+    if name == "apple":
+        return data / "apple" / "apple.mp4"
+    if name != "ball_video":
+        return data / name / "images"
+    video = OUT / "ball_video.mp4"
+    if not video.is_file():
+        import cv2
+        frames = sorted((data / "ball" / "images").glob("*.jpg"))
+        height, width = cv2.imread(str(frames[0])).shape[:2]
+        OUT.mkdir(parents=True, exist_ok=True)
+        writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), VIDEO_FPS, (width, height))
+        for frame in frames:
+            writer.write(cv2.imread(str(frame)))
+        writer.release()
+    return video
+
+
+def summary(out: Path, stage: str) -> dict:
+    return json.loads((out / stage / "manifest.json").read_text())["summary"]
+
+
+def one_run(name: str, data: Path, preset: str, label: str) -> dict:
+    out = OUT / f"{name}-{preset}-{label.replace(' ', '_')}"
+    command = [sys.executable, "-m", "pipeline", "run", str(scene_input(name, data)), "--out", str(out), "--preset",
+               preset, "--set", "poses.source=sfm", "--until", "evaluate"]
+    subprocess.run(command, cwd=REPO, check=True)
+    scene = json.loads((out / "normalize" / "scene.json").read_text())
+    fit = json.loads((out / "fit" / "fit.json").read_text())
+    metrics = json.loads((out / "evaluate" / "metrics.json").read_text())
+    box = scene["foreground"]
+    poses = summary(out, "poses")
+    return {"scene": name, "preset": preset, "label": label, "recorded": recorded(), "machine": machine(),
+            "mean": metrics["mean"], "views": metrics["count"], "fit_seconds": fit["seconds"],
+            "train_psnr": fit["train_psnr"], "grid": fit["model"]["resolution"], "voxels": fit["model"]["occupied"],
+            "scene_model": fit.get("scene_model"), "type": scene["type"],
+            "poses": {"registered": poses["registered"], "images": poses["images"], "points": poses["points"],
+                      "line": poses["line"]},
+            "foreground_in_camera_distances": (np.subtract(box["max"], box["min"])
+                                               / scene["measured"]["camera_distance"]).round(3).tolist(),
+            "surroundings_growth": scene["measured"].get("surroundings_growth")}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+    parser.add_argument("--preset", default="fast")
+    parser.add_argument("--label", default="", help="names a variant (default: the date and commit)")
+    args = parser.parse_args()
+    label = args.label or recorded()
+    results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"runs": []}
+    for name in args.scenes:
+        run = one_run(name, args.data, args.preset, label)
+        print(f"{name} {args.preset} {label}: {run['mean']['psnr']:.2f} dB in {run['fit_seconds']:.0f} s of fitting, "
+              f"box {run['foreground_in_camera_distances']} camera distances")
+        results["runs"] = [r for r in results["runs"] if (r["scene"], r["preset"], r["label"]) != (name, args.preset, label)]
+        results["runs"].append(run)
+        results["machine"] = run["machine"]
+        RESULTS.parent.mkdir(parents=True, exist_ok=True)
+        write_runs(RESULTS, results)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
