@@ -100,7 +100,7 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
     shape = f"{res[0]}^3" if len(set(res)) == 1 else "x".join(map(str, res))
     line = f"{shape} grid"
     if grid.warped:
-        line += f" (cells up to {grid.coarsening():.2g}x coarser around the foreground)"
+        line += f" (cells up to {grid.coarsening():.3g}x coarser around the foreground)"
     line += (f", {format_count(grid.num_occupied)} voxels ({format_bytes(record['memory_bytes']['total'])}), "
              f"train PSNR {record['train_psnr']:.1f} dB")
     if final_psnr is not None:
