@@ -98,7 +98,7 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
     # the box does not depend on where the poses came from (bench/README.md, "How normalize boxes a room"). The SfM
     # model's own points stay in sparse/.
     report.info("triangulating points between nearby photos for the scene's box and depths")
-    points = triangulate([np.asarray(Image.open(out / f["file_path"]).convert("RGB")) for f in frames],
+    points = triangulate((np.asarray(Image.open(out / f["file_path"]).convert("RGB")) for f in frames),
                          np.stack([np.asarray(f["transform_matrix"]) for f in frames]),
                          [Intrinsics.from_frame({**shared, **f}) for f in frames])
     np.savez(out / POINTS_NPZ, **points.arrays())

@@ -11,6 +11,7 @@ point is one matched pair, with its two observations, which is all that the dept
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import cv2
@@ -97,8 +98,10 @@ def _colours(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return image[row, col].astype(np.uint8)
 
 
-def triangulate(images: list[np.ndarray], c2w: np.ndarray, intrinsics: list[Intrinsics], seed: int = 0) -> TriangulatedPoints:
-    """Points seen by pairs of the posed photos `images` (uint8 RGB [h, w, 3], at the size `intrinsics` describe)."""
+def triangulate(images: Iterable[np.ndarray], c2w: np.ndarray, intrinsics: list[Intrinsics],
+                seed: int = 0) -> TriangulatedPoints:
+    """Points seen by pairs of the posed photos `images` (uint8 RGB [h, w, 3], at the size `intrinsics` describe),
+    read one at a time: each photo's features keep their colours, so no photo is needed twice."""
     sift = cv2.SIFT_create(nfeatures=FEATURES)
     features, scales = [], []
     for image in images:
@@ -109,13 +112,13 @@ def triangulate(images: list[np.ndarray], c2w: np.ndarray, intrinsics: list[Intr
         keypoints, descriptors = sift.detectAndCompute(gray, None)
         # Pixel centres at +0.5, at the photo's full size.
         xy = (np.array([kp.pt for kp in keypoints], dtype=np.float64).reshape(-1, 2) + 0.5) / scale
-        features.append((xy, descriptors))
+        features.append((xy, descriptors, _colours(image, xy)))
         scales.append(scale)
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     pairs = neighbour_pairs(c2w)
-    xyz_all, err_all, obs_all = [], [], []
+    xyz_all, err_all, rgb_all, obs_all = [], [], [], []
     for i, j in pairs:
-        (xy_i, desc_i), (xy_j, desc_j) = features[i], features[j]
+        (xy_i, desc_i, rgb_i), (xy_j, desc_j, _) = features[i], features[j]
         if desc_i is None or desc_j is None or len(desc_i) < 2 or len(desc_j) < 2:
             continue
         knn = matcher.knnMatch(desc_i, desc_j, k=2)
@@ -144,8 +147,9 @@ def triangulate(images: list[np.ndarray], c2w: np.ndarray, intrinsics: list[Intr
         count = int(good_point.sum())
         xyz_all.append(xyz[good_point])
         err_all.append(error[good_point])
+        rgb_all.append(rgb_i[a][good_point])
         index = np.arange(start, start + count)
-        obs_all.append((np.repeat([i, j], count), np.concatenate([index, index]), x1[good_point]))
+        obs_all.append((np.repeat([i, j], count), np.concatenate([index, index])))
     if not xyz_all or sum(len(x) for x in xyz_all) == 0:
         empty = np.zeros(0, dtype=np.int64)
         return TriangulatedPoints(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0), empty, empty, len(pairs))
@@ -154,7 +158,7 @@ def triangulate(images: list[np.ndarray], c2w: np.ndarray, intrinsics: list[Intr
     obs_frame = np.concatenate([o[0] for o in obs_all])
     obs_point = np.concatenate([o[1] for o in obs_all])
     # Each point's colour where the first photo of its pair saw it.
-    rgb = np.concatenate([_colours(images[o[0][0]], o[2]) for o in obs_all if len(o[2])])
+    rgb = np.concatenate(rgb_all)
     if len(xyz) > MAX_POINTS:
         chosen = np.sort(np.random.default_rng(seed).choice(len(xyz), MAX_POINTS, replace=False))
         remap = np.full(len(xyz), -1)
