@@ -86,7 +86,8 @@ def main() -> int:
         run = one_run(name, args.data, args.preset, label)
         print(f"{name} {args.preset} {label}: {run['mean']['psnr']:.2f} dB in {run['fit_seconds']:.0f} s of fitting, "
               f"box {run['foreground_in_camera_distances']} camera distances")
-        results["runs"] = [r for r in results["runs"] if (r["scene"], r["preset"], r["label"]) != (name, args.preset, label)]
+        same = (name, args.preset, label)
+        results["runs"] = [r for r in results["runs"] if (r["scene"], r["preset"], r["label"]) != same]
         results["runs"].append(run)
         results["machine"] = run["machine"]
         RESULTS.parent.mkdir(parents=True, exist_ok=True)
