@@ -2,13 +2,13 @@
 preset, ingest to evaluate, with the pose files that come with it ignored (`poses.source=sfm`). What the other parts
 measure from a scene's own poses, this one measures as a new user meets it.
 
-Scenes: fox, cup and ball (their photo folders), apple (its 5 s clip) and ball_video (ball's 127 frames written as an
+Scenes: fox, cup, ball and fern (their photo folders; fern's images_4), apple (its 5 s clip) and ball_video (ball's 127 frames written as an
 8 fps MP4 under bench/out/sfm_captures/, a 16 s phone video). Each run records the evaluate stage's held-out PSNR,
 SSIM and LPIPS (every 8th frame held out, at the fit's image scale), the fit's seconds and grid, the poses' points
 and the foreground box in units of the cameras' distance (what sets the cells' size). Writes
 bench/results/sfm_captures.json (a run replaces the one of the same scene, preset and label).
 
-    .venv/bin/python -m bench.sfm_captures [--scenes fox cup ball apple ball_video] [--preset fast] [--label L]
+    .venv/bin/python -m bench.sfm_captures [--scenes fox cup ball fern apple ball_video] [--preset fast] [--label L]
 """
 from __future__ import annotations
 
@@ -26,13 +26,15 @@ from bench.fit import machine
 REPO = Path(__file__).resolve().parent.parent
 OUT = REPO / "bench" / "out" / "sfm_captures"
 RESULTS = REPO / "bench" / "results" / "sfm_captures.json"
-SCENES = ("fox", "cup", "ball", "apple", "ball_video")
+SCENES = ("fox", "cup", "ball", "fern", "apple", "ball_video")
 VIDEO_FPS = 8
 
 
 def scene_input(name: str, data: Path) -> Path:
     if name == "apple":
         return data / "apple" / "apple.mp4"
+    if name == "fern":
+        return data / "fern" / "images_4"
     if name != "ball_video":
         return data / name / "images"
     video = OUT / "ball_video.mp4"
