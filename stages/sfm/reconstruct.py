@@ -308,9 +308,9 @@ def attempt_plan(s: SfmOptions, n_images: int, from_video: bool, longest_side: i
     if prior:
         prior = False
         plan.append(Attempt("no EXIF focal prior", current, prior))
-    if longest_side > REPAIR_FEATURE_SIDE and not 0 < current.feature_max_side <= REPAIR_FEATURE_SIDE:
-        plan.append(Attempt(f"features at {REPAIR_FEATURE_SIDE} px", replace(current, feature_max_side=REPAIR_FEATURE_SIDE),
-                            prior))
+    smaller = smaller_features(Attempt("", current, prior), longest_side)
+    if smaller is not None:
+        plan.append(smaller)
     current = replace(current, max_features=2 * current.max_features, min_features=2 * current.min_features)
     peak = SIFT_PEAK_THRESHOLD / LOW_FEATURE_PEAK_DIVISOR
     plan.append(Attempt("twice the features", current, prior, peak))
@@ -318,6 +318,15 @@ def attempt_plan(s: SfmOptions, n_images: int, from_video: bool, longest_side: i
         current = replace(current, feature_max_side=0)
         plan.append(Attempt("full-size images", current, prior, peak))
     return plan
+
+
+def smaller_features(attempt: Attempt, longest_side: int) -> Attempt | None:
+    """`attempt` with features from images of REPAIR_FEATURE_SIDE, where the photos are larger and its features are
+    not already that small."""
+    if longest_side <= REPAIR_FEATURE_SIDE or 0 < attempt.options.feature_max_side <= REPAIR_FEATURE_SIDE:
+        return None
+    options = replace(attempt.options, feature_max_side=REPAIR_FEATURE_SIDE)
+    return Attempt(f"features at {REPAIR_FEATURE_SIDE} px", options, attempt.focal_prior, attempt.peak_threshold)
 
 
 def model_problems(db: Path, best: pycolmap.Reconstruction | None, models: list[pycolmap.Reconstruction],
@@ -345,7 +354,8 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
     that neither contradicts its own matches nor splits in parts. Images left detached or contradicting their matches
     are dropped from it; with no such model the stage stops with what the user can do. Returns the model and what
     happened on the way (attempts, counts, fallbacks, timings). `scratch` holds the databases and models."""
-    plan = attempt_plan(s, len(records), from_video, max(max(r["width"], r["height"]) for r in records))
+    longest_side = max(max(r["width"], r["height"]) for r in records)
+    plan = attempt_plan(s, len(records), from_video, longest_side)
     masks = feature_masks(records, image_dir.parent, scratch / "feature_masks")
     if masks is not None:
         report.info(f"features only inside the masks of {sum(bool(r.get('mask')) for r in records)} images")
@@ -376,9 +386,31 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
                         f"({', '.join(t['attempt'] for t in tried)}): {tried[-1]['problems'][0]}; take sharper, "
                         "more overlapping photos (or drop those named), or try poses.matching, poses.camera_model or "
                         f"poses.exif_focal=false{hint}")
+    why = tried[0]["problems"][0] if number else None
+    # A model that holds together but leaves photos out as contradicting their matches, its features from photos
+    # larger than REPAIR_FEATURE_SIDE: the same configuration at that side may pose them (a phone video's frames
+    # misplaced at 960 px, contradicting 22-78% of their matches, hold together at 640); kept where it poses more.
+    smaller = smaller_features(attempt, longest_side) if contradicted and s.repair else None
+    if smaller is not None:
+        left_out = (f"{len(contradicted)}/{len(records)} images have poses that contradict over "
+                    f"{MAX_CONTRADICTED_SHARE:.0%} of their verified matches ({short_list(sorted(contradicted))})")
+        report.warn(f"SfM ({attempt.label}): {left_out}; trying {smaller.label}")
+        try:
+            again, again_info, again_models = sfm_attempt(records, image_dir, photos, from_video,
+                                                          scratch / f"attempt_{len(tried)}", smaller, report, masks)
+        except UserError:  # this attempt alone refusing what the model in hand got past: keep that model
+            again, again_info, again_models = None, {"db": None}, []
+        problems, again_contradicted = model_problems(again_info.pop("db"), again, again_models, len(records),
+                                                      smaller.options)
+        tried.append({"attempt": smaller.label, "registered": again.num_reg_images() if again else 0,
+                      "contradicted": len(again_contradicted), "models": len(again_models), "problems": problems})
+        posed_again = again.num_reg_images() - len(again_contradicted) if again is not None else 0
+        if not problems and posed_again > best.num_reg_images() - len(contradicted):
+            why = left_out
+            best, info, contradicted, attempt, number = again, again_info, again_contradicted, smaller, len(tried) - 1
     info["attempts"], info["attempt"] = tried, attempt.label
     if number:
-        info["attempt_why"] = tried[0]["problems"][0]
+        info["attempt_why"] = why
     info["exif_resized"] = resized
     info["masked_images"] = sum(bool(r.get("mask")) for r in records) if masks is not None else 0
     if contradicted:

@@ -599,6 +599,33 @@ def test_photos_that_do_not_hold_together_at_their_size_are_posed_from_smaller_f
     assert errors["centre_error_share_max"] < 0.02, errors
 
 
+def test_photos_a_model_leaves_out_are_posed_again_from_smaller_features_and_the_model_posing_more_is_kept(
+        scene, truth, tmp_path, monkeypatch):
+    # One photo contradicts its matches in the first model (under the share that makes a model wrong, so it would be
+    # left out); features at the repair's side pose it.
+    monkeypatch.setattr(reconstruct, "REPAIR_FEATURE_SIDE", 320)
+    real = reconstruct.contradicted_images
+    misplaced_in = {"first": {0}, "every": {0, 1}}
+
+    for case, attempts in misplaced_in.items():
+        def judged(db, model, above):
+            found = real(db, model, above)
+            if int(Path(db).parent.name.split("_")[-1]) in attempts:
+                found[min(Path(im.name).stem for im in model.images.values() if im.has_pose)] = 0.5
+            return found
+
+        monkeypatch.setattr(reconstruct, "contradicted_images", judged)
+        summary = run_poses(scene / "images", tmp_path / case, "poses.source=sfm", "poses.matching=exhaustive",
+                            "poses.exif_focal=false", "poses.threads=1")["summary"]
+        assert [a["attempt"] for a in summary["attempts"]] == ["as set", "features at 320 px"]
+        if case == "first":
+            assert summary["attempt"] == "features at 320 px" and summary["registered"] == N_VIEWS
+            assert "1/24 images have poses that contradict" in summary["line"]
+            assert pose_errors(tmp_path / case, truth)["rotation_error_deg_max"] < 1.0
+        else:  # the smaller features pose no more: the first model stays, without the photo
+            assert summary["attempt"] == "as set" and summary["registered"] == N_VIEWS - 1
+
+
 def test_no_model_that_holds_together_stops_the_pipeline_with_one_line(scene, tmp_path, monkeypatch):
     contradicting_first_attempts(monkeypatch, 99)
     folder = tmp_path / "few"
