@@ -352,7 +352,8 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
     """The largest model COLMAP makes of the ingested images (`records`, PNGs in `image_dir`, original photos in
     `photos` for their EXIF) that holds together: each configuration of `attempt_plan` in turn until one gives a model
     that neither contradicts its own matches nor splits in parts. Images left detached or contradicting their matches
-    are dropped from it; with no such model the stage stops with what the user can do. Returns the model and what
+    are dropped from it, once a model from smaller features (`smaller_features`) has been tried for them; with no
+    such model the stage stops with what the user can do. Returns the model and what
     happened on the way (attempts, counts, fallbacks, timings). `scratch` holds the databases and models."""
     longest_side = max(max(r["width"], r["height"]) for r in records)
     plan = attempt_plan(s, len(records), from_video, longest_side)
@@ -406,7 +407,7 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
                       "contradicted": len(again_contradicted), "models": len(again_models), "problems": problems})
         posed_again = again.num_reg_images() - len(again_contradicted) if again is not None else 0
         if not problems and posed_again > best.num_reg_images() - len(contradicted):
-            why = left_out
+            why = why or left_out
             best, info, contradicted, attempt, number = again, again_info, again_contradicted, smaller, len(tried) - 1
     info["attempts"], info["attempt"] = tried, attempt.label
     if number:
