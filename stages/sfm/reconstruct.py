@@ -329,6 +329,11 @@ def smaller_features(attempt: Attempt, longest_side: int) -> Attempt | None:
     return Attempt(f"features at {REPAIR_FEATURE_SIDE} px", options, attempt.focal_prior, attempt.peak_threshold)
 
 
+def contradicting(contradicted: dict[str, float], n_images: int) -> str:
+    return (f"{len(contradicted)}/{n_images} images have poses that contradict over {MAX_CONTRADICTED_SHARE:.0%} of "
+            f"their verified matches ({short_list(sorted(contradicted))})")
+
+
 def model_problems(db: Path, best: pycolmap.Reconstruction | None, models: list[pycolmap.Reconstruction],
                    n_images: int, s: SfmOptions) -> tuple[list[str], dict[str, float]]:
     """Why a model cannot be trusted (none: it holds together), and its images that contradict their matches."""
@@ -337,8 +342,7 @@ def model_problems(db: Path, best: pycolmap.Reconstruction | None, models: list[
     contradicted = contradicted_images(db, best, MAX_CONTRADICTED_SHARE)
     problems = []
     if len(contradicted) > s.max_contradicted_images * n_images:
-        problems.append(f"{len(contradicted)}/{n_images} images have poses that contradict over "
-                        f"{MAX_CONTRADICTED_SHARE:.0%} of their verified matches ({short_list(sorted(contradicted))})")
+        problems.append(contradicting(contradicted, n_images))
     posed = {im.name for im in best.images.values() if im.has_pose}
     elsewhere = {im.name for m in models if m is not best for im in m.images.values() if im.has_pose} - posed
     if len(elsewhere) >= 2:
@@ -393,8 +397,7 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
     # misplaced at 960 px, contradicting 22-78% of their matches, hold together at 640); kept where it poses more.
     smaller = smaller_features(attempt, longest_side) if contradicted and s.repair else None
     if smaller is not None:
-        left_out = (f"{len(contradicted)}/{len(records)} images have poses that contradict over "
-                    f"{MAX_CONTRADICTED_SHARE:.0%} of their verified matches ({short_list(sorted(contradicted))})")
+        left_out = contradicting(contradicted, len(records))
         report.warn(f"SfM ({attempt.label}): {left_out}; trying {smaller.label}")
         try:
             again, again_info, again_models = sfm_attempt(records, image_dir, photos, from_video,
