@@ -53,7 +53,8 @@ def run(ctx) -> dict:
     if ctx.scene.is_file():
         if ctx.scene.suffix.lower() not in VIDEO_SUFFIXES:
             raise UserError(f"{ctx.scene.name} is neither a folder of photos nor a video ({', '.join(sorted(VIDEO_SUFFIXES))})")
-        frames, clip = video_frames(ctx.scene, s.max_side, s.video_motion, s.video_fps, ctx.report, s.video_min_frames)
+        frames, clip = video_frames(ctx.scene, s.max_side, s.video_motion, s.video_fps, ctx.report,
+                                    s.video_frames)
         for name, rgb in frames:
             keep(name, ctx.scene.name, rgb, None, (rgb.shape[1], rgb.shape[0]))
     else:
@@ -129,7 +130,8 @@ def video_words(clip: dict, s: Settings) -> str:
     """The summary's words on a video: its length and the spacing its frames were kept at."""
     words = f" from a {clip['seconds']:.1f} s video, a frame each {clip['motion']:.1%} of the view's diagonal"
     if clip["motion"] < s.video_motion:
-        words += f" (closer than ingest.video_motion's {s.video_motion:.0%}: at that spacing the clip gave too few)"
+        words += (f" (closer than ingest.video_motion's {s.video_motion:.0%}: at that spacing the clip gave fewer than"
+                  f" ingest.video_frames's {s.video_frames})")
     return words
 
 

@@ -207,18 +207,18 @@ def _corners(grey: np.ndarray) -> np.ndarray | None:
 
 
 def video_frames(path: Path, max_side: int, motion: float, max_per_second: float, report,
-                 min_frames: int = 0) -> tuple[list[tuple[str, np.ndarray]], dict]:
+                 target_frames: int = 0) -> tuple[list[tuple[str, np.ndarray]], dict]:
     """(name, RGB) of the frames to pose from a video (see frames_by_motion), and what the clip gave: its `seconds`,
     the `motion` the frames were kept at and `total_motion` (diagonals the view moved in all). A clip whose motion
-    gives fewer than `min_frames` at `motion` (a short clip, or a camera that moved little) is read again with frames
-    closer together, as close as the motion allows for `min_frames` but never below MIN_MOTION_SHARE of `motion`, nor
-    more than `max_per_second` a second; where it still gives fewer, the caller says it is too short."""
+    gives fewer than `target_frames` at `motion` (a short clip, or a camera that moved little) is read again with
+    frames closer together, as close as the motion allows for `target_frames` but never below MIN_MOTION_SHARE of
+    `motion`, nor more than `max_per_second` a second."""
     kept, clip = frames_by_motion(path, max_side, motion, max_per_second, report)
     used = motion
     for _ in range(VIDEO_RETRIES):
-        if not min_frames or len(kept) >= min_frames or len(kept) >= clip["most_frames"]:
+        if not target_frames or len(kept) >= target_frames or len(kept) >= clip["most_frames"]:
             break
-        denser = max(motion * MIN_MOTION_SHARE, min(used * 0.7, clip["total_motion"] / min_frames))
+        denser = max(motion * MIN_MOTION_SHARE, min(used * 0.7, clip["total_motion"] / target_frames))
         if denser >= used:
             break
         used = denser

@@ -121,7 +121,7 @@ def test_video_frames_follow_the_motion_and_keep_the_sharpest(tmp_path):
     # 1 px a frame on an 80x60 frame (100 px diagonal): at 8% of the diagonal a frame is due about every 8 frames.
     video = panning_video(tmp_path / "pan.avi", 60, sharp_every=3)
     _, listing = run_ingest(video, tmp_path, "ingest.video_motion=0.08", "ingest.video_fps=100",
-                            "ingest.video_min_frames=0")
+                            "ingest.video_frames=0")
     kept = [int(r["name"].split("_")[1]) for r in listing["images"]]
     assert all(i % 3 == 0 for i in kept[1:]), kept           # of each stretch's candidates, a sharp one
     gaps = np.diff(kept)
@@ -130,9 +130,9 @@ def test_video_frames_follow_the_motion_and_keep_the_sharpest(tmp_path):
 
 def test_video_keeps_more_frames_where_the_camera_moves_faster(tmp_path):
     slow = run_ingest(panning_video(tmp_path / "slow.avi", 60, step_px=1), tmp_path / "a", "ingest.video_fps=100",
-                      "ingest.video_min_frames=0")[1]
+                      "ingest.video_frames=0")[1]
     fast = run_ingest(panning_video(tmp_path / "fast.avi", 60, step_px=2), tmp_path / "b", "ingest.video_fps=100",
-                      "ingest.video_min_frames=0")[1]
+                      "ingest.video_frames=0")[1]
     assert len(fast["images"]) >= 1.6 * len(slow["images"])
     capped = run_ingest(tmp_path / "fast.avi", tmp_path / "c", "ingest.video_fps=0.5")[1]
     assert len(capped["images"]) <= 4    # 6 s of video at most 0.5 frames a second (and the first)
@@ -141,13 +141,15 @@ def test_video_keeps_more_frames_where_the_camera_moves_faster(tmp_path):
 def test_a_clip_that_moves_little_is_read_again_with_frames_closer_together(tmp_path):
     # 1 px a frame: at 5% of the 100 px diagonal about 12 frames of 60; 24 wanted, so the clip is read again.
     video = panning_video(tmp_path / "slow.avi", 60, step_px=1)
-    sparse = run_ingest(video, tmp_path / "a", "ingest.video_fps=100", "ingest.video_min_frames=0")[1]
-    out, dense = run_ingest(video, tmp_path / "b", "ingest.video_fps=100", "ingest.video_min_frames=24")
+    sparse = run_ingest(video, tmp_path / "a", "ingest.video_fps=100", "ingest.video_frames=0")[1]
+    out, dense = run_ingest(video, tmp_path / "b", "ingest.video_fps=100", "ingest.video_frames=24",
+                            "ingest.video_min_frames=12")
     assert len(sparse["images"]) < 16 and len(dense["images"]) >= 1.5 * len(sparse["images"]), (sparse, dense)
     assert dense["video"]["motion"] < 0.05 <= sparse["video"]["motion"]
     assert 0.4 < dense["video"]["total_motion"] < 0.8  # 59 px of a 100 px diagonal
     line = json.loads((out / "manifest.json").read_text())["summary"]["line"]
-    assert "closer than ingest.video_motion" in line
+    assert "closer than ingest.video_motion" in line and "fewer than ingest.video_frames's 24" in line
+    assert "too short" not in line     # the frames aimed for and the fewest for a good fit are two settings
 
 
 def test_a_clip_too_short_for_a_good_fit_says_so(tmp_path):
