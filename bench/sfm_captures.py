@@ -2,13 +2,15 @@
 preset, ingest to evaluate, with the pose files that come with it ignored (`poses.source=sfm`). What the other parts
 measure from a scene's own poses, this one measures as a new user meets it.
 
-Scenes: fox, cup, ball and fern (their photo folders; fern's images_4), apple (its 5 s clip) and ball_video (ball's 127 frames written as an
-8 fps MP4 under bench/out/sfm_captures/, a 16 s phone video). Each run records the evaluate stage's held-out PSNR,
+Scenes: fox, cup, ball and fern (their photo folders; fern's images_4), apple (its 5 s clip), ball_video (ball's 127
+frames written as an 8 fps MP4 under bench/out/sfm_captures/, a 16 s phone video) and cup_video (cup's 77 photos in
+the order taken, a 10 s video). Each run records the evaluate stage's held-out PSNR,
 SSIM and LPIPS (every 8th frame held out, at the fit's image scale), the fit's seconds and grid, the poses' points
 and the foreground box in units of the cameras' distance (what sets the cells' size). Writes
 bench/results/sfm_captures.json (a run replaces the one of the same scene, preset and label).
 
-    .venv/bin/python -m bench.sfm_captures [--scenes fox cup ball fern apple ball_video] [--preset fast] [--label L]
+    .venv/bin/python -m bench.sfm_captures [--scenes fox cup ball fern apple ball_video cup_video] [--preset fast]
+        [--label L] [--set SECTION.KEY=VALUE ...]
 """
 from __future__ import annotations
 
@@ -26,7 +28,7 @@ from bench.fit import machine
 REPO = Path(__file__).resolve().parent.parent
 OUT = REPO / "bench" / "out" / "sfm_captures"
 RESULTS = REPO / "bench" / "results" / "sfm_captures.json"
-SCENES = ("fox", "cup", "ball", "fern", "apple", "ball_video")
+SCENES = ("fox", "cup", "ball", "fern", "apple", "ball_video", "cup_video")
 VIDEO_FPS = 8
 
 
@@ -35,12 +37,14 @@ def scene_input(name: str, data: Path) -> Path:
         return data / "apple" / "apple.mp4"
     if name == "fern":
         return data / "fern" / "images_4"
-    if name != "ball_video":
+    if not name.endswith("_video"):
         return data / name / "images"
-    video = OUT / "ball_video.mp4"
+    video = OUT / f"{name}.mp4"
     if not video.is_file():
         import cv2
-        frames = sorted((data / "ball" / "images").glob("*.jpg"))
+        # in the order they were taken: cup's photos are numbered 1..77
+        frames = sorted((data / name.removesuffix("_video") / "images").glob("*.jpg"),
+                        key=lambda p: (len(p.stem), p.stem))
         height, width = cv2.imread(str(frames[0])).shape[:2]
         OUT.mkdir(parents=True, exist_ok=True)
         writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), VIDEO_FPS, (width, height))
@@ -54,17 +58,19 @@ def summary(out: Path, stage: str) -> dict:
     return json.loads((out / stage / "manifest.json").read_text())["summary"]
 
 
-def one_run(name: str, data: Path, preset: str, label: str) -> dict:
+def one_run(name: str, data: Path, preset: str, label: str, overrides: list[str]) -> dict:
     out = OUT / f"{name}-{preset}-{label.replace(' ', '_')}"
     command = [sys.executable, "-m", "pipeline", "run", str(scene_input(name, data)), "--out", str(out), "--preset",
                preset, "--set", "poses.source=sfm", "--until", "evaluate"]
+    command += [arg for override in overrides for arg in ("--set", override)]
     subprocess.run(command, cwd=REPO, check=True)
     scene = json.loads((out / "normalize" / "scene.json").read_text())
     fit = json.loads((out / "fit" / "fit.json").read_text())
     metrics = json.loads((out / "evaluate" / "metrics.json").read_text())
     box = scene["foreground"]
     poses = summary(out, "poses")
-    return {"scene": name, "preset": preset, "label": label, "recorded": recorded(), "machine": machine(),
+    return {"scene": name, "preset": preset, "label": label, "set": overrides, "recorded": recorded(),
+            "machine": machine(),
             "mean": metrics["mean"], "views": metrics["count"], "fit_seconds": fit["seconds"],
             "train_psnr": fit["train_psnr"], "grid": fit["model"]["resolution"], "voxels": fit["model"]["occupied"],
             "scene_model": fit.get("scene_model"), "type": scene["type"],
@@ -81,11 +87,13 @@ def main() -> int:
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     parser.add_argument("--preset", default="fast")
     parser.add_argument("--label", default="", help="names a variant (default: the date and commit)")
+    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="a setting for every run, as the pipeline takes it (repeatable)")
     args = parser.parse_args()
     label = args.label or recorded()
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"runs": []}
     for name in args.scenes:
-        run = one_run(name, args.data, args.preset, label)
+        run = one_run(name, args.data, args.preset, label, args.set)
         print(f"{name} {args.preset} {label}: {run['mean']['psnr']:.2f} dB in {run['fit_seconds']:.0f} s of fitting, "
               f"box {run['foreground_in_camera_distances']} camera distances")
         same = (name, args.preset, label)
