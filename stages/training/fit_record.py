@@ -99,7 +99,7 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
     res = grid.resolution
     shape = f"{res[0]}^3" if len(set(res)) == 1 else "x".join(map(str, res))
     line = f"{shape} grid"
-    if grid.warped:
+    if grid.warped and grid.coarsening() >= 1.05:   # a surroundings box just past the foreground: cells of one size
         line += f" (cells up to {grid.coarsening():.3g}x coarser around the foreground)"
     line += (f", {format_count(grid.num_occupied)} voxels ({format_bytes(record['memory_bytes']['total'])}), "
              f"train PSNR {record['train_psnr']:.1f} dB")
