@@ -12,7 +12,7 @@ from plenoxels.core.errors import UserError
 from stages.framing.backdrop import BACKDROP_MIN_PHOTOS, Backdrop
 from stages.framing.options import SceneOptions
 from stages.framing.sightings import Cameras, MIN_POINTS, MIN_POINTS_PER_IMAGE
-from stages.framing.visual_hull import DISAGREEING_SHARE, carve, cut_photos, read_silhouettes, shown_box
+from stages.framing.visual_hull import DISAGREEING_SHARE, carve, cut_photos, held_box, read_silhouettes, shown_box
 
 
 # A point belongs to the foreground candidates when at least this share of the cameras has it in view.
@@ -145,9 +145,9 @@ def silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: B
     """The box (rotated frame) the training photos' silhouettes give (stages/framing/visual_hull.py) and what it came from:
     the box of what some photo sees of their masks' visual hull, or on a flat backdrop the same of what is not the
     backdrop, joined with the box `found` otherwise (colour alone may miss a part of the backdrop's colour, so the
-    points keep their say); `found` where the photos carry neither, or their silhouettes do not bound the object (cut
-    by the photos' edges). A box from masks that cuts what a photo's mask shows can only come from wrong masks or
-    poses: that stops here."""
+    points keep their say); `found` where the photos carry neither, or a flat backdrop's silhouettes do not bound the
+    object (cut by the photos' edges), and where masks do not, `found` grown to hold what each mask shows. A box from
+    masks that cuts what a photo's mask shows can only come from wrong masks or poses: that stops here."""
     flat = (backdrop is not None and not backdrop.from_masks and backdrop.empty_fraction >= options.object_min_empty_fraction
             and backdrop.photos_showing >= BACKDROP_MIN_PHOTOS)
     colours = backdrop.colour if flat else None
@@ -168,9 +168,15 @@ def silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: B
     measured["visual_hull"] = {"photos": len(silhouettes), "source": silhouettes.source, "voxel": round(hull.voxel, 6),
                                "voxels": hull.voxels, "levels": hull.levels, "bounded": hull.bounded,
                                "box": hull.box.round(6).tolist()}
-    if not hull.bounded:
+    if not hull.bounded and not from_masks:
         return found  # the photos' edges cut the silhouettes, so they do not say where the object ends
-    shown = shown_box(silhouettes, hull, rotation)
+    if hull.bounded:
+        shown = shown_box(silhouettes, hull, rotation)
+    else:
+        # The hull runs out of the carved region where every photo that looks that way has the object cut by its
+        # frame (a capture in an arc, the object's base out of every frame): there the points say where the object
+        # ends, the box of theirs grown to hold what each photo shows of the hull beyond it.
+        shown = held_box(silhouettes, hull, found[0], rotation)
     measured["visual_hull"]["box_shown"] = shown.round(6).tolist()
     grow = hull.voxel + HULL_MARGIN * (shown[1] - shown[0])
     box = np.stack([shown[0] - grow, shown[1] + grow])
@@ -185,4 +191,6 @@ def silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: B
                         f"({', '.join(f'{name}: {cut[name]:.0%} of its mask' for name in names[:5])}"
                         f"{' and more' if len(names) > 5 else ''}); their masks or poses are wrong: fix those masks, "
                         "or leave those photos out")
+    if not hull.bounded:
+        return box, f"{found[1]}, grown to hold what {len(silhouettes)} training photos' masks show"
     return box, f"visual hull of {len(silhouettes)} training photos' masks"

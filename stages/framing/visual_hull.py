@@ -191,19 +191,23 @@ def _beyond_outline(silhouettes: Silhouettes, box_rot: np.ndarray, rotation: np.
     """Per photo, how many of its silhouette's pixels lie farther than CUT_TOLERANCE_PX outside the outline of the box
     (in the rotated frame); None where the photo's camera is inside the box, which it sees all around it, or where its
     silhouette is empty."""
-    corners = np.array([[box_rot[i][0], box_rot[j][1], box_rot[l][2]] for i in (0, 1) for j in (0, 1) for l in (0, 1)])
-    corners = corners @ rotation  # back to the input frame
     counts: list[int | None] = []
     for pose, k, shown in zip(silhouettes.c2w, silhouettes.intrinsics, silhouettes.object):
-        uv, depth = project(corners, pose, k)
-        if (depth <= 0).any() or not shown.any():
-            counts.append(None)
-            continue
-        outline = np.zeros(shown.shape, dtype=np.uint8)
-        cv2.fillConvexPoly(outline, cv2.convexHull(np.round((uv - 0.5) * 16).astype(np.int32)), 1, shift=4)
-        beyond = cv2.distanceTransform(np.where(outline > 0, 0, 255).astype(np.uint8), cv2.DIST_L2, 3)
-        counts.append(int((shown & (beyond > CUT_TOLERANCE_PX)).sum()))
+        beyond = _outline_distance(box_rot, rotation, pose, k) if shown.any() else None
+        counts.append(None if beyond is None else int((shown & (beyond > CUT_TOLERANCE_PX)).sum()))
     return counts
+
+
+def _outline_distance(box_rot: np.ndarray, rotation: np.ndarray, pose: np.ndarray, k: Intrinsics) -> np.ndarray | None:
+    """Each pixel's distance outside the outline of the box (rotated frame) in the photo; None where the camera is
+    inside the box."""
+    corners = np.array([[box_rot[i][0], box_rot[j][1], box_rot[l][2]] for i in (0, 1) for j in (0, 1) for l in (0, 1)])
+    uv, depth = project(corners @ rotation, pose, k)   # the corners back in the input frame
+    if (depth <= 0).any():
+        return None
+    outline = np.zeros((k.h, k.w), dtype=np.uint8)
+    cv2.fillConvexPoly(outline, cv2.convexHull(np.round((uv - 0.5) * 16).astype(np.int32)), 1, shift=4)
+    return cv2.distanceTransform(np.where(outline > 0, 0, 255).astype(np.uint8), cv2.DIST_L2, 3)
 
 
 def cut_photos(silhouettes: Silhouettes, box_rot: np.ndarray, rotation: np.ndarray) -> dict[str, float]:
@@ -234,29 +238,38 @@ def _surface(centres: np.ndarray, size: float) -> np.ndarray:
 
 
 def _seen(centres_in: np.ndarray, size: float, silhouettes: Silhouettes) -> np.ndarray:
-    """Which voxels (centres in the input frame) some photo sees in front of the others: each photo's depth buffer of
-    the voxels, on cells as wide as a voxel looks, each voxel covering its cell's neighbours too so that none slips
-    between them; a voxel counts as seen within SEEN_DEPTH_VOXELS of the nearest depth in its cell."""
+    """Which voxels (centres in the input frame) some photo sees in front of the others, within its frame."""
+    seen = np.zeros(len(centres_in), dtype=bool)
+    for pose, k in zip(silhouettes.c2w, silhouettes.intrinsics):
+        seen |= _seen_by(centres_in, size, pose, k)
+    return seen
+
+
+def _seen_by(centres_in: np.ndarray, size: float, pose: np.ndarray, k: Intrinsics) -> np.ndarray:
+    """Which voxels (centres in the input frame) the photo sees in front of the others, within its frame: its depth
+    buffer of the voxels, on cells as wide as a voxel looks, each voxel covering its cell's neighbours too so that none
+    slips between them; a voxel counts as seen within SEEN_DEPTH_VOXELS of the nearest depth in its cell."""
     seen = np.zeros(len(centres_in), dtype=bool)
     radius = size * np.sqrt(3) / 2
     offsets = np.stack(np.meshgrid(np.arange(-1, 2), np.arange(-1, 2), indexing="ij"), -1).reshape(-1, 2)
-    for pose, k in zip(silhouettes.c2w, silhouettes.intrinsics):
-        uv, depth = project(centres_in, pose, k)
-        front = np.flatnonzero(depth > radius)
-        if not len(front):
-            continue
-        uv, depth = uv[front], depth[front]
-        cell = float(np.median(2 * radius * max(k.fl_x, k.fl_y) / depth))
-        grid = np.floor(uv / cell).astype(np.int64)
-        grid -= grid.min(0) - 1
-        width = int(grid[:, 0].max()) + 2
-        own = grid[:, 1] * width + grid[:, 0]
-        keys = (own[None] + offsets[:, 1:2] * width + offsets[:, 0:1]).ravel()
-        depths = np.tile(depth, len(offsets))
-        order = np.argsort(keys, kind="stable")
-        cells, first = np.unique(keys[order], return_index=True)
-        nearest = np.minimum.reduceat(depths[order], first)
-        seen[front] |= depth <= nearest[np.searchsorted(cells, own)] + SEEN_DEPTH_VOXELS * size
+    uv, depth = project(centres_in, pose, k)
+    reach = radius * max(k.fl_x, k.fl_y) / np.maximum(depth, radius)   # a voxel's radius in pixels
+    front = np.flatnonzero((depth > radius) & (uv[:, 0] > -reach) & (uv[:, 0] < k.w + reach)
+                           & (uv[:, 1] > -reach) & (uv[:, 1] < k.h + reach))
+    if not len(front):
+        return seen
+    uv, depth = uv[front], depth[front]
+    cell = float(np.median(2 * radius * max(k.fl_x, k.fl_y) / depth))
+    grid = np.floor(uv / cell).astype(np.int64)
+    grid -= grid.min(0) - 1
+    width = int(grid[:, 0].max()) + 2
+    own = grid[:, 1] * width + grid[:, 0]
+    keys = (own[None] + offsets[:, 1:2] * width + offsets[:, 0:1]).ravel()
+    depths = np.tile(depth, len(offsets))
+    order = np.argsort(keys, kind="stable")
+    cells, first = np.unique(keys[order], return_index=True)
+    nearest = np.minimum.reduceat(depths[order], first)
+    seen[front] = depth <= nearest[np.searchsorted(cells, own)] + SEEN_DEPTH_VOXELS * size
     return seen
 
 
@@ -292,3 +305,25 @@ def shown_box(silhouettes: Silhouettes, hull: Hull, rotation: np.ndarray) -> np.
         else:
             short = middle
     return box + grown * (hull.box - box)
+
+
+def held_box(silhouettes: Silhouettes, hull: Hull, box: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """`box` (rotated frame) grown to hold the hull's voxels that a photo sees in front of the rest, within its frame,
+    where its silhouette reaches past the box's outline: what the photos show of the object beyond the box."""
+    surface = hull.centres[_surface(hull.centres, hull.voxel)]
+    centres_in = surface @ rotation
+    wanted = np.zeros(len(surface), dtype=bool)
+    for pose, k, shown in zip(silhouettes.c2w, silhouettes.intrinsics, silhouettes.object):
+        beyond = _outline_distance(box, rotation, pose, k)
+        outside = shown & (beyond > CUT_TOLERANCE_PX) if beyond is not None else None
+        if outside is None or not outside.any():
+            continue
+        seen = np.flatnonzero(_seen_by(centres_in, hull.voxel, pose, k))
+        uv, _ = project(centres_in[seen], pose, k)
+        pixel = np.clip(np.floor(uv).astype(np.int64), 0, [k.w - 1, k.h - 1])
+        wanted[seen[outside[pixel[:, 1], pixel[:, 0]]]] = True
+    if not wanted.any():
+        return box
+    part = surface[wanted]
+    return np.stack([np.minimum(box[0], part.min(0) - hull.voxel / 2),
+                     np.maximum(box[1], part.max(0) + hull.voxel / 2)])

@@ -203,6 +203,36 @@ def test_a_box_that_cuts_what_a_mask_shows_stops_normalize(mast_scene, tmp_path)
         normalize_scene(transforms, points, SceneOptions(), poses_dir=poses)
 
 
+def test_masks_whose_hull_stays_open_grow_the_points_box_to_hold_what_they_show(mast_scene, tmp_path):
+    # Every photo cropped above the object's lowest point (as a capture in an arc whose frames all cut the object's
+    # base): the hull runs on below, out of every frame, so the masks cannot bound the object there. The box of the
+    # points' bulk, which cuts the mast, grows until it holds what every mask shows, and no further than it must.
+    scene, out = mast_scene
+    poses = tmp_path / "poses"
+    (poses / "images").mkdir(parents=True)
+    (poses / "masks").mkdir()
+    transforms = read_json(out / "poses" / "transforms.json")
+    for frame in transforms["frames"]:
+        mask = np.asarray(Image.open(out / "poses" / frame["mask_path"]))
+        rows = np.flatnonzero((mask > 127).any(1))
+        keep = int(rows[-1]) - 12
+        Image.fromarray(mask[:keep]).save(poses / frame["mask_path"])
+        Image.fromarray(np.asarray(Image.open(out / "poses" / frame["file_path"]))[:keep]).save(poses / frame["file_path"])
+        frame.update({key: transforms[key] for key in ("fl_x", "fl_y", "cx", "cy", "w")}, h=keep)
+    points = read_points(out / "poses" / "points.npz")
+    framed = normalize_scene(transforms, points, SceneOptions(), poses_dir=poses)
+    hull = framed["measured"]["visual_hull"]
+    assert not hull["bounded"] and "grown to hold what 21 training photos' masks show" in framed["measured"]["foreground_from"]
+    assert inside_box(mast_top(scene), framed)
+    from_points = normalize_scene(transforms, points, SceneOptions(), poses_dir=None)
+    assert not inside_box(mast_top(scene), from_points)
+    # Grown no further than the masks ask: about the object's size, where the hull's box runs on past the cameras.
+    bounds = read_json(scene / "ground_truth" / "scene.json")["object_bounds"]
+    size = (np.asarray(framed["foreground"]["max"]) - framed["foreground"]["min"]) / framed["scale"]
+    truth, open_box = np.subtract(bounds["max"], bounds["min"]), np.asarray(hull["box"])
+    assert np.all(open_box[1] - open_box[0] > 3 * truth) and np.all(size < 1.4 * truth)
+
+
 def backdrop_scene(synthetic: Path, folder: Path, dark_every: int) -> Path:
     """The RGBA synthetic object composited as plain photos: on white, and on near-black for every `dark_every`-th."""
     truth = read_json(synthetic / "transforms.json")
