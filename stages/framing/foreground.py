@@ -184,6 +184,11 @@ def silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: B
         box = np.stack([np.minimum(box[0], found[0][0]), np.maximum(box[1], found[0][1])])
         return box, (f"visual hull of {len(silhouettes)} training photos' silhouettes on their flat backdrop, joined "
                      f"with the box of the {found[1]}")
+    if not hull.bounded:
+        # The points' box, not the masks' hull: what it still cuts (pixels whose rays meet none of the hull's voxels
+        # a photo sees) says nothing against the masks or poses, so the measure goes with the box.
+        measured["visual_hull"]["cut_photos"] = len(cut_photos(silhouettes, box, rotation))
+        return box, f"{found[1]}, grown to hold what {len(silhouettes)} training photos' masks show"
     cut = cut_photos(silhouettes, box, rotation)
     if cut:
         names = sorted(cut, key=lambda name: -cut[name])
@@ -191,6 +196,4 @@ def silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: B
                         f"({', '.join(f'{name}: {cut[name]:.0%} of its mask' for name in names[:5])}"
                         f"{' and more' if len(names) > 5 else ''}); their masks or poses are wrong: fix those masks, "
                         "or leave those photos out")
-    if not hull.bounded:
-        return box, f"{found[1]}, grown to hold what {len(silhouettes)} training photos' masks show"
     return box, f"visual hull of {len(silhouettes)} training photos' masks"
