@@ -23,6 +23,7 @@ from stages.sfm.compare import compare_poses, umeyama
 from stages.capture.synthetic import write_scene
 from stages.capture.synthetic_scenes import OBJECT_CENTRE
 from stages.framing.visual_hull import Silhouettes, carve, cut_photos, shown_box
+from stages.normalize import summary_line
 from plenoxels.core.cameras import Intrinsics, look_at, rays_from_camera
 from plenoxels.core.errors import UserError
 from plenoxels.core.scene_model import SceneModel
@@ -224,6 +225,7 @@ def test_masks_whose_hull_stays_open_grow_the_points_box_to_hold_what_they_show(
     hull = framed["measured"]["visual_hull"]
     assert not hull["bounded"] and "grown to hold what 21 training photos' masks show" in framed["measured"]["foreground_from"]
     assert inside_box(mast_top(scene), framed) and hull["cut_photos"] == 0
+    assert "box from the points, grown to hold what 21 photos' masks show" in summary_line(framed)
     from_points = normalize_scene(transforms, points, SceneOptions(), poses_dir=None)
     assert not inside_box(mast_top(scene), from_points)
     # Grown no further than the masks ask: about the object's size, where the hull's box runs on past the cameras.
