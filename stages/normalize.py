@@ -33,9 +33,10 @@ def summary_line(scene: dict) -> str:
     if m.get("foreground_from", "").startswith("visual hull"):
         silhouettes = "masks" if m["visual_hull"]["source"] == "masks" else "silhouettes on a flat backdrop"
         why += f"; box from the visual hull of {m['visual_hull']['photos']} photos' {silhouettes}"
-    elif m.get("visual_hull") and m.get("foreground_from", "").endswith("masks show"):
-        why += (f"; box from the points, grown to hold what {m['visual_hull']['photos']} photos' masks show (their "
-                "hull runs on out of the photos' frames)")
+    elif m.get("visual_hull") and m.get("foreground_from", "").endswith(" show"):
+        silhouettes = "masks" if m["visual_hull"]["source"] == "masks" else "silhouettes on a flat backdrop"
+        why += (f"; box from the points, grown to hold what {m['visual_hull']['photos']} photos' {silhouettes} show "
+                "(their hull runs on out of the photos' frames)")
     if m.get("borderline") and not scene["overridden"]:
         why += f"; borderline: views spread {m['view_cone_deg']:.0f} deg, near the forward limit"
     if scene["overridden"]:

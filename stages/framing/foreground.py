@@ -145,9 +145,9 @@ def silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: B
     """The box (rotated frame) the training photos' silhouettes give (stages/framing/visual_hull.py) and what it came from:
     the box of what some photo sees of their masks' visual hull, or on a flat backdrop the same of what is not the
     backdrop, joined with the box `found` otherwise (colour alone may miss a part of the backdrop's colour, so the
-    points keep their say); `found` where the photos carry neither, or a flat backdrop's silhouettes do not bound the
-    object (cut by the photos' edges), and where masks do not, `found` grown to hold what each mask shows. A box from
-    masks that cuts what a photo's mask shows can only come from wrong masks or poses: that stops here."""
+    points keep their say); `found` where the photos carry neither, and where the silhouettes do not bound the object
+    (cut by the photos' edges), `found` grown to hold what each silhouette shows. A box from the masks' hull that cuts
+    what a photo's mask shows can only come from wrong masks or poses: that stops here."""
     flat = (backdrop is not None and not backdrop.from_masks and backdrop.empty_fraction >= options.object_min_empty_fraction
             and backdrop.photos_showing >= BACKDROP_MIN_PHOTOS)
     colours = backdrop.colour if flat else None
@@ -168,8 +168,6 @@ def silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: B
     measured["visual_hull"] = {"photos": len(silhouettes), "source": silhouettes.source, "voxel": round(hull.voxel, 6),
                                "voxels": hull.voxels, "levels": hull.levels, "bounded": hull.bounded,
                                "box": hull.box.round(6).tolist()}
-    if not hull.bounded and not from_masks:
-        return found  # the photos' edges cut the silhouettes, so they do not say where the object ends
     if hull.bounded:
         shown = shown_box(silhouettes, hull, rotation)
     else:
@@ -180,15 +178,16 @@ def silhouette_box(cams: Cameras, train: list[int], poses_dir: Path, backdrop: B
     measured["visual_hull"]["box_shown"] = shown.round(6).tolist()
     grow = hull.voxel + HULL_MARGIN * (shown[1] - shown[0])
     box = np.stack([shown[0] - grow, shown[1] + grow])
+    if not hull.bounded:
+        # The points' box, not the silhouettes' hull: what it still cuts (pixels whose rays meet none of the hull's
+        # voxels a photo sees) says nothing against the masks or poses, so the measure goes with the box.
+        measured["visual_hull"]["cut_photos"] = len(cut_photos(silhouettes, box, rotation))
+        shown_by = "masks" if from_masks else "silhouettes on their flat backdrop"
+        return box, f"{found[1]}, grown to hold what {len(silhouettes)} training photos' {shown_by} show"
     if not from_masks:
         box = np.stack([np.minimum(box[0], found[0][0]), np.maximum(box[1], found[0][1])])
         return box, (f"visual hull of {len(silhouettes)} training photos' silhouettes on their flat backdrop, joined "
                      f"with the box of the {found[1]}")
-    if not hull.bounded:
-        # The points' box, not the masks' hull: what it still cuts (pixels whose rays meet none of the hull's voxels
-        # a photo sees) says nothing against the masks or poses, so the measure goes with the box.
-        measured["visual_hull"]["cut_photos"] = len(cut_photos(silhouettes, box, rotation))
-        return box, f"{found[1]}, grown to hold what {len(silhouettes)} training photos' masks show"
     cut = cut_photos(silhouettes, box, rotation)
     if cut:
         names = sorted(cut, key=lambda name: -cut[name])

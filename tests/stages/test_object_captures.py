@@ -204,31 +204,45 @@ def test_a_box_that_cuts_what_a_mask_shows_stops_normalize(mast_scene, tmp_path)
         normalize_scene(transforms, points, SceneOptions(), poses_dir=poses)
 
 
-def test_masks_whose_hull_stays_open_grow_the_points_box_to_hold_what_they_show(mast_scene, tmp_path):
-    # Every photo cropped above the object's lowest point (as a capture in an arc whose frames all cut the object's
-    # base): the hull runs on below, out of every frame, so the masks cannot bound the object there. The box of the
-    # points' bulk, which cuts the mast, grows until it holds what every mask shows, and no further than it must.
-    scene, out = mast_scene
-    poses = tmp_path / "poses"
+def cropped_above_the_base(out: Path, poses: Path, masks: bool) -> dict:
+    """The mast scene's photos cropped a little above the object's lowest point (as a capture in an arc whose frames
+    all cut the object's base), with their masks, or composited on white without them; their transforms."""
     (poses / "images").mkdir(parents=True)
     (poses / "masks").mkdir()
     transforms = read_json(out / "poses" / "transforms.json")
     for frame in transforms["frames"]:
         mask = np.asarray(Image.open(out / "poses" / frame["mask_path"]))
-        rows = np.flatnonzero((mask > 127).any(1))
-        keep = int(rows[-1]) - 12
-        Image.fromarray(mask[:keep]).save(poses / frame["mask_path"])
-        Image.fromarray(np.asarray(Image.open(out / "poses" / frame["file_path"]))[:keep]).save(poses / frame["file_path"])
+        keep = int(np.flatnonzero((mask > 127).any(1))[-1]) - 12
+        rgb = np.asarray(Image.open(out / "poses" / frame["file_path"]))[:keep, :, :3]
+        if masks:
+            Image.fromarray(mask[:keep]).save(poses / frame["mask_path"])
+        else:
+            alpha = mask[:keep, :, None] / 255.0
+            rgb = np.round(rgb * alpha + 255 * (1 - alpha)).astype(np.uint8)
+            del frame["mask_path"]
+        Image.fromarray(rgb).save(poses / frame["file_path"])
         frame.update({key: transforms[key] for key in ("fl_x", "fl_y", "cx", "cy", "w")}, h=keep)
+    return transforms
+
+
+@pytest.mark.parametrize("masks", [True, False], ids=["masks", "flat backdrop"])
+def test_silhouettes_whose_hull_stays_open_grow_the_points_box_to_hold_what_they_show(mast_scene, tmp_path, masks):
+    # Every frame cuts the object's base, so the hull runs on below, out of every frame: the silhouettes cannot bound
+    # the object there. The box of the points' bulk, which cuts the mast, grows until it holds what every silhouette
+    # shows, and no further than it must.
+    scene, out = mast_scene
+    transforms = cropped_above_the_base(out, tmp_path / "poses", masks)
     points = read_points(out / "poses" / "points.npz")
-    framed = normalize_scene(transforms, points, SceneOptions(), poses_dir=poses)
-    hull = framed["measured"]["visual_hull"]
-    assert not hull["bounded"] and "grown to hold what 21 training photos' masks show" in framed["measured"]["foreground_from"]
+    framed = normalize_scene(transforms, points, SceneOptions(), poses_dir=tmp_path / "poses")
+    hull, shown_by = framed["measured"]["visual_hull"], "masks" if masks else "silhouettes on a flat backdrop"
+    assert hull["source"] == ("masks" if masks else "backdrop") and not hull["bounded"]
+    assert "grown to hold what 21 training photos'" in framed["measured"]["foreground_from"]
+    assert f"box from the points, grown to hold what 21 photos' {shown_by} show" in summary_line(framed)
     assert inside_box(mast_top(scene), framed) and hull["cut_photos"] == 0
-    assert "box from the points, grown to hold what 21 photos' masks show" in summary_line(framed)
     from_points = normalize_scene(transforms, points, SceneOptions(), poses_dir=None)
     assert not inside_box(mast_top(scene), from_points)
-    # Grown no further than the masks ask: about the object's size, where the hull's box runs on past the cameras.
+    # Grown no further than the silhouettes ask: about the object's size, where the hull's box runs on past the
+    # cameras.
     bounds = read_json(scene / "ground_truth" / "scene.json")["object_bounds"]
     size = (np.asarray(framed["foreground"]["max"]) - framed["foreground"]["min"]) / framed["scale"]
     truth, open_box = np.subtract(bounds["max"], bounds["min"]), np.asarray(hull["box"])
