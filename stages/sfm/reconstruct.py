@@ -330,6 +330,7 @@ def smaller_features(attempt: Attempt, longest_side: int) -> Attempt | None:
 
 
 def contradicting(contradicted: dict[str, float], n_images: int) -> str:
+    """The words for a model's images that contradict their matches: a refused model's problem, or what it left out."""
     return (f"{len(contradicted)}/{n_images} images have poses that contradict over {MAX_CONTRADICTED_SHARE:.0%} of "
             f"their verified matches ({short_list(sorted(contradicted))})")
 
@@ -357,8 +358,8 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
     `photos` for their EXIF) that holds together: each configuration of `attempt_plan` in turn until one gives a model
     that neither contradicts its own matches nor splits in parts. Images left detached or contradicting their matches
     are dropped from it, once a model from smaller features (`smaller_features`) has been tried for them; with no
-    such model the stage stops with what the user can do. Returns the model and what
-    happened on the way (attempts, counts, fallbacks, timings). `scratch` holds the databases and models."""
+    such model the stage stops with what the user can do. Returns the model and what happened on the way (attempts,
+    counts, fallbacks, timings). `scratch` holds the databases and models."""
     longest_side = max(max(r["width"], r["height"]) for r in records)
     plan = attempt_plan(s, len(records), from_video, longest_side)
     masks = feature_masks(records, image_dir.parent, scratch / "feature_masks")

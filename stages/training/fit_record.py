@@ -99,8 +99,9 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
     res = grid.resolution
     shape = f"{res[0]}^3" if len(set(res)) == 1 else "x".join(map(str, res))
     line = f"{shape} grid"
-    if grid.warped and grid.coarsening() >= 1.05:   # a surroundings box just past the foreground: cells of one size
-        line += f" (cells up to {grid.coarsening():.3g}x coarser around the foreground)"
+    coarsening = grid.coarsening() if grid.warped else 1.0
+    if coarsening >= 1.05:   # a surroundings box just past the foreground has cells of one size
+        line += f" (cells up to {coarsening:.3g}x coarser around the foreground)"
     line += (f", {format_count(grid.num_occupied)} voxels ({format_bytes(record['memory_bytes']['total'])}), "
              f"train PSNR {record['train_psnr']:.1f} dB")
     if final_psnr is not None:
