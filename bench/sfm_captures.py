@@ -4,10 +4,10 @@ measure from a scene's own poses, this one measures as a new user meets it.
 
 Scenes: fox, cup, ball and fern (their photo folders; fern's images_4), apple (its 5 s clip), ball_video (ball's 127
 frames written as an 8 fps MP4 under bench/out/sfm_captures/, a 16 s phone video) and cup_video (cup's 77 photos in
-the order taken, a 10 s video). Each run records the evaluate stage's held-out PSNR,
-SSIM and LPIPS (every 8th frame held out, at the fit's image scale), the fit's seconds and grid, the poses' points
-and the foreground box in units of the cameras' distance (what sets the cells' size). Writes
-bench/results/sfm_captures.json (a run replaces the one of the same scene, preset and label).
+the order taken, a 10 s video). Each run records the evaluate stage's held-out PSNR, SSIM and LPIPS (every 8th frame
+held out, at the fit's image scale), the fit's seconds and grid, the poses' points and the foreground box in units of
+the cameras' distance (what sets the cells' size). Writes bench/results/sfm_captures.json (a run replaces the one of
+the same scene, preset and label).
 
     .venv/bin/python -m bench.sfm_captures [--scenes fox cup ball fern apple ball_video cup_video] [--preset fast]
         [--label L] [--set SECTION.KEY=VALUE ...]
@@ -70,8 +70,7 @@ def one_run(name: str, data: Path, preset: str, label: str, overrides: list[str]
     box = scene["foreground"]
     poses = summary(out, "poses")
     return {"scene": name, "preset": preset, "label": label, "set": overrides, "recorded": recorded(),
-            "machine": machine(),
-            "mean": metrics["mean"], "views": metrics["count"], "fit_seconds": fit["seconds"],
+            "machine": machine(), "mean": metrics["mean"], "views": metrics["count"], "fit_seconds": fit["seconds"],
             "train_psnr": fit["train_psnr"], "grid": fit["model"]["resolution"], "voxels": fit["model"]["occupied"],
             "scene_model": fit.get("scene_model"), "type": scene["type"],
             "poses": {"registered": poses["registered"], "images": poses["images"], "points": poses["points"],

@@ -208,7 +208,8 @@ def cropped_above_the_base(out: Path, poses: Path, masks: bool) -> dict:
     """The mast scene's photos cropped a little above the object's lowest point (as a capture in an arc whose frames
     all cut the object's base), with their masks, or composited on white without them; their transforms."""
     (poses / "images").mkdir(parents=True)
-    (poses / "masks").mkdir()
+    if masks:
+        (poses / "masks").mkdir()
     transforms = read_json(out / "poses" / "transforms.json")
     for frame in transforms["frames"]:
         mask = np.asarray(Image.open(out / "poses" / frame["mask_path"]))
