@@ -87,7 +87,7 @@ double loss_grad_impl(const GridView& g, const MarchOptions& opt, const float* o
             float total[3], dl_drgb[3];
             for (int ch = 0; ch < 3; ++ch) {
                 total[ch] = acc[ch] + light * background[ch];
-                const float err = total[ch] - targets[3 * b + ch];
+                const float err = plx::colour_error(total[ch], targets[3 * b + ch]);
                 sse += (double)err * err;
                 dl_drgb[ch] = 2.0f * loss_scale * err;
                 grad_background[3 * b + ch] = dl_drgb[ch] * light;

@@ -140,7 +140,7 @@ __global__ void loss_grad_kernel(Grid g, March opt, Rays rays, const float* __re
     double sq = 0.0;
     for (int ch = 0; ch < 3; ++ch) {
         total[ch] = acc[ch] + light * rays.background[3 * b + ch];
-        const float err = total[ch] - targets[3 * b + ch];
+        const float err = plx::colour_error(total[ch], targets[3 * b + ch]);
         sq += (double)err * err;
         dl_drgb[ch] = 2.0f * loss_scale * err;
         grad_background[3 * b + ch] = dl_drgb[ch] * light;

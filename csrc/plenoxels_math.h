@@ -437,6 +437,14 @@ PLX_HD float light_past_grid_rate(float transmittance, float stop_transmittance)
     return transmittance * (2.0f * transmittance - stop_transmittance) / stop_transmittance;
 }
 
+// A pixel's error in one channel against its target. A target below zero is a floor at -target: a photo's clipped
+// channel, whose light reached at least that much, so a render at or above it is not wrong.
+PLX_HD float colour_error(float total, float target) {
+    if (target >= 0.0f) return total - target;
+    const float short_of_floor = total + target;
+    return short_of_floor < 0.0f ? short_of_floor : 0.0f;
+}
+
 // d(pixel colour)/d(sigma_i) for one channel, with
 //   t_after = transmittance after sample i, c = its colour,
 //   behind = everything composited behind sample i (later samples plus the background term).

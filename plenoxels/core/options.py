@@ -136,6 +136,10 @@ class TrainOptions:
     through a pixel no mask covers sees a random colour past the grid and is trained toward it: what the photos show
     empty the fit leaves empty. Against the photos' own backdrop colour, haze of that colour costs nothing (a skirt
     under lego's baseplate, white where the photos see it, grey from below; bench/README.md, "The papers' protocol")."""
+    clipped_floors: bool = True
+    """A photo's clipped channels (within a byte of the top, where its own light fills the pixel) trained as floors:
+    the render is wrong there only below the photo's value, never above it; in the photo's gains where the fit fits
+    them (plenoxels/core/ray_set.py, clipped_bits; bench/README.md, "Object captures")."""
     error_share: float = 0.0
     """Share of each batch of random rays drawn where the render still disagrees with the photos, in proportion to
     the RMS error of each block of pixels (plenoxels/core/error_map.py); the rest are uniform (0: every ray uniform;

@@ -13,6 +13,10 @@ from plenoxels.core import native
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.error_map import ErrorMap
 from plenoxels.core.photo_colour import PhotoColour
+from plenoxels.core.render import floor_targets
+
+# A photo's channel at or above this byte is clipped: what the sensor took there is a floor, not a value.
+CLIPPED_BYTE = 254
 
 
 def as_bytes(image: np.ndarray) -> np.ndarray:
@@ -28,7 +32,7 @@ class RaySet:
 
     def __init__(self, images: list[np.ndarray], c2ws: list[np.ndarray], intrinsics: list[Intrinsics],
                  backdrops: list | None = None, masks: list[np.ndarray] | None = None, behind: list | None = None,
-                 empty: list[np.ndarray] | None = None):
+                 empty: list[np.ndarray] | None = None, clipped: list[np.ndarray] | None = None):
         # Each photo's own backdrop colour (RGB in [0, 1]) where the photos of an object show it on backdrops of
         # different colours: what a ray of that photo sees past the grid. None: the model's one colour or background.
         self.backdrops = torch.tensor(np.asarray(backdrops, dtype=np.float32).reshape(-1, 3)) if backdrops else None
@@ -38,6 +42,12 @@ class RaySet:
         self.behind = torch.tensor(np.asarray(behind, dtype=np.float32).reshape(-1, 3)) if masks else None
         # Whether no mask covers each pixel at all (bool [P]), where the fit trains such rays toward random backdrops.
         self.empty = torch.cat([torch.from_numpy(e.reshape(-1).astype(bool)) for e in empty]) if empty else None
+        # Each pixel's clipped channels (bit c: channel c; uint8 [P]; clipped_bits), which a batch trains as floors;
+        # None where no photo has one.
+        self.clipped = None
+        if clipped and any(c is not None and c.any() for c in clipped):
+            self.clipped = torch.cat([torch.from_numpy(np.zeros(im.shape[:2], np.uint8) if c is None else c).reshape(-1)
+                                      for c, im in zip(clipped, images)])
         self.sizes = torch.tensor([[k.h, k.w] for k in intrinsics], dtype=torch.int64)
         counts = self.sizes[:, 0] * self.sizes[:, 1]
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.int64), counts.cumsum(0)])
@@ -55,7 +65,7 @@ class RaySet:
         moved = copy.copy(self)
         for name in ("sizes", "offsets", "pixels", "c2w", "k"):  # not image_pixels
             setattr(moved, name, getattr(self, name).to(device))
-        for name in ("backdrops", "coverage", "behind", "empty"):
+        for name in ("backdrops", "coverage", "behind", "empty", "clipped"):
             if getattr(self, name) is not None:
                 setattr(moved, name, getattr(self, name).to(device))
         return moved
@@ -83,13 +93,15 @@ class RaySet:
         masks = None
         if self.coverage is not None:
             masks = [self.coverage[self.offsets[i]:self.offsets[i + 1]].cpu().numpy() for i in indices]
-        empty = None
+        empty = clipped = None
         if self.empty is not None:
             empty = [self.empty[self.offsets[i]:self.offsets[i + 1]].cpu().numpy() for i in indices]
+        if self.clipped is not None:
+            clipped = [self.clipped[self.offsets[i]:self.offsets[i + 1]].cpu().numpy() for i in indices]
         return RaySet([self.image(i).cpu().numpy() for i in indices], [self.c2w[i].double().cpu().numpy() for i in indices],
                       [self.intrinsics[i] for i in indices],
                       None if self.backdrops is None else self.backdrops[indices].cpu().tolist(),
-                      masks, None if masks is None else self.behind[indices].cpu().tolist(), empty)
+                      masks, None if masks is None else self.behind[indices].cpu().tolist(), empty, clipped)
 
     def backdrop(self, index: int) -> list[float] | None:
         """Photo `index`'s own backdrop colour (None where the photos have none of their own)."""
@@ -120,8 +132,8 @@ class RaySet:
         `with_backdrops` each ray's photo's backdrop colour [B, 3] after them, with `with_empty` whether no mask covers
         each ray's pixel [B] (None where the set keeps no such record) last; with `coherent`, random rays come ordered
         by coherent_order. Random rays: `error_share` of them drawn from `error_map` once it is measured. With `colour`
-        the target colours are the photos' taken back to their common colour. `generator` is a CPU generator; the batch
-        is on this set's device."""
+        the target colours are the photos' taken back to their common colour. A clipped channel's target is a floor
+        (render.floor_targets). `generator` is a CPU generator; the batch is on this set's device."""
         device = self.device
         if mode == "rays":
             by_error = round(size * error_share) if error_map is not None and error_map.measured else 0
@@ -142,6 +154,8 @@ class RaySet:
         order, image, o, d, target = self.pixel_rays(pixel, coherent and mode == "rays")
         if colour is not None:
             target = colour.to_common(image, target, self.put_in_at(image, pixel[order]))
+        if self.clipped is not None:
+            target = floor_targets(target, self.floors_at(pixel[order]))
         drawn = [o, d, target]
         if with_backdrops:  # as the photos' colours are: in their common colour where `colour` takes them there
             drawn.append(self.backdrops[image] if colour is None else colour.to_common(image, self.backdrops[image]))
@@ -173,6 +187,20 @@ class RaySet:
             return None
         return (1.0 - self.coverage[pixel].float() / 255.0)[:, None] * self.behind[image]
 
+    def clipped_share(self) -> float:
+        """The share of the pixels with a clipped channel (0 where the set keeps none)."""
+        if self.clipped is None:
+            return 0.0
+        return sum(int(chunk.count_nonzero()) for chunk in self.clipped.split(1 << 22)) / max(self.num_pixels, 1)
+
+    def floors_at(self, pixel: torch.Tensor) -> torch.Tensor:
+        """Whether each channel of the pixels at flat indices `pixel` is clipped [B, 3] (bool; all False where the set
+        keeps no clipped pixels)."""
+        if self.clipped is None:
+            return torch.zeros(pixel.shape[0], 3, dtype=torch.bool, device=pixel.device)
+        bits = self.clipped[pixel].long()[:, None] >> torch.arange(3, device=pixel.device)
+        return (bits & 1).bool()
+
     def inside(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor | None:
         """Whether each of these pixels lies wholly inside its photo's mask [B] (None where the set keeps no masks)."""
         if self.coverage is None:
@@ -193,6 +221,19 @@ class RaySet:
             if count >= rays or i == len(self.sizes) - 1:
                 yield self.strided_rays(stride, range(first, i + 1))
                 first, count = i + 1, 0
+
+
+def clipped_bits(image: np.ndarray, coverage: np.ndarray | None = None) -> np.ndarray:
+    """A photo's clipped channels as bits (bit c: channel c) [h, w] uint8, from its bytes [h, w, 3] and its mask's
+    coverage (bytes [h, w]; None: no mask): a channel within a byte of the top, where the photo's own light fills the
+    pixel. Its light reached at least that value, maybe much more (a highlight, a window), and a photo in a gain
+    below 1 says its common colour is above 1; a colour that, held to the photo's value, each photo's gains tint
+    differently (a DTU skull's blown-out cranium rendered blue-grey; bench/README.md, "Object captures"). A colour
+    the mask put in (a composited backdrop) is not light the photo took, so it stays a target."""
+    clipped = image >= CLIPPED_BYTE
+    if coverage is not None:
+        clipped &= (coverage == 255)[..., None]
+    return (clipped[..., 0] | (clipped[..., 1] << 1) | (clipped[..., 2] << 2)).astype(np.uint8)
 
 
 def lattice_pixels(h: int, w: int, stride: int) -> int:

@@ -262,7 +262,9 @@ def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts, gr
     bg = background.detach().clone().requires_grad_(True)
     m = march(grid, origins, dirs, opts, density, sh, near_gradient)
     rgb = (m["weight"][..., None] * m["colour"]).sum(dim=1) + _light(m, opts, past_grid_only)[:, None] * bg
-    mse = ((rgb - targets) ** 2).mean()
+    # A target below zero is a floor at -target (a photo's clipped channel): wrong only below it.
+    error = torch.where(targets >= 0, rgb - targets, (rgb + targets).clamp(max=0))
+    mse = (error ** 2).mean()
     mse.backward()
     rows = _used_rows(m)
     grad.accumulate(rows, density.grad[rows], sh.grad[rows])

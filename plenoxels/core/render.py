@@ -174,6 +174,17 @@ def _march_args(opts: RenderOptions, grid: SparseGrid) -> tuple:
             int(opts.max_samples_per_ray), grid.contracted)
 
 
+def floor_targets(targets: torch.Tensor, floors: torch.Tensor) -> torch.Tensor:
+    """Targets [B, 3] with the channels `floors` [B, 3] (bool) made floors, as loss_and_grad reads them: a photo's
+    clipped channel took in at least its value of light, so a render brighter there is not wrong."""
+    return torch.where(floors, -targets, targets)
+
+
+def colour_error(rendered: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """The error loss_and_grad squares, per value: rendered - target, and below a floor (a target below zero) alone."""
+    return torch.where(targets >= 0, rendered - targets, (rendered + targets).clamp(max=0))
+
+
 def render(grid: SparseGrid, origins, dirs, background=None, opts: RenderOptions | None = None,
            past_grid_only: bool = False) -> RenderResult:
     """rgb = sum_i T_i a_i c_i + T_final * background (None: black); opacity = 1 - T_final. `past_grid_only` (a
@@ -191,7 +202,7 @@ def render(grid: SparseGrid, origins, dirs, background=None, opts: RenderOptions
 def loss_and_grad(grid: SparseGrid, origins, dirs, targets, background, opts: RenderOptions | None,
                   grad: GridGrad, near_gradient: float = 0.0, past_grid_only: bool = False) -> tuple[float, torch.Tensor]:
     """Mean squared error over the B*3 colour values, forward and backward in one pass, of render's colours (with
-    its `past_grid_only`).
+    its `past_grid_only`). A target below zero is a floor at -target (floor_targets): wrong only below it.
 
     Adds d(mse)/d(density) and d(mse)/d(sh) into `grad` for the rows the batch touched, and returns
     (mse, d(mse)/d(background) [B, 3]). A sample at distance t < near_gradient along its ray passes on

@@ -213,12 +213,13 @@ class SceneModel:
         for start in range(0, origins.shape[0], chunk):
             o, d = origins[start:start + chunk], dirs[start:start + chunk]
             result = self.render_rays(o, d, opts)
-            rgb.append(self.on_backdrop(result.rgb, result.opacity, backdrop).clamp(0.0, 1.0))
+            # Clamped once in the photo's colour: a clipped highlight trained as a floor may render above 1.
+            rgb.append(self.on_backdrop(result.rgb, result.opacity, backdrop).clamp(min=0.0))
             depth.append(self.world_depth(o, d, result))
             opacity.append(result.opacity)
         h, w = intrinsics.h, intrinsics.w
         opacity = torch.cat(opacity)
-        rgb = self.as_photographed(torch.cat(rgb).reshape(h, w, 3), photo, opacity.reshape(h, w), backdrop)
+        rgb = self.as_photographed(torch.cat(rgb).reshape(h, w, 3), photo, opacity.reshape(h, w), backdrop).clamp(0, 1)
         return {"rgb": rgb, "depth": torch.cat(depth).reshape(h, w), "opacity": opacity.reshape(h, w)}
 
     def on_backdrop(self, rgb: torch.Tensor, opacity: torch.Tensor, backdrop=None) -> torch.Tensor:

@@ -36,7 +36,8 @@ from plenoxels.core.photo_colour import (COLOUR_RAYS, DECIDING_MEASURES, PhotoCo
 from plenoxels.core.ray_set import RaySet, lattice_pixels, random_where_empty
 from plenoxels.core.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution,
                                     tv_scale_for_views, views_per_point)
-from plenoxels.core.render import loss_and_grad, loss_and_grad_before_spheres, max_weights, render
+from plenoxels.core.render import (colour_error, floor_targets, loss_and_grad, loss_and_grad_before_spheres,
+                                    max_weights, render)
 from plenoxels.core.scene_model import SceneModel, psnr
 
 # A render this opaque inside a photo's mask shows the object's colour, to measure the photo's gains against.
@@ -399,7 +400,8 @@ class Fitter:
             self.colour.fit(image, rendered, photo, inside)
         if self.error_map is not None:
             common = self.colour.to_common(image, photo, put_in) if self.fits_colour else photo
-            self.error_map.measure(image, row, col, ((rendered.clamp(0, 1) - common) ** 2).mean(dim=1))
+            targets = floor_targets(common, self.train.floors_at(self.train.flat(*pixels)).cpu())
+            self.error_map.measure(image, row, col, (colour_error(rendered.clamp(min=0), targets) ** 2).mean(dim=1))
 
     def gain_fields(self) -> torch.Tensor | None:
         """Each training photo's gains across its frame [P, rows, cols, 3] against the model as it stands, measured

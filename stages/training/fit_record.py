@@ -74,6 +74,7 @@ def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBu
         "scene_model": model_trial.model_name(model), "model_choice": inputs.choice or {},
         "own_backdrops": fitter.train.backdrops is not None and model.background is None,
         "empty_backdrop": fitter.empty_backdrop,
+        "clipped_floors": round(fitter.train.clipped_share(), 4),
     }
     if inputs.device.type == "cpu":
         used, available = fitter.grad.threads()
@@ -130,6 +131,8 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
         line += ", each photo's own backdrop colour past the grid"
     if record["empty_backdrop"]:
         line += ", random backdrops where the masks are empty"
+    if record["clipped_floors"] >= 0.001:
+        line += f", clipped highlights ({record['clipped_floors']:.1%} of pixels) trained as floors"
     if model.fit_frame.ndc is not None:
         line += ", in NDC"
     if model.fit_frame.contraction is not None:

@@ -315,6 +315,7 @@ def test_loss_and_grad_match_cpu(degree):
     links, data = _grid(degree, density_scale=1.5)
     origins, dirs = _rays(2000, seed=degree + 3)
     targets = torch.rand(origins.shape[0], 3)
+    targets = torch.where(torch.rand(origins.shape[0], 3) < 0.3, -targets, targets)  # a share of floors
     background = torch.rand(origins.shape[0], 3)
     cpu, gpu = _loss_grad_both(links, data, degree, origins, dirs, targets, background)
     assert gpu[0] == pytest.approx(cpu[0], rel=1e-5)

@@ -120,6 +120,35 @@ def test_loss_and_grad_native_matches_twin(sh_degree):
 
 
 @pytest.mark.parametrize("sh_degree", [0, 2])
+def test_a_floor_target_is_wrong_only_below_it_natively_as_in_the_twin(sh_degree):
+    grid = random_grid(sh_degree=sh_degree, seed=60 + sh_degree, holes=0.1)
+    origins, dirs = random_rays(n=200, seed=61)
+    gen = torch.Generator().manual_seed(62)
+    background = torch.rand(origins.shape[0], 3, generator=gen)
+    opts = RenderOptions(step_size=0.6)
+    rgb = render(grid, origins, dirs, background, opts).rgb
+    floors = torch.rand(origins.shape[0], 3, generator=gen) < 0.4
+    plain = torch.rand(origins.shape[0], 3, generator=gen)
+    below, above = (rgb - 0.05).clamp(min=1e-3), rgb + 0.05
+    assert bool(((rgb > 0.06) & floors).any())
+    # Floors the render passes cost nothing: the loss and gradient of the other values alone.
+    passed = torch.where(floors, -below, plain)
+    native, _ = assert_loss_and_grad_match_twin(grid, origins, dirs, passed, background, opts)
+    alone, _ = assert_loss_and_grad_match_twin(grid, origins, dirs, torch.where(floors, rgb, plain), background, opts)
+    torch.testing.assert_close(native.data, alone.data, atol=1e-6 * float(alone.data.abs().max()), rtol=1e-5)
+    # Floors above the render are targets at their value.
+    short = torch.where(floors, -above, plain)
+    native, _ = assert_loss_and_grad_match_twin(grid, origins, dirs, short, background, opts)
+    target, _ = assert_loss_and_grad_match_twin(grid, origins, dirs, torch.where(floors, above, plain), background,
+                                                opts)
+    torch.testing.assert_close(native.data, target.data, atol=1e-6 * float(target.data.abs().max()), rtol=1e-5)
+    mse_short = loss_and_grad(grid, origins, dirs, short, background, opts, GridGrad(grid))[0]
+    mse_passed = loss_and_grad(grid, origins, dirs, passed, background, opts, GridGrad(grid))[0]
+    assert mse_short == pytest.approx(float(((rgb - torch.where(floors, above, plain)) ** 2).mean()), rel=1e-4)
+    assert mse_passed == pytest.approx(float(((rgb - plain) ** 2 * ~floors).mean()), rel=1e-4)
+
+
+@pytest.mark.parametrize("sh_degree", [0, 2])
 def test_near_gradient_scaling_matches_twin(sh_degree):
     # Rays start inside the box, so samples lie on both sides of the distance that scaling ends at.
     grid = random_grid(sh_degree=sh_degree, seed=40 + sh_degree, holes=0.1)

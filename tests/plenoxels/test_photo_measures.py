@@ -8,9 +8,10 @@ from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.error_map import ErrorMap, measure_stride
 from plenoxels.core.photo_colour import (PhotoColour, PhotoGains, field_image, gain_field_lattice, gain_fields,
                                          lattice_shape)
+from plenoxels.core.render import SH_C0
 from plenoxels.core.scene_model import ModelOptions, SceneModel
 from plenoxels.core.train import Fitter, TrainOptions
-from plenoxels.core.ray_set import RaySet
+from plenoxels.core.ray_set import RaySet, as_bytes, clipped_bits
 from tests.plenoxels.test_train import training_rays
 from tests.stages.test_fit import make_scene
 
@@ -194,6 +195,55 @@ def test_a_fit_of_photos_in_several_exposures_finds_each_photos_gains(tmp_path):
     assert fits[True].gain_field_rays() == exposed.lattice(stride)[0].numel() > 0 == fits[False].gain_field_rays()
     assert fits[True].gain_fields().shape == (len(exposed), *lattice_shape(exposed.sizes, options.photo_colour_cells), 3)
     assert fits[False].gain_fields() is None
+
+
+def test_a_batch_trains_each_photos_clipped_channels_as_floors_and_what_its_mask_put_in_as_a_target():
+    gen = torch.Generator().manual_seed(4)
+    images = [torch.randint(0, 250, (6, 8, 3), generator=gen, dtype=torch.uint8).numpy() for _ in range(2)]
+    images[0][1, 2, 0] = images[0][4, 4, 2] = 255
+    images[1][0, 0] = 254                          # within a byte of the top: every channel clipped
+    images[1][5, 7] = 255                          # white the mask put in (its backdrop), not light the photo took
+    coverage = [np.full((6, 8), 255, np.uint8) for _ in range(2)]
+    coverage[1][5, 7] = 0
+    bits = [clipped_bits(im, cov) for im, cov in zip(images, coverage)]
+    assert [int(np.count_nonzero(b)) for b in bits] == [2, 1]
+    k = Intrinsics(8.0, 8.0, 4.0, 3.0, 8, 6)
+    rays = RaySet(images, [np.eye(4), np.eye(4)], [k, k], clipped=bits)
+    assert rays.clipped_share() == 3 / 96
+    colour = PhotoColour(2)
+    colour.gain = torch.tensor([[0.8, 1.0, 1.25], [1.1, 0.9, 1.0]], dtype=torch.float64)
+    _, _, target = rays.batch(4096, "rays", 16, torch.Generator().manual_seed(5), colour=colour)
+    photo = rays.pixel_rays(torch.randint(rays.num_pixels, (4096,), generator=torch.Generator().manual_seed(5)))[4]
+    floors = target < 0
+    # The floors are exactly the clipped channels the photos' own light filled.
+    clipped_values = (photo * 255).round() >= 254
+    white_put_in = (photo * 255).round().eq(255).all(1)
+    assert bool((floors == (clipped_values & ~white_put_in[:, None])).all())
+    assert int(floors.sum()) > 0 and int(white_put_in.sum()) > 0
+    assert bool((target[~floors] >= 0).all()) and float((-target[floors]).min()) > 0.75  # 254 / 255 over a gain of 1.25
+    without = RaySet(images, [np.eye(4), np.eye(4)], [k, k])
+    assert without.clipped is None
+    assert bool((without.batch(512, "rays", 16, torch.Generator().manual_seed(5))[2] >= 0).all())
+
+
+def test_a_render_in_a_photos_colour_is_clamped_once_after_its_gains(tmp_path):
+    """A clipped highlight trained as a floor renders above 1 in the common colour; in a photo's gain below 1 it must
+    still show as bright as the field holds it, not as 1 times the gain."""
+    root = make_scene(tmp_path, width=32)
+    scene = read_json(root / "normalize" / "scene.json")
+    model = SceneModel.create(scene, ModelOptions(sh_degree=0), 8)
+    model.grid.density.fill_(50.0)
+    model.grid.sh.fill_((1.2 - 0.5) / SH_C0)
+    frame = scene["frames"][0]
+    model.photo_gains = PhotoGains([frame["name"]], {frame["name"]: [0.8, 0.9, 1.0]})
+    k = Intrinsics.from_frame(frame).scaled(0.5)
+    with torch.no_grad():
+        rgb = model.render_camera(np.asarray(frame["transform_matrix"]), k, photo=frame["name"])["rgb"]
+        common = model.render_camera(np.asarray(frame["transform_matrix"]), k)
+    solid = common["opacity"] > 0.999
+    assert int(solid.sum()) > 10 and float(common["rgb"].max()) <= 1.0
+    torch.testing.assert_close(rgb[solid], torch.tensor([0.96, 1.0, 1.0]).expand(int(solid.sum()), 3), atol=2e-3,
+                               rtol=0)
 
 
 def test_each_photos_gains_across_its_frame_are_found_and_spread_back_over_it():
