@@ -108,7 +108,7 @@ class RaySet:
         if self.empty is not None:
             empty = [self.empty[self.offsets[i]:self.offsets[i + 1]].cpu().numpy() for i in indices]
         if self.clipped is not None:
-            clipped = [self.floors_bits(torch.arange(int(self.offsets[i]), int(self.offsets[i + 1]),
+            clipped = [self.clipped_channels(torch.arange(int(self.offsets[i]), int(self.offsets[i + 1]),
                                                      device=self.device)).cpu().numpy() for i in indices]
         return RaySet([self.image(i).cpu().numpy() for i in indices], [self.c2w[i].double().cpu().numpy() for i in indices],
                       [self.intrinsics[i] for i in indices],
@@ -203,8 +203,8 @@ class RaySet:
         """The share of the pixels with a clipped channel (0 where the set keeps none)."""
         return 0.0 if self.clipped is None else self.clipped[0].numel() / max(self.num_pixels, 1)
 
-    def floors_bits(self, pixel: torch.Tensor) -> torch.Tensor:
-        """The clipped channels' bits [B] (uint8; clipped_bits) of the pixels at flat indices `pixel`."""
+    def clipped_channels(self, pixel: torch.Tensor) -> torch.Tensor:
+        """The clipped channels as bits [B] (uint8; clipped_bits) of the pixels at flat indices `pixel`."""
         if self.clipped is None:
             return torch.zeros(pixel.shape[0], dtype=torch.uint8, device=pixel.device)
         at, bits = self.clipped
@@ -214,7 +214,7 @@ class RaySet:
     def floors_at(self, pixel: torch.Tensor) -> torch.Tensor:
         """Whether each channel of the pixels at flat indices `pixel` is clipped [B, 3] (bool; all False where the set
         keeps no clipped pixels)."""
-        return ((self.floors_bits(pixel).long()[:, None] >> torch.arange(3, device=pixel.device)) & 1).bool()
+        return ((self.clipped_channels(pixel).long()[:, None] >> torch.arange(3, device=pixel.device)) & 1).bool()
 
     def inside(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor | None:
         """Whether each of these pixels lies wholly inside its photo's mask [B] (None where the set keeps no masks)."""
@@ -241,10 +241,10 @@ class RaySet:
 def clipped_bits(image: np.ndarray, coverage: np.ndarray | None = None) -> np.ndarray:
     """A photo's clipped channels as bits (bit c: channel c) [h, w] uint8, from its bytes [h, w, 3] and its mask's
     coverage (bytes [h, w]; None: no mask): a channel within a byte of the top, where the photo's own light fills the
-    pixel. Its light reached at least that value, maybe much more (a highlight, a window), and a photo in a gain
-    below 1 says its common colour is above 1; a colour that, held to the photo's value, each photo's gains tint
-    differently (a DTU skull's blown-out cranium rendered blue-grey; bench/README.md, "Object captures"). A colour
-    the mask put in (a composited backdrop) is not light the photo took, so it stays a target."""
+    pixel. The light there reached at least that value, maybe much more (a highlight, a window). Held to the value,
+    a clipped white taken back to the common colour is 1 / gain per channel, tinted differently by each photo's gains
+    (a DTU skull's blown-out cranium rendered blue-grey; bench/README.md, "Object captures"). A colour the mask put
+    in (a composited backdrop) is not light the photo took, so it stays a target."""
     clipped = image >= CLIPPED_BYTE
     if coverage is not None:
         clipped &= (coverage == 255)[..., None]

@@ -401,7 +401,7 @@ class Fitter:
         if self.error_map is not None:
             common = self.colour.to_common(image, photo, put_in) if self.fits_colour else photo
             targets = floor_targets(common, self.train.floors_at(self.train.flat(*pixels)).cpu())
-            self.error_map.measure(image, row, col, (colour_error(rendered.clamp(min=0), targets) ** 2).mean(dim=1))
+            self.error_map.measure(image, row, col, (colour_error(rendered, targets) ** 2).mean(dim=1))
 
     def gain_fields(self) -> torch.Tensor | None:
         """Each training photo's gains across its frame [P, rows, cols, 3] against the model as it stands, measured

@@ -211,8 +211,8 @@ def test_a_batch_trains_each_photos_clipped_channels_as_floors_and_what_its_mask
     rays = RaySet(images, [np.eye(4), np.eye(4)], [k, k], clipped=bits)
     assert rays.clipped_share() == 3 / 96
     # Kept sparse, read back whole, and a subset keeps its photos' own.
-    assert np.array_equal(rays.floors_bits(torch.arange(rays.num_pixels)).numpy(), np.concatenate(bits, None))
-    assert np.array_equal(rays.subset([1]).floors_bits(torch.arange(48)).numpy(), bits[1].reshape(-1))
+    assert np.array_equal(rays.clipped_channels(torch.arange(rays.num_pixels)).numpy(), np.concatenate(bits, None))
+    assert np.array_equal(rays.subset([1]).clipped_channels(torch.arange(48)).numpy(), bits[1].reshape(-1))
     colour = PhotoColour(2)
     colour.gain = torch.tensor([[0.8, 1.0, 1.25], [1.1, 0.9, 1.0]], dtype=torch.float64)
     _, _, target = rays.batch(4096, "rays", 16, torch.Generator().manual_seed(5), colour=colour)
