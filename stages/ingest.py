@@ -32,7 +32,8 @@ def run(ctx) -> dict:
 
     def keep(name: str, source: str, rgb: np.ndarray, alpha: np.ndarray | None, original: tuple[int, int],
              split: str | None = None, mask_file: Path | None = None) -> None:
-        mask_from = "alpha" if alpha is not None else None
+        cutout = alpha is not None
+        mask_from = "alpha" if cutout else None
         if mask_file is not None:
             given = read_mask(mask_file, original, s.mask_threshold)
             alpha = given if alpha is None else np.minimum(alpha, given)
@@ -48,6 +49,8 @@ def run(ctx) -> dict:
             masks_dir.mkdir(exist_ok=True)
             write_png(masks_dir / f"{name}.png", fit_max_side(alpha, s.max_side))
             record["mask"], record["mask_from"] = f"masks/{name}.png", mask_from
+            if cutout:  # what lies outside its mask is whatever the cut left there, not a backdrop
+                record["cutout"] = True
         records.append(record)
 
     if ctx.scene.is_file():

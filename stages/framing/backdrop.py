@@ -104,6 +104,12 @@ def own_backdrops(cams: Cameras, poses_dir: Path) -> tuple[np.ndarray, float] | 
 
 
 
+def shows_backdrop_outside_mask(frame: dict) -> bool:
+    """Whether a frame's photo shows a backdrop outside its mask: it has a mask, and was not cut out by an alpha of its
+    own (ingest took that alpha as its mask, or the RGBA photo is its own mask), which leaves whatever the cut left."""
+    return bool(frame.get("mask_path")) and not frame.get("cutout") and frame["mask_path"] != frame["file_path"]
+
+
 def masked_out_colours(cams: Cameras, poses_dir: Path) -> np.ndarray | None:
     """[N,3] RGB in [0, 1]: each masked photo's median colour outside its mask (small copies; where a mask leaves no
     pixel out, its border's median). None when an image or mask cannot be read."""
@@ -119,6 +125,22 @@ def masked_out_colours(cams: Cameras, poses_dir: Path) -> np.ndarray | None:
     except (OSError, ValueError):
         return None
     return np.asarray(colours)
+
+
+def from_nearest_cameras(colours: np.ndarray, centres: np.ndarray, held_out: set[int], count: int = 2) -> np.ndarray:
+    """`colours` ([N,3]) with each held-out photo's replaced by its `count` nearest training cameras' (by centre,
+    weighted by inverse distance): a held-out view is a new view, so it takes nothing from its own photo, and cameras
+    standing near one another see the same backdrop behind the object."""
+    train = np.array([i for i in range(len(colours)) if i not in held_out])
+    if not len(train):
+        return colours
+    colours = colours.copy()
+    for i in held_out:
+        distance = np.linalg.norm(centres[train] - centres[i], axis=1)
+        nearest = np.argsort(distance)[:count]
+        weight = 1.0 / np.maximum(distance[nearest], 1e-9)
+        colours[i] = weight @ colours[train[nearest]] / weight.sum()
+    return colours
 
 
 

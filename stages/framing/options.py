@@ -37,10 +37,11 @@ class SceneOptions:
     silhouette_box: bool = True
     """Box the foreground by the visual hull of the training photos' silhouettes where they carry masks (or alpha) or
     stand on a flat backdrop, so thin parts the sparse points miss stay inside; off: the box of the points' bulk."""
-    masked_backdrop: Literal["fit", "own"] = "fit"
-    """What a masked photo's pixels outside its mask are trained as: empty space on fit.background_color (fit), or on
-    the photo's own colour there, the median outside its mask (own: renders of the photos' views then look like the
-    photos around the object; held-out views are scored on theirs)."""
+    masked_backdrop: Literal["fit", "own"] = "own"
+    """What a masked photo's pixels outside its mask are trained as: empty space on the photo's own colour there, the
+    median outside its mask (own: a mask drawn a pixel or two loose then holds backdrop that matches what lies past
+    it; a held-out view takes its nearest training cameras'), or on fit.background_color (fit; always for photos
+    cut out by their own alpha, where nothing outside the mask is a backdrop)."""
 
     def check(self, section: str = "normalize") -> None:
         require(self.holdout_every == 0 or self.holdout_every >= 2,

@@ -18,8 +18,8 @@ from typing import Literal
 import numpy as np
 
 from plenoxels.core.errors import UserError
-from stages.framing.backdrop import (BACKDROP_MIN_PHOTOS, Backdrop, STILL_TEXTURED_SHARE, masked_out_colours,
-                                     measure_backdrop, own_backdrops)
+from stages.framing.backdrop import (BACKDROP_MIN_PHOTOS, Backdrop, STILL_TEXTURED_SHARE, from_nearest_cameras,
+                                     masked_out_colours, measure_backdrop, own_backdrops, shows_backdrop_outside_mask)
 from stages.framing.depths import (NEAR_FAR_MARGIN, forward_depth_guess, forward_depths, near_far_from_box,
                                    near_far_from_points)
 from stages.framing.foreground import (COVISIBLE_SHARE, hold_what_cameras_aim_at, silhouette_box, covisible_counts,
@@ -241,8 +241,10 @@ def scene_frames(cams: Cameras, held_out: set[int], near_far: list[tuple[float, 
     what lies outside the object as empty, the photo's backdrop colour."""
     masked_out = None
     if (options.masked_backdrop == "own" and poses_dir is not None and cams.frames
-            and all(f.get("mask_path") for f in cams.frames)):
+            and all(shows_backdrop_outside_mask(f) for f in cams.frames)):
         masked_out = masked_out_colours(cams, poses_dir)
+        if masked_out is not None:
+            masked_out = from_nearest_cameras(masked_out, c2w_world[:, :3, 3], held_out)
     backdrop_colours = own_colours if own_colours is not None else masked_out
     frames, train_rank = [], 0
     for i in sorted(range(len(cams.names)), key=lambda i: cams.names[i]):

@@ -67,6 +67,8 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
             write_png(out / "masks" / f"{record['name']}.png",
                       _undistort_mask(mask, distorted.cameras[posed[record["name"]].camera_id]))
             frame["mask_path"] = f"masks/{record['name']}.png"
+            if record.get("cutout"):
+                frame["cutout"] = True
         if record.get("split"):
             frame["split"] = record["split"]
         if record["name"] in bounds:

@@ -112,7 +112,9 @@ def test_turntable_with_masks_fits_and_exports_the_object_alone(turntable, turnt
     vertices = scale * np.asarray(mesh.vertices) @ rotation.T + translation
     size = float(np.max(truth.bounds[1] - truth.bounds[0]))
     assert len(vertices) > 500
-    assert vertices[:, 2].min() > truth.bounds[0][2] - 0.05 * size          # nothing of the plate or the floor
+    # Nothing of the plate or the floor. Under the objects lies space no view sees, which no mask carves: this short
+    # fit's cells are about 2.5% of the objects' size, and a cell or two of it may stay.
+    assert vertices[:, 2].min() > truth.bounds[0][2] - 0.075 * size
     assert np.abs(vertices - truth.bounds.mean(0)).max() < 0.75 * size       # nothing of the room
     aligned = trimesh.Trimesh(vertices, mesh.faces, process=False)
     scores = mesh_scores(aligned, truth, 0.05 * size, samples=10_000)
@@ -309,18 +311,23 @@ def test_photos_on_backdrops_of_their_own_colours_fit_as_the_object_alone(tmp_pa
         assert np.allclose(render[0, 0], frame["backdrop"], atol=0.1)
 
 
-def test_masked_photos_can_be_trained_on_their_own_colour_outside_the_masks(tmp_path):
+def test_masked_photos_are_trained_on_their_own_colour_outside_the_masks_unless_cut_out(tmp_path):
     synthetic = write_scene("object", tmp_path / "synth", n_views=16, width=64, height=48, seed=0, alpha=True,
                             supersample=1)
     truth = read_json(synthetic / "transforms.json")
     folder = tmp_path / "scan"
     (folder / "images").mkdir(parents=True)
     (folder / "masks").mkdir()
-    cloth = {}
+    cloth, ramp = {}, []
+    held_out = set(sorted(Path(f["file_path"]).stem for f in truth["frames"])[::4])
     for i, frame in enumerate(truth["frames"]):
         rgba = np.asarray(Image.open(synthetic / frame["file_path"])).astype(float) / 255
         colour = np.array([0.2 + 0.04 * i, 0.5, 0.8 - 0.03 * i])  # a cloth lit a little differently in each photo
         name = Path(frame["file_path"]).stem
+        if name in held_out:
+            colour = np.array([0.9, 0.1, 0.1])  # what a held-out view must not take from its own photo
+        else:
+            ramp.append(colour)
         cloth[name] = colour
         rgb = rgba[..., :3] * rgba[..., 3:] + colour * (1 - rgba[..., 3:])
         Image.fromarray(np.round(rgb * 255).astype(np.uint8)).save(folder / frame["file_path"])
@@ -328,23 +335,33 @@ def test_masked_photos_can_be_trained_on_their_own_colour_outside_the_masks(tmp_
     write_json(folder / "transforms.json", truth)
     fit = ["fit.resolutions=[24,32]", "fit.steps=[150,50]", "fit.batch_size=2048", "fit.image_scale=1",
            "fit.eval_every=0", "fit.sh_degree=0"]
+    ramp = np.array(ramp)
     for choice in ("fit", "own"):
         out = tmp_path / f"out_{choice}"
-        run(folder, out, ["evaluate"], f"normalize.masked_backdrop={choice}", *fit)
+        run(folder, out, ["evaluate"], f"normalize.masked_backdrop={choice}", "normalize.holdout_every=4", *fit)
         scene = read_json(out / "normalize" / "scene.json")
         assert scene["type"] == "object" and all(f["mask_path"] for f in scene["frames"])
+        assert {f["name"] for f in scene["frames"] if f["split"] == "test"} == held_out
         said = read_json(out / "normalize" / "manifest.json")["summary"]["line"]
         assert ("own colour outside its mask" in said) == (choice == "own"), said
+        for frame in scene["frames"]:
+            if choice == "fit":
+                assert "backdrop" not in frame
+            elif frame["split"] != "test":
+                assert np.allclose(frame["backdrop"], cloth[frame["name"]], atol=0.02)
+            else:  # its nearest training cameras' cloth, somewhere along their ramp
+                assert np.all(frame["backdrop"] >= ramp.min(axis=0) - 0.02), frame["backdrop"]
+                assert np.all(frame["backdrop"] <= ramp.max(axis=0) + 0.02), frame["backdrop"]
         for frame in [f for f in scene["frames"] if f["split"] == "test"]:
-            expected = cloth[frame["name"]] if choice == "own" else np.ones(3)
+            expected = np.asarray(frame["backdrop"]) if choice == "own" else np.ones(3)
             truth_image = np.asarray(Image.open(out / "evaluate" / "gt" / f"{frame['name']}.png")) / 255
             render = np.asarray(Image.open(out / "evaluate" / "renders" / f"{frame['name']}.png")) / 255
             assert np.allclose(truth_image[0, 0], expected, atol=0.02), (choice, truth_image[0, 0], expected)
             assert np.allclose(render[0, 0], expected, atol=0.1), (choice, render[0, 0], expected)
-            if choice == "own":
-                assert np.allclose(frame["backdrop"], expected, atol=0.02)
-            else:
-                assert "backdrop" not in frame
+    # Photos cut out by their own alpha hold nothing of a backdrop outside it: they keep fit.background_color.
+    run(synthetic, tmp_path / "out_cutout", ["normalize"])
+    scene = read_json(tmp_path / "out_cutout" / "normalize" / "scene.json")
+    assert all(f["mask_path"] and "backdrop" not in f for f in scene["frames"])
 
 
 def test_an_object_fit_that_cannot_reproduce_its_photos_gets_a_background_model(tmp_path):
