@@ -61,7 +61,7 @@ def run(ctx) -> dict:
     if s.budget_seconds:
         s = budget_photo_scale(s, train_frames, ctx.report)
     train = load_training(ctx.out, train_frames, s.image_scale, s.background_color, ctx.report,
-                          with_masks=s.photo_colour, with_empty=s.empty_backdrop, with_clipped=s.clipped_floors)
+                          with_masks=s.photo_colour, with_cover=s.empty_backdrop, with_clipped=s.clipped_floors)
     held_out = HeldOut(ctx.out, held_out_frames, s.eval_views, s.eval_scale, s.background_color)
     # Training views rendered as the held-out ones are, so that the gap between the two compares like with like.
     seen = HeldOut(ctx.out, train_frames, s.eval_views, s.eval_scale, s.background_color)

@@ -136,6 +136,11 @@ class TrainOptions:
     through a pixel no mask covers sees a random colour past the grid and is trained toward it: what the photos show
     empty the fit leaves empty. Against the photos' own backdrop colour, haze of that colour costs nothing (a skirt
     under lego's baseplate, white where the photos see it, grey from below; bench/README.md, "The papers' protocol")."""
+    covered_backdrop_share: float = 0.5
+    """Where empty_backdrop applies, this share of the rays through pixels a mask covers whole see a random colour
+    past the grid (their targets are the photo's, whatever lies behind): such a ray is right only where the field is
+    opaque, so an object as pale or as dark as its backdrop is not fitted half see-through (bench/README.md,
+    "Object captures"). The rest see their photo's backdrop, so a mask's edge can hold some of it."""
     clipped_floors: bool = True
     """A photo's clipped channels (within a byte of the top, where its own light fills the pixel) trained as floors:
     the render is wrong there only below the photo's value, never above it; in the photo's gains where the fit fits
@@ -250,6 +255,8 @@ class TrainOptions:
         require(self.batch_size >= 1, f"{section}.batch_size must be at least 1")
         require(self.tile_size >= 1, f"{section}.tile_size must be at least 1")
         require(0 <= self.error_share <= 1, f"{section}.error_share must be in [0, 1] (0: every ray uniform)")
+        require(0 <= self.covered_backdrop_share <= 1,
+                f"{section}.covered_backdrop_share must be in [0, 1] (0: every covered ray sees its photo's backdrop)")
         require(self.photo_colour_cells >= 1, f"{section}.photo_colour_cells must be at least 1")
         require(self.measure_every >= 1 and self.measure_rays >= 1,
                 f"{section}.measure_every and {section}.measure_rays must be at least 1")

@@ -32,7 +32,7 @@ class RaySet:
 
     def __init__(self, images: list[np.ndarray], c2ws: list[np.ndarray], intrinsics: list[Intrinsics],
                  backdrops: list | None = None, masks: list[np.ndarray] | None = None, behind: list | None = None,
-                 empty: list[np.ndarray] | None = None, clipped: list[np.ndarray] | None = None):
+                 cover: list[np.ndarray] | None = None, clipped: list[np.ndarray] | None = None):
         # Each photo's own backdrop colour (RGB in [0, 1]) where the photos of an object show it on backdrops of
         # different colours: what a ray of that photo sees past the grid. None: the model's one colour or background.
         self.backdrops = torch.tensor(np.asarray(backdrops, dtype=np.float32).reshape(-1, 3)) if backdrops else None
@@ -40,8 +40,9 @@ class RaySet:
         # each pixel's coverage by its mask (uint8 [P]) and the colour composited behind each photo [N, 3].
         self.coverage = torch.cat([torch.from_numpy(as_bytes(m).reshape(-1)) for m in masks]) if masks else None
         self.behind = torch.tensor(np.asarray(behind, dtype=np.float32).reshape(-1, 3)) if masks else None
-        # Whether no mask covers each pixel at all (bool [P]), where the fit trains such rays toward random backdrops.
-        self.empty = torch.cat([torch.from_numpy(e.reshape(-1).astype(bool)) for e in empty]) if empty else None
+        # Each pixel's coverage by its mask (uint8 [P]) where the fit trains rays past the object toward random
+        # backdrops (random_backdrops): those no mask covers, and a share of those it covers whole.
+        self.cover = torch.cat([torch.from_numpy(as_bytes(c).reshape(-1)) for c in cover]) if cover else None
         # The pixels with a clipped channel, as sorted flat indices [C] and their channels' bits (bit c: channel c;
         # uint8 [C]; clipped_bits), which a batch trains as floors; None where no photo has one. Kept sparse: a few
         # percent of lego's pixels are clipped, a fifth of a DTU skull's.
@@ -74,7 +75,7 @@ class RaySet:
         moved = copy.copy(self)
         for name in ("sizes", "offsets", "pixels", "c2w", "k"):  # not image_pixels
             setattr(moved, name, getattr(self, name).to(device))
-        for name in ("backdrops", "coverage", "behind", "empty"):
+        for name in ("backdrops", "coverage", "behind", "cover"):
             if getattr(self, name) is not None:
                 setattr(moved, name, getattr(self, name).to(device))
         if self.clipped is not None:
@@ -104,16 +105,16 @@ class RaySet:
         masks = None
         if self.coverage is not None:
             masks = [self.coverage[self.offsets[i]:self.offsets[i + 1]].cpu().numpy() for i in indices]
-        empty = clipped = None
-        if self.empty is not None:
-            empty = [self.empty[self.offsets[i]:self.offsets[i + 1]].cpu().numpy() for i in indices]
+        cover = clipped = None
+        if self.cover is not None:
+            cover = [self.cover[self.offsets[i]:self.offsets[i + 1]].cpu().numpy() for i in indices]
         if self.clipped is not None:
             clipped = [self.clipped_channels(torch.arange(int(self.offsets[i]), int(self.offsets[i + 1]),
                                                      device=self.device)).cpu().numpy() for i in indices]
         return RaySet([self.image(i).cpu().numpy() for i in indices], [self.c2w[i].double().cpu().numpy() for i in indices],
                       [self.intrinsics[i] for i in indices],
                       None if self.backdrops is None else self.backdrops[indices].cpu().tolist(),
-                      masks, None if masks is None else self.behind[indices].cpu().tolist(), empty, clipped)
+                      masks, None if masks is None else self.behind[indices].cpu().tolist(), cover, clipped)
 
     def backdrop(self, index: int) -> list[float] | None:
         """Photo `index`'s own backdrop colour (None where the photos have none of their own)."""
@@ -139,10 +140,10 @@ class RaySet:
 
     def batch(self, size: int, mode: str, tile: int, generator: torch.Generator, coherent: bool = False,
               with_backdrops: bool = False, error_map: ErrorMap | None = None, error_share: float = 0.0,
-              colour: PhotoColour | None = None, with_empty: bool = False):
+              colour: PhotoColour | None = None, with_cover: bool = False):
         """A training batch: world origins, directions [B, 3] and target colours [B, 3] in [0, 1], and with
-        `with_backdrops` each ray's photo's backdrop colour [B, 3] after them, with `with_empty` whether no mask covers
-        each ray's pixel [B] (None where the set keeps no such record) last; with `coherent`, random rays come ordered
+        `with_backdrops` each ray's photo's backdrop colour [B, 3] after them, with `with_cover` each ray's pixel's
+        coverage by its mask (uint8 [B]; None where the set keeps no such record) last; with `coherent`, random rays come ordered
         by coherent_order. Random rays: `error_share` of them drawn from `error_map` once it is measured. With `colour`
         the target colours are the photos' taken back to their common colour. A clipped channel's target is a floor
         (render.floor_targets). `generator` is a CPU generator; the batch is on this set's device."""
@@ -171,8 +172,8 @@ class RaySet:
         drawn = [o, d, target]
         if with_backdrops:  # as the photos' colours are: in their common colour where `colour` takes them there
             drawn.append(self.backdrops[image] if colour is None else colour.to_common(image, self.backdrops[image]))
-        if with_empty:
-            drawn.append(None if self.empty is None else self.empty[pixel[order]])
+        if with_cover:
+            drawn.append(None if self.cover is None else self.cover[pixel[order]])
         return tuple(drawn)
 
     def lattice(self, stride: int, images: range | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -297,15 +298,20 @@ def _every_third_bit(v: torch.Tensor) -> torch.Tensor:
     return (v | (v << 2)) & 0x09249249
 
 
-def random_where_empty(empty: torch.Tensor, background: torch.Tensor, target: torch.Tensor,
-                       generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """The backdrops [B, 3] and targets [B, 3] of a batch whose rays through pixels no mask covers (`empty` [B]) see
-    a random colour past the grid and are trained toward it: such a ray is right only where the field leaves it
-    empty, whatever colour the photos' own backdrop is."""
-    count = int(empty.sum())
-    if count == 0:
+def random_backdrops(cover: torch.Tensor, background: torch.Tensor, target: torch.Tensor, covered_share: float,
+                     generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """The backdrops [B, 3] and targets [B, 3] of a batch whose rays through pixels no mask covers (`cover` [B] 0)
+    see a random colour past the grid and are trained toward it, and `covered_share` of those through pixels a mask
+    covers whole (255) see one behind their photo's colour: the first are right only where the field leaves them
+    empty, the second only where it is opaque, whatever colour the photos' backdrop is (an object as pale as its
+    backdrop is otherwise fitted half see-through). A pixel a mask covers in part keeps its backdrop: its photo's
+    colour holds that backdrop's share."""
+    empty = cover == 0
+    covered = (cover == 255) & (torch.rand(cover.shape, generator=generator).to(cover.device) < covered_share)
+    if not bool(empty.any()) and not bool(covered.any()):
         return background, target
-    colours = torch.rand(count, 3, generator=generator).to(target.device)
     background, target = background.expand_as(target).clone(), target.clone()
-    background[empty], target[empty] = colours, colours
+    colours = torch.rand(len(cover), 3, generator=generator).to(target.device)
+    background[empty], target[empty] = colours[empty], colours[empty]
+    background[covered] = colours[covered]
     return background, target

@@ -33,7 +33,7 @@ from plenoxels.core.optim import GridGrad, SparseRMSProp, decayed_lr, density_ra
 from plenoxels.core.options import TrainOptions
 from plenoxels.core.photo_colour import (COLOUR_RAYS, DECIDING_MEASURES, PhotoColour, gain_field_lattice,
                                          gain_fields)
-from plenoxels.core.ray_set import RaySet, lattice_pixels, random_where_empty
+from plenoxels.core.ray_set import RaySet, lattice_pixels, random_backdrops
 from plenoxels.core.regularizers import (sparsity_loss_and_grad, tv_loss_and_grad, tv_scale_for_resolution,
                                     tv_scale_for_views, views_per_point)
 from plenoxels.core.render import (colour_error, floor_targets, loss_and_grad, loss_and_grad_before_spheres,
@@ -263,7 +263,7 @@ class Fitter:
         drawn = [t.to(self.device) for t in self.train.batch(
             o.batch_size, o.batch_mode, o.tile_size, self.generator, o.coherent_batches, self.own_backdrops,
             self.error_map, o.error_share, self.colour if self.fits_colour else None, self.empty_backdrop)]
-        o_w, d_w, target, empty = *drawn[:3], (drawn[-1] if self.empty_backdrop else None)
+        o_w, d_w, target, cover = *drawn[:3], (drawn[-1] if self.empty_backdrop else None)
         o_fit, d_fit = self.model.fit_frame.rays(o_w, d_w)
         near_gradient = 0.0 if self.model.fit_frame.ndc is not None else o.near_gradient_distance
         # On a CPU the grid's kernel draws the background spheres itself, only on the rays it lets light past (a ray
@@ -281,8 +281,9 @@ class Fitter:
                 background = (self.bg_optim.forward(o_w, d_w) if self.bg_optim is not None
                               else self.model.background_rgb(o_w, d_w))
             self.background_seconds += time.perf_counter() - started
-            if empty is not None:
-                background, target = random_where_empty(empty, background, target, self.generator)
+            if cover is not None:
+                background, target = random_backdrops(cover, background, target, o.covered_backdrop_share,
+                                                      self.generator)
             mse, grad_background = loss_and_grad(self.model.grid, o_fit, d_fit, target, background,
                                                  self.model.render_options, self.grad, near_gradient=near_gradient,
                                                  past_grid_only=self.model.background_past_grid_only)
@@ -342,7 +343,7 @@ class Fitter:
     @property
     def empty_backdrop(self) -> bool:
         """TrainOptions.empty_backdrop where it applies: an object's fit (no background model), every photo masked."""
-        return self.options.empty_backdrop and self.train.empty is not None and self.model.background is None
+        return self.options.empty_backdrop and self.train.cover is not None and self.model.background is None
 
     @property
     def backdrop_as_taken(self) -> bool:

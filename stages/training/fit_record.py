@@ -74,6 +74,7 @@ def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBu
         "scene_model": model_trial.model_name(model), "model_choice": inputs.choice or {},
         "own_backdrops": fitter.train.backdrops is not None and model.background is None,
         "empty_backdrop": fitter.empty_backdrop,
+        "covered_backdrop_share": fitter.options.covered_backdrop_share if fitter.empty_backdrop else 0.0,
         "clipped_floors": round(fitter.train.clipped_share(), 4),
     }
     if inputs.device.type == "cpu":
@@ -131,6 +132,8 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
         line += ", each photo's own backdrop colour past the grid"
     if record["empty_backdrop"]:
         line += ", random backdrops where the masks are empty"
+        if record.get("covered_backdrop_share"):
+            line += f" and behind {record['covered_backdrop_share']:.0%} of the rays they cover"
     if record["clipped_floors"] >= 0.001:
         line += f", clipped highlights ({record['clipped_floors']:.1%} of pixels) trained as floors"
     if model.fit_frame.ndc is not None:

@@ -60,13 +60,13 @@ def training_frames(scene: dict, report) -> tuple[list[dict], list[dict]]:
 
 
 def load_training(root: Path, frames: list[dict], scale: float, background_color, report,
-                  with_masks: bool = False, with_empty: bool = False, with_clipped: bool = False) -> RaySet:
+                  with_masks: bool = False, with_cover: bool = False, with_clipped: bool = False) -> RaySet:
     """The training frames' pixels (masks composited onto `background_color`), cameras and, where normalize found
     each photo's own backdrop colour, those; `with_masks`, the masks too where the photos have them (what the fit's
-    measure of each photo's colour leaves out); `with_empty`, where every photo has a mask, the pixels none covers;
-    `with_clipped`, each pixel's clipped channels (clipped_bits). Each photo is turned to bytes as it is read, so the
+    measure of each photo's colour leaves out); `with_cover`, where every photo has a mask, each pixel's coverage by
+    it (the fit trains some rays toward random backdrops); `with_clipped`, each pixel's clipped channels (clipped_bits). Each photo is turned to bytes as it is read, so the
     floats of one photo at a time are held, never of all (lego's 100 photos at 800x800: 0.2 GB, not 0.8)."""
-    images, c2ws, ks, masks, empty, clipped = [], [], [], [], [], []
+    images, c2ws, ks, masks, cover, clipped = [], [], [], [], [], []
     loaded = load_frames(root, frames, scale, background_color)
     for frame, (image, k, mask) in zip(frames, report.track(loaded, total=len(frames), desc="loading training images")):
         images.append(as_bytes(image))
@@ -75,9 +75,9 @@ def load_training(root: Path, frames: list[dict], scale: float, background_color
         mask = None if mask is None else as_bytes(mask)
         clipped.append(clipped_bits(images[-1], mask) if with_clipped else None)
         masks.append(mask if with_masks else None)
-        empty.append(mask == 0 if with_empty and mask is not None else None)
+        cover.append(mask if with_cover else None)
     backdrops = [frame.get("backdrop") for frame in frames]
     behind = [frame.get("backdrop") or background_color for frame in frames]
     return RaySet(images, c2ws, ks, backdrops if all(b is not None for b in backdrops) else None,
                   masks if all(m is not None for m in masks) else None, behind,
-                  empty if all(e is not None for e in empty) else None, clipped if with_clipped else None)
+                  cover if all(c is not None for c in cover) else None, clipped if with_clipped else None)

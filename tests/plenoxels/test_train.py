@@ -20,7 +20,7 @@ from plenoxels.core.render import RenderOptions, loss_and_grad
 from plenoxels.core.regularizers import tv_scale_for_views, views_per_point
 from plenoxels.core.scene_model import ModelOptions, SceneModel, background_width_for
 from plenoxels.core.train import Diverged, Fitter, Schedule, TrainOptions, prune_mask, pruning_rays, pruning_stride
-from plenoxels.core.ray_set import RaySet, coherent_order, random_where_empty
+from plenoxels.core.ray_set import RaySet, coherent_order, random_backdrops
 from tests.stages.test_fit import make_scene
 
 
@@ -85,27 +85,38 @@ def test_a_batch_carries_each_rays_photos_own_backdrop(coherent):
 
 
 @pytest.mark.parametrize("coherent", [False, True])
-def test_a_batch_marks_the_rays_no_mask_covers_and_those_see_random_backdrops(coherent):
-    # Photos white where their masks cover nothing and red inside them: a ray is empty exactly where its target is white.
+def test_a_batch_carries_each_rays_mask_cover_and_random_backdrops_go_behind_the_empty_and_some_covered(coherent):
+    # Photos white where their masks cover nothing, pink where they cover a part and red where they cover all: a ray's
+    # cover tells its target.
     k = Intrinsics(fl_x=20.0, fl_y=20.0, cx=8.0, cy=6.0, w=16, h=12)
     c2ws = [look_at((3 * math.cos(a), 3 * math.sin(a), 0.5), (0, 0, 0)) for a in (0.0, 2.0, 4.0)]
     rng = np.random.default_rng(0)
-    empty = [rng.random((12, 16)) < share for share in (0.2, 0.5, 0.9)]
-    images = [np.where(e[..., None], 1.0, np.asarray([0.8, 0.1, 0.1])).astype(np.float32) for e in empty]
-    train = RaySet(images, c2ws, [k] * 3, empty=empty)
+    cover = [rng.choice(np.array([0, 128, 255], np.uint8), size=(12, 16), p=[share, 0.2, 0.8 - share])
+             for share in (0.2, 0.4, 0.6)]
+    red, pink = np.asarray([0.8, 0.1, 0.1]), np.asarray([0.9, 0.55, 0.55])
+    images = [np.select([c[..., None] == 0, c[..., None] == 128], [np.ones(3), pink], red).astype(np.float32)
+              for c in cover]
+    train = RaySet(images, c2ws, [k] * 3, cover=cover)
     for mode in ("rays", "tiles"):
-        o, d, target, flags = train.batch(512, mode, 8, torch.Generator().manual_seed(1), coherent, with_empty=True)
-        assert flags.dtype == torch.bool and flags.shape == (len(o),)
-        assert torch.equal(flags, (target > 0.99).all(dim=1)) and 0 < int(flags.sum()) < len(o)
+        o, d, target, flags = train.batch(512, mode, 8, torch.Generator().manual_seed(1), coherent, with_cover=True)
+        assert flags.dtype == torch.uint8 and flags.shape == (len(o),)
+        empty, whole, part = flags == 0, flags == 255, flags == 128
+        assert torch.equal(empty, (target > 0.99).all(dim=1)) and torch.equal(whole, (target[:, 1] < 0.2))
+        assert 0 < int(empty.sum()) and 0 < int(part.sum()) and 0 < int(whole.sum())
         background = torch.ones(3).expand(len(o), 3)
-        seen, trained = random_where_empty(flags, background, target, torch.Generator().manual_seed(2))
-        assert torch.equal(trained[~flags], target[~flags]) and (seen[~flags] == 1).all()  # covered rays as they were
-        assert torch.equal(seen[flags], trained[flags])  # an empty ray is right where it lets the backdrop through
-        assert float(seen[flags].std(dim=0).min()) > 0.15 and 0 <= float(seen.min()) and float(seen.max()) <= 1
+        seen, trained = random_backdrops(flags, background, target, 0.5, torch.Generator().manual_seed(2))
+        assert torch.equal(trained[~empty], target[~empty])  # a covered ray's target is its photo's
+        assert torch.equal(seen[empty], trained[empty])  # an empty ray is right where it lets the backdrop through
+        assert float(seen[empty].std(dim=0).min()) > 0.15 and 0 <= float(seen.min()) and float(seen.max()) <= 1
+        assert (seen[part] == 1).all()  # a pixel covered in part holds its backdrop's share: that backdrop stays
+        behind_whole = (seen[whole] != 1).any(dim=1).float().mean()
+        assert 0.35 < float(behind_whole) < 0.65  # half those covered whole see a random colour
+        seen, _ = random_backdrops(flags, background, target, 0.0, torch.Generator().manual_seed(2))
+        assert (seen[~empty] == 1).all()
     picked = train.subset([2, 0])
-    assert torch.equal(picked.empty, torch.cat([torch.from_numpy(empty[2]).reshape(-1),
-                                                torch.from_numpy(empty[0]).reshape(-1)]))
-    assert RaySet(images, c2ws, [k] * 3).batch(8, "rays", 8, torch.Generator(), with_empty=True)[-1] is None
+    assert torch.equal(picked.cover, torch.cat([torch.from_numpy(cover[2]).reshape(-1),
+                                                torch.from_numpy(cover[0]).reshape(-1)]))
+    assert RaySet(images, c2ws, [k] * 3).batch(8, "rays", 8, torch.Generator(), with_cover=True)[-1] is None
 
 
 def test_learning_rate_schedule():
