@@ -144,7 +144,8 @@ def run(ctx) -> dict:
     opaque = terminations.opacity >= LEVEL_RAY_OPACITY
     object_only = s.object_only == "on" or (s.object_only == "auto" and scene.get("type") != "forward")
     mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, terminations.subset(opaque), views,
-                                 object_only=object_only, user_box=bool(s.crop))
+                                 object_only=object_only, user_box=bool(s.crop),
+                                 masked=scene.get("type") == "object" and all(f.get("mask_path") for f in scene["frames"]))
     release_freed()
     # The atlas is charted on the level set as it came (the same faces): xatlas charts the aligned surface, rougher by
     # a fraction of a voxel, several times slower (bench/README.md), and a shift that small does not stretch the UVs.

@@ -299,7 +299,7 @@ class MeshOptions:
     """Pieces with fewer faces than this share of the largest piece are dropped."""
     max_gap: float = 0.05
     """Pieces farther than this share of the foreground diagonal from the largest are dropped (unless they stood on
-    the ground that object_only cut away)."""
+    the ground that object_only cut away, or every photo is masked: the masks drew what is the object)."""
     fill_voxels: int = 4
     """Before marching cubes, seal openings in the fitted solids' skins up to 2 x this - 1 voxels across (those
     solid rings in some plane; slots, gaps between solids and the edges where they meet the ground stay open) and

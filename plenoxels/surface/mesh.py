@@ -421,10 +421,10 @@ ROOM_REACH_VOXELS = 2.0
 
 
 def isolate_object(mesh: trimesh.Trimesh, box_min: np.ndarray, box_max: np.ndarray, voxel: float, options: MeshOptions,
-                   user_box: bool) -> tuple[trimesh.Trimesh, dict]:
+                   user_box: bool, max_gap: float) -> tuple[trimesh.Trimesh, dict]:
     """The mesh without the ground it stands on and the room around it (plenoxels/surface/ground.py), and what was cut.
     `voxel`: world units; `user_box`: the box is the user's crop, which may cut through the object on purpose, so no
-    piece goes for reaching its sides."""
+    piece goes for reaching its sides; `max_gap`: clean_mesh's."""
     faces_in = len(mesh.faces)
     ground = find_ground(mesh, WORLD_UP, box_min, box_max, voxel, options.seed)
     record = {"ground": ground.describe() if ground is not None else None, "ground_faces_cut": 0,
@@ -437,9 +437,7 @@ def isolate_object(mesh: trimesh.Trimesh, box_min: np.ndarray, box_max: np.ndarr
         return mesh, record
     keep, touching = cut_ground(mesh, ground)
     cut, anchored = submesh(mesh, keep, touching)
-    size = box_max - box_min
-    cleaned, report = clean_mesh(cut, box_min, box_max, options.min_piece_fraction,
-                                 options.max_gap * float(np.linalg.norm(size)), anchored=anchored,
+    cleaned, report = clean_mesh(cut, box_min, box_max, options.min_piece_fraction, max_gap, anchored=anchored,
                                  room_reach=None if user_box else ROOM_REACH_VOXELS * voxel)
     if len(cleaned.faces) == 0:
         record.update(faces_after=faces_in, cut="nothing: cutting the ground left no object")
@@ -457,11 +455,12 @@ def isolate_object(mesh: trimesh.Trimesh, box_min: np.ndarray, box_max: np.ndarr
 
 def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, options: MeshOptions, report,
                level_rays: Terminations | None = None, views: list[ViewRender] | None = None,
-               object_only: bool = False, user_box: bool = False) -> tuple[trimesh.Trimesh, dict]:
+               object_only: bool = False, user_box: bool = False, masked: bool = False) -> tuple[trimesh.Trimesh, dict]:
     """The cleaned, coloured, decimated mesh in the normalised world, and what was decided on the way.
     `level_rays`: the training views' opaque rays (fit frame), for the auto level; `views`: the training views
     rendered, to drop the faces none of them sees (with unseen: drop); `object_only`: cut the ground and the room
-    away (isolate_object); `user_box`: the box is the user's crop."""
+    away (isolate_object); `user_box`: the box is the user's crop; `masked`: every photo's mask drew what is the
+    object, so a piece big enough stays however far it lies from the largest (several objects on a turntable)."""
     size = box_max - box_min
     crop_min, crop_max = box_min - options.crop_margin * size, box_max + options.crop_margin * size
     box = (frame.from_world(crop_min[None])[0], frame.from_world(crop_max[None])[0]) if grid.warped else None
@@ -480,7 +479,7 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
     world, faces = mesh_to_world(vertices, faces, frame)
     mesh = trimesh.Trimesh(world, faces, process=False)
 
-    max_gap = options.max_gap * float(np.linalg.norm(size))
+    max_gap = math.inf if masked else options.max_gap * float(np.linalg.norm(size))
     mesh, cleaning = clean_mesh(mesh, crop_min, crop_max, options.min_piece_fraction, max_gap)
     if len(mesh.faces) == 0:
         raise UserError("the mesh is empty after cropping to the foreground box; check normalize's foreground "
@@ -497,7 +496,7 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
             raise UserError("no training view sees any part of the mesh; set export.unseen=keep")
     isolation = {"on": False, "cut": "nothing: export.object_only is off"}
     if object_only:
-        mesh, isolation = isolate_object(mesh, crop_min, crop_max, voxel_world, options, user_box)
+        mesh, isolation = isolate_object(mesh, crop_min, crop_max, voxel_world, options, user_box, max_gap)
         isolation["on"] = True
     mesh, decimation = decimate(mesh, options.max_faces)
     colours = surface_colours(grid, frame.from_world(np.asarray(mesh.vertices)), lattice.voxel)
@@ -512,6 +511,7 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
         "voxel_world": voxel_world,
         "filled": filled,
         "cleaning": vars(cleaning),
+        "pieces_apart_kept": masked,
         "unseen_faces_dropped": unseen_faces,
         "object_only": isolation,
         "decimation": decimation,
