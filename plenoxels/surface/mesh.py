@@ -421,10 +421,10 @@ ROOM_REACH_VOXELS = 2.0
 
 
 def isolate_object(mesh: trimesh.Trimesh, box_min: np.ndarray, box_max: np.ndarray, voxel: float, options: MeshOptions,
-                   user_box: bool, max_gap: float) -> tuple[trimesh.Trimesh, dict]:
+                   user_box: bool, max_gap: float | None = None) -> tuple[trimesh.Trimesh, dict]:
     """The mesh without the ground it stands on and the room around it (plenoxels/surface/ground.py), and what was cut.
     `voxel`: world units; `user_box`: the box is the user's crop, which may cut through the object on purpose, so no
-    piece goes for reaching its sides; `max_gap`: clean_mesh's."""
+    piece goes for reaching its sides; `max_gap`: clean_mesh's (None: options.max_gap of the box's diagonal)."""
     faces_in = len(mesh.faces)
     ground = find_ground(mesh, WORLD_UP, box_min, box_max, voxel, options.seed)
     record = {"ground": ground.describe() if ground is not None else None, "ground_faces_cut": 0,
@@ -437,6 +437,8 @@ def isolate_object(mesh: trimesh.Trimesh, box_min: np.ndarray, box_max: np.ndarr
         return mesh, record
     keep, touching = cut_ground(mesh, ground)
     cut, anchored = submesh(mesh, keep, touching)
+    if max_gap is None:
+        max_gap = options.max_gap * float(np.linalg.norm(box_max - box_min))
     cleaned, report = clean_mesh(cut, box_min, box_max, options.min_piece_fraction, max_gap, anchored=anchored,
                                  room_reach=None if user_box else ROOM_REACH_VOXELS * voxel)
     if len(cleaned.faces) == 0:
