@@ -143,9 +143,9 @@ def run(ctx) -> dict:
     # The level comes from nearly opaque rays only: a fainter one grazes an edge or crosses a thin part, whose peak is low.
     opaque = terminations.opacity >= LEVEL_RAY_OPACITY
     object_only = s.object_only == "on" or (s.object_only == "auto" and scene.get("type") != "forward")
+    masked = scene.get("type") == "object" and all(f.get("mask_path") for f in scene["frames"])
     mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, terminations.subset(opaque), views,
-                                 object_only=object_only, user_box=bool(s.crop),
-                                 masked=scene.get("type") == "object" and all(f.get("mask_path") for f in scene["frames"]))
+                                 object_only=object_only, user_box=bool(s.crop), masked=masked)
     release_freed()
     # The atlas is charted on the level set as it came (the same faces): xatlas charts the aligned surface, rougher by
     # a fraction of a voxel, several times slower (bench/README.md), and a shift that small does not stretch the UVs.

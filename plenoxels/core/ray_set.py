@@ -143,8 +143,8 @@ class RaySet:
               colour: PhotoColour | None = None, with_cover: bool = False):
         """A training batch: world origins, directions [B, 3] and target colours [B, 3] in [0, 1], and with
         `with_backdrops` each ray's photo's backdrop colour [B, 3] after them, with `with_cover` each ray's pixel's
-        coverage by its mask (uint8 [B]; None where the set keeps no such record) last; with `coherent`, random rays come ordered
-        by coherent_order. Random rays: `error_share` of them drawn from `error_map` once it is measured. With `colour`
+        coverage by its mask (uint8 [B]; None where the set keeps no such record) last; with `coherent`, random rays
+        come ordered by coherent_order. Random rays: `error_share` of them drawn from `error_map` once it is measured. With `colour`
         the target colours are the photos' taken back to their common colour. A clipped channel's target is a floor
         (render.floor_targets). `generator` is a CPU generator; the batch is on this set's device."""
         device = self.device

@@ -64,8 +64,9 @@ def load_training(root: Path, frames: list[dict], scale: float, background_color
     """The training frames' pixels (masks composited onto `background_color`), cameras and, where normalize found
     each photo's own backdrop colour, those; `with_masks`, the masks too where the photos have them (what the fit's
     measure of each photo's colour leaves out); `with_cover`, where every photo has a mask, each pixel's coverage by
-    it (the fit trains some rays toward random backdrops); `with_clipped`, each pixel's clipped channels (clipped_bits). Each photo is turned to bytes as it is read, so the
-    floats of one photo at a time are held, never of all (lego's 100 photos at 800x800: 0.2 GB, not 0.8)."""
+    it (the fit trains some rays toward random backdrops); `with_clipped`, each pixel's clipped channels
+    (clipped_bits). Each photo is turned to bytes as it is read, so the floats of one photo at a time are held, never
+    of all (lego's 100 photos at 800x800: 0.2 GB, not 0.8)."""
     images, c2ws, ks, masks, cover, clipped = [], [], [], [], [], []
     loaded = load_frames(root, frames, scale, background_color)
     for frame, (image, k, mask) in zip(frames, report.track(loaded, total=len(frames), desc="loading training images")):
