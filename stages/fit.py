@@ -213,12 +213,14 @@ def finish(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeB
     schedule, model, held_out = fitter.schedule, fitter.model, inputs.held_out
     model.photo_gains = photo_gains(fitter, inputs, across_frames=True)
     final_psnr = held_out.psnr(model) if held_out else None
+    seen_psnr = inputs.seen.psnr(model) if inputs.seen else None
     model.save(ctx.work, extra={"fit_settings": {"resolutions": schedule.resolutions, "steps": schedule.steps,
                                                  **{k: getattr(s, k) for k in ("sh_degree", "image_scale", "step_size")}}})
-    record = fit_record(fitter, inputs, ending, budget, final_psnr)
+    record = fit_record(fitter, inputs, ending, budget, final_psnr, seen_psnr)
     write_json(ctx.work / FIT_JSON, record)
-    line = summary(ctx, fitter, inputs, ending, record, final_psnr) + budget_summary(fitter, ending, budget)
+    line = summary(ctx, fitter, inputs, ending, record, final_psnr, seen_psnr) + budget_summary(fitter, ending, budget)
     return {"line": line, "complete": not ending.stopped_early, "steps": fitter.step,
             "occupied": model.grid.num_occupied, "train_psnr": record["train_psnr"],
+            "train_views_psnr": record["train_views_psnr"],
             "held_out_psnr": record["held_out_psnr"], "seconds": record["seconds"],
             "memory_bytes": record["memory_bytes"]["total"]}

@@ -51,8 +51,10 @@ def photo_gains(fitter: Fitter, inputs: FitInputs, across_frames: bool = False) 
 
 
 def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBudget | None,
-               final_psnr: float | None) -> dict:
-    """fit.json: what ran, what it made and what it cost."""
+               final_psnr: float | None, seen_psnr: float | None) -> dict:
+    """fit.json: what ran, what it made and what it cost. `train_psnr` is the running PSNR of the last batches (where
+    error-drawn rays seek what is still wrong, it reads low), `train_views_psnr` the training views rendered whole as
+    the held-out ones are."""
     s = fitter.options
     schedule, model = fitter.schedule, fitter.model
     memory = model.memory_bytes()
@@ -63,6 +65,8 @@ def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBu
         "seconds": round(fitter.elapsed, 1), "device": str(inputs.device),
         "train_images": len(fitter.train), "train_pixels": fitter.train.num_pixels,
         "train_psnr": round(fitter.train_psnr(), 3),
+        "train_views_psnr": round(seen_psnr, 3) if seen_psnr is not None else None,
+        "train_views": len(inputs.seen.views),
         "held_out_psnr": round(final_psnr, 3) if final_psnr is not None else None,
         "held_out_views": len(inputs.held_out.views), "held_out_scale": s.eval_scale,
         "history": fitter.history, "levels": fitter.levels, "converged": fitter.converged,
@@ -93,7 +97,8 @@ def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBu
     return record
 
 
-def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict, final_psnr: float | None) -> str:
+def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict, final_psnr: float | None,
+            seen_psnr: float | None) -> str:
     """The stage's summary line: the grid, its PSNRs and time, the model's parts and advice where the fit overfits."""
     s = fitter.options
     model, held_out, choice = fitter.model, inputs.held_out, inputs.choice or {}
@@ -104,10 +109,13 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
     coarsening = grid.coarsening() if grid.warped else 1.0
     if coarsening >= 1.05:   # a surroundings box just past the foreground has cells of one size
         line += f" (cells up to {coarsening:.3g}x coarser around the foreground)"
-    line += (f", {format_count(grid.num_occupied)} voxels ({format_bytes(record['memory_bytes']['total'])}), "
-             f"train PSNR {record['train_psnr']:.1f} dB")
+    line += f", {format_count(grid.num_occupied)} voxels ({format_bytes(record['memory_bytes']['total'])})"
+    # Quick estimates (a few views, downscaled); the evaluate stage gives the full held-out figure.
+    if seen_psnr is not None:
+        line += f", train PSNR ~{seen_psnr:.1f} dB ({len(inputs.seen.views)} training views at {s.eval_scale:g}x)"
+    else:
+        line += f", train PSNR {record['train_psnr']:.1f} dB (its last batches)"
     if final_psnr is not None:
-        # A quick estimate (a few views, downscaled); the evaluate stage gives the full figure.
         line += f", held-out ~{final_psnr:.1f} dB ({len(held_out.views)} views at {s.eval_scale:g}x)"
     line += f", {format_duration(fitter.elapsed)}"
     if fitter.converged is not None:
@@ -140,8 +148,8 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
         line += ", in NDC"
     if model.fit_frame.contraction is not None:
         line += ", contracted (all of space)"
-    if not ending.stopped_early and inputs.seen and final_psnr is not None:
-        advice = model_trial.gap_advice(inputs.seen.psnr(model), final_psnr, record["scene_model"], choice,
+    if not ending.stopped_early and seen_psnr is not None and final_psnr is not None:
+        advice = model_trial.gap_advice(seen_psnr, final_psnr, record["scene_model"], choice,
                                         record["regularisation"].get("views_per_point"))
         if advice:
             ctx.report.warn(advice.removeprefix("; "))

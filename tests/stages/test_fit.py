@@ -400,7 +400,7 @@ def test_the_held_out_gap_compares_training_views_rendered_as_the_held_out_ones(
     original = model_trial.gap_advice
     monkeypatch.setattr(model_trial, "gap_advice", lambda train_psnr, held_out_psnr, *a: compared.append(
         (train_psnr, held_out_psnr)) or original(train_psnr, held_out_psnr, *a))
-    run_stage(fresh, fit, {**QUICK, "device": "cpu", "eval_views": 2})
+    line = run_stage(fresh, fit, {**QUICK, "device": "cpu", "eval_views": 2})["line"]
     record = read_json(fresh / "fit" / "fit.json")
     scene = read_json(fresh / "normalize" / "scene.json")
     train_frames = [f for f in scene["frames"] if f["split"] == "train"]
@@ -409,6 +409,9 @@ def test_the_held_out_gap_compares_training_views_rendered_as_the_held_out_ones(
     assert held_out_psnr == pytest.approx(record["held_out_psnr"], abs=1e-3)
     # The training views as the held-out ones are rendered, not the full-size training rays' PSNR (24.8 dB here).
     assert train_psnr == pytest.approx(seen.psnr(SceneModel.load(fresh / "fit")), abs=1e-4)
+    # fit.json and the summary give that figure, the running batches' beside it in the record only.
+    assert record["train_views_psnr"] == pytest.approx(train_psnr, abs=1e-3) and record["train_views"] == 2
+    assert f"train PSNR ~{train_psnr:.1f} dB (2 training views at {QUICK['eval_scale']:g}x)" in line
 
 
 def test_photos_that_agree_on_colour_are_taken_as_they_are(fresh):
