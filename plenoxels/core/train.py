@@ -496,7 +496,7 @@ class Fitter:
                     f"{self.options.photo_colour_min_db:g}): taken as they are")
         gains = self.colour.describe()
         return (f", each photo's colour fitted (gains {min(gains['gain_min']):.2f}-{max(gains['gain_max']):.2f}, "
-                f"{self.colour_gain_db:+.1f} dB at first; train PSNR in the common colour)")
+                f"{self.colour_gain_db:+.1f} dB at first)")
 
     def train_psnr(self) -> float:
         return psnr(sum(self.recent_mse) / len(self.recent_mse)) if self.recent_mse else float("nan")
