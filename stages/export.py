@@ -30,6 +30,7 @@ scene.json's `input_from_world`, or left in the normalised frame with `frame: no
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -41,7 +42,7 @@ from stages.scoring.splat_views import score_splats
 from plenoxels.surface.mesh import (LEVEL_RAY_OPACITY, build_mesh, grid_lattice_voxel, surface_colours, transform_normals,
                             transform_points)
 from plenoxels.core.cameras import Intrinsics
-from plenoxels.core.memory import check_fits, release_freed, resident_memory
+from plenoxels.core import memory
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.surface.views import point_normals, ray_terminations, render_views, snap_to_level
 from plenoxels.surface.texture import texture_mesh, view_sight
@@ -73,11 +74,14 @@ SCORING_BYTES = 200 << 20
 SHRINK = {"mesh": "lower export.point_scale (the training views rendered beside the fitted grid's own lattice)",
           "texture": "lower export.texture_size, or export.texture=false for vertex colours",
           "splats": "lower export.max_splats, or export.splats=false for none"}
+# What the export lowers by itself where it would not fit in memory as set: each phase's setting, halved down to no
+# less than its floor. A coarser texture or fewer splats or points is a lesser export; an error is none.
+SHRINKS_ITSELF = {"mesh": ("point_scale", 0.125), "texture": ("texture_size", 512), "splats": ("max_splats", 50_000)}
 
 
-def _memory_need(s: Settings, grid, frames: list[dict]) -> tuple[int, str, str]:
+def _memory_need(s: Settings, grid, frames: list[dict]) -> tuple[int, str, str, str]:
     """Bytes the export will hold at its peak (resident now, and the largest phase's share: the constants above), what
-    they are for, in words, and what shrinks them."""
+    they are for, in words, what shrinks them, and that phase."""
     def pixels(scale: float, limit: int) -> int:
         chosen = training_views(frames, limit)
         return sum(Intrinsics.from_frame(f).scaled(scale).w * Intrinsics.from_frame(f).scaled(scale).h for f in chosen)
@@ -91,10 +95,32 @@ def _memory_need(s: Settings, grid, frames: list[dict]) -> tuple[int, str, str]:
               "splats": splats * SPLAT_BYTES + pixels(s.splat_scale, s.splat_views) * TARGET_PIXEL_BYTES
               + SCORING_BYTES if splats else 0}
     largest = max(phases, key=phases.get)
-    need = resident_memory() + phases[largest]
+    need = memory.resident_memory() + phases[largest]
     what = (f"the export of a {'x'.join(map(str, grid.resolution))} grid ({_count(view_pixels)} training-view pixels; "
             f"at its largest, the {largest}" + (f" of up to {_count(splats)}" if largest == "splats" else "") + ")")
-    return int(need), what, SHRINK[largest]
+    return int(need), what, SHRINK[largest], largest
+
+
+def within_memory(s: Settings, grid, frames: list[dict],
+                  limit: memory.MemoryLimit | None = None) -> tuple[Settings, dict]:
+    """The settings the export runs with: as set where it fits in what this process may use; else with its largest
+    phase's setting halved (SHRINKS_ITSELF) until it fits, and what was lowered ({setting: [as set, taken]}). Where
+    not even the floors fit, it stops with one line on the settings as set, before anything is written."""
+    limit = memory.memory_limit() if limit is None else limit
+    taken = s
+    while (need := _memory_need(taken, grid, frames))[0] > limit.bytes:
+        name, floor = SHRINKS_ITSELF[need[3]]
+        smaller = type(getattr(taken, name))(getattr(taken, name) / 2)
+        if smaller < floor:
+            memory.check_fits(*_memory_need(s, grid, frames)[:3], limit)
+            break
+        taken = replace(taken, **{name: smaller})
+    return taken, {name: [getattr(s, name), getattr(taken, name)] for name, _ in SHRINKS_ITSELF.values()
+                   if getattr(taken, name) != getattr(s, name)}
+
+
+def _lowered(lowered: dict) -> str:
+    return ", ".join(f"export.{name} {was:g} -> {now:g}" for name, (was, now) in lowered.items())
 
 
 def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -132,21 +158,23 @@ def run(ctx) -> dict:
     if s.crop:
         box_min, box_max = np.asarray(s.crop[:3], dtype=np.float64), np.asarray(s.crop[3:], dtype=np.float64)
 
-    check_fits(*_memory_need(s, grid, scene["frames"]))
+    s, lowered = within_memory(s, grid, scene["frames"])
+    if lowered:
+        ctx.report.warn(f"the export as set would not fit in the memory this process may use: {_lowered(lowered)}")
     crop_min, crop_max = box_min - s.crop_margin * (box_max - box_min), box_max + s.crop_margin * (box_max - box_min)
     views = render_views(grid, frame, scene["frames"], s.point_scale, s.point_views, ctx.report)
     terminations = ray_terminations(views, frame, s.point_opacity, MAX_TERMINATIONS, s.seed)
     ends = terminations.world(frame)
     inside = _in_box(ends, crop_min, crop_max)
     terminations = terminations.subset(inside)
-    release_freed()
+    memory.release_freed()
     # The level comes from nearly opaque rays only: a fainter one grazes an edge or crosses a thin part, whose peak is low.
     opaque = terminations.opacity >= LEVEL_RAY_OPACITY
     object_only = s.object_only == "on" or (s.object_only == "auto" and scene.get("type") != "forward")
     masked = scene.get("type") == "object" and all(f.get("mask_path") for f in scene["frames"])
     mesh, decisions = build_mesh(grid, frame, box_min, box_max, s, ctx.report, terminations.subset(opaque), views,
                                  object_only=object_only, user_box=bool(s.crop), masked=masked)
-    release_freed()
+    memory.release_freed()
     # The atlas is charted on the level set as it came (the same faces): xatlas charts the aligned surface, rougher by
     # a fraction of a voxel, several times slower (bench/README.md), and a shift that small does not stretch the UVs.
     layout = np.asarray(mesh.vertices).copy()
@@ -179,7 +207,7 @@ def run(ctx) -> dict:
     sight = (view_sight(grid, frame, mesh, views, s.seen_tolerance, s.point_opacity)
              if s.texture and s.texture_colour == "view" else None)
     del views, terminations
-    release_freed()
+    memory.release_freed()
     texture = None
     if s.texture:
         ctx.report.info(f"unwrapping {_count(len(mesh.faces))} faces and baking a {s.texture_size}-texel texture")
@@ -188,7 +216,7 @@ def run(ctx) -> dict:
         decisions["texture"] = {"size": list(texture.atlas.size), "charts": texture.atlas.charts,
                                 "colour": texture.colour, "atlas_vertices": len(texture.atlas.uv)}
         del sight
-        release_freed()
+        memory.release_freed()
 
     if s.frame == "input":
         to_output = np.asarray(scene["input_from_world"], dtype=np.float64)
@@ -228,6 +256,7 @@ def run(ctx) -> dict:
         "mesh": {"vertices": len(mesh.vertices), "faces": len(mesh.faces), "bounds": _bounds(mesh.vertices)},
         "points": {"count": len(points), "bounds": _bounds(points)},
         "splats": splat_record if splats is not None else None,
+        "lowered_to_fit_memory": lowered,
         "axes": "PLY: the frame's own; OBJ and GLB y-up, (x, z, -y) of the frame: z-up importers such as Blender's "
                 "restore the frame's coordinates",
         **decisions,
@@ -239,7 +268,9 @@ def run(ctx) -> dict:
             f"[{', '.join(f'{v:.3g}' for v in lo)}] to [{', '.join(f'{v:.3g}' for v in hi)}], "
             f"level {decisions['level']:.3g}{' (auto)' if s.level == 'auto' else ''}, resolution {decisions['resolution']}"
             + (f", texture {'x'.join(map(str, texture.atlas.size))}" if texture is not None else ", vertex colours")
-            + f"; cut away: {decisions['object_only']['cut']}" + (_splat_line(splat_record, sizes) if splats is not None else ""))
+            + f"; cut away: {decisions['object_only']['cut']}"
+            + (_splat_line(splat_record, sizes) if splats is not None else "")
+            + (f"; to fit in memory {_lowered(lowered)}" if lowered else ""))
     return {"line": line, "frame": s.frame, "faces": len(mesh.faces), "vertices": len(mesh.vertices),
             "points": len(points), "level": decisions["level"], "resolution": decisions["resolution"],
             "cut_away": decisions["object_only"]["cut"], "splats": splats.count if splats is not None else 0,

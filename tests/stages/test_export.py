@@ -539,20 +539,41 @@ def test_stage_writes_every_file_in_the_input_frame_or_the_normalized_one(tmp_pa
 
 
 
-def test_an_export_that_would_not_fit_in_memory_stops_before_it_starts_and_a_smaller_one_runs(tmp_path, monkeypatch):
-    # What this process may use, as a cgroup would set it: 1 GiB past what it holds now. A 4096-texel texture's
-    # atlas plans past that; a 256-texel one fits.
-    limit = memory.MemoryLimit(memory.resident_memory() + (1 << 30), "cgroup memory.max")
-    monkeypatch.setattr(memory, "memory_limit", lambda: limit)
+def test_an_export_that_would_not_fit_in_memory_even_at_its_floors_stops_before_it_starts(tmp_path, monkeypatch):
+    # What this process may use, as a cgroup would set it: 30 MB past a fixed resident size (nothing the stage loads
+    # moves the line). A 16384-texel texture's atlas plans far past that, and so does its floor's (512 texels, 47 MB).
+    monkeypatch.setattr(memory, "resident_memory", lambda: 1 << 30)
+    monkeypatch.setattr(memory, "memory_limit", lambda: memory.MemoryLimit((1 << 30) + (30 << 20), "cgroup memory.max"))
     scene = {"type": "object", "input_from_world": np.eye(4).tolist(), "world_from_input": np.eye(4).tolist(),
              "foreground": {"min": [-0.8] * 3, "max": [0.8] * 3}, "frames": orbit_frames(4, size=32)}
     with pytest.raises(UserError) as stop:
-        run_stage(tmp_path, sphere_field(16), scene, Settings(points=100, texture_size=4096), "large")
+        run_stage(tmp_path, sphere_field(16), scene, Settings(points=100, texture_size=16384), "large")
     line = str(stop.value)
     assert "\n" not in line and "needs about" in line and "texture" in line and "cgroup memory.max" in line
     assert "export.texture_size" in line and not any((tmp_path / "large" / "export").iterdir())
     summary, folder = run_stage(tmp_path, sphere_field(16), scene, Settings(points=100, texture_size=256), "small")
-    assert summary["faces"] > 0 and (folder / "mesh.png").is_file()
+    assert summary["faces"] > 0 and (folder / "mesh.png").is_file() and "to fit in memory" not in summary["line"]
+
+
+@pytest.mark.parametrize("settings, room_mb, lowered", [
+    (Settings(points=100, texture_size=1024), 60, {"texture_size": [1024, 512]}),  # the atlas's 189 MB -> 47 MB
+    (Settings(points=100, texture=False), 20, {"point_scale": [0.5, 0.25]}),        # the views' 39 MB -> 10 MB
+])
+def test_an_export_too_large_for_memory_halves_its_largest_phase_until_it_fits_and_says_so(
+        tmp_path, monkeypatch, settings, room_mb, lowered):
+    # Room for `room_mb` past a fixed resident size (nothing the stage loads moves the line), on 512-pixel views.
+    monkeypatch.setattr(memory, "resident_memory", lambda: 1 << 30)
+    monkeypatch.setattr(memory, "memory_limit",
+                        lambda: memory.MemoryLimit((1 << 30) + (room_mb << 20), "cgroup memory.max"))
+    scene = identity_scene("object", orbit_frames(4, size=512))
+    summary, folder = run_stage(tmp_path, sphere_field(16), scene, settings, "lowered")
+    record = read_json(folder / "export.json")
+    assert record["lowered_to_fit_memory"] == lowered and summary["faces"] > 0
+    (name, (was, now)), = lowered.items()
+    assert f"to fit in memory export.{name} {was:g} -> {now:g}" in summary["line"]
+    if name == "texture_size":
+        assert max(iio.imread(folder / "mesh.png").shape[:2]) <= now * export.ATLAS_SIDE
+
 
 def cluttered_sphere_field(res: int, clutter, points_to_world=lambda p: p, lo=(-1, -1, -1), hi=(1, 1, 1), knots=None):
     """sphere_field's sphere plus dense matter (at twice the sphere's peak) wherever clutter(world points) holds; on
