@@ -33,6 +33,7 @@ import xatlas
 
 from plenoxels.core.cameras import Intrinsics, project
 from plenoxels.core.fit_frame import FitFrame
+from plenoxels.core.memory import release_freed
 from plenoxels.surface.mesh import grid_lattice_voxel, grid_lattice_voxel_world, surface_colours
 from plenoxels.core.render import render
 from plenoxels.surface.views import ViewRender, view_cosines
@@ -43,6 +44,9 @@ GUTTER_TEXELS = 2
 RASTER_CHUNK = 1 << 20
 # The ray baked per texel starts this many voxels outside the surface, along its normal.
 BAKE_START_VOXELS = 2.0
+# Atlas texels rasterised at a time (a band of its rows): the rasteriser holds some 40 bytes a pixel, and a
+# 2048-texel atlas has nearly ten million.
+TEXEL_BAND = 1 << 20
 # Texels per chunk when choosing each one's view.
 VIEW_CHUNK = 1 << 16
 # Rays rendered per chunk when baking.
@@ -235,9 +239,23 @@ def texel_faces(atlas: Atlas) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     width, height = atlas.size
     charted = np.flatnonzero(atlas.charted)
     corners = uv_to_pixels(atlas.uv, atlas.size)[atlas.faces[charted]]
-    face, weights = rasterize(corners, width, height, reach=GUTTER_TEXELS)
-    texels = np.flatnonzero(face >= 0)
-    return texels, atlas.vertex_map[atlas.faces[charted[face[texels]]]], weights[texels]
+    top, bottom = corners[..., 1].min(axis=1), corners[..., 1].max(axis=1)
+    rows = max(TEXEL_BAND // max(width, 1), 1)
+    texels, faces, weights = [], [], []
+    for y0 in range(0, height, rows):
+        y1 = min(y0 + rows, height)
+        # Every triangle whose box, grown by the gutter, reaches these rows: each texel weighs the candidates it
+        # would in the whole atlas, in the same order.
+        near = np.flatnonzero((bottom >= y0 - GUTTER_TEXELS - 1) & (top <= y1 + GUTTER_TEXELS + 1))
+        face, weight = rasterize(corners[near] - np.array([0.0, y0]), width, y1 - y0, reach=GUTTER_TEXELS)
+        hit = np.flatnonzero(face >= 0)
+        texels.append(hit + y0 * width)
+        # Compact: the faces and weights of millions of texels stay until their colours are found.
+        faces.append(atlas.vertex_map[atlas.faces[charted[near[face[hit]]]]].astype(np.int32))
+        weights.append(weight[hit].astype(np.float32))
+    return (np.concatenate(texels) if texels else np.zeros(0, dtype=np.int64),
+            np.concatenate(faces) if faces else np.zeros((0, 3), dtype=np.int32),
+            np.concatenate(weights) if weights else np.zeros((0, 3), dtype=np.float32))
 
 
 def texel_surface(vertices: np.ndarray, normals: np.ndarray, atlas: Atlas) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -384,7 +402,8 @@ def texture_mesh(grid, frame: FitFrame, mesh: trimesh.Trimesh, resolution: int,
     voxel_world = grid_lattice_voxel_world(grid, frame, mesh)
     atlas = unwrap(vertices if layout_vertices is None else layout_vertices, np.asarray(mesh.faces), resolution)
     texels, faces, weights = texel_faces(atlas)
-    colours = np.empty((len(texels), 3))
+    release_freed()
+    colours = np.empty((len(texels), 3), dtype=np.float32)
     for start in range(0, len(texels), TEXEL_CHUNK):
         part = slice(start, start + TEXEL_CHUNK)
         points = (vertices[faces[part]] * weights[part, :, None]).sum(axis=1)
@@ -394,36 +413,39 @@ def texture_mesh(grid, frame: FitFrame, mesh: trimesh.Trimesh, resolution: int,
             colours[part] = view_colour_texels(grid, frame, points, outward, best, facing, sight.centres, voxel_world)
         else:
             colours[part] = surface_colour_texels(grid, frame, points, outward, voxel_world, colour)
+    del faces, weights  # before the bake's full-size images
+    release_freed()
     return Texture(atlas, bake(texels, colours, atlas.size), colour)
 
 
 def pull_push(image: np.ndarray, covered: np.ndarray) -> np.ndarray:
     """`image` [H, W, C] with every texel outside `covered` [H, W] filled from the covered ones: each takes the
-    coverage-weighted mean of the finest level of a 2x pyramid that holds colour at its place."""
-    weight = covered.astype(np.float64)
-    colour = image.astype(np.float64) * weight[..., None]
+    coverage-weighted mean of the finest level of a 2x pyramid that holds colour at its place. In float32 and filled
+    in place: a 2048-texel atlas has nearly ten million texels, and an 8-bit texture needs no more."""
+    weight = covered.astype(np.float32)
+    colour = image.astype(np.float32) * weight[..., None]
     levels = [(colour, weight)]
     while max(weight.shape) > 1:
         h, w = weight.shape
-        pad = ((0, h % 2), (0, w % 2))
-        c = np.pad(colour, pad + ((0, 0),))
-        wt = np.pad(weight, pad)
-        colour = c[0::2, 0::2] + c[1::2, 0::2] + c[0::2, 1::2] + c[1::2, 1::2]
-        weight = wt[0::2, 0::2] + wt[1::2, 0::2] + wt[0::2, 1::2] + wt[1::2, 1::2]
+        if h % 2 or w % 2:
+            pad = ((0, h % 2), (0, w % 2))
+            colour, weight = np.pad(colour, pad + ((0, 0),)), np.pad(weight, pad)
+        colour = colour[0::2, 0::2] + colour[1::2, 0::2] + colour[0::2, 1::2] + colour[1::2, 1::2]
+        weight = weight[0::2, 0::2] + weight[1::2, 0::2] + weight[0::2, 1::2] + weight[1::2, 1::2]
         levels.append((colour, weight))
     filled = levels[-1][0] / np.maximum(levels[-1][1], 1e-12)[..., None]
     for colour, weight in reversed(levels[:-1]):
-        h, w = weight.shape
-        coarse = np.repeat(np.repeat(filled, 2, axis=0), 2, axis=1)[:h, :w]
-        here = weight > 0
-        filled = np.where(here[..., None], colour / np.maximum(weight, 1e-12)[..., None], coarse)
-    return np.where(covered[..., None], image, filled)
+        finer = colour / np.maximum(weight, 1e-12)[..., None]
+        empty_y, empty_x = np.nonzero(weight == 0)
+        finer[empty_y, empty_x] = filled[empty_y // 2, empty_x // 2]
+        filled = finer
+    return filled  # at the finest level a covered texel's own colour: its weight is 1
 
 
 def bake(texels: np.ndarray, colours: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """The texture [H, W, 3] in [0, 1]: `colours` [T, 3] at flat texel indices `texels`, the rest pulled and pushed."""
     width, height = size
-    image = np.zeros((height * width, 3))
+    image = np.zeros((height * width, 3), dtype=np.float32)
     covered = np.zeros(height * width, dtype=bool)
     image[texels], covered[texels] = colours, True
     return pull_push(image.reshape(height, width, 3), covered.reshape(height, width))

@@ -228,18 +228,25 @@ def snap_to_level(grid, terminations: Terminations, level: float, voxel: float) 
     if len(terminations.t) == 0:
         return terminations
     offsets = np.arange(-SNAP_VOXELS, SNAP_VOXELS + 0.25, 0.5) * voxel
-    t = terminations.t[:, None] + offsets[None]                                   # [N, S]
-    samples = terminations.origins[:, None] + t[..., None] * terminations.directions[:, None]
-    density, _ = sample_field(grid, samples.reshape(-1, 3))
-    density = density.reshape(t.shape)
-    above = density >= level
-    rises = above[:, 1:] & ~above[:, :-1]
-    has = rises.any(axis=1)
-    first = np.argmax(rises, axis=1)
-    rows = np.arange(len(first))
-    d0, d1 = density[rows, first], density[rows, first + 1]
-    share = np.clip((level - d0) / np.maximum(d1 - d0, 1e-12), 0.0, 1.0)
-    snapped = t[rows, first] + share * (offsets[1] - offsets[0])
+    has = np.zeros(len(terminations.t), dtype=bool)
+    snapped = np.zeros(len(terminations.t))
+    # A chunk of rays at a time: each samples the field (density and SH) at len(offsets) points, and the export
+    # snaps hundreds of thousands.
+    step = max(CHUNK // len(offsets), 1)
+    for start in range(0, len(terminations.t), step):
+        part = slice(start, start + step)
+        t = terminations.t[part, None] + offsets[None]                                   # [n, S]
+        samples = terminations.origins[part, None] + t[..., None] * terminations.directions[part, None]
+        density, _ = sample_field(grid, samples.reshape(-1, 3))
+        density = density.reshape(t.shape)
+        above = density >= level
+        rises = above[:, 1:] & ~above[:, :-1]
+        first = np.argmax(rises, axis=1)
+        rows = np.arange(len(first))
+        d0, d1 = density[rows, first], density[rows, first + 1]
+        share = np.clip((level - d0) / np.maximum(d1 - d0, 1e-12), 0.0, 1.0)
+        has[part] = rises.any(axis=1)
+        snapped[part] = t[rows, first] + share * (offsets[1] - offsets[0])
     return Terminations(terminations.origins[has], terminations.directions[has], snapped[has], terminations.opacity[has])
 
 

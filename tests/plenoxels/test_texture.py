@@ -282,6 +282,21 @@ def test_textured_files_carry_uvs_a_matte_material_and_the_png_in_the_input_fram
     assert glb.metallicFactor == 0.0 and glb.roughnessFactor == 1.0
 
 
+def test_an_atlas_rasterised_in_bands_of_rows_gives_each_texel_the_face_and_weights_of_the_whole(monkeypatch):
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    atlas = unwrap(mesh.vertices, mesh.faces, 96)
+    width, height = atlas.size
+    charted = np.flatnonzero(atlas.charted)
+    corners = texture.uv_to_pixels(atlas.uv, atlas.size)[atlas.faces[charted]]
+    face, weights = rasterize(corners, width, height, reach=texture.GUTTER_TEXELS)
+    whole = np.flatnonzero(face >= 0)
+    monkeypatch.setattr(texture, "TEXEL_BAND", 3 * width + 5)  # bands of three rows: gutters cross their edges
+    texels, faces, banded = texture.texel_faces(atlas)
+    assert height > 30 and np.array_equal(texels, whole)
+    assert np.array_equal(faces, atlas.vertex_map[atlas.faces[charted[face[whole]]]])
+    assert np.allclose(banded, weights[whole], atol=1e-6)
+
+
 def test_unwrap_keeps_every_face_and_its_corners():
     mesh = trimesh.creation.icosphere(subdivisions=3)
     atlas = unwrap(mesh.vertices, mesh.faces, 128)

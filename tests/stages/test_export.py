@@ -39,6 +39,7 @@ from plenoxels.core.scene_model import INNER_CUBE, SceneModel, surroundings_knot
 from plenoxels.surface.views import (Terminations, ViewRender, point_normals, ray_terminations, render_views, seen_vertices,
                                snap_to_level, surface_points)
 from plenoxels.surface.texture import render_mesh
+from plenoxels.surface import views as views_module
 from prerequisites import missing
 from stages import export
 from stages.settings.export import Settings
@@ -406,7 +407,7 @@ def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     return c2w
 
 
-def test_points_lie_on_the_surface_with_its_colours_and_normals_and_set_the_auto_level():
+def test_points_lie_on_the_surface_with_its_colours_and_normals_and_set_the_auto_level(monkeypatch):
     field = sphere_field(40)
     voxel = 2 / 39
     points = surface_points(field, FitFrame(), orbit_frames(6), 1.0, 0.5, _Quiet())
@@ -437,6 +438,9 @@ def test_points_lie_on_the_surface_with_its_colours_and_normals_and_set_the_auto
     snapped = snap_to_level(field, terminations, decisions["level"], voxel).world(FitFrame())
     assert len(snapped) > 0.75 * len(points)  # grazing rays at the rim may never reach the level
     assert np.median(surface_distance(mesh, snapped, np.random.default_rng(0))) < 0.1 * voxel
+    # A few rays at a time, the same points.
+    monkeypatch.setattr(views_module, "CHUNK", 7 * 25)
+    assert np.array_equal(snap_to_level(field, terminations, decisions["level"], voxel).world(FitFrame()), snapped)
 
 
 
