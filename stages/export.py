@@ -57,14 +57,16 @@ MAX_TERMINATIONS = 1_000_000
 # What the export holds at its peak past what is loaded, per unit of each phase's work, measured on lego `default`
 # (bench/README.md, "Faults"), rounded up: the training views rendered (depth, opacity and colour per pixel, and the
 # renderer's own) and their opaque rays, held through the mesh (marching cubes, sealing and cleaning, per cell of the
-# lattice) and the points; then, with those let go, the texture (rasterising and baking in chunks, per texel of an
-# atlas up to ATLAS_SIDE times texture_size on a side: xatlas grows it to fit the charts), and the splats (attributes,
-# Adam's moments and copies, the distillation's target views and the scoring renders' pairs).
+# lattice) and the points. The texture (rasterising and baking in bands and chunks, per texel of an atlas up to
+# ATLAS_SIDE times texture_size on a side: xatlas grows it to fit the charts) and the splats (attributes, Adam's
+# moments and copies, the distillation's target views and the scoring renders' pairs) come after, on top of what the
+# mesh phase leaves charged to the process (the mesh, the points, the heap its temporaries fragmented): all of it,
+# near enough, as measured.
 VIEW_PIXEL_BYTES = 20
 TERMINATION_BYTES = 2 * 64
-LATTICE_CELL_BYTES = 150
+LATTICE_CELL_BYTES = 100
 ATLAS_SIDE = 1.5
-TEXEL_BYTES = 80
+TEXEL_BYTES = 50
 SPLAT_BYTES = 1200
 TARGET_PIXEL_BYTES = 16
 SCORING_BYTES = 200 << 20
@@ -91,8 +93,9 @@ def _memory_need(s: Settings, grid, frames: list[dict]) -> tuple[int, str, str, 
     texels = (ATLAS_SIDE * s.texture_size) ** 2 if s.texture else 0
     splats = min(s.max_splats, grid.num_occupied) if s.splats else 0
     views = view_pixels * VIEW_PIXEL_BYTES + min(view_pixels, MAX_TERMINATIONS) * TERMINATION_BYTES
-    phases = {"mesh": views + cells * LATTICE_CELL_BYTES, "texture": texels * TEXEL_BYTES,
-              "splats": splats * SPLAT_BYTES + pixels(s.splat_scale, s.splat_views) * TARGET_PIXEL_BYTES
+    mesh = views + cells * LATTICE_CELL_BYTES
+    phases = {"mesh": mesh, "texture": mesh + texels * TEXEL_BYTES,
+              "splats": mesh + splats * SPLAT_BYTES + pixels(s.splat_scale, s.splat_views) * TARGET_PIXEL_BYTES
               + SCORING_BYTES if splats else 0}
     largest = max(phases, key=phases.get)
     need = memory.resident_memory() + phases[largest]
@@ -109,12 +112,15 @@ def within_memory(s: Settings, grid, frames: list[dict],
     limit = memory.memory_limit() if limit is None else limit
     taken = s
     while (need := _memory_need(taken, grid, frames))[0] > limit.bytes:
-        name, floor = SHRINKS_ITSELF[need[3]]
-        smaller = type(getattr(taken, name))(getattr(taken, name) / 2)
-        if smaller < floor:
+        # The largest phase's own setting; at its floor, the training views', which every phase carries.
+        for name, floor in (SHRINKS_ITSELF[need[3]], SHRINKS_ITSELF["mesh"]):
+            smaller = type(getattr(taken, name))(getattr(taken, name) / 2)
+            if smaller >= floor:
+                taken = replace(taken, **{name: smaller})
+                break
+        else:
             memory.check_fits(*_memory_need(s, grid, frames)[:3], limit)
             break
-        taken = replace(taken, **{name: smaller})
     return taken, {name: [getattr(s, name), getattr(taken, name)] for name, _ in SHRINKS_ITSELF.values()
                    if getattr(taken, name) != getattr(s, name)}
 
