@@ -29,9 +29,6 @@ scene.json's `input_from_world`, or left in the normalised frame with `frame: no
 """
 from __future__ import annotations
 
-import math
-from dataclasses import replace
-
 import numpy as np
 
 from stages.common.media import write_points
@@ -41,93 +38,15 @@ from stages.interchange.splat_files import write_splat_glb, write_splat_ply
 from stages.scoring.splat_views import score_splats
 from plenoxels.surface.mesh import (LEVEL_RAY_OPACITY, build_mesh, grid_lattice_voxel, surface_colours, transform_normals,
                             transform_points)
-from plenoxels.core.cameras import Intrinsics
 from plenoxels.core import memory
 from plenoxels.core.scene_model import SceneModel
 from plenoxels.surface.views import point_normals, ray_terminations, render_views, snap_to_level
 from plenoxels.surface.texture import texture_mesh, view_sight
 from plenoxels.surface.view_alignment import align_to_views
-from plenoxels.splats.field_splats import fit_splats, training_views
+from plenoxels.splats.field_splats import fit_splats
 from stages.settings.export import Settings
 from stages.common.layout import EXPORT_JSON, MODEL_JSON, SCENE_JSON
-
-# The training views' opaque rays kept for the level, the free-space test and the points: a seeded share of each
-# view's. 64 bytes a ray: a hundred 400x400 views give about 5 M, 320 MB, and twice that while they are joined.
-MAX_TERMINATIONS = 1_000_000
-# What the export holds at its peak past what is loaded, per unit of each phase's work, measured on lego `default`
-# (bench/README.md, "Faults"), rounded up: the training views rendered (depth, opacity and colour per pixel, and the
-# renderer's own) and their opaque rays, held through the mesh (marching cubes, sealing and cleaning, per cell of the
-# lattice) and the points. The texture (rasterising and baking in bands and chunks, per texel of an atlas up to
-# ATLAS_SIDE times texture_size on a side: xatlas grows it to fit the charts) and the splats (attributes, Adam's
-# moments and copies, the distillation's target views and the scoring renders' pairs) come after, on top of what the
-# mesh phase leaves charged to the process (the mesh, the points, the heap its temporaries fragmented): all of it,
-# near enough, as measured.
-VIEW_PIXEL_BYTES = 20
-TERMINATION_BYTES = 2 * 64
-LATTICE_CELL_BYTES = 100
-ATLAS_SIDE = 1.5
-TEXEL_BYTES = 50
-SPLAT_BYTES = 1200
-TARGET_PIXEL_BYTES = 16
-SCORING_BYTES = 200 << 20
-
-
-# What shrinks each phase, for the line that stops an export that would not fit.
-SHRINK = {"mesh": "lower export.point_scale (the training views rendered beside the fitted grid's own lattice)",
-          "texture": "lower export.texture_size, or export.texture=false for vertex colours",
-          "splats": "lower export.max_splats, or export.splats=false for none"}
-# What the export lowers by itself where it would not fit in memory as set: each phase's setting, halved down to no
-# less than its floor. A coarser texture or fewer splats or points is a lesser export; an error is none.
-SHRINKS_ITSELF = {"mesh": ("point_scale", 0.125), "texture": ("texture_size", 512), "splats": ("max_splats", 50_000)}
-
-
-def _memory_need(s: Settings, grid, frames: list[dict]) -> tuple[int, str, str, str]:
-    """Bytes the export will hold at its peak (resident now, and the largest phase's share: the constants above), what
-    they are for, in words, what shrinks them, and that phase."""
-    def pixels(scale: float, limit: int) -> int:
-        chosen = training_views(frames, limit)
-        return sum(Intrinsics.from_frame(f).scaled(scale).w * Intrinsics.from_frame(f).scaled(scale).h for f in chosen)
-    view_pixels = pixels(s.point_scale, s.point_views)
-    native = max(grid.resolution) - 1
-    cells = math.prod(grid.resolution) * (1.0 if s.resolution == "auto" else max(int(s.resolution) / native, 1.0) ** 3)
-    texels = (ATLAS_SIDE * s.texture_size) ** 2 if s.texture else 0
-    splats = min(s.max_splats, grid.num_occupied) if s.splats else 0
-    views = view_pixels * VIEW_PIXEL_BYTES + min(view_pixels, MAX_TERMINATIONS) * TERMINATION_BYTES
-    mesh = views + cells * LATTICE_CELL_BYTES
-    phases = {"mesh": mesh, "texture": mesh + texels * TEXEL_BYTES,
-              "splats": mesh + splats * SPLAT_BYTES + pixels(s.splat_scale, s.splat_views) * TARGET_PIXEL_BYTES
-              + SCORING_BYTES if splats else 0}
-    largest = max(phases, key=phases.get)
-    need = memory.resident_memory() + phases[largest]
-    what = (f"the export of a {'x'.join(map(str, grid.resolution))} grid ({_count(view_pixels)} training-view pixels; "
-            f"at its largest, the {largest}" + (f" of up to {_count(splats)}" if largest == "splats" else "") + ")")
-    return int(need), what, SHRINK[largest], largest
-
-
-def within_memory(s: Settings, grid, frames: list[dict],
-                  limit: memory.MemoryLimit | None = None) -> tuple[Settings, dict]:
-    """The settings the export runs with: as set where it fits in what this process may use; else with its largest
-    phase's setting halved (SHRINKS_ITSELF) until it fits, and what was lowered ({setting: [as set, taken]}). Where
-    not even the floors fit, it stops with one line on the settings as set, before anything is written."""
-    limit = memory.memory_limit() if limit is None else limit
-    taken = s
-    while (need := _memory_need(taken, grid, frames))[0] > limit.bytes:
-        # The largest phase's own setting; at its floor, the training views', which every phase carries.
-        for name, floor in (SHRINKS_ITSELF[need[3]], SHRINKS_ITSELF["mesh"]):
-            smaller = type(getattr(taken, name))(getattr(taken, name) / 2)
-            if smaller >= floor:
-                taken = replace(taken, **{name: smaller})
-                break
-        else:
-            memory.check_fits(*_memory_need(s, grid, frames)[:3], limit)
-            break
-    return taken, {name: [getattr(s, name), getattr(taken, name)] for name, _ in SHRINKS_ITSELF.values()
-                   if getattr(taken, name) != getattr(s, name)}
-
-
-def _lowered(lowered: dict) -> str:
-    return ", ".join(f"export.{name} {was:g} -> {now:g}" for name, (was, now) in lowered.items())
-
+from stages.exporting.memory_plan import MAX_TERMINATIONS, lowered_words, within_memory
 
 def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.all((points >= lo) & (points <= hi), axis=1)
@@ -166,7 +85,7 @@ def run(ctx) -> dict:
 
     s, lowered = within_memory(s, grid, scene["frames"])
     if lowered:
-        ctx.report.warn(f"the export as set would not fit in the memory this process may use: {_lowered(lowered)}")
+        ctx.report.warn(f"the export as set would not fit in the memory this process may use: {lowered_words(lowered)}")
     crop_min, crop_max = box_min - s.crop_margin * (box_max - box_min), box_max + s.crop_margin * (box_max - box_min)
     views = render_views(grid, frame, scene["frames"], s.point_scale, s.point_views, ctx.report)
     terminations = ray_terminations(views, frame, s.point_opacity, MAX_TERMINATIONS, s.seed)
@@ -276,7 +195,7 @@ def run(ctx) -> dict:
             + (f", texture {'x'.join(map(str, texture.atlas.size))}" if texture is not None else ", vertex colours")
             + f"; cut away: {decisions['object_only']['cut']}"
             + (_splat_line(splat_record, sizes) if splats is not None else "")
-            + (f"; to fit in memory {_lowered(lowered)}" if lowered else ""))
+            + (f"; to fit in memory {lowered_words(lowered)}" if lowered else ""))
     return {"line": line, "frame": s.frame, "faces": len(mesh.faces), "vertices": len(mesh.vertices),
             "points": len(points), "level": decisions["level"], "resolution": decisions["resolution"],
             "cut_away": decisions["object_only"]["cut"], "splats": splats.count if splats is not None else 0,

@@ -1,0 +1,1 @@
+"""The export stage's own library (stages/export.py): what it plans before it runs."""
