@@ -48,6 +48,7 @@ from stages.settings.export import Settings
 from stages.common.layout import EXPORT_JSON, MODEL_JSON, SCENE_JSON
 from stages.exporting.memory_plan import MAX_TERMINATIONS, lowered_words, within_memory
 
+
 def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.all((points >= lo) & (points <= hi), axis=1)
 
