@@ -28,8 +28,8 @@ from stages.common.json_files import write_json
 from pipeline.report import Reporter
 from pipeline.stage import StageContext, StageGraph
 from plenoxels.core.errors import UserError
-from plenoxels.core.memory import release_freed
-from stages.common.layout import MANIFEST, RESUME, TRASH, WORK, scene_json
+from plenoxels.core.memory import memory_limit, release_freed
+from stages.common.layout import MANIFEST, MEMORY_AS_SET, RESUME, TRASH, WORK, scene_json
 
 
 @dataclass
@@ -59,6 +59,20 @@ def read_manifest(folder: Path) -> dict | None:
 
 def manifest_digest(manifest: dict) -> str:
     return hashlib.sha256(json.dumps(manifest, sort_keys=True).encode()).hexdigest()[:20]
+
+
+def memory_now_there(manifest: dict) -> str | None:
+    """Why an output made with its settings lowered to fit in the memory its run had is out of date, where it is: the
+    memory its settings as set need is there now (the summary's MEMORY_AS_SET). A lesser output is not kept where the
+    whole one can be made."""
+    need = manifest.get("summary", {}).get(MEMORY_AS_SET)
+    if not need:
+        return None
+    limit = memory_limit()
+    if limit.bytes < need:
+        return None
+    return (f"it lowered its settings to fit in memory, and the {need / 2**30:.1f} GiB they need as set is there now "
+            f"({limit.bytes / 2**30:.1f} GiB, {limit.source})")
 
 
 class Pipeline:
@@ -105,6 +119,8 @@ class Pipeline:
         if manifest.get("key") == plan.key:
             if damaged := damaged_file(self.out / name, manifest):
                 return "stale", f"{damaged} changed or was damaged since it was written"
+            if lowered := memory_now_there(manifest):
+                return "stale", lowered
             # Its own key still matches, but a stage it needs will re-run first and so rebuild it too.
             rerun = [dep for dep in self.graph.declaration(name).DEPENDS if self.status(dep)[0] != "done"]
             if rerun:
@@ -143,10 +159,12 @@ class Pipeline:
         manifest = read_manifest(final)
         if manifest and manifest.get("key") == plan.key and not force:
             damaged = damaged_file(final, manifest)
-            if damaged is None:
+            lowered = memory_now_there(manifest) if damaged is None else None
+            if damaged is None and lowered is None:
                 self.report.summary(name, f"up to date, skipped ({manifest['summary']['line']})")
                 return manifest
-            self.report.info(f"{damaged} changed or was damaged since the {name} stage wrote it: running {name} again")
+            self.report.info(f"{damaged} changed or was damaged since the {name} stage wrote it: running {name} again"
+                             if damaged else f"{name}: {lowered}: running it again")
 
         module = self.graph.load(name)
         work = self.out / WORK / name

@@ -45,7 +45,7 @@ from plenoxels.surface.texture import texture_mesh, view_sight
 from plenoxels.surface.view_alignment import align_to_views
 from plenoxels.splats.field_splats import fit_splats
 from stages.settings.export import Settings
-from stages.common.layout import EXPORT_JSON, MODEL_JSON, SCENE_JSON
+from stages.common.layout import EXPORT_JSON, MEMORY_AS_SET, MODEL_JSON, SCENE_JSON
 from stages.exporting.memory_plan import MAX_TERMINATIONS, lowered_words, within_memory
 
 
@@ -84,7 +84,7 @@ def run(ctx) -> dict:
     if s.crop:
         box_min, box_max = np.asarray(s.crop[:3], dtype=np.float64), np.asarray(s.crop[3:], dtype=np.float64)
 
-    s, lowered = within_memory(s, grid, scene["frames"])
+    s, lowered, need_as_set = within_memory(s, grid, scene["frames"])
     if lowered:
         ctx.report.warn(f"the export as set would not fit in the memory this process may use: {lowered_words(lowered)}")
     crop_min, crop_max = box_min - s.crop_margin * (box_max - box_min), box_max + s.crop_margin * (box_max - box_min)
@@ -183,6 +183,7 @@ def run(ctx) -> dict:
         "points": {"count": len(points), "bounds": _bounds(points)},
         "splats": splat_record if splats is not None else None,
         "lowered_to_fit_memory": lowered,
+        "memory_as_set": need_as_set if lowered else None,
         "axes": "PLY: the frame's own; OBJ and GLB y-up, (x, z, -y) of the frame: z-up importers such as Blender's "
                 "restore the frame's coordinates",
         **decisions,
@@ -200,7 +201,8 @@ def run(ctx) -> dict:
     return {"line": line, "frame": s.frame, "faces": len(mesh.faces), "vertices": len(mesh.vertices),
             "points": len(points), "level": decisions["level"], "resolution": decisions["resolution"],
             "cut_away": decisions["object_only"]["cut"], "splats": splats.count if splats is not None else 0,
-            **(_splat_summary(splat_record, sizes) if splats is not None else {"splat_psnr": None})}
+            **(_splat_summary(splat_record, sizes) if splats is not None else {"splat_psnr": None}),
+            MEMORY_AS_SET: need_as_set if lowered else None}
 
 
 def _splat_summary(record: dict, sizes: dict) -> dict:

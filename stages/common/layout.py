@@ -18,6 +18,9 @@ STAGE_ORDER = ("ingest", "poses", "normalize", "fit", "evaluate", "export")
 # The runner's bookkeeping.
 MANIFEST = "manifest.json"
 WORK, RESUME, TRASH = ".work", ".resume", ".trash"
+# In a stage's summary (its manifest's), where it lowered its settings to fit in the memory its run had: the bytes its
+# settings as set need. The runner runs it again once that much memory is there.
+MEMORY_AS_SET = "memory_as_set"
 
 # What each stage writes that others read, by stage.
 IMAGES_JSON = "images.json"              # ingest: the ingested images and what was skipped

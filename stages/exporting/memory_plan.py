@@ -67,11 +67,13 @@ def memory_need(s: Settings, grid, frames: list[dict]) -> tuple[int, str, str, s
 
 
 def within_memory(s: Settings, grid, frames: list[dict],
-                  limit: memory.MemoryLimit | None = None) -> tuple[Settings, dict]:
+                  limit: memory.MemoryLimit | None = None) -> tuple[Settings, dict, int]:
     """The settings the export runs with: as set where it fits in what this process may use; else with its largest
-    phase's setting halved (SHRINKS_ITSELF) until it fits, and what was lowered ({setting: [as set, taken]}). Where
-    not even the floors fit, it stops with one line on the settings as set, before anything is written."""
+    phase's setting halved (SHRINKS_ITSELF) until it fits, and what was lowered ({setting: [as set, taken]}); and the
+    bytes the settings as set need. Where not even the floors fit, it stops with one line on the settings as set,
+    before anything is written."""
     limit = memory.memory_limit() if limit is None else limit
+    need_as_set = memory_need(s, grid, frames)[0]
     taken = s
     while (need := memory_need(taken, grid, frames))[0] > limit.bytes:
         # The largest phase's own setting; at its floor, the training views', which every phase carries.
@@ -84,7 +86,7 @@ def within_memory(s: Settings, grid, frames: list[dict],
             memory.check_fits(*memory_need(s, grid, frames)[:3], limit)
             break
     return taken, {name: [getattr(s, name), getattr(taken, name)] for name, _ in SHRINKS_ITSELF.values()
-                   if getattr(taken, name) != getattr(s, name)}
+                   if getattr(taken, name) != getattr(s, name)}, need_as_set
 
 
 def lowered_words(lowered: dict) -> str:

@@ -6,9 +6,12 @@ from pathlib import Path
 
 import pytest
 
+import pipeline.runner as runner
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from pipeline.stage import STAGE_ORDER, StageGraph, code_hash, import_closure
+from plenoxels.core.memory import MemoryLimit
+from stages.common.layout import MEMORY_AS_SET
 
 # a -> b -> c; b reaches `shapes` only through `helpers` (and a relative import), so the key must follow imports
 # transitively; `unrelated` is imported by no stage.
@@ -137,3 +140,35 @@ def test_no_stage_lists_its_code_by_hand():
               if any(isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "CODE" for t in node.targets)
                      for node in ast.parse((stages_dir / f"{name}.py").read_text()).body)]
     assert listed == [], "the cache key follows imports; delete CODE"
+
+
+
+# c as a stage that lowers its settings to fit in memory each time it runs, and counts its runs.
+LOWERING_SOURCES = dict(SOURCES, **{"c.py": f'''
+    from dataclasses import dataclass
+    NAME, DEPENDS, VERSION = "c", ("b",), 1
+    @dataclass
+    class Settings:
+        pass
+    def run(ctx):
+        runs = ctx.out / "c_runs"
+        runs.write_text(str(int(runs.read_text()) + 1 if runs.is_file() else 1))
+        return {{"line": "c done, lowered to fit in memory", {MEMORY_AS_SET!r}: 3 << 30}}
+'''})
+
+
+def test_an_output_lowered_to_fit_in_memory_is_made_again_once_that_memory_is_there(tmp_path, monkeypatch, capsys):
+    stage_package(tmp_path, monkeypatch, "cachestages", LOWERING_SOURCES)
+    monkeypatch.setattr(runner, "memory_limit", lambda: MemoryLimit(2 << 30, "cgroup memory.max"))
+    make(tmp_path).run(["c"])
+    make(tmp_path).run(["c"])  # still 2 GiB: kept, however lesser
+    assert (tmp_path / "out" / "c_runs").read_text() == "1" and make(tmp_path).status("c")[0] == "done"
+
+    monkeypatch.setattr(runner, "memory_limit", lambda: MemoryLimit(4 << 30, "cgroup memory.max"))
+    state, why = make(tmp_path).status("c")
+    assert state == "stale" and "3.0 GiB they need as set is there now (4.0 GiB, cgroup memory.max)" in why
+    capsys.readouterr()
+    make(tmp_path).run(["c"])
+    out = capsys.readouterr().out
+    assert "[a] up to date" in out and "[b] up to date" in out and "[c] c done" in out
+    assert (tmp_path / "out" / "c_runs").read_text() == "2"

@@ -18,6 +18,7 @@ from bench.export import training_cameras, visible_from
 from pipeline import config
 from stages.common.media import GLTF_FROM_ZUP, write_points
 from stages.common.json_files import read_json, write_json
+from stages.common.layout import MEMORY_AS_SET
 from stages.interchange.mesh_files import write_mesh_files
 from stages.scoring.metrics import mesh_scores, surface_distance
 from pipeline.report import Reporter
@@ -557,6 +558,7 @@ def test_an_export_that_would_not_fit_in_memory_even_at_its_floors_stops_before_
     assert "export.texture_size" in line and not any((tmp_path / "large" / "export").iterdir())
     summary, folder = run_stage(tmp_path, sphere_field(16), scene, Settings(points=100, texture_size=256), "small")
     assert summary["faces"] > 0 and (folder / "mesh.png").is_file() and "to fit in memory" not in summary["line"]
+    assert summary[MEMORY_AS_SET] is None
 
 
 @pytest.mark.parametrize("settings, room_mb, lowered", [
@@ -575,6 +577,8 @@ def test_an_export_too_large_for_memory_halves_its_largest_phase_until_it_fits_a
     summary, folder = run_stage(tmp_path, sphere_field(16), scene, settings, "lowered")
     record = read_json(folder / "export.json")
     assert record["lowered_to_fit_memory"] == lowered and summary["faces"] > 0
+    # What the settings as set need is past the room, and the runner reads it from the summary (memory_now_there).
+    assert record["memory_as_set"] == summary[MEMORY_AS_SET] > (1 << 30) + (room_mb << 20)
     said = summary["line"].partition("; to fit in memory ")[2].split(", ")
     assert sorted(said) == sorted(f"export.{name} {was:g} -> {now:g}" for name, (was, now) in lowered.items())
     if "texture_size" in lowered:
