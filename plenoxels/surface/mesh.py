@@ -20,6 +20,7 @@ from skimage.measure import marching_cubes
 
 from plenoxels.core.errors import UserError
 from plenoxels.core.fit_frame import FitFrame
+from plenoxels.core.memory import release_freed
 from plenoxels.core.options import MeshOptions
 from plenoxels.surface.ground import RIM_SHARE, cut_ground, find_ground, reaches_box_sides
 from plenoxels.core.render import COLOUR_OFFSET, SH_C0, RenderOptions, ray_samples
@@ -477,9 +478,13 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
     lattice, filled = seal_openings(lattice, level, level_rays, options.fill_voxels)
     fine = refine(lattice, resolution, level)
     report.info(f"marching cubes at density {level:.4g} on a {'x'.join(map(str, fine.values.shape))} lattice")
-    vertices, faces = extract_surface(fine, level)
-    world, faces = mesh_to_world(vertices, faces, frame)
-    mesh = trimesh.Trimesh(world, faces, process=False)
+    mesh = trimesh.Trimesh(*mesh_to_world(*extract_surface(fine, level), frame), process=False)
+    # The lattices go before the per-vertex work, and each step's temporaries after it: glibc keeps freed pages, and
+    # they would stay charged to the steps after (plenoxels/core/memory.py, release_freed).
+    voxel, fit_shape = lattice.voxel, list(lattice.values.shape)
+    fine_shape, fine_voxel = list(fine.values.shape), fine.voxel
+    del lattice, fine
+    release_freed()
 
     max_gap = math.inf if masked else options.max_gap * float(np.linalg.norm(size))
     mesh, cleaning = clean_mesh(mesh, crop_min, crop_max, options.min_piece_fraction, max_gap)
@@ -496,20 +501,22 @@ def build_mesh(grid, frame: FitFrame, box_min: np.ndarray, box_max: np.ndarray, 
         mesh, _ = clean_mesh(submesh(mesh, keep)[0], crop_min, crop_max, options.min_piece_fraction, max_gap)
         if len(mesh.faces) == 0:
             raise UserError("no training view sees any part of the mesh; set export.unseen=keep")
+        release_freed()
     isolation = {"on": False, "cut": "nothing: export.object_only is off"}
     if object_only:
         mesh, isolation = isolate_object(mesh, crop_min, crop_max, voxel_world, options, user_box, max_gap)
         isolation["on"] = True
     mesh, decimation = decimate(mesh, options.max_faces)
-    colours = surface_colours(grid, frame.from_world(np.asarray(mesh.vertices)), lattice.voxel)
+    release_freed()
+    colours = surface_colours(grid, frame.from_world(np.asarray(mesh.vertices)), voxel)
     mesh.visual.vertex_colors = colours  # trimesh rounds [0, 1] floats to 8 bits
     decisions = {
         "level": level,
         "level_source": level_source,
         "resolution": resolution,
-        "fit_resolution": list(lattice.values.shape),
-        "lattice": list(fine.values.shape),
-        "voxel": fine.voxel,
+        "fit_resolution": fit_shape,
+        "lattice": fine_shape,
+        "voxel": fine_voxel,
         "voxel_world": voxel_world,
         "filled": filled,
         "cleaning": vars(cleaning),

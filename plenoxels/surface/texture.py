@@ -418,28 +418,33 @@ def texture_mesh(grid, frame: FitFrame, mesh: trimesh.Trimesh, resolution: int,
     return Texture(atlas, bake(texels, colours, atlas.size), colour)
 
 
+def _block_sums(a: np.ndarray) -> np.ndarray:
+    """The sums of `a` [H, W, ...] over 2x2 blocks, an odd last row or column's blocks over what is there."""
+    h, w = a.shape[:2]
+    sums = np.zeros(((h + 1) // 2, (w + 1) // 2) + a.shape[2:], dtype=a.dtype)
+    for dy, dx in ((0, 0), (0, 1), (1, 0), (1, 1)):
+        part = a[dy::2, dx::2]
+        sums[:part.shape[0], :part.shape[1]] += part
+    return sums
+
+
 def pull_push(image: np.ndarray, covered: np.ndarray) -> np.ndarray:
-    """`image` [H, W, C] with every texel outside `covered` [H, W] filled from the covered ones: each takes the
-    coverage-weighted mean of the finest level of a 2x pyramid that holds colour at its place. In float32 and filled
-    in place: a 2048-texel atlas has nearly ten million texels, and an 8-bit texture needs no more."""
-    weight = covered.astype(np.float32)
-    colour = image.astype(np.float32) * weight[..., None]
-    levels = [(colour, weight)]
-    while max(weight.shape) > 1:
-        h, w = weight.shape
-        if h % 2 or w % 2:
-            pad = ((0, h % 2), (0, w % 2))
-            colour, weight = np.pad(colour, pad + ((0, 0),)), np.pad(weight, pad)
-        colour = colour[0::2, 0::2] + colour[1::2, 0::2] + colour[0::2, 1::2] + colour[1::2, 1::2]
-        weight = weight[0::2, 0::2] + weight[1::2, 0::2] + weight[0::2, 1::2] + weight[1::2, 1::2]
-        levels.append((colour, weight))
+    """`image` [H, W, C] (float32) with every texel outside `covered` [H, W] filled from the covered ones, in place:
+    each takes the coverage-weighted mean of the finest level of a 2x pyramid that holds colour at its place. A
+    2048-texel atlas has nearly ten million texels: past `image` this holds its coverage as weights, the pyramid's
+    coarser levels (a third of the finest) and a quarter level's mask at a time, about 13 bytes a texel."""
+    image[~covered] = 0.0
+    levels = [(image, covered.astype(np.float32))]   # colour weighted by coverage, and the coverage
+    while max(levels[-1][1].shape) > 1:
+        levels.append(tuple(_block_sums(a) for a in levels[-1]))
     filled = levels[-1][0] / np.maximum(levels[-1][1], 1e-12)[..., None]
     for colour, weight in reversed(levels[:-1]):
-        finer = colour / np.maximum(weight, 1e-12)[..., None]
-        empty_y, empty_x = np.nonzero(weight == 0)
-        finer[empty_y, empty_x] = filled[empty_y // 2, empty_x // 2]
-        filled = finer
-    return filled  # at the finest level a covered texel's own colour: its weight is 1
+        colour /= np.maximum(weight, 1e-12)[..., None]   # at the finest level a covered texel's own colour: weight 1
+        for dy, dx in ((0, 0), (0, 1), (1, 0), (1, 1)):
+            part, empty = colour[dy::2, dx::2], weight[dy::2, dx::2] == 0
+            part[empty] = filled[:part.shape[0], :part.shape[1]][empty]
+        filled = colour
+    return filled
 
 
 def bake(texels: np.ndarray, colours: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -142,6 +142,23 @@ def test_the_baked_texture_holds_the_surface_colour_at_every_mip_level_with_no_b
     assert not all(red_blue_mix(level).all() for level in mip_levels(bare.reshape(texture.image.shape)))
 
 
+def test_the_gaps_between_charts_take_the_nearest_coarse_level_that_holds_colour():
+    # 6x6 with red at (0, 0) and blue at (5, 5): a texel sharing a 2x2 block with one takes it, (2, 2) the 4x4
+    # block that holds red alone, the opposite corners the whole image's mean; a covered texel keeps its colour.
+    image, covered = np.zeros((6, 6, 3), dtype=np.float32), np.zeros((6, 6), dtype=bool)
+    image[0, 0], image[5, 5], covered[0, 0], covered[5, 5] = RED, BLUE, True, True
+    image[3, 1] = 7.0   # not covered: whatever it held goes
+    filled = texture.pull_push(image, covered)
+    for (y, x), expected in [((0, 0), RED), ((1, 1), RED), ((2, 2), RED), ((3, 1), RED), ((5, 5), BLUE),
+                             ((4, 4), BLUE), ((0, 5), (RED + BLUE) / 2), ((5, 0), (RED + BLUE) / 2)]:
+        assert np.allclose(filled[y, x], expected, atol=1e-6), (y, x, filled[y, x])
+    # Odd sides at every level: one covered texel fills everything.
+    for shape in [(5, 7), (1, 9), (13, 2)]:
+        image, covered = np.zeros(shape + (3,), dtype=np.float32), np.zeros(shape, dtype=bool)
+        image[-1, -1], covered[-1, -1] = BLUE, True
+        assert np.allclose(texture.pull_push(image, covered), BLUE, atol=1e-6), shape
+
+
 def test_the_texture_shows_what_a_camera_looking_straight_at_the_surface_sees(sphere):
     # The field's colour depends on the view (SH degree 1). Baked along the normal, the texture matches the field's own
     # render where the camera faces the surface; the view-independent mean (degree 0) does not.
