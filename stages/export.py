@@ -154,6 +154,8 @@ def run(ctx) -> dict:
     if s.points > 0:
         write_points(ctx.work / "points.ply", points, colours, normals)
         files["points"] = "points.ply"
+    del texture, layout   # written: the splats start from what the mesh's files leave
+    memory.release_freed()
     splats = None
     if s.splats:
         ctx.report.info(f"fitting up to {_count(s.max_splats)} splats to the field ({s.splat_seconds:g} s distillation)")
@@ -194,7 +196,7 @@ def run(ctx) -> dict:
             f"({_size(sizes.get('points', 0))}) in the {s.frame} frame, bounds "
             f"[{', '.join(f'{v:.3g}' for v in lo)}] to [{', '.join(f'{v:.3g}' for v in hi)}], "
             f"level {decisions['level']:.3g}{' (auto)' if s.level == 'auto' else ''}, resolution {decisions['resolution']}"
-            + (f", texture {'x'.join(map(str, texture.atlas.size))}" if texture is not None else ", vertex colours")
+            + (f", texture {'x'.join(map(str, decisions['texture']['size']))}" if s.texture else ", vertex colours")
             + f"; cut away: {decisions['object_only']['cut']}"
             + (_splat_line(splat_record, sizes) if splats is not None else "")
             + (f"; to fit in memory {lowered_words(lowered)}" if lowered else ""))

@@ -196,7 +196,7 @@ def test_near_gradient_twin_is_the_scaled_chain_rule():
 
     scaled_loss, density, sh, _ = loss(1.0)
     plain_loss, plain_density, plain_sh, m = loss(0.0)
-    assert float(scaled_loss) == float(plain_loss)
+    assert float(scaled_loss.detach()) == float(plain_loss.detach())
     share = (m["t"][m["ray"], m["idx"]] / 1.0).clamp_max(1) ** 2
     assert 0 < float(share.min()) < 0.5 and float(share.max()) == 1.0  # samples on both sides of the distance
     want_density, want_sh = torch.autograd.grad(
