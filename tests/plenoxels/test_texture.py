@@ -159,6 +159,26 @@ def test_the_gaps_between_charts_take_the_nearest_coarse_level_that_holds_colour
         assert np.allclose(texture.pull_push(image, covered), BLUE, atol=1e-6), shape
 
 
+@pytest.mark.parametrize("count", [1, 3, 12, 40])
+def test_each_texel_gets_the_views_that_face_it_most_squarely_best_first(monkeypatch, count):
+    # Against every row sorted whole, across chunk ends; a vertex no view sees ties every view at 0, and those picks
+    # are never used (view_colour_texels reads a view only where its cosine is above 0).
+    monkeypatch.setattr(texture, "VIEW_CHUNK", 1000)
+    rng = np.random.default_rng(3)
+    cosines = np.where(rng.random((500, 12)) < 0.4, rng.random((500, 12)), 0.0).astype(np.float32)
+    cosines[:20] = 0.0
+    faces = rng.integers(0, 500, (4321, 3)).astype(np.int32)
+    faces[:300] = rng.integers(0, 20, (300, 3))
+    weights = rng.random((4321, 3)).astype(np.float32)
+    weights /= weights.sum(axis=1, keepdims=True)
+    best, score = texture.facing_views(faces, weights, cosines, count)
+    blended = np.einsum("nk,nkc->nc", weights, cosines[faces])
+    order = np.argsort(-blended, axis=1, kind="stable")[:, :min(count, 12)]
+    assert best.shape == score.shape == order.shape
+    assert np.array_equal(score, np.take_along_axis(blended, order, axis=1))
+    assert np.array_equal(best[score > 0], order[score > 0]) and (score[:300] == 0).all()
+
+
 def test_the_texture_shows_what_a_camera_looking_straight_at_the_surface_sees(sphere):
     # The field's colour depends on the view (SH degree 1). Baked along the normal, the texture matches the field's own
     # render where the camera faces the surface; the view-independent mean (degree 0) does not.
