@@ -279,7 +279,7 @@ def facing_views(faces: np.ndarray, weights: np.ndarray, cosines: np.ndarray, co
     for start in range(0, len(faces), VIEW_CHUNK):
         part = slice(start, start + VIEW_CHUNK)
         blended = np.einsum("nk,nkc->nc", weights[part], cosines[faces[part]])
-        if count < blended.shape[1]:   # the `count` best (sorting whole rows was most of this function's time)
+        if count < blended.shape[1]:   # the `count` best by partition: sorting whole rows would take most of the time
             top = np.sort(np.argpartition(-blended, count - 1, axis=1)[:, :count], axis=1)
         else:
             top = np.broadcast_to(np.arange(count), blended.shape)

@@ -20,9 +20,9 @@ MAX_TERMINATIONS = 1_000_000
 # renderer's own) and their opaque rays, held through the mesh (marching cubes, sealing and cleaning, per cell of the
 # lattice) and the points. The texture (rasterising and baking in bands and chunks, per texel of an atlas up to
 # ATLAS_SIDE times texture_size on a side: xatlas grows it to fit the charts) and the splats (attributes, Adam's
-# moments and copies, the distillation's target views and the scoring renders' pairs) come after, on top of what the
-# mesh phase leaves charged to the process (the mesh, the points, the heap its temporaries fragmented): all of it,
-# near enough, as measured.
+# moments and copies, the distillation's target views and the scoring renders' pairs) come after, counted on top of
+# the mesh phase's peak: above what lego holds now that they start from well below it (bench/README.md, "Faults"), and
+# sound where a small grid's mesh phase leaves a large atlas little to stand on.
 VIEW_PIXEL_BYTES = 20
 TERMINATION_BYTES = 2 * 64
 LATTICE_CELL_BYTES = 100
@@ -73,9 +73,9 @@ def within_memory(s: Settings, grid, frames: list[dict],
     bytes the settings as set need. Where not even the floors fit, it stops with one line on the settings as set,
     before anything is written."""
     limit = memory.memory_limit() if limit is None else limit
-    need_as_set = memory_need(s, grid, frames)[0]
-    taken = s
-    while (need := memory_need(taken, grid, frames))[0] > limit.bytes:
+    as_set = memory_need(s, grid, frames)
+    taken, need = s, as_set
+    while need[0] > limit.bytes:
         # The largest phase's own setting; at its floor, the training views', which every phase carries.
         for name, floor in (SHRINKS_ITSELF[need[3]], SHRINKS_ITSELF["mesh"]):
             smaller = type(getattr(taken, name))(getattr(taken, name) / 2)
@@ -83,10 +83,11 @@ def within_memory(s: Settings, grid, frames: list[dict],
                 taken = replace(taken, **{name: smaller})
                 break
         else:
-            memory.check_fits(*memory_need(s, grid, frames)[:3], limit)
+            memory.check_fits(*as_set[:3], limit)
             break
+        need = memory_need(taken, grid, frames)
     return taken, {name: [getattr(s, name), getattr(taken, name)] for name, _ in SHRINKS_ITSELF.values()
-                   if getattr(taken, name) != getattr(s, name)}, need_as_set
+                   if getattr(taken, name) != getattr(s, name)}, as_set[0]
 
 
 def lowered_words(lowered: dict) -> str:
