@@ -6,6 +6,7 @@ ingest/images.json listing every kept image with its original size, scale, sharp
 """
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -13,8 +14,8 @@ import numpy as np
 from stages.common.media import write_png
 from stages.common.json_files import write_json
 from stages.capture.masks import mask_folder, match_masks, read_mask
-from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, fit_max_side, load_photo, photo_folder, scene_photos,
-                             sharpness, video_frames)
+from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, colour_spread, colourless_among_colour, fit_max_side,
+                                   load_photo, photo_folder, scene_photos, sharpness, video_frames)
 from stages.common.text import short_list
 from plenoxels.core.errors import UserError
 from stages.settings.ingest import Settings
@@ -41,7 +42,7 @@ def run(ctx) -> dict:
         rgb = fit_max_side(rgb, s.max_side)
         record = {"name": name, "file": f"images/{name}.png", "source": source, "width": rgb.shape[1],
                   "height": rgb.shape[0], "original_width": original[0], "original_height": original[1],
-                  "scale": rgb.shape[1] / original[0], "sharpness": round(sharpness(rgb), 3), "mask": None}
+                  "scale": rgb.shape[1] / original[0], "sharpness": round(sharpness(rgb), 3), "colour_spread": colour_spread(rgb), "mask": None}
         if split:
             record["split"] = split
         write_png(images_dir / f"{name}.png", rgb)
@@ -105,12 +106,19 @@ def run(ctx) -> dict:
                 (ctx.work / record["mask"]).unlink()
         records = [r for r in records if r["name"] not in dropped]
 
+    colourless = [records[i]["name"] for i in colourless_among_colour([r["colour_spread"] for r in records])]
+    for record in records:
+        if record["name"] in colourless:
+            record["colourless"] = True
+    if colourless:
+        ctx.report.warn(f"{len(colourless)} of {len(records)} photos have no colour where the others do (greyscale): "
+                        f"{short_list(colourless)}; they are posed with the others, and left out of the fit and scores")
+
     if len(records) < s.min_images:
         raise UserError(f"only {len(records)} usable image(s) in {ctx.scene}; at least {s.min_images} overlapping photos are needed")
     write_json(ctx.work / IMAGES_JSON, {"images": records, "skipped": unreadable, "dropped_blurry": dropped,
                                           **({"video": clip} if clip is not None else {})})
-    w, h = records[0]["width"], records[0]["height"]
-    line = f"{len(records)} images at {w}x{h}"
+    line = f"{len(records)} images at {size_words(records)}"
     if clip is not None:
         line += video_words(clip, s)
         if len(records) < s.video_min_frames:
@@ -121,12 +129,24 @@ def run(ctx) -> dict:
     if masked:
         given = sum(r.get("mask_from") not in (None, "alpha") for r in records)
         line += f", {masked} with masks ({f'{given} from the masks folder' if given else 'their alpha'})"
+    if colourless:
+        line += f", {len(colourless)} without colour (posed only)"
     if dropped:
         line += f", dropped {len(dropped)} blurriest"
     if unreadable:
         line += f", skipped {len(unreadable)} unreadable"
     return {"line": line, "images": len(records), "skipped": len(unreadable), "dropped_blurry": len(dropped),
-            "masked": masked, **({"video": clip} if clip is not None else {})}
+            "masked": masked, "colourless": len(colourless), **({"video": clip} if clip is not None else {})}
+
+
+def size_words(records: list[dict]) -> str:
+    """The photos' sizes: '640x480', or the most common first with their counts where they differ (portrait and
+    landscape photos mixed, two cameras)."""
+    sizes = Counter(f"{r['width']}x{r['height']}" for r in records).most_common()
+    if len(sizes) == 1:
+        return sizes[0][0]
+    shown = ", ".join(f"{size} ({count})" for size, count in sizes[:3])
+    return shown + (f" and {len(sizes) - 3} other sizes" if len(sizes) > 3 else "")
 
 
 def video_words(clip: dict, s: Settings) -> str:

@@ -44,7 +44,11 @@ def summary_line(scene: dict) -> str:
     test = sum(f["split"] == "test" for f in scene["frames"])
     train = sum(f["split"] == "train" for f in scene["frames"])
     n = len(scene["frames"])
-    unused = f" / {n - train - test} unused (normalize.train_every)" if n - train - test else ""
+    colourless = sum(f["split"] == "unused" and bool(f.get("colourless")) for f in scene["frames"])
+    skipped = n - train - test - colourless
+    reasons = {(True, False): "normalize.train_every", (False, True): "without colour",
+               (True, True): f"{skipped} by normalize.train_every, {colourless} without colour"}
+    unused = f" / {n - train - test} unused ({reasons[skipped > 0, colourless > 0]})" if n - train - test else ""
     return f"{scene['type']} scene ({why}); {n} frames, {train} train / {test} held out{unused}"
 
 

@@ -25,6 +25,12 @@ CANDIDATE_SHARE = 0.6
 VIDEO_RETRIES = 3
 MIN_MOTION_SHARE = 0.25
 EXIF_ORIENTATION = 0x0112
+# A photo whose pixels nearly all sit within COLOURLESS_SPREAD of grey (the 99th percentile of each pixel's largest
+# difference between two channels, of 255), in a capture whose typical photo spreads at least COLOUR_SPREAD, is a
+# greyscale print or filter among colour photos: SfM poses it from its grey like any other, but fitted, its grey would
+# pull the scene's colours toward grey. Colour photos spread 53-199 (fox, ball, lego, fern, a DTU scan); grey ones 0.
+COLOURLESS_SPREAD = 4
+COLOUR_SPREAD = 16
 
 try:  # HEIC support comes from pillow-heif when it is installed
     from pillow_heif import register_heif_opener
@@ -132,6 +138,22 @@ def sharpness(rgb: np.ndarray) -> float:
     if scale < 1:
         grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     return float(cv2.Laplacian(grey, cv2.CV_64F).var())
+
+
+def colour_spread(rgb: np.ndarray) -> float:
+    """How far a photo's colours reach from grey: the 99th percentile over its pixels (every other row and column) of
+    the largest difference between two of a pixel's channels, 0-255; 0 for a greyscale photo."""
+    pixels = rgb[::2, ::2].astype(np.int16)
+    spread = np.abs(pixels - np.roll(pixels, 1, axis=-1)).max(axis=-1)
+    return float(np.percentile(spread, 99))
+
+
+def colourless_among_colour(spreads: list[float]) -> list[int]:
+    """The photos (by index) without colour in a capture whose typical photo has it (COLOURLESS_SPREAD,
+    COLOUR_SPREAD); none in a capture that is grey throughout."""
+    if not spreads or np.median(spreads) < COLOUR_SPREAD:
+        return []
+    return [i for i, spread in enumerate(spreads) if spread <= COLOURLESS_SPREAD]
 
 
 def _to_uint8(array: np.ndarray) -> np.ndarray:

@@ -237,8 +237,9 @@ def near_far_per_frame(cams: Cameras, xyz_world: np.ndarray, seen: list[np.ndarr
 def scene_frames(cams: Cameras, held_out: set[int], near_far: list[tuple[float, float]], c2w_world: np.ndarray,
                  options: SceneOptions, poses_dir: Path | None, path_prefix: str,
                  own_colours: np.ndarray | None) -> list[dict]:
-    """scene.json's frames, by name: pose in the world frame, intrinsics, near/far, split and, where the fit trains
-    what lies outside the object as empty, the photo's backdrop colour."""
+    """scene.json's frames, by name: pose in the world frame, intrinsics, near/far, split (`unused`: past
+    normalize.train_every's share, or a photo without colour among colour ones) and, where the fit trains what lies
+    outside the object as empty, the photo's backdrop colour."""
     masked_out = None
     if (options.masked_backdrop == "own" and poses_dir is not None and cams.frames
             and all(shows_backdrop_outside_mask(f) for f in cams.frames)):
@@ -251,12 +252,14 @@ def scene_frames(cams: Cameras, held_out: set[int], near_far: list[tuple[float, 
         k, frame = cams.intrinsics[i], cams.frames[i]
         split = "test" if i in held_out else "train" if train_rank % options.train_every == 0 else "unused"
         train_rank += i not in held_out
+        if frame.get("colourless"):  # a greyscale photo among colour ones (ingest): posed, neither fitted nor scored
+            split = "unused"
         frames.append({
             "name": cams.names[i], "file_path": path_prefix + frame["file_path"],
             "mask_path": path_prefix + frame["mask_path"] if frame.get("mask_path") else None,
             "transform_matrix": c2w_world[i].tolist(), "fl_x": k.fl_x, "fl_y": k.fl_y, "cx": k.cx, "cy": k.cy,
             "w": k.w, "h": k.h, "near": near_far[i][0], "far": near_far[i][1],
-            "split": split,
+            "split": split, **({"colourless": True} if frame.get("colourless") else {}),
         })
         if backdrop_colours is not None:
             frames[-1]["backdrop"] = [round(float(c), 4) for c in backdrop_colours[i]]

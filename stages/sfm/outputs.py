@@ -71,6 +71,8 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
                 frame["cutout"] = True
         if record.get("split"):
             frame["split"] = record["split"]
+        if record.get("colourless"):
+            frame["colourless"] = True
         if record["name"] in bounds:
             frame["near"], frame["far"] = bounds[record["name"]]
         frame_index[image.image_id] = len(frames)

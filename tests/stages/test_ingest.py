@@ -104,6 +104,28 @@ def test_blurriest_are_dropped(photos, tmp_path):
     assert "blurry" not in [r["name"] for r in listing["images"]]
 
 
+def test_greyscale_photos_among_colour_ones_are_marked_and_mixed_sizes_are_counted(photos, tmp_path):
+    Image.fromarray(textured(seed=8)[..., 1]).save(photos / "grey.jpg", quality=95)
+    grey_rgb = np.repeat(textured(seed=9)[..., :1], 3, axis=-1)  # stored as colour, channels equal
+    Image.fromarray(np.ascontiguousarray(np.rot90(grey_rgb))).save(photos / "grey_tall.jpg", quality=95)
+    _, listing = run_ingest(photos, tmp_path)
+    marked = sorted(r["name"] for r in listing["images"] if r.get("colourless"))
+    assert marked == ["grey", "grey_tall"]
+    summary = json.loads((tmp_path / "out" / "ingest" / "manifest.json").read_text())["summary"]
+    assert summary["colourless"] == 2 and "2 without colour" in summary["line"]
+    assert summary["line"].startswith("5 images at 80x60 (4), 60x80 (1)")
+
+
+def test_a_capture_grey_throughout_keeps_every_photo_for_the_fit(tmp_path):
+    folder = tmp_path / "grey"
+    folder.mkdir()
+    for i in range(4):
+        Image.fromarray(textured(seed=i)[..., 0]).save(folder / f"g{i}.png")
+    Image.fromarray(textured(seed=5) // 16 + 100).save(folder / "faint.png")  # colour, but faint
+    _, listing = run_ingest(folder, tmp_path)
+    assert not any(r.get("colourless") for r in listing["images"])
+
+
 def panning_video(path, frames: int, sharp_every: int = 1, step_px: int = 1, fps: int = 10):
     """A camera panning across a textured wall, step_px pixels a frame; only every sharp_every-th frame is sharp."""
     wall = textured(h=60, w=80 + frames * step_px, seed=11)

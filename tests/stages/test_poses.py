@@ -468,6 +468,22 @@ def test_import_posing_too_few_photos_names_the_rest(scene, truth, tmp_path):
     assert "2/6" in message and all(s in message for s in stems[2:]) and "\n" not in message
 
 
+def test_greyscale_photos_are_posed_but_neither_fitted_nor_scored(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "capture" / "images", count=8)
+    for stem in stems[1:3]:
+        grey = Image.open(tmp_path / "capture" / "images" / f"{stem}.png").convert("L")
+        grey.save(tmp_path / "capture" / "images" / f"{stem}.png")
+    shutil.copy(scene / "transforms.json", tmp_path / "capture" / "transforms.json")
+    manifests = Pipeline(tmp_path / "capture" / "images", tmp_path / "out", overrides=["normalize.holdout_every=2"],
+                         reporter=Reporter(quiet=True)).run(["normalize"])
+    frames = {f["name"]: f for f in read_json(tmp_path / "out" / "normalize" / "scene.json")["frames"]}
+    assert sorted(frames) == sorted(stems)
+    assert {name for name, f in frames.items() if f["split"] == "unused"} == set(stems[1:3])
+    assert all(frames[name].get("colourless") for name in stems[1:3])
+    assert {f["split"] for name, f in frames.items() if name not in stems[1:3]} == {"train", "test"}
+    assert "2 unused (without colour)" in manifests["normalize"]["summary"]["line"]
+
+
 def test_pose_file_changes_make_the_stage_stale(scene, truth, tmp_path):
     stems = photos(scene, tmp_path / "capture" / "images", count=3)
     want = frames_by_name(truth)
