@@ -105,6 +105,33 @@ def contradicted_images(db: Path, model: pycolmap.Reconstruction, above: float) 
     return {stem: round(share, 3) for stem, share in sorted(shares.items()) if share > above}
 
 
+def unlinked_models(db: Path, best: pycolmap.Reconstruction, models: list[pycolmap.Reconstruction]) -> list[str]:
+    """Stems of the images the other models pose that no matched pair (one geometric inlier is enough) ties to the
+    images `best` poses, directly or through photos no model posed: where every pair was matched, what no attempt can
+    join, as photos of separate scenes leave it. Empty where any of them is tied to `best`."""
+    with pycolmap.Database.open(db) as database:
+        names = {image.image_id: image.name for image in database.read_all_images()}
+        pair_ids, inliers = database.read_two_view_geometry_num_inliers()
+    component = {image_id: image_id for image_id in names}
+
+    def root(image_id: int) -> int:
+        while component[image_id] != image_id:
+            component[image_id] = component[component[image_id]]
+            image_id = component[image_id]
+        return image_id
+    for pair_id, count in zip(pair_ids, inliers):
+        if count:
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            component[root(a)] = root(b)
+    by_name = {name: image_id for image_id, name in names.items()}
+    posed = {im.name for im in best.images.values() if im.has_pose}
+    reached = {root(by_name[name]) for name in posed if name in by_name}
+    elsewhere = {im.name for m in models if m is not best for im in m.images.values() if im.has_pose} - posed
+    if any(name not in by_name or root(by_name[name]) in reached for name in elsewhere):
+        return []
+    return sorted(Path(name).stem for name in elsewhere)
+
+
 def drop_images(model: pycolmap.Reconstruction, stems: list[str]) -> None:
     for image in model.images.values():
         if image.has_pose and Path(image.name).stem in stems:

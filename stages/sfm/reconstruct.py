@@ -26,7 +26,7 @@ from stages.common.text import short_list
 from stages.sfm.exif import one_camera, resized_since_capture, set_focal_priors
 from stages.sfm.model_checks import (GLOBAL_MAX_CONTRADICTED_SHARE, MAX_CONTRADICTED_SHARE, MIN_VERIFIED_INLIERS,
                                        STILL_HINT_SHARE, contradicted_images, detached_images, drop_images,
-                                       still_matches)
+                                       still_matches, unlinked_models)
 from stages.sfm.options import SfmOptions
 from plenoxels.core.errors import UserError
 
@@ -373,7 +373,14 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
     for number, attempt in enumerate(plan):
         best, info, models = sfm_attempt(records, image_dir, photos, from_video, scratch / f"attempt_{number}",
                                          attempt, report, masks)
-        problems, contradicted = model_problems(info.pop("db"), best, models, len(records), attempt.options)
+        db = info.pop("db")
+        problems, contradicted = model_problems(db, best, models, len(records), attempt.options)
+        separate = unlinked_models(db, best, models) if best and info["matching"].startswith("exhaustive") else []
+        if len(separate) >= 2:
+            raise UserError(f"these photos show separate scenes (or parts of one that no photo overlaps): after "
+                            f"every pair was matched, none of the {len(separate)} photos the largest pose model leaves "
+                            f"out ({short_list(separate)}) shares one match with its {best.num_reg_images()}; give "
+                            "each scene its own folder, or add photos that overlap both")
         tried.append({"attempt": attempt.label, "registered": best.num_reg_images() if best else 0,
                       "contradicted": len(contradicted), "models": len(models), "problems": problems})
         if not problems:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -466,6 +467,23 @@ def test_import_posing_too_few_photos_names_the_rest(scene, truth, tmp_path):
         run_poses(tmp_path / "capture" / "images", tmp_path / "out")
     message = str(caught.value)
     assert "2/6" in message and all(s in message for s in stems[2:]) and "\n" not in message
+
+
+def test_photos_of_two_scenes_stop_at_once_with_what_to_do(tmp_path):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for seed in (0, 1):
+        scene = write_scene("object", tmp_path / f"scene{seed}", n_views=16, width=320, height=240, seed=seed,
+                            supersample=1)
+        for photo in (scene / "images").glob("*.png"):
+            shutil.copy(photo, photos / f"s{seed}_{photo.name}")
+    with pytest.raises(UserError) as caught:
+        run_poses(photos, tmp_path / "out")
+    message = str(caught.value)
+    assert "separate scenes" in message and "give each scene its own folder" in message and "\n" not in message
+    left_out = re.search(r"leaves out \(([^)]*)\)", message).group(1).replace(" and ", ", ").split(", ")
+    named = [name for name in left_out if not name[0].isdigit()]
+    assert named and len({name[:2] for name in named}) == 1  # the photos of one scene, not of both
 
 
 def test_greyscale_photos_are_posed_but_neither_fitted_nor_scored(scene, truth, tmp_path):
