@@ -15,7 +15,8 @@ from stages.common.media import write_png
 from stages.common.json_files import write_json
 from stages.capture.masks import mask_folder, match_masks, read_mask
 from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, colour_spread, colourless_among_colour, fit_max_side,
-                                   load_photo, photo_folder, scene_photos, sharpness, video_frames)
+                                   load_photo, photo_folder, repeated, scene_photos, sharpness, thumbnail,
+                                   video_frames)
 from stages.common.text import short_list
 from plenoxels.core.errors import UserError
 from stages.settings.ingest import Settings
@@ -28,7 +29,7 @@ def run(ctx) -> dict:
     images_dir = ctx.work / "images"
     masks_dir = ctx.work / "masks"
     images_dir.mkdir()
-    records, unreadable = [], []
+    records, unreadable, thumbnails = [], [], []
     clip = None
 
     def keep(name: str, source: str, rgb: np.ndarray, alpha: np.ndarray | None, original: tuple[int, int],
@@ -42,7 +43,8 @@ def run(ctx) -> dict:
         rgb = fit_max_side(rgb, s.max_side)
         record = {"name": name, "file": f"images/{name}.png", "source": source, "width": rgb.shape[1],
                   "height": rgb.shape[0], "original_width": original[0], "original_height": original[1],
-                  "scale": rgb.shape[1] / original[0], "sharpness": round(sharpness(rgb), 3), "colour_spread": colour_spread(rgb), "mask": None}
+                  "scale": rgb.shape[1] / original[0], "sharpness": round(sharpness(rgb), 3),
+                  "colour_spread": colour_spread(rgb), "mask": None}
         if split:
             record["split"] = split
         write_png(images_dir / f"{name}.png", rgb)
@@ -53,6 +55,7 @@ def run(ctx) -> dict:
             if cutout:  # what lies outside its mask is whatever the cut left there, not a backdrop
                 record["cutout"] = True
         records.append(record)
+        thumbnails.append(thumbnail(rgb))
 
     if ctx.scene.is_file():
         if ctx.scene.suffix.lower() not in VIDEO_SUFFIXES:
@@ -96,14 +99,30 @@ def run(ctx) -> dict:
     if unreadable:
         ctx.report.warn(f"skipped {len(unreadable)} file(s) that are not readable photos: {'; '.join(unreadable)}")
 
+    def drop(record: dict) -> None:
+        (ctx.work / record["file"]).unlink()
+        if record["mask"]:
+            (ctx.work / record["mask"]).unlink()
+
+    # A published data set's own splits keep its protocol, copies or not.
+    loose = [i for i, r in enumerate(records) if not r.get("split")]
+    repeats = {records[loose[i]]["name"]: records[loose[first]]["name"]
+               for i, first in repeated([thumbnails[i] for i in loose]).items()}
+    if repeats:
+        for record in records:
+            if record["name"] in repeats:
+                drop(record)
+        records = [r for r in records if r["name"] not in repeats]
+        ctx.report.warn(f"{len(repeats)} photo(s) repeat another's pixels (a file copied, or saved as both HEIC and "
+                        "JPEG), so each shot is kept once: "
+                        f"{short_list([f'{name} (= {first})' for name, first in repeats.items()])}")
+
     dropped = []
     if s.drop_blurry_fraction > 0 and records:
         n_drop = int(len(records) * s.drop_blurry_fraction)
         for record in sorted(records, key=lambda r: r["sharpness"])[:n_drop]:
             dropped.append(record["name"])
-            (ctx.work / record["file"]).unlink()
-            if record["mask"]:
-                (ctx.work / record["mask"]).unlink()
+            drop(record)
         records = [r for r in records if r["name"] not in dropped]
 
     colourless = [records[i]["name"] for i in colourless_among_colour([r["colour_spread"] for r in records])]
@@ -116,8 +135,8 @@ def run(ctx) -> dict:
 
     if len(records) < s.min_images:
         raise UserError(f"only {len(records)} usable image(s) in {ctx.scene}; at least {s.min_images} overlapping photos are needed")
-    write_json(ctx.work / IMAGES_JSON, {"images": records, "skipped": unreadable, "dropped_blurry": dropped,
-                                          **({"video": clip} if clip is not None else {})})
+    write_json(ctx.work / IMAGES_JSON, {"images": records, "skipped": unreadable, "repeated": repeats,
+                                        "dropped_blurry": dropped, **({"video": clip} if clip is not None else {})})
     line = f"{len(records)} images at {size_words(records)}"
     if clip is not None:
         line += video_words(clip, s)
@@ -131,12 +150,15 @@ def run(ctx) -> dict:
         line += f", {masked} with masks ({f'{given} from the masks folder' if given else 'their alpha'})"
     if colourless:
         line += f", {len(colourless)} without colour (posed only)"
+    if repeats:
+        line += f", dropped {len(repeats)} repeated"
     if dropped:
         line += f", dropped {len(dropped)} blurriest"
     if unreadable:
         line += f", skipped {len(unreadable)} unreadable"
-    return {"line": line, "images": len(records), "skipped": len(unreadable), "dropped_blurry": len(dropped),
-            "masked": masked, "colourless": len(colourless), **({"video": clip} if clip is not None else {})}
+    return {"line": line, "images": len(records), "skipped": len(unreadable), "repeated": len(repeats),
+            "dropped_blurry": len(dropped), "masked": masked, "colourless": len(colourless),
+            **({"video": clip} if clip is not None else {})}
 
 
 def size_words(records: list[dict]) -> str:

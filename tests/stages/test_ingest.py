@@ -104,6 +104,21 @@ def test_blurriest_are_dropped(photos, tmp_path):
     assert "blurry" not in [r["name"] for r in listing["images"]]
 
 
+def test_a_shot_saved_twice_is_kept_once_and_a_photo_beside_it_is_not(tmp_path):
+    folder = tmp_path / "shots"
+    folder.mkdir()
+    for i in range(3):
+        Image.fromarray(textured(240, 320, seed=i)).save(folder / f"p{i}.jpg", quality=95)
+    Image.fromarray(np.asarray(Image.open(folder / "p1.jpg"))).save(folder / "p1_copy.png")
+    Image.fromarray(np.asarray(Image.open(folder / "p2.jpg"))).save(folder / "p2.jpeg", quality=80)
+    Image.fromarray(np.roll(textured(240, 320, seed=0), 4, axis=1)).save(folder / "p0_moved.jpg", quality=95)
+    out, listing = run_ingest(folder, tmp_path)
+    assert listing["repeated"] == {"p1_copy_png": "p1_jpg", "p2_jpg": "p2_jpeg"}
+    kept = ["p0_jpg", "p0_moved_jpg", "p1_jpg", "p2_jpeg"]
+    assert sorted(r["name"] for r in listing["images"]) == kept
+    assert sorted(p.stem for p in (out / "images").iterdir()) == kept
+
+
 def test_greyscale_photos_among_colour_ones_are_marked_and_mixed_sizes_are_counted(photos, tmp_path):
     Image.fromarray(textured(seed=8)[..., 1]).save(photos / "grey.jpg", quality=95)
     grey_rgb = np.repeat(textured(seed=9)[..., :1], 3, axis=-1)  # stored as colour, channels equal
