@@ -25,6 +25,7 @@ from typing import Any, Iterator
 from pipeline import config
 from pipeline.disk import damaged_file, folder_bytes, output_files, write_failure, write_failure_line
 from stages.common.json_files import write_json
+from stages.capture.photos import scene_source
 from pipeline.report import Reporter
 from pipeline.stage import StageContext, StageGraph
 from plenoxels.core.errors import UserError
@@ -78,7 +79,7 @@ def memory_now_there(manifest: dict) -> str | None:
 class Pipeline:
     def __init__(self, scene: Path, out: Path, preset: str = "default", overrides: list[str] | None = None,
                  reporter: Reporter | None = None, graph: StageGraph = StageGraph()):
-        self.scene = scene.resolve()
+        self.scene = scene_source(scene.resolve())
         self.out = out.resolve()
         self.report = reporter or Reporter()
         self.graph = graph

@@ -122,6 +122,19 @@ def photo_folder(scene: Path) -> Path:
     return min(downscaled, key=lambda d: int(d.name[7:])) if downscaled else scene
 
 
+def scene_source(scene: Path) -> Path:
+    """What the scene's photos come from: the folder or video named; or, for a folder that holds no photos but one
+    video, that video. A folder of several videos and no photos stops with their names."""
+    if not scene.is_dir() or is_split_dataset(scene) or _has_photos(photo_folder(scene)):
+        return scene
+    videos = sorted(f for f in scene.iterdir() if f.is_file() and f.suffix.lower() in VIDEO_SUFFIXES
+                    and not f.name.startswith("."))
+    if len(videos) > 1:
+        raise UserError(f"{scene} holds {len(videos)} videos and no photos: give one of them ("
+                        f"{', '.join(v.name for v in videos[:4])}{', ...' if len(videos) > 4 else ''})")
+    return videos[0] if videos else scene
+
+
 def scene_photos(scene: Path, holdout_split: str) -> list[tuple[Path, str | None]]:
     """The photo files of a folder scene, each with its split when the dataset defines one: a NeRF synthetic folder
     gives train/ as "train" and the `holdout_split` folder ("val" or "test"; "none": none) as "test"."""
@@ -133,7 +146,15 @@ def scene_photos(scene: Path, holdout_split: str) -> list[tuple[Path, str | None
             raise UserError(f"{scene} has no {holdout_split}/ photos to hold out; set ingest.holdout_split to one it "
                             f"has ({', '.join(d for d in DATASET_SPLITS[1:] if _has_photos(scene / d)) or 'none'})")
         return [(p, split) for name, split in splits for p in split_photos(scene, name)]
-    return [(p, None) for p in sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith("."))]
+    photos = [(p, None) for p in sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith("."))]
+    if not any(p.suffix.lower() in IMAGE_SUFFIXES for p, _ in photos):
+        holding = [(d, sum(1 for f in d.rglob("*") if f.suffix.lower() in IMAGE_SUFFIXES and f.is_file()))
+                   for d in sorted(folder.iterdir()) if d.is_dir() and not d.name.startswith(".")]
+        holding = [f"{d.name}/ ({count} photo{'s' if count != 1 else ''})" for d, count in holding if count]
+        if holding:
+            raise UserError(f"no photos in {folder} itself, but its folders {', '.join(holding[:4])} hold some: give "
+                            "the folder that holds the scene's photos (one capture's photos together in one folder)")
+    return photos
 
 
 def sharpness(rgb: np.ndarray) -> float:

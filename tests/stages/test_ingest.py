@@ -97,6 +97,19 @@ def test_too_few_images_is_a_clear_error(tmp_path):
     assert not (tmp_path / "out" / "ingest").exists()
 
 
+def test_photos_only_in_subfolders_name_them(photos, tmp_path):
+    top = tmp_path / "trip"
+    (top / "day1").mkdir(parents=True)
+    (top / "notes").mkdir()
+    (top / "notes" / "plan.txt").write_text("x")
+    photos.rename(top / "day2")
+    Image.fromarray(textured(seed=6)).save(top / "day1" / "a.jpg")
+    with pytest.raises(UserError, match=r"no photos in .*trip itself, but its folders day1/ \(1 photo\), "
+                                        r"day2/ \(3 photos\) hold some"):
+        run_ingest(top, tmp_path)
+    assert not (tmp_path / "out" / "ingest").exists()
+
+
 def test_blurriest_are_dropped(photos, tmp_path):
     Image.fromarray(cv2.GaussianBlur(textured(seed=7), (0, 0), 4)).save(photos / "blurry.jpg")
     _, listing = run_ingest(photos, tmp_path, "ingest.drop_blurry_fraction=0.25")
@@ -163,6 +176,18 @@ def test_video_frames_follow_the_motion_and_keep_the_sharpest(tmp_path):
     assert all(i % 3 == 0 for i in kept[1:]), kept           # of each stretch's candidates, a sharp one
     gaps = np.diff(kept)
     assert 5 <= np.median(gaps) <= 12 and gaps.max() <= 14, kept
+
+
+def test_a_folder_holding_one_video_reads_the_video_and_one_of_two_names_them(tmp_path):
+    clip = tmp_path / "clip"
+    clip.mkdir()
+    panning_video(clip / "pan.avi", 60)
+    (clip / "notes.txt").write_text("shot on a phone")
+    _, listing = run_ingest(clip, tmp_path, "ingest.video_min_frames=3")
+    assert listing["images"] and {r["source"] for r in listing["images"]} == {"pan.avi"}
+    panning_video(clip / "again.avi", 20)
+    with pytest.raises(UserError, match=r"holds 2 videos and no photos: give one of them \(again.avi, pan.avi\)"):
+        run_ingest(clip, tmp_path / "second")
 
 
 def test_video_keeps_more_frames_where_the_camera_moves_faster(tmp_path):
