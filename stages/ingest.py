@@ -15,8 +15,8 @@ from stages.common.media import write_png
 from stages.common.json_files import write_json
 from stages.capture.masks import mask_folder, match_masks, read_mask
 from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, colour_spread, colourless_among_colour, fit_max_side,
-                                   load_photo, photo_folder, repeated, scene_photos, sharpness, thumbnail,
-                                   video_frames)
+                                   load_photo, photo_folder, repeated, scene_photos, sharpness, stored_orientation,
+                                   thumbnail, video_frames)
 from stages.common.text import short_list
 from plenoxels.core.errors import UserError
 from stages.settings.ingest import Settings
@@ -33,11 +33,11 @@ def run(ctx) -> dict:
     clip = None
 
     def keep(name: str, source: str, rgb: np.ndarray, alpha: np.ndarray | None, original: tuple[int, int],
-             split: str | None = None, mask_file: Path | None = None) -> None:
+             split: str | None = None, mask_file: Path | None = None, photo_orientation: int = 1) -> None:
         cutout = alpha is not None
         mask_from = "alpha" if cutout else None
         if mask_file is not None:
-            given = read_mask(mask_file, original, s.mask_threshold)
+            given = read_mask(mask_file, original, s.mask_threshold, photo_orientation)
             alpha = given if alpha is None else np.minimum(alpha, given)
             mask_from = mask_file.relative_to(mask_file.parent.parent).as_posix()
         rgb = fit_max_side(rgb, s.max_side)
@@ -94,8 +94,9 @@ def run(ctx) -> dict:
             except Exception as e:  # any decoder failure means the same thing to the user: this file is skipped
                 unreadable.append(f"{relative.as_posix()} ({str(e).splitlines()[0][:60] or type(e).__name__})")
                 continue
-            keep(name_of[relative], relative.as_posix(), rgb, alpha, (rgb.shape[1], rgb.shape[0]), split,
-                 mask_of.get(folder / relative))
+            mask_file = mask_of.get(folder / relative)
+            keep(name_of[relative], relative.as_posix(), rgb, alpha, (rgb.shape[1], rgb.shape[0]), split, mask_file,
+                 stored_orientation(folder / relative) if mask_file else 1)
     if unreadable:
         ctx.report.warn(f"skipped {len(unreadable)} file(s) that are not readable photos: {'; '.join(unreadable)}")
 

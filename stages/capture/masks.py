@@ -19,6 +19,7 @@ import numpy as np
 from PIL import Image, ImageOps
 
 from plenoxels.core.errors import UserError
+from stages.capture.photos import orient
 
 MASK_FOLDERS = ("masks", "mask")
 MASK_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".webp", ".bmp", ".gif"}
@@ -28,6 +29,8 @@ LOSSY_THRESHOLD = 127
 NAME_TAILS = ("_mask", "-mask", ".mask")
 # A mask's aspect may differ from its photo's by this share and still be resized onto it (rounding in a resize).
 ASPECT_TOLERANCE = 0.02
+# The EXIF orientations that turn a photo a quarter: its stored pixels have the other shape.
+TURNING = (5, 6, 7, 8)
 
 
 def mask_folder(photos: Path) -> Path | None:
@@ -86,11 +89,13 @@ def match_masks(photos: list[Path], folder: Path) -> dict[Path, Path]:
     return found
 
 
-def read_mask(path: Path, size: tuple[int, int], threshold: int | Literal["auto"] = "auto") -> np.ndarray:
-    """A mask file as uint8 [h, w] (255 object, 0 not) at the photo's `size` (w, h): upright per its EXIF, its
-    brightest channel (or its alpha where it has one and is otherwise opaque), resized when it was made at another
-    size of the same shape, and above `threshold` = object (auto: any value above 0, or above the middle for lossy
-    files, whose black is noisy)."""
+def read_mask(path: Path, size: tuple[int, int], threshold: int | Literal["auto"] = "auto",
+              photo_orientation: int = 1) -> np.ndarray:
+    """A mask file as uint8 [h, w] (255 object, 0 not) at the photo's upright `size` (w, h): upright per its EXIF, or
+    per its photo's (`photo_orientation`) where it has the shape of the photo's pixels as stored, turned (a mask made
+    from a phone photo by a tool that ignores EXIF); its brightest channel (or its alpha where it has one and is
+    otherwise opaque), resized when it was made at another size of the same shape, and above `threshold` = object
+    (auto: any value above 0, or above the middle for lossy files, whose black is noisy)."""
     try:
         with Image.open(path) as im:
             im = ImageOps.exif_transpose(im)
@@ -103,8 +108,12 @@ def read_mask(path: Path, size: tuple[int, int], threshold: int | Literal["auto"
     else:
         grey = values[..., :3].max(axis=2)
     h, w = grey.shape
+    aspect = size[0] / size[1]
+    if photo_orientation in TURNING and abs(h / w - aspect) <= ASPECT_TOLERANCE * aspect < abs(w / h - aspect):
+        grey = orient(grey, photo_orientation)
+        h, w = grey.shape
     if (w, h) != tuple(size):
-        if abs(w / h - size[0] / size[1]) > ASPECT_TOLERANCE * size[0] / size[1]:
+        if abs(w / h - aspect) > ASPECT_TOLERANCE * aspect:
             raise UserError(f"the mask {path} is {w}x{h} but its photo is {size[0]}x{size[1]}, another shape; "
                             "give a mask of the photo's shape or remove it")
         grey = cv2.resize(grey, tuple(size), interpolation=cv2.INTER_LINEAR)

@@ -209,12 +209,21 @@ def _to_uint8(array: np.ndarray) -> np.ndarray:
     return np.clip(array, 0, 255).astype(np.uint8)
 
 
-def _orient(array: np.ndarray, exif_orientation: int) -> np.ndarray:
+def orient(array: np.ndarray, exif_orientation: int) -> np.ndarray:
     """Applies an EXIF orientation tag (1-8) to a pixel array, as a camera's viewer would."""
     ops = {2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
            5: lambda a: np.swapaxes(a, 0, 1), 6: lambda a: np.rot90(a, -1),
            7: lambda a: np.rot90(a, 1)[::-1], 8: lambda a: np.rot90(a, 1)}
     return np.ascontiguousarray(ops[exif_orientation](array)) if exif_orientation in ops else array
+
+
+def stored_orientation(path: Path) -> int:
+    """The EXIF orientation (1-8) a photo's pixels are stored in; 1 (upright) where it has none or cannot be read."""
+    try:
+        with Image.open(path) as im:
+            return int(im.getexif().get(EXIF_ORIENTATION, 1))
+    except Exception:  # an unreadable photo is skipped where it is loaded; its orientation does not matter
+        return 1
 
 
 def scene_files(scene: Path) -> list[Path]:
@@ -234,7 +243,7 @@ def load_photo(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         mode = im.mode
         if mode in ("I;16", "I;16B", "I;16L", "I", "F"):
             grey = _to_uint8(np.asarray(im)) if mode != "I" else _to_uint8(np.asarray(im).astype(np.uint16))
-            rgb, alpha = np.repeat(_orient(grey, orientation)[..., None], 3, axis=-1), None
+            rgb, alpha = np.repeat(orient(grey, orientation)[..., None], 3, axis=-1), None
             return rgb, alpha
         if mode not in ("RGB", "RGBA", "L", "LA", "P", "CMYK", "YCbCr", "I;16"):
             raise ValueError(f"unsupported pixel mode {mode}")
@@ -242,7 +251,7 @@ def load_photo(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         if wide is not None and wide.dtype == np.uint16 and wide.ndim == 3:
             # Pillow reads 16-bit colour as 8-bit by truncation; OpenCV keeps the full range.
             wide = cv2.cvtColor(wide, cv2.COLOR_BGRA2RGBA if wide.shape[2] == 4 else cv2.COLOR_BGR2RGB)
-            pixels = _orient(_to_uint8(wide), orientation)
+            pixels = orient(_to_uint8(wide), orientation)
         else:
             im = ImageOps.exif_transpose(im)
             has_alpha = im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info)

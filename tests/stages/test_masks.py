@@ -75,6 +75,27 @@ def test_masks_of_another_shape_or_unreadable_stop_with_one_line(tmp_path):
         run(photos, tmp_path / "out", ["ingest"])
 
 
+def test_a_mask_made_from_a_turned_photos_stored_pixels_is_turned_with_it(tmp_path):
+    photos = tmp_path / "phone"
+    (photos / "masks").mkdir(parents=True)
+    stored = textured(seed=0).copy()
+    stored[:12, :16] = 255            # a white corner, top-left as stored
+    marked = np.zeros((60, 80), np.uint8)
+    marked[:12, :16] = 255            # its mask, made from the pixels as stored (EXIF ignored)
+    for i, orientation in enumerate((6, 8, 1)):
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        Image.fromarray(stored).save(photos / f"{i}.jpg", exif=exif, quality=95)
+        Image.fromarray(marked).save(photos / "masks" / f"{i}.png")
+    run(photos, tmp_path / "out", ["ingest"])
+    for i in range(3):
+        photo = np.asarray(Image.open(tmp_path / "out" / "ingest" / "images" / f"{i}.png"))
+        mask = np.asarray(Image.open(tmp_path / "out" / "ingest" / "masks" / f"{i}.png"))
+        assert mask.shape == photo.shape[:2]
+        corner = photo.min(axis=2) > 230
+        assert (mask[corner] == 255).mean() > 0.95 and corner[mask == 255].mean() > 0.8
+
+
 def test_mask_names_match_by_stem_suffix_and_zero_padding_never_by_guess(tmp_path):
     photos = [tmp_path / "photos" / name for name in ("000000.png", "000001.png", "a.jpg", "b.jpg", "b.png", "c.jpg")]
     folder = tmp_path / "masks"
