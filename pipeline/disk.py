@@ -1,9 +1,11 @@
 """A stage's output as the disk holds it: the size and hash of every file it wrote (recorded in its manifest, checked
-before the output is trusted again), and the one line a write that failed for want of space or permission becomes."""
+before the output is trusted again), the files in its folder it did not write (kept when the output is replaced), and
+the one line a write that failed for want of space or permission becomes."""
 from __future__ import annotations
 
 import errno
 import hashlib
+import json
 import os
 import shutil
 from pathlib import Path
@@ -43,6 +45,49 @@ def output_files(folder: Path) -> dict[str, list]:
     """Every file of a stage's output but its manifest: path under the folder -> [bytes, sha256]."""
     return {path.relative_to(folder).as_posix(): [path.stat().st_size, file_sha256(path)]
             for path in sorted(folder.rglob("*")) if path.is_file() and path.name != MANIFEST}
+
+
+def foreign_files(folder: Path) -> list[str]:
+    """Files (paths under `folder`) in a stage's output folder that the stage did not write: every file of a folder
+    with no manifest (one made by hand, or in a folder given as the output), else those its manifest does not record
+    (a Blender file saved beside the mesh). A manifest that cannot be read or records no files is of an output the
+    stage wrote: none."""
+    if not folder.is_dir():
+        return []
+    recorded: dict = {}
+    if (folder / MANIFEST).exists():
+        try:
+            recorded = json.loads((folder / MANIFEST).read_text()).get("files") or {}
+        except (OSError, ValueError, AttributeError):
+            recorded = {}
+        if not recorded:
+            return []
+    names = (path.relative_to(folder).as_posix() for path in sorted(folder.rglob("*"))
+             if path.is_file() or path.is_symlink())
+    return [name for name in names if name != MANIFEST and name not in recorded]
+
+
+def carry_files(names: list[str], source: Path, target: Path) -> list[str]:
+    """Links each file `names` holds under `source` into `target` at the same path, or, where that name is taken, at
+    `<stem>.kept<suffix>` (`.kept2`, ...) beside it (a copy where the file system cannot link); returns where each
+    went. Linked before the old folder is let go, so a run killed at any moment leaves every one of them somewhere."""
+    placed = []
+    for name in names:
+        destination, tries = target / name, 1
+        while destination.exists() or destination.is_symlink():
+            mark = "kept" if tries == 1 else f"kept{tries}"
+            destination, tries = (target / name).with_name(f"{Path(name).stem}.{mark}{Path(name).suffix}"), tries + 1
+        destination.parent.mkdir(parents=True, exist_ok=True)
+        origin = source / name
+        if origin.is_symlink():
+            os.symlink(os.readlink(origin), destination)
+        else:
+            try:
+                os.link(origin, destination)
+            except OSError:
+                shutil.copy2(origin, destination)
+        placed.append(destination.relative_to(target).as_posix())
+    return placed
 
 
 def damaged_file(folder: Path, manifest: dict) -> str | None:

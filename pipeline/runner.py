@@ -5,6 +5,7 @@ On-disk protocol, under a scene's output root:
     .work/<stage>/           the output being written by a run in progress (wiped at the start of each run)
     .resume/<stage>/         checkpoints a stage may resume from when re-run with the same key
     .trash/<stage>/          the previous complete output during the swap; restored if a run dies mid-swap
+Files in a stage's folder that it did not write (the user's) are linked into its new output before the swap.
 A stage's key hashes its upstream manifests, its resolved settings, its code (every project module its work and its
 declaration import, see `pipeline.stage.code_hash`) and (for stages that read the input folder) a fingerprint of the input. Killing the process at any moment leaves the last complete output.
 """
@@ -23,7 +24,8 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline import config
-from pipeline.disk import damaged_file, folder_bytes, output_files, write_failure, write_failure_line
+from pipeline.disk import (carry_files, damaged_file, folder_bytes, foreign_files, output_files, write_failure,
+                           write_failure_line)
 from stages.common.json_files import write_json
 from stages.capture.photos import scene_source
 from pipeline.report import Reporter
@@ -206,6 +208,11 @@ class Pipeline:
             "summary": summary, "files": output_files(work),
         }
         write_json(work / MANIFEST, manifest)
+        # Files in the old folder the stage did not write are the user's: they go on in the new one.
+        kept = carry_files(foreign_files(final), final, work)
+        if kept:
+            self.report.warn(f"{name}/ held {len(kept)} file(s) this tool did not write; kept in the new {name}/: "
+                             f"{', '.join(kept[:4])}{' and more' if len(kept) > 4 else ''}")
         self._swap_into_place(work, final)
         shutil.rmtree(scratch, ignore_errors=True)
         self.report.summary(name, summary["line"])
@@ -225,7 +232,7 @@ class Pipeline:
         trash_root = self.out / TRASH
         for trash in trash_root.glob("*") if trash_root.is_dir() else []:
             final = self.out / trash.name
-            if not final.exists() and read_manifest(trash) is not None:
+            if not final.exists():  # the output it held, or a folder of the user's files, goes back in place
                 os.replace(trash, final)
             else:
                 shutil.rmtree(trash, ignore_errors=True)

@@ -192,6 +192,31 @@ def test_a_swap_cut_off_between_renames_is_recovered(fake_graph, tmp_path):
     assert not (out / ".trash" / "a").exists()
 
 
+def test_files_the_user_put_in_a_stage_folder_outlive_every_rerun(fake_graph, tmp_path, capsys):
+    out = tmp_path / "out"
+    (out / "a" / "notes").mkdir(parents=True)  # a folder of the user's where a stage's output goes
+    (out / "a" / "notes" / "plan.txt").write_text("mine")
+    (out / "a" / "part0.txt").write_text("also mine")
+    make(fake_graph, tmp_path).run(["b"])
+    assert (out / "a" / "notes" / "plan.txt").read_text() == "mine"
+    assert (out / "a" / "part0.kept.txt").read_text() == "also mine" and (out / "a" / "part0.txt").read_text() == "1"
+    assert "a/ held 2 file(s) this tool did not write" in capsys.readouterr().err
+
+    (out / "b" / "scene.blend").write_text("a Blender scene")  # saved beside a complete output
+    make(fake_graph, tmp_path, ["b.scale=3"]).run(["b"])
+    assert (out / "b" / "scene.blend").read_text() == "a Blender scene" and (out / "b" / "out.txt").read_text() == "3.0"
+    assert not (out / "b" / "scene.kept.blend").exists()
+
+    # A swap cut off between its renames, the user's files in the old folder: they go back, and on.
+    (out / ".trash").mkdir(exist_ok=True)
+    os.replace(out / "a", out / ".trash" / "a")
+    (out / ".trash" / "a" / "manifest.json").unlink()
+    make(fake_graph, tmp_path).run(["a"])
+    assert (out / "a" / "notes" / "plan.txt").read_text() == "mine" and (out / "a" / "manifest.json").exists()
+    kept = {p.name: p.read_text() for p in (out / "a").glob("part0.*")}
+    assert kept == {"part0.txt": "1", "part0.kept.txt": "also mine", "part0.kept2.txt": "1"}
+
+
 def test_overrides_parse_types():
     assert config.parse_overrides(["fit.a=1", "fit.b=0.5", "x.c=[128, 256]", "x.d=auto", "x.e=true"]) == {
         "fit": {"a": 1, "b": 0.5}, "x": {"c": [128, 256], "d": "auto", "e": True}}
