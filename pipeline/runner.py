@@ -150,6 +150,7 @@ class Pipeline:
         results = {}
         with self._lock():
             self._recover()
+            self._check_scene()
             for name in self.graph.order:
                 if name in wanted:
                     results[name] = self._run_one(name, force=name in force)
@@ -226,6 +227,16 @@ class Pipeline:
             os.replace(final, trash)
         os.replace(work, final)
         shutil.rmtree(trash, ignore_errors=True)
+
+    def _check_scene(self) -> None:
+        """Stops before anything is replaced where the output folder holds another capture's outputs (its first stage
+        names a scene still there, not this one): a second scene of the same folder name would write over the first's
+        fit. A scene moved or renamed since goes on."""
+        first = read_manifest(self.out / self.graph.order[0])
+        before = Path(first["scene"]) if first and first.get("scene") else None
+        if before is not None and before != self.scene and before.exists():
+            raise UserError(f"{self.out} holds the outputs of another scene ({before}); give this one its own output "
+                            "folder (--out, or out= with make), or delete that folder to use it for this one")
 
     def _recover(self) -> None:
         """Undo a swap that was cut off between its two renames."""

@@ -217,6 +217,19 @@ def test_files_the_user_put_in_a_stage_folder_outlive_every_rerun(fake_graph, tm
     assert kept == {"part0.txt": "1", "part0.kept.txt": "also mine", "part0.kept2.txt": "1"}
 
 
+def test_another_scene_of_the_same_name_never_writes_over_a_scenes_outputs(fake_graph, tmp_path):
+    make(fake_graph, tmp_path).run(["b"])
+    before = {s: json.loads((tmp_path / "out" / s / "manifest.json").read_text())["run_id"] for s in "ab"}
+    other = tmp_path / "elsewhere" / "scene"
+    other.mkdir(parents=True)
+    pipe = Pipeline(other, tmp_path / "out", reporter=Reporter(quiet=True), graph=fake_graph)
+    with pytest.raises(UserError, match=r"holds the outputs of another scene \(.*scene\); give this one its own"):
+        pipe.run(["b"])
+    assert {s: json.loads((tmp_path / "out" / s / "manifest.json").read_text())["run_id"] for s in "ab"} == before
+    (tmp_path / "scene").rename(tmp_path / "moved")  # the first scene moved away: its outputs are this one's to remake
+    assert pipe.run(["b"])["b"]["summary"]["line"] == "b done"
+
+
 def test_overrides_parse_types():
     assert config.parse_overrides(["fit.a=1", "fit.b=0.5", "x.c=[128, 256]", "x.d=auto", "x.e=true"]) == {
         "fit": {"a": 1, "b": 0.5}, "x": {"c": [128, 256], "d": "auto", "e": True}}
