@@ -117,6 +117,42 @@ def mask_rotated(folder):
     return folder
 
 
+def photos_in_subfolders(folder):
+    good_photos(folder / "day1")
+    good_photos(folder / "day2")
+    return folder
+
+
+def two_videos(folder):
+    video(12)(folder / "first").rename(folder / "first.mp4")
+    video(12)(folder / "second").rename(folder / "second.mp4")
+    return folder
+
+
+def grey_among_colour(folder):
+    good_photos(folder, count=4)
+    Image.fromarray(textured(seed=9)[..., 0]).save(folder / "grey.jpg")
+    return folder
+
+
+def copied_photo(folder):
+    good_photos(folder)
+    shutil.copy(folder / "p0.jpg", folder / "p0 copy.jpg")
+    return folder
+
+
+def mask_turned_as_stored(folder):
+    """Phone photos stored turned (EXIF 6), their masks made from the pixels as stored."""
+    folder.mkdir(parents=True)
+    (folder / "masks").mkdir()
+    for i in range(3):
+        exif = Image.Exif()
+        exif[0x0112] = 6
+        Image.fromarray(textured(seed=i)).save(folder / f"p{i}.jpg", exif=exif, quality=92)
+        Image.fromarray(np.full((48, 64), 255, np.uint8)).save(folder / "masks" / f"p{i}.png")
+    return folder
+
+
 def animated_gif(path):
     frames = [Image.fromarray(textured(seed=s)) for s in range(3)]
     frames[0].save(path, save_all=True, append_images=frames[1:], duration=100, loop=0)
@@ -213,6 +249,11 @@ KINDS = {
     "mask_all_black": mask_case(lambda i: np.zeros((48, 64), np.uint8)),
     "mask_all_white": mask_case(lambda i: np.full((48, 64), 255, np.uint8)),
     "mask_rotated_exif": mask_rotated,
+    "mask_turned_as_stored": mask_turned_as_stored,
+    "photos_in_subfolders": photos_in_subfolders,
+    "videos_two_in_folder": two_videos,
+    "grey_among_colour": grey_among_colour,
+    "copied_photo": copied_photo,
     "video_no_frames": video(0),
     "video_one_frame": video(1),
     "video_truncated": video(20, truncate=True),
@@ -224,5 +265,5 @@ EXPECT = {
     **{k: "skip" for k in ("bomb_png", "zero_byte", "text_as_jpg", "truncated_jpg", "animated_gif", "random_bytes_png",
                            "png_header_only")},
     **{k: "stop" for k in ("mask_other_size", "mask_rotated_exif", "video_no_frames", "video_one_frame",
-                           "video_truncated")},
+                           "video_truncated", "photos_in_subfolders", "videos_two_in_folder")},
 }
