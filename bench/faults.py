@@ -6,6 +6,8 @@ process, so what the user saw is its exit code and its last line on stderr.
 - disk: the output folder on a tmpfs of about half what the run writes, then the same command with room again;
 - cache: each stage's files cut short at a random offset or edited in place, then the same command;
 - kill: the run SIGKILLed at random moments, then the same command;
+- outputs: the user's files in a stage's folder (before its first run, and saved beside its output before a re-run), and
+  another scene of the same name run into the same output folder;
 - hostile inputs: the fuzz corpus of the test suite, through ingest and poses;
 - viewer: dozens of websocket clients on loopback connecting, moving, dropping and sending malformed messages.
 The cgroup and tmpfs rows need root (mount, cgroup folders); where this process may not make them the row says so.
@@ -230,6 +232,33 @@ def kill_rows(scene: Path, work: Path, rng: random.Random, kills: int) -> list[d
              and all(v == "intact" for v in outputs.values()) else f"{outputs}"}]
 
 
+# ---- the user's files in the output folder ----------------------------------------------------------------------------
+def output_rows(scene: Path, work: Path) -> list[dict]:
+    out, other = work / "outputs", work / "other-object" / "images"
+    shutil.rmtree(out, ignore_errors=True)
+    yours = {out / "fit" / "notes.txt": "made before any run", out / "export" / "scene.blend": "saved beside the mesh"}
+    (out / "fit").mkdir(parents=True)
+    list(yours)[0].write_text(yours[list(yours)[0]])
+    first = pipeline(scene, out, *SMALL)
+    list(yours)[1].write_text(yours[list(yours)[1]])
+    again = pipeline(scene, out, *SMALL, "--set", "export.texture_size=128")
+    before = {name: (read_manifest(out / name) or {}).get("run_id") for name in STAGE_ORDER}
+    if not other.exists():
+        shutil.copytree(scene, other)
+    refused = pipeline(other, out, *SMALL)
+    after = {name: (read_manifest(out / name) or {}).get("run_id") for name in STAGE_ORDER}
+    kept = all(path.is_file() and path.read_text() == text for path, text in yours.items())
+    outputs = complete_outputs(out)
+    return [{"fault": "the user's files in the output folder, and another scene of the same name",
+             "injected": "a file in fit/ before the first run; a file saved in export/ and the export's settings "
+                         "changed; then another scene's photos run into the same folder",
+             "user_saw": f"exit {first['exit_code']}, {again['exit_code']} (export made again), then exit "
+                         f"{refused['exit_code']}: `{refused['last_line'][:90]}...`",
+             "tracebacks": first["tracebacks"] + again["tracebacks"] + refused["tracebacks"],
+             "lost": "nothing" if kept and before == after and len(outputs) == len(STAGE_ORDER)
+             and all(v == "intact" for v in outputs.values()) else f"files kept: {kept}; outputs: {outputs}"}]
+
+
 # ---- hostile inputs ------------------------------------------------------------------------------------------------
 def hostile_rows() -> list[dict]:
     run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
@@ -264,7 +293,7 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.faults", description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data", help="the folder holding lego/")
     parser.add_argument("--work", type=Path, default=Path("/tmp/voxfield-bench-faults"), help="scratch folder")
-    parser.add_argument("--only", nargs="*", default=["memory", "disk", "cache", "kill", "hostile", "viewer"],
+    parser.add_argument("--only", nargs="*", default=["memory", "disk", "cache", "kill", "outputs", "hostile", "viewer"],
                         help="which rows to run")
     parser.add_argument("--kills", type=int, default=6, help="SIGKILLs at random moments before the last run")
     parser.add_argument("--seed", type=int, default=0)
@@ -276,7 +305,8 @@ def main(argv: list[str]) -> int:
     scene = small_scene(args.work)
     for part, make in (("memory", lambda: memory_rows(args.data, args.work)), ("disk", lambda: disk_rows(scene, args.work)),
                        ("cache", lambda: cache_rows(scene, args.work, rng)),
-                       ("kill", lambda: kill_rows(scene, args.work, rng, args.kills)), ("hostile", hostile_rows),
+                       ("kill", lambda: kill_rows(scene, args.work, rng, args.kills)),
+                       ("outputs", lambda: output_rows(scene, args.work)), ("hostile", hostile_rows),
                        ("viewer", viewer_rows)):
         if part in args.only:
             made = [{"part": part, "recorded": recorded(), **row} for row in make()]
