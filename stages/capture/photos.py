@@ -25,11 +25,13 @@ CANDIDATE_SHARE = 0.6
 VIDEO_RETRIES = 3
 MIN_MOTION_SHARE = 0.25
 EXIF_ORIENTATION = 0x0112
-# A photo whose pixels nearly all sit within COLOURLESS_SPREAD of grey (the 99th percentile of each pixel's largest
-# difference between two channels, of 255), in a capture whose typical photo spreads at least COLOUR_SPREAD, is a
-# greyscale print or filter among colour photos: SfM poses it from its grey like any other, but fitted, its grey would
-# pull the scene's colours toward grey. Colour photos spread 53-199 (fox, ball, lego, fern, a DTU scan); grey ones 0.
-COLOURLESS_SPREAD = 4
+# A photo whose pixels nearly all sit within COLOURLESS_SPREAD of grey (the 99th percentile, over its pixels neither
+# near black nor near white, of each pixel's largest difference between two channels, of 255), in a capture whose
+# typical photo spreads at least COLOUR_SPREAD, is a greyscale print or filter among colour photos: SfM poses it from
+# its grey like any other, but fitted, its grey would pull the scene's colours toward grey. Colour photos spread 53-199
+# (fox, ball, lego, fern, a DTU scan), their greyest 64-pixel patches (cup's white table) 2-3; grey photos 0, or 1
+# where a decoder rounds.
+COLOURLESS_SPREAD = 1
 COLOUR_SPREAD = 16
 # Two photos whose grey thumbnails (THUMBNAIL_SIDE square) differ by at most DUPLICATE_RMS (of 255, root mean square)
 # are one shot twice: a file copied, or saved as both HEIC and JPEG. A copy re-encoded or halved differs by 0.2-0.7;
@@ -167,9 +169,13 @@ def sharpness(rgb: np.ndarray) -> float:
 
 
 def colour_spread(rgb: np.ndarray) -> float:
-    """How far a photo's colours reach from grey: the 99th percentile over its pixels (every other row and column) of
-    the largest difference between two of a pixel's channels, 0-255; 0 for a greyscale photo."""
-    pixels = rgb[::2, ::2].astype(np.int16)
+    """How far a photo's colours reach from grey: the 99th percentile over its pixels (every other row and column)
+    neither near black nor near white, whose channels clip alike in any photo, of the largest difference between two
+    of a pixel's channels, 0-255; 0 for a greyscale photo, 255 for one all but black or white."""
+    pixels = rgb[::2, ::2].reshape(-1, 3).astype(np.int16)
+    pixels = pixels[np.abs(pixels.mean(axis=1) - 128) < 104]
+    if len(pixels) == 0:
+        return 255.0
     spread = np.abs(pixels - np.roll(pixels, 1, axis=-1)).max(axis=-1)
     return float(np.percentile(spread, 99))
 
