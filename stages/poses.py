@@ -39,7 +39,7 @@ def _check_registered(reconstruction: pycolmap.Reconstruction, records: list[dic
 
 def _sfm(ctx, s: Settings, folder: Path, records: list[dict]) -> tuple[pycolmap.Reconstruction, dict, list[str]]:
     reconstruction, info = reconstruct(records, folder / "images", photo_folder(ctx.scene), is_video(ctx.scene),
-                                       ctx.scratch / f"sfm_{folder.name}", s, ctx.report)
+                                       ctx.scratch / f"sfm_{folder.name}", s, ctx.report, s.min_registered_share)
     return reconstruction, info, _check_registered(reconstruction, records, s.min_registered_share, "SfM")
 
 
@@ -108,6 +108,8 @@ def run(ctx) -> dict:
         line += (f"; the ingested {info['denser']['first_frames']} frames did not hold together, so these poses come "
                  f"from the clip read again with a frame each {info['denser']['motion']:.1%} of the view's diagonal, "
                  f"posed at {info['denser']['posed_at'][0]}x{info['denser']['posed_at'][1]}")
+    if info.get("other_scene"):
+        line += f"; {len(info['other_scene'])} photos share no match with the rest (something else), left out"
     if info.get("attempt_why"):
         line += f"; as set, {info['attempt_why']}, so these poses come from the attempt with {info['attempt']}"
     if info.get("mapper_fallback"):

@@ -48,6 +48,8 @@ REPAIR_EXHAUSTIVE_MAX_IMAGES = 400
 # are. A phone video's frames that pose at 640 px have failed the check at 960, 8 to 9 of 52 contradicting their
 # matches after every other repair.
 REPAIR_FEATURE_SIDE = 640
+# How a model split in parts is named among its problems (a split no retry can join is dropped from them).
+SPLIT_WORDS = "the images split into"
 
 
 @contextmanager
@@ -347,19 +349,21 @@ def model_problems(db: Path, best: pycolmap.Reconstruction | None, models: list[
     posed = {im.name for im in best.images.values() if im.has_pose}
     elsewhere = {im.name for m in models if m is not best for im in m.images.values() if im.has_pose} - posed
     if len(elsewhere) >= 2:
-        problems.append(f"the images split into {len(models)} separate models; {len(elsewhere)} are outside the "
+        problems.append(f"{SPLIT_WORDS} {len(models)} separate models; {len(elsewhere)} are outside the "
                         f"largest ({short_list(sorted(Path(n).stem for n in elsewhere))})")
     return problems, contradicted
 
 
 def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: bool, scratch: Path,
-                s: SfmOptions, report) -> tuple[pycolmap.Reconstruction, dict]:
+                s: SfmOptions, report, min_share: float = 1.0) -> tuple[pycolmap.Reconstruction, dict]:
     """The largest model COLMAP makes of the ingested images (`records`, PNGs in `image_dir`, original photos in
     `photos` for their EXIF) that holds together: each configuration of `attempt_plan` in turn until one gives a model
     that neither contradicts its own matches nor splits in parts. Images left detached or contradicting their matches
     are dropped from it, once a model from smaller features (`smaller_features`) has been tried for them; with no
-    such model the stage stops with what the user can do. Returns the model and what happened on the way (attempts,
-    counts, fallbacks, timings). `scratch` holds the databases and models."""
+    such model the stage stops with what the user can do. Photos that share not one match with the model's, once
+    every pair was matched, show something else: left out where the model poses `min_share` of the photos, else the
+    stage stops, naming them. Returns the model and what happened on the way (attempts, counts, fallbacks, timings).
+    `scratch` holds the databases and models."""
     longest_side = max(max(r["width"], r["height"]) for r in records)
     plan = attempt_plan(s, len(records), from_video, longest_side)
     masks = feature_masks(records, image_dir.parent, scratch / "feature_masks")
@@ -376,11 +380,17 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
         db = info.pop("db")
         problems, contradicted = model_problems(db, best, models, len(records), attempt.options)
         separate = unlinked_models(db, best, models) if best and info["matching"].startswith("exhaustive") else []
-        if len(separate) >= 2:
+        if len(separate) >= 2 and best.num_reg_images() < min_share * len(records):
             raise UserError(f"these photos show separate scenes (or parts of one that no photo overlaps): after "
                             f"every pair was matched, none of the {len(separate)} photos the largest pose model leaves "
                             f"out ({short_list(separate)}) shares one match with its {best.num_reg_images()}; give "
                             "each scene its own folder, or add photos that overlap both")
+        if len(separate) >= 2:  # no retry joins what shares no match: the model stands without them
+            problems = [problem for problem in problems if not problem.startswith(SPLIT_WORDS)]
+            info["other_scene"] = separate
+            report.warn(f"{len(separate)} photos share not one match with the {best.num_reg_images()} of the pose "
+                        f"model, after every pair was matched: they show something else, and are left out "
+                        f"({short_list(separate)})")
         tried.append({"attempt": attempt.label, "registered": best.num_reg_images() if best else 0,
                       "contradicted": len(contradicted), "models": len(models), "problems": problems})
         if not problems:

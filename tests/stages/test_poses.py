@@ -469,21 +469,27 @@ def test_import_posing_too_few_photos_names_the_rest(scene, truth, tmp_path):
     assert "2/6" in message and all(s in message for s in stems[2:]) and "\n" not in message
 
 
-def test_photos_of_two_scenes_stop_at_once_with_what_to_do(tmp_path):
+def test_photos_of_another_scene_are_left_out_or_stop_the_stage_at_once(tmp_path):
     photos = tmp_path / "photos"
     photos.mkdir()
-    for seed in (0, 1):
-        scene = write_scene("object", tmp_path / f"scene{seed}", n_views=16, width=320, height=240, seed=seed,
+    for seed, views in ((0, 16), (1, 10)):
+        scene = write_scene("object", tmp_path / f"scene{seed}", n_views=views, width=320, height=240, seed=seed,
                             supersample=1)
         for photo in (scene / "images").glob("*.png"):
             shutil.copy(photo, photos / f"s{seed}_{photo.name}")
-    with pytest.raises(UserError) as caught:
-        run_poses(photos, tmp_path / "out")
+    summary = run_poses(photos, tmp_path / "out")["summary"]
+    posed = {Path(f["file_path"]).stem for f in read_json(tmp_path / "out" / "poses" / "transforms.json")["frames"]}
+    assert posed and {name[:2] for name in posed} == {"s0"}
+    assert len(summary["other_scene"]) >= 2 and all(name.startswith("s1") for name in summary["other_scene"])
+    assert "share no match with the rest (something else), left out" in summary["line"]
+    assert len(summary["attempts"]) == 1  # no retry for what no retry can join
+
+    with pytest.raises(UserError) as caught:  # where the rest are too few to stand alone
+        run_poses(photos, tmp_path / "strict", "poses.min_registered_share=0.9")
     message = str(caught.value)
     assert "separate scenes" in message and "give each scene its own folder" in message and "\n" not in message
     left_out = re.search(r"leaves out \(([^)]*)\)", message).group(1).replace(" and ", ", ").split(", ")
-    named = [name for name in left_out if not name[0].isdigit()]
-    assert named and len({name[:2] for name in named}) == 1  # the photos of one scene, not of both
+    assert all(name.startswith("s1") for name in left_out if not name[0].isdigit())
 
 
 def test_greyscale_photos_are_posed_but_neither_fitted_nor_scored(scene, truth, tmp_path):
