@@ -472,7 +472,7 @@ def test_import_posing_too_few_photos_names_the_rest(scene, truth, tmp_path):
 def test_photos_of_another_scene_are_left_out_or_stop_the_stage_at_once(tmp_path):
     photos = tmp_path / "photos"
     photos.mkdir()
-    for seed, views in ((0, 16), (1, 10)):
+    for seed, views in ((0, 24), (1, 16)):
         scene = write_scene("object", tmp_path / f"scene{seed}", n_views=views, width=320, height=240, seed=seed,
                             supersample=1)
         for photo in (scene / "images").glob("*.png"):
