@@ -150,7 +150,9 @@ def scene_photos(scene: Path, holdout_split: str) -> list[tuple[Path, str | None
         return [(p, split) for name, split in splits for p in split_photos(scene, name)]
     photos = [(p, None) for p in sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith("."))]
     if not any(p.suffix.lower() in IMAGE_SUFFIXES for p, _ in photos):
-        holding = [(d, sum(1 for f in d.rglob("*") if f.suffix.lower() in IMAGE_SUFFIXES and f.is_file()))
+        # Two levels down at most: a folder as wide as a home folder is named, not walked.
+        holding = [(d, sum(1 for pattern in ("*", "*/*") for f in d.glob(pattern)
+                           if f.suffix.lower() in IMAGE_SUFFIXES and f.is_file()))
                    for d in sorted(folder.iterdir()) if d.is_dir() and not d.name.startswith(".")]
         holding = [f"{d.name}/ ({count} photo{'s' if count != 1 else ''})" for d, count in holding if count]
         if holding:
