@@ -19,6 +19,7 @@ from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, colour_spread
                                    thumbnail, video_frames)
 from stages.common.text import short_list
 from plenoxels.core.errors import UserError
+from plenoxels.core.photo_colour import capture_key
 from stages.settings.ingest import Settings
 from stages.common.layout import IMAGES_JSON
 
@@ -116,7 +117,7 @@ def run(ctx) -> dict:
         records = [r for r in records if r["name"] not in repeats]
         ctx.report.warn(f"{len(repeats)} photo(s) repeat another's pixels (a file copied, or saved as both HEIC and "
                         "JPEG), so each shot is kept once: "
-                        f"{short_list([f'{name} (= {first})' for name, first in repeats.items()])}")
+                        f"{short_list([f'{name} (= {repeats[name]})' for name in sorted(repeats, key=capture_key)])}")
 
     dropped = []
     if s.drop_blurry_fraction > 0 and records:
@@ -132,7 +133,8 @@ def run(ctx) -> dict:
             record["colourless"] = True
     if colourless:
         ctx.report.warn(f"{len(colourless)} of {len(records)} photos have no colour where the others do (greyscale): "
-                        f"{short_list(colourless)}; they are posed with the others, and left out of the fit and scores")
+                        f"{short_list(sorted(colourless, key=capture_key))}; they are posed with the others, and left "
+                        "out of the fit and scores")
 
     if len(records) < s.min_images:
         raise UserError(f"only {len(records)} usable image(s) in {ctx.scene}; at least {s.min_images} overlapping photos are needed")
