@@ -232,15 +232,16 @@ def kill_rows(scene: Path, work: Path, rng: random.Random, kills: int) -> list[d
              and all(v == "intact" for v in outputs.values()) else f"{outputs}"}]
 
 
-# ---- the user's files in the output folder ----------------------------------------------------------------------------
+# ---- the user's files in the output folder -------------------------------------------------------------------------
 def output_rows(scene: Path, work: Path) -> list[dict]:
     out, other = work / "outputs", work / "other-object" / "images"
     shutil.rmtree(out, ignore_errors=True)
-    yours = {out / "fit" / "notes.txt": "made before any run", out / "export" / "scene.blend": "saved beside the mesh"}
-    (out / "fit").mkdir(parents=True)
-    list(yours)[0].write_text(yours[list(yours)[0]])
+    notes, blend = out / "fit" / "notes.txt", out / "export" / "scene.blend"
+    yours = {notes: "made before any run", blend: "saved beside the mesh"}
+    notes.parent.mkdir(parents=True)
+    notes.write_text(yours[notes])
     first = pipeline(scene, out, *SMALL)
-    list(yours)[1].write_text(yours[list(yours)[1]])
+    blend.write_text(yours[blend])
     again = pipeline(scene, out, *SMALL, "--set", "export.texture_size=128")
     before = {name: (read_manifest(out / name) or {}).get("run_id") for name in STAGE_ORDER}
     if not other.exists():
@@ -293,7 +294,8 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.faults", description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data", help="the folder holding lego/")
     parser.add_argument("--work", type=Path, default=Path("/tmp/voxfield-bench-faults"), help="scratch folder")
-    parser.add_argument("--only", nargs="*", default=["memory", "disk", "cache", "kill", "outputs", "hostile", "viewer"],
+    parser.add_argument("--only", nargs="*",
+                        default=["memory", "disk", "cache", "kill", "outputs", "hostile", "viewer"],
                         help="which rows to run")
     parser.add_argument("--kills", type=int, default=6, help="SIGKILLs at random moments before the last run")
     parser.add_argument("--seed", type=int, default=0)
