@@ -132,16 +132,18 @@ def test_a_shot_saved_twice_is_kept_once_and_a_photo_beside_it_is_not(tmp_path):
     assert sorted(p.stem for p in (out / "images").iterdir()) == kept
 
 
-def test_greyscale_photos_among_colour_ones_are_marked_and_mixed_sizes_are_counted(photos, tmp_path):
-    Image.fromarray(textured(seed=8)[..., 1]).save(photos / "grey.jpg", quality=95)
+def test_greyscale_photos_among_colour_ones_are_marked_and_mixed_sizes_are_counted(photos, tmp_path, capsys):
+    Image.fromarray(textured(seed=8)[..., 1]).save(photos / "grey10.jpg", quality=95)
     grey_rgb = np.repeat(textured(seed=9)[..., :1], 3, axis=-1)  # stored as colour, channels equal
-    Image.fromarray(np.ascontiguousarray(np.rot90(grey_rgb))).save(photos / "grey_tall.jpg", quality=95)
+    Image.fromarray(np.ascontiguousarray(np.rot90(grey_rgb))).save(photos / "grey9.jpg", quality=95)
     _, listing = run_ingest(photos, tmp_path)
     marked = sorted(r["name"] for r in listing["images"] if r.get("colourless"))
-    assert marked == ["grey", "grey_tall"]
+    assert marked == ["grey10", "grey9"]
     summary = json.loads((tmp_path / "out" / "ingest" / "manifest.json").read_text())["summary"]
     assert summary["colourless"] == 2 and "2 without colour" in summary["line"]
     assert summary["line"].startswith("5 images at 80x60 (4), 60x80 (1)")
+    warning = [line for line in capsys.readouterr().err.splitlines() if "have no colour" in line]
+    assert len(warning) == 1 and "grey9, grey10;" in warning[0]  # in the capture's order, 9 before 10
 
 
 def test_a_capture_grey_throughout_keeps_every_photo_for_the_fit(tmp_path):
