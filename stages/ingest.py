@@ -15,8 +15,9 @@ from stages.common.media import write_png
 from stages.common.json_files import write_json
 from stages.capture.masks import mask_folder, match_masks, read_mask
 from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, colour_spread, colourless_among_colour, fit_max_side,
-                                   load_photo, photo_folder, repeated, scene_photos, sharpness, stored_orientation,
-                                   thumbnail, video_frames)
+                                   is_split_dataset, load_photo, photo_folder, photos_picture, repeated, scene_photos,
+                                   sharpness, stored_orientation, thumbnail, video_frames)
+from stages.sfm import pose_files
 from stages.common.text import short_list
 from plenoxels.core.errors import UserError
 from plenoxels.core.photo_colour import capture_key
@@ -31,16 +32,23 @@ def run(ctx) -> dict:
     masks_dir = ctx.work / "masks"
     images_dir.mkdir()
     records, unreadable, thumbnails = [], [], []
-    clip = None
+    clip = bars = None
 
     def keep(name: str, source: str, rgb: np.ndarray, alpha: np.ndarray | None, original: tuple[int, int],
-             split: str | None = None, mask_file: Path | None = None, photo_orientation: int = 1) -> None:
+             split: str | None = None, mask_file: Path | None = None, photo_orientation: int = 1,
+             picture: tuple[slice, slice] | None = None) -> None:
         cutout = alpha is not None
         mask_from = "alpha" if cutout else None
         if mask_file is not None:
             given = read_mask(mask_file, original, s.mask_threshold, photo_orientation)
             alpha = given if alpha is None else np.minimum(alpha, given)
             mask_from = mask_file.relative_to(mask_file.parent.parent).as_posix()
+        within = None
+        if picture is not None:  # within black bars: the photo is what the picture shows
+            rgb = np.ascontiguousarray(rgb[picture])
+            alpha = np.ascontiguousarray(alpha[picture]) if alpha is not None else None
+            within = [picture[1].start, picture[0].start, rgb.shape[1], rgb.shape[0]]  # x, y, width, height
+            original = (rgb.shape[1], rgb.shape[0])
         rgb = fit_max_side(rgb, s.max_side)
         record = {"name": name, "file": f"images/{name}.png", "source": source, "width": rgb.shape[1],
                   "height": rgb.shape[0], "original_width": original[0], "original_height": original[1],
@@ -48,6 +56,8 @@ def run(ctx) -> dict:
                   "colour_spread": colour_spread(rgb), "mask": None}
         if split:
             record["split"] = split
+        if within:
+            record["bars_cropped"] = within
         write_png(images_dir / f"{name}.png", rgb)
         if alpha is not None:
             masks_dir.mkdir(exist_ok=True)
@@ -62,7 +72,7 @@ def run(ctx) -> dict:
         if ctx.scene.suffix.lower() not in VIDEO_SUFFIXES:
             raise UserError(f"{ctx.scene.name} is neither a folder of photos nor a video ({', '.join(sorted(VIDEO_SUFFIXES))})")
         frames, clip = video_frames(ctx.scene, s.max_side, s.video_motion, s.video_fps, ctx.report,
-                                    s.video_frames)
+                                    s.video_frames, s.crop_bars)
         for name, rgb in frames:
             keep(name, ctx.scene.name, rgb, None, (rgb.shape[1], rgb.shape[0]))
     else:
@@ -89,6 +99,8 @@ def run(ctx) -> dict:
             if unmasked:
                 ctx.report.warn(f"{len(unmasked)} of {len(photos)} photos have no mask in {masks_given} (by name): "
                                 f"{short_list(unmasked)}; they are posed from the whole photo and left out of the fit")
+        if s.crop_bars and not is_split_dataset(ctx.scene) and not any(pose_files.candidates(ctx.scene).values()):
+            bars = photos_picture([folder / p for p, _ in photos])
         for relative, split in ctx.report.track(photos, desc="reading photos"):
             try:
                 rgb, alpha = load_photo(folder / relative)
@@ -96,8 +108,10 @@ def run(ctx) -> dict:
                 unreadable.append(f"{relative.as_posix()} ({str(e).splitlines()[0][:60] or type(e).__name__})")
                 continue
             mask_file = mask_of.get(folder / relative)
-            keep(name_of[relative], relative.as_posix(), rgb, alpha, (rgb.shape[1], rgb.shape[0]), split, mask_file,
-                 stored_orientation(folder / relative) if mask_file else 1)
+            size = (rgb.shape[1], rgb.shape[0])
+            picture = bars[1] if bars is not None and size == bars[0] else None
+            keep(name_of[relative], relative.as_posix(), rgb, alpha, size, split, mask_file,
+                 stored_orientation(folder / relative) if mask_file else 1, picture)
     if unreadable:
         ctx.report.warn(f"skipped {len(unreadable)} file(s) that are not readable photos: {'; '.join(unreadable)}")
 
@@ -147,6 +161,11 @@ def run(ctx) -> dict:
             short = too_short(clip, len(records), s)
             ctx.report.warn(short)
             line += f"; {short}"
+    cropped = sum("bars_cropped" in r for r in records)
+    if cropped:
+        (width, height), (rows, columns) = bars
+        line += (f", black bars cropped from {cropped} (the picture {columns.stop - columns.start}x"
+                 f"{rows.stop - rows.start} of their {width}x{height})")
     masked = sum(r["mask"] is not None for r in records)
     if masked:
         given = sum(r.get("mask_from") not in (None, "alpha") for r in records)
@@ -160,7 +179,7 @@ def run(ctx) -> dict:
     if unreadable:
         line += f", skipped {len(unreadable)} unreadable"
     return {"line": line, "images": len(records), "skipped": len(unreadable), "repeated": len(repeats),
-            "dropped_blurry": len(dropped), "masked": masked, "colourless": len(colourless),
+            "dropped_blurry": len(dropped), "masked": masked, "colourless": len(colourless), "cropped": cropped,
             **({"video": clip} if clip is not None else {})}
 
 
@@ -180,6 +199,9 @@ def video_words(clip: dict, s: Settings) -> str:
     if clip["motion"] < s.video_motion:
         words += (f" (closer than ingest.video_motion's {s.video_motion:.0%}: at that spacing the clip gave fewer than"
                   f" ingest.video_frames's {s.video_frames})")
+    if "bars" in clip:
+        (width, height), kept = clip["bars"]["frame"], clip["bars"]["kept"]
+        words += f", black bars cropped (the picture {kept[2]}x{kept[3]} of its {width}x{height} frame)"
     return words
 
 

@@ -38,6 +38,16 @@ COLOUR_SPREAD = 16
 # the closest distinct photos of cup, fox, ball, lego and fern by 3.0-15.
 THUMBNAIL_SIDE = 32
 DUPLICATE_RMS = 1.0
+# A video's rows or columns at its frame's edge that are dark and flat (grey mean at most BAR_MEAN, spread at most
+# BAR_SPREAD, of 255) in each of BAR_SAMPLES frames spread over the clip are black bars (a portrait clip exported in a
+# landscape frame, a film's letterbox), not scene: cropped from every frame where they are at least BAR_MIN_SHARE of
+# the frame across and leave at least BAR_MIN_PICTURE of it. Bars decode to 0-4 with 18 at most where the codec rings
+# beside the picture; the darkest edge lines of ball, fox, cup, fern and apple have means of 23-140.
+BAR_SAMPLES = 24
+BAR_MEAN = 12.0
+BAR_SPREAD = 6.0
+BAR_MIN_SHARE = 0.01
+BAR_MIN_PICTURE = 0.2
 
 try:  # HEIC support comes from pillow-heif when it is installed
     from pillow_heif import register_heif_opener
@@ -288,14 +298,95 @@ def _corners(grey: np.ndarray) -> np.ndarray | None:
     return cv2.goodFeaturesToTrack(grey, maxCorners=400, qualityLevel=0.01, minDistance=max(4, max(grey.shape) // 60))
 
 
+def _dark_lines(grey: np.ndarray, axis: int) -> np.ndarray:
+    """Which rows (axis 1) or columns (axis 0) of a grey frame are dark and flat."""
+    return (grey.mean(axis=axis) <= BAR_MEAN) & (grey.std(axis=axis) <= BAR_SPREAD)
+
+
+def _edge_run(dark: np.ndarray) -> tuple[int, int]:
+    """How many lines from each end of `dark` are dark without a break."""
+    lit = np.flatnonzero(~dark)
+    return (int(lit[0]), int(len(dark) - 1 - lit[-1])) if len(lit) else (len(dark), 0)
+
+
+def picture_box(greys: list[np.ndarray]) -> tuple[slice, slice] | None:
+    """The (rows, columns) of a video's frames that hold its picture, within the black bars along their edges
+    (BAR_MEAN, BAR_SPREAD) in every one of `greys`; None where there are no bars worth cropping or no picture
+    would be left (a clip dark throughout)."""
+    if not greys:
+        return None
+    dark_rows = np.logical_and.reduce([_dark_lines(g, 1) for g in greys])
+    dark_columns = np.logical_and.reduce([_dark_lines(g, 0) for g in greys])
+    (top, bottom), (left, right) = _edge_run(dark_rows), _edge_run(dark_columns)
+    height, width = greys[0].shape
+    top, bottom = (v if v >= BAR_MIN_SHARE * height else 0 for v in (top, bottom))
+    left, right = (v if v >= BAR_MIN_SHARE * width else 0 for v in (left, right))
+    if not (top or bottom or left or right):
+        return None
+    if height - top - bottom < BAR_MIN_PICTURE * height or width - left - right < BAR_MIN_PICTURE * width:
+        return None
+    return slice(top, height - bottom), slice(left, width - right)
+
+
+def photos_picture(paths: list[Path]) -> tuple[tuple[int, int], tuple[slice, slice]] | None:
+    """For a capture's photos: the upright (width, height) most of them share and the picture within the black
+    bars that all of those have (`picture_box` over BAR_SAMPLES of them, spread over the capture: frames a tool
+    saved from a padded video); None where they have none, or carry their own alpha."""
+    sizes = {}
+    for path in paths:
+        try:
+            with Image.open(path) as im:
+                turned = im.getexif().get(EXIF_ORIENTATION, 1) in (5, 6, 7, 8)
+                sizes[path] = im.size[::-1] if turned else im.size
+        except Exception:  # an unreadable photo is skipped where it is loaded
+            continue
+    if not sizes:
+        return None
+    common = max(set(sizes.values()), key=list(sizes.values()).count)
+    alike = [path for path, size in sizes.items() if size == common]
+    greys = []
+    for index in np.unique(np.linspace(0, len(alike) - 1, BAR_SAMPLES).round().astype(int)):
+        try:
+            rgb, alpha = load_photo(alike[index])
+        except Exception:
+            continue
+        if alpha is not None:
+            return None
+        greys.append(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY))
+    picture = picture_box(greys)
+    return (common, picture) if picture is not None else None
+
+
+def video_picture(path: Path) -> tuple[slice, slice] | None:
+    """The picture within a video's black bars (`picture_box` over BAR_SAMPLES frames spread over the clip), or
+    None where it has none."""
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise UserError(f"cannot read video {path.name}; convert it to MP4 (H.264) or extract photos")
+    capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 1)
+    total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+    greys = []
+    for index in np.unique(np.linspace(0, max(total - 1, 0), BAR_SAMPLES).round().astype(int)):
+        if total > BAR_SAMPLES:
+            capture.set(cv2.CAP_PROP_POS_FRAMES, int(index))
+        ok, bgr = capture.read()
+        if ok:
+            greys.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))
+    capture.release()
+    return picture_box(greys)
+
+
 def video_frames(path: Path, max_side: int, motion: float, max_per_second: float, report,
-                 target_frames: int = 0) -> tuple[list[tuple[str, np.ndarray]], dict]:
+                 target_frames: int = 0, crop_bars: bool = True) -> tuple[list[tuple[str, np.ndarray]], dict]:
     """(name, RGB) of the frames to pose from a video (see frames_by_motion), and what the clip gave: its `seconds`,
     the `motion` the frames were kept at and `total_motion` (diagonals the view moved in all). A clip whose motion
     gives fewer than `target_frames` at `motion` (a short clip, or a camera that moved little) is read again with
     frames closer together, as close as the motion allows for `target_frames` but never below MIN_MOTION_SHARE of
-    `motion`, nor more than `max_per_second` a second."""
-    kept, clip = frames_by_motion(path, max_side, motion, max_per_second, report)
+    `motion`, nor more than `max_per_second` a second. With `crop_bars`, black bars along the frame's edges
+    (`video_picture`) are cropped from every frame before anything else, and the clip's `bars` say what was kept:
+    [x, y, width, height] of the frame's [width, height]."""
+    picture = video_picture(path) if crop_bars else None
+    kept, clip = frames_by_motion(path, max_side, motion, max_per_second, report, picture)
     used = motion
     for _ in range(VIDEO_RETRIES):
         if not target_frames or len(kept) >= target_frames or len(kept) >= clip["most_frames"]:
@@ -304,13 +395,14 @@ def video_frames(path: Path, max_side: int, motion: float, max_per_second: float
         if denser >= used:
             break
         used = denser
-        kept, clip = frames_by_motion(path, max_side, used, max_per_second, report)
+        kept, clip = frames_by_motion(path, max_side, used, max_per_second, report, picture)
     return kept, {**clip, "motion": used, "max_per_second": max_per_second}
 
 
-def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: float,
-                     report) -> tuple[list[tuple[str, np.ndarray]], dict]:
-    """(name, RGB) of the frames to pose from a video, upright (its rotation metadata applied), downscaled to
+def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: float, report,
+                     picture: tuple[slice, slice] | None = None) -> tuple[list[tuple[str, np.ndarray]], dict]:
+    """(name, RGB) of the frames to pose from a video, upright (its rotation metadata applied), cropped to
+    `picture` (rows, columns) where given, downscaled to
     `max_side`, and the clip's `seconds`, `total_motion` and `most_frames` (what `max_per_second` allows). A frame is
     due each time the view has moved by `motion` of the frame's diagonal since the last kept
     frame (the median motion of corners tracked from it by optical flow), or when fewer than half of those corners
@@ -339,6 +431,9 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
             ok, bgr = capture.read()
             if not ok:
                 break
+            if picture is not None:
+                frame_shape = bgr.shape[:2]
+                bgr = np.ascontiguousarray(bgr[picture])
             grey = _tracking_grey(bgr)
             moved, lost = 0.0, False
             if previous is not None and points is not None and len(points):
@@ -372,5 +467,10 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
     if candidates and max(candidates, key=lambda c: c[0])[1] - last_kept >= min_gap:
         keep(max(candidates, key=lambda c: c[0]))
     capture.release()
+    bars = {}
+    if picture is not None and index:
+        rows, columns = picture
+        bars = {"bars": {"frame": [frame_shape[1], frame_shape[0]],
+                         "kept": [columns.start, rows.start, columns.stop - columns.start, rows.stop - rows.start]}}
     return kept, {"seconds": round(index / fps, 2), "total_motion": round(total_motion + counted, 4),
-                  "most_frames": index // min_gap + 1}
+                  "most_frames": index // min_gap + 1, **bars}

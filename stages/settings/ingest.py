@@ -9,6 +9,7 @@ from typing import Literal
 from plenoxels.core.errors import require
 from stages.capture.masks import mask_folder
 from stages.capture.photos import photo_folder, scene_files
+from stages.sfm.pose_files import candidates
 
 NAME = "ingest"
 DEPENDS: tuple[str, ...] = ()
@@ -43,6 +44,10 @@ class Settings:
     from features inside them and the fit models the object alone. Off: ignore the folder (alpha channels still count)."""
     mask_threshold: int | Literal["auto"] = "auto"
     """A mask's value above this (0-254) marks the object; auto: above 0, or above 127 in JPEG and WebP masks."""
+    crop_bars: bool = True
+    """Crop black bars along the frame's edges (a portrait clip in a landscape frame, a letterbox), dark in every
+    frame of a video, or in every photo of the common size where SfM poses them (no pose file beside the photos,
+    whose cameras describe the whole frame): trained, they are a black wall in front of every camera."""
 
     def check(self) -> None:
         require(self.max_side == 0 or self.max_side >= 32, "ingest.max_side must be 0 (full size) or at least 32")
@@ -64,4 +69,5 @@ def fingerprint(scene: Path) -> list:
     if masks is not None:
         listed += [[str(p.relative_to(masks.parent)), p.stat().st_size, p.stat().st_mtime_ns]
                    for p in sorted(masks.iterdir()) if p.is_file()]
-    return listed
+    # Photos are cropped of black bars only where no pose file describes their whole frames.
+    return listed + sorted(kind for kind, files in candidates(scene).items() if files)

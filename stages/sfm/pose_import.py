@@ -154,6 +154,10 @@ def _number(value, key: str, where: str, positive: bool = False) -> float:
 
 def _scale_factor(record: dict, pose_w: float, pose_h: float, what: str) -> float:
     """The factor from the pose file's image size to the ingested one; both sides must agree."""
+    if "bars_cropped" in record:  # a pose file's camera sees the whole frame
+        raise UserError(f"{what} describes the whole frames, but ingest cropped the black bars of {record['source']} "
+                        f"to {record['original_width']}x{record['original_height']}; set ingest.crop_bars=false to "
+                        "keep whole frames for these poses")
     factor = record["width"] / pose_w
     if abs(pose_h * factor - record["height"]) > SIZE_TOLERANCE_PX * max(1.0, factor):
         raise UserError(f"{record['source']} is {record['original_width']}x{record['original_height']} but {what} "

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from stages.capture.photos import picture_box
 from stages.common.media import read_rgb
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
@@ -156,15 +157,22 @@ def test_a_capture_grey_throughout_keeps_every_photo_for_the_fit(tmp_path):
     assert not any(r.get("colourless") for r in listing["images"])
 
 
-def panning_video(path, frames: int, sharp_every: int = 1, step_px: int = 1, fps: int = 10):
-    """A camera panning across a textured wall, step_px pixels a frame; only every sharp_every-th frame is sharp."""
-    wall = textured(h=60, w=80 + frames * step_px, seed=11)
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (80, 60))
+def panning_video(path, frames: int, sharp_every: int = 1, step_px: int = 1, fps: int = 10, size=(80, 60),
+                  within=None):
+    """A camera panning across a textured wall, step_px pixels a frame; only every sharp_every-th frame is sharp.
+    `within` (x, y, width, height) puts each frame of `size` at that place in a larger black frame, as an editor
+    pads a clip of another shape."""
+    width, height = size
+    wall = textured(h=height, w=width + frames * step_px, seed=11)
+    x, y, outer_width, outer_height = within or (0, 0, width, height)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (outer_width, outer_height))
     for i in range(frames):
-        frame = wall[:, i * step_px:i * step_px + 80]
+        frame = wall[:, i * step_px:i * step_px + width]
         if i % sharp_every:
             frame = cv2.GaussianBlur(frame, (0, 0), 3)
-        writer.write(cv2.cvtColor(np.ascontiguousarray(frame), cv2.COLOR_RGB2BGR))
+        padded = np.zeros((outer_height, outer_width, 3), np.uint8)
+        padded[y:y + height, x:x + width] = frame
+        writer.write(cv2.cvtColor(padded, cv2.COLOR_RGB2BGR))
     writer.release()
     return path
 
@@ -224,6 +232,82 @@ def test_a_clip_too_short_for_a_good_fit_says_so(tmp_path):
     assert "too short for a good fit" in line and "ingest.video_fps=3" in line and "film longer" in line
     enough = run_ingest(video, tmp_path / "b", "ingest.video_fps=100", "ingest.video_min_frames=5")[0]
     assert "too short" not in json.loads((enough / "manifest.json").read_text())["summary"]["line"]
+
+
+@pytest.mark.parametrize("size, within", [((48, 80), (40, 0, 128, 80)),     # a portrait clip in a landscape frame
+                                          ((96, 40), (0, 16, 96, 72))])     # a wide film letterboxed
+def test_black_bars_around_a_clips_picture_are_cropped_before_it_is_read(tmp_path, size, within):
+    padded = panning_video(tmp_path / "padded.avi", 40, step_px=2, size=size, within=within)
+    plain = panning_video(tmp_path / "plain.avi", 40, step_px=2, size=size)
+    out, listing = run_ingest(padded, tmp_path / "a", "ingest.video_fps=100", "ingest.video_min_frames=3")
+    unpadded, reference = run_ingest(plain, tmp_path / "b", "ingest.video_fps=100", "ingest.video_min_frames=3")
+    assert {(r["width"], r["height"]) for r in listing["images"]} == {size}
+    assert listing["video"]["bars"] == {"frame": list(within[2:]), "kept": [within[0], within[1], *size]}
+    # The same frames as the clip without bars: the picture's motion alone decides which are kept.
+    assert [r["name"] for r in listing["images"]] == [r["name"] for r in reference["images"]]
+    first = listing["images"][0]["name"]
+    cropped, plain_frame = (read_rgb(folder / "images" / f"{first}.png").astype(float) for folder in (out, unpadded))
+    assert np.abs(cropped - plain_frame).mean() < 4     # MJPG's blocks at the picture's edge differ a little
+    line = json.loads((out / "manifest.json").read_text())["summary"]["line"]
+    assert f"black bars cropped (the picture {size[0]}x{size[1]} of its {within[2]}x{within[3]} frame)" in line
+
+
+def padded_photos(folder, count=5, pad=(20, 0)):
+    """Photos a tool saved from a padded clip: 40x60 pictures within black columns (or rows) `pad` wide, and
+    masks of the whole frame beside them."""
+    (folder / "masks").mkdir(parents=True)
+    for i in range(count):
+        frame = np.pad(textured(h=60, w=40, seed=i), ((pad[1], pad[1]), (pad[0], pad[0]), (0, 0)))
+        Image.fromarray(frame).save(folder / f"f{i}.png")
+        mask = np.zeros(frame.shape[:2], np.uint8)
+        mask[pad[1] + 10:pad[1] + 50, pad[0] + 5:pad[0] + 35] = 255
+        Image.fromarray(mask).save(folder / "masks" / f"f{i}.png")
+    return folder
+
+
+def test_black_bars_of_photos_saved_from_a_padded_clip_are_cropped_with_their_masks(tmp_path):
+    folder = padded_photos(tmp_path / "frames")
+    Image.fromarray(textured(h=60, w=100, seed=9)).save(folder / "other.png")   # another size: left whole
+    out, listing = run_ingest(folder, tmp_path)
+    by_name = {r["name"]: r for r in listing["images"]}
+    assert (by_name["f0"]["width"], by_name["f0"]["height"], by_name["f0"]["bars_cropped"]) == (40, 60, [20, 0, 40, 60])
+    assert "bars_cropped" not in by_name["other"] and by_name["other"]["width"] == 100
+    assert np.array_equal(read_rgb(out / "images" / "f3.png"), textured(h=60, w=40, seed=3))
+    mask = read_rgb(out / "masks" / "f3.png")[..., 0]
+    assert mask.shape == (60, 40) and mask[10:50, 5:35].all() and not mask[:10].any()
+    line = json.loads((out / "manifest.json").read_text())["summary"]["line"]
+    assert "black bars cropped from 5 (the picture 40x60 of their 80x60)" in line
+
+
+def test_photos_a_pose_file_describes_keep_their_bars_and_a_crop_refuses_poses_given_elsewhere(tmp_path):
+    folder = padded_photos(tmp_path / "capture" / "images", count=3, pad=(0, 20))
+    frames = [{"file_path": f"images/f{i}.png", "transform_matrix": np.eye(4).tolist()} for i in range(3)]
+    pose_file = tmp_path / "capture" / "transforms.json"
+    pose_file.write_text(json.dumps({"fl_x": 50, "w": 40, "h": 100, "frames": frames}))
+    _, listing = run_ingest(folder, tmp_path / "beside")
+    assert {(r["width"], r["height"]) for r in listing["images"]} == {(40, 100)}
+    pose_file.rename(tmp_path / "elsewhere.json")
+    pipe = Pipeline(folder, tmp_path / "given" / "out", overrides=[f"poses.path={tmp_path / 'elsewhere.json'}"],
+                    reporter=Reporter(quiet=True))
+    with pytest.raises(UserError, match="cropped the black bars of f0.png to 40x60; set ingest.crop_bars=false"):
+        pipe.run(["poses"])
+    whole = Pipeline(folder, tmp_path / "whole" / "out", overrides=["ingest.crop_bars=false"], reporter=Reporter(quiet=True))
+    whole.run(["ingest"])
+    assert {(r["width"], r["height"]) for r in json.loads((tmp_path / "whole" / "out" / "ingest" / "images.json")
+                                                           .read_text())["images"]} == {(40, 100)}
+
+
+def test_a_dark_picture_and_a_thin_border_are_not_taken_for_bars():
+    rng = np.random.default_rng(3)
+    night = [rng.integers(0, 30, (60, 80)).astype(np.uint8) for _ in range(6)]   # dark, but with texture
+    assert picture_box(night) is None
+    framed = [np.pad(rng.integers(60, 200, (198, 80)).astype(np.uint8), ((1, 1), (0, 0))) for _ in range(3)]
+    assert picture_box(framed) is None                  # one black row each side of 200: below BAR_MIN_SHARE
+    black = [np.zeros((60, 80), np.uint8)] * 3
+    assert picture_box(black) is None                    # no picture left: a clip dark throughout keeps its frames
+    lit_once = [np.pad(rng.integers(60, 200, (60, 40)).astype(np.uint8), ((0, 0), (20, 20))) for _ in range(3)]
+    lit_once[1][:, :20] = 90                            # the left "bar" shows something in one frame
+    assert picture_box(lit_once) == (slice(0, 60), slice(0, 60))
 
 
 def test_rotated_video_comes_out_upright(tmp_path):
