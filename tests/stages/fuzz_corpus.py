@@ -56,13 +56,13 @@ def one(name, writer):
     return make
 
 
-def video(frames, truncate=False):
+def video(frames, truncate=False, picture=lambda frame: frame):
     def make(folder):
         folder.mkdir(parents=True)
         path = folder / "clip.mp4"
         out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10, (64, 48))
         for i in range(frames):
-            out.write(textured(seed=i))
+            out.write(picture(textured(seed=i)))
         out.release()
         if truncate and path.exists():
             path.write_bytes(path.read_bytes()[: max(1, path.stat().st_size // 2)])
@@ -151,6 +151,22 @@ def mask_turned_as_stored(folder):
         Image.fromarray(textured(seed=i)).save(folder / f"p{i}.jpg", exif=exif, quality=92)
         Image.fromarray(np.full((48, 64), 255, np.uint8)).save(folder / "masks" / f"p{i}.png")
     return folder
+
+
+def pillarboxed(frame):
+    """A frame's middle within black columns, as an editor pads a portrait clip."""
+    padded = np.zeros_like(frame)
+    padded[:, 16:48] = frame[:, 16:48]
+    return padded
+
+
+def photos_like(edit):
+    def make(folder):
+        folder.mkdir(parents=True)
+        for i in range(3):
+            Image.fromarray(edit(textured(seed=i))).save(folder / f"p{i}.png")
+        return folder
+    return make
 
 
 def animated_gif(path):
@@ -254,6 +270,10 @@ KINDS = {
     "videos_two_in_folder": two_videos,
     "grey_among_colour": grey_among_colour,
     "copied_photo": copied_photo,
+    "video_black_bars": video(20, picture=pillarboxed),
+    "video_dark_throughout": video(20, picture=np.zeros_like),
+    "photos_black_bars": photos_like(pillarboxed),
+    "photos_dark_throughout": photos_like(np.zeros_like),
     "video_no_frames": video(0),
     "video_one_frame": video(1),
     "video_truncated": video(20, truncate=True),
@@ -265,5 +285,6 @@ EXPECT = {
     **{k: "skip" for k in ("bomb_png", "zero_byte", "text_as_jpg", "truncated_jpg", "animated_gif", "random_bytes_png",
                            "png_header_only")},
     **{k: "stop" for k in ("mask_other_size", "mask_rotated_exif", "video_no_frames", "video_one_frame",
-                           "video_truncated", "photos_in_subfolders", "videos_two_in_folder")},
+                           "video_truncated", "photos_in_subfolders", "videos_two_in_folder", "video_dark_throughout",
+                           "photos_dark_throughout")},
 }
