@@ -291,7 +291,8 @@ def test_photos_a_pose_file_describes_keep_their_bars_and_a_crop_refuses_poses_g
                     reporter=Reporter(quiet=True))
     with pytest.raises(UserError, match="cropped the black bars of f0.png to 40x60; set ingest.crop_bars=false"):
         pipe.run(["poses"])
-    whole = Pipeline(folder, tmp_path / "whole" / "out", overrides=["ingest.crop_bars=false"], reporter=Reporter(quiet=True))
+    whole = Pipeline(folder, tmp_path / "whole" / "out", overrides=["ingest.crop_bars=false"],
+                     reporter=Reporter(quiet=True))
     whole.run(["ingest"])
     assert {(r["width"], r["height"]) for r in json.loads((tmp_path / "whole" / "out" / "ingest" / "images.json")
                                                            .read_text())["images"]} == {(40, 100)}
