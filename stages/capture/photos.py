@@ -416,15 +416,16 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
     total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
     min_gap = max(1, round(fps / max_per_second))
     kept: list[tuple[str, np.ndarray]] = []
-    candidates: list[tuple[float, int, np.ndarray]] = []   # (sharpness, index, rgb) since the stretch began
+    # The sharpest candidate since the stretch began, (sharpness, index, rgb): one frame held, however long the stretch.
+    best: tuple[float, int, np.ndarray] | None = None
     previous = points = start = None
     index, last_kept, tracked = 0, -min_gap, 0
     total_motion, counted = 0.0, 0.0  # diagonals moved in all: the stretches ended, and the current one so far
 
-    def keep(best: tuple[float, int, np.ndarray]) -> None:
+    def keep(frame: tuple[float, int, np.ndarray]) -> None:
         nonlocal last_kept
-        kept.append((f"frame_{best[1]:06d}", best[2]))
-        last_kept = best[1]
+        kept.append((f"frame_{frame[1]:06d}", frame[2]))
+        last_kept = frame[1]
 
     with report.bar(total=total, desc=f"reading {path.name}") as bar:
         while True:
@@ -453,10 +454,12 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
                     keep((sharpness(rgb), index, rgb))
             elif moved >= CANDIDATE_SHARE * motion or lost:
                 rgb = fit_max_side(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), max_side)
-                candidates.append((sharpness(rgb), index, rgb))
-            if (moved >= motion or lost) and candidates and index - last_kept >= min_gap:
-                keep(max(candidates, key=lambda c: c[0]))
-                candidates = []
+                score = sharpness(rgb)
+                if best is None or score > best[0]:
+                    best = (score, index, rgb)
+            if (moved >= motion or lost) and best is not None and index - last_kept >= min_gap:
+                keep(best)
+                best = None
                 # Track again from this frame: the next stretch is measured from (about) the frame just kept.
                 total_motion, counted = total_motion + counted, 0.0
                 points = _corners(grey)
@@ -464,8 +467,8 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
             previous = grey
             index += 1
             bar.update()
-    if candidates and max(candidates, key=lambda c: c[0])[1] - last_kept >= min_gap:
-        keep(max(candidates, key=lambda c: c[0]))
+    if best is not None and best[1] - last_kept >= min_gap:
+        keep(best)
     capture.release()
     bars = {}
     if picture is not None and index:

@@ -1,13 +1,14 @@
 """Ingest: every kind of photo becomes an upright 8-bit RGB PNG; bad input is reported, never a traceback."""
 import json
 import subprocess
+import tracemalloc
 
 import cv2
 import numpy as np
 import pytest
 from PIL import Image
 
-from stages.capture.photos import picture_box
+from stages.capture.photos import frames_by_motion, picture_box
 from stages.common.media import read_rgb
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
@@ -208,6 +209,26 @@ def test_video_keeps_more_frames_where_the_camera_moves_faster(tmp_path):
     assert len(fast["images"]) >= 1.6 * len(slow["images"])
     capped = run_ingest(tmp_path / "fast.avi", tmp_path / "c", "ingest.video_fps=0.5")[1]
     assert len(capped["images"]) <= 4    # 6 s of video at most 0.5 frames a second (and the first)
+
+
+def test_a_long_slow_stretch_holds_one_candidate_frame_not_all_of_them(tmp_path):
+    # 0.1 px a frame on a 160x120 frame (200 px diagonal): at 30% of it, frames 36-60 px along are candidates, 240 of
+    # them, 56 kB each; ingest holds the sharpest alone, whatever the stretch's length.
+    wall = textured(h=120, w=260, seed=4)
+    path = tmp_path / "drift.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30, (160, 120))
+    for i in range(640):
+        shift = np.float32([[1, 0, -0.1 * i], [0, 1, 0]])
+        writer.write(cv2.cvtColor(cv2.warpAffine(wall, shift, (160, 120), flags=cv2.INTER_LINEAR), cv2.COLOR_RGB2BGR))
+    writer.release()
+    tracemalloc.start()
+    try:
+        frames, _ = frames_by_motion(path, 0, 0.3, 100, Reporter(quiet=True))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert 2 <= len(frames) <= 4, [name for name, _ in frames]
+    assert peak < 40 * 160 * 120 * 3, peak     # the frames kept, one candidate, what reading holds: not 240 candidates
 
 
 def test_a_clip_that_moves_little_is_read_again_with_frames_closer_together(tmp_path):
