@@ -16,6 +16,8 @@ EXIF_FOCAL = 0x920A                     # FocalLength, mm
 EXIF_FOCAL_PLANE_X_RESOLUTION = 0xA20E  # sensor pixels per unit, in units of the tag below
 EXIF_FOCAL_PLANE_UNIT = 0xA210
 EXIF_PIXEL_X, EXIF_PIXEL_Y = 0xA002, 0xA003  # the size the camera wrote the image at
+EXIF_LENS_MODEL = 0xA434
+LENS_TAGS = (EXIF_LENS_MODEL, EXIF_FOCAL, EXIF_FOCAL_35MM)
 MM_PER_FOCAL_PLANE_UNIT = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
 # A 35 mm equivalent focal length keeps the diagonal field of view of the 36 x 24 mm frame (CIPA DC-008), so it
 # holds for any aspect ratio, not only 3:2.
@@ -24,17 +26,19 @@ FULL_FRAME_DIAGONAL_MM = float(np.hypot(36.0, 24.0))
 
 def one_camera(records: list[dict], photos: Path) -> bool:
     """True when every photo (ingest records, sources in `photos`) has the same size and the same EXIF camera
-    model (or none)."""
+    model, lens and focal length (or none): a phone's lenses, or its zoom, share a model and a size but not a focal."""
     if len({(r["width"], r["height"]) for r in records}) > 1:
         return False
-    models = set()
+    cameras = set()
     for record in records:
         try:
             with Image.open(photos / record["source"]) as im:
-                models.add(im.getexif().get(EXIF_MODEL_TAG))
+                exif = im.getexif()
+                lens = exif.get_ifd(EXIF_IFD)
+                cameras.add((exif.get(EXIF_MODEL_TAG), *(str(lens.get(tag)) for tag in LENS_TAGS)))
         except (OSError, ValueError):
-            models.add(None)
-    return len(models) <= 1
+            cameras.add(None)
+    return len(cameras) <= 1
 
 
 def recorded_size_differs(exif, size: tuple[int, int]) -> bool:

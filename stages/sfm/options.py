@@ -19,7 +19,8 @@ class SfmOptions:
     sensor_width_mm: float = 0.0
     """Sensor width in mm, for EXIF with a focal length in mm but no 35 mm equivalent; 0: unknown."""
     shared_camera: Literal["auto", "yes", "no"] = "auto"
-    """One camera for all photos; auto: when sizes and EXIF camera models agree."""
+    """One camera for all photos; auto: when their sizes, and their EXIF camera models, lenses and focal lengths agree
+    (else one camera per photo)."""
     max_features: int = 8192
     """SIFT features per image (at least 64)."""
     feature_max_side: int = 0

@@ -301,6 +301,32 @@ def test_exif_focal_length_starts_the_shared_camera(scene, truth, tmp_path):
     assert transforms["original_camera"]["params"][0] == pytest.approx(truth["fl_x"], rel=0.02)
 
 
+def test_a_phones_zoomed_photos_get_their_own_cameras(scene, truth, tmp_path):
+    """A phone's 1.5x (its other lens, or its zoom) writes photos of the same model and size at another focal length:
+    one camera shared by all would force one focal on both, so each photo gets its own, each started from its EXIF."""
+    folder = tmp_path / "phone"
+    folder.mkdir()
+    stems = sorted(frames_by_name(truth))[:12]
+    zoomed = stems[1::3]
+    for stem in stems:
+        rgb = read_rgb(scene / "images" / f"{stem}.png")
+        if stem in zoomed:   # the middle two thirds, brought back to the sensor's size
+            h, w = rgb.shape[:2]
+            middle = rgb[h // 6:h - h // 6, w // 6:w - w // 6]
+            rgb = cv2.resize(middle, (w, h), interpolation=cv2.INTER_CUBIC)
+        focal = truth["fl_x"] * (1.5 if stem in zoomed else 1.0)
+        write_jpeg_with_exif(folder / f"{stem}.jpg", rgb,
+                             {0xA405: round(focal / math.hypot(WIDTH, HEIGHT) * FULL_FRAME_DIAGONAL_MM)})
+    manifest = run_poses(folder, tmp_path / "out", "poses.source=sfm")
+    assert manifest["summary"]["shared_camera"] is False
+    focal = {f["name"]: f["original_camera"]["params"][0]
+             for f in read_json(tmp_path / "out" / "poses" / "transforms.json")["frames"]}
+    assert len(focal) >= 11, sorted(focal)
+    plain = np.median([f for name, f in focal.items() if name not in zoomed])
+    assert plain == pytest.approx(truth["fl_x"], rel=0.03)
+    assert np.median([f for name, f in focal.items() if name in zoomed]) == pytest.approx(1.5 * plain, rel=0.03)
+
+
 @pytest.mark.parametrize("tags, sensor_width_mm, expected", [
     ({0xA405: 28, 0x920A: 4.2}, 0.0, 28 / FULL_FRAME_DIAGONAL_MM * 200.0),     # 35 mm equivalent wins
     ({0x920A: 4.0, 0xA20E: 250.0, 0xA210: 4}, 0.0, 4.0 * 250.0),             # focal plane pixels per mm
