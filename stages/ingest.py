@@ -15,8 +15,8 @@ from stages.common.media import write_png
 from stages.common.json_files import write_json
 from stages.capture.masks import mask_folder, match_masks, read_mask
 from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, colour_spread, colourless_among_colour, fit_max_side,
-                                   is_split_dataset, load_photo, photo_folder, photos_picture, repeated, scene_photos,
-                                   sharpness, stored_orientation, thumbnail, video_frames)
+                                   is_split_dataset, load_photo, photo_folder, photos_picture, raw_twins, repeated,
+                                   scene_photos, sharpness, stored_orientation, thumbnail, video_frames)
 from stages.sfm import pose_files
 from stages.common.text import short_list
 from plenoxels.core.errors import UserError
@@ -33,6 +33,8 @@ def run(ctx) -> dict:
     images_dir.mkdir()
     records, unreadable, thumbnails = [], [], []
     clip = bars = None
+    twins: set[Path] = set()
+    clips: list[str] = []
 
     def keep(name: str, source: str, rgb: np.ndarray, alpha: np.ndarray | None, original: tuple[int, int],
              split: str | None = None, mask_file: Path | None = None, photo_orientation: int = 1,
@@ -78,9 +80,15 @@ def run(ctx) -> dict:
     else:
         folder = photo_folder(ctx.scene)
         candidates = scene_photos(ctx.scene, s.holdout_split)
-        photos = [(p.relative_to(folder), split) for p, split in candidates if p.suffix.lower() in IMAGE_SUFFIXES]
+        twins = set(raw_twins([p for p, _ in candidates]))
+        photos = [(p.relative_to(folder), split) for p, split in candidates
+                  if p.suffix.lower() in IMAGE_SUFFIXES and p not in twins]
         unreadable += [f"{p.name} (not a supported image type)" for p, _ in candidates
-                       if p.suffix.lower() not in IMAGE_SUFFIXES | {".json", ".npy", ".txt", ".md"}]
+                       if p.suffix.lower() not in IMAGE_SUFFIXES | VIDEO_SUFFIXES | {".json", ".npy", ".txt", ".md"}]
+        clips = [p.name for p, _ in candidates if p.suffix.lower() in VIDEO_SUFFIXES]
+        if clips:
+            ctx.report.warn(f"{len(clips)} video(s) beside the photos are not read: {short_list(clips)} (a phone's "
+                            "Live Photo clips; a walk-around video is read where it is given alone, as the scene)")
         # Split folders repeat file names (train/r_0.png, val/r_0.png): then every name carries its folder, and
         # its suffix too where only that tells two photos apart (p.jpg, p.png).
         names = [p.stem for p, _ in photos]
@@ -176,10 +184,15 @@ def run(ctx) -> dict:
         line += f", dropped {len(repeats)} repeated"
     if dropped:
         line += f", dropped {len(dropped)} blurriest"
+    if twins:
+        line += f", {len(twins)} RAW files left for the developed photos of their names"
+    if clips:
+        line += f", {len(clips)} video(s) beside them not read"
     if unreadable:
         line += f", skipped {len(unreadable)} unreadable"
     return {"line": line, "images": len(records), "skipped": len(unreadable), "repeated": len(repeats),
             "dropped_blurry": len(dropped), "masked": masked, "colourless": len(colourless), "cropped": cropped,
+            "raw_twins": len(twins),
             **({"video": clip} if clip is not None else {})}
 
 

@@ -8,11 +8,15 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import PIL.features
 from PIL import Image, ImageOps
 
 from plenoxels.core.errors import UserError
 
-IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".webp", ".heic", ".heif"}
+# .jfif and .jpe are JPEGs as some browsers save them; AVIF where this Pillow decodes it (11.2 and later).
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".jfif", ".jpe", ".png", ".tif", ".tiff", ".webp", ".bmp", ".heic", ".heif"}
+if PIL.features.check("avif"):
+    IMAGE_SUFFIXES.add(".avif")
 VIDEO_SUFFIXES = {".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v"}
 SHARPNESS_SIDE = 512  # score every image at the same size so scores compare across resolutions
 # Video frames are tracked at this size; a stretch ends when fewer than this share of its corners are still followed,
@@ -55,6 +59,14 @@ try:  # HEIC support comes from pillow-heif when it is installed
     register_heif_opener()
 except ImportError:
     IMAGE_SUFFIXES -= {".heic", ".heif"}
+# A camera's RAW files, developed by LibRaw (rawpy): a RAW beside a JPEG or HEIC of its name is the same shot, which the
+# camera developed already, so the developed one is read (`raw_twins`).
+RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".nrw", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw"}
+try:
+    import rawpy
+except ImportError:
+    RAW_SUFFIXES = set()
+IMAGE_SUFFIXES |= RAW_SUFFIXES
 
 
 def is_video(scene: Path) -> bool:
@@ -254,8 +266,40 @@ def scene_files(scene: Path) -> list[Path]:
     return [p for p, _ in scene_photos(scene, "none")]
 
 
+def raw_twins(photos: list[Path]) -> list[Path]:
+    """The RAW files among `photos` that have a developed photo (not RAW) of the same name in the same folder."""
+    developed = {(p.parent, p.stem.lower()) for p in photos
+                 if p.suffix.lower() in IMAGE_SUFFIXES and p.suffix.lower() not in RAW_SUFFIXES}
+    return [p for p in photos if p.suffix.lower() in RAW_SUFFIXES and (p.parent, p.stem.lower()) in developed]
+
+
+def upright_size(path: Path) -> tuple[int, int] | None:
+    """A photo's (width, height) as it is shown (EXIF orientation applied; a RAW file's as developed), from its
+    header; None where it cannot be read."""
+    try:
+        if path.suffix.lower() in RAW_SUFFIXES:
+            with rawpy.imread(str(path)) as raw:
+                size, turned = (raw.sizes.width, raw.sizes.height), raw.sizes.flip in (5, 6)
+        else:
+            with Image.open(path) as im:
+                size, turned = im.size, im.getexif().get(EXIF_ORIENTATION, 1) in (5, 6, 7, 8)
+    except Exception:  # an unreadable photo is skipped where it is loaded
+        return None
+    return (size[1], size[0]) if turned else size
+
+
+def load_raw(path: Path) -> np.ndarray:
+    """A RAW photo developed to 8-bit sRGB, upright: the camera's white balance, and no brightening of its own (each
+    photo brightened by its own histogram would differ in exposure from the next)."""
+    with rawpy.imread(str(path)) as raw:
+        return np.ascontiguousarray(raw.postprocess(use_camera_wb=True, no_auto_bright=True, output_bps=8))
+
+
 def load_photo(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Any supported photo -> (8-bit RGB [h,w,3], 8-bit alpha [h,w] or None), upright per its EXIF."""
+    """Any supported photo -> (8-bit RGB [h,w,3], 8-bit alpha [h,w] or None), upright per its EXIF; a RAW photo
+    developed (`load_raw`)."""
+    if path.suffix.lower() in RAW_SUFFIXES:
+        return load_raw(path), None
     with Image.open(path) as im:
         orientation = im.getexif().get(EXIF_ORIENTATION, 1)
         mode = im.mode
@@ -332,14 +376,7 @@ def photos_picture(paths: list[Path]) -> tuple[tuple[int, int], tuple[slice, sli
     """For a capture's photos: the upright (width, height) most of them share and the picture within the black
     bars that all of those have (`picture_box` over BAR_SAMPLES of them, spread over the capture: frames a tool
     saved from a padded video); None where they have none, or carry their own alpha."""
-    sizes = {}
-    for path in paths:
-        try:
-            with Image.open(path) as im:
-                turned = im.getexif().get(EXIF_ORIENTATION, 1) in (5, 6, 7, 8)
-                sizes[path] = im.size[::-1] if turned else im.size
-        except Exception:  # an unreadable photo is skipped where it is loaded
-            continue
+    sizes = {path: size for path in paths if (size := upright_size(path)) is not None}
     if not sizes:
         return None
     common = max(set(sizes.values()), key=list(sizes.values()).count)

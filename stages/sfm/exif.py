@@ -9,6 +9,8 @@ import numpy as np
 import pycolmap
 from PIL import Image
 
+from stages.capture.photos import RAW_SUFFIXES, upright_size
+
 EXIF_MODEL_TAG = 0x0110
 EXIF_IFD = 0x8769
 EXIF_FOCAL_35MM = 0xA405                # FocalLengthIn35mmFilm, mm
@@ -60,7 +62,9 @@ def exif_focal(photo: Path, sensor_width_mm: float) -> tuple[float, str] | None:
             width, height = im.size
     except (OSError, ValueError):
         return None
-    if recorded_size_differs(exif, (width, height)):
+    if photo.suffix.lower() in RAW_SUFFIXES:  # Pillow reads a DNG's first image, often its preview: LibRaw its sensor
+        width, height = upright_size(photo) or (0, 0)
+    elif recorded_size_differs(exif, (width, height)):
         return None
     def positive(tag: int) -> float:
         try:
@@ -82,6 +86,8 @@ def resized_since_capture(records: list[dict], photos: Path) -> list[str]:
     """Names of the photos whose pixels are not the size their EXIF says the camera recorded."""
     changed = []
     for record in records:
+        if Path(record["source"]).suffix.lower() in RAW_SUFFIXES:  # a RAW file is the sensor's, never resized
+            continue
         try:
             with Image.open(photos / record["source"]) as im:
                 if recorded_size_differs(im.getexif().get_ifd(EXIF_IFD), im.size):

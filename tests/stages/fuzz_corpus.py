@@ -256,6 +256,8 @@ KINDS = {
     "non_ascii_name": one("фото-é-写真.jpg", lambda p: Image.fromarray(textured(seed=12)).save(p)),
     "random_bytes_png": one("noise.png", lambda p: p.write_bytes(np.random.default_rng(0).bytes(4096))),
     "png_header_only": one("head.png", lambda p: p.write_bytes(b"\x89PNG\r\n\x1a\n")),
+    "raw_random_bytes": one("IMG_9.CR2", lambda p: p.write_bytes(np.random.default_rng(1).bytes(8192))),
+    "raw_tiff_header_only": one("IMG_8.dng", lambda p: p.write_bytes(b"II*\x00\x08\x00\x00\x00")),
     "folder_named_jpg": folder_named_jpg,
     "symlink_loop": symlink_loop,
     "read_only_folder": read_only,
@@ -283,7 +285,7 @@ KINDS = {
 # "keep" ingests every photo; a kind missing here is "keep".
 EXPECT = {
     **{k: "skip" for k in ("bomb_png", "zero_byte", "text_as_jpg", "truncated_jpg", "animated_gif", "random_bytes_png",
-                           "png_header_only")},
+                           "png_header_only", "raw_random_bytes", "raw_tiff_header_only")},
     **{k: "stop" for k in ("mask_other_size", "mask_rotated_exif", "video_no_frames", "video_one_frame",
                            "video_truncated", "photos_in_subfolders", "videos_two_in_folder", "video_dark_throughout",
                            "photos_dark_throughout")},

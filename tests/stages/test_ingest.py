@@ -5,6 +5,7 @@ import tracemalloc
 
 import cv2
 import numpy as np
+import PIL.features
 import pytest
 from PIL import Image
 
@@ -41,6 +42,18 @@ def test_plain_jpgs(photos, tmp_path):
     image = read_rgb(out / "images" / "p0.png")
     assert image.shape == (60, 80, 3) and image.dtype == np.uint8
     assert not listing["skipped"] and not (out / "masks").exists()
+
+
+def test_photos_as_browsers_and_old_cameras_save_them(photos, tmp_path):
+    Image.fromarray(textured(seed=5)).save(photos / "download.jfif", format="JPEG", quality=95)
+    Image.fromarray(textured(seed=6)).save(photos / "scan.bmp")
+    kinds = ["download", "p0", "p1", "p2", "scan"]
+    if PIL.features.check("avif"):
+        Image.fromarray(textured(seed=7)).save(photos / "phone.avif", quality=95)
+        kinds.append("phone")
+    out, listing = run_ingest(photos, tmp_path)
+    assert sorted(r["name"] for r in listing["images"]) == sorted(kinds) and not listing["skipped"]
+    assert np.abs(read_rgb(out / "images" / "scan.png").astype(int) - textured(seed=6)).max() == 0
 
 
 def test_exif_orientation_is_applied(photos, tmp_path):
@@ -201,6 +214,16 @@ def test_a_folder_holding_one_video_reads_the_video_and_one_of_two_names_them(tm
         run_ingest(clip, tmp_path / "second")
 
 
+def test_videos_beside_photos_are_named_as_not_read_not_as_unreadable(tmp_path, photos, capsys):
+    for i in range(2):       # a phone's Live Photos: each photo's short clip beside it
+        panning_video(photos / f"p{i}.mov", 10)
+    out, listing = run_ingest(photos, tmp_path)
+    assert len(listing["images"]) == 3 and listing["skipped"] == []
+    assert "3 images at 80x60, 2 video(s) beside them not read" in json.loads((out / "manifest.json").read_text())[
+        "summary"]["line"]
+    assert "2 video(s) beside the photos are not read: p0.mov, p1.mov" in capsys.readouterr().err
+
+
 def test_video_keeps_more_frames_where_the_camera_moves_faster(tmp_path):
     slow = run_ingest(panning_video(tmp_path / "slow.avi", 60, step_px=1), tmp_path / "a", "ingest.video_fps=100",
                       "ingest.video_frames=0")[1]
@@ -317,6 +340,49 @@ def test_photos_a_pose_file_describes_keep_their_bars_and_a_crop_refuses_poses_g
     whole.run(["ingest"])
     assert {(r["width"], r["height"]) for r in json.loads((tmp_path / "whole" / "out" / "ingest" / "images.json")
                                                            .read_text())["images"]} == {(40, 100)}
+
+
+def write_dng(path, rgb: np.ndarray, orientation: int = 1) -> None:
+    """A camera's RAW file as a DNG: an RGGB mosaic of `rgb` (as sRGB) in linear 12-bit light, sRGB primaries, a white
+    balance of one."""
+    tifffile = pytest.importorskip("tifffile", reason="tifffile (with scikit-image) writes the test's DNG files")
+    linear = (rgb / 255.0) ** 2.2 * 4095
+    mosaic = np.empty(rgb.shape[:2], np.uint16)
+    for (dy, dx), channel in zip([(0, 0), (0, 1), (1, 0), (1, 1)], [0, 1, 1, 2]):
+        mosaic[dy::2, dx::2] = linear[dy::2, dx::2, channel]
+    xyz_to_srgb = [3.2406, -1.5372, -0.4986, -0.9689, 1.8758, 0.0415, 0.0557, -0.2040, 1.0570]
+    rationals = [v for x in xyz_to_srgb for v in (round(x * 10000), 10000)]
+    tags = [(33421, "H", 2, (2, 2), False), (33422, "B", 4, (0, 1, 1, 2), False), (50706, "B", 4, (1, 4, 0, 0), False),
+            (50708, "s", 0, "Synthetic", False), (50714, "H", 1, (0,), False), (50717, "H", 1, (4095,), False),
+            (50721, "2i", 9, rationals, False), (50778, "H", 1, (21,), False), (50728, "2I", 3, (1,) * 6, False),
+            (274, "H", 1, (orientation,), False)]
+    tifffile.imwrite(path, mosaic, photometric=32803, extratags=tags, metadata=None, subfiletype=0)
+
+
+def smooth(h=60, w=80, seed=0):
+    """A photo of soft shapes, which a mosaic keeps: demosaicing rebuilds it closely."""
+    return cv2.GaussianBlur(textured(h, w, seed), (0, 0), 2)
+
+
+def test_raw_photos_are_developed_upright_and_a_raw_beside_its_jpeg_is_left_for_the_jpeg(tmp_path):
+    pytest.importorskip("rawpy", reason="rawpy (a base dependency: make install) develops RAW photos")
+    folder = tmp_path / "camera"
+    folder.mkdir()
+    for i in range(3):
+        write_dng(folder / f"IMG_{i}.dng", smooth(seed=i))
+        Image.fromarray(smooth(seed=i)).save(folder / f"IMG_{i}.JPG", quality=95)   # the camera's own JPEG
+    write_dng(folder / "IMG_3.dng", smooth(seed=3))                                # RAW only
+    write_dng(folder / "IMG_4.dng", smooth(seed=4), orientation=6)                 # held upright
+    out, listing = run_ingest(folder, tmp_path)
+    sources = sorted(r["source"] for r in listing["images"])
+    assert sources == ["IMG_0.JPG", "IMG_1.JPG", "IMG_2.JPG", "IMG_3.dng", "IMG_4.dng"]
+    developed = read_rgb(out / "images" / "IMG_3.png").astype(float)
+    assert developed.shape == (60, 80, 3) and np.abs(developed - smooth(seed=3))[4:-4, 4:-4].mean() < 10
+    turned = read_rgb(out / "images" / "IMG_4.png").astype(float)
+    assert turned.shape == (80, 60, 3)
+    assert np.abs(turned - np.rot90(smooth(seed=4), -1))[4:-4, 4:-4].mean() < 10
+    line = json.loads((out / "manifest.json").read_text())["summary"]["line"]
+    assert "3 RAW files left for the developed photos of their names" in line and "skipped" not in line
 
 
 def test_a_dark_picture_and_a_thin_border_are_not_taken_for_bars():
