@@ -15,8 +15,8 @@ from stages.common.media import write_png
 from stages.common.json_files import write_json
 from stages.capture.masks import mask_folder, match_masks, read_mask
 from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, colour_spread, colourless_among_colour, fit_max_side,
-                                   is_split_dataset, load_photo, photo_folder, photos_picture, raw_twins, repeated,
-                                   scene_photos, sharpness, stored_orientation, thumbnail, video_frames)
+                                   is_split_dataset, load_photo, not_a_scene, photo_folder, photos_picture, raw_twins,
+                                   repeated, scene_photos, sharpness, stored_orientation, thumbnail, video_frames)
 from stages.sfm import pose_files
 from stages.common.text import short_list
 from plenoxels.core.errors import UserError
@@ -72,7 +72,7 @@ def run(ctx) -> dict:
 
     if ctx.scene.is_file():
         if ctx.scene.suffix.lower() not in VIDEO_SUFFIXES:
-            raise UserError(f"{ctx.scene.name} is neither a folder of photos nor a video ({', '.join(sorted(VIDEO_SUFFIXES))})")
+            raise UserError(not_a_scene(ctx.scene))
         frames, clip = video_frames(ctx.scene, s.max_side, s.video_motion, s.video_fps, ctx.report,
                                     s.video_frames, s.crop_bars)
         for name, rgb in frames:

@@ -159,6 +159,19 @@ def scene_source(scene: Path) -> Path:
     return videos[0] if videos else scene
 
 
+ARCHIVE_SUFFIXES = {".zip", ".tar", ".gz", ".tgz", ".bz2", ".xz", ".7z", ".rar"}
+
+
+def not_a_scene(path: Path) -> str:
+    """Why a file given as the scene is not one, and what to give instead."""
+    suffix = path.suffix.lower()
+    if suffix in IMAGE_SUFFIXES:
+        return f"{path.name} is one photo; give the folder that holds the scene's photos ({path.parent})"
+    if suffix in ARCHIVE_SUFFIXES:
+        return f"{path.name} is an archive; unpack it and give the folder of photos it holds"
+    return f"{path.name} is neither a folder of photos nor a video ({', '.join(sorted(VIDEO_SUFFIXES))})"
+
+
 def scene_photos(scene: Path, holdout_split: str) -> list[tuple[Path, str | None]]:
     """The photo files of a folder scene, each with its split when the dataset defines one: a NeRF synthetic folder
     gives train/ as "train" and the `holdout_split` folder ("val" or "test"; "none": none) as "test"."""

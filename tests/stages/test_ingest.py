@@ -56,6 +56,17 @@ def test_photos_as_browsers_and_old_cameras_save_them(photos, tmp_path):
     assert np.abs(read_rgb(out / "images" / "scan.png").astype(int) - textured(seed=6)).max() == 0
 
 
+@pytest.mark.parametrize("name, says", [("p0.jpg", r"p0.jpg is one photo; give the folder that holds the scene's photos"),
+                                        ("photos.zip", "photos.zip is an archive; unpack it and give the folder"),
+                                        ("notes.txt", "notes.txt is neither a folder of photos nor a video")])
+def test_a_file_that_is_no_scene_says_what_to_give(photos, tmp_path, name, says):
+    given = photos / name
+    if not given.exists():
+        given.write_bytes(b"PK\x03\x04" if name.endswith(".zip") else b"a note")
+    with pytest.raises(UserError, match=says):
+        run_ingest(given, tmp_path)
+
+
 def test_exif_orientation_is_applied(photos, tmp_path):
     pixels = textured(60, 80, seed=9)
     pixels[:10, :10] = 255  # a white top-left corner marks the stored orientation
