@@ -3,6 +3,7 @@ downscaling, sharpness scoring and picking the sharpest video frames."""
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 
@@ -433,37 +434,54 @@ def video_picture(path: Path) -> tuple[slice, slice] | None:
 
 
 def video_frames(path: Path, max_side: int, motion: float, max_per_second: float, report,
-                 target_frames: int = 0, crop_bars: bool = True) -> tuple[list[tuple[str, np.ndarray]], dict]:
+                 target_frames: int = 0, crop_bars: bool = True,
+                 max_frames: int = 0) -> tuple[list[tuple[str, np.ndarray]], dict]:
     """(name, RGB) of the frames to pose from a video (see frames_by_motion), and what the clip gave: its `seconds`,
     the `motion` the frames were kept at and `total_motion` (diagonals the view moved in all). A clip whose motion
     gives fewer than `target_frames` at `motion` (a short clip, or a camera that moved little) is read again with
     frames closer together, as close as the motion allows for `target_frames` but never below MIN_MOTION_SHARE of
-    `motion`, nor more than `max_per_second` a second. With `crop_bars`, black bars along the frame's edges
-    (`video_picture`) are cropped from every frame before anything else, and the clip's `bars` say what was kept:
-    [x, y, width, height] of the frame's [width, height]."""
+    `motion`, nor more than `max_per_second` a second. A clip that gives more than `max_frames` (0: no limit; a
+    long one) is read again keeping every `every`-th frame due, so the frames span the whole clip and memory holds
+    no more than that many. With `crop_bars`, black bars along the frame's edges (`video_picture`) are cropped from
+    every frame before anything else, and the clip's `bars` say what was kept: [x, y, width, height] of the frame's
+    [width, height]."""
     picture = video_picture(path) if crop_bars else None
-    kept, clip = frames_by_motion(path, max_side, motion, max_per_second, report, picture)
+
+    def read(at: float, every: int = 1) -> tuple[list[tuple[str, np.ndarray]], dict]:
+        return frames_by_motion(path, max_side, at, max_per_second, report, picture, max_frames if every == 1 else 0,
+                                every)
+
+    kept, clip = read(motion)
     used = motion
     for _ in range(VIDEO_RETRIES):
-        if not target_frames or len(kept) >= target_frames or len(kept) >= clip["most_frames"]:
+        if not target_frames or clip["due"] >= target_frames or clip["due"] >= clip["most_frames"]:
             break
         denser = max(motion * MIN_MOTION_SHARE, min(used * 0.7, clip["total_motion"] / target_frames))
         if denser >= used:
             break
         used = denser
-        kept, clip = frames_by_motion(path, max_side, used, max_per_second, report, picture)
-    return kept, {**clip, "motion": used, "max_per_second": max_per_second}
+        kept, clip = read(used)
+    every = 1
+    if max_frames and clip["due"] > max_frames:
+        every = math.ceil(clip["due"] / max_frames)
+        kept, clip = read(used, every)
+        if len(kept) > max_frames:  # the second reading's stretches fell a little differently
+            kept = [kept[i] for i in np.linspace(0, len(kept) - 1, max_frames).round().astype(int)]
+    return kept, {**clip, "motion": used, "every": every, "max_per_second": max_per_second}
 
 
 def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: float, report,
-                     picture: tuple[slice, slice] | None = None) -> tuple[list[tuple[str, np.ndarray]], dict]:
+                     picture: tuple[slice, slice] | None = None, max_frames: int = 0,
+                     keep_every: int = 1) -> tuple[list[tuple[str, np.ndarray]], dict]:
     """(name, RGB) of the frames to pose from a video, upright (its rotation metadata applied), cropped to
     `picture` (rows, columns) where given, downscaled to
     `max_side`, and the clip's `seconds`, `total_motion` and `most_frames` (what `max_per_second` allows). A frame is
     due each time the view has moved by `motion` of the frame's diagonal since the last kept
     frame (the median motion of corners tracked from it by optical flow), or when fewer than half of those corners
     can still be followed, so neighbours keep overlapping however fast or slowly the camera moved; of the frames
-    in the last stretch before that point, the sharpest is kept. At most `max_per_second` frames per second of video."""
+    in the last stretch before that point, the sharpest is kept. At most `max_per_second` frames per second of video.
+    Of the frames due, every `keep_every`-th is kept (the first included). Past `max_frames` (0: no limit) the frames
+    due are only counted, their pixels let go, and none are returned: the clip's `due` says how many there were."""
     capture = cv2.VideoCapture(str(path))
     if not capture.isOpened():
         raise UserError(f"cannot read video {path.name}; convert it to MP4 (H.264) or extract photos")
@@ -475,13 +493,22 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
     # The sharpest candidate since the stretch began, (sharpness, index, rgb): one frame held, however long the stretch.
     best: tuple[float, int, np.ndarray] | None = None
     previous = points = start = None
-    index, last_kept, tracked = 0, -min_gap, 0
+    index, last_kept, tracked, due = 0, -min_gap, 0, 0
     total_motion, counted = 0.0, 0.0  # diagonals moved in all: the stretches ended, and the current one so far
+    counting = False  # past max_frames: the frames due are counted, and none held
 
-    def keep(frame: tuple[float, int, np.ndarray]) -> None:
-        nonlocal last_kept
-        kept.append((f"frame_{frame[1]:06d}", frame[2]))
-        last_kept = frame[1]
+    def keeping() -> bool:
+        """Whether the next frame due is kept, so its stretch's candidates need their pixels."""
+        return due % keep_every == 0 and not counting
+
+    def keep(frame: tuple[float, int, np.ndarray | None]) -> None:
+        nonlocal last_kept, due, counting
+        if frame[2] is not None:
+            kept.append((f"frame_{frame[1]:06d}", frame[2]))
+            if max_frames and len(kept) > max_frames:
+                kept.clear()
+                counting = True
+        last_kept, due = frame[1], due + 1
 
     with report.bar(total=total, desc=f"reading {path.name}") as bar:
         while True:
@@ -505,9 +532,11 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
                 total_motion, counted = total_motion + counted, 0.0
                 points = _corners(grey)
                 start, tracked = points, len(points) if points is not None else 0
-                if not kept:  # the first frame anchors the sequence
+                if not due:  # the first frame anchors the sequence
                     rgb = fit_max_side(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), max_side)
                     keep((sharpness(rgb), index, rgb))
+            elif (moved >= CANDIDATE_SHARE * motion or lost) and not keeping():
+                best = best or (0.0, index, None)
             elif moved >= CANDIDATE_SHARE * motion or lost:
                 rgb = fit_max_side(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), max_side)
                 score = sharpness(rgb)
@@ -532,4 +561,4 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
         bars = {"bars": {"frame": [frame_shape[1], frame_shape[0]],
                          "kept": [columns.start, rows.start, columns.stop - columns.start, rows.stop - rows.start]}}
     return kept, {"seconds": round(index / fps, 2), "total_motion": round(total_motion + counted, 4),
-                  "most_frames": index // min_gap + 1, **bars}
+                  "most_frames": index // min_gap + 1, "due": due, **bars}

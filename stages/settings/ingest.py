@@ -32,6 +32,10 @@ class Settings:
     with frames closer together (down to a quarter of video_motion, at most video_fps a second). More views of each
     point make new views sharper: ball's 16 s video, on the same held-out views, 26.83 dB from 109 training frames,
     25.01 from 55 (bench/README.md, "Real captures"). 0: keep video_motion whatever the clip gives."""
+    video_max_frames: int = 300
+    """From a video, keep at most this many frames: a longer clip keeps every second (third, ...) frame of those its
+    motion gives, so they span the whole clip; memory holds no more, and SfM's time grows with each frame
+    (0: no limit)."""
     video_min_frames: int = 30
     """From a video, fewer frames than this, read as close together as video_frames allows, are too few for a good
     fit, which the summary says (0: never say so)."""
@@ -56,6 +60,8 @@ class Settings:
         require(0 < self.video_motion < 1, "ingest.video_motion must be in (0, 1): a share of the frame's diagonal")
         require(self.video_frames >= 0, "ingest.video_frames must be >= 0 (0: keep ingest.video_motion)")
         require(self.video_min_frames >= 0, "ingest.video_min_frames must be >= 0 (0: off)")
+        require(self.video_max_frames == 0 or self.video_max_frames >= max(3, self.video_min_frames),
+                "ingest.video_max_frames must be 0 (no limit) or at least ingest.video_min_frames (and 3)")
         require(self.min_images >= 3, "ingest.min_images must be at least 3 (fewer cannot be posed)")
         require(self.holdout_split in ("val", "test", "none"), "ingest.holdout_split must be val, test or none")
         require(self.mask_threshold == "auto" or 0 <= int(self.mask_threshold) <= 254,

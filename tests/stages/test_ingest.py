@@ -279,6 +279,22 @@ def test_a_clip_that_moves_little_is_read_again_with_frames_closer_together(tmp_
     assert "too short" not in line     # the frames aimed for and the fewest for a good fit are two settings
 
 
+def test_a_long_clip_keeps_at_most_video_max_frames_spread_over_all_of_it(tmp_path):
+    # 2 px a frame at 4% of the 100 px diagonal: a frame due every 2 frames, about 60 of 120.
+    video = panning_video(tmp_path / "long.avi", 120, step_px=2)
+    every = run_ingest(video, tmp_path / "a", "ingest.video_fps=100", "ingest.video_motion=0.04",
+                       "ingest.video_frames=0", "ingest.video_max_frames=0", "ingest.video_min_frames=3")[1]
+    out, capped = run_ingest(video, tmp_path / "b", "ingest.video_fps=100", "ingest.video_motion=0.04",
+                             "ingest.video_frames=0", "ingest.video_max_frames=20", "ingest.video_min_frames=3")
+    due = len(every["images"])
+    assert due > 40 and capped["video"]["due"] == pytest.approx(due, abs=2)
+    kept = [int(r["name"].split("_")[1]) for r in capped["images"]]
+    assert 15 <= len(kept) <= 20 and capped["video"]["every"] == -(-capped["video"]["due"] // 20)
+    assert kept[0] == 0 and kept[-1] >= 100                    # from the clip's start to its end
+    line = json.loads((out / "manifest.json").read_text())["summary"]["line"]
+    assert f"one in {capped['video']['every']} of the {capped['video']['due']} that spacing gave" in line
+
+
 def test_a_clip_too_short_for_a_good_fit_says_so(tmp_path):
     video = panning_video(tmp_path / "short.avi", 20, step_px=2)   # 2 s at 10 frames a second
     out, listing = run_ingest(video, tmp_path, "ingest.video_fps=3", "ingest.video_min_frames=30")
