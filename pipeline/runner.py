@@ -196,7 +196,7 @@ class Pipeline:
                            upstream={d: self.out / d for d in self.graph.declaration(name).DEPENDS},
                            scene_type=plan.scene_type, report=self.report)
         self.report.info(f"{name}: running")
-        started = time.time()
+        started = time.monotonic()
         summary = module.run(ctx)
         if not isinstance(summary, dict) or "line" not in summary:
             raise TypeError(f"stage {name} must return a summary dict with a 'line'")
@@ -205,7 +205,7 @@ class Pipeline:
             "stage": name, "run_id": uuid.uuid4().hex, "key": plan.key, "upstream": plan.upstream_keys, "settings": plan.settings_dict,
             "code": plan.code, "input": plan.fingerprint, "scene": str(self.scene), "scene_type": plan.scene_type,
             "started": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(started)),
-            "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "seconds": round(time.time() - started, 2),
+            "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "seconds": round(time.monotonic() - started, 2),
             "summary": summary, "files": output_files(work),
         }
         write_json(work / MANIFEST, manifest)

@@ -67,7 +67,7 @@ def run(ctx) -> dict:
     if held_out and not with_lpips:
         ctx.report.warn("LPIPS not scored: its weights are not installed; run `make install`")
     sheet_names = {f["name"] for f in _spread(held_out, s.sheet_rows)}
-    started = time.time()
+    started = time.monotonic()
     for frame in ctx.report.track(held_out, desc="rendering held-out views"):
         truth, k, mask = read_frame(ctx.out, frame, scale, model.background_color)
         with torch.no_grad():
@@ -86,7 +86,7 @@ def run(ctx) -> dict:
         if frame["name"] in sheet_names:
             sheet_rows.append((to_uint8(truth), to_uint8(render), error_image(render, truth)))
             captions.append(_caption(views[-1]))
-    render_seconds = time.time() - started
+    render_seconds = time.monotonic() - started
     if sheet_rows:
         write_png(ctx.work / "contact_sheet.png", contact_sheet(sheet_rows, s.sheet_side, captions))
 

@@ -51,7 +51,7 @@ MODEL_TRIAL = "model_trial.json"
 
 
 def run(ctx) -> dict:
-    started = time.time()
+    started = time.monotonic()
     s: Settings = ctx.settings
     device = resolve_device(s.device)
     if device.type != "cpu":

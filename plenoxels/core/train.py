@@ -205,16 +205,16 @@ class Fitter:
         propagates; so does Diverged, leaving the last checkpoint, which was written from finite parameters.
         The schedule is consulted at every step, so its owner may change the levels not yet done (a time budget
         does, to end on time)."""
-        started = time.time() - self.elapsed
-        last_save = time.time()
+        started = time.monotonic() - self.elapsed
+        last_save = time.monotonic()
         stopped = False
         try:
             while self.step < self.schedule.total_steps:
                 if self.step == self.level_end(self.level):
                     self.next_level()
-                    self.elapsed = time.time() - started
+                    self.elapsed = time.monotonic() - started
                     self.save_checkpoint(checkpoint)
-                    last_save = time.time()
+                    last_save = time.monotonic()
                     if on_level is not None:
                         on_level(self.model.grid)
                 mse = self.train_step()
@@ -222,26 +222,26 @@ class Fitter:
                 if on_step is not None:
                     on_step(mse)
                 if eval_every and held_out_psnr is not None and self.step % eval_every == 0:
-                    self.history.append({"step": self.step, "seconds": round(time.time() - started, 1),
+                    self.history.append({"step": self.step, "seconds": round(time.monotonic() - started, 1),
                                          "train_psnr": round(self.train_psnr(), 3),
                                          "held_out_psnr": round(held_out_psnr(self.model), 3)})
                     if on_eval is not None:
                         on_eval(self.history[-1])
-                if time.time() - last_save > checkpoint_every:
-                    self.elapsed = time.time() - started
+                if time.monotonic() - last_save > checkpoint_every:
+                    self.elapsed = time.monotonic() - started
                     self.save_checkpoint(checkpoint)
-                    last_save = time.time()
+                    last_save = time.monotonic()
                 if stop_requested():
                     stopped = True
                     break
         except KeyboardInterrupt:
-            self.elapsed = time.time() - started
+            self.elapsed = time.monotonic() - started
             try:
                 self.save_checkpoint(checkpoint)
             except Diverged:
                 pass  # keep the earlier, finite checkpoint
             raise
-        self.elapsed = time.time() - started
+        self.elapsed = time.monotonic() - started
         if stopped:
             self.save_checkpoint(checkpoint)
         elif self.options.prune_final:

@@ -46,7 +46,7 @@ CALIBRATION_SHARE = 0.25
 class BudgetClock:
     """The time a fit has, from when, and where its plan is kept so that a resumed fit keeps it."""
     seconds: float
-    started: float                  # time.time() the budget counts from
+    started: float                  # time.monotonic() the budget counts from
     plan_file: Path | None = None
     resume: bool = False            # the fit resumes from a checkpoint: keep the plan saved in plan_file
 
@@ -105,7 +105,7 @@ class TimeBudget:
         self._save_plan()
 
     def left(self) -> float:
-        return self.deadline - time.time()
+        return self.deadline - time.monotonic()
 
     def attach(self, fitter: Fitter) -> None:
         """Follows `fitter` from here; a resumed fit has already used `fitter.elapsed` of the budget, and its level

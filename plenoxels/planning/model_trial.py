@@ -208,7 +208,7 @@ def run(scene: dict, options, train: RaySet, device: torch.device, asked: list[Q
     models = [default] + sorted({m for q in asked for m in q.models} - {default})
     base = trial_options(options)
     per_model = seconds / len(models) if seconds else None
-    started = time.time()
+    started = time.monotonic()
     runs = [_Run(scene, replace(base, **MODELS[name]), name, fitted, device) for name in models]
     record = {"questions": [{"models": list(q.models), "why": q.why} for q in asked], "proxies_pick": default}
     if per_model is not None:
@@ -217,7 +217,7 @@ def run(scene: dict, options, train: RaySet, device: torch.device, asked: list[Q
         short = [trial for trial in runs if trial.projected_steps(per_model) < base.steps[0]]
         if short:
             record["probed"] = [trial.probe_record(per_model) for trial in runs]
-            record["seconds"] = round(time.time() - started, 1)
+            record["seconds"] = round(time.monotonic() - started, 1)
             record["seconds_allowed"] = round(seconds, 1)
             record["skipped"] = (f"the budget's {seconds:.0f} s for a trial would take "
                                  + ", ".join(f"{t.name} about {t.projected_steps(per_model):.0f} steps" for t in short)
@@ -243,7 +243,7 @@ def run(scene: dict, options, train: RaySet, device: torch.device, asked: list[Q
                ", ".join(f"{t.model} {t.held_out_psnr:.2f} dB" for t in tried if t is not by_default) + ")")
     record.update({"chosen": winner.model, "why": why, "margin_db": MARGIN_DB, "tried": [t.record() for t in tried],
                    "resolution": base.resolutions[0], "steps": base.total_steps, "fitted_photos": len(fitted),
-                   "scored_photos": len(held), "seconds": round(time.time() - started, 1),
+                   "scored_photos": len(held), "seconds": round(time.monotonic() - started, 1),
                    "seconds_allowed": round(seconds, 1) if seconds else None})
     return Outcome(winner.model, why, record)
 
@@ -252,24 +252,24 @@ class _Run:
     """One model's trial fit: stepped a few steps at a time, its time kept, scored where it stands."""
 
     def __init__(self, scene: dict, options, name: str, fitted: RaySet, device: torch.device):
-        started = time.time()
+        started = time.monotonic()
         self.name, self.options = name, options
         model = SceneModel.create(scene, options, options.resolutions[0], focal_px=float(fitted.k[:, :2].median()),
                                   mean_colour=fitted.mean_colour())
         self.fitter = Fitter(model, options, fitted, device)
         self.step_seconds: list[float] = []
-        self.seconds = time.time() - started
+        self.seconds = time.monotonic() - started
 
     def advance(self, steps: int | None = None, seconds: float | None = None) -> None:
         """`steps` more steps (None: to the trial's last step), or fewer where its time passes `seconds` in all."""
         fitter = self.fitter
         end = min(self.options.total_steps, fitter.step + steps if steps is not None else self.options.total_steps)
         while fitter.step < end and (seconds is None or self.seconds <= seconds):
-            begun = time.time()
+            begun = time.monotonic()
             if fitter.step == fitter.level_end(fitter.level):
                 fitter.next_level()
             fitter.train_step()
-            self.step_seconds.append(time.time() - begun)
+            self.step_seconds.append(time.monotonic() - begun)
             self.seconds += self.step_seconds[-1]
 
     def projected_steps(self, seconds: float) -> float:
@@ -284,14 +284,14 @@ class _Run:
     def finish(self, scored: RaySet, seconds: float | None) -> Tried:
         """Its steps to the trial's last step or to `seconds` in all, then its PSNR on the photos it did not fit."""
         self.advance(seconds=seconds)
-        begun = time.time()
+        begun = time.monotonic()
         per_view = []
         with torch.no_grad():
             for i in range(len(scored)):
                 rgb = self.fitter.model.render_camera(scored.c2w[i].double().cpu().numpy(), scored.intrinsics[i],
                                                       backdrop=scored.backdrop(i))["rgb"]
                 per_view.append(psnr(float(((rgb.cpu() - scored.image(i).cpu()) ** 2).mean())))
-        self.seconds += time.time() - begun
+        self.seconds += time.monotonic() - begun
         tried = Tried(self.name, float(np.mean(per_view)), self.fitter.train_psnr(), self.seconds, self.fitter.step,
                       per_view)
         self.fitter = None  # its grid and optimiser freed before the next model's steps

@@ -181,11 +181,11 @@ def distill(splats: Splats, views: list[TargetView], background, seconds: float,
     optimiser = RowAdam(rows.data, rows.rates(LR), size, rows.columns["means"])
     rng = np.random.default_rng(seed)
     background = torch.as_tensor(background, dtype=torch.float32)
-    started, scores = time.time(), []
+    started, scores = time.monotonic(), []
     with one_thread():
         errors = WindowErrors(views, window, error_share, error_power)
         _steps(rows, optimiser, views, background, errors, windows_per_visit, rng, seconds, max_steps, started, scores)
-    elapsed = time.time() - started
+    elapsed = time.monotonic() - started
     tenth = max(1, len(scores) // 10)
     return rows.splats(), {"steps": len(scores), "seconds": round(elapsed, 2),
                            "steps_per_second": round(len(scores) / elapsed, 3), "window": window,
@@ -197,7 +197,7 @@ def _steps(rows: SplatRows, optimiser: RowAdam, views: list[TargetView], backgro
            errors: WindowErrors, windows_per_visit: int, rng: np.random.Generator, seconds: float,
            max_steps: int | None, started: float, scores: list[float]) -> None:
     def more() -> bool:
-        return len(scores) < max_steps if max_steps is not None else time.time() - started < seconds
+        return len(scores) < max_steps if max_steps is not None else time.monotonic() - started < seconds
 
     while more():
         index = errors.draw_view(rng)

@@ -51,7 +51,7 @@ def fit_splats(model: SceneModel, frames: list[dict], max_splats: int, min_weigh
                max_views: int, seconds: float, window: int, seed: int = 0, track=lambda items, desc: items
                ) -> tuple[Splats, dict]:
     """Splats of the model in its normalised world, and a record of how they were made."""
-    started = time.time()
+    started = time.monotonic()
     views, weights = target_views(model, training_views(frames, max_views), scale, track)
     splats = splats_from_grid(model.grid, model.fit_frame, weights, max_splats, min_weight)
     grid_count, background_count = splats.count, 0
@@ -65,4 +65,4 @@ def fit_splats(model: SceneModel, frames: list[dict], max_splats: int, min_weigh
     return splats, {"count": splats.count, "grid_splats": grid_count, "background_splats": background_count,
                     "capped": grid_count >= max_splats,
                     "sh_degree": splats.sh_degree, "training_views": len(views), "view_scale": scale,
-                    "distillation": distilled, "seconds": round(time.time() - started, 2)}
+                    "distillation": distilled, "seconds": round(time.monotonic() - started, 2)}

@@ -250,7 +250,7 @@ def render_cameras(model, cameras: CameraSet, out: Path, report, input_units_per
         cameras = replace(cameras, cameras=[replace(c, intrinsics=even_size(c.intrinsics)) for c in cameras.cameras])
         writer = imageio.get_writer(out / "video.mp4", fps=cameras.fps, codec="libx264", quality=7, macro_block_size=1)
     views = []
-    started = time.time()
+    started = time.monotonic()
     try:
         for cam in report.track(cameras.cameras, desc=f"rendering {len(cameras.cameras)} views"):
             with torch.no_grad():
@@ -271,7 +271,7 @@ def render_cameras(model, cameras: CameraSet, out: Path, report, input_units_per
         if writer is not None:
             writer.close()
     metrics = {"source": cameras.source, "count": len(views), "views": views, "mean": mean_scores(views),
-               "scored": sum(1 for v in views if "psnr" in v), "render_seconds": round(time.time() - started, 2),
+               "scored": sum(1 for v in views if "psnr" in v), "render_seconds": round(time.monotonic() - started, 2),
                "video": "video.mp4" if cameras.is_path else None,
                "lpips": "AlexNet, v0.1 (stages/scoring/lpips.py)" if with_lpips else None}
     write_json(out / METRICS_JSON, metrics)

@@ -31,7 +31,7 @@ def score_splats(root: Path, splats: Splats, model: SceneModel, frames: list[dic
     """{views, psnr (splats vs photos), psnr_vs_field, field_psnr (field vs photos), seconds} over up to `limit`
     held-out views (split "test"); views 0 and no scores where there are none."""
     held_out = spread([f for f in frames if f.get("split") == "test"], limit)
-    started, rows = time.time(), []
+    started, rows = time.monotonic(), []
     for frame in track(held_out, desc="scoring the splats on the held-out views"):
         truth, k = load_frame(root, frame, scale, model.background_color)
         c2w = np.asarray(frame["transform_matrix"], dtype=np.float64)
@@ -46,4 +46,4 @@ def score_splats(root: Path, splats: Splats, model: SceneModel, frames: list[dic
         return {"views": 0}
     psnr, vs_field, field_psnr = (round(float(np.mean(column)), 3) for column in zip(*rows))
     return {"views": len(rows), "scale": scale, "psnr": psnr, "psnr_vs_field": vs_field, "field_psnr": field_psnr,
-            "seconds": round(time.time() - started, 2)}
+            "seconds": round(time.monotonic() - started, 2)}

@@ -25,7 +25,7 @@ class FitInputs:
     held_out: HeldOut
     seen: HeldOut           # training views rendered as the held-out ones are
     device: torch.device
-    started: float          # time.time() the stage started at; the time budget counts from it
+    started: float          # time.monotonic() the stage started at; the time budget counts from it
     choice: dict            # model_trial.choose's record
 
 
@@ -93,7 +93,7 @@ def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBu
                                      "model_bytes": memory["background"], "optimiser_bytes": optimiser_bytes}
     if budget is not None:
         record["budget"] = budget.record(ending.at_deadline)
-        record["budget"]["stage_seconds"] = round(time.time() - budget.started, 1)
+        record["budget"]["stage_seconds"] = round(time.monotonic() - budget.started, 1)
     return record
 
 

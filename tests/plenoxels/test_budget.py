@@ -88,6 +88,22 @@ def test_a_budgeted_fit_ends_within_its_budget_with_a_complete_model(fresh):
         assert "less than the coarsest plan needs" in summary["line"]
 
 
+def test_the_wall_clock_set_forward_mid_fit_takes_nothing_from_the_budget(fresh, monkeypatch):
+    """A laptop asleep for an hour, or a clock set by the network: the budget counts the time the fit ran, not the
+    calendar's. The wall clock jumps an hour on once the fit has taken 5 steps."""
+    real_time, steps = time.time, []
+    monkeypatch.setattr(time, "time", lambda: real_time() + (3600.0 if len(steps) > 5 else 0.0))
+    step = Fitter.train_step
+    monkeypatch.setattr(Fitter, "train_step", lambda self: steps.append(1) or step(self))
+    seconds = 6.0
+    started = time.monotonic()
+    run_stage(fresh, fit, {**BUDGETED, "time_budget": f"{seconds:g}s"})
+    record = read_json(fresh / "fit" / "fit.json")
+    assert record["complete"] and len(steps) > 50, len(steps)
+    # It ran for its budget (a fit cut at the jump ends within its calibration's share of it).
+    assert time.monotonic() - started > 0.5 * seconds and record["budget"]["stage_seconds"] <= 1.1 * seconds + 4.0
+
+
 def test_a_budget_on_a_busy_machine_calibrates_within_its_share_and_ends_on_time(fresh, monkeypatch):
     """Every timing of the calibration 0.5 s slower (a machine running twice its cores' work): its finer points, past
     CALIBRATION_SHARE of the budget, are left to a longer budget, and the fit still ends on time."""
