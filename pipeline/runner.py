@@ -27,6 +27,7 @@ from pipeline import config
 from pipeline.disk import (carry_files, damaged_file, folder_bytes, foreign_files, output_files, write_failure,
                            write_failure_line)
 from stages.common.json_files import write_json
+from stages.common.text import text_name
 from stages.capture.photos import scene_source
 from pipeline.report import Reporter
 from pipeline.stage import StageContext, StageGraph
@@ -83,6 +84,9 @@ class Pipeline:
                  reporter: Reporter | None = None, graph: StageGraph = StageGraph()):
         self.scene = scene_source(scene.resolve())
         self.out = out.resolve()
+        if text_name(str(self.out)) != str(self.out):  # COLMAP and OpenCV take paths as UTF-8 text
+            raise UserError(f"the output folder {text_name(str(self.out))} has a name that is not UTF-8 text (its "
+                            "bytes are shown as %XX); give another with --out")
         self.report = reporter or Reporter()
         self.graph = graph
         self.preset = preset

@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from plenoxels.core.errors import UserError
+from stages.common.text import text_name
 
 GENERIC_FOLDER_NAMES = {"images", "photos", "frames", "input", "rgb"}
 SCENE_LIST_SUFFIXES = {".txt", ".list"}
@@ -15,7 +16,7 @@ def scene_name(scene: Path) -> str:
     name = scene.stem if scene.is_file() else scene.name
     if name.lower() in GENERIC_FOLDER_NAMES or name.lower().startswith("images_"):
         name = scene.parent.name
-    return name or "scene"
+    return text_name(name) or "scene"
 
 
 def read_scene_list(items: list[Path]) -> list[Path]:

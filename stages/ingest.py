@@ -18,7 +18,7 @@ from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, colour_spread
                                    is_split_dataset, load_photo, not_a_scene, photo_folder, photos_picture, raw_twins,
                                    repeated, scene_photos, sharpness, stored_orientation, thumbnail, video_frames)
 from stages.sfm import pose_files
-from stages.common.text import short_list
+from stages.common.text import short_list, text_name
 from plenoxels.core.errors import UserError
 from plenoxels.core.photo_colour import capture_key
 from stages.settings.ingest import Settings
@@ -97,7 +97,7 @@ def run(ctx) -> dict:
             if len(set(names)) == len(names):
                 break
             names = [naming(p) for p, _ in photos]
-        name_of = {p: name for (p, _), name in zip(photos, names)}
+        name_of = {p: text_name(name) for (p, _), name in zip(photos, names)}
         masks_given = mask_folder(folder) if s.masks else None
         mask_of = match_masks([folder / p for p, _ in photos], masks_given) if masks_given is not None else {}
         if masks_given is not None and not mask_of:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import tempfile
 from pathlib import Path
 
 import cv2
@@ -13,6 +14,7 @@ import PIL.features
 from PIL import Image, ImageOps
 
 from plenoxels.core.errors import UserError
+from stages.common.text import text_name
 
 # .jfif and .jpe are JPEGs as some browsers save them; AVIF where this Pillow decodes it (11.2 and later).
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".jfif", ".jpe", ".png", ".tif", ".tiff", ".webp", ".bmp", ".heic", ".heif"}
@@ -292,7 +294,7 @@ def upright_size(path: Path) -> tuple[int, int] | None:
     header; None where it cannot be read."""
     try:
         if path.suffix.lower() in RAW_SUFFIXES:
-            with rawpy.imread(str(path)) as raw:
+            with open(path, "rb") as file, rawpy.imread(file) as raw:
                 size, turned = (raw.sizes.width, raw.sizes.height), raw.sizes.flip in (5, 6)
         else:
             with Image.open(path) as im:
@@ -305,7 +307,7 @@ def upright_size(path: Path) -> tuple[int, int] | None:
 def load_raw(path: Path) -> np.ndarray:
     """A RAW photo developed to 8-bit sRGB, upright: the camera's white balance, and no brightening of its own (each
     photo brightened by its own histogram would differ in exposure from the next)."""
-    with rawpy.imread(str(path)) as raw:
+    with open(path, "rb") as file, rawpy.imread(file) as raw:
         return np.ascontiguousarray(raw.postprocess(use_camera_wb=True, no_auto_bright=True, output_bps=8))
 
 
@@ -323,7 +325,9 @@ def load_photo(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
             return rgb, alpha
         if mode not in ("RGB", "RGBA", "L", "LA", "P", "CMYK", "YCbCr", "I;16"):
             raise ValueError(f"unsupported pixel mode {mode}")
-        wide = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.suffix.lower() in {".png", ".tif", ".tiff"} else None
+        # Decoded from its bytes: OpenCV takes a path as UTF-8 and crashes on one that is not (a name from another system).
+        wide = (cv2.imdecode(np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
+                if path.suffix.lower() in {".png", ".tif", ".tiff"} else None)
         if wide is not None and wide.dtype == np.uint16 and wide.ndim == 3:
             # Pillow reads 16-bit colour as 8-bit by truncation; OpenCV keeps the full range.
             wide = cv2.cvtColor(wide, cv2.COLOR_BGRA2RGBA if wide.shape[2] == 4 else cv2.COLOR_BGR2RGB)
@@ -344,6 +348,24 @@ def fit_max_side(image: np.ndarray, max_side: int) -> np.ndarray:
         return image
     size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
+def open_video(path: Path) -> cv2.VideoCapture:
+    """A video opened for reading, upright (its rotation metadata applied), or one line that says it cannot be. A path
+    that is not UTF-8 (a name from another system), which OpenCV cannot take, is opened through a link of a plain name,
+    gone once the file is open."""
+    try:
+        str(path).encode("utf-8")
+        capture = cv2.VideoCapture(str(path))
+    except UnicodeEncodeError:
+        with tempfile.TemporaryDirectory() as folder:
+            link = Path(folder) / "video"
+            link.symlink_to(path.resolve())
+            capture = cv2.VideoCapture(str(link))
+    if not capture.isOpened():
+        raise UserError(f"cannot read video {text_name(path.name)}; convert it to MP4 (H.264) or extract photos")
+    capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 1)
+    return capture
 
 
 def _tracking_grey(bgr: np.ndarray) -> np.ndarray:
@@ -414,10 +436,7 @@ def photos_picture(paths: list[Path]) -> tuple[tuple[int, int], tuple[slice, sli
 def video_picture(path: Path) -> tuple[slice, slice] | None:
     """The picture within a video's black bars (`picture_box` over BAR_SAMPLES frames spread over the clip), or
     None where it has none."""
-    capture = cv2.VideoCapture(str(path))
-    if not capture.isOpened():
-        raise UserError(f"cannot read video {path.name}; convert it to MP4 (H.264) or extract photos")
-    capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 1)
+    capture = open_video(path)
     total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
     # Read on, not seeked: a seek decodes from the last key frame, which cost ball's 127-frame clip 2.2 s for 24
     # samples against 0.5 s to decode it all. A clip of unknown length gives its first samples, 10 frames apart.
@@ -482,10 +501,7 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
     in the last stretch before that point, the sharpest is kept. At most `max_per_second` frames per second of video.
     Of the frames due, every `keep_every`-th is kept (the first included). Past `max_frames` (0: no limit) the frames
     due are only counted, their pixels let go, and none are returned: the clip's `due` says how many there were."""
-    capture = cv2.VideoCapture(str(path))
-    if not capture.isOpened():
-        raise UserError(f"cannot read video {path.name}; convert it to MP4 (H.264) or extract photos")
-    capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 1)
+    capture = open_video(path)
     fps = capture.get(cv2.CAP_PROP_FPS) or 30.0
     total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
     min_gap = max(1, round(fps / max_per_second))

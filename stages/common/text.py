@@ -60,3 +60,14 @@ def parse_duration(value: Any, key: str) -> float:
     if not math.isfinite(seconds) or seconds < 0:
         raise UserError(f"bad value {value!r} for '{key}': a duration must be a finite number of seconds >= 0")
     return seconds
+
+
+def text_name(name: str) -> str:
+    """A file name as text every tool takes: the bytes of a name that are not UTF-8 (written by another system's
+    encoding, which Python keeps as lone surrogates) as %XX, the rest as it is."""
+    try:
+        name.encode("utf-8")
+        return name
+    except UnicodeEncodeError:
+        escaped = name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+        return escaped.replace("\\x", "%")

@@ -254,6 +254,7 @@ KINDS = {
     "animated_gif": one("anim.gif", animated_gif),
     "space_name": one("my photo 1.jpg", lambda p: Image.fromarray(textured(seed=11)).save(p)),
     "non_ascii_name": one("фото-é-写真.jpg", lambda p: Image.fromarray(textured(seed=12)).save(p)),
+    "name_not_utf8": one(os.fsdecode(b"caf\xe9.png"), lambda p: Image.fromarray(textured(seed=13)).save(p)),
     "random_bytes_png": one("noise.png", lambda p: p.write_bytes(np.random.default_rng(0).bytes(4096))),
     "png_header_only": one("head.png", lambda p: p.write_bytes(b"\x89PNG\r\n\x1a\n")),
     "raw_random_bytes": one("IMG_9.CR2", lambda p: p.write_bytes(np.random.default_rng(1).bytes(8192))),

@@ -1,5 +1,6 @@
 """Ingest: every kind of photo becomes an upright 8-bit RGB PNG; bad input is reported, never a traceback."""
 import json
+import os
 import subprocess
 import tracemalloc
 
@@ -12,6 +13,7 @@ from PIL import Image
 from stages.capture.photos import frames_by_motion, picture_box
 from stages.common.media import read_rgb
 from pipeline.report import Reporter
+from pipeline.scenes import scene_name
 from pipeline.runner import Pipeline
 from plenoxels.core.errors import UserError
 
@@ -65,6 +67,22 @@ def test_a_file_that_is_no_scene_says_what_to_give(photos, tmp_path, name, says)
         given.write_bytes(b"PK\x03\x04" if name.endswith(".zip") else b"a note")
     with pytest.raises(UserError, match=says):
         run_ingest(given, tmp_path)
+
+
+def test_names_in_another_systems_encoding_are_read_and_made_text(photos, tmp_path):
+    """Names whose bytes are not UTF-8 (Latin-1 from an old camera card or another system): Python keeps them as lone
+    surrogates, which OpenCV and COLMAP cannot take (OpenCV crashed on a PNG so named)."""
+    latin = os.fsdecode(b"caf\xe9")
+    wide = (textured(seed=3).astype(np.uint16) * 257)
+    cv2.imencode(".png", cv2.cvtColor(wide, cv2.COLOR_RGB2BGR))[1].tofile(photos / f"{latin}.png")
+    out, listing = run_ingest(photos, tmp_path / "a")
+    assert "caf%e9" in [r["name"] for r in listing["images"]] and (out / "images" / "caf%e9.png").is_file()
+    video = panning_video(tmp_path / "pan.avi", 30, step_px=2).rename(tmp_path / f"{latin}.avi")
+    _, frames = run_ingest(video, tmp_path / "b", "ingest.video_fps=100", "ingest.video_min_frames=3")
+    assert len(frames["images"]) >= 3 and frames["images"][0]["source"] == f"{latin}.avi"
+    assert scene_name(tmp_path / latin / "images") == "caf%e9"
+    with pytest.raises(UserError, match="not UTF-8 text"):
+        Pipeline(photos, tmp_path / latin, reporter=Reporter(quiet=True))
 
 
 def test_exif_orientation_is_applied(photos, tmp_path):

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import shutil
 from pathlib import Path
@@ -299,6 +300,20 @@ def test_exif_focal_length_starts_the_shared_camera(scene, truth, tmp_path):
     assert manifest["summary"]["registered"] == len(stems)
     transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
     assert transforms["original_camera"]["params"][0] == pytest.approx(truth["fl_x"], rel=0.02)
+
+
+def test_a_photo_whose_name_is_not_utf8_is_posed_under_a_name_every_tool_takes(scene, truth, tmp_path):
+    """A name written in another system's encoding (Latin-1 from an old camera card): Python reads its bytes as lone
+    surrogates, which COLMAP's names cannot hold."""
+    folder = tmp_path / "card"
+    folder.mkdir()
+    stems = sorted(frames_by_name(truth))[:12]
+    for stem in stems:
+        name = os.fsdecode(b"caf\xe9_" + stem.encode() + b".png") if stem == stems[3] else f"{stem}.png"
+        shutil.copy(scene / "images" / f"{stem}.png", folder / name)
+    manifest = run_poses(folder, tmp_path / "out", "poses.source=sfm")
+    names = [f["name"] for f in read_json(tmp_path / "out" / "poses" / "transforms.json")["frames"]]
+    assert f"caf%e9_{stems[3]}" in names and manifest["summary"]["registered"] == len(stems)
 
 
 def test_a_phones_zoomed_photos_get_their_own_cameras(scene, truth, tmp_path):
