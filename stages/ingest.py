@@ -16,7 +16,8 @@ from stages.common.json_files import write_json
 from stages.capture.masks import mask_folder, match_masks, read_mask
 from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, colour_spread, colourless_among_colour, fit_max_side,
                                    is_split_dataset, load_photo, not_a_scene, photo_folder, photos_picture, raw_twins,
-                                   repeated, scene_photos, sharpness, stored_orientation, thumbnail, video_frames)
+                                   repeated, scene_photos, sequence_step, sharpness, stored_orientation, thumbnail,
+                                   video_frames)
 from stages.sfm import pose_files
 from stages.common.text import short_list, text_name
 from plenoxels.core.errors import UserError
@@ -32,7 +33,7 @@ def run(ctx) -> dict:
     masks_dir = ctx.work / "masks"
     images_dir.mkdir()
     records, unreadable, thumbnails = [], [], []
-    clip = bars = None
+    clip = bars = sequence = None
     twins: set[Path] = set()
     clips: list[str] = []
 
@@ -89,6 +90,16 @@ def run(ctx) -> dict:
         if clips:
             ctx.report.warn(f"{len(clips)} video(s) beside the photos are not read: {short_list(clips)} (a phone's "
                             "Live Photo clips; a walk-around video is read where it is given alone, as the scene)")
+        own_poses = is_split_dataset(ctx.scene) or any(pose_files.candidates(ctx.scene).values())
+        if s.video_max_frames and len(photos) > s.video_max_frames and not own_poses:
+            step, apart = sequence_step([folder / p for p, _ in photos], s.video_motion, s.video_max_frames,
+                                        s.video_frames)
+            if step > 1:  # a video's frames saved one by one: read as the video would be
+                sequence = (len(photos), step, apart)
+                photos = photos[::step]
+                ctx.report.warn(f"the {sequence[0]} photos are a video's frames saved one by one (neighbours "
+                                f"{apart:.1%} of the view's diagonal apart): one in {step} is read, as the video would "
+                                f"be (ingest.video_motion, ingest.video_max_frames)")
         # Split folders repeat file names (train/r_0.png, val/r_0.png): then every name carries its folder, and
         # its suffix too where only that tells two photos apart (p.jpg, p.png).
         names = [p.stem for p, _ in photos]
@@ -107,7 +118,7 @@ def run(ctx) -> dict:
             if unmasked:
                 ctx.report.warn(f"{len(unmasked)} of {len(photos)} photos have no mask in {masks_given} (by name): "
                                 f"{short_list(unmasked)}; they are posed from the whole photo and left out of the fit")
-        if s.crop_bars and not is_split_dataset(ctx.scene) and not any(pose_files.candidates(ctx.scene).values()):
+        if s.crop_bars and not own_poses:
             bars = photos_picture([folder / p for p, _ in photos])
         for relative, split in ctx.report.track(photos, desc="reading photos"):
             try:
@@ -184,6 +195,8 @@ def run(ctx) -> dict:
         line += f", dropped {len(repeats)} repeated"
     if dropped:
         line += f", dropped {len(dropped)} blurriest"
+    if sequence:
+        line += f", one in {sequence[1]} of {sequence[0]} frames saved from a video"
     if twins:
         line += f", {len(twins)} RAW files left for the developed photos of their names"
     if clips:
@@ -192,7 +205,8 @@ def run(ctx) -> dict:
         line += f", skipped {len(unreadable)} unreadable"
     return {"line": line, "images": len(records), "skipped": len(unreadable), "repeated": len(repeats),
             "dropped_blurry": len(dropped), "masked": masked, "colourless": len(colourless), "cropped": cropped,
-            "raw_twins": len(twins),
+            "raw_twins": len(twins), **({"sequence": {"photos": sequence[0], "step": sequence[1],
+                                                       "apart": round(sequence[2], 4)}} if sequence else {}),
             **({"video": clip} if clip is not None else {})}
 
 

@@ -31,6 +31,13 @@ CANDIDATE_SHARE = 0.6
 # MIN_MOTION_SHARE of that motion apart (closer, neighbours differ by less than SfM can triangulate from).
 VIDEO_RETRIES = 3
 MIN_MOTION_SHARE = 0.25
+# A folder of more photos than ingest.video_max_frames is looked at for a video's frames saved one by one at this
+# many places through it (two photos each): neighbours closer than this share of ingest.video_motion are such frames.
+# A walk around ball filmed at 30 frames a second moves 1.2% of the view's diagonal a frame (its 16 s clip, 5.8
+# diagonals in all); measured neighbours of photos taken one by one: 4.1% (fox), 14% (cup); ball's frames at 8 a
+# second 4.9%.
+SEQUENCE_PAIRS = 10
+SEQUENCE_MOTION_SHARE = 0.5
 EXIF_ORIENTATION = 0x0112
 # A photo whose pixels nearly all sit within COLOURLESS_SPREAD of grey (the 99th percentile, over its pixels neither
 # near black nor near white, of each pixel's largest difference between two channels, of 255), in a capture whose
@@ -348,6 +355,39 @@ def fit_max_side(image: np.ndarray, max_side: int) -> np.ndarray:
         return image
     size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
+def _view_motion(first: np.ndarray, second: np.ndarray) -> float:
+    """How far the view moved between two grey frames, as a share of their diagonal: the median motion of the first's
+    corners followed into the second by optical flow; 1 where fewer than TRACKS_KEPT_SHARE of them can be followed."""
+    corners = _corners(first)
+    if corners is None or first.shape != second.shape:
+        return 1.0
+    followed, status, _ = cv2.calcOpticalFlowPyrLK(first, second, corners, None)
+    alive = status.ravel() == 1
+    if alive.sum() < TRACKS_KEPT_SHARE * len(corners):
+        return 1.0
+    return float(np.median(np.linalg.norm((followed[alive] - corners[alive]).reshape(-1, 2), axis=1))) / np.hypot(
+        *first.shape)
+
+
+def sequence_step(paths: list[Path], motion: float, max_frames: int, target_frames: int) -> tuple[int, float]:
+    """Of a folder's photos in name order: whether they are a video's frames saved one by one (neighbours, at
+    SEQUENCE_PAIRS places through the folder, closer than SEQUENCE_MOTION_SHARE of `motion`), and if so, every how many
+    to read, as a video is read: frames about `motion` apart, at most `max_frames`, but not fewer than `target_frames`
+    for that spacing; 1 for separate photos. Also the neighbours' median motion."""
+    moves = []
+    for i in np.linspace(0, len(paths) - 2, SEQUENCE_PAIRS).round().astype(int):
+        try:
+            first, second = (_tracking_grey(cv2.cvtColor(load_photo(paths[j])[0], cv2.COLOR_RGB2BGR)) for j in (i, i + 1))
+        except Exception:  # an unreadable photo is skipped where it is loaded
+            continue
+        moves.append(_view_motion(first, second))
+    apart = float(np.median(moves)) if moves else 1.0
+    if apart >= SEQUENCE_MOTION_SHARE * motion:
+        return 1, apart
+    spaced = min(round(motion / max(apart, 1e-4)), len(paths) // max(target_frames, 1))
+    return max(1, math.ceil(len(paths) / max_frames) if max_frames else 1, spaced), apart
 
 
 def open_video(path: Path) -> cv2.VideoCapture:

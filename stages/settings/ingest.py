@@ -35,7 +35,8 @@ class Settings:
     video_max_frames: int = 300
     """From a video, keep at most this many frames: a longer clip keeps every second (third, ...) frame of those its
     motion gives, so they span the whole clip; memory holds no more, and SfM's time grows with each frame
-    (0: no limit)."""
+    (0: no limit). A folder of more photos than this that are a video's frames saved one by one (neighbours closer
+    than half of video_motion) is read as the video would be."""
     video_min_frames: int = 30
     """From a video, fewer frames than this, read as close together as video_frames allows, are too few for a good
     fit, which the summary says (0: never say so)."""

@@ -313,6 +313,33 @@ def test_a_long_clip_keeps_at_most_video_max_frames_spread_over_all_of_it(tmp_pa
     assert f"one in {capped['video']['every']} of the {capped['video']['due']} that spacing gave" in line
 
 
+def saved_frames(folder, frames: int, step_px: int):
+    """A panning camera's frames saved one by one, as `ffmpeg -i clip.mp4 %04d.png` saves them."""
+    folder.mkdir()
+    wall = textured(h=60, w=80 + frames * step_px, seed=11)
+    for i in range(frames):
+        Image.fromarray(np.ascontiguousarray(wall[:, i * step_px:i * step_px + 80])).save(folder / f"{i:04d}.png")
+    return folder
+
+
+def test_a_folder_of_a_videos_frames_saved_one_by_one_is_read_as_the_video(tmp_path, capsys):
+    # 1 px a frame, 1% of the 100 px diagonal: closer than a quarter of the 5% a video's frames are kept at.
+    frames = saved_frames(tmp_path / "frames", 130, step_px=1)
+    out, listing = run_ingest(frames, tmp_path / "a", "ingest.video_max_frames=40", "ingest.video_frames=0",
+                              "ingest.video_min_frames=3")
+    kept = [int(r["name"]) for r in listing["images"]]
+    assert kept == list(range(0, 130, 5))         # 5% apart: every 5th, within the 40 at most
+    summary = json.loads((out / "manifest.json").read_text())["summary"]
+    assert summary["sequence"]["step"] == 5 and 0.007 < summary["sequence"]["apart"] < 0.013
+    assert "one in 5 of 130 frames saved from a video" in summary["line"]
+    assert "the 130 photos are a video's frames saved one by one" in capsys.readouterr().err
+    aimed = run_ingest(frames, tmp_path / "b", "ingest.video_max_frames=40", "ingest.video_frames=60",
+                       "ingest.video_min_frames=3")[1]
+    assert len(aimed["images"]) == 33               # 60 aimed for allow every 2nd; 40 at most ask every 4th
+    apart = saved_frames(tmp_path / "photos", 130, step_px=4)   # 4% apart: photos taken one by one
+    assert len(run_ingest(apart, tmp_path / "c", "ingest.video_max_frames=40")[1]["images"]) == 130
+
+
 def test_a_clip_too_short_for_a_good_fit_says_so(tmp_path):
     video = panning_video(tmp_path / "short.avi", 20, step_px=2)   # 2 s at 10 frames a second
     out, listing = run_ingest(video, tmp_path, "ingest.video_fps=3", "ingest.video_min_frames=30")
