@@ -148,8 +148,8 @@ def run(ctx) -> dict:
             if record["name"] in repeats:
                 drop(record)
         records = [r for r in records if r["name"] not in repeats]
-        ctx.report.warn(f"{len(repeats)} photo(s) repeat another's pixels (a file copied, or saved as both HEIC and "
-                        "JPEG), so each shot is kept once: "
+        ctx.report.warn(f"{len(repeats)} photo(s) repeat another's pixels (a file copied, saved as both HEIC and "
+                        "JPEG, or a video's frame saved twice), so each shot is kept once: "
                         f"{short_list([f'{name} (= {repeats[name]})' for name in sorted(repeats, key=capture_key)])}")
 
     dropped = []
