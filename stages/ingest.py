@@ -16,8 +16,8 @@ from stages.common.json_files import write_json
 from stages.capture.masks import mask_folder, match_masks, read_mask
 from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, colour_spread, colourless_among_colour, fit_max_side,
                                    is_split_dataset, load_photo, not_a_scene, photo_folder, photos_picture, raw_twins,
-                                   repeated, scene_photos, sequence_step, sharpness, stored_orientation, thumbnail,
-                                   video_frames)
+                                   repeated, scene_photos, sharpness, stored_orientation, thumbnail)
+from stages.capture.video import sequence_step, video_frames
 from stages.sfm import pose_files
 from stages.common.text import short_list, text_name
 from plenoxels.core.errors import UserError

@@ -7,7 +7,8 @@ from pathlib import Path
 import pycolmap
 
 from stages.common.media import write_png
-from stages.capture.photos import fit_max_side, video_frames
+from stages.capture.photos import fit_max_side
+from stages.capture.video import video_frames
 
 
 def denser_frames(scene: Path, clip: dict, records: list[dict], scratch: Path,

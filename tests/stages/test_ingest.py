@@ -10,7 +10,8 @@ import PIL.features
 import pytest
 from PIL import Image
 
-from stages.capture.photos import frames_by_motion, picture_box
+from stages.capture.picture import picture_box
+from stages.capture.video import frames_by_motion
 from stages.common.media import read_rgb
 from pipeline.report import Reporter
 from pipeline.scenes import scene_name
