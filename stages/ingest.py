@@ -75,7 +75,7 @@ def run(ctx) -> dict:
         if ctx.scene.suffix.lower() not in VIDEO_SUFFIXES:
             raise UserError(not_a_scene(ctx.scene))
         frames, clip = video_frames(ctx.scene, s.max_side, s.video_motion, s.video_fps, ctx.report,
-                                    s.video_frames, s.crop_bars, s.video_max_frames)
+                                    s.video_frames, s.crop_bars, s.video_max_frames, s.paint_overlays)
         for name, rgb in frames:
             keep(name, ctx.scene.name, rgb, None, (rgb.shape[1], rgb.shape[0]))
     else:
@@ -229,6 +229,8 @@ def video_words(clip: dict, s: Settings) -> str:
     if clip.get("every", 1) > 1:
         words += (f", one in {clip['every']} of the {clip['due']} that spacing gave (at most "
                   f"ingest.video_max_frames={s.video_max_frames})")
+    if "overlay" in clip:
+        words += f", a still overlay painted over ({clip['overlay']:.1%} of the picture: a watermark or caption)"
     if "bars" in clip:
         (width, height), kept = clip["bars"]["frame"], clip["bars"]["kept"]
         words += f", black bars cropped (the picture {kept[2]}x{kept[3]} of its {width}x{height} frame)"

@@ -11,7 +11,7 @@ import numpy as np
 
 from plenoxels.core.errors import UserError
 from stages.capture.photos import fit_max_side, load_photo, sharpness
-from stages.capture.picture import BAR_SAMPLES, picture_box
+from stages.capture.picture import BAR_SAMPLES, paint_over, picture_box, still_overlay
 from stages.common.text import text_name
 
 # Video frames are tracked at this size; a stretch ends when fewer than this share of its corners are still followed,
@@ -89,13 +89,15 @@ def _tracking_grey(bgr: np.ndarray) -> np.ndarray:
     return cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else grey
 
 
-def _corners(grey: np.ndarray) -> np.ndarray | None:
-    return cv2.goodFeaturesToTrack(grey, maxCorners=400, qualityLevel=0.01, minDistance=max(4, max(grey.shape) // 60))
+def _corners(grey: np.ndarray, allowed: np.ndarray | None = None) -> np.ndarray | None:
+    """Corners to follow, only where `allowed` (a mask of the grey's shape) is non-zero, where given."""
+    return cv2.goodFeaturesToTrack(grey, maxCorners=400, qualityLevel=0.01, minDistance=max(4, max(grey.shape) // 60),
+                                   mask=allowed)
 
 
-def video_picture(path: Path) -> tuple[slice, slice] | None:
-    """The picture within a video's black bars (`picture_box` over BAR_SAMPLES frames spread over the clip), or
-    None where it has none."""
+def clip_samples(path: Path) -> list[np.ndarray]:
+    """BAR_SAMPLES grey frames spread over a clip, as it is stored: what black bars and a still overlay are found
+    in."""
     capture = open_video(path)
     total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
     # Read on, not seeked: a seek decodes from the last key frame, which cost ball's 127-frame clip 2.2 s for 24
@@ -109,12 +111,17 @@ def video_picture(path: Path) -> tuple[slice, slice] | None:
                 greys.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))
         index += 1
     capture.release()
-    return picture_box(greys)
+    return greys
+
+
+def video_picture(path: Path) -> tuple[slice, slice] | None:
+    """The picture within a video's black bars (`picture_box` over `clip_samples`), or None where it has none."""
+    return picture_box(clip_samples(path))
 
 
 def video_frames(path: Path, max_side: int, motion: float, max_per_second: float, report,
-                 target_frames: int = 0, crop_bars: bool = True,
-                 max_frames: int = 0) -> tuple[list[tuple[str, np.ndarray]], dict]:
+                 target_frames: int = 0, crop_bars: bool = True, max_frames: int = 0,
+                 paint_overlays: bool = True) -> tuple[list[tuple[str, np.ndarray]], dict]:
     """(name, RGB) of the frames to pose from a video (see frames_by_motion), and what the clip gave: its `seconds`,
     the `motion` the frames were kept at and `total_motion` (diagonals the view moved in all). A clip whose motion
     gives fewer than `target_frames` at `motion` (a short clip, or a camera that moved little) is read again with
@@ -123,12 +130,16 @@ def video_frames(path: Path, max_side: int, motion: float, max_per_second: float
     long one) is read again keeping every `every`-th frame due, so the frames span the whole clip and memory holds
     no more than that many. With `crop_bars`, black bars along the frame's edges (`video_picture`) are cropped from
     every frame before anything else, and the clip's `bars` say what was kept: [x, y, width, height] of the frame's
-    [width, height]."""
-    picture = video_picture(path) if crop_bars else None
+    [width, height]. With `paint_overlays`, a still overlay on the picture (`still_overlay`: a watermark, a caption)
+    is left out of the motion's corners and painted over in each frame kept; the clip's `overlay` is its share of the
+    picture."""
+    samples = clip_samples(path) if crop_bars or paint_overlays else []
+    picture = picture_box(samples) if crop_bars else None
+    overlay = still_overlay([g[picture] if picture else g for g in samples]) if paint_overlays else None
 
     def read(at: float, every: int = 1) -> tuple[list[tuple[str, np.ndarray]], dict]:
         return frames_by_motion(path, max_side, at, max_per_second, report, picture, max_frames if every == 1 else 0,
-                                every)
+                                every, overlay)
 
     kept, clip = read(motion)
     used = motion
@@ -146,12 +157,16 @@ def video_frames(path: Path, max_side: int, motion: float, max_per_second: float
         kept, clip = read(used, every)
         if len(kept) > max_frames:  # the second reading's stretches fell a little differently
             kept = [kept[i] for i in np.linspace(0, len(kept) - 1, max_frames).round().astype(int)]
-    return kept, {**clip, "motion": used, "every": every, "max_per_second": max_per_second}
+    if overlay is not None:
+        kept = [(name, paint_over(rgb, overlay)) for name, rgb in kept]
+        clip["overlay"] = round(float(overlay.mean()), 4)
+    return kept, {**clip, "motion": used, "every": every, "max_per_second": max_per_second, "crop_bars": crop_bars,
+                  "paint_overlays": paint_overlays, "max_frames": max_frames}
 
 
 def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: float, report,
-                     picture: tuple[slice, slice] | None = None, max_frames: int = 0,
-                     keep_every: int = 1) -> tuple[list[tuple[str, np.ndarray]], dict]:
+                     picture: tuple[slice, slice] | None = None, max_frames: int = 0, keep_every: int = 1,
+                     overlay: np.ndarray | None = None) -> tuple[list[tuple[str, np.ndarray]], dict]:
     """(name, RGB) of the frames to pose from a video, upright (its rotation metadata applied), cropped to
     `picture` (rows, columns) where given, downscaled to
     `max_side`, and the clip's `seconds`, `total_motion` and `most_frames` (what `max_per_second` allows). A frame is
@@ -160,7 +175,8 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
     can still be followed, so neighbours keep overlapping however fast or slowly the camera moved; of the frames
     in the last stretch before that point, the sharpest is kept. At most `max_per_second` frames per second of video.
     Of the frames due, every `keep_every`-th is kept (the first included). Past `max_frames` (0: no limit) the frames
-    due are only counted, their pixels let go, and none are returned: the clip's `due` says how many there were."""
+    due are only counted, their pixels let go, and none are returned: the clip's `due` says how many there were. No
+    corner is followed on `overlay` (a mask of the picture's shape), which does not move with the view."""
     capture = open_video(path)
     fps = capture.get(cv2.CAP_PROP_FPS) or 30.0
     total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) or None
@@ -172,6 +188,13 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
     index, last_kept, tracked, due = 0, -min_gap, 0, 0
     total_motion, counted = 0.0, 0.0  # diagonals moved in all: the stretches ended, and the current one so far
     counting = False  # past max_frames: the frames due are counted, and none held
+
+    def allowed(grey: np.ndarray) -> np.ndarray | None:
+        """Where corners may be followed in a tracked frame: off the overlay."""
+        if overlay is None:
+            return None
+        return (cv2.resize(overlay.astype(np.uint8), (grey.shape[1], grey.shape[0]), interpolation=cv2.INTER_AREA)
+                == 0).astype(np.uint8)
 
     def keeping() -> bool:
         """Whether the next frame due is kept, so its stretch's candidates need their pixels."""
@@ -206,7 +229,7 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
                     counted = max(counted, moved)
             if previous is None or points is None or not len(points):
                 total_motion, counted = total_motion + counted, 0.0
-                points = _corners(grey)
+                points = _corners(grey, allowed(grey))
                 start, tracked = points, len(points) if points is not None else 0
                 if not due:  # the first frame anchors the sequence
                     rgb = fit_max_side(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), max_side)
@@ -223,7 +246,7 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
                 best = None
                 # Track again from this frame: the next stretch is measured from (about) the frame just kept.
                 total_motion, counted = total_motion + counted, 0.0
-                points = _corners(grey)
+                points = _corners(grey, allowed(grey))
                 start, tracked = points, len(points) if points is not None else 0
             previous = grey
             index += 1

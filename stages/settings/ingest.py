@@ -49,6 +49,10 @@ class Settings:
     from features inside them and the fit models the object alone. Off: ignore the folder (alpha channels still count)."""
     mask_threshold: int | Literal["auto"] = "auto"
     """A mask's value above this (0-254) marks the object; auto: above 0, or above 127 in JPEG and WebP masks."""
+    paint_overlays: bool = True
+    """Paint over a still overlay on a video's picture (a watermark, a caption, a timestamp an app burned in: crisp
+    pixels that stay put while the view moves) in every frame kept, from around it: trained as it is, it is a thing
+    fixed in front of every camera that SfM takes for a still background behind a turning object."""
     crop_bars: bool = True
     """Crop black bars along the frame's edges (a portrait clip in a landscape frame, a letterbox), dark in every
     frame of a video, or in every photo of the common size where SfM poses them (no pose file beside the photos,

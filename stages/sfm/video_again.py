@@ -18,7 +18,9 @@ def denser_frames(scene: Path, clip: dict, records: list[dict], scratch: Path,
     back for SfM. Two folders laid out as ingest's: the frames at full size (to pose) and at the ingested size (the
     output), with their records."""
     side = max(records[0]["width"], records[0]["height"])
-    frames, denser = video_frames(scene, 0, clip["motion"] / 2, 2 * clip["max_per_second"], report)
+    frames, denser = video_frames(scene, 0, clip["motion"] / 2, 2 * clip["max_per_second"], report,
+                                  crop_bars=clip.get("crop_bars", True), max_frames=2 * clip.get("max_frames", 0),
+                                  paint_overlays=clip.get("paint_overlays", True))
     full, ingested = scratch / "denser_full", scratch / "denser"
     full_records, ingested_records = [], []
     for name, rgb in frames:

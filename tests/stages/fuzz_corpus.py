@@ -160,6 +160,13 @@ def pillarboxed(frame):
     return padded
 
 
+def watermarked(frame):
+    """A frame with a caption burned in, as an app leaves on every frame."""
+    frame = frame.copy()
+    cv2.putText(frame, "@me", (4, 44), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    return frame
+
+
 def photos_like(edit):
     def make(folder):
         folder.mkdir(parents=True)
@@ -275,6 +282,7 @@ KINDS = {
     "copied_photo": copied_photo,
     "video_black_bars": video(20, picture=pillarboxed),
     "video_dark_throughout": video(20, picture=np.zeros_like),
+    "video_watermarked": video(20, picture=watermarked),
     "photos_black_bars": photos_like(pillarboxed),
     "photos_dark_throughout": photos_like(np.zeros_like),
     "video_no_frames": video(0),

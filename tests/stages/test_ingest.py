@@ -10,7 +10,7 @@ import PIL.features
 import pytest
 from PIL import Image
 
-from stages.capture.picture import picture_box
+from stages.capture.picture import picture_box, still_overlay
 from stages.capture.video import frames_by_motion
 from stages.common.media import read_rgb
 from pipeline.report import Reporter
@@ -202,10 +202,10 @@ def test_a_capture_grey_throughout_keeps_every_photo_for_the_fit(tmp_path):
 
 
 def panning_video(path, frames: int, sharp_every: int = 1, step_px: int = 1, fps: int = 10, size=(80, 60),
-                  within=None):
+                  within=None, mark=None):
     """A camera panning across a textured wall, step_px pixels a frame; only every sharp_every-th frame is sharp.
     `within` (x, y, width, height) puts each frame of `size` at that place in a larger black frame, as an editor
-    pads a clip of another shape."""
+    pads a clip of another shape; `mark(frame)` draws on each frame what an app burns in."""
     width, height = size
     wall = textured(h=height, w=width + frames * step_px, seed=11)
     x, y, outer_width, outer_height = within or (0, 0, width, height)
@@ -216,6 +216,8 @@ def panning_video(path, frames: int, sharp_every: int = 1, step_px: int = 1, fps
             frame = cv2.GaussianBlur(frame, (0, 0), 3)
         padded = np.zeros((outer_height, outer_width, 3), np.uint8)
         padded[y:y + height, x:x + width] = frame
+        if mark is not None:
+            mark(padded)
         writer.write(cv2.cvtColor(padded, cv2.COLOR_RGB2BGR))
     writer.release()
     return path
@@ -456,6 +458,46 @@ def test_raw_photos_are_developed_upright_and_a_raw_beside_its_jpeg_is_left_for_
     assert np.abs(turned - np.rot90(smooth(seed=4), -1))[4:-4, 4:-4].mean() < 10
     line = json.loads((out / "manifest.json").read_text())["summary"]["line"]
     assert "3 RAW files left for the developed photos of their names" in line and "skipped" not in line
+
+
+def watermark(frame):
+    """A caption and a solid badge, as an app burns them into every frame."""
+    cv2.rectangle(frame, (120, 8), (150, 24), (255, 0, 0), -1)
+    cv2.putText(frame, "@me", (6, 110), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
+
+
+def test_a_still_overlay_on_a_clip_is_painted_over_in_every_frame(tmp_path):
+    video = panning_video(tmp_path / "marked.avi", 48, step_px=2, size=(160, 120), mark=watermark)
+    out, listing = run_ingest(video, tmp_path / "a", "ingest.video_fps=100", "ingest.video_min_frames=3")
+    assert 0.02 < listing["video"]["overlay"] < 0.1
+    for record in listing["images"]:
+        frame = read_rgb(out / "images" / f"{record['name']}.png").astype(int)
+        badge, caption = frame[10:23, 122:149], frame[96:112, 6:44]
+        assert ((badge[..., 0] > 230) & (badge[..., 1:] < 30).all(axis=-1)).mean() < 0.05, record   # its red gone
+        assert (caption > 240).all(axis=-1).mean() < 0.05, record                                   # its white gone
+    line = json.loads((out / "manifest.json").read_text())["summary"]["line"]
+    assert "a still overlay painted over" in line
+    _, kept = run_ingest(video, tmp_path / "b", "ingest.video_fps=100", "ingest.video_min_frames=3",
+                         "ingest.paint_overlays=false")
+    assert "overlay" not in kept["video"]
+    plain = panning_video(tmp_path / "plain.avi", 48, step_px=2, size=(160, 120))
+    assert "overlay" not in run_ingest(plain, tmp_path / "c", "ingest.video_fps=100", "ingest.video_min_frames=3")[1][
+        "video"]
+
+
+def test_a_still_overlay_is_told_from_a_flat_wall_and_from_a_camera_that_did_not_move():
+    rng = np.random.default_rng(4)
+    wall = cv2.resize(rng.integers(0, 256, (30, 120), dtype=np.uint8), (480, 120), interpolation=cv2.INTER_CUBIC)
+    moving = [np.ascontiguousarray(wall[:, 10 * i:10 * i + 160]) for i in range(24)]
+    for frame in moving:
+        frame[:40] = 230                        # a white wall filling the top third of every view
+    assert still_overlay(moving) is None
+    marked = [f.copy() for f in moving]
+    for frame in marked:
+        cv2.putText(frame, "12:04", (4, 110), cv2.FONT_HERSHEY_SIMPLEX, 0.5, 255, 1, cv2.LINE_AA)  # thin strokes
+    found = still_overlay(marked)
+    assert found is not None and found[100:111, 6:44].mean() > 0.5 and found[:90].sum() == 0
+    assert still_overlay([marked[0]] * 24) is None             # a view that never moved: nothing tells it apart
 
 
 def test_a_dark_picture_and_a_thin_border_are_not_taken_for_bars():
