@@ -305,7 +305,8 @@ def load_photo(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
             return rgb, alpha
         if mode not in ("RGB", "RGBA", "L", "LA", "P", "CMYK", "YCbCr", "I;16"):
             raise ValueError(f"unsupported pixel mode {mode}")
-        # Decoded from its bytes: OpenCV takes a path as UTF-8 and crashes on one that is not (a name from another system).
+        # Decoded from its bytes: OpenCV takes a path as UTF-8, and crashes on one that is not (a name from another
+        # system's encoding).
         wide = (cv2.imdecode(np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
                 if path.suffix.lower() in {".png", ".tif", ".tiff"} else None)
         if wide is not None and wide.dtype == np.uint16 and wide.ndim == 3:

@@ -32,6 +32,11 @@ SEQUENCE_PAIRS = 10
 SEQUENCE_MOTION_SHARE = 0.5
 
 
+def _shift(followed: np.ndarray, start: np.ndarray, shape: tuple[int, ...]) -> float:
+    """How far followed corners moved from where they started: the median, as a share of the frame's diagonal."""
+    return float(np.median(np.linalg.norm((followed - start).reshape(-1, 2), axis=1))) / float(np.hypot(*shape[:2]))
+
+
 def _view_motion(first: np.ndarray, second: np.ndarray) -> float:
     """How far the view moved between two grey frames, as a share of their diagonal: the median motion of the first's
     corners followed into the second by optical flow; 1 where fewer than TRACKS_KEPT_SHARE of them can be followed."""
@@ -42,8 +47,7 @@ def _view_motion(first: np.ndarray, second: np.ndarray) -> float:
     alive = status.ravel() == 1
     if alive.sum() < TRACKS_KEPT_SHARE * len(corners):
         return 1.0
-    return float(np.median(np.linalg.norm((followed[alive] - corners[alive]).reshape(-1, 2), axis=1))) / np.hypot(
-        *first.shape)
+    return _shift(followed[alive], corners[alive], first.shape)
 
 
 def sequence_step(paths: list[Path], motion: float, max_frames: int, target_frames: int) -> tuple[int, float]:
@@ -54,7 +58,8 @@ def sequence_step(paths: list[Path], motion: float, max_frames: int, target_fram
     moves = []
     for i in np.linspace(0, len(paths) - 2, SEQUENCE_PAIRS).round().astype(int):
         try:
-            first, second = (_tracking_grey(cv2.cvtColor(load_photo(paths[j])[0], cv2.COLOR_RGB2BGR)) for j in (i, i + 1))
+            first, second = (_tracking_grey(cv2.cvtColor(load_photo(paths[j])[0], cv2.COLOR_RGB2BGR))
+                             for j in (i, i + 1))
         except Exception:  # an unreadable photo is skipped where it is loaded
             continue
         moves.append(_view_motion(first, second))
@@ -114,11 +119,6 @@ def clip_samples(path: Path) -> list[np.ndarray]:
     return greys
 
 
-def video_picture(path: Path) -> tuple[slice, slice] | None:
-    """The picture within a video's black bars (`picture_box` over `clip_samples`), or None where it has none."""
-    return picture_box(clip_samples(path))
-
-
 def video_frames(path: Path, max_side: int, motion: float, max_per_second: float, report,
                  target_frames: int = 0, crop_bars: bool = True, max_frames: int = 0,
                  paint_overlays: bool = True) -> tuple[list[tuple[str, np.ndarray]], dict]:
@@ -128,11 +128,11 @@ def video_frames(path: Path, max_side: int, motion: float, max_per_second: float
     frames closer together, as close as the motion allows for `target_frames` but never below MIN_MOTION_SHARE of
     `motion`, nor more than `max_per_second` a second. A clip that gives more than `max_frames` (0: no limit; a
     long one) is read again keeping every `every`-th frame due, so the frames span the whole clip and memory holds
-    no more than that many. With `crop_bars`, black bars along the frame's edges (`video_picture`) are cropped from
-    every frame before anything else, and the clip's `bars` say what was kept: [x, y, width, height] of the frame's
-    [width, height]. With `paint_overlays`, a still overlay on the picture (`still_overlay`: a watermark, a caption)
-    is left out of the motion's corners and painted over in each frame kept; the clip's `overlay` is its share of the
-    picture."""
+    no more than that many. With `crop_bars`, black bars along the frame's edges (`picture_box` over `clip_samples`)
+    are cropped from every frame before anything else, and the clip's `bars` say what was kept: [x, y, width, height]
+    of the frame's [width, height]. With `paint_overlays`, a still overlay on the picture (`still_overlay`: a
+    watermark, a caption) is left out of the motion's corners and painted over in each frame kept; the clip's
+    `overlay` is its share of the picture."""
     samples = clip_samples(path) if crop_bars or paint_overlays else []
     picture = picture_box(samples) if crop_bars else None
     overlay = still_overlay([g[picture] if picture else g for g in samples]) if paint_overlays else None
@@ -225,7 +225,7 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
                 points, start = followed[alive], start[alive]
                 lost = len(points) < TRACKS_KEPT_SHARE * tracked
                 if len(points):
-                    moved = float(np.median(np.linalg.norm((points - start).reshape(-1, 2), axis=1))) / np.hypot(*grey.shape)
+                    moved = _shift(points, start, grey.shape)
                     counted = max(counted, moved)
             if previous is None or points is None or not len(points):
                 total_motion, counted = total_motion + counted, 0.0

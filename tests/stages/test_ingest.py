@@ -59,9 +59,10 @@ def test_photos_as_browsers_and_old_cameras_save_them(photos, tmp_path):
     assert np.abs(read_rgb(out / "images" / "scan.png").astype(int) - textured(seed=6)).max() == 0
 
 
-@pytest.mark.parametrize("name, says", [("p0.jpg", r"p0.jpg is one photo; give the folder that holds the scene's photos"),
-                                        ("photos.zip", "photos.zip is an archive; unpack it and give the folder"),
-                                        ("notes.txt", "notes.txt is neither a folder of photos nor a video")])
+@pytest.mark.parametrize("name, says", [
+    ("p0.jpg", "p0.jpg is one photo; give the folder that holds the scene's photos"),
+    ("photos.zip", "photos.zip is an archive; unpack it and give the folder"),
+    ("notes.txt", "notes.txt is neither a folder of photos nor a video")])
 def test_a_file_that_is_no_scene_says_what_to_give(photos, tmp_path, name, says):
     given = photos / name
     if not given.exists():
