@@ -17,7 +17,9 @@ from stages.capture.masks import mask_folder, match_masks, read_mask
 from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, colour_spread, colourless_among_colour, fit_max_side,
                                    is_split_dataset, load_photo, not_a_scene, photo_folder, photos_picture, raw_twins,
                                    repeated, scene_photos, sharpness, stored_orientation, thumbnail)
-from stages.capture.video import sequence_step, video_frames
+from stages.capture.panorama import (FRAME_SHARE, PANORAMA_VIEWS, frame_side, is_two_to_one, looks_equirect,
+                                     photos_equirect, says_equirect, split_frame, view_focal, view_side)
+from stages.capture.video import clip_samples, sequence_step, video_frames
 from stages.sfm import pose_files
 from stages.common.text import short_list, text_name
 from plenoxels.core.errors import UserError
@@ -36,10 +38,18 @@ def run(ctx) -> dict:
     clip = bars = sequence = None
     twins: set[Path] = set()
     clips: list[str] = []
+    panoramas: list[tuple[int, int]] = []  # the 360 frames split, their sizes
+
+    def keep_views(name: str, source: str, rgb: np.ndarray) -> None:
+        """A 360 frame as its pinhole views, each named for its frame and yaw, with its known focal length."""
+        panoramas.append((rgb.shape[1], rgb.shape[0]))
+        for yaw, view in split_frame(rgb, view_side(rgb.shape[1], s.max_side)):
+            keep(f"{name}_{yaw:03.0f}", source, view, None, (view.shape[1], view.shape[0]),
+                 panorama={"frame": name, "yaw": yaw})
 
     def keep(name: str, source: str, rgb: np.ndarray, alpha: np.ndarray | None, original: tuple[int, int],
              split: str | None = None, mask_file: Path | None = None, photo_orientation: int = 1,
-             picture: tuple[slice, slice] | None = None) -> None:
+             picture: tuple[slice, slice] | None = None, panorama: dict | None = None) -> None:
         cutout = alpha is not None
         mask_from = "alpha" if cutout else None
         if mask_file is not None:
@@ -61,6 +71,8 @@ def run(ctx) -> dict:
             record["split"] = split
         if within:
             record["bars_cropped"] = within
+        if panorama:  # a 360 frame's view: a pinhole of known focal length, posed with the frame's other views
+            record["panorama"], record["focal"] = panorama, view_focal(rgb.shape[1])
         write_png(images_dir / f"{name}.png", rgb)
         if alpha is not None:
             masks_dir.mkdir(exist_ok=True)
@@ -74,10 +86,26 @@ def run(ctx) -> dict:
     if ctx.scene.is_file():
         if ctx.scene.suffix.lower() not in VIDEO_SUFFIXES:
             raise UserError(not_a_scene(ctx.scene))
-        frames, clip = video_frames(ctx.scene, s.max_side, s.video_motion, s.video_fps, ctx.report,
-                                    s.video_frames, s.crop_bars, s.video_max_frames, s.paint_overlays)
+        samples = clip_samples(ctx.scene)
+        panorama = s.equirect == "yes" or s.equirect == "auto" and bool(samples) and (
+            is_two_to_one(*samples[0].shape[::-1]) and says_equirect(ctx.scene) or looks_equirect(samples))
+        if panorama and samples and not is_two_to_one(*samples[0].shape[::-1]):
+            height, width = samples[0].shape
+            raise UserError(f"ingest.equirect=yes, but {ctx.scene.name}'s frames are {width}x{height}, not the 2:1 of "
+                            "an equirectangular 360 video; set ingest.equirect=auto or no")
+        if panorama:  # each frame gives PANORAMA_VIEWS views: fewer frames, read large enough for the views
+            frames, clip = video_frames(ctx.scene, frame_side(s.max_side), s.video_motion, s.video_fps, ctx.report,
+                                        s.video_frames // FRAME_SHARE, False, s.video_max_frames // FRAME_SHARE,
+                                        s.paint_overlays, samples)
+            clip["panorama"] = PANORAMA_VIEWS
+        else:
+            frames, clip = video_frames(ctx.scene, s.max_side, s.video_motion, s.video_fps, ctx.report,
+                                        s.video_frames, s.crop_bars, s.video_max_frames, s.paint_overlays, samples)
         for name, rgb in frames:
-            keep(name, ctx.scene.name, rgb, None, (rgb.shape[1], rgb.shape[0]))
+            if panorama:
+                keep_views(name, ctx.scene.name, rgb)
+            else:
+                keep(name, ctx.scene.name, rgb, None, (rgb.shape[1], rgb.shape[0]))
     else:
         folder = photo_folder(ctx.scene)
         candidates = scene_photos(ctx.scene, s.holdout_split)
@@ -118,7 +146,10 @@ def run(ctx) -> dict:
             if unmasked:
                 ctx.report.warn(f"{len(unmasked)} of {len(photos)} photos have no mask in {masks_given} (by name): "
                                 f"{short_list(unmasked)}; they are posed from the whole photo and left out of the fit")
-        if s.crop_bars and not own_poses:
+        # Photos with their own poses are read as those poses describe them (the import refuses a 360 camera model).
+        panorama = s.equirect == "yes" or (s.equirect == "auto" and not own_poses
+                                           and photos_equirect([folder / p for p, _ in photos]))
+        if s.crop_bars and not own_poses and not panorama:
             bars = photos_picture([folder / p for p, _ in photos])
         for relative, split in ctx.report.track(photos, desc="reading photos"):
             try:
@@ -126,8 +157,11 @@ def run(ctx) -> dict:
             except Exception as e:  # any decoder failure means the same thing to the user: this file is skipped
                 unreadable.append(f"{relative.as_posix()} ({str(e).splitlines()[0][:60] or type(e).__name__})")
                 continue
-            mask_file = mask_of.get(folder / relative)
             size = (rgb.shape[1], rgb.shape[0])
+            if panorama and is_two_to_one(*size):
+                keep_views(name_of[relative], relative.as_posix(), rgb)
+                continue
+            mask_file = mask_of.get(folder / relative)
             picture = bars[1] if bars is not None and size == bars[0] else None
             keep(name_of[relative], relative.as_posix(), rgb, alpha, size, split, mask_file,
                  stored_orientation(folder / relative) if mask_file else 1, picture)
@@ -176,8 +210,9 @@ def run(ctx) -> dict:
     line = f"{len(records)} images at {size_words(records)}"
     if clip is not None:
         line += video_words(clip, s)
-        if len(records) < s.video_min_frames:
-            short = too_short(clip, len(records), s)
+        kept = len(panoramas) or len(records)
+        if kept < min_frames(clip, s):
+            short = too_short(clip, kept, s)
             ctx.report.warn(short)
             line += f"; {short}"
     cropped = sum("bars_cropped" in r for r in records)
@@ -185,6 +220,11 @@ def run(ctx) -> dict:
         (width, height), (rows, columns) = bars
         line += (f", black bars cropped from {cropped} (the picture {columns.stop - columns.start}x"
                  f"{rows.stop - rows.start} of their {width}x{height})")
+    if panoramas:
+        views = sum("panorama" in r for r in records)
+        sizes = size_words([dict(zip(("width", "height"), p)) for p in panoramas])
+        line += (f", {len(panoramas)} equirectangular 360-degree frames ({sizes}) cut into {views} pinhole views of "
+                 "90 degrees around the horizon")
     masked = sum(r["mask"] is not None for r in records)
     if masked:
         given = sum(r.get("mask_from") not in (None, "alpha") for r in records)
@@ -205,8 +245,9 @@ def run(ctx) -> dict:
         line += f", skipped {len(unreadable)} unreadable"
     return {"line": line, "images": len(records), "skipped": len(unreadable), "repeated": len(repeats),
             "dropped_blurry": len(dropped), "masked": masked, "colourless": len(colourless), "cropped": cropped,
-            "raw_twins": len(twins), **({"sequence": {"photos": sequence[0], "step": sequence[1],
-                                                       "apart": round(sequence[2], 4)}} if sequence else {}),
+            "raw_twins": len(twins), "panorama_frames": len(panoramas),
+            **({"sequence": {"photos": sequence[0], "step": sequence[1], "apart": round(sequence[2], 4)}}
+               if sequence else {}),
             **({"video": clip} if clip is not None else {})}
 
 
@@ -225,10 +266,10 @@ def video_words(clip: dict, s: Settings) -> str:
     words = f" from a {clip['seconds']:.1f} s video, a frame each {clip['motion']:.1%} of the view's diagonal"
     if clip["motion"] < s.video_motion:
         words += (f" (closer than ingest.video_motion's {s.video_motion:.0%}: at that spacing the clip gave fewer than"
-                  f" ingest.video_frames's {s.video_frames})")
+                  f" ingest.video_frames's {s.video_frames}{share_words(clip)})")
     if clip.get("every", 1) > 1:
         words += (f", one in {clip['every']} of the {clip['due']} that spacing gave (at most "
-                  f"ingest.video_max_frames={s.video_max_frames})")
+                  f"ingest.video_max_frames={s.video_max_frames}{share_words(clip)})")
     if "overlay" in clip:
         words += f", a still overlay painted over ({clip['overlay']:.1%} of the picture: a watermark or caption)"
     if "bars" in clip:
@@ -237,9 +278,19 @@ def video_words(clip: dict, s: Settings) -> str:
     return words
 
 
+def min_frames(clip: dict, s: Settings) -> int:
+    """The fewest frames a clip should give: ingest.video_min_frames, a FRAME_SHARE-th of it of 360 frames."""
+    return s.video_min_frames // FRAME_SHARE if clip.get("panorama") else s.video_min_frames
+
+
+def share_words(clip: dict) -> str:
+    return f" (a {FRAME_SHARE}th of it for 360 frames)" if clip.get("panorama") else ""
+
+
 def too_short(clip: dict, frames: int, s: Settings) -> str:
     """Why a clip's frames are too few for a good fit, and what to do."""
     limit = (f"at most ingest.video_fps={s.video_fps:g} a second" if frames >= 0.9 * clip["most_frames"]
              else f"the view moved {clip['total_motion']:.2f} of its diagonal in all")
     return (f"the clip is too short for a good fit: {frames} frames where ingest.video_min_frames asks "
-            f"{s.video_min_frames} ({limit}); film longer and further around the object, or add photos")
+            f"{s.video_min_frames}{share_words(clip)} ({limit}); film longer and further around the object, or add "
+            "photos")

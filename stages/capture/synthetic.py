@@ -45,8 +45,9 @@ import numpy as np
 
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.errors import UserError
-from stages.capture.synthetic_scenes import (ENVIRONMENT_RADIUS, WORLD_UP, camera_directions, render_float, to_uint8,
-                                             build_scene, camera_poses, intrinsics_for, turn_angles, view_scene)
+from stages.capture.synthetic_scenes import (ENVIRONMENT_RADIUS, WORLD_UP, camera_directions, render_equirect,
+                                             render_float, to_uint8, build_scene, camera_poses, intrinsics_for,
+                                             turn_angles, view_scene, walk_poses)
 from stages.common.json_files import read_json, write_json
 from stages.common.media import write_png
 
@@ -127,6 +128,21 @@ def write_scene(kind: str, out_dir: Path | str, n_views: int = 40, width: int = 
     os.replace(tmp, out_dir)
     return out_dir
 
+
+
+def write_panorama_video(path: Path | str, n_frames: int = 48, width: int = 960, seed: int = 0, fps: float = 8.0,
+                         supersample: int = 1) -> np.ndarray:
+    """A 360 camera's video of the room kind (equirectangular frames `width` x `width`/2, MPEG-4), carried once
+    around the still life (`walk_poses`); returns its camera-to-world matrices, the frames' in order."""
+    import cv2
+
+    scene = build_scene("room", seed)
+    poses = walk_poses(n_frames)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, width // 2))
+    for c2w in poses:
+        writer.write(to_uint8(render_equirect(scene, c2w, width, supersample))[..., ::-1])
+    writer.release()
+    return poses
 
 
 def _depth_range(depth: np.ndarray, k: Intrinsics) -> dict:

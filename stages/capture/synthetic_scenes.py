@@ -129,6 +129,50 @@ def render_float(scene: SceneSpec, c2w: np.ndarray, k: Intrinsics, supersample: 
 
 
 
+def render_equirect(scene: SceneSpec, c2w: np.ndarray, width: int, supersample: int = 2) -> np.ndarray:
+    """An equirectangular view [width/2, width, 3] in [0,1] from c2w's centre, as a 360 camera records it: columns
+    the longitude (-180 to 180 degrees, the camera's forward -z at the middle, +x at three quarters), rows the
+    latitude (+90, the camera's +y, at the top)."""
+    c2w = np.asarray(c2w, dtype=np.float64)
+    height = width // 2
+    offsets = (np.arange(supersample) + 0.5) / supersample
+    colour = np.zeros((height * width, 3))
+    for dv in offsets:
+        for du in offsets:
+            longitude = ((np.arange(width) + du) / width - 0.5) * 2 * math.pi
+            latitude = (0.5 - (np.arange(height) + dv) / height) * math.pi
+            lon, lat = np.meshgrid(longitude, latitude)
+            camera = np.stack([np.sin(lon) * np.cos(lat), np.sin(lat), -np.cos(lon) * np.cos(lat)], -1)
+            dirs = rotate_rows(camera.reshape(-1, 3), c2w[:3, :3])
+            t, index = trace(scene, c2w[:3, 3], dirs)
+            shade = np.broadcast_to(np.asarray(scene.background), dirs.shape).copy()
+            for s, shape in enumerate(scene.shapes):
+                hit = index == s
+                if hit.any():
+                    shade[hit] = surface_colour(scene, shape, c2w[:3, 3] + t[hit, None] * dirs[hit])
+            colour += shade
+    return (colour / supersample ** 2).reshape(height, width, 3)
+
+
+def walk_poses(n_frames: int, radius: float = 1.9, height: float = 1.3) -> np.ndarray:
+    """[n,4,4] camera-to-world matrices of a 360 camera carried upright once around OBJECT_CENTRE inside the room
+    kind, `height` above its floor, facing the way it goes with a little sway."""
+    poses = []
+    for n in range(n_frames):
+        angle = 2 * math.pi * n / n_frames
+        heading = angle + math.pi / 2 + 0.25 * math.sin(3 * angle)
+        forward = np.array([math.cos(heading), math.sin(heading), 0.0])
+        c2w = np.eye(4)
+        c2w[:3, 0] = np.cross(forward, WORLD_UP)
+        c2w[:3, 1] = WORLD_UP
+        c2w[:3, 2] = -forward
+        wobble = 0.08 * math.sin(5 * angle)
+        c2w[:3, 3] = OBJECT_CENTRE + np.array([(radius + wobble) * math.cos(angle), radius * math.sin(angle),
+                                               height - 0.5 + 0.05 * math.cos(2 * angle)])
+        poses.append(c2w)
+    return np.stack(poses)
+
+
 @functools.lru_cache(maxsize=8)
 def camera_directions(k: Intrinsics) -> np.ndarray:
     """[h*w,3] camera-space directions through the pixel centres, z = -1."""

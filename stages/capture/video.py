@@ -121,7 +121,8 @@ def clip_samples(path: Path) -> list[np.ndarray]:
 
 def video_frames(path: Path, max_side: int, motion: float, max_per_second: float, report,
                  target_frames: int = 0, crop_bars: bool = True, max_frames: int = 0,
-                 paint_overlays: bool = True) -> tuple[list[tuple[str, np.ndarray]], dict]:
+                 paint_overlays: bool = True, samples: list[np.ndarray] | None = None
+                 ) -> tuple[list[tuple[str, np.ndarray]], dict]:
     """(name, RGB) of the frames to pose from a video (see frames_by_motion), and what the clip gave: its `seconds`,
     the `motion` the frames were kept at and `total_motion` (diagonals the view moved in all). A clip whose motion
     gives fewer than `target_frames` at `motion` (a short clip, or a camera that moved little) is read again with
@@ -132,8 +133,9 @@ def video_frames(path: Path, max_side: int, motion: float, max_per_second: float
     are cropped from every frame before anything else, and the clip's `bars` say what was kept: [x, y, width, height]
     of the frame's [width, height]. With `paint_overlays`, a still overlay on the picture (`still_overlay`: a
     watermark, a caption) is left out of the motion's corners and painted over in each frame kept; the clip's
-    `overlay` is its share of the picture."""
-    samples = clip_samples(path) if crop_bars or paint_overlays else []
+    `overlay` is its share of the picture. `samples`: the clip's `clip_samples` where they were read already."""
+    if samples is None:
+        samples = clip_samples(path) if crop_bars or paint_overlays else []
     picture = picture_box(samples) if crop_bars else None
     overlay = still_overlay([g[picture] if picture else g for g in samples]) if paint_overlays else None
 

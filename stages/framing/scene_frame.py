@@ -268,11 +268,13 @@ def scene_frames(cams: Cameras, held_out: set[int], near_far: list[tuple[float, 
 
 def held_out_frames(cams: Cameras, options: SceneOptions) -> set[int]:
     """The frames held out for scoring: a dataset's own held-out split where it names its splits (NeRF synthetic
-    train/val/test), else every holdout_every-th by sorted name."""
+    train/val/test), else every holdout_every-th by sorted name; the views of a 360 frame as one, so that a held-out
+    view is not one turn of a trained camera."""
     if any(f.get("split") for f in cams.frames):
         return {i for i, f in enumerate(cams.frames) if f.get("split") == "test"}
-    order = sorted(range(len(cams.names)), key=lambda i: cams.names[i])
-    return {i for rank, i in enumerate(order) if options.holdout_every > 0 and rank % options.holdout_every == 0}
+    groups = [f.get("panorama_frame", name) for f, name in zip(cams.frames, cams.names)]
+    held = {g for rank, g in enumerate(sorted(set(groups))) if options.holdout_every > 0 and rank % options.holdout_every == 0}
+    return {i for i, g in enumerate(groups) if g in held}
 
 
 def _inward_type(xyz_world: np.ndarray, has_points: bool, backdrop: Backdrop | None, options: SceneOptions,

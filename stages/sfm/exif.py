@@ -97,10 +97,12 @@ def resized_since_capture(records: list[dict], photos: Path) -> list[str]:
     return changed
 
 
-def set_focal_priors(db: Path, records: list[dict], photos: Path, sensor_width_mm: float) -> dict | None:
+def set_focal_priors(db: Path, records: list[dict], photos: Path, sensor_width_mm: float,
+                     from_exif: bool = True) -> dict | None:
     """Starts each camera in the database from the EXIF focal length of its photos (the median where photos share one,
-    scaled to the ingested size), marked as a prior so verification estimates essential matrices. Without EXIF,
-    COLMAP's guess of 1.2 x the longest side stays."""
+    scaled to the ingested size), marked as a prior so verification estimates essential matrices; from the focal
+    length a record gives (a 360 frame's view, `focal`) where it gives one, EXIF or not. Without either (or with
+    `from_exif` off), COLMAP's guess of 1.2 x the longest side stays."""
     by_name = {f"{r['name']}.png": r for r in records}
     found = []
     with pycolmap.Database.open(db) as database:
@@ -110,7 +112,10 @@ def set_focal_priors(db: Path, records: list[dict], photos: Path, sensor_width_m
         for camera_id, camera_records in images_of.items():
             priors = []
             for record in camera_records:
-                exif = exif_focal(photos / record["source"], sensor_width_mm)
+                if "focal" in record:
+                    priors.append((record["focal"], "the 360 views' field of view"))
+                    continue
+                exif = exif_focal(photos / record["source"], sensor_width_mm) if from_exif else None
                 if exif is not None:
                     priors.append((exif[0] * record["scale"], exif[1]))
             if not priors:

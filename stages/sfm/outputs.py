@@ -73,6 +73,8 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
             frame["split"] = record["split"]
         if record.get("colourless"):
             frame["colourless"] = True
+        if record.get("panorama"):  # a view of a 360 frame: held out, or not, with the frame's other views
+            frame["panorama_frame"] = record["panorama"]["frame"]
         if record["name"] in bounds:
             frame["near"], frame["far"] = bounds[record["name"]]
         frame_index[image.image_id] = len(frames)

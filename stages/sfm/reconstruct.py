@@ -48,6 +48,8 @@ REPAIR_EXHAUSTIVE_MAX_IMAGES = 400
 # are. A phone video's frames that pose at 640 px have failed the check at 960, 8 to 9 of 52 contradicting their
 # matches after every other repair.
 REPAIR_FEATURE_SIDE = 640
+# A 360 capture's views are matched in sequence with those of this many frames on either side.
+PANORAMA_OVERLAP_FRAMES = 3
 # How a model split in parts is named among its problems (a split no retry can join is dropped from them).
 SPLIT_WORDS = "the images split into"
 
@@ -221,7 +223,10 @@ def _match_and_summarise(db: Path, mode: str, s: SfmOptions, n_images: int, repo
     return matching
 
 
-def incremental_mapping(db: Path, image_dir: Path, out: Path, s: SfmOptions, relaxed: bool = False) -> list[pycolmap.Reconstruction]:
+def incremental_mapping(db: Path, image_dir: Path, out: Path, s: SfmOptions, relaxed: bool = False,
+                        fixed_cameras: bool = False) -> list[pycolmap.Reconstruction]:
+    """COLMAP's incremental mapper; `fixed_cameras`: the cameras' focal lengths and distortion are known (a 360
+    frame's views), and bundle adjustment keeps them."""
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = colmap_threads(s)
     options.random_seed = s.seed
@@ -229,6 +234,8 @@ def incremental_mapping(db: Path, image_dir: Path, out: Path, s: SfmOptions, rel
     options.triangulation.random_seed = s.seed
     options.min_model_size = 3
     options.ba_refine_principal_point = s.refine_principal_point
+    if fixed_cameras:
+        options.ba_refine_focal_length = options.ba_refine_extra_params = False
     if relaxed:
         options.mapper.abs_pose_min_num_inliers = RELAXED_ABS_POSE_MIN_INLIERS
         options.mapper.abs_pose_min_inlier_ratio = RELAXED_ABS_POSE_MIN_INLIER_RATIO
@@ -238,12 +245,16 @@ def incremental_mapping(db: Path, image_dir: Path, out: Path, s: SfmOptions, rel
     return list(pycolmap.incremental_mapping(db, image_dir, out, options).values())
 
 
-def global_mapping(db: Path, image_dir: Path, out: Path, s: SfmOptions) -> list[pycolmap.Reconstruction]:
+def global_mapping(db: Path, image_dir: Path, out: Path, s: SfmOptions,
+                   fixed_cameras: bool = False) -> list[pycolmap.Reconstruction]:
     options = pycolmap.GlobalPipelineOptions()
     options.num_threads = colmap_threads(s)
     options.random_seed = s.seed
     options.mapper.random_seed = s.seed
     options.mapper.bundle_adjustment.refine_principal_point = s.refine_principal_point
+    if fixed_cameras:
+        options.mapper.bundle_adjustment.refine_focal_length = False
+        options.mapper.bundle_adjustment.refine_extra_params = False
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     return list(pycolmap.global_mapping(db, image_dir, out, options).values())
@@ -254,7 +265,8 @@ def largest_model(models: list[pycolmap.Reconstruction]) -> pycolmap.Reconstruct
     return max(models, key=lambda m: (m.num_reg_images(), m.num_points3D()), default=None)
 
 
-def map_images(db: Path, image_dir: Path, scratch: Path, s: SfmOptions, report) -> tuple[list, pycolmap.Reconstruction | None, str]:
+def map_images(db: Path, image_dir: Path, scratch: Path, s: SfmOptions, report,
+               fixed_cameras: bool = False) -> tuple[list, pycolmap.Reconstruction | None, str]:
     """Maps with the chosen mapper; returns the models, the largest, and why the global mapper was replaced, if it was.
 
     Global mapping (rotation averaging, then positions) has no loop to correct a bad relative pose where the view graph
@@ -264,7 +276,7 @@ def map_images(db: Path, image_dir: Path, scratch: Path, s: SfmOptions, report) 
     poses those captures correctly, so a global model that fails the checks is mapped again with it."""
     if s.mapper == "global":
         report.info("global mapping")
-        models = global_mapping(db, image_dir, scratch / "models", s)
+        models = global_mapping(db, image_dir, scratch / "models", s, fixed_cameras)
         best = largest_model(models)
         if best is None:
             fallback = "global mapping formed no model"
@@ -278,17 +290,19 @@ def map_images(db: Path, image_dir: Path, scratch: Path, s: SfmOptions, report) 
     else:
         fallback = ""
     report.info("incremental mapping")
-    models = incremental_mapping(db, image_dir, scratch / "models", s)
+    models = incremental_mapping(db, image_dir, scratch / "models", s, fixed_cameras=fixed_cameras)
     return models, largest_model(models), fallback
 
 
 @dataclass
 class Attempt:
-    """One configuration SfM is run with: the options, and whether the cameras start from the EXIF focal length."""
+    """One configuration SfM is run with: the options, whether the cameras start from the EXIF focal length, and
+    whether they are known (a 360 frame's views: their focal length given, kept by bundle adjustment)."""
     label: str
     options: SfmOptions
     focal_prior: bool
     peak_threshold: float = SIFT_PEAK_THRESHOLD
+    known_cameras: bool = False
 
 
 def attempt_plan(s: SfmOptions, n_images: int, from_video: bool, longest_side: int = 0) -> list[Attempt]:
@@ -328,7 +342,7 @@ def smaller_features(attempt: Attempt, longest_side: int) -> Attempt | None:
     if longest_side <= REPAIR_FEATURE_SIDE or 0 < attempt.options.feature_max_side <= REPAIR_FEATURE_SIDE:
         return None
     options = replace(attempt.options, feature_max_side=REPAIR_FEATURE_SIDE)
-    return Attempt(f"features at {REPAIR_FEATURE_SIDE} px", options, attempt.focal_prior, attempt.peak_threshold)
+    return replace(attempt, label=f"features at {REPAIR_FEATURE_SIDE} px", options=options)
 
 
 def contradicting(contradicted: dict[str, float], n_images: int) -> str:
@@ -365,7 +379,13 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
     stage stops, naming them. Returns the model and what happened on the way (attempts, counts, fallbacks, timings).
     `scratch` holds the databases and models."""
     longest_side = max(max(r["width"], r["height"]) for r in records)
-    plan = attempt_plan(s, len(records), from_video, longest_side)
+    plan = attempt_plan(s, len(records), from_video or any("panorama" in r for r in records), longest_side)
+    if all("focal" in r for r in records):  # a 360 capture's views: pinholes of the focal length they were cut at
+        panorama = [r for r in records if "panorama" in r]
+        frames = len({r["panorama"]["frame"] for r in panorama})
+        overlap = max(s.sequential_overlap, PANORAMA_OVERLAP_FRAMES * round(len(panorama) / max(frames, 1)))
+        plan = [replace(a, known_cameras=True, options=replace(a.options, sequential_overlap=overlap)) for a in plan
+                if a.label != "no EXIF focal prior"]  # nor is an EXIF focal length used for them
     masks = feature_masks(records, image_dir.parent, scratch / "feature_masks")
     if masks is not None:
         report.info(f"features only inside the masks of {sum(bool(r.get('mask')) for r in records)} images")
@@ -482,7 +502,7 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
         extract_features(db, image_dir, names, s, single, peak / LOW_FEATURE_PEAK_DIVISOR, masks)
         median = median_features(db)
     info["median_features"] = median
-    info["focal_prior"] = set_focal_priors(db, records, photos, s.sensor_width_mm) if attempt.focal_prior else None
+    info["focal_prior"] = set_focal_priors(db, records, photos, s.sensor_width_mm, attempt.focal_prior)
     if info["focal_prior"]:
         prior = info["focal_prior"]
         report.info(f"initial focal length {prior['focal_px']:.1f} px from {prior['from']} ({prior['images']} photos)")
@@ -496,7 +516,7 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
         info["still_matches"] = still_matches(db)
         refuse_still(info["still_matches"], masks is not None)
         started = time.perf_counter()
-        models, best, fallback = map_images(db, image_dir, scratch, s, report)
+        models, best, fallback = map_images(db, image_dir, scratch, s, report, attempt.known_cameras)
         seconds["map"] += time.perf_counter() - started
         complete = best is not None and best.num_reg_images() == len(names) and not detached_images(best)
         # Photos that are not an ordered sequence lose pairs under sequential matching: when auto chose it for a
@@ -514,7 +534,8 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
         started = time.perf_counter()
         before = best.num_reg_images() - len(detached_images(best)) if best else 0
         report.info(f"{before}/{len(names)} registered; mapping again with looser registration thresholds")
-        relaxed = largest_model(incremental_mapping(db, image_dir, scratch / "models_relaxed", s, relaxed=True))
+        relaxed = largest_model(incremental_mapping(db, image_dir, scratch / "models_relaxed", s, relaxed=True,
+                                                    fixed_cameras=attempt.known_cameras))
         if relaxed is not None and relaxed.num_reg_images() - len(detached_images(relaxed)) > before:
             strict = {im.name for im in best.images.values() if im.has_pose} if best else set()
             info["relaxed_only"] = sorted(Path(im.name).stem for im in relaxed.images.values()

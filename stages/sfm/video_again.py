@@ -7,6 +7,7 @@ from pathlib import Path
 import pycolmap
 
 from stages.common.media import write_png
+from stages.capture.panorama import split_frame, view_focal, view_side
 from stages.capture.photos import fit_max_side
 from stages.capture.video import video_frames
 
@@ -16,19 +17,25 @@ def denser_frames(scene: Path, clip: dict, records: list[dict], scratch: Path,
     """The clip read again with frames twice as close (and up to twice as many a second) and at full size, where a clip
     whose frames do not hold together often does: neighbours overlap more, and a downscaled frame's finer texture is
     back for SfM. Two folders laid out as ingest's: the frames at full size (to pose) and at the ingested size (the
-    output), with their records."""
+    output), with their records; a 360 clip's frames cut into their views."""
     side = max(records[0]["width"], records[0]["height"])
     frames, denser = video_frames(scene, 0, clip["motion"] / 2, 2 * clip["max_per_second"], report,
                                   crop_bars=clip.get("crop_bars", True), max_frames=2 * clip.get("max_frames", 0),
                                   paint_overlays=clip.get("paint_overlays", True))
+    if clip.get("panorama"):  # a 360 clip's frames, cut into their views at the frames' own resolution
+        frames = [(f"{name}_{yaw:03.0f}", view, {"panorama": {"frame": name, "yaw": yaw}})
+                  for name, rgb in frames for yaw, view in split_frame(rgb, view_side(rgb.shape[1], 0))]
+    else:
+        frames = [(name, rgb, {}) for name, rgb in frames]
     full, ingested = scratch / "denser_full", scratch / "denser"
     full_records, ingested_records = [], []
-    for name, rgb in frames:
+    for name, rgb, view in frames:
         for folder, image, kept in ((full, rgb, full_records), (ingested, fit_max_side(rgb, side), ingested_records)):
             (folder / "images").mkdir(parents=True, exist_ok=True)
             write_png(folder / "images" / f"{name}.png", image)
             kept.append({"name": name, "file": f"images/{name}.png", "source": scene.name,
-                         "width": image.shape[1], "height": image.shape[0], "mask": None})
+                         "width": image.shape[1], "height": image.shape[0], "mask": None,
+                         **({**view, "focal": view_focal(image.shape[1])} if view else {})})
     return full, full_records, ingested, ingested_records, denser
 
 

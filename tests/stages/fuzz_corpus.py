@@ -16,7 +16,7 @@ import numpy as np
 import pycolmap
 from PIL import Image
 
-from stages.capture.synthetic import write_scene
+from stages.capture.synthetic import write_panorama_video, write_scene
 
 
 def textured(h=48, w=64, seed=0):
@@ -176,6 +176,22 @@ def photos_like(edit):
     return make
 
 
+def video_360(folder):
+    """A 360 camera's clip: cut into views around the horizon."""
+    folder.mkdir(parents=True)
+    write_panorama_video(folder / "walk.mp4", n_frames=8, width=256, fps=4)
+    return folder / "walk.mp4"
+
+
+def photos_360_flat(folder):
+    """360 photos, marked so in their XMP, of one flat grey: every view repeats the first."""
+    folder.mkdir(parents=True)
+    xmp = b'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:Description GPano:ProjectionType="equirectangular"/></x:xmpmeta>'
+    for i in range(3):
+        Image.fromarray(np.full((64, 128, 3), 128, np.uint8)).save(folder / f"theta{i}.jpg", xmp=xmp)
+    return folder
+
+
 def animated_gif(path):
     frames = [Image.fromarray(textured(seed=s)) for s in range(3)]
     frames[0].save(path, save_all=True, append_images=frames[1:], duration=100, loop=0)
@@ -288,6 +304,8 @@ KINDS = {
     "video_no_frames": video(0),
     "video_one_frame": video(1),
     "video_truncated": video(20, truncate=True),
+    "video_360": video_360,
+    "photos_360_flat": photos_360_flat,
 }
 
 # What the user must see for each kind: "skip" names the file among the skipped, "stop" is one UserError line,
@@ -297,5 +315,5 @@ EXPECT = {
                            "png_header_only", "raw_random_bytes", "raw_tiff_header_only")},
     **{k: "stop" for k in ("mask_other_size", "mask_rotated_exif", "video_no_frames", "video_one_frame",
                            "video_truncated", "photos_in_subfolders", "videos_two_in_folder", "video_dark_throughout",
-                           "photos_dark_throughout")},
+                           "photos_dark_throughout", "photos_360_flat")},
 }
