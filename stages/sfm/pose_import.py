@@ -29,6 +29,10 @@ NON_RIGID_STRETCH = 1.02
 
 # How far an image's size may be from the pose file's size after scaling before we call it a different image.
 SIZE_TOLERANCE_PX = 1.5
+# A lens as COLMAP models it: the camera model's name and its distortion coefficients (after fx, fy, cx, cy).
+Lens = tuple[str, tuple[float, ...]]
+# nerfstudio's perspective camera models: their k1, k2, p1, p2 (k3) are OpenCV's radial-tangential distortion.
+PERSPECTIVE_MODELS = {"OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "PERSPECTIVE"}
 
 
 @dataclass
@@ -166,27 +170,27 @@ def _scale_factor(record: dict, pose_w: float, pose_h: float, what: str) -> floa
     return factor
 
 
-def _camera(camera_id: int, k: Intrinsics, distortion: tuple[float, float, float, float]) -> pycolmap.Camera:
-    if any(distortion):
-        return pycolmap.Camera(model="OPENCV", width=k.w, height=k.h, camera_id=camera_id,
-                               params=[k.fl_x, k.fl_y, k.cx, k.cy, *distortion])
-    return pycolmap.Camera(model="PINHOLE", width=k.w, height=k.h, camera_id=camera_id,
-                           params=[k.fl_x, k.fl_y, k.cx, k.cy])
+def _camera(camera_id: int, k: Intrinsics, lens: Lens) -> pycolmap.Camera:
+    model, coefficients = lens
+    if not any(coefficients):
+        model, coefficients = "PINHOLE", ()
+    return pycolmap.Camera(model=model, width=k.w, height=k.h, camera_id=camera_id,
+                           params=[k.fl_x, k.fl_y, k.cx, k.cy, *coefficients])
 
 
 class _CameraTable:
-    """Adds one COLMAP camera per distinct (intrinsics, distortion), so a shared camera stays shared."""
+    """Adds one COLMAP camera per distinct (intrinsics, lens), so a shared camera stays shared."""
 
     def __init__(self, reconstruction: pycolmap.Reconstruction):
         self.reconstruction = reconstruction
         self.ids: dict[tuple, int] = {}
 
-    def id_for(self, k: Intrinsics, distortion: tuple[float, float, float, float]) -> int:
-        key = (round(k.fl_x, 6), round(k.fl_y, 6), round(k.cx, 6), round(k.cy, 6), k.w, k.h,
-               *(round(d, 9) for d in distortion))
+    def id_for(self, k: Intrinsics, lens: Lens = ("OPENCV", ())) -> int:
+        key = (round(k.fl_x, 6), round(k.fl_y, 6), round(k.cx, 6), round(k.cy, 6), k.w, k.h, lens[0],
+               *(round(d, 9) for d in lens[1]))
         if key not in self.ids:
             self.ids[key] = len(self.ids) + 1
-            self.reconstruction.add_camera_with_trivial_rig(_camera(self.ids[key], k, distortion))
+            self.reconstruction.add_camera_with_trivial_rig(_camera(self.ids[key], k, lens))
         return self.ids[key]
 
 
@@ -244,9 +248,9 @@ def from_colmap(model_dir: Path, records: list[dict]) -> Imported:
 
 # ---- transforms.json (NeRF, instant-ngp, nerfstudio, Blender) --------------------------------------------
 
-def _intrinsics_from(meta: dict, fallback: dict, record: dict,
-                     where: str) -> tuple[Intrinsics, tuple[float, float, float, float]]:
-    """A frame's camera from its own keys, else the file's: fl_x/fl_y/cx/cy/w/h or camera_angle_x/y."""
+def _intrinsics_from(meta: dict, fallback: dict, record: dict, where: str) -> tuple[Intrinsics, Lens]:
+    """A frame's camera from its own keys, else the file's: fl_x/fl_y/cx/cy/w/h or camera_angle_x/y, and its lens
+    (`_lens`)."""
     def get(key, positive=False, default=None):
         value = meta.get(key, fallback.get(key))
         return default if value is None else _number(value, key, where, positive)
@@ -263,8 +267,24 @@ def _intrinsics_from(meta: dict, fallback: dict, record: dict,
         angle_y = get("camera_angle_y", positive=True)
         fl_y = 0.5 * h / math.tan(0.5 * angle_y) if angle_y is not None else fl_x
     cx, cy = get("cx", default=w / 2), get("cy", default=h / 2)
-    distortion = tuple(get(key, default=0.0) for key in ("k1", "k2", "p1", "p2"))
-    return Intrinsics(fl_x, fl_y, cx, cy, int(round(w)), int(round(h))), distortion
+    return Intrinsics(fl_x, fl_y, cx, cy, int(round(w)), int(round(h))), _lens(meta, fallback, where, get)
+
+
+def _lens(meta: dict, fallback: dict, where: str, get) -> Lens:
+    """The COLMAP camera model and distortion coefficients a frame's `camera_model` (nerfstudio's names) and k1-k4,
+    p1, p2 describe: OpenCV's radial-tangential model for a perspective camera (with k3 where it is given), its
+    equidistant model for a fisheye; a 360 or stereo-panorama camera model stops with what to do."""
+    model = str(meta.get("camera_model", fallback.get("camera_model", "OPENCV"))).upper()
+    if model in PERSPECTIVE_MODELS:
+        k1, k2, p1, p2, k3 = (get(key, default=0.0) for key in ("k1", "k2", "p1", "p2", "k3"))
+        return ("FULL_OPENCV", (k1, k2, p1, p2, k3, 0.0, 0.0, 0.0)) if k3 else ("OPENCV", (k1, k2, p1, p2))
+    if model == "OPENCV_FISHEYE":
+        return "OPENCV_FISHEYE", tuple(get(key, default=0.0) for key in ("k1", "k2", "k3", "k4"))
+    if model == "EQUIRECTANGULAR":
+        raise UserError(f"{where}: camera_model EQUIRECTANGULAR (a 360 camera's frames) has no pinhole to import; "
+                        "set ingest.equirect=yes and poses.source=sfm to cut the frames into views and pose those")
+    raise UserError(f"{where}: camera_model {model} is not one this tool reads ({', '.join(sorted(PERSPECTIVE_MODELS))}"
+                    ", OPENCV_FISHEYE); undistort the photos to pinholes, or set poses.source=sfm")
 
 
 def _read_transforms(path: Path) -> dict:
@@ -328,11 +348,11 @@ def from_transforms(path: Path, records: list[dict], scene: Path, more: tuple[Pa
         where = f"{path.name if not more else 'the transforms files'}, the frame of {record['source']}"
         if not isinstance(frame, dict) or "transform_matrix" not in frame:
             raise UserError(f"{where} has no transform_matrix; add it or set poses.source=sfm")
-        k, distortion = _intrinsics_from(frame, data, record, where)
+        k, lens = _intrinsics_from(frame, data, record, where)
         factor = _scale_factor(record, k.w, k.h, str(path))
         scaled = k.scaled(factor)
         scaled = Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
-        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(scaled, distortion),
+        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(scaled, lens),
                    frame["transform_matrix"], where)
     if ambiguous:
         raise UserError(f"{len(ambiguous)} photo(s) match no frame of {path.name if not more else 'the transforms files'}"
@@ -369,7 +389,7 @@ def from_llff(path: Path, records: list[dict]) -> Imported:
         factor = _scale_factor(record, w, h, str(path))
         k = Intrinsics(focal, focal, w / 2, h / 2, int(round(w)), int(round(h))).scaled(factor)
         k = Intrinsics(k.fl_x, k.fl_y, k.cx, k.cy, record["width"], record["height"])
-        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k, (0.0, 0.0, 0.0, 0.0)),
+        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k),
                    opengl_c2w_from_llff(pose[:, :4]), where)
         bounds[record["name"]] = (float(row[15]), float(row[16]))
     return Imported(reconstruction, path, [], bounds)
@@ -411,6 +431,6 @@ def from_idr(path: Path, records: list[dict], scene: Path) -> Imported:
         factor = _scale_factor(record, w, h, str(path))
         k = Intrinsics(matrix[0, 0], matrix[1, 1], matrix[0, 2] + 0.5, matrix[1, 2] + 0.5, w, h).scaled(factor)
         k = Intrinsics(k.fl_x, k.fl_y, k.cx, k.cy, record["width"], record["height"])
-        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k, (0.0, 0.0, 0.0, 0.0)), c2w,
+        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k), c2w,
                    f"{path.name}, world_mat_{index} ({record['source']})")
     return Imported(reconstruction, path, missing)

@@ -413,6 +413,54 @@ def test_transforms_import_scales_intrinsics_and_undistorts(scene, truth, tmp_pa
     assert aligned < 2.0 and aligned < 0.3 * ignoring_distortion
 
 
+@pytest.mark.parametrize("lens", ["OPENCV_FISHEYE", "OPENCV with k3"])
+def test_transforms_import_reads_the_camera_model_it_names(scene, truth, tmp_path, lens):
+    # nerfstudio's transforms.json names its camera model: a fisheye's k1-k4 are the equidistant model's, not OpenCV's
+    # radial-tangential k1, k2, p1, p2; a perspective camera's k3 is a third radial term. Each is undistorted as such.
+    stems = photos(scene, tmp_path / "capture" / "images")
+    if lens == "OPENCV_FISHEYE":
+        keys, model, params = {"camera_model": "OPENCV_FISHEYE", "k1": 0.05, "k2": -0.02, "k3": 0.01, "k4": -0.003}, \
+            "OPENCV_FISHEYE", [0.05, -0.02, 0.01, -0.003]
+    else:
+        keys, model, params = {"camera_model": "OPENCV", "k1": -0.1, "k2": 0.02, "p1": 0.0, "p2": 0.0, "k3": -0.5}, \
+            "FULL_OPENCV", [-0.1, 0.02, 0.0, 0.0, -0.5, 0.0, 0.0, 0.0]
+    fl, cx, cy = truth["fl_x"], truth["cx"], truth["cy"]
+    (tmp_path / "capture" / "transforms.json").write_text(json.dumps({
+        "fl_x": fl, "fl_y": fl, "cx": cx, "cy": cy, "w": WIDTH, "h": HEIGHT, **keys,
+        "frames": [{"file_path": f"images/{Path(f['file_path']).stem}.jpg", "transform_matrix": f["transform_matrix"]}
+                   for f in truth["frames"] if Path(f["file_path"]).stem in stems]}))
+    run_poses(tmp_path / "capture" / "images", tmp_path / "out")
+    out = tmp_path / "out" / "poses"
+    transforms = read_json(out / "transforms.json")
+    original = transforms["original_camera"]
+    assert original["model"] == model
+    np.testing.assert_allclose(original["params"], [fl, fl, cx, cy, *params], rtol=1e-9)
+    if lens != "OPENCV_FISHEYE":  # k3 moves only the corners, where the object's backdrop is plain
+        return
+    k = Intrinsics.from_frame(transforms)
+    rng = np.random.default_rng(2)
+    uv = rng.uniform([0.08 * k.w, 0.08 * k.h], [0.92 * k.w, 0.92 * k.h], size=(400, 2))
+    rays = np.stack([(uv[:, 0] - k.cx) / k.fl_x, (uv[:, 1] - k.cy) / k.fl_y, np.ones(len(uv))], -1)
+    named = pycolmap.Camera(model=model, width=WIDTH, height=HEIGHT, params=original["params"])
+    as_radial = pycolmap.Camera(model="OPENCV", width=WIDTH, height=HEIGHT, params=[fl, fl, cx, cy, *params[:4]])
+    photo = read_rgb(scene / "images" / f"{stems[0]}.png")
+    undistorted = sample(read_rgb(out / "images" / f"{stems[0]}.png"), uv)
+    aligned = np.abs(undistorted - sample(photo, named.img_from_cam(rays))).mean()
+    misread = np.abs(undistorted - sample(photo, as_radial.img_from_cam(rays))).mean()
+    assert aligned < 2.0 and aligned < 0.3 * misread, (aligned, misread)
+
+
+@pytest.mark.parametrize("model, says", [("EQUIRECTANGULAR", "ingest.equirect=yes"), ("VR180_L", "not one this tool")])
+def test_transforms_import_refuses_a_camera_model_it_cannot_read_in_one_line(scene, truth, tmp_path, model, says):
+    stems = photos(scene, tmp_path / "capture" / "images")
+    (tmp_path / "capture" / "transforms.json").write_text(json.dumps({
+        "fl_x": 200.0, "w": WIDTH, "h": HEIGHT, "camera_model": model,
+        "frames": [{"file_path": f"images/{stems[0]}.jpg", "transform_matrix": truth["frames"][0]["transform_matrix"]}]}))
+    with pytest.raises(UserError, match=says) as refused:
+        run_poses(tmp_path / "capture" / "images", tmp_path / "out")
+    assert "\n" not in str(refused.value)
+
+
 def test_blender_import_uses_the_file_whose_paths_match_the_photos(scene, truth, tmp_path):
     stems = photos(scene, tmp_path / "lego" / "train")
     alpha = np.zeros((HEIGHT, WIDTH), dtype=np.uint8)
