@@ -124,7 +124,7 @@ def set_focal_priors(db: Path, records: list[dict], photos: Path, sensor_width_m
             camera.focal_length = statistics.median(f for f, _ in priors)
             camera.has_prior_focal_length = True
             database.update_camera(camera)
-            found.append((database.read_camera(camera_id).focal_length, priors[0][1], len(priors)))
+            found.append((database.read_camera(camera_id).mean_focal_length(), priors[0][1], len(priors)))
     if not found:
         return None
     return {"focal_px": round(statistics.median(f for f, _, _ in found), 2), "from": found[0][1],

@@ -12,8 +12,10 @@ from plenoxels.core.errors import require
 @dataclass
 class SfmOptions:
     """How to run SfM (the poses stage's settings, less where poses come from)."""
-    camera_model: Literal["SIMPLE_RADIAL", "OPENCV", "RADIAL", "SIMPLE_PINHOLE", "PINHOLE"] = "SIMPLE_RADIAL"
-    """COLMAP camera model SfM fits (distortion is removed afterwards)."""
+    camera_model: Literal["SIMPLE_RADIAL", "OPENCV", "RADIAL", "SIMPLE_PINHOLE", "PINHOLE", "OPENCV_FISHEYE",
+                          "RADIAL_FISHEYE", "SIMPLE_RADIAL_FISHEYE"] = "SIMPLE_RADIAL"
+    """COLMAP camera model SfM fits (distortion is removed afterwards); a fisheye lens (an action camera's wide mode)
+    wants OPENCV_FISHEYE or another *_FISHEYE, whose angle from the axis, not its tangent, grows with the radius."""
     exif_focal: bool = True
     """Start from the focal length in the photos' EXIF, when they carry one."""
     sensor_width_mm: float = 0.0

@@ -384,8 +384,9 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
         panorama = [r for r in records if "panorama" in r]
         frames = len({r["panorama"]["frame"] for r in panorama})
         overlap = max(s.sequential_overlap, PANORAMA_OVERLAP_FRAMES * round(len(panorama) / max(frames, 1)))
-        plan = [replace(a, known_cameras=True, options=replace(a.options, sequential_overlap=overlap)) for a in plan
-                if a.label != "no EXIF focal prior"]  # nor is an EXIF focal length used for them
+        plan = [replace(a, known_cameras=True, options=replace(a.options, sequential_overlap=overlap,
+                                                               camera_model="PINHOLE"))
+                for a in plan if a.label != "no EXIF focal prior"]  # nor is an EXIF focal length used for them
     masks = feature_masks(records, image_dir.parent, scratch / "feature_masks")
     if masks is not None:
         report.info(f"features only inside the masks of {sum(bool(r.get('mask')) for r in records)} images")

@@ -276,6 +276,38 @@ def test_poses_that_contradict_their_verified_matches_are_named(truth, tmp_path)
     assert list(found) == ["0002"] and found["0002"] > 0.9
 
 
+def test_fisheye_photos_are_posed_with_a_fisheye_camera_model(tmp_path):
+    # An action camera's fisheye: the room kind seen through an equidistant lens (radius = f * angle from the axis),
+    # 51 degrees off the axis at the corners, made by sampling wide pinhole renders. SfM fits OPENCV_FISHEYE when told.
+    from stages.capture.synthetic_scenes import camera_poses, render_float
+
+    room = build_scene("room", seed=0)
+    poses = camera_poses(room, 20)
+    side, f_fish, f_wide, wide = 320, 200.0, 160.0, 520
+    u = (np.arange(side) + 0.5 - side / 2) / f_fish
+    x, y = np.meshgrid(u, u)
+    angle = np.hypot(x, y)
+    ray = np.stack([np.sin(angle) * x / angle, np.sin(angle) * y / angle, np.cos(angle)], -1)  # OpenCV axes
+    map_x = (ray[..., 0] / ray[..., 2] * f_wide + wide / 2 - 0.5).astype(np.float32)
+    map_y = (ray[..., 1] / ray[..., 2] * f_wide + wide / 2 - 0.5).astype(np.float32)
+    k_wide = Intrinsics(f_wide, f_wide, wide / 2, wide / 2, wide, wide)
+    (tmp_path / "fisheye").mkdir()
+    for n, c2w in enumerate(poses):
+        pinhole = (np.clip(render_float(room, c2w, k_wide, 1)[0], 0, 1) * 255).astype(np.uint8)
+        # The camera's EXIF focal length (35 mm equivalent): without it COLMAP verifies pairs by a fundamental
+        # matrix on the photos' pixels, which a fisheye's curved lines do not obey.
+        write_jpeg_with_exif(tmp_path / "fisheye" / f"{n:04d}.jpg", cv2.remap(pinhole, map_x, map_y, cv2.INTER_LINEAR),
+                             {0xA405: round(f_fish / math.hypot(side, side) * FULL_FRAME_DIAGONAL_MM)})
+    manifest = run_poses(tmp_path / "fisheye", tmp_path / "out", "poses.camera_model=OPENCV_FISHEYE")
+    assert manifest["summary"]["registered"] == len(poses)
+    transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    original = transforms["original_camera"]
+    assert original["model"] == "OPENCV_FISHEYE" and abs(original["params"][0] / f_fish - 1) < 0.03, original
+    errors = compare_poses(np.array([f["transform_matrix"] for f in transforms["frames"]]),
+                           poses[[int(f["name"]) for f in transforms["frames"]]])
+    assert errors["rotation_error_deg_median"] < 0.5, errors
+
+
 def write_jpeg_with_exif(path: Path, rgb: np.ndarray, tags: dict[int, float]) -> None:
     exif = Image.Exif()
     exif[0x0110] = "Synthetic"
