@@ -16,6 +16,7 @@ continuous (one meridian seen twice), and a pole row that varies no more along i
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import cv2
@@ -39,7 +40,7 @@ POLE_RATIO = 0.35
 EDGE_TEXTURE = 0.5
 # Bytes read from each end of a file for its metadata (a video's moov box, a photo's XMP packet).
 METADATA_BYTES = 4 << 20
-METADATA_MARKS = (b"equirectangular", b"sv3d", b"GSpherical:Spherical>true")
+METADATA_MARKS = (b"equirectangular", b"GSpherical:Spherical>true")
 # Photos of a folder looked at for 360 pixels.
 DETECTION_SAMPLES = 8
 
@@ -50,7 +51,8 @@ def is_two_to_one(width: int, height: int) -> bool:
 
 def says_equirect(path: Path) -> bool:
     """Whether the file's metadata marks it as a 360 picture: XMP's GPano ProjectionType equirectangular (photos),
-    Google's spherical video metadata (XMP in a uuid box, or the sv3d box of Spherical Video V2)."""
+    Google's spherical video metadata (XMP in a uuid box, or the sv3d box of Spherical Video V2 with its equi
+    projection box: four bytes alone would turn up by chance in one file of a few hundred)."""
     size = path.stat().st_size
     with open(path, "rb") as f:
         head = f.read(METADATA_BYTES)
@@ -58,7 +60,8 @@ def says_equirect(path: Path) -> bool:
         if size > METADATA_BYTES:
             f.seek(max(METADATA_BYTES, size - METADATA_BYTES))
             tail = f.read()
-    return any(mark in head or mark in tail for mark in METADATA_MARKS)
+    return any(mark in head or mark in tail for mark in METADATA_MARKS) or any(
+        re.search(rb"sv3d.{0,200}equi", block, re.DOTALL) for block in (head, tail))
 
 
 def looks_equirect(greys: list[np.ndarray]) -> bool:

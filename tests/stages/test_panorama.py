@@ -13,7 +13,7 @@ from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.errors import UserError
-from stages.capture.panorama import (looks_equirect, photos_equirect, split_frame, view_focal, view_side,
+from stages.capture.panorama import (looks_equirect, photos_equirect, says_equirect, split_frame, view_focal, view_side,
                                      yaw_rotation)
 from stages.capture.synthetic import write_panorama_video
 from stages.capture.synthetic_scenes import (OBJECT_CENTRE, build_scene, render_equirect, render_float, to_uint8,
@@ -182,3 +182,11 @@ def test_a_360_clip_sfm_refuses_is_read_again_as_views_of_closer_frames(tmp_path
     assert {(r["width"], r["height"], r["focal"]) for r in again} == {(side, side, view_focal(side))}
     frames = {r["panorama"]["frame"] for r in again}
     assert len(again) == 8 * len(frames) and len(frames) > len({r["panorama"]["frame"] for r in first})
+
+
+def test_a_videos_spherical_metadata_says_equirect_only_with_its_projection(tmp_path):
+    # Spherical Video V2: an sv3d box holding an equi projection box; the four bytes sv3d alone turn up by chance.
+    marked, chance = tmp_path / "marked.mp4", tmp_path / "chance.mp4"
+    marked.write_bytes(b"\0" * 64 + b"sv3d" + b"\0" * 40 + b"svhd" + b"\0" * 20 + b"proj" + b"\0" * 8 + b"equi")
+    chance.write_bytes(b"\0" * 64 + b"sv3d" + b"\1" * 4096)
+    assert says_equirect(marked) and not says_equirect(chance)
