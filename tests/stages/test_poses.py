@@ -487,7 +487,8 @@ def test_transforms_import_refuses_a_camera_model_it_cannot_read_in_one_line(sce
     stems = photos(scene, tmp_path / "capture" / "images")
     (tmp_path / "capture" / "transforms.json").write_text(json.dumps({
         "fl_x": 200.0, "w": WIDTH, "h": HEIGHT, "camera_model": model,
-        "frames": [{"file_path": f"images/{stems[0]}.jpg", "transform_matrix": truth["frames"][0]["transform_matrix"]}]}))
+        "frames": [{"file_path": f"images/{stems[0]}.jpg",
+                    "transform_matrix": truth["frames"][0]["transform_matrix"]}]}))
     with pytest.raises(UserError, match=says) as refused:
         run_poses(tmp_path / "capture" / "images", tmp_path / "out")
     assert "\n" not in str(refused.value)
