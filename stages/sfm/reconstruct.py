@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 import pycolmap
 
+from stages.capture.panorama import is_two_to_one
 from stages.common.text import short_list
 from stages.sfm.exif import one_camera, resized_since_capture, set_focal_priors
 from stages.sfm.model_checks import (GLOBAL_MAX_CONTRADICTED_SHARE, MAX_CONTRADICTED_SHARE, MIN_VERIFIED_INLIERS,
@@ -423,6 +424,9 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
         hint = (f"; {still['share']:.0%} of the matched features sit at the same pixels in both photos of a pair, as a "
                 "still background behind a turning object leaves them: if the object turned, give a mask of it for "
                 "each photo (a masks/ folder beside the photos)" if still["share"] >= STILL_HINT_SHARE else "")
+        if all(is_two_to_one(r["width"], r["height"]) and "panorama" not in r for r in records):
+            hint += ("; the photos are 2:1, as a 360 camera's equirectangular frames are: if they are, set "
+                     "ingest.equirect=yes")
         if all(t["problems"] == ["no model formed"] for t in tried):
             raise UserError(f"SfM formed no model from {len(records)} images ({info['pairs_verified']} verified pairs); "
                             f"the photos need more overlap and texture, or give poses with poses.source/poses.path{hint}")

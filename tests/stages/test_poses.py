@@ -403,6 +403,14 @@ def test_noise_photos_fail_with_one_line_error(tmp_path):
     message = str(caught.value)
     assert "\n" not in message and ("no model" in message or "left out" in message)
     assert not (tmp_path / "out" / "poses").exists()
+    assert "ingest.equirect" not in message
+    # 2:1 frames ingest did not take for a 360 camera's: the refusal says what to set if they are.
+    wide = tmp_path / "wide"
+    wide.mkdir()
+    for n in range(8):
+        write_png(wide / f"noise_{n}.png", rng.integers(0, 256, (100, 200, 3), dtype=np.uint8))
+    with pytest.raises(UserError, match="set ingest.equirect=yes"):
+        run_poses(wide, tmp_path / "out_wide", "poses.min_features=0")
 
 
 # ---- imports ----------------------------------------------------------------------------------------------
