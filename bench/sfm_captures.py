@@ -3,14 +3,16 @@ preset, ingest to evaluate, with the pose files that come with it ignored (`pose
 measure from a scene's own poses, this one measures as a new user meets it.
 
 Scenes: fox, cup, ball and fern (their photo folders; fern's images_4), apple (its 5 s clip), ball_video (ball's 127
-frames written as an 8 fps MP4 under bench/out/sfm_captures/, a 16 s phone video) and cup_video (cup's 77 photos in
-the order taken, a 10 s video). Each run records the evaluate stage's held-out PSNR, SSIM and LPIPS (every 8th frame
-held out, at the fit's image scale), the fit's seconds and grid, the poses' points and the foreground box in units of
-the cameras' distance (what sets the cells' size). Writes bench/results/sfm_captures.json (a run replaces the one of
-the same scene, preset and label).
+frames written as an 8 fps MP4 under bench/out/sfm_captures/, a 16 s phone video), cup_video (cup's 77 photos in
+the order taken, a 10 s video) and room_360 (a 360 camera's equirectangular video of the synthetic room kind, 48
+frames at 960x480 carried once around its still life: `write_panorama_video`). Each run records the evaluate stage's
+held-out PSNR, SSIM and LPIPS (every 8th frame held out, at the fit's image scale), the fit's seconds and grid, the
+poses' points and the foreground box in units of the cameras' distance (what sets the cells' size); a run the
+pipeline refuses, its one-line reason and how long it took to give it. Writes bench/results/sfm_captures.json (a run
+replaces the one of the same scene, preset and label).
 
-    .venv/bin/python -m bench.sfm_captures [--scenes fox cup ball fern apple ball_video cup_video] [--preset fast]
-        [--label L] [--set SECTION.KEY=VALUE ...]
+    .venv/bin/python -m bench.sfm_captures [--scenes fox cup ball fern apple ball_video cup_video room_360]
+        [--preset fast] [--label L] [--set SECTION.KEY=VALUE ...]
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ import argparse
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +31,7 @@ from bench.fit import machine
 REPO = Path(__file__).resolve().parent.parent
 OUT = REPO / "bench" / "out" / "sfm_captures"
 RESULTS = REPO / "bench" / "results" / "sfm_captures.json"
-SCENES = ("fox", "cup", "ball", "fern", "apple", "ball_video", "cup_video")
+SCENES = ("fox", "cup", "ball", "fern", "apple", "ball_video", "cup_video", "room_360")
 VIDEO_FPS = 8
 
 
@@ -37,6 +40,13 @@ def scene_input(name: str, data: Path) -> Path:
         return data / "apple" / "apple.mp4"
     if name == "fern":
         return data / "fern" / "images_4"
+    if name == "room_360":
+        video = OUT / "room_360.mp4"
+        if not video.is_file():
+            from stages.capture.synthetic import write_panorama_video
+            OUT.mkdir(parents=True, exist_ok=True)
+            write_panorama_video(video, n_frames=48, width=960)
+        return video
     if not name.endswith("_video"):
         return data / name / "images"
     video = OUT / f"{name}.mp4"
@@ -63,7 +73,13 @@ def one_run(name: str, data: Path, preset: str, label: str, overrides: list[str]
     command = [sys.executable, "-m", "pipeline", "run", str(scene_input(name, data)), "--out", str(out), "--preset",
                preset, "--set", "poses.source=sfm", "--until", "evaluate"]
     command += [arg for override in overrides for arg in ("--set", override)]
-    subprocess.run(command, cwd=REPO, check=True)
+    started = time.monotonic()
+    done = subprocess.run(command, cwd=REPO, stderr=subprocess.PIPE, text=True)
+    sys.stderr.write(done.stderr[-4000:])
+    if done.returncode:
+        reason = [line for line in done.stderr.splitlines() if line.strip()][-1:] or ["(no message)"]
+        return {"scene": name, "preset": preset, "label": label, "set": overrides, "recorded": recorded(),
+                "machine": machine(), "refused": reason[0].strip(), "seconds": round(time.monotonic() - started, 1)}
     scene = json.loads((out / "normalize" / "scene.json").read_text())
     fit = json.loads((out / "fit" / "fit.json").read_text())
     metrics = json.loads((out / "evaluate" / "metrics.json").read_text())
@@ -93,8 +109,11 @@ def main() -> int:
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"runs": []}
     for name in args.scenes:
         run = one_run(name, args.data, args.preset, label, args.set)
-        print(f"{name} {args.preset} {label}: {run['mean']['psnr']:.2f} dB in {run['fit_seconds']:.0f} s of fitting, "
-              f"box {run['foreground_in_camera_distances']} camera distances")
+        if "refused" in run:
+            print(f"{name} {args.preset} {label}: refused after {run['seconds']:.0f} s: {run['refused']}")
+        else:
+            print(f"{name} {args.preset} {label}: {run['mean']['psnr']:.2f} dB in {run['fit_seconds']:.0f} s of "
+                  f"fitting, box {run['foreground_in_camera_distances']} camera distances")
         same = (name, args.preset, label)
         results["runs"] = [r for r in results["runs"] if (r["scene"], r["preset"], r["label"]) != same]
         results["runs"].append(run)
