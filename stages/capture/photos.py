@@ -20,6 +20,8 @@ IMAGE_SUFFIXES = {".jpg", ".jpeg", ".jfif", ".jpe", ".png", ".tif", ".tiff", ".w
 if PIL.features.check("avif"):
     IMAGE_SUFFIXES.add(".avif")
 VIDEO_SUFFIXES = {".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v"}
+# A 360 camera's unstitched recordings: Insta360's video and photos, GoPro MAX's.
+RAW_360_SUFFIXES = {".insv", ".insp", ".360"}
 SHARPNESS_SIDE = 512  # score every image at the same size so scores compare across resolutions
 EXIF_ORIENTATION = 0x0112
 # A photo whose pixels nearly all sit within COLOURLESS_SPREAD of grey (the 99th percentile, over its pixels neither
@@ -152,6 +154,9 @@ def not_a_scene(path: Path) -> str:
         return f"{path.name} is one photo; give the folder that holds the scene's photos ({path.parent})"
     if suffix in ARCHIVE_SUFFIXES:
         return f"{path.name} is an archive; unpack it and give the folder of photos it holds"
+    if suffix in RAW_360_SUFFIXES:
+        return (f"{path.name} is a 360 camera's own file (its lenses' pictures, not yet stitched); export it from the "
+                "camera's app as an equirectangular MP4 and give that")
     return f"{path.name} is neither a folder of photos nor a video ({', '.join(sorted(VIDEO_SUFFIXES))})"
 
 

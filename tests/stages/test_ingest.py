@@ -62,7 +62,8 @@ def test_photos_as_browsers_and_old_cameras_save_them(photos, tmp_path):
 @pytest.mark.parametrize("name, says", [
     ("p0.jpg", "p0.jpg is one photo; give the folder that holds the scene's photos"),
     ("photos.zip", "photos.zip is an archive; unpack it and give the folder"),
-    ("notes.txt", "notes.txt is neither a folder of photos nor a video")])
+    ("notes.txt", "notes.txt is neither a folder of photos nor a video"),
+    ("VID_0001.insv", "a 360 camera's own file .* export it from the camera's app as an equirectangular MP4")])
 def test_a_file_that_is_no_scene_says_what_to_give(photos, tmp_path, name, says):
     given = photos / name
     if not given.exists():
@@ -125,10 +126,12 @@ def test_downscale_keeps_aspect_and_records_scale(photos, tmp_path):
 def test_unreadable_files_are_listed_and_skipped(photos, tmp_path, capsys):
     (photos / "broken.jpg").write_bytes(b"not a jpeg at all")
     (photos / "notes.docx").write_bytes(b"x")
+    (photos / "IMG_0001.insp").write_bytes(b"x")  # a 360 camera's unstitched photo
     _, listing = run_ingest(photos, tmp_path)
     assert len(listing["images"]) == 3
     assert any("broken.jpg" in s for s in listing["skipped"]) and any("notes.docx" in s for s in listing["skipped"])
-    warning = [l for l in capsys.readouterr().err.splitlines() if "skipped 2 file(s)" in l]
+    assert any("IMG_0001.insp (a 360 camera's unstitched file" in s for s in listing["skipped"])
+    warning = [l for l in capsys.readouterr().err.splitlines() if "skipped 3 file(s)" in l]
     assert len(warning) == 1 and "broken.jpg" in warning[0] and "notes.docx" in warning[0]
 
 
