@@ -14,10 +14,10 @@ import numpy as np
 from stages.common.media import write_png
 from stages.common.json_files import write_json
 from stages.capture.masks import mask_folder, match_masks, read_mask
-from stages.capture.photos import (IMAGE_SUFFIXES, RAW_360_SUFFIXES, VIDEO_SUFFIXES, colour_spread,
-                                   colourless_among_colour, fit_max_side, is_split_dataset, load_photo, not_a_scene,
-                                   photo_folder, photos_picture, raw_twins, repeated, scene_photos, sharpness,
-                                   stored_orientation, thumbnail)
+from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, colour_spread, colourless_among_colour,
+                                   fit_max_side, is_split_dataset, load_photo, not_a_scene, not_read_why, photo_folder,
+                                   photos_picture, raw_twins, repeated, scene_photos, sharpness, stored_orientation,
+                                   thumbnail)
 from stages.capture.panorama import (FRAME_SHARE, PANORAMA_VIEWS, frame_side, is_two_to_one, looks_equirect,
                                      photos_equirect, says_equirect, split_frame, view_focal, view_side)
 from stages.capture.video import clip_samples, sequence_step, video_frames
@@ -27,10 +27,6 @@ from plenoxels.core.errors import UserError
 from plenoxels.core.photo_colour import capture_key
 from stages.settings.ingest import Settings
 from stages.common.layout import IMAGES_JSON
-
-# Why a file beside the photos is not read, where its kind says more than "not a supported image type".
-NOT_READ = {suffix: "a 360 camera's unstitched file: export it from the camera's app as an equirectangular MP4"
-            for suffix in RAW_360_SUFFIXES}
 
 
 
@@ -117,8 +113,7 @@ def run(ctx) -> dict:
         twins = set(raw_twins([p for p, _ in candidates]))
         photos = [(p.relative_to(folder), split) for p, split in candidates
                   if p.suffix.lower() in IMAGE_SUFFIXES and p not in twins]
-        unreadable += [f"{p.name} ({NOT_READ.get(p.suffix.lower(), 'not a supported image type')})"
-                       for p, _ in candidates
+        unreadable += [f"{p.name} ({not_read_why(p)})" for p, _ in candidates
                        if p.suffix.lower() not in IMAGE_SUFFIXES | VIDEO_SUFFIXES | {".json", ".npy", ".txt", ".md"}]
         clips = [p.name for p, _ in candidates if p.suffix.lower() in VIDEO_SUFFIXES]
         if clips:

@@ -160,6 +160,13 @@ def not_a_scene(path: Path) -> str:
     return f"{path.name} is neither a folder of photos nor a video ({', '.join(sorted(VIDEO_SUFFIXES))})"
 
 
+def not_read_why(path: Path) -> str:
+    """Why a file beside the photos is not read, in words for the list of files skipped."""
+    if path.suffix.lower() in RAW_360_SUFFIXES:
+        return "a 360 camera's unstitched file: export it from the camera's app as an equirectangular MP4"
+    return "not a supported image type"
+
+
 def scene_photos(scene: Path, holdout_split: str) -> list[tuple[Path, str | None]]:
     """The photo files of a folder scene, each with its split when the dataset defines one: a NeRF synthetic folder
     gives train/ as "train" and the `holdout_split` folder ("val" or "test"; "none": none) as "test"."""

@@ -41,6 +41,7 @@ import os
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from plenoxels.core.cameras import Intrinsics
@@ -134,8 +135,6 @@ def write_panorama_video(path: Path | str, n_frames: int = 48, width: int = 960,
                          supersample: int = 1) -> np.ndarray:
     """A 360 camera's video of the room kind (equirectangular frames `width` x `width`/2, MPEG-4), carried once
     around the still life (`walk_poses`); returns its camera-to-world matrices, the frames' in order."""
-    import cv2
-
     scene = build_scene("room", seed)
     poses = walk_poses(n_frames)
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, width // 2))
