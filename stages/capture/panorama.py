@@ -53,13 +53,14 @@ def says_equirect(path: Path) -> bool:
     """Whether the file's metadata marks it as a 360 picture: XMP's GPano ProjectionType equirectangular (photos),
     Google's spherical video metadata (XMP in a uuid box, or the sv3d box of Spherical Video V2 with its equi
     projection box: four bytes alone would turn up by chance in one file of a few hundred)."""
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        head = f.read(METADATA_BYTES)
-        tail = b""
-        if size > METADATA_BYTES:
-            f.seek(max(METADATA_BYTES, size - METADATA_BYTES))
+    try:
+        with open(path, "rb") as f:
+            head = f.read(METADATA_BYTES)
+            f.seek(0, 2)
+            f.seek(max(len(head), f.tell() - METADATA_BYTES))
             tail = f.read()
+    except OSError:  # a file that cannot be read is named where it is loaded
+        return False
     return any(mark in head or mark in tail for mark in METADATA_MARKS) or any(
         re.search(rb"sv3d.{0,200}equi", block, re.DOTALL) for block in (head, tail))
 
