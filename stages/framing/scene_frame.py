@@ -273,7 +273,8 @@ def held_out_frames(cams: Cameras, options: SceneOptions) -> set[int]:
     if any(f.get("split") for f in cams.frames):
         return {i for i, f in enumerate(cams.frames) if f.get("split") == "test"}
     groups = [f.get("panorama_frame", name) for f, name in zip(cams.frames, cams.names)]
-    held = {g for rank, g in enumerate(sorted(set(groups))) if options.holdout_every > 0 and rank % options.holdout_every == 0}
+    held = {g for rank, g in enumerate(sorted(set(groups)))
+            if options.holdout_every > 0 and rank % options.holdout_every == 0}
     return {i for i, g in enumerate(groups) if g in held}
 
 

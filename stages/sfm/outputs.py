@@ -17,6 +17,10 @@ from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
 from stages.common.layout import POINTS_NPZ, TRANSFORMS_JSON
 
 
+# The first distortion coefficient a fisheye without any is given (a radius 1e-7 further at one radian off the axis).
+FISHEYE_NUDGE = 1e-7
+
+
 def _camera_dict(camera: pycolmap.Camera) -> dict:
     return {"model": camera.model_name, "width": camera.width, "height": camera.height,
             "params": [float(v) for v in camera.params], "param_names": camera.params_info.split(", ")}
@@ -44,6 +48,17 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
         shutil.rmtree(folder, ignore_errors=True)
     model_dir.mkdir(parents=True)
     distorted.write_binary(model_dir)
+    # COLMAP copies an image whose camera has no distortion coefficients as it is, a fisheye's too: its equidistant
+    # projection alone is no pinhole, so a coefficient far below a pixel's worth makes it undistort.
+    written = pycolmap.Reconstruction(model_dir)
+    unbent = [c for c in written.cameras.values()
+              if "FISHEYE" in c.model_name and not np.any(c.params[c.extra_params_idxs()])]
+    for camera in unbent:
+        params = camera.params.copy()
+        params[camera.extra_params_idxs()[0]] = FISHEYE_NUDGE
+        camera.params = params
+    if unbent:
+        written.write_binary(model_dir)
     posed = {Path(im.name).stem: im for im in distorted.images.values() if im.has_pose}
     report.info(f"undistorting {len(posed)} images to pinhole")
     pycolmap.undistort_images(undistorted_dir, model_dir, ingest_dir / "images", output_type="COLMAP")

@@ -32,7 +32,7 @@ SIZE_TOLERANCE_PX = 1.5
 # A lens as COLMAP models it: the camera model's name and its distortion coefficients (after fx, fy, cx, cy).
 Lens = tuple[str, tuple[float, ...]]
 # nerfstudio's perspective camera models: their k1, k2, p1, p2 (k3) are OpenCV's radial-tangential distortion.
-PERSPECTIVE_MODELS = {"OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "PERSPECTIVE"}
+PERSPECTIVE_MODELS = {"OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"}
 
 
 @dataclass
@@ -172,7 +172,7 @@ def _scale_factor(record: dict, pose_w: float, pose_h: float, what: str) -> floa
 
 def _camera(camera_id: int, k: Intrinsics, lens: Lens) -> pycolmap.Camera:
     model, coefficients = lens
-    if not any(coefficients):
+    if model.endswith("OPENCV") and not any(coefficients):  # a fisheye without distortion is still no pinhole
         model, coefficients = "PINHOLE", ()
     return pycolmap.Camera(model=model, width=k.w, height=k.h, camera_id=camera_id,
                            params=[k.fl_x, k.fl_y, k.cx, k.cy, *coefficients])

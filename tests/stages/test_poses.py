@@ -453,7 +453,7 @@ def test_transforms_import_scales_intrinsics_and_undistorts(scene, truth, tmp_pa
     assert aligned < 2.0 and aligned < 0.3 * ignoring_distortion
 
 
-@pytest.mark.parametrize("lens", ["OPENCV_FISHEYE", "OPENCV with k3"])
+@pytest.mark.parametrize("lens", ["OPENCV_FISHEYE", "OPENCV_FISHEYE without distortion", "OPENCV with k3"])
 def test_transforms_import_reads_the_camera_model_it_names(scene, truth, tmp_path, lens):
     # nerfstudio's transforms.json names its camera model: a fisheye's k1-k4 are the equidistant model's, not OpenCV's
     # radial-tangential k1, k2, p1, p2; a perspective camera's k3 is a third radial term. Each is undistorted as such.
@@ -461,6 +461,8 @@ def test_transforms_import_reads_the_camera_model_it_names(scene, truth, tmp_pat
     if lens == "OPENCV_FISHEYE":
         keys, model, params = {"camera_model": "OPENCV_FISHEYE", "k1": 0.05, "k2": -0.02, "k3": 0.01, "k4": -0.003}, \
             "OPENCV_FISHEYE", [0.05, -0.02, 0.01, -0.003]
+    elif lens == "OPENCV_FISHEYE without distortion":  # the equidistant projection alone: still no pinhole
+        keys, model, params = {"camera_model": "OPENCV_FISHEYE"}, "OPENCV_FISHEYE", [0.0, 0.0, 0.0, 0.0]
     else:
         keys, model, params = {"camera_model": "OPENCV", "k1": -0.1, "k2": 0.02, "p1": 0.0, "p2": 0.0, "k3": -0.5}, \
             "FULL_OPENCV", [-0.1, 0.02, 0.0, 0.0, -0.5, 0.0, 0.0, 0.0]
@@ -475,7 +477,7 @@ def test_transforms_import_reads_the_camera_model_it_names(scene, truth, tmp_pat
     original = transforms["original_camera"]
     assert original["model"] == model
     np.testing.assert_allclose(original["params"], [fl, fl, cx, cy, *params], rtol=1e-9)
-    if lens != "OPENCV_FISHEYE":  # k3 moves only the corners, where the object's backdrop is plain
+    if model != "OPENCV_FISHEYE":  # k3 moves only the corners, where the object's backdrop is plain
         return
     k = Intrinsics.from_frame(transforms)
     rng = np.random.default_rng(2)
