@@ -272,7 +272,8 @@ def video_words(clip: dict, s: Settings) -> str:
         words += (f", one in {clip['every']} of the {clip['due']} that spacing gave (at most "
                   f"ingest.video_max_frames={s.video_max_frames}{share_words(clip)})")
     if "overlay" in clip:
-        words += f", a still overlay painted over ({clip['overlay']:.1%} of the picture: a watermark or caption)"
+        what = "what moves with the camera: its holder, a logo" if clip.get("panorama") else "a watermark or caption"
+        words += f", a still overlay painted over ({clip['overlay']:.1%} of the picture: {what})"
     if "bars" in clip:
         (width, height), kept = clip["bars"]["frame"], clip["bars"]["kept"]
         words += f", black bars cropped (the picture {kept[2]}x{kept[3]} of its {width}x{height} frame)"

@@ -190,3 +190,32 @@ def test_a_videos_spherical_metadata_says_equirect_only_with_its_projection(tmp_
     marked.write_bytes(b"\0" * 64 + b"sv3d" + b"\0" * 40 + b"svhd" + b"\0" * 20 + b"proj" + b"\0" * 8 + b"equi")
     chance.write_bytes(b"\0" * 64 + b"sv3d" + b"\1" * 4096)
     assert says_equirect(marked) and not says_equirect(chance)
+
+
+def test_the_holder_a_360_clip_carries_in_every_frame_is_painted_over(tmp_path):
+    # A hand or a person below and behind the camera stays at the same pixels of every equirectangular frame while the
+    # room turns past: trained, it is a thing fixed to every camera; posed, matches that stand still.
+    plain, held = tmp_path / "plain.mp4", tmp_path / "held.mp4"
+    write_panorama_video(plain, n_frames=12, width=384, fps=4)
+    capture = cv2.VideoCapture(str(plain))
+    writer = cv2.VideoWriter(str(held), cv2.VideoWriter_fourcc(*"mp4v"), 4, (384, 192))
+    holder = cv2.resize(np.random.default_rng(3).integers(0, 256, (6, 10, 3), dtype=np.uint8), (64, 40),
+                        interpolation=cv2.INTER_NEAREST)
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            break
+        frame[128:168, 160:224] = holder  # 30-68 degrees below the horizon, in front: the hand holding it out
+        writer.write(frame)
+    writer.release()
+    Pipeline(held, tmp_path / "out", overrides=["ingest.video_frames=0"], reporter=Reporter(quiet=True)).run(["ingest"])
+    manifest = json.loads((tmp_path / "out" / "ingest" / "manifest.json").read_text())
+    assert "its holder" in manifest["summary"]["line"]
+    listing = json.loads((tmp_path / "out" / "ingest" / "images.json").read_text())
+    ahead = [r for r in listing["images"] if r["panorama"]["yaw"] == 0]
+    view = cv2.imread(str(tmp_path / "out" / "ingest" / ahead[0]["file"]))
+    stamp = split_frame(np.pad(holder[..., ::-1], ((128, 24), (160, 160), (0, 0))), view.shape[0])[0][1]
+    shown = stamp.any(axis=-1)  # where the holder would be in the view ahead
+    assert shown.sum() > 20
+    # Painted from around it, the view there no longer holds the holder's pixels.
+    assert np.abs(view[..., ::-1][shown].astype(int) - stamp[shown].astype(int)).mean() > 30
