@@ -88,6 +88,16 @@ def looks_equirect(greys: list[np.ndarray]) -> bool:
     return bool(votes) and sum(votes) > len(votes) / 2
 
 
+def frame_directions(width: int, du: float = 0.5, dv: float = 0.5) -> np.ndarray:
+    """[width/2, width, 3] unit directions, in the camera's axes (the project's convention), of an equirectangular
+    frame's pixels sampled at (du, dv) within each pixel: the inverse of `view_maps`' longitude and latitude."""
+    height = width // 2
+    longitude = ((np.arange(width) + du) / width - 0.5) * 2 * math.pi
+    latitude = (0.5 - (np.arange(height) + dv) / height) * math.pi
+    lon, lat = np.meshgrid(longitude, latitude)
+    return np.stack([np.sin(lon) * np.cos(lat), np.sin(lat), -np.cos(lon) * np.cos(lat)], -1)
+
+
 def view_yaws(views: int = PANORAMA_VIEWS) -> list[float]:
     """The views' yaws in degrees, counter-clockwise seen from above, 0 the frame's middle (its forward)."""
     return [360.0 * k / views for k in range(views)]

@@ -13,6 +13,7 @@ import trimesh
 
 from plenoxels.core.cameras import Intrinsics, look_at, pixel_directions
 from plenoxels.core.errors import UserError
+from stages.capture.panorama import frame_directions
 from stages.capture.synthetic_shapes import (Box, Plane, Shape, Sphere, Texture, Turned, dot_rows, rotate_rows,
                                              turn_about, z_rotation)
 
@@ -81,6 +82,19 @@ def trace(scene: SceneSpec, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.nd
 
 
 
+def shade(scene: SceneSpec, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The colour [N,3] in [0,1] each ray sees (the background where it meets nothing) and the index into
+    scene.shapes of what it meets (-1 for a miss)."""
+    t, index = trace(scene, origin, dirs)
+    colour = np.broadcast_to(np.asarray(scene.background), dirs.shape).copy()
+    for s, shape in enumerate(scene.shapes):
+        hit = index == s
+        if hit.any():
+            colour[hit] = surface_colour(scene, shape, origin + t[hit, None] * dirs[hit])
+    return colour, index
+
+
+
 def render_view(scene: SceneSpec, c2w: np.ndarray, intrinsics: Intrinsics,
                 supersample: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Renders one view.
@@ -115,12 +129,7 @@ def render_float(scene: SceneSpec, c2w: np.ndarray, k: Intrinsics, supersample: 
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
     shifts = np.array([(dx / k.fl_x, -dy / k.fl_y, 0.0) for dy in offsets for dx in offsets])
     dirs = rotate_rows((centre[None] + shifts[:, None]).reshape(-1, 3), rot)
-    t, index = trace(scene, origin, dirs)
-    colour = np.broadcast_to(np.asarray(scene.background), dirs.shape).copy()
-    for s, shape in enumerate(scene.shapes):
-        hit = index == s
-        if hit.any():
-            colour[hit] = surface_colour(scene, shape, origin + t[hit, None] * dirs[hit])
+    colour, index = shade(scene, origin, dirs)
     # The trailing False is what a miss (index -1) picks.
     foreground = np.array([s.foreground for s in scene.shapes] + [False])
     rgb = colour.reshape(len(shifts), k.h, k.w, 3).mean(axis=0)
@@ -134,24 +143,10 @@ def render_equirect(scene: SceneSpec, c2w: np.ndarray, width: int, supersample: 
     the longitude (-180 to 180 degrees, the camera's forward -z at the middle, +x at three quarters), rows the
     latitude (+90, the camera's +y, at the top)."""
     c2w = np.asarray(c2w, dtype=np.float64)
-    height = width // 2
     offsets = (np.arange(supersample) + 0.5) / supersample
-    colour = np.zeros((height * width, 3))
-    for dv in offsets:
-        for du in offsets:
-            longitude = ((np.arange(width) + du) / width - 0.5) * 2 * math.pi
-            latitude = (0.5 - (np.arange(height) + dv) / height) * math.pi
-            lon, lat = np.meshgrid(longitude, latitude)
-            camera = np.stack([np.sin(lon) * np.cos(lat), np.sin(lat), -np.cos(lon) * np.cos(lat)], -1)
-            dirs = rotate_rows(camera.reshape(-1, 3), c2w[:3, :3])
-            t, index = trace(scene, c2w[:3, 3], dirs)
-            shade = np.broadcast_to(np.asarray(scene.background), dirs.shape).copy()
-            for s, shape in enumerate(scene.shapes):
-                hit = index == s
-                if hit.any():
-                    shade[hit] = surface_colour(scene, shape, c2w[:3, 3] + t[hit, None] * dirs[hit])
-            colour += shade
-    return (colour / supersample ** 2).reshape(height, width, 3)
+    colour = sum(shade(scene, c2w[:3, 3], rotate_rows(frame_directions(width, du, dv).reshape(-1, 3), c2w[:3, :3]))[0]
+                 for dv in offsets for du in offsets)
+    return (colour / supersample ** 2).reshape(width // 2, width, 3)
 
 
 def walk_poses(n_frames: int, radius: float = 1.9, height: float = 1.3) -> np.ndarray:
