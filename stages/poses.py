@@ -66,8 +66,10 @@ def run(ctx) -> dict:
                 try:
                     reconstruction, info, left_out = _sfm(ctx, s, full, full_records)
                 except UserError as again:
-                    raise UserError(f"{again} (read again at full size with frames twice as close: {len(records)} -> "
-                                    f"{len(retried)} frames; the first read: {refused})") from None
+                    # The first read's refusal is the warning above: repeated here, the line doubles.
+                    raise UserError(f"{again} (the clip read again at full size with frames twice as close, "
+                                    f"{len(records)} -> {len(retried)} frames; the first read's refusal is "
+                                    "above)") from None
                 rescale_model(reconstruction, retried[0]["width"], retried[0]["height"])
                 info["denser"] = {"first_frames": len(records), "first_refusal": str(refused), "frames": len(retried),
                                   "motion": denser["motion"],
