@@ -31,7 +31,7 @@ from bench.fit import machine
 REPO = Path(__file__).resolve().parent.parent
 OUT = REPO / "bench" / "out" / "sfm_captures"
 RESULTS = REPO / "bench" / "results" / "sfm_captures.json"
-SCENES = ("fox", "cup", "ball", "fern", "apple", "ball_video", "cup_video", "room_360")
+SCENES = ("fox", "cup", "ball", "fern", "apple", "ball_video", "cup_video", "room_360", "room_fisheye")
 VIDEO_FPS = 8
 
 
@@ -46,6 +46,13 @@ def scene_input(name: str, data: Path) -> Path:
             from stages.capture.synthetic import write_panorama_video
             OUT.mkdir(parents=True, exist_ok=True)
             write_panorama_video(video, n_frames=48, width=960)
+        return video
+    if name == "room_fisheye":  # an action camera's wide mode: 150 degrees across the diagonal, no EXIF
+        video = OUT / "room_fisheye.mp4"
+        if not video.is_file():
+            from stages.capture.synthetic import write_fisheye_video
+            OUT.mkdir(parents=True, exist_ok=True)
+            write_fisheye_video(video, n_frames=60)
         return video
     if not name.endswith("_video"):
         return data / name / "images"
@@ -90,7 +97,7 @@ def one_run(name: str, data: Path, preset: str, label: str, overrides: list[str]
             "train_psnr": fit["train_psnr"], "grid": fit["model"]["resolution"], "voxels": fit["model"]["occupied"],
             "scene_model": fit.get("scene_model"), "type": scene["type"],
             "poses": {"registered": poses["registered"], "images": poses["images"], "points": poses["points"],
-                      "line": poses["line"]},
+                      "seconds": poses["seconds_total"], "line": poses["line"]},
             "foreground_in_camera_distances": (np.subtract(box["max"], box["min"])
                                                / scene["measured"]["camera_distance"]).round(3).tolist(),
             "surroundings_growth": scene["measured"].get("surroundings_growth")}

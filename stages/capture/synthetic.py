@@ -47,6 +47,7 @@ import numpy as np
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.errors import UserError
 from stages.capture.synthetic_scenes import (ENVIRONMENT_RADIUS, WORLD_UP, camera_directions, render_equirect,
+                                             render_fisheye,
                                              render_float, to_uint8, build_scene, camera_poses, intrinsics_for,
                                              turn_angles, view_scene, walk_poses)
 from stages.common.json_files import read_json, write_json
@@ -140,6 +141,20 @@ def write_panorama_video(path: Path | str, n_frames: int = 48, width: int = 960,
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, width // 2))
     for c2w in poses:
         writer.write(to_uint8(render_equirect(scene, c2w, width, supersample))[..., ::-1])
+    writer.release()
+    return poses
+
+
+def write_fisheye_video(path: Path | str, n_frames: int = 48, width: int = 640, height: int = 480,
+                        diagonal_fov_deg: float = 150.0, seed: int = 0, fps: float = 8.0) -> np.ndarray:
+    """An action camera's video of the room kind through an equidistant fisheye seeing `diagonal_fov_deg` across its
+    diagonal (MPEG-4, no EXIF), along the room's orbit (`camera_poses`); returns its camera-to-world matrices."""
+    scene = build_scene("room", seed)
+    poses = camera_poses(scene, n_frames)
+    focal = math.hypot(width, height) / 2 / math.radians(diagonal_fov_deg / 2)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, height))
+    for c2w in poses:
+        writer.write(to_uint8(render_fisheye(scene, c2w, width, height, focal))[..., ::-1])
     writer.release()
     return poses
 

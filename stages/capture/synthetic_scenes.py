@@ -149,6 +149,24 @@ def render_equirect(scene: SceneSpec, c2w: np.ndarray, width: int, supersample: 
     return (colour / supersample ** 2).reshape(width // 2, width, 3)
 
 
+def render_fisheye(scene: SceneSpec, c2w: np.ndarray, width: int, height: int, focal: float,
+                   supersample: int = 2) -> np.ndarray:
+    """A view [height, width, 3] in [0,1] through an equidistant fisheye (a pixel's angle from the axis is its distance
+    from the image's centre over `focal`), as an action camera's wide mode records it."""
+    c2w = np.asarray(c2w, dtype=np.float64)
+    offsets = (np.arange(supersample) + 0.5) / supersample
+    colour = 0.0
+    for dv in offsets:
+        for du in offsets:
+            x, y = np.meshgrid((np.arange(width) + du - width / 2) / focal,
+                               (np.arange(height) + dv - height / 2) / focal)
+            angle = np.hypot(x, y)
+            along = np.sin(angle) / np.maximum(angle, 1e-12)
+            dirs = np.stack([along * x, -along * y, -np.cos(angle)], -1).reshape(-1, 3)
+            colour = colour + shade(scene, c2w[:3, 3], rotate_rows(dirs, c2w[:3, :3]))[0]
+    return (colour / supersample ** 2).reshape(height, width, 3)
+
+
 def walk_poses(n_frames: int, radius: float = 1.9, height: float = 1.3) -> np.ndarray:
     """[n,4,4] camera-to-world matrices of a 360 camera carried upright once around OBJECT_CENTRE inside the room
     kind, `height` above its floor, facing the way it goes with a little sway."""

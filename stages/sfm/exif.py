@@ -10,6 +10,7 @@ import pycolmap
 from PIL import Image
 
 from stages.capture.photos import RAW_SUFFIXES, upright_size
+from stages.sfm.lens import FISHEYE_DIAGONAL_FOV_DEG, fisheye_focal
 
 EXIF_MODEL_TAG = 0x0110
 EXIF_IFD = 0x8769
@@ -102,7 +103,8 @@ def set_focal_priors(db: Path, records: list[dict], photos: Path, sensor_width_m
     """Starts each camera in the database from the EXIF focal length of its photos (the median where photos share one,
     scaled to the ingested size), marked as a prior so verification estimates essential matrices; from the focal
     length a record gives (a 360 frame's view, `focal`) where it gives one, EXIF or not. Without either (or with
-    `from_exif` off), COLMAP's guess of 1.2 x the longest side stays."""
+    `from_exif` off), a fisheye camera starts from `fisheye_focal`, and others from COLMAP's guess of 1.2 x the
+    longest side."""
     by_name = {f"{r['name']}.png": r for r in records}
     found = []
     with pycolmap.Database.open(db) as database:
@@ -118,9 +120,12 @@ def set_focal_priors(db: Path, records: list[dict], photos: Path, sensor_width_m
                 exif = exif_focal(photos / record["source"], sensor_width_mm) if from_exif else None
                 if exif is not None:
                     priors.append((exif[0] * record["scale"], exif[1]))
+            camera = database.read_camera(camera_id)
+            if not priors and "FISHEYE" in camera.model.name:
+                priors.append((fisheye_focal(camera.width, camera.height), "a fisheye's usual field of view "
+                               f"({FISHEYE_DIAGONAL_FOV_DEG:.0f} degrees across the diagonal)"))
             if not priors:
                 continue
-            camera = database.read_camera(camera_id)
             camera.focal_length = statistics.median(f for f, _ in priors)
             camera.has_prior_focal_length = True
             database.update_camera(camera)

@@ -15,7 +15,8 @@ class SfmOptions:
     camera_model: Literal["SIMPLE_RADIAL", "OPENCV", "RADIAL", "SIMPLE_PINHOLE", "PINHOLE", "OPENCV_FISHEYE",
                           "RADIAL_FISHEYE", "SIMPLE_RADIAL_FISHEYE"] = "SIMPLE_RADIAL"
     """COLMAP camera model SfM fits (distortion is removed afterwards); a fisheye lens (an action camera's wide mode)
-    wants OPENCV_FISHEYE or another *_FISHEYE, whose angle from the axis, not its tangent, grows with the radius."""
+    wants OPENCV_FISHEYE or another *_FISHEYE, whose angle from the axis, not its tangent, grows with the radius: a
+    model fitted here whose lens bends like a fisheye's is made again as OPENCV_FISHEYE (with `repair`)."""
     exif_focal: bool = True
     """Start from the focal length in the photos' EXIF, when they carry one."""
     sensor_width_mm: float = 0.0
@@ -54,7 +55,8 @@ class SfmOptions:
     safer configuration, or refused."""
     repair: bool = True
     """When a model contradicts its matches or splits in parts, try safer configurations (exhaustive matching, no EXIF
-    focal prior, more features, full-size images) and keep the first that holds; off: refuse at once."""
+    focal prior, more features, full-size images) and keep the first that holds, and make a lens that bends like a
+    fisheye's again as one; off: refuse at once, keep the lens as fitted."""
 
     def check(self, section: str = "poses") -> None:
         require(self.sensor_width_mm >= 0, f"{section}.sensor_width_mm must be 0 (unknown) or the sensor width in mm")

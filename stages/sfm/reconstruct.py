@@ -9,6 +9,7 @@ nor tear it apart; without masks, matches that sit at the same pixels across pho
 background behind a turning object) stop SfM with that reason before any model is made of them."""
 from __future__ import annotations
 
+import math
 import shutil
 import statistics
 import time
@@ -25,6 +26,7 @@ import pycolmap
 from stages.capture.panorama import is_two_to_one
 from stages.common.text import short_list
 from stages.sfm.exif import one_camera, resized_since_capture, set_focal_priors
+from stages.sfm.lens import wide_lens
 from stages.sfm.model_checks import (GLOBAL_MAX_CONTRADICTED_SHARE, MAX_CONTRADICTED_SHARE, MIN_VERIFIED_INLIERS,
                                        STILL_HINT_SHARE, contradicted_images, detached_images, drop_images,
                                        still_matches, unlinked_models)
@@ -438,23 +440,45 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
     # A model that holds together but leaves photos out as contradicting their matches, its features from photos
     # larger than REPAIR_FEATURE_SIDE: the same configuration at that side may pose them (a phone video's frames
     # misplaced at 960 px, contradicting 22-78% of their matches, hold together at 640); kept where it poses more.
+    def instead(other: Attempt):
+        """`other` run beside the model in hand: its model, information and contradicted images, and how many images
+        it poses that hold (0 where the model has problems)."""
+        try:
+            again, again_info, again_models = sfm_attempt(records, image_dir, photos, from_video,
+                                                          scratch / f"attempt_{len(tried)}", other, report, masks)
+        except UserError:  # this attempt alone refusing what the model in hand got past: keep that model
+            again, again_info, again_models = None, {"db": None}, []
+        problems, again_contradicted = model_problems(again_info.pop("db"), again, again_models, len(records),
+                                                      other.options)
+        tried.append({"attempt": other.label, "registered": again.num_reg_images() if again else 0,
+                      "contradicted": len(again_contradicted), "models": len(again_models), "problems": problems})
+        posed_again = again.num_reg_images() - len(again_contradicted) if again is not None and not problems else 0
+        return again, again_info, again_contradicted, posed_again
+
     smaller = smaller_features(attempt, longest_side) if contradicted and s.repair else None
     if smaller is not None:
         left_out = contradicting(contradicted, len(records))
         report.warn(f"SfM ({attempt.label}): {left_out}; trying {smaller.label}")
-        try:
-            again, again_info, again_models = sfm_attempt(records, image_dir, photos, from_video,
-                                                          scratch / f"attempt_{len(tried)}", smaller, report, masks)
-        except UserError:  # this attempt alone refusing what the model in hand got past: keep that model
-            again, again_info, again_models = None, {"db": None}, []
-        problems, again_contradicted = model_problems(again_info.pop("db"), again, again_models, len(records),
-                                                      smaller.options)
-        tried.append({"attempt": smaller.label, "registered": again.num_reg_images() if again else 0,
-                      "contradicted": len(again_contradicted), "models": len(again_models), "problems": problems})
-        posed_again = again.num_reg_images() - len(again_contradicted) if again is not None else 0
-        if not problems and posed_again > best.num_reg_images() - len(contradicted):
+        again, again_info, again_contradicted, posed_again = instead(smaller)
+        if posed_again > best.num_reg_images() - len(contradicted):
             why = why or left_out
             best, info, contradicted, attempt, number = again, again_info, again_contradicted, smaller, len(tried) - 1
+    # A lens wider than the model fitted describes (an action camera's fisheye): made again as a fisheye, kept where
+    # it poses as many images and they reproject closer (a 150-degree fisheye: 1.2 px and 1 degree off as
+    # SIMPLE_RADIAL, 0.3 px and under 0.01 degree as OPENCV_FISHEYE).
+    stretch = wide_lens(best, attempt.options.camera_model) if s.repair else None
+    if stretch is not None:
+        fisheye = replace(attempt, label="a fisheye lens model",
+                          options=replace(attempt.options, camera_model="OPENCV_FISHEYE"))
+        bent = (f"its lens ({attempt.options.camera_model}) moves the corners {stretch:.0%} when undistorted"
+                if math.isfinite(stretch) else f"its lens ({attempt.options.camera_model}) turns back short of the "
+                "corners") + ", as a fisheye's does"
+        report.warn(f"SfM ({attempt.label}): {bent}; trying {fisheye.label}")
+        again, again_info, again_contradicted, posed_again = instead(fisheye)
+        if posed_again and posed_again >= best.num_reg_images() - len(contradicted) and (
+                again.compute_mean_reprojection_error() < best.compute_mean_reprojection_error()):
+            why = why or bent
+            best, info, contradicted, attempt, number = again, again_info, again_contradicted, fisheye, len(tried) - 1
     info["attempts"], info["attempt"] = tried, attempt.label
     if number:
         info["attempt_why"] = why

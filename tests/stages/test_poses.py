@@ -308,6 +308,51 @@ def test_fisheye_photos_are_posed_with_a_fisheye_camera_model(tmp_path):
     assert errors["rotation_error_deg_median"] < 0.5, errors
 
 
+def test_an_action_cameras_fisheye_is_found_and_posed_as_one_without_exif(tmp_path):
+    # An action camera's wide mode, 150 degrees across the diagonal, photos without EXIF. Fitted as SIMPLE_RADIAL,
+    # the one coefficient turns back short of the corners (the poses come out a degree off): SfM makes the model again
+    # as OPENCV_FISHEYE, which verifies its pairs from a field-of-view guess since no EXIF gives a focal length.
+    from stages.capture.synthetic_scenes import camera_poses, render_fisheye
+
+    room = build_scene("room", seed=0)
+    poses = camera_poses(room, 16)
+    width, height = 320, 240
+    focal = math.hypot(width, height) / 2 / math.radians(75.0)
+    (tmp_path / "action").mkdir()
+    for n, c2w in enumerate(poses):
+        write_png(tmp_path / "action" / f"{n:04d}.png",
+                  (np.clip(render_fisheye(room, c2w, width, height, focal), 0, 1) * 255).astype(np.uint8))
+    summary = run_poses(tmp_path / "action", tmp_path / "out")["summary"]
+    assert summary["registered"] == len(poses), summary["line"]
+    assert summary["attempt"] == "a fisheye lens model" and "as a fisheye's does" in summary["line"], summary["line"]
+    transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    original = transforms["original_camera"]
+    assert original["model"] == "OPENCV_FISHEYE" and abs(original["params"][0] / focal - 1) < 0.02, original
+    errors = compare_poses(np.array([f["transform_matrix"] for f in transforms["frames"]]),
+                           poses[[int(f["name"]) for f in transforms["frames"]]])
+    assert errors["rotation_error_deg_median"] < 0.1 and errors["centre_error_share_median"] < 0.005, errors
+
+
+def test_corner_stretch_follows_the_fitted_lens_and_the_fisheye_guess_its_field_of_view():
+    from stages.sfm.lens import FISHEYE_DIAGONAL_FOV_DEG, WIDE_LENS_STRETCH, corner_stretch, fisheye_focal
+
+    def radial(k):
+        return pycolmap.Camera(model="SIMPLE_RADIAL", width=320, height=240, params=[300.0, 160.0, 120.0, k])
+
+    # SIMPLE_RADIAL puts a pinhole radius r at r (1 + k r^2): the corner, 200 px out, is at r (1 + k r^2) = 2/3.
+    for k in (-0.05, 0.0, 0.03):
+        r = np.roots([k, 0.0, 1.0, -2 / 3]) if k else np.array([2 / 3])
+        r = min(r.real[(abs(r.imag) < 1e-12) & (r.real > 0)])
+        assert corner_stretch(radial(k)) == pytest.approx(r / (2 / 3) - 1, abs=1e-6)
+    assert corner_stretch(radial(-0.02)) < WIDE_LENS_STRETCH < corner_stretch(radial(-0.2))
+    assert corner_stretch(radial(-0.5)) == math.inf  # 2/3 is past where r (1 + k r^2) turns back
+    # COLMAP's own fisheye model, without distortion, sees the guessed field of view across the diagonal.
+    focal = fisheye_focal(640, 480)
+    fisheye = pycolmap.Camera(model="OPENCV_FISHEYE", width=640, height=480, params=[focal, focal, 320, 240, 0, 0, 0, 0])
+    ray = fisheye.cam_from_img(np.array([[0.0, 0.0]]))[0]
+    assert math.degrees(math.atan(np.hypot(*ray))) == pytest.approx(FISHEYE_DIAGONAL_FOV_DEG / 2, abs=0.01)
+
+
 def write_jpeg_with_exif(path: Path, rgb: np.ndarray, tags: dict[int, float]) -> None:
     exif = Image.Exif()
     exif[0x0110] = "Synthetic"
