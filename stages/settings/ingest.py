@@ -56,7 +56,8 @@ class Settings:
     equirect: Literal["auto", "yes", "no"] = "auto"
     """A 360 camera's equirectangular video or photos (2:1, the whole sphere) are cut into 8 pinhole views around the
     horizon, which SfM poses as one camera of known focal length; auto: where the file's metadata or the pixels say a
-    2:1 picture is one (its left and right edges meet, its top or bottom row is one point drawn wide)."""
+    2:1 picture is one (its left and right edges meet, its top or bottom row is one point drawn wide), or, for photos
+    with their poses, where a transforms.json says camera_model EQUIRECTANGULAR (each view takes its frame's pose)."""
     crop_bars: bool = True
     """Crop black bars along the frame's edges (a portrait clip in a landscape frame, a letterbox), dark in every
     frame of a video, or in every photo of the common size where SfM poses them (no pose file beside the photos,

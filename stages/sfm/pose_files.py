@@ -2,6 +2,7 @@
 (pose_import.py) could read. Finding them reads no pose, so a cache key lists them without loading COLMAP."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from stages.capture.photos import photo_folder
@@ -45,3 +46,20 @@ def pose_files(scene: Path) -> list[Path]:
         for path in paths:
             files += sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
     return files
+
+
+def transforms_equirect(scene: Path) -> bool:
+    """Whether a transforms.json beside the photos poses 360 frames: nerfstudio's camera_model EQUIRECTANGULAR (a
+    Metashape export of a spherical camera), for the file or any of its frames. Ingest then cuts the frames into
+    views, and the import poses each view from its frame's pose."""
+    for path in candidates(scene)["transforms"]:
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError):  # a damaged pose file is named where the import reads it
+            continue
+        frames = data.get("frames") if isinstance(data, dict) else None
+        models = [data.get("camera_model")] if isinstance(data, dict) else []
+        models += [f.get("camera_model") for f in frames if isinstance(f, dict)] if isinstance(frames, list) else []
+        if any(str(model).upper() == "EQUIRECTANGULAR" for model in models):
+            return True
+    return False

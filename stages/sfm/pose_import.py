@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from stages.capture.panorama import yaw_rotation
 from stages.capture.photos import DATASET_SPLITS, frame_photo, is_split_dataset, lexical_path, photo_folder
 from stages.sfm.pose_files import KINDS, candidates, colmap_models, is_colmap_model
 from plenoxels.core.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, opengl_c2w_from_projection
@@ -120,10 +121,10 @@ def _stem(name: str) -> str:
     return Path(name.replace("\\", "/")).name.rsplit(".", 1)[0] if "." in Path(name).name else Path(name).name
 
 
-def _rigid_from_c2w(c2w, where: str) -> pycolmap.Rigid3d:
-    """COLMAP's world-to-camera for our camera-to-world; the rotation is projected onto SO(3) first because exported
-    matrices carry float noise (and some tools fold a uniform scale into them). `where` names the pose in the file for
-    the one line that refuses it."""
+def _rigid_from_c2w(c2w, where: str, turn: np.ndarray | None = None) -> pycolmap.Rigid3d:
+    """COLMAP's world-to-camera for our camera-to-world, turned by `turn` (3x3, in the camera's axes) where given; the
+    rotation is projected onto SO(3) first because exported matrices carry float noise (and some tools fold a uniform
+    scale into them). `where` names the pose in the file for the one line that refuses it."""
     try:
         c2w = np.array(c2w, dtype=np.float64)
     except (TypeError, ValueError):
@@ -139,7 +140,7 @@ def _rigid_from_c2w(c2w, where: str) -> pycolmap.Rigid3d:
     if singular[0] > NON_RIGID_STRETCH * singular[2]:
         raise UserError(f"{where}: the camera pose's rotation stretches one axis {singular[0] / singular[2]:.2f}x more "
                         "than another, so it is no rotation; fix the pose file or set poses.source=sfm")
-    c2w[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    c2w[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt @ (np.eye(3) if turn is None else turn)
     rotation, translation = colmap_w2c_from_opengl_c2w(c2w)
     return pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation)
 
@@ -195,9 +196,9 @@ class _CameraTable:
 
 
 def _add_image(reconstruction: pycolmap.Reconstruction, image_id: int, record: dict, camera_id: int,
-               c2w: np.ndarray, where: str) -> None:
+               c2w: np.ndarray, where: str, turn: np.ndarray | None = None) -> None:
     image = pycolmap.Image(name=f"{record['name']}.png", camera_id=camera_id, image_id=image_id)
-    reconstruction.add_image_with_trivial_frame(image, _rigid_from_c2w(c2w, where))
+    reconstruction.add_image_with_trivial_frame(image, _rigid_from_c2w(c2w, where, turn))
 
 
 # ---- COLMAP -----------------------------------------------------------------------------------------------
@@ -273,18 +274,37 @@ def _intrinsics_from(meta: dict, fallback: dict, record: dict, where: str) -> tu
 def _lens(meta: dict, fallback: dict, where: str, get) -> Lens:
     """The COLMAP camera model and distortion coefficients a frame's `camera_model` (nerfstudio's names) and k1-k4,
     p1, p2 describe: OpenCV's radial-tangential model for a perspective camera (with k3 where it is given), its
-    equidistant model for a fisheye; a 360 or stereo-panorama camera model stops with what to do."""
-    model = str(meta.get("camera_model", fallback.get("camera_model", "OPENCV"))).upper()
+    equidistant model for a fisheye (a 360 camera's frames are cut into views, `_add_view`); another model stops with
+    what to do."""
+    model = _model_of(meta, fallback)
     if model in PERSPECTIVE_MODELS:
         k1, k2, p1, p2, k3 = (get(key, default=0.0) for key in ("k1", "k2", "p1", "p2", "k3"))
         return ("FULL_OPENCV", (k1, k2, p1, p2, k3, 0.0, 0.0, 0.0)) if k3 else ("OPENCV", (k1, k2, p1, p2))
     if model == "OPENCV_FISHEYE":
         return "OPENCV_FISHEYE", tuple(get(key, default=0.0) for key in ("k1", "k2", "k3", "k4"))
-    if model == "EQUIRECTANGULAR":
-        raise UserError(f"{where}: camera_model EQUIRECTANGULAR (a 360 camera's frames) has no pinhole to import; "
-                        "set ingest.equirect=yes and poses.source=sfm to cut the frames into views and pose those")
     raise UserError(f"{where}: camera_model {model} is not one this tool reads ({', '.join(sorted(PERSPECTIVE_MODELS))}"
                     ", OPENCV_FISHEYE); undistort the photos to pinholes, or set poses.source=sfm")
+
+
+def _model_of(meta: dict, fallback: dict) -> str:
+    return str(meta.get("camera_model", fallback.get("camera_model", "OPENCV"))).upper()
+
+
+def _add_view(reconstruction: pycolmap.Reconstruction, cameras: _CameraTable, record: dict, frame: dict, data: dict,
+              where: str) -> None:
+    """A view ingest cut from a 360 frame: its frame's pose turned to the view's yaw, the pinhole it was cut as."""
+    model = _model_of(frame, data)
+    if "panorama" not in record:
+        raise UserError(f"{where}: camera_model EQUIRECTANGULAR, but ingest did not cut {record['source']} into views "
+                        f"(it is {record['original_width']}x{record['original_height']}, or ingest.equirect=no); a 360 "
+                        "frame is 2:1: give the frames as the camera wrote them and ingest.equirect=auto")
+    if model != "EQUIRECTANGULAR":
+        raise UserError(f"{where}: ingest cut {record['source']} into 360 views (ingest.equirect), but the pose file's "
+                        f"camera_model is {model}; set ingest.equirect=auto to import the photos as they are")
+    side = record["width"]
+    k = Intrinsics(record["focal"], record["focal"], side / 2, record["height"] / 2, side, record["height"])
+    _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k), frame["transform_matrix"],
+               where, yaw_rotation(record["panorama"]["yaw"]))
 
 
 def _read_transforms(path: Path) -> dict:
@@ -348,6 +368,9 @@ def from_transforms(path: Path, records: list[dict], scene: Path, more: tuple[Pa
         where = f"{path.name if not more else 'the transforms files'}, the frame of {record['source']}"
         if not isinstance(frame, dict) or "transform_matrix" not in frame:
             raise UserError(f"{where} has no transform_matrix; add it or set poses.source=sfm")
+        if "panorama" in record or _model_of(frame, data) == "EQUIRECTANGULAR":
+            _add_view(reconstruction, cameras, record, frame, data, where)
+            continue
         k, lens = _intrinsics_from(frame, data, record, where)
         factor = _scale_factor(record, k.w, k.h, str(path))
         scaled = k.scaled(factor)

@@ -161,6 +161,38 @@ def test_a_360_video_is_posed_as_views_of_one_known_camera_that_share_each_frame
     assert errors["centre_error_share_median"] < 0.01, errors
 
 
+def test_360_frames_posed_in_a_transforms_json_give_each_view_its_frames_pose_turned_to_its_yaw(tmp_path):
+    # A Metashape export of a spherical camera, through nerfstudio: camera_model EQUIRECTANGULAR, one pose per frame.
+    capture = tmp_path / "capture"
+    (capture / "images").mkdir(parents=True)
+    truth = walk_poses(8)[::2]
+    frames = []
+    for n, c2w in enumerate(truth):
+        Image.fromarray(to_uint8(render_equirect(ROOM, c2w, 384, supersample=2))).save(capture / "images" / f"{n}.png")
+        frames.append({"file_path": f"images/{n}.png", "transform_matrix": c2w.tolist()})
+    (capture / "transforms.json").write_text(json.dumps({"camera_model": "EQUIRECTANGULAR", "w": 384, "h": 192,
+                                                         "fl_x": 192.0, "fl_y": 192.0, "frames": frames}))
+    manifest = Pipeline(capture, tmp_path / "out", reporter=Reporter(quiet=True)).run(["ingest", "poses"])
+    assert manifest["poses"]["summary"]["source"] == "transforms"
+    transforms = json.loads((tmp_path / "out" / "poses" / "transforms.json").read_text())
+    assert len(transforms["frames"]) == 8 * len(truth)
+    side = transforms["w"]
+    k = Intrinsics(transforms["fl_x"], transforms["fl_y"], transforms["cx"], transforms["cy"], side, transforms["h"])
+    assert k.fl_x == pytest.approx(view_focal(side))
+    for f in transforms["frames"]:
+        frame, yaw = f["name"].rsplit("_", 1)
+        turned, mirrored = truth[int(frame)].copy(), truth[int(frame)].copy()
+        turned[:3, :3] = truth[int(frame)][:3, :3] @ yaw_rotation(int(yaw))
+        mirrored[:3, :3] = truth[int(frame)][:3, :3] @ yaw_rotation(-int(yaw))
+        assert np.allclose(f["transform_matrix"], turned, atol=1e-6), f["name"]
+        # the view's pixels are what a pinhole at that pose sees, and not what one turned the other way sees
+        view = np.asarray(Image.open(tmp_path / "out" / "poses" / f["file_path"]).convert("RGB")) / 255
+        error = np.median(np.abs(view - render_float(ROOM, turned, k, 2)[0]))
+        assert error < 0.03, (f["name"], error)
+        if int(yaw) not in (0, 180):
+            assert np.median(np.abs(view - render_float(ROOM, mirrored, k, 2)[0])) > 3 * error, f["name"]
+
+
 def test_a_360_clip_sfm_refuses_is_read_again_as_views_of_closer_frames(tmp_path, monkeypatch):
     import stages.poses
 

@@ -537,7 +537,7 @@ def test_transforms_import_reads_the_camera_model_it_names(scene, truth, tmp_pat
     assert aligned < 2.0 and aligned < 0.3 * misread, (aligned, misread)
 
 
-@pytest.mark.parametrize("model, says", [("EQUIRECTANGULAR", "ingest.equirect=yes"), ("VR180_L", "not one this tool")])
+@pytest.mark.parametrize("model, says", [("EQUIRECTANGULAR", "a 360 frame is 2:1"), ("VR180_L", "not one this tool")])
 def test_transforms_import_refuses_a_camera_model_it_cannot_read_in_one_line(scene, truth, tmp_path, model, says):
     stems = photos(scene, tmp_path / "capture" / "images")
     (tmp_path / "capture" / "transforms.json").write_text(json.dumps({
