@@ -14,10 +14,10 @@ import numpy as np
 from stages.common.media import write_png
 from stages.common.json_files import write_json
 from stages.capture.masks import mask_folder, match_masks, read_mask
-from stages.capture.photos import (IMAGE_SUFFIXES, VIDEO_SUFFIXES, colour_spread, colourless_among_colour,
-                                   fit_max_side, is_split_dataset, load_photo, not_a_scene, not_read_why, photo_folder,
-                                   photos_picture, raw_twins, repeated, scene_photos, sharpness, stored_orientation,
-                                   thumbnail)
+from stages.capture.photos import (IMAGE_SUFFIXES, SIDECAR_SUFFIXES, VIDEO_SUFFIXES, colour_spread,
+                                   colourless_among_colour, fit_max_side, is_split_dataset, load_photo, not_a_scene,
+                                   not_read_why, photo_folder, photos_picture, raw_twins, repeated, scene_photos,
+                                   sharpness, stored_orientation, thumbnail)
 from stages.capture.panorama import (FRAME_SHARE, PANORAMA_VIEWS, frame_side, is_two_to_one, looks_equirect,
                                      photos_equirect, says_equirect, split_frame, view_focal, view_side)
 from stages.capture.video import clip_samples, sequence_step, video_frames
@@ -114,7 +114,7 @@ def run(ctx) -> dict:
         photos = [(p.relative_to(folder), split) for p, split in candidates
                   if p.suffix.lower() in IMAGE_SUFFIXES and p not in twins]
         unreadable += [f"{p.name} ({not_read_why(p)})" for p, _ in candidates
-                       if p.suffix.lower() not in IMAGE_SUFFIXES | VIDEO_SUFFIXES | {".json", ".npy", ".txt", ".md"}]
+                       if p.suffix.lower() not in IMAGE_SUFFIXES | VIDEO_SUFFIXES | SIDECAR_SUFFIXES]
         clips = [p.name for p, _ in candidates if p.suffix.lower() in VIDEO_SUFFIXES]
         if clips:
             ctx.report.warn(f"{len(clips)} video(s) beside the photos are not read: {short_list(clips)} (a phone's "

@@ -1,5 +1,6 @@
-"""Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy and IDR/NeuS cameras the importers
-(pose_import.py) could read. Finding them reads no pose, so a cache key lists them without loading COLMAP."""
+"""Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy, IDR/NeuS cameras and
+Metashape cameras .xml the importers (pose_import.py) could read. Finding them reads no pose, so a cache key lists
+them without loading COLMAP."""
 from __future__ import annotations
 
 import json
@@ -7,9 +8,11 @@ from pathlib import Path
 
 from stages.capture.photos import photo_folder
 
-KINDS = ("colmap", "transforms", "llff", "idr")
+KINDS = ("colmap", "transforms", "llff", "idr", "metashape")
 # IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
 IDR_FILES = ("cameras_sphere.npz", "cameras.npz")
+# Bytes of an .xml file read to tell Metashape's cameras from other XML.
+METASHAPE_HEAD_BYTES = 4096
 
 
 def colmap_models(folder: Path) -> list[Path]:
@@ -36,7 +39,18 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
         if (place / "poses_bounds.npy").is_file():
             found["llff"].append(place / "poses_bounds.npy")
         found["idr"] += [place / name for name in IDR_FILES if (place / name).is_file()]
+        found["metashape"] += [p for p in sorted(place.glob("*.xml")) if is_metashape(p)]
     return found
+
+
+def is_metashape(path: Path) -> bool:
+    """Whether an .xml file is Metashape's cameras (a <document> whose head opens a <chunk>)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(METASHAPE_HEAD_BYTES)
+    except OSError:
+        return False
+    return b"<document" in head and b"<chunk" in head
 
 
 def pose_files(scene: Path) -> list[Path]:

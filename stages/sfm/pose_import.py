@@ -1,6 +1,6 @@
 """Poses a user already has: a COLMAP sparse model, a NeRF / instant-ngp / nerfstudio / Blender
-transforms.json, LLFF poses_bounds.npy, or IDR/NeuS cameras_sphere.npz (DTU-style sets), turned into the same
-distorted COLMAP model that SfM makes.
+transforms.json, LLFF poses_bounds.npy, IDR/NeuS cameras_sphere.npz (DTU-style sets), or Metashape's exported
+cameras.xml, turned into the same distorted COLMAP model that SfM makes.
 
 Every importer returns an `Imported`: a `pycolmap.Reconstruction` whose image names are the ingested
 PNGs (`<name>.png`) and whose cameras are scaled to the ingested image size, so it is undistorted and
@@ -20,6 +20,7 @@ import pycolmap
 
 from stages.capture.panorama import yaw_rotation
 from stages.capture.photos import DATASET_SPLITS, frame_photo, is_split_dataset, lexical_path, photo_folder
+from stages.sfm import metashape
 from stages.sfm.pose_files import KINDS, candidates, colmap_models, is_colmap_model
 from plenoxels.core.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, opengl_c2w_from_projection
 from plenoxels.core.errors import UserError
@@ -55,8 +56,10 @@ def kind_of(path: Path) -> str:
         return "llff"
     elif path.suffix == ".npz":
         return "idr"
-    raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json, a poses_bounds.npy or an "
-                    "IDR/NeuS cameras*.npz")
+    elif path.suffix.lower() == ".xml":
+        return "metashape"
+    raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json, a poses_bounds.npy, an "
+                    "IDR/NeuS cameras*.npz or a Metashape cameras .xml")
 
 
 def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
@@ -72,6 +75,8 @@ def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
         return from_transforms(path, records, scene)
     if kind == "idr":
         return from_idr(path, records, scene)
+    if kind == "metashape":
+        return from_metashape(path, records)
     return from_llff(path, records)
 
 
@@ -456,4 +461,39 @@ def from_idr(path: Path, records: list[dict], scene: Path) -> Imported:
         k = Intrinsics(k.fl_x, k.fl_y, k.cx, k.cy, record["width"], record["height"])
         _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k), c2w,
                    f"{path.name}, world_mat_{index} ({record['source']})")
+    return Imported(reconstruction, path, missing)
+
+
+# ---- Metashape cameras.xml ----------------------------------------------------------------------------------
+
+def from_metashape(path: Path, records: list[dict]) -> Imported:
+    """Poses from Metashape's exported cameras (stages/sfm/metashape.py): a photo takes the aligned camera labelled
+    with its file name, with or without its suffix; a label several cameras share is refused, never guessed."""
+    _, sensors, components, found = metashape.read(path)
+    by_label: dict[str, list[int]] = {}
+    for index, (label, *_) in enumerate(found):
+        by_label.setdefault(label, []).append(index)
+    reconstruction = pycolmap.Reconstruction()
+    cameras = _CameraTable(reconstruction)
+    missing = []
+    for record in records:
+        source = Path(record["source"])
+        hits = by_label.get(source.name) or by_label.get(source.stem) or []
+        if len(hits) > 1:
+            raise UserError(f"{path}: {len(hits)} aligned cameras are labelled {source.stem}; label each photo's "
+                            "camera once (or set poses.source=sfm)")
+        if not hits:
+            missing.append(record["name"])
+            continue
+        label, sensor_id, component_id, transform = found[hits[0]]
+        where = f"{path.name}, camera {label}"
+        if sensor_id not in sensors:
+            raise UserError(f"{where}: its sensor {sensor_id} has no calibration; export the cameras of an aligned "
+                            "chunk, or set poses.source=sfm")
+        k, model, coefficients = metashape.camera_and_lens(*sensors[sensor_id], where)
+        scaled = k.scaled(_scale_factor(record, k.w, k.h, str(path)))
+        scaled = Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
+        c2w = metashape.camera_to_world(transform, components.get(component_id), where)
+        camera_id = cameras.id_for(scaled, (model, coefficients))
+        _add_image(reconstruction, len(reconstruction.images) + 1, record, camera_id, c2w, where)
     return Imported(reconstruction, path, missing)

@@ -4,6 +4,7 @@ A kind's maker writes into an empty folder and returns the path to give the pipe
 """
 import json
 import os
+import re
 import shutil
 import struct
 import tempfile
@@ -245,6 +246,21 @@ def not_json(folder, meta):
     (folder / "transforms.json").write_text("{\"frames\": [")
 
 
+def metashape(spoil):
+    """Metashape's cameras.xml for the template's photos, spoiled by `spoil` (a function of its text)."""
+    def edit(folder, meta):
+        size = f'<resolution width="{meta["w"]}" height="{meta["h"]}"/>'
+        cameras = "".join(
+            f'<camera id="{n}" sensor_id="0" label="{Path(f["file_path"]).stem}"><transform>'
+            f'{" ".join(map(repr, (np.array(f["transform_matrix"]) @ np.diag([1.0, -1, -1, 1])).ravel().tolist()))}'
+            "</transform></camera>" for n, f in enumerate(meta["frames"]))
+        text = (f'<?xml version="1.0"?><document version="2.0.0"><chunk><sensors><sensor id="0" type="frame">{size}'
+                f'<calibration type="frame" class="adjusted">{size}<f>{meta["fl_x"]!r}</f><cx>0</cx><cy>0</cy>'
+                f"</calibration></sensor></sensors><cameras>{cameras}</cameras></chunk></document>")
+        (folder / "cameras.xml").write_text(spoil(text))
+    return edit
+
+
 POSE_KINDS = {
     "transforms_nan": posed(frame_matrix(lambda m: [[float("nan")] * 4] + m[1:])),
     "transforms_inf": posed(frame_matrix(lambda m: [[float("inf")] * 4] + m[1:])),
@@ -262,6 +278,11 @@ POSE_KINDS = {
     "llff_nan": posed(llff(np.full((6, 17), np.nan))),
     "llff_one_dim": posed(llff(np.zeros(17))),
     "colmap_no_images": posed(colmap_no_images),
+    "metashape_cut_short": posed(metashape(lambda text: text[:len(text) // 2])),
+    "metashape_focal_nan": posed(metashape(lambda text: re.sub("<f>[^<]*</f>", "<f>nan</f>", text))),
+    "metashape_matrix_text": posed(metashape(lambda text: text.replace("<transform>", "<transform>identity ", 1))),
+    "metashape_none_aligned": posed(metashape(lambda text: re.sub("<transform>[^<]*</transform>", "", text))),
+    "metashape_spherical": posed(metashape(lambda text: text.replace('type="frame"', 'type="spherical"'))),
 }
 
 KINDS = {

@@ -549,6 +549,98 @@ def test_transforms_import_refuses_a_camera_model_it_cannot_read_in_one_line(sce
     assert "\n" not in str(refused.value)
 
 
+def metashape_xml(calibration: dict, cameras: list[tuple[str, np.ndarray]], component: np.ndarray | None = None,
+                  kind: str = "frame") -> str:
+    """cameras.xml as Metashape's Export Cameras writes it: one sensor, its calibration, a component's similarity,
+    and each camera's camera-to-chunk transform (OpenCV axes), a row-major 4x4."""
+    values = "".join(f"<{key}>{value!r}</{key}>" for key, value in calibration.items() if key not in ("w", "h"))
+    size = f'<resolution width="{calibration["w"]}" height="{calibration["h"]}"/>'
+    parts = ['<?xml version="1.0" encoding="UTF-8"?>', '<document version="2.0.0">', '<chunk label="Chunk 1">',
+             f'<sensors next_id="1"><sensor id="0" label="phone" type="{kind}">{size}',
+             f'<calibration type="{kind}" class="initial">{size}<f>1</f></calibration>',
+             f'<calibration type="{kind}" class="adjusted">{size}{values}</calibration></sensor></sensors>']
+    if component is not None:
+        scale = float(np.cbrt(np.linalg.det(component[:3, :3])))
+        parts.append('<components><component id="0"><transform>'
+                     f'<rotation>{" ".join(map(repr, (component[:3, :3] / scale).ravel().tolist()))}</rotation>'
+                     f'<translation>{" ".join(map(repr, component[:3, 3].tolist()))}</translation>'
+                     f'<scale>{scale!r}</scale></transform></component></components>')
+    parts.append("<cameras>")
+    for label, c2w in cameras:
+        parts.append(f'<camera id="{len(parts)}" sensor_id="0" component_id="0" label="{label}">'
+                     f'<transform>{" ".join(map(repr, c2w.ravel().tolist()))}</transform></camera>')
+    parts.append('<camera id="999" sensor_id="0" label="not_aligned"/></cameras></chunk></document>')
+    return "\n".join(parts)
+
+
+def test_metashape_cameras_import_in_the_chunks_frame_with_each_photos_camera(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "capture" / "images")
+    # A component turned, moved and scaled in the chunk: its cameras' transforms are given in its own frame.
+    rng = np.random.default_rng(3)
+    rotation, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    component = np.eye(4)
+    component[:3, :3], component[:3, 3] = 2.5 * rotation * np.sign(np.linalg.det(rotation)), [4.0, -1.0, 7.0]
+    want = frames_by_name(truth)
+    cameras = []
+    for stem in stems[1:]:
+        c2w = np.array(want[stem]["transform_matrix"]) @ np.diag([1.0, -1.0, -1.0, 1.0])  # to OpenCV's axes
+        cameras.append((stem, np.linalg.inv(component) @ c2w))
+    # The export describes the photos at twice the size, its principal point off the centre.
+    calibration = {"w": 2 * WIDTH, "h": 2 * HEIGHT, "f": 2 * truth["fl_x"], "cx": 2 * truth["cx"] - WIDTH + 3.0,
+                   "cy": 2 * truth["cy"] - HEIGHT - 2.0}
+    (tmp_path / "capture" / "images" / "cameras.xml").write_text(metashape_xml(calibration, cameras, component))
+    manifest = run_poses(tmp_path / "capture" / "images", tmp_path / "out")
+    transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    assert transforms["source"] == "metashape" and manifest["summary"]["left_out"] == [stems[0]]
+    assert read_json(tmp_path / "out" / "ingest" / "images.json")["skipped"] == []  # a pose file, not a bad photo
+    assert_poses_equal(transforms, truth, stems[1:])
+    assert transforms["cx"] == pytest.approx(truth["cx"] + 1.5) and transforms["fl_x"] == pytest.approx(truth["fl_x"])
+
+
+def metashape_project(rays: np.ndarray, c: dict) -> np.ndarray:
+    """Pixels of OpenCV-axes rays through Metashape's frame camera, as its manual writes the model."""
+    x, y = rays[:, 0] / rays[:, 2], rays[:, 1] / rays[:, 2]
+    r2 = x * x + y * y
+    radial = 1 + c["k1"] * r2 + c["k2"] * r2 ** 2 + c["k3"] * r2 ** 3 + c["k4"] * r2 ** 4
+    xd = x * radial + c["p1"] * (r2 + 2 * x * x) + 2 * c["p2"] * x * y
+    yd = y * radial + c["p2"] * (r2 + 2 * y * y) + 2 * c["p1"] * x * y
+    return np.stack([c["w"] / 2 + c["cx"] + xd * (c["f"] + c["b1"]) + yd * c["b2"], c["h"] / 2 + c["cy"] + yd * c["f"]],
+                    -1)
+
+
+def test_metashape_lens_with_its_r8_term_and_swapped_tangential_terms_is_undistorted_as_metashape_bends_it(
+        scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "capture" / "images", count=4)
+    # A wide lens (the corners 1.3 focal lengths out), so the r^8 term moves them by pixels.
+    c = {"w": WIDTH, "h": HEIGHT, "f": 230.0, "cx": 4.0, "cy": -3.0, "b1": 2.0, "b2": 0.0,
+         "k1": -0.08, "k2": 0.02, "k3": -0.01, "k4": 0.01, "p1": 0.006, "p2": -0.004}
+    want = frames_by_name(truth)
+    cameras = [(stem, np.array(want[stem]["transform_matrix"]) @ np.diag([1.0, -1.0, -1.0, 1.0])) for stem in stems]
+    (tmp_path / "capture" / "cameras.xml").write_text(metashape_xml(c, cameras))
+    run_poses(tmp_path / "capture" / "images", tmp_path / "out")
+    out = tmp_path / "out" / "poses"
+    transforms = read_json(out / "transforms.json")
+    assert_poses_equal(transforms, truth, stems)
+    # The undistorted image at pinhole pixel p shows what the photo shows where Metashape's model puts p's ray.
+    k = Intrinsics.from_frame(transforms)
+    uv = np.random.default_rng(2).uniform([0.1 * k.w, 0.1 * k.h], [0.9 * k.w, 0.9 * k.h], size=(400, 2))
+    rays = np.stack([(uv[:, 0] - k.cx) / k.fl_x, (uv[:, 1] - k.cy) / k.fl_y, np.ones(len(uv))], -1)
+    photo, undistorted = (read_rgb(folder / "images" / f"{stems[1]}.png") for folder in (scene, out))
+    aligned = np.abs(sample(undistorted, uv) - sample(photo, metashape_project(rays, c))).mean()
+    unswapped = np.abs(sample(undistorted, uv) - sample(photo, metashape_project(rays, {**c, "p1": c["p2"],
+                                                                                         "p2": c["p1"]}))).mean()
+    assert aligned < 1.0 and aligned < 0.5 * unswapped, (aligned, unswapped)
+    # The lens imported bends every ray that reaches the photo as Metashape's does, the r^8 term's pixels included.
+    original = transforms["original_camera"]
+    camera = pycolmap.Camera(model=original["model"], width=WIDTH, height=HEIGHT, params=original["params"])
+    grid = np.stack(np.meshgrid(np.linspace(-1.2, 1.2, 60), np.linspace(-0.9, 0.9, 45)), -1).reshape(-1, 2)
+    rays = np.concatenate([grid, np.ones((len(grid), 1))], -1)
+    seen = metashape_project(rays, c)
+    rays = rays[np.all((seen >= 0) & (seen <= [WIDTH, HEIGHT]), axis=1)]
+    assert np.abs(camera.img_from_cam(rays) - metashape_project(rays, c)).max() < 0.05
+    assert np.abs(metashape_project(rays, {**c, "k4": 0.0}) - metashape_project(rays, c)).max() > 1.0
+
+
 def test_blender_import_uses_the_file_whose_paths_match_the_photos(scene, truth, tmp_path):
     stems = photos(scene, tmp_path / "lego" / "train")
     alpha = np.zeros((HEIGHT, WIDTH), dtype=np.uint8)
