@@ -148,9 +148,8 @@ def run(ctx) -> dict:
                 ctx.report.warn(f"{len(unmasked)} of {len(photos)} photos have no mask in {masks_given} (by name): "
                                 f"{short_list(unmasked)}; they are posed from the whole photo and left out of the fit")
         # Photos with their own poses are read as those poses describe them: 360 frames where the pose file says so.
-        panorama = s.equirect == "yes" or s.equirect == "auto" and (pose_files.transforms_equirect(ctx.scene)
-                                                                    if own_poses else
-                                                                    photos_equirect([folder / p for p, _ in photos]))
+        panorama = s.equirect == "yes" or s.equirect == "auto" and (
+            pose_files.poses_equirect(ctx.scene) if own_poses else photos_equirect([folder / p for p, _ in photos]))
         if s.crop_bars and not own_poses and not panorama:
             bars = photos_picture([folder / p for p, _ in photos])
         for relative, split in ctx.report.track(photos, desc="reading photos"):

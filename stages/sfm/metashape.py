@@ -8,7 +8,9 @@ corner. COLMAP has no r^8 term: K1-K4 become FULL_OPENCV's ratio of two cubics i
 refused where they miss it by more than MAX_MODEL_ERROR_PX. Its fisheye is the equidistant model bent by K1-K4 in the
 angle: OPENCV_FISHEYE. A camera's <transform> is its camera-to-world in the chunk's own frame, turned by its
 component's <transform> where it has one; the chunk's transform to a reference system (geographic coordinates, whose
-size a float32 mesh cannot hold to the millimetre) is not applied, so the outputs are in the chunk's own frame."""
+size a float32 mesh cannot hold to the millimetre) is not applied, so the outputs are in the chunk's own frame. A
+spherical sensor's photos are equirectangular (longitude atan2(X, Z) across, latitude down the rows): ingest cuts them
+into views, and each takes its photo's pose turned to its yaw (pose_import._add_view)."""
 from __future__ import annotations
 
 import math
@@ -24,15 +26,16 @@ from plenoxels.core.errors import UserError
 MAX_MODEL_ERROR_PX = 0.25
 
 
-def calibrations(chunk: ElementTree.Element, path: Path) -> dict[str, tuple[str, dict[str, float]]]:
-    """Each sensor's type and its calibration (the adjusted one where both are there): f, cx, cy, b1, b2, k1-k4,
-    p1, p2 and the size it holds for."""
+def calibrations(chunk: ElementTree.Element, path: Path) -> dict[str, tuple[str, dict[str, float] | None]]:
+    """Each sensor's type (frame, fisheye, spherical, ...) and its calibration (the adjusted one where both are
+    there, None where it has none): f, cx, cy, b1, b2, k1-k4, p1, p2 and the size it holds for."""
     found = {}
     for sensor in chunk.iterfind("sensors/sensor"):
         chosen = sensor.findall("calibration")
         chosen = [c for c in chosen if c.get("class") == "adjusted"] or chosen
         if not chosen:
-            continue  # a sensor no photo was aligned with: its cameras have no pose either
+            found[sensor.get("id")] = (sensor.get("type", "frame"), None)
+            continue
         calibration = chosen[0]
         resolution = calibration.find("resolution")
         if resolution is None:

@@ -4,6 +4,7 @@ them without loading COLMAP."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 from stages.capture.photos import photo_folder
@@ -62,11 +63,18 @@ def pose_files(scene: Path) -> list[Path]:
     return files
 
 
-def transforms_equirect(scene: Path) -> bool:
-    """Whether a transforms.json beside the photos poses 360 frames: nerfstudio's camera_model EQUIRECTANGULAR (a
-    Metashape export of a spherical camera), for the file or any of its frames. Ingest then cuts the frames into
+def poses_equirect(scene: Path) -> bool:
+    """Whether a pose file beside the photos poses 360 frames: a transforms.json's camera_model EQUIRECTANGULAR
+    (nerfstudio's, for the file or any of its frames) or a Metashape spherical sensor. Ingest then cuts the frames into
     views, and the import poses each view from its frame's pose."""
-    for path in candidates(scene)["transforms"]:
+    found = candidates(scene)
+    for path in found["metashape"]:
+        try:
+            if re.search(rb"<sensor\b[^>]*\btype=\"spherical\"", path.read_bytes()):
+                return True
+        except OSError:  # named where the import reads it
+            continue
+    for path in found["transforms"]:
         try:
             data = json.loads(path.read_text())
         except (OSError, ValueError):  # a damaged pose file is named where the import reads it

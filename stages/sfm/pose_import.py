@@ -295,21 +295,21 @@ def _model_of(meta: dict, fallback: dict) -> str:
     return str(meta.get("camera_model", fallback.get("camera_model", "OPENCV"))).upper()
 
 
-def _add_view(reconstruction: pycolmap.Reconstruction, cameras: _CameraTable, record: dict, frame: dict, data: dict,
-              where: str) -> None:
-    """A view ingest cut from a 360 frame: its frame's pose turned to the view's yaw, the pinhole it was cut as."""
-    model = _model_of(frame, data)
-    if "panorama" not in record:
-        raise UserError(f"{where}: camera_model EQUIRECTANGULAR, but ingest did not cut {record['source']} into views "
-                        f"(it is {record['original_width']}x{record['original_height']}, or ingest.equirect=no); a 360 "
-                        "frame is 2:1: give the frames as the camera wrote them and ingest.equirect=auto")
-    if model != "EQUIRECTANGULAR":
+def _add_view(reconstruction: pycolmap.Reconstruction, cameras: _CameraTable, record: dict, model: str,
+              equirect: bool, c2w, where: str) -> None:
+    """A view ingest cut from a 360 frame: its frame's pose turned to the view's yaw, the pinhole it was cut as;
+    `model` names the pose file's camera, `equirect` whether it is a 360 camera's."""
+    if not equirect:
         raise UserError(f"{where}: ingest cut {record['source']} into 360 views (ingest.equirect), but the pose file's "
-                        f"camera_model is {model}; set ingest.equirect=auto to import the photos as they are")
+                        f"camera is {model}; set ingest.equirect=auto to import the photos as they are")
+    if "panorama" not in record:
+        raise UserError(f"{where}: a 360 camera ({model}), but ingest did not cut {record['source']} into views (it "
+                        f"is {record['original_width']}x{record['original_height']}, or ingest.equirect=no); a 360 "
+                        "frame is 2:1: give the frames as the camera wrote them and ingest.equirect=auto")
     side = record["width"]
     k = Intrinsics(record["focal"], record["focal"], side / 2, record["height"] / 2, side, record["height"])
-    _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k), frame["transform_matrix"],
-               where, yaw_rotation(record["panorama"]["yaw"]))
+    _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k), c2w, where,
+               yaw_rotation(record["panorama"]["yaw"]))
 
 
 def _read_transforms(path: Path) -> dict:
@@ -374,7 +374,9 @@ def from_transforms(path: Path, records: list[dict], scene: Path, more: tuple[Pa
         if not isinstance(frame, dict) or "transform_matrix" not in frame:
             raise UserError(f"{where} has no transform_matrix; add it or set poses.source=sfm")
         if "panorama" in record or _model_of(frame, data) == "EQUIRECTANGULAR":
-            _add_view(reconstruction, cameras, record, frame, data, where)
+            model = _model_of(frame, data)
+            _add_view(reconstruction, cameras, record, f"camera_model {model}", model == "EQUIRECTANGULAR",
+                      frame["transform_matrix"], where)
             continue
         k, lens = _intrinsics_from(frame, data, record, where)
         factor = _scale_factor(record, k.w, k.h, str(path))
@@ -487,13 +489,17 @@ def from_metashape(path: Path, records: list[dict]) -> Imported:
             continue
         label, sensor_id, component_id, transform = found[hits[0]]
         where = f"{path.name}, camera {label}"
-        if sensor_id not in sensors:
+        kind, calibration = sensors.get(sensor_id, (None, None))
+        c2w = metashape.camera_to_world(transform, components.get(component_id), where)
+        if "panorama" in record or kind == "spherical":
+            _add_view(reconstruction, cameras, record, f"a {kind} sensor", kind == "spherical", c2w, where)
+            continue
+        if calibration is None:
             raise UserError(f"{where}: its sensor {sensor_id} has no calibration; export the cameras of an aligned "
                             "chunk, or set poses.source=sfm")
-        k, model, coefficients = metashape.camera_and_lens(*sensors[sensor_id], where)
+        k, model, coefficients = metashape.camera_and_lens(kind, calibration, where)
         scaled = k.scaled(_scale_factor(record, k.w, k.h, str(path)))
         scaled = Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
-        c2w = metashape.camera_to_world(transform, components.get(component_id), where)
         camera_id = cameras.id_for(scaled, (model, coefficients))
         _add_image(reconstruction, len(reconstruction.images) + 1, record, camera_id, c2w, where)
     return Imported(reconstruction, path, missing)

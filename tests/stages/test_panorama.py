@@ -161,8 +161,10 @@ def test_a_360_video_is_posed_as_views_of_one_known_camera_that_share_each_frame
     assert errors["centre_error_share_median"] < 0.01, errors
 
 
-def test_360_frames_posed_in_a_transforms_json_give_each_view_its_frames_pose_turned_to_its_yaw(tmp_path):
-    # A Metashape export of a spherical camera, through nerfstudio: camera_model EQUIRECTANGULAR, one pose per frame.
+@pytest.mark.parametrize("pose_file", ["transforms", "metashape"])
+def test_360_frames_posed_in_a_pose_file_give_each_view_its_frames_pose_turned_to_its_yaw(tmp_path, pose_file):
+    # nerfstudio's camera_model EQUIRECTANGULAR, or Metashape's exported cameras of a spherical sensor (its camera
+    # axes OpenCV's, its frames' longitude atan2(X, Z) across): one pose per frame.
     capture = tmp_path / "capture"
     (capture / "images").mkdir(parents=True)
     truth = walk_poses(8)[::2]
@@ -170,10 +172,19 @@ def test_360_frames_posed_in_a_transforms_json_give_each_view_its_frames_pose_tu
     for n, c2w in enumerate(truth):
         Image.fromarray(to_uint8(render_equirect(ROOM, c2w, 384, supersample=2))).save(capture / "images" / f"{n}.png")
         frames.append({"file_path": f"images/{n}.png", "transform_matrix": c2w.tolist()})
-    (capture / "transforms.json").write_text(json.dumps({"camera_model": "EQUIRECTANGULAR", "w": 384, "h": 192,
-                                                         "fl_x": 192.0, "fl_y": 192.0, "frames": frames}))
+    if pose_file == "transforms":
+        (capture / "transforms.json").write_text(json.dumps({"camera_model": "EQUIRECTANGULAR", "w": 384, "h": 192,
+                                                             "fl_x": 192.0, "fl_y": 192.0, "frames": frames}))
+    else:
+        cameras = "".join(f'<camera id="{n}" sensor_id="0" label="{n}"><transform>'
+                          f'{" ".join(map(repr, (c2w @ np.diag([1.0, -1, -1, 1])).ravel().tolist()))}</transform>'
+                          "</camera>" for n, c2w in enumerate(truth))
+        (capture / "cameras.xml").write_text(
+            '<?xml version="1.0"?><document version="2.0.0"><chunk><sensors><sensor id="0" type="spherical">'
+            '<resolution width="384" height="192"/></sensor></sensors>'
+            f"<cameras>{cameras}</cameras></chunk></document>")
     manifest = Pipeline(capture, tmp_path / "out", reporter=Reporter(quiet=True)).run(["ingest", "poses"])
-    assert manifest["poses"]["summary"]["source"] == "transforms"
+    assert manifest["poses"]["summary"]["source"] == pose_file
     transforms = json.loads((tmp_path / "out" / "poses" / "transforms.json").read_text())
     assert len(transforms["frames"]) == 8 * len(truth)
     side = transforms["w"]
