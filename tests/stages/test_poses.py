@@ -641,6 +641,26 @@ def test_metashape_lens_with_its_r8_term_and_swapped_tangential_terms_is_undisto
     assert np.abs(metashape_project(rays, {**c, "k4": 0.0}) - metashape_project(rays, c)).max() > 1.0
 
 
+def test_metashape_fisheye_sensor_projects_as_metashape_writes_it():
+    from stages.sfm.metashape import camera_and_lens
+
+    c = {"w": 640.0, "h": 480.0, "f": 300.0, "cx": 3.0, "cy": -2.0, "b1": 1.5, "b2": 0.0,
+         "k1": 0.02, "k2": -0.01, "k3": 0.003, "k4": -0.0005, "p1": 0.0, "p2": 0.0}
+    k, model, coefficients = camera_and_lens("fisheye", c, "cameras.xml")
+    camera = pycolmap.Camera(model=model, width=640, height=480, params=[k.fl_x, k.fl_y, k.cx, k.cy, *coefficients])
+    rays = np.concatenate([np.random.default_rng(4).uniform(-2.5, 2.5, (300, 2)), np.ones((300, 1))], -1)
+    # The manual's fisheye: the angle from the axis for the radius, then the frame camera's bending and pixels.
+    r0 = np.hypot(rays[:, 0], rays[:, 1])
+    x, y = rays[:, 0] * np.arctan(r0) / r0, rays[:, 1] * np.arctan(r0) / r0
+    r2 = x * x + y * y
+    radial = 1 + c["k1"] * r2 + c["k2"] * r2 ** 2 + c["k3"] * r2 ** 3 + c["k4"] * r2 ** 4
+    want = np.stack([c["w"] / 2 + c["cx"] + x * radial * (c["f"] + c["b1"]),
+                     c["h"] / 2 + c["cy"] + y * radial * c["f"]], -1)
+    assert model == "OPENCV_FISHEYE" and np.abs(camera.img_from_cam(rays) - want).max() < 1e-3
+    with pytest.raises(UserError, match="tangential"):
+        camera_and_lens("fisheye", {**c, "p1": 0.01}, "cameras.xml")
+
+
 def test_blender_import_uses_the_file_whose_paths_match_the_photos(scene, truth, tmp_path):
     stems = photos(scene, tmp_path / "lego" / "train")
     alpha = np.zeros((HEIGHT, WIDTH), dtype=np.uint8)
