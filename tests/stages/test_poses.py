@@ -641,7 +641,7 @@ def test_metashape_lens_with_its_r8_term_and_swapped_tangential_terms_is_undisto
     assert np.abs(metashape_project(rays, {**c, "k4": 0.0}) - metashape_project(rays, c)).max() > 1.0
 
 
-def test_metashape_fisheye_sensor_projects_as_metashape_writes_it():
+def test_metashape_fisheye_sensor_projects_as_metashape_writes_it_and_skew_is_let_by_only_within_half_a_pixel():
     from stages.sfm.metashape import camera_and_lens
 
     c = {"w": 640.0, "h": 480.0, "f": 300.0, "cx": 3.0, "cy": -2.0, "b1": 1.5, "b2": 0.0,
@@ -659,6 +659,10 @@ def test_metashape_fisheye_sensor_projects_as_metashape_writes_it():
     assert model == "OPENCV_FISHEYE" and np.abs(camera.img_from_cam(rays) - want).max() < 1e-3
     with pytest.raises(UserError, match="tangential"):
         camera_and_lens("fisheye", {**c, "p1": 0.01}, "cameras.xml")
+    # Skew, which COLMAP lacks: a fraction of a pixel at the top and bottom rows is let by, a few pixels refused.
+    camera_and_lens("frame", {**c, "b2": -0.4}, "cameras.xml")
+    with pytest.raises(UserError, match="skew"):
+        camera_and_lens("frame", {**c, "b2": 2.0}, "cameras.xml")
 
 
 def test_blender_import_uses_the_file_whose_paths_match_the_photos(scene, truth, tmp_path):
