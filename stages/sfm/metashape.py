@@ -6,9 +6,10 @@ y down, z forward: OpenCV's) is seen at x = X/Z, y = Y/Z, bent by radial K1-K4 (
 the order OpenCV's p2, p1 take), then u = w/2 + cx + x'(f + B1) + y' B2, v = h/2 + cy + y' f, pixels from the image's
 corner. COLMAP has no r^8 term: K1-K4 become FULL_OPENCV's ratio of two cubics in r^2, fitted over the image, and
 refused where they miss it by more than MAX_MODEL_ERROR_PX. Its fisheye is the equidistant model bent by K1-K4 in the
-angle: OPENCV_FISHEYE. A camera's <transform> is its camera-to-world in the chunk's own frame, turned by its
-component's <transform> where it has one; the chunk's transform to a reference system (geographic coordinates, whose
-size a float32 mesh cannot hold to the millimetre) is not applied, so the outputs are in the chunk's own frame. A
+angle: OPENCV_FISHEYE. A camera's <transform> is its camera-to-world in its component's own frame (the chunk's where
+the file has no components), and a component's <transform> takes that frame to the world's, often geographic (metres
+from the earth's centre, which a float32 mesh cannot hold to the millimetre). So the cameras are kept in the first
+component's own frame: the others' brought into it by their transforms relative to its, the world's left out. A
 spherical sensor's photos are equirectangular (longitude atan2(X, Z) across, latitude down the rows): ingest cuts them
 into views, and each takes its photo's pose turned to its yaw (pose_import._add_view)."""
 from __future__ import annotations
@@ -58,7 +59,7 @@ def calibrations(chunk: ElementTree.Element, path: Path) -> dict[str, tuple[str,
 
 
 def component_transforms(chunk: ElementTree.Element, path: Path) -> dict[str, np.ndarray]:
-    """Each component's 4x4 similarity from its cameras' frame to the chunk's."""
+    """Each component's 4x4 similarity from its cameras' frame to the first component's (`camera_to_world`)."""
     found = {}
     for component in chunk.iterfind("components/component"):
         transform = component.find("transform")
@@ -68,13 +69,17 @@ def component_transforms(chunk: ElementTree.Element, path: Path) -> dict[str, np
             rotation = np.array(transform.findtext("rotation", "1 0 0 0 1 0 0 0 1").split(), float).reshape(3, 3)
             translation = np.array(transform.findtext("translation", "0 0 0").split(), float).reshape(3)
             scale = float(transform.findtext("scale", "1"))
+            if not (scale > 0 and np.isfinite([*rotation.ravel(), *translation, scale]).all()
+                    and abs(np.linalg.det(rotation)) > 0.5):
+                raise ValueError
         except ValueError:
             raise UserError(f"{path}: component {component.get('id')}'s transform is not a rotation, translation and "
                             "scale of numbers; export the cameras again or set poses.source=sfm") from None
         matrix = np.eye(4)
         matrix[:3, :3], matrix[:3, 3] = scale * rotation, translation
         found[component.get("id")] = matrix
-    return found
+    first = next(iter(found.values()), None)
+    return {key: np.linalg.solve(first, matrix) for key, matrix in found.items()}
 
 
 def camera_and_lens(kind: str, c: dict[str, float], where: str) -> tuple[Intrinsics, str, tuple[float, ...]]:
@@ -123,7 +128,8 @@ def rational_radial(k: tuple[float, float, float, float], corner: float) -> tupl
 
 
 def camera_to_world(transform: str, component: np.ndarray | None, where: str) -> np.ndarray:
-    """Our camera-to-world (OpenGL axes) from a camera's <transform> (OpenCV axes), in the chunk's frame."""
+    """Our camera-to-world (OpenGL axes) from a camera's <transform> (OpenCV axes), in the first component's frame
+    (`component`: its own component's frame to that one)."""
     try:
         c2w = np.array(transform.split(), float).reshape(4, 4)
     except ValueError:

@@ -283,6 +283,9 @@ POSE_KINDS = {
     "metashape_matrix_text": posed(metashape(lambda text: text.replace("<transform>", "<transform>identity ", 1))),
     "metashape_none_aligned": posed(metashape(lambda text: re.sub("<transform>[^<]*</transform>", "", text))),
     "metashape_spherical": posed(metashape(lambda text: text.replace('type="frame"', 'type="spherical"'))),
+    "metashape_component_flat": posed(metashape(lambda text: text.replace(
+        "<cameras>", '<components><component id="0"><transform><scale>0</scale></transform></component></components>'
+        "<cameras>").replace('sensor_id="0"', 'sensor_id="0" component_id="0"'))),
 }
 
 KINDS = {

@@ -549,51 +549,65 @@ def test_transforms_import_refuses_a_camera_model_it_cannot_read_in_one_line(sce
     assert "\n" not in str(refused.value)
 
 
-def metashape_xml(calibration: dict, cameras: list[tuple[str, np.ndarray]], component: np.ndarray | None = None,
-                  kind: str = "frame") -> str:
-    """cameras.xml as Metashape's Export Cameras writes it: one sensor, its calibration, a component's similarity,
-    and each camera's camera-to-chunk transform (OpenCV axes), a row-major 4x4."""
+def metashape_xml(calibration: dict, cameras: list[tuple[str, np.ndarray, str]],
+                  components: dict[str, np.ndarray] | None = None, kind: str = "frame") -> str:
+    """cameras.xml as Metashape's Export Cameras writes it: one sensor, its calibration, each component's similarity
+    to the world, and each camera's camera-to-component transform (OpenCV axes), a row-major 4x4."""
     values = "".join(f"<{key}>{value!r}</{key}>" for key, value in calibration.items() if key not in ("w", "h"))
     size = f'<resolution width="{calibration["w"]}" height="{calibration["h"]}"/>'
     parts = ['<?xml version="1.0" encoding="UTF-8"?>', '<document version="2.0.0">', '<chunk label="Chunk 1">',
              f'<sensors next_id="1"><sensor id="0" label="phone" type="{kind}">{size}',
              f'<calibration type="{kind}" class="initial">{size}<f>1</f></calibration>',
-             f'<calibration type="{kind}" class="adjusted">{size}{values}</calibration></sensor></sensors>']
-    if component is not None:
-        scale = float(np.cbrt(np.linalg.det(component[:3, :3])))
-        parts.append('<components><component id="0"><transform>'
-                     f'<rotation>{" ".join(map(repr, (component[:3, :3] / scale).ravel().tolist()))}</rotation>'
-                     f'<translation>{" ".join(map(repr, component[:3, 3].tolist()))}</translation>'
-                     f'<scale>{scale!r}</scale></transform></component></components>')
-    parts.append("<cameras>")
-    for label, c2w in cameras:
-        parts.append(f'<camera id="{len(parts)}" sensor_id="0" component_id="0" label="{label}">'
+             f'<calibration type="{kind}" class="adjusted">{size}{values}</calibration></sensor></sensors>',
+             "<components>"]
+    for key, matrix in (components or {}).items():
+        scale = float(np.cbrt(np.linalg.det(matrix[:3, :3])))
+        parts.append(f'<component id="{key}"><transform>'
+                     f'<rotation>{" ".join(map(repr, (matrix[:3, :3] / scale).ravel().tolist()))}</rotation>'
+                     f'<translation>{" ".join(map(repr, matrix[:3, 3].tolist()))}</translation>'
+                     f'<scale>{scale!r}</scale></transform></component>')
+    parts.append("</components><cameras>")
+    for label, c2w, component in cameras:
+        parts.append(f'<camera id="{len(parts)}" sensor_id="0" component_id="{component}" label="{label}">'
                      f'<transform>{" ".join(map(repr, c2w.ravel().tolist()))}</transform></camera>')
     parts.append('<camera id="999" sensor_id="0" label="not_aligned"/></cameras></chunk></document>')
     return "\n".join(parts)
 
 
-def test_metashape_cameras_import_in_the_chunks_frame_with_each_photos_camera(scene, truth, tmp_path):
-    stems = photos(scene, tmp_path / "capture" / "images")
-    # A component turned, moved and scaled in the chunk: its cameras' transforms are given in its own frame.
-    rng = np.random.default_rng(3)
+def similarity(rng: np.random.Generator, scale: float, translation: list[float]) -> np.ndarray:
     rotation, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-    component = np.eye(4)
-    component[:3, :3], component[:3, 3] = 2.5 * rotation * np.sign(np.linalg.det(rotation)), [4.0, -1.0, 7.0]
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[:3, 3] = scale * rotation * np.sign(np.linalg.det(rotation)), translation
+    return matrix
+
+
+def test_metashape_cameras_import_in_their_first_components_frame_with_each_photos_camera(scene, truth, tmp_path):
+    stems = photos(scene, tmp_path / "capture" / "images")
+    # Two components, each placed in the world by a similarity, the first in metres from the earth's centre (as a
+    # georeferenced drone survey's): cameras come out in the first component's own frame, the second's brought into it.
+    rng = np.random.default_rng(3)
+    components = {"0": similarity(rng, 12.35, [-2499366.4, -4256836.5, 4029217.9]),
+                  "1": similarity(rng, 0.7, [3.0, -1.0, 2.0])}
     want = frames_by_name(truth)
     cameras = []
-    for stem in stems[1:]:
+    for n, stem in enumerate(stems[1:]):
+        component = "0" if n < 2 else "1"
         c2w = np.array(want[stem]["transform_matrix"]) @ np.diag([1.0, -1.0, -1.0, 1.0])  # to OpenCV's axes
-        cameras.append((stem, np.linalg.inv(component) @ c2w))
+        cameras.append((stem, np.linalg.solve(components[component], c2w), component))
     # The export describes the photos at twice the size, its principal point off the centre.
     calibration = {"w": 2 * WIDTH, "h": 2 * HEIGHT, "f": 2 * truth["fl_x"], "cx": 2 * truth["cx"] - WIDTH + 3.0,
                    "cy": 2 * truth["cy"] - HEIGHT - 2.0}
-    (tmp_path / "capture" / "images" / "cameras.xml").write_text(metashape_xml(calibration, cameras, component))
+    (tmp_path / "capture" / "images" / "cameras.xml").write_text(metashape_xml(calibration, cameras, components))
     manifest = run_poses(tmp_path / "capture" / "images", tmp_path / "out")
     transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
     assert transforms["source"] == "metashape" and manifest["summary"]["left_out"] == [stems[0]]
     assert read_json(tmp_path / "out" / "ingest" / "images.json")["skipped"] == []  # a pose file, not a bad photo
-    assert_poses_equal(transforms, truth, stems[1:])
+    got = frames_by_name(transforms)
+    assert sorted(got) == sorted(stems[1:])
+    for stem in stems[1:]:
+        expected = np.linalg.solve(components["0"], want[stem]["transform_matrix"])
+        expected[:3, :3] *= 12.35  # a pose keeps its rotation rigid: the scale is in its centre alone
+        np.testing.assert_allclose(got[stem]["transform_matrix"], expected, atol=1e-6)
     assert transforms["cx"] == pytest.approx(truth["cx"] + 1.5) and transforms["fl_x"] == pytest.approx(truth["fl_x"])
 
 
@@ -615,7 +629,8 @@ def test_metashape_lens_with_its_r8_term_and_swapped_tangential_terms_is_undisto
     c = {"w": WIDTH, "h": HEIGHT, "f": 230.0, "cx": 4.0, "cy": -3.0, "b1": 2.0, "b2": 0.0,
          "k1": -0.08, "k2": 0.02, "k3": -0.01, "k4": 0.01, "p1": 0.006, "p2": -0.004}
     want = frames_by_name(truth)
-    cameras = [(stem, np.array(want[stem]["transform_matrix"]) @ np.diag([1.0, -1.0, -1.0, 1.0])) for stem in stems]
+    cameras = [(stem, np.array(want[stem]["transform_matrix"]) @ np.diag([1.0, -1.0, -1.0, 1.0]), "")
+               for stem in stems]
     (tmp_path / "capture" / "cameras.xml").write_text(metashape_xml(c, cameras))
     run_poses(tmp_path / "capture" / "images", tmp_path / "out")
     out = tmp_path / "out" / "poses"
