@@ -73,8 +73,8 @@ def component_transforms(chunk: ElementTree.Element, path: Path) -> dict[str, np
                     and abs(np.linalg.det(rotation)) > 0.5):
                 raise ValueError
         except ValueError:
-            raise UserError(f"{path}: component {component.get('id')}'s transform is not a rotation, translation and "
-                            "scale of numbers; export the cameras again or set poses.source=sfm") from None
+            raise UserError(f"{path}: component {component.get('id')}'s transform is not a rotation, a translation and "
+                            "a positive scale; export the cameras again or set poses.source=sfm") from None
         matrix = np.eye(4)
         matrix[:3, :3], matrix[:3, 3] = scale * rotation, translation
         found[component.get("id")] = matrix
