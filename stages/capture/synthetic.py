@@ -47,9 +47,8 @@ import numpy as np
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.errors import UserError
 from stages.capture.synthetic_scenes import (ENVIRONMENT_RADIUS, WORLD_UP, camera_directions, render_equirect,
-                                             render_fisheye,
-                                             render_float, to_uint8, build_scene, camera_poses, intrinsics_for,
-                                             turn_angles, view_scene, walk_poses)
+                                             render_fisheye, render_float, to_uint8, build_scene, camera_poses,
+                                             intrinsics_for, turn_angles, view_scene, walk_poses)
 from stages.common.json_files import read_json, write_json
 from stages.common.media import write_png
 

@@ -121,7 +121,7 @@ def rational_radial(k: tuple[float, float, float, float], corner: float) -> tupl
         return (k[0], k[1], k[2], 0.0, 0.0, 0.0)
     s = np.linspace(0.0, max(corner, 1e-6) ** 2, 256)
     target = 1 + s * (k[0] + s * (k[1] + s * (k[2] + s * k[3])))
-    # numerator - target * (denominator - 1) = target: linear in the six coefficients
+    # numerator = target * denominator, as (numerator - 1) - target * (denominator - 1) = target - 1: linear in the six
     system = np.stack([s, s ** 2, s ** 3, -target * s, -target * s ** 2, -target * s ** 3], -1)
     solution, *_ = np.linalg.lstsq(system, target - 1, rcond=None)
     return tuple(float(v) for v in solution)

@@ -176,6 +176,13 @@ def _scale_factor(record: dict, pose_w: float, pose_h: float, what: str) -> floa
     return factor
 
 
+def _at_ingested_size(k: Intrinsics, record: dict, what: str, pose_w: float = 0.0, pose_h: float = 0.0) -> Intrinsics:
+    """`k`, a pose file's camera for its images of pose_w x pose_h (k's own size where not given), scaled to the
+    ingested image (`_scale_factor`)."""
+    scaled = k.scaled(_scale_factor(record, pose_w or k.w, pose_h or k.h, what))
+    return Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
+
+
 def _camera(camera_id: int, k: Intrinsics, lens: Lens) -> pycolmap.Camera:
     model, coefficients = lens
     if model.endswith("OPENCV") and not any(coefficients):  # a fisheye without distortion is still no pinhole
@@ -379,9 +386,7 @@ def from_transforms(path: Path, records: list[dict], scene: Path, more: tuple[Pa
                       frame["transform_matrix"], where)
             continue
         k, lens = _intrinsics_from(frame, data, record, where)
-        factor = _scale_factor(record, k.w, k.h, str(path))
-        scaled = k.scaled(factor)
-        scaled = Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
+        scaled = _at_ingested_size(k, record, str(path))
         _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(scaled, lens),
                    frame["transform_matrix"], where)
     if ambiguous:
@@ -416,9 +421,8 @@ def from_llff(path: Path, records: list[dict]) -> Imported:
             raise UserError(f"{where} holds NaN or infinite numbers; fix the pose file or set poses.source=sfm")
         pose = row[:15].reshape(3, 5)
         h, w, focal = (_number(value, key, where, positive=True) for value, key in zip(pose[:, 4], ("h", "w", "focal")))
-        factor = _scale_factor(record, w, h, str(path))
-        k = Intrinsics(focal, focal, w / 2, h / 2, int(round(w)), int(round(h))).scaled(factor)
-        k = Intrinsics(k.fl_x, k.fl_y, k.cx, k.cy, record["width"], record["height"])
+        k = _at_ingested_size(Intrinsics(focal, focal, w / 2, h / 2, int(round(w)), int(round(h))), record, str(path),
+                              w, h)
         _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k),
                    opengl_c2w_from_llff(pose[:, :4]), where)
         bounds[record["name"]] = (float(row[15]), float(row[16]))
@@ -458,9 +462,8 @@ def from_idr(path: Path, records: list[dict], scene: Path) -> Imported:
             continue
         matrix, c2w = opengl_c2w_from_projection(projections[index])
         w, h = record["original_width"], record["original_height"]
-        factor = _scale_factor(record, w, h, str(path))
-        k = Intrinsics(matrix[0, 0], matrix[1, 1], matrix[0, 2] + 0.5, matrix[1, 2] + 0.5, w, h).scaled(factor)
-        k = Intrinsics(k.fl_x, k.fl_y, k.cx, k.cy, record["width"], record["height"])
+        k = _at_ingested_size(Intrinsics(matrix[0, 0], matrix[1, 1], matrix[0, 2] + 0.5, matrix[1, 2] + 0.5, w, h),
+                              record, str(path))
         _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k), c2w,
                    f"{path.name}, world_mat_{index} ({record['source']})")
     return Imported(reconstruction, path, missing)
@@ -498,8 +501,6 @@ def from_metashape(path: Path, records: list[dict]) -> Imported:
             raise UserError(f"{where}: its sensor {sensor_id} has no calibration; export the cameras of an aligned "
                             "chunk, or set poses.source=sfm")
         k, model, coefficients = metashape.camera_and_lens(kind, calibration, where)
-        scaled = k.scaled(_scale_factor(record, k.w, k.h, str(path)))
-        scaled = Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
-        camera_id = cameras.id_for(scaled, (model, coefficients))
+        camera_id = cameras.id_for(_at_ingested_size(k, record, str(path)), (model, coefficients))
         _add_image(reconstruction, len(reconstruction.images) + 1, record, camera_id, c2w, where)
     return Imported(reconstruction, path, missing)
