@@ -1,6 +1,6 @@
-"""Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy, IDR/NeuS cameras and
-Metashape cameras .xml the importers (pose_import.py) could read. Finding them reads no pose, so a cache key lists
-them without loading COLMAP."""
+"""Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy, IDR/NeuS cameras,
+Metashape cameras .xml and OpenSfM reconstruction.json the importers (pose_import.py) could read. Finding them reads no
+pose, so a cache key lists them without loading COLMAP."""
 from __future__ import annotations
 
 import json
@@ -9,7 +9,7 @@ from pathlib import Path
 
 from stages.capture.photos import photo_folder
 
-KINDS = ("colmap", "transforms", "llff", "idr", "metashape")
+KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm")
 # IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
 IDR_FILES = ("cameras_sphere.npz", "cameras.npz")
 # Bytes of an .xml file read to tell Metashape's cameras from other XML.
@@ -41,6 +41,8 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
             found["llff"].append(place / "poses_bounds.npy")
         found["idr"] += [place / name for name in IDR_FILES if (place / name).is_file()]
         found["metashape"] += [p for p in sorted(place.glob("*.xml")) if is_metashape(p)]
+        found["opensfm"] += [p for p in (place / "opensfm" / "reconstruction.json", place / "reconstruction.json")
+                             if p.is_file()]
     return found
 
 
@@ -65,12 +67,14 @@ def pose_files(scene: Path) -> list[Path]:
 
 def poses_equirect(scene: Path) -> bool:
     """Whether a pose file beside the photos poses 360 frames: a transforms.json's camera_model EQUIRECTANGULAR
-    (nerfstudio's, for the file or any of its frames) or a Metashape spherical sensor. Ingest then cuts the frames into
-    views, and the import poses each view from its frame's pose."""
+    (nerfstudio's, for the file or any of its frames), a Metashape spherical sensor or an OpenSfM spherical camera.
+    Ingest then cuts the frames into views, and the import poses each view from its frame's pose."""
     found = candidates(scene)
-    for path in found["metashape"]:
+    marks = [(path, rb"\"projection_type\"\s*:\s*\"(spherical|equirectangular)\"") for path in found["opensfm"]]
+    marks += [(path, rb"<sensor\b[^>]*\btype=\"spherical\"") for path in found["metashape"]]
+    for path, mark in marks:
         try:
-            if re.search(rb"<sensor\b[^>]*\btype=\"spherical\"", path.read_bytes()):
+            if re.search(mark, path.read_bytes()):
                 return True
         except OSError:  # named where the import reads it
             continue

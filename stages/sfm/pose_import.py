@@ -1,6 +1,7 @@
 """Poses a user already has: a COLMAP sparse model, a NeRF / instant-ngp / nerfstudio / Blender
-transforms.json, LLFF poses_bounds.npy, IDR/NeuS cameras_sphere.npz (DTU-style sets), or Metashape's exported
-cameras.xml, turned into the same distorted COLMAP model that SfM makes.
+transforms.json, LLFF poses_bounds.npy, IDR/NeuS cameras_sphere.npz (DTU-style sets), Metashape's exported
+cameras.xml, or OpenSfM's (OpenDroneMap's) reconstruction.json, turned into the same distorted COLMAP model that SfM
+makes.
 
 Every importer returns an `Imported`: a `pycolmap.Reconstruction` whose image names are the ingested
 PNGs (`<name>.png`) and whose cameras are scaled to the ingested image size, so it is undistorted and
@@ -20,7 +21,7 @@ import pycolmap
 
 from stages.capture.panorama import yaw_rotation
 from stages.capture.photos import DATASET_SPLITS, frame_photo, is_split_dataset, lexical_path, photo_folder
-from stages.sfm import metashape
+from stages.sfm import metashape, opensfm
 from stages.sfm.pose_files import KINDS, candidates, colmap_models, is_colmap_model
 from plenoxels.core.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, opengl_c2w_from_projection
 from plenoxels.core.errors import UserError
@@ -50,6 +51,8 @@ def kind_of(path: Path) -> str:
     if path.is_dir():
         if is_colmap_model(path) or colmap_models(path) or colmap_models(path.parent):
             return "colmap"
+    elif path.name == "reconstruction.json":
+        return "opensfm"
     elif path.suffix == ".json":
         return "transforms"
     elif path.suffix == ".npy":
@@ -59,7 +62,7 @@ def kind_of(path: Path) -> str:
     elif path.suffix.lower() == ".xml":
         return "metashape"
     raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json, a poses_bounds.npy, an "
-                    "IDR/NeuS cameras*.npz or a Metashape cameras .xml")
+                    "IDR/NeuS cameras*.npz, a Metashape cameras .xml or an OpenSfM reconstruction.json")
 
 
 def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
@@ -77,6 +80,8 @@ def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
         return from_idr(path, records, scene)
     if kind == "metashape":
         return from_metashape(path, records)
+    if kind == "opensfm":
+        return from_opensfm(path, records)
     return from_llff(path, records)
 
 
@@ -501,6 +506,51 @@ def from_metashape(path: Path, records: list[dict]) -> Imported:
             raise UserError(f"{where}: its sensor {sensor_id} has no calibration; export the cameras of an aligned "
                             "chunk, or set poses.source=sfm")
         k, model, coefficients = metashape.camera_and_lens(kind, calibration, where)
+        camera_id = cameras.id_for(_at_ingested_size(k, record, str(path)), (model, coefficients))
+        _add_image(reconstruction, len(reconstruction.images) + 1, record, camera_id, c2w, where)
+    return Imported(reconstruction, path, missing)
+
+
+# ---- OpenSfM / OpenDroneMap reconstruction.json ------------------------------------------------------------
+
+def from_opensfm(path: Path, records: list[dict]) -> Imported:
+    """Poses from an OpenSfM reconstruction.json (stages/sfm/opensfm.py), of its reconstructions the one that poses
+    the most photos: a photo takes the shot named as its file, or its stem where one shot alone has it."""
+    def shot_names(shots: dict) -> dict[str, str]:
+        by_stem: dict[str, list[str]] = {}
+        for key in shots:
+            by_stem.setdefault(Path(key).stem, []).append(key)
+        names = {}
+        for record in records:
+            source = Path(record["source"])
+            named = [key for key in (source.as_posix(), source.name) if key in shots]
+            stems = by_stem.get(source.stem, [])
+            if named or len(stems) == 1:
+                names[record["name"]] = named[0] if named else stems[0]
+        return names
+
+    chosen = max(opensfm.read(path), key=lambda r: len(shot_names(r["shots"])))
+    names, cameras_of = shot_names(chosen["shots"]), chosen.get("cameras") or {}
+    reconstruction = pycolmap.Reconstruction()
+    cameras = _CameraTable(reconstruction)
+    missing = []
+    for record in records:
+        if record["name"] not in names:
+            missing.append(record["name"])
+            continue
+        shot = chosen["shots"][names[record["name"]]]
+        where = f"{path.name}, shot {names[record['name']]}"
+        camera = cameras_of.get(shot.get("camera")) if isinstance(shot, dict) else None
+        if not isinstance(camera, dict):
+            raise UserError(f"{where}: its camera is not among the reconstruction's cameras; fix the reconstruction or "
+                            "set poses.source=sfm")
+        c2w = opensfm.camera_to_world(shot, where)
+        projection = str(camera.get("projection_type", "perspective"))
+        if "panorama" in record or projection in opensfm.PANORAMA_PROJECTIONS:
+            _add_view(reconstruction, cameras, record, f"a {projection} camera",
+                      projection in opensfm.PANORAMA_PROJECTIONS, c2w, where)
+            continue
+        k, model, coefficients = opensfm.camera_and_lens(camera, where)
         camera_id = cameras.id_for(_at_ingested_size(k, record, str(path)), (model, coefficients))
         _add_image(reconstruction, len(reconstruction.images) + 1, record, camera_id, c2w, where)
     return Imported(reconstruction, path, missing)

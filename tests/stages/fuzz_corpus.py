@@ -261,6 +261,23 @@ def metashape(spoil):
     return edit
 
 
+def opensfm(spoil):
+    """OpenSfM's reconstruction.json for the template's photos, spoiled by `spoil` (a function of its one
+    reconstruction)."""
+    def edit(folder, meta):
+        shots = {}
+        for f in meta["frames"]:
+            w2c = np.linalg.inv(np.array(f["transform_matrix"]) @ np.diag([1.0, -1, -1, 1]))
+            shots[Path(f["file_path"]).name] = {"rotation": cv2.Rodrigues(w2c[:3, :3])[0].ravel().tolist(),
+                                                "translation": w2c[:3, 3].tolist(), "camera": "c"}
+        camera = {"projection_type": "perspective", "width": meta["w"], "height": meta["h"],
+                  "focal": meta["fl_x"] / max(meta["w"], meta["h"])}
+        (folder / "opensfm").mkdir()
+        (folder / "opensfm" / "reconstruction.json").write_text(json.dumps([spoil({"cameras": {"c": camera},
+                                                                                   "shots": shots})]))
+    return edit
+
+
 POSE_KINDS = {
     "transforms_nan": posed(frame_matrix(lambda m: [[float("nan")] * 4] + m[1:])),
     "transforms_inf": posed(frame_matrix(lambda m: [[float("inf")] * 4] + m[1:])),
@@ -283,6 +300,15 @@ POSE_KINDS = {
     "metashape_matrix_text": posed(metashape(lambda text: text.replace("<transform>", "<transform>identity ", 1))),
     "metashape_none_aligned": posed(metashape(lambda text: re.sub("<transform>[^<]*</transform>", "", text))),
     "metashape_spherical": posed(metashape(lambda text: text.replace('type="frame"', 'type="spherical"'))),
+    "opensfm_rotation_nan": posed(opensfm(lambda r: {**r, "shots": {k: {**v, "rotation": [float("nan")] * 3}
+                                                                     for k, v in r["shots"].items()}})),
+    "opensfm_rotation_text": posed(opensfm(lambda r: {**r, "shots": {k: {**v, "rotation": "up"}
+                                                                     for k, v in r["shots"].items()}})),
+    "opensfm_camera_missing": posed(opensfm(lambda r: {**r, "cameras": {}})),
+    "opensfm_focal_text": posed(opensfm(lambda r: {**r, "cameras": {"c": {**r["cameras"]["c"], "focal": "wide"}}})),
+    "opensfm_projection_unknown": posed(opensfm(lambda r: {**r, "cameras": {"c": {**r["cameras"]["c"],
+                                                                                 "projection_type": "dual"}}})),
+    "opensfm_not_a_list": posed(opensfm(lambda r: 7)),
     "metashape_component_flat": posed(metashape(lambda text: text.replace(
         "<cameras>", '<components><component id="0"><transform><scale>0</scale></transform></component></components>'
         "<cameras>").replace('sensor_id="0"', 'sensor_id="0" component_id="0"'))),

@@ -161,7 +161,7 @@ def test_a_360_video_is_posed_as_views_of_one_known_camera_that_share_each_frame
     assert errors["centre_error_share_median"] < 0.01, errors
 
 
-@pytest.mark.parametrize("pose_file", ["transforms", "metashape"])
+@pytest.mark.parametrize("pose_file", ["transforms", "metashape", "opensfm"])
 def test_360_frames_posed_in_a_pose_file_give_each_view_its_frames_pose_turned_to_its_yaw(tmp_path, pose_file):
     # nerfstudio's camera_model EQUIRECTANGULAR, or Metashape's exported cameras of a spherical sensor (its camera
     # axes OpenCV's, its frames' longitude atan2(X, Z) across): one pose per frame.
@@ -175,6 +175,15 @@ def test_360_frames_posed_in_a_pose_file_give_each_view_its_frames_pose_turned_t
     if pose_file == "transforms":
         (capture / "transforms.json").write_text(json.dumps({"camera_model": "EQUIRECTANGULAR", "w": 384, "h": 192,
                                                              "fl_x": 192.0, "fl_y": 192.0, "frames": frames}))
+    elif pose_file == "opensfm":  # OpenSfM's spherical camera: world-to-camera as an axis times its angle
+        shots = {}
+        for n, c2w in enumerate(truth):
+            w2c = np.linalg.inv(c2w @ np.diag([1.0, -1, -1, 1]))
+            shots[f"{n}.png"] = {"rotation": cv2.Rodrigues(w2c[:3, :3])[0].ravel().tolist(),
+                                 "translation": w2c[:3, 3].tolist(), "camera": "theta"}
+        (capture / "opensfm").mkdir()
+        (capture / "opensfm" / "reconstruction.json").write_text(json.dumps([{"shots": shots, "cameras": {
+            "theta": {"projection_type": "spherical", "width": 384, "height": 192}}}]))
     else:
         cameras = "".join(f'<camera id="{n}" sensor_id="0" label="{n}"><transform>'
                           f'{" ".join(map(repr, (c2w @ np.diag([1.0, -1, -1, 1])).ravel().tolist()))}</transform>'

@@ -680,6 +680,74 @@ def test_metashape_fisheye_sensor_projects_as_metashape_writes_it_and_skew_is_le
         camera_and_lens("frame", {**c, "b2": 2.0}, "cameras.xml")
 
 
+def opensfm_shot(c2w_opengl) -> dict:
+    """An OpenSfM shot (world-to-camera rotation as axis times angle, translation) of our camera-to-world."""
+    w2c = np.linalg.inv(np.asarray(c2w_opengl) @ np.diag([1.0, -1.0, -1.0, 1.0]))  # OpenCV's axes
+    return {"rotation": cv2.Rodrigues(w2c[:3, :3])[0].ravel().tolist(), "translation": w2c[:3, 3].tolist(),
+            "camera": "v2 phone 480 360 brown 0.9"}
+
+
+def opensfm_project(rays: np.ndarray, c: dict) -> np.ndarray:
+    """Pixels of OpenCV-axes rays through OpenSfM's brown camera, as its documentation writes the model."""
+    x, y = rays[:, 0] / rays[:, 2], rays[:, 1] / rays[:, 2]
+    r2 = x * x + y * y
+    radial = 1 + c["k1"] * r2 + c["k2"] * r2 ** 2 + c["k3"] * r2 ** 3
+    xd = x * radial + 2 * c["p1"] * x * y + c["p2"] * (r2 + 2 * x * x)
+    yd = y * radial + c["p1"] * (r2 + 2 * y * y) + 2 * c["p2"] * x * y
+    size = max(c["width"], c["height"])
+    return np.stack([(c["focal_x"] * xd + c["c_x"]) * size + c["width"] / 2,
+                     (c["focal_y"] * yd + c["c_y"]) * size + c["height"] / 2], -1)
+
+
+def test_opensfm_reconstruction_imports_poses_and_its_brown_lens_as_opensfm_bends_it(scene, truth, tmp_path):
+    # OpenDroneMap's layout: images/ beside opensfm/reconstruction.json, whose camera measures in the longer side.
+    stems = photos(scene, tmp_path / "capture" / "images")
+    size = max(WIDTH, HEIGHT)
+    camera = {"projection_type": "brown", "width": WIDTH, "height": HEIGHT, "focal_x": truth["fl_x"] / size,
+              "focal_y": truth["fl_y"] / size, "c_x": 3.0 / size, "c_y": -2.0 / size,
+              "k1": -0.12, "k2": 0.03, "k3": 0.0, "p1": 0.006, "p2": -0.004}
+    want = frames_by_name(truth)
+    shots = {f"{stem}.png": opensfm_shot(want[stem]["transform_matrix"]) for stem in stems[1:]}
+    other = {"cameras": {}, "shots": {"elsewhere.jpg": opensfm_shot(np.eye(4))}}  # a second, smaller reconstruction
+    (tmp_path / "capture" / "opensfm").mkdir()
+    (tmp_path / "capture" / "opensfm" / "reconstruction.json").write_text(json.dumps(
+        [other, {"cameras": {"v2 phone 480 360 brown 0.9": camera}, "shots": shots}]))
+    manifest = run_poses(tmp_path / "capture" / "images", tmp_path / "out")
+    out = tmp_path / "out" / "poses"
+    transforms = read_json(out / "transforms.json")
+    assert transforms["source"] == "opensfm" and manifest["summary"]["left_out"] == [stems[0]]
+    assert_poses_equal(transforms, truth, stems[1:])
+    # The undistorted image at pinhole pixel p shows what the photo shows where OpenSfM's model puts p's ray.
+    k = Intrinsics.from_frame(transforms)
+    uv = np.random.default_rng(5).uniform([0.1 * k.w, 0.1 * k.h], [0.9 * k.w, 0.9 * k.h], size=(400, 2))
+    rays = np.stack([(uv[:, 0] - k.cx) / k.fl_x, (uv[:, 1] - k.cy) / k.fl_y, np.ones(len(uv))], -1)
+    photo, undistorted = (read_rgb(folder / "images" / f"{stems[1]}.png") for folder in (scene, out))
+    aligned = np.abs(sample(undistorted, uv) - sample(photo, opensfm_project(rays, camera))).mean()
+    swapped = np.abs(sample(undistorted, uv) - sample(photo, opensfm_project(rays, {**camera, "p1": camera["p2"],
+                                                                                      "p2": camera["p1"]}))).mean()
+    assert aligned < 1.0 and aligned < 0.5 * swapped, (aligned, swapped)
+
+
+def test_opensfm_fisheye_and_perspective_cameras_project_as_opensfm_writes_them():
+    from stages.sfm.opensfm import camera_and_lens
+
+    rays = np.concatenate([np.random.default_rng(6).uniform(-1.5, 1.5, (300, 2)), np.ones((300, 1))], -1)
+    x, y = rays[:, 0], rays[:, 1]
+    r = np.hypot(x, y)
+    for projection in ("fisheye", "perspective"):
+        c = {"projection_type": projection, "width": 640, "height": 480, "focal": 0.55, "k1": 0.03, "k2": -0.01}
+        k, model, coefficients = camera_and_lens(c, "reconstruction.json")
+        camera = pycolmap.Camera(model=model, width=640, height=480, params=[k.fl_x, k.fl_y, k.cx, k.cy, *coefficients])
+        # fisheye: the angle from the axis bent by k1, k2; perspective: the tangent's plane bent by them
+        bend = np.arctan(r) / r if projection == "fisheye" else np.ones_like(r)
+        s2 = (r * bend) ** 2
+        scale = bend * (1 + c["k1"] * s2 + c["k2"] * s2 ** 2) * c["focal"] * 640
+        want = np.stack([320 + x * scale, 240 + y * scale], -1)
+        assert np.abs(camera.img_from_cam(rays) - want).max() < 1e-3, projection
+    with pytest.raises(UserError, match="dual camera"):
+        camera_and_lens({"projection_type": "dual", "width": 640, "height": 480}, "reconstruction.json")
+
+
 def test_blender_import_uses_the_file_whose_paths_match_the_photos(scene, truth, tmp_path):
     stems = photos(scene, tmp_path / "lego" / "train")
     alpha = np.zeros((HEIGHT, WIDTH), dtype=np.uint8)
