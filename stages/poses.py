@@ -112,6 +112,8 @@ def run(ctx) -> dict:
                  f"posed at {info['denser']['posed_at'][0]}x{info['denser']['posed_at'][1]}")
     if info.get("other_scene"):
         line += f"; {len(info['other_scene'])} photos share no match with the rest (something else), left out"
+    if info.get("lens_probe"):
+        line += "; the images mapped first showed a fisheye's lens, so the camera is OPENCV_FISHEYE"
     if info.get("attempt_why"):
         line += f"; as set, {info['attempt_why']}, so these poses come from the attempt with {info['attempt']}"
     if info.get("mapper_fallback"):

@@ -9,7 +9,6 @@ nor tear it apart; without masks, matches that sit at the same pixels across pho
 background behind a turning object) stop SfM with that reason before any model is made of them."""
 from __future__ import annotations
 
-import math
 import shutil
 import statistics
 import time
@@ -26,20 +25,17 @@ import pycolmap
 from stages.capture.panorama import is_two_to_one
 from stages.common.text import short_list
 from stages.sfm.exif import one_camera, resized_since_capture, set_focal_priors
-from stages.sfm.lens import wide_lens
-from stages.sfm.model_checks import (GLOBAL_MAX_CONTRADICTED_SHARE, MAX_CONTRADICTED_SHARE, MIN_VERIFIED_INLIERS,
-                                       STILL_HINT_SHARE, contradicted_images, detached_images, drop_images,
-                                       still_matches, unlinked_models)
+from stages.sfm.lens import PINHOLE_LENS_MODELS, lens_words, may_be_fisheye, probe_images, wide_lens
+from stages.sfm.mapping import colmap_threads, incremental_mapping, largest_model, map_images
+from stages.sfm.model_checks import (MAX_CONTRADICTED_SHARE, MIN_VERIFIED_INLIERS, STILL_HINT_SHARE,
+                                       contradicted_images, detached_images, drop_images, still_matches,
+                                       unlinked_models)
 from stages.sfm.options import SfmOptions
 from plenoxels.core.errors import UserError
 
 # COLMAP's own detection threshold; lowered by this factor when images yield too few features.
 SIFT_PEAK_THRESHOLD = 0.02 / 3
 LOW_FEATURE_PEAK_DIVISOR = 3.0
-# Looser registration thresholds for a second mapping pass when the first leaves images out.
-RELAXED_ABS_POSE_MIN_INLIERS = 15
-RELAXED_ABS_POSE_MIN_INLIER_RATIO = 0.15
-RELAXED_INIT_MIN_INLIERS = 50
 # Loop closure's visual words: descriptors sampled per image, the share of them that trains the vocabulary, its size.
 LOOP_WORD_SAMPLES = 2000
 LOOP_TRAINING_PER_IMAGE = 300
@@ -68,10 +64,6 @@ def colmap_logging(verbose: bool) -> Iterator[None]:
         yield
     finally:
         pycolmap.logging.minloglevel, pycolmap.logging.stderrthreshold = previous
-
-
-def colmap_threads(s: SfmOptions) -> int:
-    return s.threads or -1
 
 
 def pycolmap_device(use_gpu: bool) -> pycolmap.Device:
@@ -226,86 +218,17 @@ def _match_and_summarise(db: Path, mode: str, s: SfmOptions, n_images: int, repo
     return matching
 
 
-def incremental_mapping(db: Path, image_dir: Path, out: Path, s: SfmOptions, relaxed: bool = False,
-                        fixed_cameras: bool = False) -> list[pycolmap.Reconstruction]:
-    """COLMAP's incremental mapper; `fixed_cameras`: the cameras' focal lengths and distortion are known (a 360
-    frame's views), and bundle adjustment keeps them."""
-    options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = colmap_threads(s)
-    options.random_seed = s.seed
-    options.mapper.random_seed = s.seed
-    options.triangulation.random_seed = s.seed
-    options.min_model_size = 3
-    options.ba_refine_principal_point = s.refine_principal_point
-    if fixed_cameras:
-        options.ba_refine_focal_length = options.ba_refine_extra_params = False
-    if relaxed:
-        options.mapper.abs_pose_min_num_inliers = RELAXED_ABS_POSE_MIN_INLIERS
-        options.mapper.abs_pose_min_inlier_ratio = RELAXED_ABS_POSE_MIN_INLIER_RATIO
-        options.mapper.init_min_num_inliers = RELAXED_INIT_MIN_INLIERS
-    shutil.rmtree(out, ignore_errors=True)
-    out.mkdir(parents=True)
-    return list(pycolmap.incremental_mapping(db, image_dir, out, options).values())
-
-
-def global_mapping(db: Path, image_dir: Path, out: Path, s: SfmOptions,
-                   fixed_cameras: bool = False) -> list[pycolmap.Reconstruction]:
-    options = pycolmap.GlobalPipelineOptions()
-    options.num_threads = colmap_threads(s)
-    options.random_seed = s.seed
-    options.mapper.random_seed = s.seed
-    options.mapper.bundle_adjustment.refine_principal_point = s.refine_principal_point
-    if fixed_cameras:
-        options.mapper.bundle_adjustment.refine_focal_length = False
-        options.mapper.bundle_adjustment.refine_extra_params = False
-    shutil.rmtree(out, ignore_errors=True)
-    out.mkdir(parents=True)
-    return list(pycolmap.global_mapping(db, image_dir, out, options).values())
-
-
-def largest_model(models: list[pycolmap.Reconstruction]) -> pycolmap.Reconstruction | None:
-    """COLMAP may return several models, and model 0 is not always the biggest: take the most registered."""
-    return max(models, key=lambda m: (m.num_reg_images(), m.num_points3D()), default=None)
-
-
-def map_images(db: Path, image_dir: Path, scratch: Path, s: SfmOptions, report,
-               fixed_cameras: bool = False) -> tuple[list, pycolmap.Reconstruction | None, str]:
-    """Maps with the chosen mapper; returns the models, the largest, and why the global mapper was replaced, if it was.
-
-    Global mapping (rotation averaging, then positions) has no loop to correct a bad relative pose where the view graph
-    is a chain, as sequential matching leaves the start of an orbit, and its wrong poses can still reproject their own
-    points to a fraction of a pixel: such images come back tied to nothing, or contradicting their verified matches
-    (bench/README.md, "Poses"). The incremental mapper, which registers each image against points it already has,
-    poses those captures correctly, so a global model that fails the checks is mapped again with it."""
-    if s.mapper == "global":
-        report.info("global mapping")
-        models = global_mapping(db, image_dir, scratch / "models", s, fixed_cameras)
-        best = largest_model(models)
-        if best is None:
-            fallback = "global mapping formed no model"
-        else:
-            misplaced = sorted(set(detached_images(best)) | set(contradicted_images(db, best, GLOBAL_MAX_CONTRADICTED_SHARE)))
-            if not misplaced:
-                return models, best, ""
-            fallback = (f"global mapping gave {len(misplaced)} image(s) poses that contradict their matches or tie them "
-                        f"to nothing ({short_list(misplaced)})")
-        report.warn(f"{fallback}; mapping again with the incremental mapper")
-    else:
-        fallback = ""
-    report.info("incremental mapping")
-    models = incremental_mapping(db, image_dir, scratch / "models", s, fixed_cameras=fixed_cameras)
-    return models, largest_model(models), fallback
-
-
 @dataclass
 class Attempt:
-    """One configuration SfM is run with: the options, whether the cameras start from the EXIF focal length, and
-    whether they are known (a 360 frame's views: their focal length given, kept by bundle adjustment)."""
+    """One configuration SfM is run with: the options, whether the cameras start from the EXIF focal length, whether
+    they are known (a 360 frame's views: their focal length given, kept by bundle adjustment), and whether a few
+    images are mapped first to see if the lens is a fisheye's (`lens.probe_images`)."""
     label: str
     options: SfmOptions
     focal_prior: bool
     peak_threshold: float = SIFT_PEAK_THRESHOLD
     known_cameras: bool = False
+    probe_lens: bool = False
 
 
 def attempt_plan(s: SfmOptions, n_images: int, from_video: bool, longest_side: int = 0) -> list[Attempt]:
@@ -337,6 +260,11 @@ def attempt_plan(s: SfmOptions, n_images: int, from_video: bool, longest_side: i
         current = replace(current, feature_max_side=0)
         plan.append(Attempt("full-size images", current, prior, peak))
     return plan
+
+
+def as_fisheye(attempt: Attempt) -> Attempt:
+    """`attempt` with an OPENCV_FISHEYE camera, and no lens probe."""
+    return replace(attempt, options=replace(attempt.options, camera_model="OPENCV_FISHEYE"), probe_lens=False)
 
 
 def smaller_features(attempt: Attempt, longest_side: int) -> Attempt | None:
@@ -390,6 +318,8 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
         plan = [replace(a, known_cameras=True, options=replace(a.options, sequential_overlap=overlap,
                                                                camera_model="PINHOLE"))
                 for a in plan if a.label != "no EXIF focal prior"]  # nor is an EXIF focal length used for them
+    elif s.repair and s.camera_model in PINHOLE_LENS_MODELS:
+        plan[0] = replace(plan[0], probe_lens=True)
     masks = feature_masks(records, image_dir.parent, scratch / "feature_masks")
     if masks is not None:
         report.info(f"features only inside the masks of {sum(bool(r.get('mask')) for r in records)} images")
@@ -402,6 +332,9 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
         best, info, models = sfm_attempt(records, image_dir, photos, from_video, scratch / f"attempt_{number}",
                                          attempt, report, masks)
         db = info.pop("db")
+        if "lens_probe" in info:  # made as a fisheye: so are the attempts after it
+            attempt = as_fisheye(attempt)
+            plan[number + 1:] = [as_fisheye(a) for a in plan[number + 1:]]
         problems, contradicted = model_problems(db, best, models, len(records), attempt.options)
         separate = unlinked_models(db, best, models) if best and info["matching"].startswith("exhaustive") else []
         if len(separate) >= 2 and best.num_reg_images() < min_share * len(records):
@@ -466,13 +399,10 @@ def reconstruct(records: list[dict], image_dir: Path, photos: Path, from_video: 
     # A lens wider than the model fitted describes (an action camera's fisheye): made again as a fisheye, kept where
     # it poses as many images and they reproject closer (a 150-degree fisheye: 1.2 px and 1 degree off as
     # SIMPLE_RADIAL, 0.3 px and under 0.01 degree as OPENCV_FISHEYE).
-    stretch = wide_lens(best, attempt.options.camera_model) if s.repair else None
+    stretch = wide_lens(best) if s.repair else None
     if stretch is not None:
-        fisheye = replace(attempt, label="a fisheye lens model",
-                          options=replace(attempt.options, camera_model="OPENCV_FISHEYE"))
-        bent = (f"its lens ({attempt.options.camera_model}) moves the corners {stretch:.0%} when undistorted"
-                if math.isfinite(stretch) else f"its lens ({attempt.options.camera_model}) turns back short of the "
-                "corners") + ", as a fisheye's does"
+        fisheye = replace(as_fisheye(attempt), label="a fisheye lens model")
+        bent = lens_words(stretch, attempt.options.camera_model)
         report.warn(f"SfM ({attempt.label}): {bent}; trying {fisheye.label}")
         again, again_info, again_contradicted, posed_again = instead(fisheye)
         if posed_again and posed_again >= best.num_reg_images() - len(contradicted) and (
@@ -545,6 +475,20 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
         info["still_matches"] = still_matches(db)
         refuse_still(info["still_matches"], masks is not None)
         started = time.perf_counter()
+        if attempt.probe_lens and may_be_fisheye(info["focal_prior"], records[0]["width"], records[0]["height"]):
+            attempt = replace(attempt, probe_lens=False)
+            probe = largest_model(incremental_mapping(db, image_dir, scratch / "lens_probe", s,
+                                                      image_names=probe_images(db)))
+            stretch = wide_lens(probe)
+            seconds["lens_probe"] = time.perf_counter() - started
+            if stretch is not None:
+                report.warn(f"SfM: {lens_words(stretch, s.camera_model)} in {probe.num_reg_images()} images mapped "
+                            "first; making the model as OPENCV_FISHEYE")
+                best, again, models = sfm_attempt(records, image_dir, photos, from_video, scratch / "fisheye",
+                                                  as_fisheye(attempt), report, masks)
+                again["lens_probe"] = {"stretch": stretch, "seconds": round(seconds["lens_probe"] + sum(
+                    seconds.values()), 2)}
+                return best, again, models
         models, best, fallback = map_images(db, image_dir, scratch, s, report, attempt.known_cameras)
         seconds["map"] += time.perf_counter() - started
         complete = best is not None and best.num_reg_images() == len(names) and not detached_images(best)

@@ -20,7 +20,7 @@ from stages.common.media import read_rgb, write_png
 from stages.common.json_files import read_json
 from pipeline.report import Reporter
 from pipeline.runner import Pipeline
-from stages.sfm import reconstruct
+from stages.sfm import mapping, reconstruct
 from stages.sfm.compare import compare_poses
 from stages.framing.options import SceneOptions
 from stages.framing.scene_frame import normalize_scene
@@ -177,7 +177,7 @@ def test_global_mapper_poses_that_contradict_their_matches_fall_back_to_incremen
     # Under sequential matching, global mapping has turned an orbit's first two views about 65 and 35 degrees while
     # registering them at 0.15 px; whether it does so depends on run-to-run differences in the matches. So the real
     # global model is given that fault here, and the stage must notice it and map again with the incremental mapper.
-    real_global = reconstruct.global_mapping
+    real_global = mapping.global_mapping
 
     def global_with_two_views_turned(*args, **kwargs):
         models = real_global(*args, **kwargs)
@@ -188,7 +188,7 @@ def test_global_mapper_poses_that_contradict_their_matches_fall_back_to_incremen
             best.frames[image.frame_id].set_cam_from_world(image.camera_id, turned)
         return models
 
-    monkeypatch.setattr(reconstruct, "global_mapping", global_with_two_views_turned)
+    monkeypatch.setattr(mapping, "global_mapping", global_with_two_views_turned)
     manifest = run_poses(scene / "images", tmp_path / "out", "poses.source=sfm", "poses.mapper=global")
     summary = manifest["summary"]
     assert summary["registered"] == N_VIEWS and summary["mapper"] == "incremental"
@@ -308,10 +308,11 @@ def test_fisheye_photos_are_posed_with_a_fisheye_camera_model(tmp_path):
     assert errors["rotation_error_deg_median"] < 0.5, errors
 
 
-def test_an_action_cameras_fisheye_is_found_and_posed_as_one_without_exif(tmp_path):
+def test_an_action_cameras_fisheye_is_found_and_posed_as_one_without_exif(tmp_path, monkeypatch):
     # An action camera's wide mode, 150 degrees across the diagonal, photos without EXIF. Fitted as SIMPLE_RADIAL,
-    # the one coefficient turns back short of the corners (the poses come out a degree off): SfM makes the model again
-    # as OPENCV_FISHEYE, which verifies its pairs from a field-of-view guess since no EXIF gives a focal length.
+    # the one coefficient turns back short of the corners (the poses come out a degree off): SfM maps ten images first,
+    # sees it, and makes the model as OPENCV_FISHEYE, which verifies its pairs from a field-of-view guess since no EXIF
+    # gives a focal length. Where that first look is skipped, the whole model made as a pinhole shows it.
     from stages.capture.synthetic_scenes import camera_poses, render_fisheye
 
     room = build_scene("room", seed=0)
@@ -322,15 +323,24 @@ def test_an_action_cameras_fisheye_is_found_and_posed_as_one_without_exif(tmp_pa
     for n, c2w in enumerate(poses):
         write_png(tmp_path / "action" / f"{n:04d}.png",
                   (np.clip(render_fisheye(room, c2w, width, height, focal), 0, 1) * 255).astype(np.uint8))
-    summary = run_poses(tmp_path / "action", tmp_path / "out")["summary"]
-    assert summary["registered"] == len(poses), summary["line"]
-    assert summary["attempt"] == "a fisheye lens model" and "as a fisheye's does" in summary["line"], summary["line"]
-    transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
-    original = transforms["original_camera"]
-    assert original["model"] == "OPENCV_FISHEYE" and abs(original["params"][0] / focal - 1) < 0.02, original
-    errors = compare_poses(np.array([f["transform_matrix"] for f in transforms["frames"]]),
-                           poses[[int(f["name"]) for f in transforms["frames"]]])
-    assert errors["rotation_error_deg_median"] < 0.1 and errors["centre_error_share_median"] < 0.005, errors
+
+    def check(out: Path) -> dict:
+        summary = run_poses(tmp_path / "action", out)["summary"]
+        assert summary["registered"] == len(poses), summary["line"]
+        transforms = read_json(out / "poses" / "transforms.json")
+        original = transforms["original_camera"]
+        assert original["model"] == "OPENCV_FISHEYE" and abs(original["params"][0] / focal - 1) < 0.02, original
+        errors = compare_poses(np.array([f["transform_matrix"] for f in transforms["frames"]]),
+                               poses[[int(f["name"]) for f in transforms["frames"]]])
+        assert errors["rotation_error_deg_median"] < 0.1 and errors["centre_error_share_median"] < 0.005, errors
+        return summary
+
+    probed = check(tmp_path / "probed")
+    assert probed["lens_probe"]["stretch"] > 0.1 and "showed a fisheye's lens" in probed["line"], probed["line"]
+    monkeypatch.setattr(reconstruct, "may_be_fisheye", lambda *args: False)
+    whole = check(tmp_path / "whole")
+    assert whole["attempt"] == "a fisheye lens model" and "as a fisheye's does" in whole["line"], whole["line"]
+    assert "lens_probe" not in whole
 
 
 def test_corner_stretch_follows_the_fitted_lens_and_the_fisheye_guess_its_field_of_view():
