@@ -22,8 +22,8 @@ FISHEYE_DIAGONAL_FOV_DEG = 150.0
 WIDE_LENS_STRETCH = 0.1
 PINHOLE_LENS_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
 # Before mapping every image as a pinhole, SfM maps this many that share the most matches, where the lens may be a
-# fisheye: no focal length in EXIF (a video's frames), or one wider than this 35 mm equivalent (an action camera's
-# photos say 12-16 mm). A fisheye mapped as a pinhole drags on (8 minutes for 60 frames at 640x480).
+# fisheye: no focal length in EXIF (a video's frames), or one wider than this 35 mm equivalent (an ultra-wide lens's
+# or a fisheye's). A fisheye mapped as a pinhole drags on (8 minutes for 60 frames at 640x480).
 LENS_PROBE_IMAGES = 10
 FISHEYE_EXIF_35MM_BELOW = 20.0
 
