@@ -475,10 +475,11 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
         info["still_matches"] = still_matches(db)
         refuse_still(info["still_matches"], masks is not None)
         started = time.perf_counter()
-        if attempt.probe_lens and may_be_fisheye(info["focal_prior"], records[0]["width"], records[0]["height"]):
-            attempt = replace(attempt, probe_lens=False)
-            probe = largest_model(incremental_mapping(db, image_dir, scratch / "lens_probe", s,
-                                                      image_names=probe_images(db)))
+        probed = probe_images(db) if attempt.probe_lens and may_be_fisheye(
+            info["focal_prior"], records[0]["width"], records[0]["height"]) else []
+        attempt = replace(attempt, probe_lens=False)
+        if len(probed) >= 3:  # no names would map every image
+            probe = largest_model(incremental_mapping(db, image_dir, scratch / "lens_probe", s, image_names=probed))
             stretch = wide_lens(probe)
             seconds["lens_probe"] = time.perf_counter() - started
             if stretch is not None:
@@ -486,9 +487,9 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
                             "first; making the model as OPENCV_FISHEYE")
                 best, again, models = sfm_attempt(records, image_dir, photos, from_video, scratch / "fisheye",
                                                   as_fisheye(attempt), report, masks)
-                again["lens_probe"] = {"stretch": stretch, "seconds": round(seconds["lens_probe"] + sum(
-                    seconds.values()), 2)}
+                again["lens_probe"] = {"stretch": stretch, "seconds": round(sum(seconds.values()), 2)}
                 return best, again, models
+            started = time.perf_counter()
         models, best, fallback = map_images(db, image_dir, scratch, s, report, attempt.known_cameras)
         seconds["map"] += time.perf_counter() - started
         complete = best is not None and best.num_reg_images() == len(names) and not detached_images(best)
