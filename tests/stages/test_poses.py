@@ -561,6 +561,16 @@ def test_transforms_import_refuses_a_camera_model_it_cannot_read_in_one_line(sce
     assert "\n" not in str(refused.value)
 
 
+def undistortion_error(scene: Path, out: Path, stem: str, project) -> float:
+    """The mean colour difference between the poses stage's undistorted image at 400 pinhole pixels and the photo
+    where `project` (OpenCV-axes rays to the photo's pixels) puts their rays."""
+    k = Intrinsics.from_frame(read_json(out / "transforms.json"))
+    uv = np.random.default_rng(2).uniform([0.1 * k.w, 0.1 * k.h], [0.9 * k.w, 0.9 * k.h], size=(400, 2))
+    rays = np.stack([(uv[:, 0] - k.cx) / k.fl_x, (uv[:, 1] - k.cy) / k.fl_y, np.ones(len(uv))], -1)
+    photo, undistorted = (read_rgb(folder / "images" / f"{stem}.png") for folder in (scene, out))
+    return float(np.abs(sample(undistorted, uv) - sample(photo, project(rays))).mean())
+
+
 def metashape_xml(calibration: dict, cameras: list[tuple[str, np.ndarray, str]],
                   components: dict[str, np.ndarray] | None = None, kind: str = "frame") -> str:
     """cameras.xml as Metashape's Export Cameras writes it: one sensor, its calibration, each component's similarity
@@ -649,13 +659,9 @@ def test_metashape_lens_with_its_r8_term_and_swapped_tangential_terms_is_undisto
     transforms = read_json(out / "transforms.json")
     assert_poses_equal(transforms, truth, stems)
     # The undistorted image at pinhole pixel p shows what the photo shows where Metashape's model puts p's ray.
-    k = Intrinsics.from_frame(transforms)
-    uv = np.random.default_rng(2).uniform([0.1 * k.w, 0.1 * k.h], [0.9 * k.w, 0.9 * k.h], size=(400, 2))
-    rays = np.stack([(uv[:, 0] - k.cx) / k.fl_x, (uv[:, 1] - k.cy) / k.fl_y, np.ones(len(uv))], -1)
-    photo, undistorted = (read_rgb(folder / "images" / f"{stems[1]}.png") for folder in (scene, out))
-    aligned = np.abs(sample(undistorted, uv) - sample(photo, metashape_project(rays, c))).mean()
-    unswapped = np.abs(sample(undistorted, uv) - sample(photo, metashape_project(rays, {**c, "p1": c["p2"],
-                                                                                         "p2": c["p1"]}))).mean()
+    aligned = undistortion_error(scene, out, stems[1], lambda rays: metashape_project(rays, c))
+    unswapped = undistortion_error(scene, out, stems[1],
+                                   lambda rays: metashape_project(rays, {**c, "p1": c["p2"], "p2": c["p1"]}))
     assert aligned < 1.0 and aligned < 0.5 * unswapped, (aligned, unswapped)
     # The lens imported bends every ray that reaches the photo as Metashape's does, the r^8 term's pixels included.
     original = transforms["original_camera"]
@@ -730,13 +736,9 @@ def test_opensfm_reconstruction_imports_poses_and_its_brown_lens_as_opensfm_bend
     assert transforms["source"] == "opensfm" and manifest["summary"]["left_out"] == [stems[0]]
     assert_poses_equal(transforms, truth, stems[1:])
     # The undistorted image at pinhole pixel p shows what the photo shows where OpenSfM's model puts p's ray.
-    k = Intrinsics.from_frame(transforms)
-    uv = np.random.default_rng(5).uniform([0.1 * k.w, 0.1 * k.h], [0.9 * k.w, 0.9 * k.h], size=(400, 2))
-    rays = np.stack([(uv[:, 0] - k.cx) / k.fl_x, (uv[:, 1] - k.cy) / k.fl_y, np.ones(len(uv))], -1)
-    photo, undistorted = (read_rgb(folder / "images" / f"{stems[1]}.png") for folder in (scene, out))
-    aligned = np.abs(sample(undistorted, uv) - sample(photo, opensfm_project(rays, camera))).mean()
-    swapped = np.abs(sample(undistorted, uv) - sample(photo, opensfm_project(rays, {**camera, "p1": camera["p2"],
-                                                                                      "p2": camera["p1"]}))).mean()
+    aligned = undistortion_error(scene, out, stems[1], lambda rays: opensfm_project(rays, camera))
+    swapped = undistortion_error(scene, out, stems[1], lambda rays: opensfm_project(
+        rays, {**camera, "p1": camera["p2"], "p2": camera["p1"]}))
     assert aligned < 1.0 and aligned < 0.5 * swapped, (aligned, swapped)
 
 
