@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plenoxels.core.cameras import Intrinsics
+from plenoxels.core.cameras import OPENCV_TO_OPENGL_AXES, Intrinsics
 from plenoxels.core.errors import UserError
 
 # Skew, tangential terms a fisheye drops, and the ratio standing in for K1-K4: the most they may move a pixel (a drone
@@ -135,7 +135,7 @@ def camera_to_world(transform: str, component: np.ndarray | None, where: str) ->
     except ValueError:
         raise UserError(f"{where}: its transform is not 16 numbers; export the cameras again or set "
                         "poses.source=sfm") from None
-    c2w[:3, 1:3] *= -1
+    c2w = c2w @ OPENCV_TO_OPENGL_AXES
     return c2w if component is None else component @ c2w
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from plenoxels.core.cameras import Intrinsics
+from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
 from plenoxels.core.errors import UserError
 
 PANORAMA_PROJECTIONS = ("spherical", "equirectangular")
@@ -90,8 +90,4 @@ def camera_to_world(shot: dict, where: str) -> np.ndarray:
     if not (np.isfinite(rotation).all() and np.isfinite(translation).all()):
         raise UserError(f"{where}: its rotation or translation is not finite; fix the reconstruction or set "
                         "poses.source=sfm")
-    w2c = cv2.Rodrigues(rotation)[0]
-    c2w = np.eye(4)
-    c2w[:3, :3], c2w[:3, 3] = w2c.T, -w2c.T @ translation
-    c2w[:3, 1:3] *= -1
-    return c2w
+    return opengl_c2w_from_colmap_w2c(cv2.Rodrigues(rotation)[0], translation)
