@@ -75,9 +75,9 @@ REPRODUCTION = {
 
 def scene_kind(folder: Path) -> str:
     """"nerf_synthetic" or "llff", from the folder's layout; anything else is a one-line error."""
-    from stages.capture.photos import is_split_dataset
+    from stages.capture.photos import split_layout
 
-    if is_split_dataset(folder):
+    if split_layout(folder) == "blender":
         return "nerf_synthetic"
     if (folder / "poses_bounds.npy").is_file():
         return "llff"

@@ -61,17 +61,57 @@ def is_video(scene: Path) -> bool:
     return scene.is_file() and scene.suffix.lower() in VIDEO_SUFFIXES
 
 
-# The splits a NeRF synthetic (Blender) dataset folder has: <split>/ beside transforms_<split>.json.
+# The splits a published dataset folder may define: NeRF synthetic's (Blender's) <split>/ beside
+# transforms_<split>.json; NeRF++'s <split>/rgb/ beside <split>/pose/ (its val split named validation/); NSVF's rgb/
+# photos named 0_ (train), 1_ (val) and 2_ (test) beside pose/ (svox2's Tanks and Temples).
 DATASET_SPLITS = ("train", "val", "test")
+NERFPP_SPLIT_FOLDERS = {"train": ("train",), "val": ("validation", "val"), "test": ("test",)}
+NSVF_PREFIXES = {"0_": "train", "1_": "val", "2_": "test"}
+# The folders NSVF and NeRF++ keep a photo's camera-to-world pose in (extrinsic/: NSVF's world-to-camera ones).
+POSE_FOLDERS = ("pose", "poses", "extrinsic")
+# Polycam's raw export (keyframes/): a folder of its photos -> the folder of their cameras beside it; the undistorted
+# photos first.
+POLYCAM_CAMERAS = {"corrected_images": "corrected_cameras", "images": "cameras"}
 
 
 def _has_photos(folder: Path) -> bool:
     return folder.is_dir() and any(p.suffix.lower() in IMAGE_SUFFIXES for p in folder.iterdir() if p.is_file())
 
 
+def _posed_folder(folder: Path) -> bool:
+    """Whether a photo folder has NSVF's or NeRF++'s pose folder beside it."""
+    return any((folder.parent / name).is_dir() for name in POSE_FOLDERS)
+
+
+def split_folder(scene: Path, split: str) -> Path | None:
+    """The photo folder of a split dataset's `split` (the first of NeRF++'s names for it that holds photos)."""
+    if split_layout(scene) == "blender":
+        return scene / split
+    held = [scene / name / "rgb" for name in NERFPP_SPLIT_FOLDERS[split]]
+    return next((folder for folder in held if _has_photos(folder)), None)
+
+
+def split_layout(folder: Path) -> str | None:
+    """"blender": NeRF synthetic's train/ (and val/, test/) photo folders, each beside its transforms_<split>.json;
+    "nerfpp": NeRF++'s train/rgb/ (and validation/, test/) beside train/pose/; else None."""
+    if not folder.is_dir():
+        return None
+    if (folder / "transforms_train.json").is_file() and _has_photos(folder / "train"):
+        return "blender"
+    return "nerfpp" if _has_photos(folder / "train" / "rgb") and _posed_folder(folder / "train" / "rgb") else None
+
+
 def is_split_dataset(folder: Path) -> bool:
-    """A NeRF synthetic layout: train/ (and val/, test/) photo folders, each beside its transforms_<split>.json."""
-    return folder.is_dir() and (folder / "transforms_train.json").is_file() and _has_photos(folder / "train")
+    return split_layout(folder) is not None
+
+
+def nsvf_splits(folder: Path, names: list[str]) -> dict[str, str]:
+    """NSVF's splits of the photos named `names` in `folder` (0_ train, 1_ val, 2_ test), where every photo carries
+    one of those prefixes and a pose folder is beside them; else none."""
+    prefixed = {name: NSVF_PREFIXES.get(name[:2]) for name in names}
+    if not names or not all(prefixed.values()) or "train" not in prefixed.values() or not _posed_folder(folder):
+        return {}
+    return prefixed
 
 
 def lexical_path(path: Path) -> Path:
@@ -96,9 +136,10 @@ def split_photos(scene: Path, split: str) -> list[Path]:
     published test/ folders also hold depth and normal renders beside each photo); every photo of the folder where
     the split has no such file."""
     listing = scene / f"transforms_{split}.json"
-    folder = scene / split
-    if not listing.is_file():
-        return sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith(".")) if folder.is_dir() else []
+    folder = split_folder(scene, split)
+    if split_layout(scene) != "blender" or not listing.is_file():
+        return sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith(".")) \
+            if folder is not None and folder.is_dir() else []
     try:
         frames = json.loads(listing.read_text())["frames"]
         names = [str(frame["file_path"]) for frame in frames]
@@ -120,13 +161,19 @@ def split_photos(scene: Path, split: str) -> list[Path]:
 
 def photo_folder(scene: Path) -> Path:
     """The folder the scene's photo paths are relative to: for a video, the folder it sits in; for a dataset
-    folder, its images/ (a COLMAP project or a nerfstudio folder) or its largest images_N/ (LLFF), or the dataset
-    itself when its photos sit in split folders (NeRF synthetic); else the folder named."""
+    folder, its images/ (a COLMAP project or a nerfstudio folder), image/ (NeuS), rgb/ (NSVF), Polycam's
+    keyframes/corrected_images/ (or images/), or its largest images_N/ (LLFF), or the dataset itself when its photos
+    sit in split folders (NeRF synthetic, NeRF++); else the folder named."""
     if scene.is_file():
         return scene.parent
     if _has_photos(scene) or is_split_dataset(scene):
         return scene
-    for name in ("images", "image"):  # image/: the NeuS/IDR layout (beside mask/ and cameras_sphere.npz)
+    if any(_has_photos(scene / "keyframes" / name) for name in POLYCAM_CAMERAS):  # Polycam's raw export
+        scene = scene / "keyframes"
+    if _has_photos(scene / "corrected_images") and (scene / POLYCAM_CAMERAS["corrected_images"]).is_dir():
+        return scene / "corrected_images"
+    # image/: the NeuS/IDR layout (beside mask/ and cameras_sphere.npz); rgb/: NSVF's (beside pose/)
+    for name in ("images", "image", "rgb"):
         if _has_photos(scene / name):
             return scene / name
     downscaled = [d for d in scene.glob("images_*") if d.name[7:].isdigit() and _has_photos(d)]
@@ -173,14 +220,24 @@ def scene_photos(scene: Path, holdout_split: str) -> list[tuple[Path, str | None
     """The photo files of a folder scene, each with its split when the dataset defines one: a NeRF synthetic folder
     gives train/ as "train" and the `holdout_split` folder ("val" or "test"; "none": none) as "test"."""
     folder = photo_folder(scene)
+    holding_out = holdout_split in DATASET_SPLITS[1:]
     if is_split_dataset(scene):
-        holding_out = holdout_split in DATASET_SPLITS[1:]
         splits = [("train", "train" if holding_out else None)] + ([(holdout_split, "test")] if holding_out else [])
-        if len(splits) > 1 and not _has_photos(scene / holdout_split):
-            raise UserError(f"{scene} has no {holdout_split}/ photos to hold out; set ingest.holdout_split to one it "
-                            f"has ({', '.join(d for d in DATASET_SPLITS[1:] if _has_photos(scene / d)) or 'none'})")
+        if len(splits) > 1 and not split_photos(scene, holdout_split):
+            raise UserError(f"{scene} has no {holdout_split} photos to hold out; set ingest.holdout_split to one it "
+                            f"has ({', '.join(d for d in DATASET_SPLITS[1:] if split_photos(scene, d)) or 'none'})")
         return [(p, split) for name, split in splits for p in split_photos(scene, name)]
     photos = [(p, None) for p in sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith("."))]
+    prefixed = nsvf_splits(folder, [p.name for p, _ in photos if p.suffix.lower() in IMAGE_SUFFIXES])
+    if prefixed:
+        if holding_out and holdout_split not in prefixed.values():
+            raise UserError(f"{folder} has no {holdout_split} photos to hold out (NSVF's "
+                            f"{next(k for k, v in NSVF_PREFIXES.items() if v == holdout_split)} names); set "
+                            f"ingest.holdout_split to one it has "
+                            f"({', '.join(sorted(set(prefixed.values()) - {'train'})) or 'none'})")
+        kept = ("train", holdout_split) if holding_out else ("train",)
+        return [(p, {"train": "train" if holding_out else None, holdout_split: "test"}[prefixed[p.name]])
+                for p, _ in photos if prefixed.get(p.name) in kept]
     if not any(p.suffix.lower() in IMAGE_SUFFIXES for p, _ in photos):
         # Two levels down at most: a folder as wide as a home folder is named, not walked.
         holding = [(d, sum(1 for pattern in ("*", "*/*") for f in d.glob(pattern)
@@ -271,8 +328,9 @@ def scene_files(scene: Path) -> list[Path]:
     if scene.is_file():
         return [scene]
     if is_split_dataset(scene):
-        return [p for split in DATASET_SPLITS if (scene / split).is_dir()
-                for p in sorted(f for f in (scene / split).iterdir() if f.is_file() and not f.name.startswith("."))]
+        folders = [split_folder(scene, split) for split in DATASET_SPLITS]
+        return [p for folder in folders if folder is not None and folder.is_dir()
+                for p in sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith("."))]
     return [p for p, _ in scene_photos(scene, "none")]
 
 

@@ -1,5 +1,6 @@
 """Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy, IDR/NeuS cameras,
-Metashape cameras .xml and OpenSfM reconstruction.json the importers (pose_import.py) could read. Finding them reads no
+Metashape cameras .xml, OpenSfM reconstruction.json, NSVF's or NeRF++'s pose folders and Polycam's camera folder the
+importers (pose_import.py) could read. Finding them reads no
 pose, so a cache key lists them without loading COLMAP."""
 from __future__ import annotations
 
@@ -7,9 +8,10 @@ import json
 import re
 from pathlib import Path
 
-from stages.capture.photos import photo_folder
+from stages.capture.photos import (DATASET_SPLITS, POLYCAM_CAMERAS, POSE_FOLDERS, photo_folder, split_folder,
+                                   split_layout)
 
-KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm")
+KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf", "polycam")
 # IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
 IDR_FILES = ("cameras_sphere.npz", "cameras.npz")
 # Bytes of an .xml file read to tell Metashape's cameras from other XML.
@@ -43,7 +45,18 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
         found["metashape"] += [p for p in sorted(place.glob("*.xml")) if is_metashape(p)]
         found["opensfm"] += [p for p in (place / "opensfm" / "reconstruction.json", place / "reconstruction.json")
                              if p.is_file()]
+        found["nsvf"] += pose_folders(place)
+    found["polycam"] += [camera_folder for camera_folder in [folder.parent / POLYCAM_CAMERAS.get(folder.name, "")]
+                         if folder.name in POLYCAM_CAMERAS and camera_folder.is_dir()]
+    if split_layout(scene) == "nerfpp":
+        found["nsvf"] += [pose for split in DATASET_SPLITS if (photos := split_folder(scene, split)) is not None
+                          for pose in pose_folders(photos.parent)]
     return found
+
+
+def pose_folders(place: Path) -> list[Path]:
+    """NSVF's and NeRF++'s pose folders in `place` (pose/, poses/, extrinsic/) that hold pose files."""
+    return [place / name for name in POSE_FOLDERS if (place / name).is_dir() and any((place / name).glob("*.txt"))]
 
 
 def is_metashape(path: Path) -> bool:

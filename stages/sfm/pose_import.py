@@ -1,14 +1,13 @@
-"""Poses a user already has: a COLMAP sparse model, a NeRF / instant-ngp / nerfstudio / Blender
-transforms.json, LLFF poses_bounds.npy, IDR/NeuS cameras_sphere.npz (DTU-style sets), Metashape's exported
-cameras.xml, or OpenSfM's (OpenDroneMap's) reconstruction.json, turned into the same distorted COLMAP model that SfM
-makes.
+"""Poses a user already has: a COLMAP sparse model, a NeRF / instant-ngp / nerfstudio / Blender transforms.json, LLFF
+poses_bounds.npy, IDR/NeuS cameras_sphere.npz (DTU-style sets), Metashape's exported cameras.xml, OpenSfM's
+(OpenDroneMap's) reconstruction.json, NSVF's and NeRF++'s pose folders (svox2's), or Polycam's raw export, turned into
+the same distorted COLMAP model that SfM makes.
 
-Every importer returns an `Imported`: a `pycolmap.Reconstruction` whose image names are the ingested
-PNGs (`<name>.png`) and whose cameras are scaled to the ingested image size, so it is undistorted and
-written exactly as an SfM result is (stages/sfm/outputs.py). Pose files describe images by their own
-names and sizes; images are matched to pose entries by path first, then by file stem (LLFF, which has
-no names, and IDR/NeuS, which number them, by sorted file order), and the ones without a pose are listed.
-"""
+Every importer returns an `Imported`: a `pycolmap.Reconstruction` whose image names are the ingested PNGs
+(`<name>.png`) and whose cameras are scaled to the ingested image size, so it is undistorted and written exactly as an
+SfM result is (stages/sfm/outputs.py). Pose files describe images by their own names and sizes; images are matched to
+pose entries by path first, then by file stem (LLFF, which has no names, and IDR/NeuS, which number them, by sorted
+file order), and the ones without a pose are listed."""
 from __future__ import annotations
 
 import json
@@ -20,8 +19,9 @@ import numpy as np
 import pycolmap
 
 from stages.capture.panorama import yaw_rotation
-from stages.capture.photos import DATASET_SPLITS, frame_photo, is_split_dataset, lexical_path, photo_folder
-from stages.sfm import metashape, opensfm
+from stages.capture.photos import (DATASET_SPLITS, POSE_FOLDERS, frame_photo, lexical_path, photo_folder,
+                                   split_layout)
+from stages.sfm import metashape, nsvf, opensfm, polycam
 from stages.sfm.pose_files import KINDS, candidates, colmap_models, is_colmap_model
 from plenoxels.core.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, opengl_c2w_from_projection
 from plenoxels.core.errors import UserError
@@ -51,6 +51,10 @@ def kind_of(path: Path) -> str:
     if path.is_dir():
         if is_colmap_model(path) or colmap_models(path) or colmap_models(path.parent):
             return "colmap"
+        if path.name in POSE_FOLDERS:
+            return "nsvf"
+        if path.name in polycam.CAMERA_FOLDERS.values():
+            return "polycam"
     elif path.name == "reconstruction.json":
         return "opensfm"
     elif path.suffix == ".json":
@@ -62,7 +66,8 @@ def kind_of(path: Path) -> str:
     elif path.suffix.lower() == ".xml":
         return "metashape"
     raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json, a poses_bounds.npy, an "
-                    "IDR/NeuS cameras*.npz, a Metashape cameras .xml or an OpenSfM reconstruction.json")
+                    "IDR/NeuS cameras*.npz, a Metashape cameras .xml, an OpenSfM reconstruction.json, an NSVF pose/ "
+                    "folder or Polycam's keyframes/cameras/")
 
 
 def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
@@ -82,6 +87,8 @@ def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
         return from_metashape(path, records)
     if kind == "opensfm":
         return from_opensfm(path, records)
+    if kind in CAMERA_FILES:
+        return from_camera_files(kind, [path], records, scene)
     return from_llff(path, records)
 
 
@@ -111,12 +118,14 @@ def find(source: str, path: str, records: list[dict], scene: Path) -> tuple[str,
         kind = source if source != "auto" else kind_of(given)
         return kind, load(kind, given, records, scene)
     found = candidates(scene)
-    if is_split_dataset(scene) and source in ("auto", "transforms"):
+    if split_layout(scene) == "blender" and source in ("auto", "transforms"):
         # One dataset in several files: the photos of every split the ingest kept are posed together.
         splits = [scene / f"transforms_{split}.json" for split in DATASET_SPLITS]
         present = [p for p in splits if p.is_file()]
         return "transforms", from_transforms(present[0], records, scene, tuple(present[1:]))
     for kind in [source] if source != "auto" else list(KINDS):
+        if kind in CAMERA_FILES and found[kind]:  # one dataset's camera folders (a split each: NeRF++), together
+            return kind, from_camera_files(kind, found[kind], records, scene)
         if found[kind]:
             return kind, choose(kind, found[kind], records, scene)
     if source != "auto":
@@ -554,3 +563,37 @@ def from_opensfm(path: Path, records: list[dict]) -> Imported:
         camera_id = cameras.id_for(_at_ingested_size(k, record, str(path)), (model, coefficients))
         _add_image(reconstruction, len(reconstruction.images) + 1, record, camera_id, c2w, where)
     return Imported(reconstruction, path, missing)
+
+
+# ---- a camera file a photo: NSVF's, NeRF++'s, Polycam's ------------------------------------------------
+
+CAMERA_FILES = {"nsvf": (".txt", nsvf), "polycam": (".json", polycam)}
+
+
+def from_camera_files(kind: str, folders: list[Path], records: list[dict], scene: Path) -> Imported:
+    """Poses from folders of a camera file a photo (stages/sfm/nsvf.py, polycam.py): a photo takes the file named as
+    it in its own camera folder (beside its photos' folder), where that is among `folders`; a photo with no camera
+    folder of its own, the one file of its name in `folders` (NeRF++'s splits repeat names, so a file is never
+    taken from another split)."""
+    suffix, reader = CAMERA_FILES[kind]
+    photos, named_folders = photo_folder(scene), {lexical_path(f) for f in folders}
+    by_name: dict[str, list[Path]] = {}
+    for folder in folders:
+        for file in sorted(folder.glob(f"*{suffix}")):
+            by_name.setdefault(file.stem, []).append(file)
+    reconstruction = pycolmap.Reconstruction()
+    cameras = _CameraTable(reconstruction)
+    missing = []
+    for record in records:
+        photo = photos / record["source"]
+        own = reader.own_folders(photo.parent)
+        named = [folder / f"{photo.stem}{suffix}" for folder in own if lexical_path(folder) in named_folders
+                 and (folder / f"{photo.stem}{suffix}").is_file()] if own else by_name.get(photo.stem, [])
+        if len(named) != 1:
+            missing.append(record["name"])
+            continue
+        where = f"{named[0].parent.name}/{named[0].name}"
+        k, c2w = reader.camera(named[0], record["original_width"], record["original_height"], where)
+        _add_image(reconstruction, len(reconstruction.images) + 1, record,
+                   cameras.id_for(_at_ingested_size(k, record, where)), c2w, where)
+    return Imported(reconstruction, folders[0] if len(folders) == 1 else scene, missing)

@@ -278,6 +278,37 @@ def opensfm(spoil):
     return edit
 
 
+def nsvf(spoil):
+    """NSVF's pose/ folder and intrinsics.txt for the template's photos, spoiled by `spoil` (a function of the scene
+    folder)."""
+    def edit(folder, meta):
+        (folder / "pose").mkdir()
+        for f in meta["frames"]:
+            c2w = np.array(f["transform_matrix"]) @ np.diag([1.0, -1, -1, 1])
+            np.savetxt(folder / "pose" / f"{Path(f['file_path']).stem}.txt", c2w)
+        k = np.array([[meta["fl_x"], 0, meta["cx"], 0], [0, meta["fl_y"], meta["cy"], 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+        np.savetxt(folder / "intrinsics.txt", k)
+        spoil(folder)
+    return edit
+
+
+def polycam(spoil):
+    """Polycam's cameras/ for the template's photos (in images/), the first camera's keys spoiled by `spoil`."""
+    def edit(folder, meta):
+        (folder / "cameras").mkdir()
+        for n, f in enumerate(meta["frames"]):
+            c2w = np.array(f["transform_matrix"])
+            camera = {"fx": meta["fl_x"], "fy": meta["fl_y"], "cx": meta["cx"], "cy": meta["cy"], "width": meta["w"],
+                      "height": meta["h"], **{f"t_{r}{c}": c2w[r, c] for r in range(3) for c in range(4)}}
+            text = json.dumps(spoil(camera) if n == 0 else camera)
+            (folder / "cameras" / f"{Path(f['file_path']).stem}.json").write_text(text)
+    return edit
+
+
+def first_pose(text):
+    return lambda folder: sorted((folder / "pose").iterdir())[0].write_text(text)
+
+
 POSE_KINDS = {
     "transforms_nan": posed(frame_matrix(lambda m: [[float("nan")] * 4] + m[1:])),
     "transforms_inf": posed(frame_matrix(lambda m: [[float("inf")] * 4] + m[1:])),
@@ -309,6 +340,19 @@ POSE_KINDS = {
     "opensfm_projection_unknown": posed(opensfm(lambda r: {**r, "cameras": {"c": {**r["cameras"]["c"],
                                                                                  "projection_type": "dual"}}})),
     "opensfm_not_a_list": posed(opensfm(lambda r: 7)),
+    "nsvf_pose_text": posed(nsvf(first_pose("identity\n"))),
+    "nsvf_pose_nine_numbers": posed(nsvf(first_pose("1 0 0\n0 1 0\n0 0 1\n"))),
+    "nsvf_pose_nan": posed(nsvf(first_pose("nan " * 16))),
+    "nsvf_pose_singular": posed(nsvf(first_pose("0 0 0 1\n" * 3 + "0 0 0 1\n"))),
+    "nsvf_no_intrinsics": posed(nsvf(lambda folder: (folder / "intrinsics.txt").unlink())),
+    "nsvf_focal_zero": posed(nsvf(lambda folder: (folder / "intrinsics.txt").write_text("0 20 15 0\n0 0 0\n1\n"))),
+    "nsvf_intrinsics_ragged": posed(nsvf(lambda folder: (folder / "intrinsics.txt").write_text("30 0\n0 30 15\n"))),
+    "nsvf_intrinsics_binary": posed(nsvf(lambda folder: (folder / "intrinsics.txt").write_bytes(b"\xff\xfe\x00"))),
+    "polycam_focal_text": posed(polycam(lambda c: {**c, "fx": "wide"})),
+    "polycam_no_pose": posed(polycam(lambda c: {k: v for k, v in c.items() if not k.startswith("t_")})),
+    "polycam_pose_nan": posed(polycam(lambda c: {**c, "t_00": float("nan")})),
+    "polycam_width_zero": posed(polycam(lambda c: {**c, "width": 0})),
+    "polycam_not_a_dict": posed(polycam(lambda c: [1, 2])),
     "metashape_component_flat": posed(metashape(lambda text: text.replace(
         "<cameras>", '<components><component id="0"><transform><scale>0</scale></transform></component></components>'
         "<cameras>").replace('sensor_id="0"', 'sensor_id="0" component_id="0"'))),

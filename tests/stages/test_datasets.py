@@ -125,7 +125,7 @@ def test_nerf_synthetic_fits_train_and_holds_out_the_named_split(synthetic, trut
 def test_nerf_synthetic_without_the_named_split_is_a_one_line_error(synthetic, truth, tmp_path):
     folder = tmp_path / "blender"
     nerf_synthetic(synthetic, truth, folder, {"train": [0, 1, 2, 3], "val": [4, 5]})
-    with pytest.raises(UserError, match="no test/ photos to hold out.*ingest.holdout_split"):
+    with pytest.raises(UserError, match="no test photos to hold out.*ingest.holdout_split"):
         run(folder, tmp_path / "out", "ingest", "ingest.holdout_split=test")
     # none: every train photo is used, and normalize holds out every Nth as for any capture.
     run(folder, tmp_path / "none", "normalize", "ingest.holdout_split=none", "normalize.holdout_every=2")

@@ -1,0 +1,174 @@
+"""Folders with a camera file a photo: NSVF's and NeRF++'s (svox2's Tanks and Temples and its own captures: a text
+file of OpenCV camera-to-world, beside a pinhole's K; their splits held out as the folder says) and Polycam's raw
+export (a JSON file a photo)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from stages.common.json_files import read_json
+from pipeline.report import Reporter
+from pipeline.runner import Pipeline
+from stages.capture.synthetic import write_scene
+
+N_VIEWS = 8
+FLIP_YZ = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory) -> Path:
+    return write_scene("object", tmp_path_factory.mktemp("nsvf") / "object", n_views=N_VIEWS, width=120, height=90,
+                       seed=5, supersample=1)
+
+
+@pytest.fixture(scope="module")
+def truth(synthetic) -> dict:
+    return read_json(synthetic / "transforms.json")
+
+
+def run(scene: Path, out: Path, *overrides: str) -> dict:
+    return Pipeline(scene, out, overrides=list(overrides), reporter=Reporter(quiet=True)).run(
+        ["ingest", "poses", "normalize"])
+
+
+def k_matrix(truth: dict, scale: float = 1.0) -> np.ndarray:
+    fx, fy, cx, cy = (truth[key] * scale for key in ("fl_x", "fl_y", "cx", "cy"))
+    return np.array([[fx, 0, cx, 0], [0, fy, cy, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+
+
+def write_photo(synthetic: Path, frame: dict, path: Path, scale: int = 1) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    photo = Image.open(synthetic / frame["file_path"]).convert("RGB")
+    photo.resize((photo.width * scale, photo.height * scale), Image.LANCZOS).save(path)
+
+
+def nsvf_folder(synthetic: Path, truth: dict, folder: Path, prefixes: list[str], world_to_camera: bool = False,
+                older_intrinsics: bool = False) -> dict[str, str]:
+    """NSVF's layout: rgb/<prefix><i>.png at twice the truth's size, pose/ (or extrinsic/) <same>.txt, intrinsics.txt.
+    Returns the poses stage's image name -> the truth's stem."""
+    frames = sorted(truth["frames"], key=lambda f: f["file_path"])
+    names = {}
+    (folder / ("extrinsic" if world_to_camera else "pose")).mkdir(parents=True)
+    for i, (prefix, frame) in enumerate(zip(prefixes, frames)):
+        name = f"{prefix}{i:04d}"
+        write_photo(synthetic, frame, folder / "rgb" / f"{name}.png", scale=2)
+        c2w = np.asarray(frame["transform_matrix"]) @ FLIP_YZ
+        if world_to_camera:
+            np.savetxt(folder / "extrinsic" / f"{name}.txt", np.linalg.inv(c2w))
+        else:
+            np.savetxt(folder / "pose" / f"{name}.txt", c2w)
+        names[name] = Path(frame["file_path"]).stem
+    k = k_matrix(truth, 2.0)
+    if older_intrinsics:  # NSVF's synthetic scenes: f cx cy 0, then lines that are not the matrix, then the size
+        (folder / "intrinsics.txt").write_text(f"{k[0, 0]:.9f} {k[0, 2]:.9f} {k[1, 2]:.9f} 0.\n0. 0. 0.\n1.\n"
+                                               f"{2 * truth['w']} {2 * truth['h']}\n")
+    else:
+        np.savetxt(folder / "intrinsics.txt", k)
+    return names
+
+
+def assert_poses(out: Path, truth: dict, names: dict[str, str], world: np.ndarray = np.eye(4)) -> dict:
+    """The poses stage's cameras and pinhole equal the truth's (at the ingested size, the truth's own), the
+    cameras moved by `world`."""
+    poses = read_json(out / "poses" / "transforms.json")
+    want = {Path(f["file_path"]).stem: world @ np.asarray(f["transform_matrix"]) for f in truth["frames"]}
+    got = {f["name"]: np.asarray(f["transform_matrix"]) for f in poses["frames"]}
+    assert sorted(got) == sorted(names)
+    for name, c2w in got.items():
+        np.testing.assert_allclose(c2w, want[names[name]], atol=1e-6)
+    for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
+        assert poses[key] == pytest.approx(truth[key], rel=1e-6), key
+    return poses
+
+
+def splits(out: Path) -> dict[str, str]:
+    return {f["name"]: f["split"] for f in read_json(out / "normalize" / "scene.json")["frames"]}
+
+
+@pytest.mark.parametrize("variant", ["pose", "extrinsic", "older_intrinsics"])
+def test_nsvf_folder_is_posed_as_written_and_holds_out_its_val_photos(synthetic, truth, tmp_path, variant):
+    folder = tmp_path / "nsvf"
+    prefixes = ["0_"] * 5 + ["1_"] * 2 + ["2_"]
+    names = nsvf_folder(synthetic, truth, folder, prefixes, world_to_camera=variant == "extrinsic",
+                        older_intrinsics=variant == "older_intrinsics")
+    run(folder, tmp_path / "out", f"ingest.max_side={truth['w']}")
+    poses = assert_poses(tmp_path / "out", truth, {n: s for n, s in names.items() if not n.startswith("2_")})
+    assert poses["source"] == "nsvf"
+    assert splits(tmp_path / "out") == {n: "test" if n.startswith("1_") else "train"
+                                        for n in names if not n.startswith("2_")}
+
+
+def test_nsvf_test_split_and_a_split_it_lacks(synthetic, truth, tmp_path):
+    folder = tmp_path / "nsvf"
+    names = nsvf_folder(synthetic, truth, folder, ["0_"] * 6 + ["2_"] * 2)
+    run(folder, tmp_path / "out", f"ingest.max_side={truth['w']}", "ingest.holdout_split=test")
+    assert splits(tmp_path / "out") == {n: "test" if n.startswith("2_") else "train" for n in names}
+    from plenoxels.core.errors import UserError
+    with pytest.raises(UserError, match=r"no val photos to hold out.*ingest.holdout_split to one it has \(test\)"):
+        run(folder, tmp_path / "val", f"ingest.max_side={truth['w']}")
+
+
+def nerfpp_folder(synthetic: Path, truth: dict, folder: Path, splits_of: dict[str, list[int]]) -> dict[str, str]:
+    """NeRF++'s layout: <split>/rgb/<i>.png, <split>/pose/<i>.txt and <split>/intrinsics/<i>.txt, 16 numbers on one
+    line each; file names repeat across splits, as its Tanks and Temples' do."""
+    frames = sorted(truth["frames"], key=lambda f: f["file_path"])
+    names = {}
+    for split, indices in splits_of.items():
+        for i, index in enumerate(indices):
+            write_photo(synthetic, frames[index], folder / split / "rgb" / f"{i:06d}.png")
+            for part, matrix in (("pose", np.asarray(frames[index]["transform_matrix"]) @ FLIP_YZ),
+                                 ("intrinsics", k_matrix(truth))):
+                (folder / split / part).mkdir(exist_ok=True)
+                (folder / split / part / f"{i:06d}.txt").write_text(" ".join(map(repr, matrix.ravel().tolist())))
+            names[f"{split}_rgb_{i:06d}"] = Path(frames[index]["file_path"]).stem
+    return names
+
+
+def test_nerfpp_folder_poses_every_split_with_its_own_files(synthetic, truth, tmp_path):
+    folder = tmp_path / "tat"
+    names = nerfpp_folder(synthetic, truth, folder, {"train": [0, 1, 2, 3, 4], "validation": [5], "test": [6, 7]})
+    run(folder, tmp_path / "out", "ingest.holdout_split=test")
+    assert_poses(tmp_path / "out", truth, {n: s for n, s in names.items() if not n.startswith("validation")})
+    assert splits(tmp_path / "out") == {n: "test" if n.startswith("test") else "train"
+                                        for n in names if not n.startswith("validation")}
+    run(folder, tmp_path / "val", "poses.path=train/pose")  # named: that folder's photos are posed, the others named
+    poses = read_json(tmp_path / "val" / "poses" / "transforms.json")
+    assert sorted(f["name"] for f in poses["frames"]) == sorted(n for n in names if n.startswith("train"))
+
+
+def turned_about_x(angle: float) -> np.ndarray:
+    turned = np.eye(4)
+    turned[1:3, 1:3] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    return turned
+
+
+def polycam_cameras(synthetic: Path, truth: dict, keyframes: Path, photos: str, cameras: str, world: np.ndarray):
+    """Polycam's photos (at twice the truth's size, as JPEGs) and a camera JSON file each, its pose moved by
+    `world`."""
+    (keyframes / cameras).mkdir(parents=True)
+    for frame in truth["frames"]:
+        stem = Path(frame["file_path"]).stem
+        write_photo(synthetic, frame, keyframes / photos / f"{stem}.jpg", scale=2)
+        c2w = world @ np.asarray(frame["transform_matrix"])
+        camera = {"fx": 2 * truth["fl_x"], "fy": 2 * truth["fl_y"], "cx": 2 * truth["cx"], "cy": 2 * truth["cy"],
+                  "width": 2 * truth["w"], "height": 2 * truth["h"], "blur_score": 80.0,
+                  **{f"t_{r}{c}": float(c2w[r, c]) for r in range(3) for c in range(4)}}
+        (keyframes / cameras / f"{stem}.json").write_text(json.dumps(camera))
+
+
+def test_polycam_export_is_posed_from_its_undistorted_photos_cameras(synthetic, truth, tmp_path):
+    export = tmp_path / "polycam"
+    polycam_cameras(synthetic, truth, export / "keyframes", "corrected_images", "corrected_cameras", np.eye(4))
+    # The raw photos' cameras are in another frame: the undistorted photos and their own cameras are the ones read.
+    polycam_cameras(synthetic, truth, export / "keyframes", "images", "cameras", turned_about_x(0.3))
+    (export / "mesh_info.json").write_text("{}")
+    names = {Path(f["file_path"]).stem: Path(f["file_path"]).stem for f in truth["frames"]}
+    run(export, tmp_path / "out", f"ingest.max_side={truth['w']}")
+    assert assert_poses(tmp_path / "out", truth, names)["source"] == "polycam"
+    # Given the raw photos' folder, their own cameras are read.
+    run(export / "keyframes" / "images", tmp_path / "raw", f"ingest.max_side={truth['w']}")
+    assert_poses(tmp_path / "raw", truth, names, turned_about_x(0.3))
