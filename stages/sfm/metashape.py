@@ -11,7 +11,7 @@ the file has no components), and a component's <transform> takes that frame to t
 from the earth's centre, which a float32 mesh cannot hold to the millimetre). So the cameras are kept in the first
 component's own frame: the others' brought into it by their transforms relative to its, the world's left out. A
 spherical sensor's photos are equirectangular (longitude atan2(X, Z) across, latitude down the rows): ingest cuts them
-into views, and each takes its photo's pose turned to its yaw (pose_import._add_view)."""
+into views, and each takes its photo's pose turned to its yaw (imported_model.add_view)."""
 from __future__ import annotations
 
 import math

@@ -7,7 +7,7 @@ the camera's axes (x right, y down, z forward: OpenCV's) is seen at x = X/Z, y =
 - perspective: focal * (1 + k1 r^2 + k2 r^4) * (x, y), COLMAP's RADIAL (as OPENCV, its p1 = p2 = 0);
 - brown: radial k1-k3 and tangential p1, p2 as OpenCV's, focal_x, focal_y and c_x, c_y off the centre: FULL_OPENCV;
 - fisheye: the angle from the axis bent by k1, k2 (fisheye_opencv: k1-k4, with c_x, c_y): OPENCV_FISHEYE;
-- spherical and equirectangular: a 360 camera's frames, which ingest cuts into views (pose_import._add_view).
+- spherical and equirectangular: a 360 camera's frames, which ingest cuts into views (imported_model.add_view).
 A shot's rotation is world-to-camera as an axis times its angle, its translation t such that a point's camera
 coordinates are R X + t. The poses stay in the reconstruction's frame (ODM's: metres, east-north-up around the
 survey)."""

@@ -12,39 +12,22 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
-from stages.capture.panorama import yaw_rotation
 from stages.capture.photos import (DATASET_SPLITS, POSE_FOLDERS, frame_photo, lexical_path, photo_folder,
                                    split_layout)
 from stages.sfm import metashape, nsvf, opensfm, polycam
+from stages.sfm.imported_model import (CameraTable, Imported, Lens, add_image, add_view, at_ingested_size, file_stem,
+                                       finite_number, scale_factor)
 from stages.sfm.pose_files import KINDS, candidates, colmap_models, is_colmap_model
-from plenoxels.core.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, opengl_c2w_from_llff, opengl_c2w_from_projection
+from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_llff, opengl_c2w_from_projection
 from plenoxels.core.errors import UserError
 
-# The most one axis of a pose's rotation may be stretched beyond another (its singular values' ratio): a pose file's
-# float noise, printed to six digits, stays below 1.0001; a sheared or hand-damaged matrix does not.
-NON_RIGID_STRETCH = 1.02
-
-# How far an image's size may be from the pose file's size after scaling before we call it a different image.
-SIZE_TOLERANCE_PX = 1.5
-# A lens as COLMAP models it: the camera model's name and its distortion coefficients (after fx, fy, cx, cy).
-Lens = tuple[str, tuple[float, ...]]
 # nerfstudio's perspective camera models: their k1, k2, p1, p2 (k3) are OpenCV's radial-tangential distortion.
 PERSPECTIVE_MODELS = {"OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"}
-
-
-@dataclass
-class Imported:
-    reconstruction: pycolmap.Reconstruction
-    path: Path                                    # the file or folder the poses came from
-    missing: list[str]                            # ingested images the pose file has no entry for
-    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)  # name -> (near, far), LLFF only
-    path_matches: int = 0                         # images matched by their path rather than only their stem
 
 
 def kind_of(path: Path) -> str:
@@ -134,99 +117,6 @@ def find(source: str, path: str, records: list[dict], scene: Path) -> tuple[str,
     return None
 
 
-# ---- shared helpers ---------------------------------------------------------------------------------------
-
-def _stem(name: str) -> str:
-    return Path(name.replace("\\", "/")).name.rsplit(".", 1)[0] if "." in Path(name).name else Path(name).name
-
-
-def _rigid_from_c2w(c2w, where: str, turn: np.ndarray | None = None) -> pycolmap.Rigid3d:
-    """COLMAP's world-to-camera for our camera-to-world, turned by `turn` (3x3, in the camera's axes) where given; the
-    rotation is projected onto SO(3) first because exported matrices carry float noise (and some tools fold a uniform
-    scale into them). `where` names the pose in the file for the one line that refuses it."""
-    try:
-        c2w = np.array(c2w, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise UserError(f"{where}: the camera pose is not a 4x4 matrix of numbers; fix the pose file or set "
-                        "poses.source=sfm") from None
-    # LAPACK's SVD can loop forever on inf or NaN, and a singular rotation has no nearest rigid pose
-    if c2w.shape[-2:] not in ((3, 4), (4, 4)) or not np.isfinite(c2w).all() or abs(np.linalg.det(c2w[:3, :3])) < 1e-9:
-        raise UserError(f"{where}: the camera pose is not a finite, invertible 3x4 or 4x4 matrix; fix the pose file or "
-                        "set poses.source=sfm")
-    u, singular, vt = np.linalg.svd(c2w[:3, :3])
-    # A uniform scale is a convention; one axis stretched more than the others is a damaged or sheared matrix, whose
-    # nearest rotation would be a guess.
-    if singular[0] > NON_RIGID_STRETCH * singular[2]:
-        raise UserError(f"{where}: the camera pose's rotation stretches one axis {singular[0] / singular[2]:.2f}x more "
-                        "than another, so it is no rotation; fix the pose file or set poses.source=sfm")
-    c2w[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt @ (np.eye(3) if turn is None else turn)
-    rotation, translation = colmap_w2c_from_opengl_c2w(c2w)
-    return pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation)
-
-
-def _number(value, key: str, where: str, positive: bool = False) -> float:
-    """A pose file's number, or one line that names the key and the file."""
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        number = float("nan")
-    if not math.isfinite(number) or (positive and number <= 0):
-        raise UserError(f"{where}: {key} is {value!r}, not a{' positive' if positive else ''} finite number; fix the "
-                        "pose file or set poses.source=sfm")
-    return number
-
-
-def _scale_factor(record: dict, pose_w: float, pose_h: float, what: str) -> float:
-    """The factor from the pose file's image size to the ingested one; both sides must agree."""
-    if "bars_cropped" in record:  # a pose file's camera sees the whole frame
-        raise UserError(f"{what} describes the whole frames, but ingest cropped the black bars of {record['source']} "
-                        f"to {record['original_width']}x{record['original_height']}; set ingest.crop_bars=false to "
-                        "keep whole frames for these poses")
-    factor = record["width"] / pose_w
-    if abs(pose_h * factor - record["height"]) > SIZE_TOLERANCE_PX * max(1.0, factor):
-        raise UserError(f"{record['source']} is {record['original_width']}x{record['original_height']} but {what} "
-                        f"describes {pose_w:g}x{pose_h:g} images (a different aspect); use the matching photos "
-                        "or set poses.source=sfm")
-    return factor
-
-
-def _at_ingested_size(k: Intrinsics, record: dict, what: str, pose_w: float = 0.0, pose_h: float = 0.0) -> Intrinsics:
-    """`k`, a pose file's camera for its images of pose_w x pose_h (k's own size where not given), scaled to the
-    ingested image (`_scale_factor`)."""
-    scaled = k.scaled(_scale_factor(record, pose_w or k.w, pose_h or k.h, what))
-    return Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
-
-
-def _camera(camera_id: int, k: Intrinsics, lens: Lens) -> pycolmap.Camera:
-    model, coefficients = lens
-    if model.endswith("OPENCV") and not any(coefficients):  # a fisheye without distortion is still no pinhole
-        model, coefficients = "PINHOLE", ()
-    return pycolmap.Camera(model=model, width=k.w, height=k.h, camera_id=camera_id,
-                           params=[k.fl_x, k.fl_y, k.cx, k.cy, *coefficients])
-
-
-class _CameraTable:
-    """Adds one COLMAP camera per distinct (intrinsics, lens), so a shared camera stays shared."""
-
-    def __init__(self, reconstruction: pycolmap.Reconstruction):
-        self.reconstruction = reconstruction
-        self.ids: dict[tuple, int] = {}
-
-    def id_for(self, k: Intrinsics, lens: Lens = ("OPENCV", ())) -> int:
-        key = (round(k.fl_x, 6), round(k.fl_y, 6), round(k.cx, 6), round(k.cy, 6), k.w, k.h, lens[0],
-               *(round(d, 9) for d in lens[1]))
-        if key not in self.ids:
-            self.ids[key] = len(self.ids) + 1
-            self.reconstruction.add_camera_with_trivial_rig(_camera(self.ids[key], k, lens))
-        return self.ids[key]
-
-
-def _add_image(reconstruction: pycolmap.Reconstruction, image_id: int, record: dict, camera_id: int,
-               c2w: np.ndarray, where: str, turn: np.ndarray | None = None) -> None:
-    image = pycolmap.Image(name=f"{record['name']}.png", camera_id=camera_id, image_id=image_id)
-    reconstruction.add_image_with_trivial_frame(image, _rigid_from_c2w(c2w, where, turn))
-
-
 # ---- COLMAP -----------------------------------------------------------------------------------------------
 
 def from_colmap(model_dir: Path, records: list[dict]) -> Imported:
@@ -238,18 +128,18 @@ def from_colmap(model_dir: Path, records: list[dict]) -> Imported:
     by_stem: dict[str, pycolmap.Image] = {}
     for image in source.images.values():
         if image.has_pose:
-            by_stem.setdefault(_stem(image.name), image)
+            by_stem.setdefault(file_stem(image.name), image)
     out = pycolmap.Reconstruction()
     camera_ids: dict[tuple[int, int, int], int] = {}   # (source camera, w, h) -> new camera
     kept: dict[int, int] = {}                           # source image id -> new image id
     missing = []
     for record in records:
-        image = by_stem.get(_stem(record["source"])) or by_stem.get(record["name"])
+        image = by_stem.get(file_stem(record["source"])) or by_stem.get(record["name"])
         if image is None:
             missing.append(record["name"])
             continue
         cam = source.cameras[image.camera_id]
-        _scale_factor(record, cam.width, cam.height, f"the COLMAP model in {model_dir}")
+        scale_factor(record, cam.width, cam.height, f"the COLMAP model in {model_dir}")
         key = (image.camera_id, record["width"], record["height"])
         if key not in camera_ids:
             scaled = pycolmap.Camera(model=cam.model_name, width=cam.width, height=cam.height,
@@ -280,7 +170,7 @@ def _intrinsics_from(meta: dict, fallback: dict, record: dict, where: str) -> tu
     (`_lens`)."""
     def get(key, positive=False, default=None):
         value = meta.get(key, fallback.get(key))
-        return default if value is None else _number(value, key, where, positive)
+        return default if value is None else finite_number(value, key, where, positive)
 
     w = get("w", positive=True, default=record["original_width"])
     h = get("h", positive=True, default=record["original_height"])
@@ -300,7 +190,7 @@ def _intrinsics_from(meta: dict, fallback: dict, record: dict, where: str) -> tu
 def _lens(meta: dict, fallback: dict, where: str, get) -> Lens:
     """The COLMAP camera model and distortion coefficients a frame's `camera_model` (nerfstudio's names) and k1-k4,
     p1, p2 describe: OpenCV's radial-tangential model for a perspective camera (with k3 where it is given), its
-    equidistant model for a fisheye (a 360 camera's frames are cut into views, `_add_view`); another model stops with
+    equidistant model for a fisheye (a 360 camera's frames are cut into views, `add_view`); another model stops with
     what to do."""
     model = _model_of(meta, fallback)
     if model in PERSPECTIVE_MODELS:
@@ -314,23 +204,6 @@ def _lens(meta: dict, fallback: dict, where: str, get) -> Lens:
 
 def _model_of(meta: dict, fallback: dict) -> str:
     return str(meta.get("camera_model", fallback.get("camera_model", "OPENCV"))).upper()
-
-
-def _add_view(reconstruction: pycolmap.Reconstruction, cameras: _CameraTable, record: dict, model: str,
-              equirect: bool, c2w, where: str) -> None:
-    """A view ingest cut from a 360 frame: its frame's pose turned to the view's yaw, the pinhole it was cut as;
-    `model` names the pose file's camera, `equirect` whether it is a 360 camera's."""
-    if not equirect:
-        raise UserError(f"{where}: ingest cut {record['source']} into 360 views (ingest.equirect), but the pose file's "
-                        f"camera is {model}; set ingest.equirect=auto to import the photos as they are")
-    if "panorama" not in record:
-        raise UserError(f"{where}: a 360 camera ({model}), but ingest did not cut {record['source']} into views (it "
-                        f"is {record['original_width']}x{record['original_height']}, or ingest.equirect=no); a 360 "
-                        "frame is 2:1: give the frames as the camera wrote them and ingest.equirect=auto")
-    side = record["width"]
-    k = Intrinsics(record["focal"], record["focal"], side / 2, record["height"] / 2, side, record["height"])
-    _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k), c2w, where,
-               yaw_rotation(record["panorama"]["yaw"]))
 
 
 def _read_transforms(path: Path) -> dict:
@@ -369,9 +242,9 @@ def from_transforms(path: Path, records: list[dict], scene: Path, more: tuple[Pa
             photo = frame_photo(file.parent, file_path)
             if photo is not None:
                 by_target.setdefault(photo.resolve(), []).append(index)
-            by_stem.setdefault(_stem(file_path), []).append(index)
+            by_stem.setdefault(file_stem(file_path), []).append(index)
     reconstruction = pycolmap.Reconstruction()
-    cameras = _CameraTable(reconstruction)
+    cameras = CameraTable(reconstruction)
     missing, ambiguous, path_matches = [], [], 0
     for record in records:
         photo = folder / record["source"]
@@ -382,7 +255,7 @@ def from_transforms(path: Path, records: list[dict], scene: Path, more: tuple[Pa
             index = by_target[photo.resolve()][0]
         path_matches += index is not None
         if index is None:
-            same_stem = by_stem.get(_stem(record["source"]), [])
+            same_stem = by_stem.get(file_stem(record["source"]), [])
             if len(same_stem) > 1:
                 ambiguous.append(record["source"])
                 continue
@@ -396,13 +269,13 @@ def from_transforms(path: Path, records: list[dict], scene: Path, more: tuple[Pa
             raise UserError(f"{where} has no transform_matrix; add it or set poses.source=sfm")
         if "panorama" in record or _model_of(frame, data) == "EQUIRECTANGULAR":
             model = _model_of(frame, data)
-            _add_view(reconstruction, cameras, record, f"camera_model {model}", model == "EQUIRECTANGULAR",
-                      frame["transform_matrix"], where)
+            add_view(reconstruction, cameras, record, f"camera_model {model}", model == "EQUIRECTANGULAR",
+                     frame["transform_matrix"], where)
             continue
         k, lens = _intrinsics_from(frame, data, record, where)
-        scaled = _at_ingested_size(k, record, str(path))
-        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(scaled, lens),
-                   frame["transform_matrix"], where)
+        scaled = at_ingested_size(k, record, str(path))
+        add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(scaled, lens),
+                  frame["transform_matrix"], where)
     if ambiguous:
         raise UserError(f"{len(ambiguous)} photo(s) match no frame of {path.name if not more else 'the transforms files'}"
                         f" by path, and several frames by name ({', '.join(ambiguous[:3])}"
@@ -427,18 +300,19 @@ def from_llff(path: Path, records: list[dict]) -> Imported:
         raise UserError(f"{path} has {len(table)} poses but the folder has {len(ordered)} photos; LLFF poses "
                         "follow the photos' sorted order, so the counts must match (or set poses.source=sfm)")
     reconstruction = pycolmap.Reconstruction()
-    cameras = _CameraTable(reconstruction)
+    cameras = CameraTable(reconstruction)
     bounds = {}
     for number, (row, record) in enumerate(zip(table, ordered)):
         where = f"{path.name}, row {number} ({record['source']})"
         if not np.isfinite(row).all():
             raise UserError(f"{where} holds NaN or infinite numbers; fix the pose file or set poses.source=sfm")
         pose = row[:15].reshape(3, 5)
-        h, w, focal = (_number(value, key, where, positive=True) for value, key in zip(pose[:, 4], ("h", "w", "focal")))
-        k = _at_ingested_size(Intrinsics(focal, focal, w / 2, h / 2, int(round(w)), int(round(h))), record, str(path),
-                              w, h)
-        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k),
-                   opengl_c2w_from_llff(pose[:, :4]), where)
+        h, w, focal = (finite_number(value, key, where, positive=True)
+                       for value, key in zip(pose[:, 4], ("h", "w", "focal")))
+        k = at_ingested_size(Intrinsics(focal, focal, w / 2, h / 2, int(round(w)), int(round(h))), record, str(path),
+                             w, h)
+        add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k),
+                  opengl_c2w_from_llff(pose[:, :4]), where)
         bounds[record["name"]] = (float(row[15]), float(row[16]))
     return Imported(reconstruction, path, [], bounds)
 
@@ -461,25 +335,25 @@ def from_idr(path: Path, records: list[dict], scene: Path) -> Imported:
     if not projections:
         raise UserError(f"{path} holds no world_mat_N projections; it is not an IDR/NeuS camera file (set poses.source)")
     # Photos numbered by their names (000000.png) take those numbers, so a photo ingest skipped shifts no other.
-    numbered = all(_stem(r["source"]).isdigit() for r in records)
+    numbered = all(file_stem(r["source"]).isdigit() for r in records)
     ordered = sorted(records, key=lambda r: r["source"])
     if not numbered and len(ordered) != len(projections):
         raise UserError(f"{path} has {len(projections)} cameras but the folder has {len(ordered)} photos; its cameras "
                         "follow the photos' sorted order, so the counts must match (or set poses.source=sfm)")
     reconstruction = pycolmap.Reconstruction()
-    cameras = _CameraTable(reconstruction)
+    cameras = CameraTable(reconstruction)
     missing = []
     for position, record in enumerate(ordered):
-        index = int(_stem(record["source"])) if numbered else position
+        index = int(file_stem(record["source"])) if numbered else position
         if index not in projections:
             missing.append(record["name"])
             continue
         matrix, c2w = opengl_c2w_from_projection(projections[index])
         w, h = record["original_width"], record["original_height"]
-        k = _at_ingested_size(Intrinsics(matrix[0, 0], matrix[1, 1], matrix[0, 2] + 0.5, matrix[1, 2] + 0.5, w, h),
-                              record, str(path))
-        _add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k), c2w,
-                   f"{path.name}, world_mat_{index} ({record['source']})")
+        k = at_ingested_size(Intrinsics(matrix[0, 0], matrix[1, 1], matrix[0, 2] + 0.5, matrix[1, 2] + 0.5, w, h),
+                             record, str(path))
+        add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k), c2w,
+                  f"{path.name}, world_mat_{index} ({record['source']})")
     return Imported(reconstruction, path, missing)
 
 
@@ -493,7 +367,7 @@ def from_metashape(path: Path, records: list[dict]) -> Imported:
     for index, (label, *_) in enumerate(found):
         by_label.setdefault(label, []).append(index)
     reconstruction = pycolmap.Reconstruction()
-    cameras = _CameraTable(reconstruction)
+    cameras = CameraTable(reconstruction)
     missing = []
     for record in records:
         source = Path(record["source"])
@@ -509,14 +383,14 @@ def from_metashape(path: Path, records: list[dict]) -> Imported:
         kind, calibration = sensors.get(sensor_id, (None, None))
         c2w = metashape.camera_to_world(transform, components.get(component_id), where)
         if "panorama" in record or kind == "spherical":
-            _add_view(reconstruction, cameras, record, f"a {kind} sensor", kind == "spherical", c2w, where)
+            add_view(reconstruction, cameras, record, f"a {kind} sensor", kind == "spherical", c2w, where)
             continue
         if calibration is None:
             raise UserError(f"{where}: its sensor {sensor_id} has no calibration; export the cameras of an aligned "
                             "chunk, or set poses.source=sfm")
         k, model, coefficients = metashape.camera_and_lens(kind, calibration, where)
-        camera_id = cameras.id_for(_at_ingested_size(k, record, str(path)), (model, coefficients))
-        _add_image(reconstruction, len(reconstruction.images) + 1, record, camera_id, c2w, where)
+        camera_id = cameras.id_for(at_ingested_size(k, record, str(path)), (model, coefficients))
+        add_image(reconstruction, len(reconstruction.images) + 1, record, camera_id, c2w, where)
     return Imported(reconstruction, path, missing)
 
 
@@ -541,7 +415,7 @@ def from_opensfm(path: Path, records: list[dict]) -> Imported:
     chosen = max(opensfm.read(path), key=lambda r: len(shot_names(r["shots"])))
     names, cameras_of = shot_names(chosen["shots"]), chosen.get("cameras") or {}
     reconstruction = pycolmap.Reconstruction()
-    cameras = _CameraTable(reconstruction)
+    cameras = CameraTable(reconstruction)
     missing = []
     for record in records:
         if record["name"] not in names:
@@ -556,12 +430,12 @@ def from_opensfm(path: Path, records: list[dict]) -> Imported:
         c2w = opensfm.camera_to_world(shot, where)
         projection = str(camera.get("projection_type", "perspective"))
         if "panorama" in record or projection in opensfm.PANORAMA_PROJECTIONS:
-            _add_view(reconstruction, cameras, record, f"a {projection} camera",
-                      projection in opensfm.PANORAMA_PROJECTIONS, c2w, where)
+            add_view(reconstruction, cameras, record, f"a {projection} camera",
+                     projection in opensfm.PANORAMA_PROJECTIONS, c2w, where)
             continue
         k, model, coefficients = opensfm.camera_and_lens(camera, where)
-        camera_id = cameras.id_for(_at_ingested_size(k, record, str(path)), (model, coefficients))
-        _add_image(reconstruction, len(reconstruction.images) + 1, record, camera_id, c2w, where)
+        camera_id = cameras.id_for(at_ingested_size(k, record, str(path)), (model, coefficients))
+        add_image(reconstruction, len(reconstruction.images) + 1, record, camera_id, c2w, where)
     return Imported(reconstruction, path, missing)
 
 
@@ -582,7 +456,7 @@ def from_camera_files(kind: str, folders: list[Path], records: list[dict], scene
         for file in sorted(folder.glob(f"*{suffix}")):
             by_name.setdefault(file.stem, []).append(file)
     reconstruction = pycolmap.Reconstruction()
-    cameras = _CameraTable(reconstruction)
+    cameras = CameraTable(reconstruction)
     missing = []
     for record in records:
         photo = photos / record["source"]
@@ -594,6 +468,6 @@ def from_camera_files(kind: str, folders: list[Path], records: list[dict], scene
             continue
         where = f"{named[0].parent.name}/{named[0].name}"
         k, c2w = reader.camera(named[0], record["original_width"], record["original_height"], where)
-        _add_image(reconstruction, len(reconstruction.images) + 1, record,
-                   cameras.id_for(_at_ingested_size(k, record, where)), c2w, where)
+        add_image(reconstruction, len(reconstruction.images) + 1, record,
+                  cameras.id_for(at_ingested_size(k, record, where)), c2w, where)
     return Imported(reconstruction, folders[0] if len(folders) == 1 else scene, missing)

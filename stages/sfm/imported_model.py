@@ -1,0 +1,141 @@
+"""The COLMAP model an import builds (pose_import.py and the readers beside it): its cameras, one a distinct
+pinhole and lens at the ingested image size, and its images, each a photo's pose checked to be rigid; the views ingest
+cut from a 360 frame, each its frame's pose turned."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from stages.capture.panorama import yaw_rotation
+from plenoxels.core.cameras import Intrinsics, colmap_w2c_from_opengl_c2w
+from plenoxels.core.errors import UserError
+
+# The most one axis of a pose's rotation may be stretched beyond another (its singular values' ratio): a pose file's
+# float noise, printed to six digits, stays below 1.0001; a sheared or hand-damaged matrix does not.
+NON_RIGID_STRETCH = 1.02
+
+# How far an image's size may be from the pose file's size after scaling before we call it a different image.
+SIZE_TOLERANCE_PX = 1.5
+# A lens as COLMAP models it: the camera model's name and its distortion coefficients (after fx, fy, cx, cy).
+Lens = tuple[str, tuple[float, ...]]
+
+
+@dataclass
+class Imported:
+    reconstruction: pycolmap.Reconstruction
+    path: Path                                    # the file or folder the poses came from
+    missing: list[str]                            # ingested images the pose file has no entry for
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)  # name -> (near, far), LLFF only
+    path_matches: int = 0                         # images matched by their path rather than only their stem
+
+
+def file_stem(name: str) -> str:
+    return Path(name.replace("\\", "/")).name.rsplit(".", 1)[0] if "." in Path(name).name else Path(name).name
+
+
+def rigid_from_c2w(c2w, where: str, turn: np.ndarray | None = None) -> pycolmap.Rigid3d:
+    """COLMAP's world-to-camera for our camera-to-world, turned by `turn` (3x3, in the camera's axes) where given; the
+    rotation is projected onto SO(3) first because exported matrices carry float noise (and some tools fold a uniform
+    scale into them). `where` names the pose in the file for the one line that refuses it."""
+    try:
+        c2w = np.array(c2w, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise UserError(f"{where}: the camera pose is not a 4x4 matrix of numbers; fix the pose file or set "
+                        "poses.source=sfm") from None
+    # LAPACK's SVD can loop forever on inf or NaN, and a singular rotation has no nearest rigid pose
+    if c2w.shape[-2:] not in ((3, 4), (4, 4)) or not np.isfinite(c2w).all() or abs(np.linalg.det(c2w[:3, :3])) < 1e-9:
+        raise UserError(f"{where}: the camera pose is not a finite, invertible 3x4 or 4x4 matrix; fix the pose file or "
+                        "set poses.source=sfm")
+    u, singular, vt = np.linalg.svd(c2w[:3, :3])
+    # A uniform scale is a convention; one axis stretched more than the others is a damaged or sheared matrix, whose
+    # nearest rotation would be a guess.
+    if singular[0] > NON_RIGID_STRETCH * singular[2]:
+        raise UserError(f"{where}: the camera pose's rotation stretches one axis {singular[0] / singular[2]:.2f}x more "
+                        "than another, so it is no rotation; fix the pose file or set poses.source=sfm")
+    c2w[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt @ (np.eye(3) if turn is None else turn)
+    rotation, translation = colmap_w2c_from_opengl_c2w(c2w)
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation)
+
+
+def finite_number(value, key: str, where: str, positive: bool = False) -> float:
+    """A pose file's number, or one line that names the key and the file."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = float("nan")
+    if not math.isfinite(number) or (positive and number <= 0):
+        raise UserError(f"{where}: {key} is {value!r}, not a{' positive' if positive else ''} finite number; fix the "
+                        "pose file or set poses.source=sfm")
+    return number
+
+
+def scale_factor(record: dict, pose_w: float, pose_h: float, what: str) -> float:
+    """The factor from the pose file's image size to the ingested one; both sides must agree."""
+    if "bars_cropped" in record:  # a pose file's camera sees the whole frame
+        raise UserError(f"{what} describes the whole frames, but ingest cropped the black bars of {record['source']} "
+                        f"to {record['original_width']}x{record['original_height']}; set ingest.crop_bars=false to "
+                        "keep whole frames for these poses")
+    factor = record["width"] / pose_w
+    if abs(pose_h * factor - record["height"]) > SIZE_TOLERANCE_PX * max(1.0, factor):
+        raise UserError(f"{record['source']} is {record['original_width']}x{record['original_height']} but {what} "
+                        f"describes {pose_w:g}x{pose_h:g} images (a different aspect); use the matching photos "
+                        "or set poses.source=sfm")
+    return factor
+
+
+def at_ingested_size(k: Intrinsics, record: dict, what: str, pose_w: float = 0.0, pose_h: float = 0.0) -> Intrinsics:
+    """`k`, a pose file's camera for its images of pose_w x pose_h (k's own size where not given), scaled to the
+    ingested image (`scale_factor`)."""
+    scaled = k.scaled(scale_factor(record, pose_w or k.w, pose_h or k.h, what))
+    return Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
+
+
+def _camera(camera_id: int, k: Intrinsics, lens: Lens) -> pycolmap.Camera:
+    model, coefficients = lens
+    if model.endswith("OPENCV") and not any(coefficients):  # a fisheye without distortion is still no pinhole
+        model, coefficients = "PINHOLE", ()
+    return pycolmap.Camera(model=model, width=k.w, height=k.h, camera_id=camera_id,
+                           params=[k.fl_x, k.fl_y, k.cx, k.cy, *coefficients])
+
+
+class CameraTable:
+    """Adds one COLMAP camera per distinct (intrinsics, lens), so a shared camera stays shared."""
+
+    def __init__(self, reconstruction: pycolmap.Reconstruction):
+        self.reconstruction = reconstruction
+        self.ids: dict[tuple, int] = {}
+
+    def id_for(self, k: Intrinsics, lens: Lens = ("OPENCV", ())) -> int:
+        key = (round(k.fl_x, 6), round(k.fl_y, 6), round(k.cx, 6), round(k.cy, 6), k.w, k.h, lens[0],
+               *(round(d, 9) for d in lens[1]))
+        if key not in self.ids:
+            self.ids[key] = len(self.ids) + 1
+            self.reconstruction.add_camera_with_trivial_rig(_camera(self.ids[key], k, lens))
+        return self.ids[key]
+
+
+def add_image(reconstruction: pycolmap.Reconstruction, image_id: int, record: dict, camera_id: int,
+              c2w: np.ndarray, where: str, turn: np.ndarray | None = None) -> None:
+    image = pycolmap.Image(name=f"{record['name']}.png", camera_id=camera_id, image_id=image_id)
+    reconstruction.add_image_with_trivial_frame(image, rigid_from_c2w(c2w, where, turn))
+
+
+def add_view(reconstruction: pycolmap.Reconstruction, cameras: CameraTable, record: dict, model: str,
+             equirect: bool, c2w, where: str) -> None:
+    """A view ingest cut from a 360 frame: its frame's pose turned to the view's yaw, the pinhole it was cut as;
+    `model` names the pose file's camera, `equirect` whether it is a 360 camera's."""
+    if not equirect:
+        raise UserError(f"{where}: ingest cut {record['source']} into 360 views (ingest.equirect), but the pose file's "
+                        f"camera is {model}; set ingest.equirect=auto to import the photos as they are")
+    if "panorama" not in record:
+        raise UserError(f"{where}: a 360 camera ({model}), but ingest did not cut {record['source']} into views (it "
+                        f"is {record['original_width']}x{record['original_height']}, or ingest.equirect=no); a 360 "
+                        "frame is 2:1: give the frames as the camera wrote them and ingest.equirect=auto")
+    side = record["width"]
+    k = Intrinsics(record["focal"], record["focal"], side / 2, record["height"] / 2, side, record["height"])
+    add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k), c2w, where,
+              yaw_rotation(record["panorama"]["yaw"]))
