@@ -176,8 +176,9 @@ def run(ctx) -> dict:
 
     # A published data set's own splits keep its protocol, copies or not.
     loose = [i for i, r in enumerate(records) if not r.get("split")]
-    repeats = {records[loose[i]]["name"]: records[loose[first]]["name"]
-               for i, first in repeated([thumbnails[i] for i in loose]).items()}
+    stems = [Path(records[i]["source"]).stem for i in loose]
+    repeats = {records[loose[i]]["name"]: records[loose[kept]]["name"]
+               for i, kept in repeated([thumbnails[i] for i in loose], stems).items()}
     if repeats:
         for record in records:
             if record["name"] in repeats:

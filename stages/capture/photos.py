@@ -285,15 +285,20 @@ def thumbnail(rgb: np.ndarray) -> np.ndarray:
     return cv2.resize(grey, (THUMBNAIL_SIDE, THUMBNAIL_SIDE), interpolation=cv2.INTER_AREA).astype(np.float32).ravel()
 
 
-def repeated(thumbnails: list[np.ndarray]) -> dict[int, int]:
-    """Each photo (by index) that repeats an earlier one (DUPLICATE_RMS), and the first photo it repeats."""
+def repeated(thumbnails: list[np.ndarray], stems: list[str]) -> dict[int, int]:
+    """Each photo (by index) that repeats another (DUPLICATE_RMS), and the one of them kept: the shortest file stem
+    (a copy's name adds to its original's: `3(1)`, `photo copy`; a pose file names the original), else the first."""
     if len(thumbnails) < 2:
         return {}
     stacked = np.stack(thumbnails).astype(np.float64)
     squares = (stacked ** 2).sum(axis=1)
     distance = (squares[:, None] + squares[None] - 2 * stacked @ stacked.T) / stacked.shape[1]
     close = np.tril(distance <= DUPLICATE_RMS ** 2, k=-1)
-    return {i: int(np.argmax(close[i])) for i in np.flatnonzero(close.any(axis=1))}
+    groups: dict[int, list[int]] = {}
+    for i in np.flatnonzero(close.any(axis=1)):
+        groups.setdefault(int(np.argmax(close[i])), []).append(int(i))
+    kept = {first: min([first, *copies], key=lambda i: (len(stems[i]), i)) for first, copies in groups.items()}
+    return {i: kept[first] for first, copies in groups.items() for i in [first, *copies] if i != kept[first]}
 
 
 def _to_uint8(array: np.ndarray) -> np.ndarray:

@@ -174,9 +174,12 @@ def test_a_shot_saved_twice_is_kept_once_and_a_photo_beside_it_is_not(tmp_path):
     Image.fromarray(np.asarray(Image.open(folder / "p1.jpg"))).save(folder / "p1_copy.png")
     Image.fromarray(np.asarray(Image.open(folder / "p2.jpg"))).save(folder / "p2.jpeg", quality=80)
     Image.fromarray(np.roll(textured(240, 320, seed=0), 4, axis=1)).save(folder / "p0_moved.jpg", quality=95)
+    # A phone's copy sorts before its original ("(" before "."): the original, the shorter name, is kept.
+    Image.fromarray(textured(240, 320, seed=5)).save(folder / "p5.jpg", quality=95)
+    (folder / "p5(1).jpg").write_bytes((folder / "p5.jpg").read_bytes())
     out, listing = run_ingest(folder, tmp_path)
-    assert listing["repeated"] == {"p1_copy_png": "p1_jpg", "p2_jpg": "p2_jpeg"}
-    kept = ["p0_jpg", "p0_moved_jpg", "p1_jpg", "p2_jpeg"]
+    assert listing["repeated"] == {"p1_copy_png": "p1_jpg", "p2_jpg": "p2_jpeg", "p5(1)_jpg": "p5_jpg"}
+    kept = ["p0_jpg", "p0_moved_jpg", "p1_jpg", "p2_jpeg", "p5_jpg"]
     assert sorted(r["name"] for r in listing["images"]) == kept
     assert sorted(p.stem for p in (out / "images").iterdir()) == kept
 
