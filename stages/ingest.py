@@ -29,7 +29,6 @@ from stages.settings.ingest import Settings
 from stages.common.layout import IMAGES_JSON
 
 
-
 def run(ctx) -> dict:
     s: Settings = ctx.settings
     images_dir = ctx.work / "images"
@@ -120,12 +119,14 @@ def run(ctx) -> dict:
             ctx.report.warn(f"{len(clips)} video(s) beside the photos are not read: {short_list(clips)} (a phone's "
                             "Live Photo clips; a walk-around video is read where it is given alone, as the scene)")
         own_poses = is_split_dataset(ctx.scene) or any(pose_files.candidates(ctx.scene).values())
-        if s.video_max_frames and len(photos) > s.video_max_frames and not own_poses:
-            step, apart = sequence_step([folder / p for p, _ in photos], s.video_motion, s.video_max_frames,
+        if s.video_max_frames and len(photos) > s.video_max_frames and (
+                not own_poses or pose_files.numbered_frames(ctx.scene)):
+            ordered = sorted(photos, key=lambda photo: capture_key(photo[0].as_posix()))  # 9.jpg before 10.jpg
+            step, apart = sequence_step([folder / p for p, _ in ordered], s.video_motion, s.video_max_frames,
                                         s.video_frames)
             if step > 1:  # a video's frames saved one by one: read as the video would be
                 sequence = (len(photos), step, apart)
-                photos = photos[::step]
+                photos = ordered[::step]
                 ctx.report.warn(f"the {sequence[0]} photos are a video's frames saved one by one (neighbours "
                                 f"{apart:.1%} of the view's diagonal apart): one in {step} is read, as the video would "
                                 f"be (ingest.video_motion, ingest.video_max_frames)")

@@ -1,6 +1,6 @@
 """Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy, IDR/NeuS cameras,
-Metashape cameras .xml, OpenSfM reconstruction.json, NSVF's or NeRF++'s pose folders and Polycam's camera folder the
-importers (pose_import.py) could read. Finding them reads no
+Metashape cameras .xml, OpenSfM reconstruction.json, NSVF's or NeRF++'s pose folders, Polycam's camera folder and
+Record3D's metadata the importers (pose_import.py) could read. Finding them reads no
 pose, so a cache key lists them without loading COLMAP."""
 from __future__ import annotations
 
@@ -11,11 +11,14 @@ from pathlib import Path
 from stages.capture.photos import (DATASET_SPLITS, POLYCAM_CAMERAS, POSE_FOLDERS, photo_folder, split_folder,
                                    split_layout)
 
-KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf", "polycam")
+KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf", "polycam", "record3d")
 # IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
 IDR_FILES = ("cameras_sphere.npz", "cameras.npz")
-# Bytes of an .xml file read to tell Metashape's cameras from other XML.
+# Bytes of an .xml file read to tell Metashape's cameras from other XML (and of a JSON file, Record3D's metadata from
+# another).
 METASHAPE_HEAD_BYTES = 4096
+# Record3D's metadata, beside its rgb/ folder of frames.
+RECORD3D_FILES = ("metadata.json", "metadata")
 
 
 def colmap_models(folder: Path) -> list[Path]:
@@ -46,6 +49,7 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
         found["opensfm"] += [p for p in (place / "opensfm" / "reconstruction.json", place / "reconstruction.json")
                              if p.is_file()]
         found["nsvf"] += pose_folders(place)
+        found["record3d"] += [place / name for name in RECORD3D_FILES if is_record3d(place / name)]
     found["polycam"] += [camera_folder for camera_folder in [folder.parent / POLYCAM_CAMERAS.get(folder.name, "")]
                          if folder.name in POLYCAM_CAMERAS and camera_folder.is_dir()]
     if split_layout(scene) == "nerfpp":
@@ -54,9 +58,26 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
     return found
 
 
+def numbered_frames(scene: Path) -> bool:
+    """Whether the scene's poses are Record3D's alone: a video's frames, posed by their numbers, so that ingest may
+    read one in N of a long capture as it reads a video (every other pose file fixes the photos it poses)."""
+    found = candidates(scene)
+    return bool(found["record3d"]) and not any(paths for kind, paths in found.items() if kind != "record3d")
+
+
 def pose_folders(place: Path) -> list[Path]:
     """NSVF's and NeRF++'s pose folders in `place` (pose/, poses/, extrinsic/) that hold pose files."""
     return [place / name for name in POSE_FOLDERS if (place / name).is_dir() and any((place / name).glob("*.txt"))]
+
+
+def is_record3d(path: Path) -> bool:
+    """Whether a file is Record3D's metadata (a JSON object whose head holds its camera matrix, K)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(METASHAPE_HEAD_BYTES)
+    except OSError:
+        return False
+    return head.lstrip().startswith(b"{") and b'"K"' in head
 
 
 def is_metashape(path: Path) -> bool:

@@ -1,7 +1,7 @@
 """Poses a user already has: a COLMAP sparse model, a NeRF / instant-ngp / nerfstudio / Blender transforms.json, LLFF
 poses_bounds.npy, IDR/NeuS cameras_sphere.npz (DTU-style sets), Metashape's exported cameras.xml, OpenSfM's
-(OpenDroneMap's) reconstruction.json, NSVF's and NeRF++'s pose folders (svox2's), or Polycam's raw export, turned into
-the same distorted COLMAP model that SfM makes.
+(OpenDroneMap's) reconstruction.json, NSVF's and NeRF++'s pose folders (svox2's), Polycam's raw export or Record3D's,
+turned into the same distorted COLMAP model that SfM makes.
 
 Every importer returns an `Imported`: a `pycolmap.Reconstruction` whose image names are the ingested PNGs
 (`<name>.png`) and whose cameras are scaled to the ingested image size, so it is undistorted and written exactly as an
@@ -19,7 +19,7 @@ import pycolmap
 
 from stages.capture.photos import (DATASET_SPLITS, POSE_FOLDERS, frame_photo, lexical_path, photo_folder,
                                    split_layout)
-from stages.sfm import metashape, nsvf, opensfm, polycam
+from stages.sfm import metashape, nsvf, opensfm, polycam, record3d
 from stages.sfm.imported_model import (CameraTable, Imported, Lens, add_image, add_view, at_ingested_size, file_stem,
                                        finite_number, scale_factor)
 from stages.sfm.pose_files import KINDS, candidates, colmap_models, is_colmap_model
@@ -40,6 +40,8 @@ def kind_of(path: Path) -> str:
             return "polycam"
     elif path.name == "reconstruction.json":
         return "opensfm"
+    elif path.name in record3d.METADATA_FILES:
+        return "record3d"
     elif path.suffix == ".json":
         return "transforms"
     elif path.suffix == ".npy":
@@ -50,7 +52,7 @@ def kind_of(path: Path) -> str:
         return "metashape"
     raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json, a poses_bounds.npy, an "
                     "IDR/NeuS cameras*.npz, a Metashape cameras .xml, an OpenSfM reconstruction.json, an NSVF pose/ "
-                    "folder or Polycam's keyframes/cameras/")
+                    "folder, Polycam's keyframes/cameras/ or Record3D's metadata.json")
 
 
 def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
@@ -72,6 +74,8 @@ def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
         return from_opensfm(path, records)
     if kind in CAMERA_FILES:
         return from_camera_files(kind, [path], records, scene)
+    if kind == "record3d":
+        return from_record3d(path, records)
     return from_llff(path, records)
 
 
@@ -471,3 +475,23 @@ def from_camera_files(kind: str, folders: list[Path], records: list[dict], scene
         add_image(reconstruction, len(reconstruction.images) + 1, record,
                   cameras.id_for(at_ingested_size(k, record, where)), c2w, where)
     return Imported(reconstruction, folders[0] if len(folders) == 1 else scene, missing)
+
+
+# ---- Record3D metadata.json --------------------------------------------------------------------------------
+
+def from_record3d(path: Path, records: list[dict]) -> Imported:
+    """Poses from Record3D's metadata (stages/sfm/record3d.py): a frame named by its number takes that row."""
+    k, poses = record3d.read(path)
+    reconstruction = pycolmap.Reconstruction()
+    cameras = CameraTable(reconstruction)
+    missing = []
+    for record in records:
+        number = file_stem(record["source"])
+        if not number.isdigit() or int(number) >= len(poses):
+            missing.append(record["name"])
+            continue
+        where = f"{path.name}, pose {int(number)}"
+        add_image(reconstruction, len(reconstruction.images) + 1, record,
+                  cameras.id_for(at_ingested_size(k, record, str(path))),
+                  record3d.camera_to_world(poses[int(number)], where), where)
+    return Imported(reconstruction, path, missing)

@@ -305,6 +305,19 @@ def polycam(spoil):
     return edit
 
 
+def record3d(spoil):
+    """Record3D's metadata.json beside the template's photos (in images/, named by number), spoiled by `spoil`."""
+    def edit(folder, meta):
+        poses = []
+        for f in sorted(meta["frames"], key=lambda f: int(Path(f["file_path"]).stem)):
+            c2w = np.array(f["transform_matrix"])
+            poses.append(list(pycolmap.Rotation3d(c2w[:3, :3]).quat) + c2w[:3, 3].tolist())
+        k = [meta["fl_x"], 0, 0, 0, meta["fl_y"], 0, meta["cx"], meta["cy"], 1]
+        data = spoil({"K": k, "w": meta["w"], "h": meta["h"], "poses": poses})
+        (folder / "metadata.json").write_text(json.dumps(data))
+    return edit
+
+
 def first_pose(text):
     return lambda folder: sorted((folder / "pose").iterdir())[0].write_text(text)
 
@@ -353,6 +366,11 @@ POSE_KINDS = {
     "polycam_pose_nan": posed(polycam(lambda c: {**c, "t_00": float("nan")})),
     "polycam_width_zero": posed(polycam(lambda c: {**c, "width": 0})),
     "polycam_not_a_dict": posed(polycam(lambda c: [1, 2])),
+    "record3d_k_text": posed(record3d(lambda m: {**m, "K": "pinhole"})),
+    "record3d_poses_short_rows": posed(record3d(lambda m: {**m, "poses": [p[:6] for p in m["poses"]]})),
+    "record3d_quaternion_zero": posed(record3d(lambda m: {**m, "poses": [[0.0] * 4 + p[4:] for p in m["poses"]]})),
+    "record3d_pose_nan": posed(record3d(lambda m: {**m, "poses": [[float("nan")] * 7] + m["poses"][1:]})),
+    "record3d_width_zero": posed(record3d(lambda m: {**m, "w": 0})),
     "metashape_component_flat": posed(metashape(lambda text: text.replace(
         "<cameras>", '<components><component id="0"><transform><scale>0</scale></transform></component></components>'
         "<cameras>").replace('sensor_id="0"', 'sensor_id="0" component_id="0"'))),

@@ -1,6 +1,6 @@
 """Folders with a camera file a photo: NSVF's and NeRF++'s (svox2's Tanks and Temples and its own captures: a text
 file of OpenCV camera-to-world, beside a pinhole's K; their splits held out as the folder says) and Polycam's raw
-export (a JSON file a photo)."""
+export (a JSON file a photo); and Record3D's export (one metadata file for its numbered frames)."""
 from __future__ import annotations
 
 import json
@@ -172,3 +172,28 @@ def test_polycam_export_is_posed_from_its_undistorted_photos_cameras(synthetic, 
     # Given the raw photos' folder, their own cameras are read.
     run(export / "keyframes" / "images", tmp_path / "raw", f"ingest.max_side={truth['w']}")
     assert_poses(tmp_path / "raw", truth, names, turned_about_x(0.3))
+
+
+def quaternion_xyzw(rotation: np.ndarray) -> list[float]:
+    """A rotation matrix's unit quaternion, (x, y, z, w)."""
+    w = np.sqrt(max(0.0, 1.0 + np.trace(rotation))) / 2
+    x, y, z = (np.sqrt(max(0.0, 1.0 + 2 * rotation[i, i] - np.trace(rotation))) / 2 for i in range(3))
+    x, y, z = (np.copysign(v, rotation[j, i] - rotation[i, j]) for v, (i, j) in zip((x, y, z), ((1, 2), (2, 0), (0, 1))))
+    return [float(x), float(y), float(z), float(w)]
+
+
+def test_record3d_export_poses_each_numbered_frame_from_its_row(synthetic, truth, tmp_path):
+    export = tmp_path / "record3d"
+    frames = sorted(truth["frames"], key=lambda f: f["file_path"])
+    poses, names = [], {}
+    for i, frame in enumerate(frames):
+        write_photo(synthetic, frame, export / "rgb" / f"{i}.jpg", scale=2)
+        c2w = np.asarray(frame["transform_matrix"])
+        poses.append(quaternion_xyzw(c2w[:3, :3]) + c2w[:3, 3].tolist())
+        names[str(i)] = Path(frame["file_path"]).stem
+    k = k_matrix(truth, 2.0)[:3, :3]
+    (export / "metadata.json").write_text(json.dumps({"K": k.T.ravel().tolist(), "w": 2 * truth["w"],
+                                                      "h": 2 * truth["h"], "fps": 60, "poses": poses}))
+    (export / "rgb" / "3(1).jpg").write_bytes((export / "rgb" / "3.jpg").read_bytes())  # a copy the phone made
+    run(export, tmp_path / "out", f"ingest.max_side={truth['w']}")
+    assert assert_poses(tmp_path / "out", truth, names)["source"] == "record3d"

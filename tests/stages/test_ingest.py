@@ -350,6 +350,25 @@ def test_a_folder_of_a_videos_frames_saved_one_by_one_is_read_as_the_video(tmp_p
     assert len(run_ingest(apart, tmp_path / "c", "ingest.video_max_frames=40")[1]["images"]) == 130
 
 
+def test_record3d_frames_are_read_as_its_video_in_their_numbers_order(tmp_path):
+    # Record3D numbers its frames without padding (9.jpg, 10.jpg) and poses them by number, so a long capture is
+    # read one in N, in the numbers' order; a pose file that lists its photos keeps every one.
+    export = tmp_path / "record3d"
+    (export / "rgb").mkdir(parents=True)
+    for path in saved_frames(tmp_path / "frames", 130, step_px=1).iterdir():
+        path.rename(export / "rgb" / f"{int(path.stem)}.png")
+    poses = [[0.0, 0.0, 0.0, 1.0, 0.01 * i, 0.0, 0.0] for i in range(130)]
+    (export / "metadata.json").write_text(json.dumps({"K": [80, 0, 0, 0, 80, 0, 40, 30, 1], "w": 80, "h": 60,
+                                                      "poses": poses}))
+    limits = ("ingest.video_max_frames=40", "ingest.video_frames=0", "ingest.video_min_frames=3")
+    kept = [int(r["name"]) for r in run_ingest(export, tmp_path / "a", *limits)[1]["images"]]
+    assert sorted(kept) == list(range(0, 130, 5))
+    (export / "metadata.json").unlink()
+    (export / "transforms.json").write_text(json.dumps({"fl_x": 80, "w": 80, "h": 60, "frames": [
+        {"file_path": f"rgb/{i}.png", "transform_matrix": np.eye(4).tolist()} for i in range(130)]}))
+    assert len(run_ingest(export, tmp_path / "b", *limits)[1]["images"]) == 130
+
+
 def test_a_clip_too_short_for_a_good_fit_says_so(tmp_path):
     video = panning_video(tmp_path / "short.avi", 20, step_px=2)   # 2 s at 10 frames a second
     out, listing = run_ingest(video, tmp_path, "ingest.video_fps=3", "ingest.video_min_frames=30")

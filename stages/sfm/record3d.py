@@ -1,0 +1,48 @@
+"""Record3D's export (an iPhone's LiDAR capture app, as nerfstudio and svox2 read it): its frames in rgb/, named by
+their number (0.jpg, 1.jpg, ...), beside metadata.json, read for the importer (pose_import.from_record3d).
+
+The metadata holds `K`, the pinhole's 3x3 matrix column by column, for frames of `w` x `h` pixels, and `poses`, one a
+frame: camera-to-world as a unit quaternion (x, y, z, w) and a translation, in ARKit's axes (x right, y up, z back:
+ours), the world gravity-aligned."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from plenoxels.core.cameras import Intrinsics
+from plenoxels.core.errors import UserError
+from stages.sfm.pose_files import RECORD3D_FILES as METADATA_FILES
+
+
+def read(path: Path) -> tuple[Intrinsics, np.ndarray]:
+    """The frames' pinhole (at the metadata's w x h) and their poses [N, 7]."""
+    try:
+        data = json.loads(path.read_text())
+        k = np.asarray(data["K"], dtype=np.float64).reshape(3, 3).T
+        w, h = float(data["w"]), float(data["h"])
+        poses = np.asarray(data["poses"], dtype=np.float64)
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError):
+        raise UserError(f"{path} is not Record3D's metadata (K as 9 numbers, w, h and poses as rows of 7); fix it or "
+                        "set poses.source=sfm") from None
+    if poses.ndim != 2 or poses.shape[1] != 7:
+        raise UserError(f"{path}: its poses are {poses.shape}, not rows of 7 (a quaternion and a translation); fix it "
+                        "or set poses.source=sfm")
+    if not np.isfinite(k).all() or min(k[0, 0], k[1, 1], w, h) <= 0 or not (math.isfinite(w) and math.isfinite(h)):
+        raise UserError(f"{path}: its K, w and h are not a camera (positive, finite focal lengths and size); fix it or "
+                        "set poses.source=sfm")
+    return Intrinsics(k[0, 0], k[1, 1], k[0, 2], k[1, 2], int(round(w)), int(round(h))), poses
+
+
+def camera_to_world(pose: np.ndarray, where: str) -> np.ndarray:
+    """A frame's camera-to-world (ours) from its quaternion (x, y, z, w) and translation."""
+    if not np.isfinite(pose).all() or abs(np.linalg.norm(pose[:4]) - 1.0) > 1e-3:
+        raise UserError(f"{where}: its pose is not a unit quaternion and a translation of finite numbers; fix it or set "
+                        "poses.source=sfm")
+    c2w = np.eye(4)
+    c2w[:3, :3] = pycolmap.Rotation3d(pose[:4]).matrix()
+    c2w[:3, 3] = pose[4:]
+    return c2w
