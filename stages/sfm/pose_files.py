@@ -1,6 +1,6 @@
 """Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy, IDR/NeuS cameras,
-Metashape cameras .xml, OpenSfM reconstruction.json, NSVF's or NeRF++'s pose folders, Polycam's camera folder and
-Record3D's metadata the importers (pose_import.py) could read. Finding them reads no
+Metashape cameras .xml, OpenSfM reconstruction.json, NSVF's or NeRF++'s pose folders, Polycam's camera folder,
+MVSNet's cams/ and Record3D's metadata the importers (pose_import.py) could read. Finding them reads no
 pose, so a cache key lists them without loading COLMAP."""
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 from stages.capture.photos import (DATASET_SPLITS, POLYCAM_CAMERAS, POSE_FOLDERS, photo_folder, split_folder,
                                    split_layout)
 
-KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf", "polycam", "record3d")
+KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf", "polycam", "mvsnet", "record3d")
 # IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
 IDR_FILES = ("cameras_sphere.npz", "cameras.npz")
 # Bytes of an .xml file read to tell Metashape's cameras from other XML (and of a JSON file, Record3D's metadata from
@@ -50,6 +50,7 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
                              if p.is_file()]
         found["nsvf"] += pose_folders(place)
         found["record3d"] += [place / name for name in RECORD3D_FILES if is_record3d(place / name)]
+        found["mvsnet"] += [place / "cams"] if any((place / "cams").glob("*_cam.txt")) else []
     found["polycam"] += [camera_folder for camera_folder in [folder.parent / POLYCAM_CAMERAS.get(folder.name, "")]
                          if folder.name in POLYCAM_CAMERAS and camera_folder.is_dir()]
     if split_layout(scene) == "nerfpp":

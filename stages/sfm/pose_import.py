@@ -1,7 +1,7 @@
 """Poses a user already has: a COLMAP sparse model, a NeRF / instant-ngp / nerfstudio / Blender transforms.json, LLFF
 poses_bounds.npy, IDR/NeuS cameras_sphere.npz (DTU-style sets), Metashape's exported cameras.xml, OpenSfM's
-(OpenDroneMap's) reconstruction.json, NSVF's and NeRF++'s pose folders (svox2's), Polycam's raw export or Record3D's,
-turned into the same distorted COLMAP model that SfM makes.
+(OpenDroneMap's) reconstruction.json, NSVF's and NeRF++'s pose folders (svox2's), MVSNet's cams/, Polycam's raw export
+or Record3D's, turned into the same distorted COLMAP model that SfM makes.
 
 Every importer returns an `Imported`: a `pycolmap.Reconstruction` whose image names are the ingested PNGs
 (`<name>.png`) and whose cameras are scaled to the ingested image size, so it is undistorted and written exactly as an
@@ -19,7 +19,7 @@ import pycolmap
 
 from stages.capture.photos import (DATASET_SPLITS, POSE_FOLDERS, frame_photo, lexical_path, photo_folder,
                                    split_layout)
-from stages.sfm import metashape, nsvf, opensfm, polycam, record3d
+from stages.sfm import metashape, mvsnet, nsvf, opensfm, polycam, record3d
 from stages.sfm.imported_model import (CameraTable, Imported, Lens, add_image, add_view, at_ingested_size, file_stem,
                                        finite_number, scale_factor)
 from stages.sfm.pose_files import KINDS, candidates, colmap_models, is_colmap_model
@@ -38,6 +38,8 @@ def kind_of(path: Path) -> str:
             return "nsvf"
         if path.name in polycam.CAMERA_FOLDERS.values():
             return "polycam"
+        if path.name == mvsnet.CAMERA_FOLDER:
+            return "mvsnet"
     elif path.name == "reconstruction.json":
         return "opensfm"
     elif path.name in record3d.METADATA_FILES:
@@ -52,7 +54,7 @@ def kind_of(path: Path) -> str:
         return "metashape"
     raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json, a poses_bounds.npy, an "
                     "IDR/NeuS cameras*.npz, a Metashape cameras .xml, an OpenSfM reconstruction.json, an NSVF pose/ "
-                    "folder, Polycam's keyframes/cameras/ or Record3D's metadata.json")
+                    "folder, Polycam's keyframes/cameras/, MVSNet's cams/ or Record3D's metadata.json")
 
 
 def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
@@ -443,13 +445,13 @@ def from_opensfm(path: Path, records: list[dict]) -> Imported:
     return Imported(reconstruction, path, missing)
 
 
-# ---- a camera file a photo: NSVF's, NeRF++'s, Polycam's ------------------------------------------------
+# ---- a camera file a photo: NSVF's, NeRF++'s, Polycam's, MVSNet's ---------------------------------------
 
-CAMERA_FILES = {"nsvf": (".txt", nsvf), "polycam": (".json", polycam)}
+CAMERA_FILES = {"nsvf": (".txt", nsvf), "polycam": (".json", polycam), "mvsnet": (mvsnet.SUFFIX, mvsnet)}
 
 
 def from_camera_files(kind: str, folders: list[Path], records: list[dict], scene: Path) -> Imported:
-    """Poses from folders of a camera file a photo (stages/sfm/nsvf.py, polycam.py): a photo takes the file named as
+    """Poses from folders of a camera file a photo (stages/sfm/nsvf.py, polycam.py, mvsnet.py): a photo takes the file named as
     it in its own camera folder (beside its photos' folder), where that is among `folders`; a photo with no camera
     folder of its own, the one file of its name in `folders` (NeRF++'s splits repeat names, so a file is never
     taken from another split)."""
@@ -458,7 +460,7 @@ def from_camera_files(kind: str, folders: list[Path], records: list[dict], scene
     by_name: dict[str, list[Path]] = {}
     for folder in folders:
         for file in sorted(folder.glob(f"*{suffix}")):
-            by_name.setdefault(file.stem, []).append(file)
+            by_name.setdefault(file.name[:-len(suffix)], []).append(file)
     reconstruction = pycolmap.Reconstruction()
     cameras = CameraTable(reconstruction)
     missing = []

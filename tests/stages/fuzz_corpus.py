@@ -318,6 +318,21 @@ def record3d(spoil):
     return edit
 
 
+def mvsnet(spoil):
+    """MVSNet's cams/ for the template's photos, the first camera file's text spoiled by `spoil`."""
+    def edit(folder, meta):
+        (folder / "cams").mkdir()
+        k = np.array([[meta["fl_x"], 0, meta["cx"]], [0, meta["fl_y"], meta["cy"]], [0, 0, 1]])
+        for n, f in enumerate(meta["frames"]):
+            w2c = np.linalg.inv(np.array(f["transform_matrix"]) @ np.diag([1.0, -1, -1, 1]))
+            rows = lambda m: "\n".join(" ".join(map(str, row)) for row in m)
+            text = f"extrinsic\n{rows(w2c)}\n\nintrinsic\n{rows(k)}\n\n1 0.1\n"
+            spoiled = spoil(text) if n == 0 else text
+            path = folder / "cams" / f"{Path(f['file_path']).stem}_cam.txt"
+            path.write_bytes(spoiled if isinstance(spoiled, bytes) else spoiled.encode())
+    return edit
+
+
 def first_pose(text):
     return lambda folder: sorted((folder / "pose").iterdir())[0].write_text(text)
 
@@ -371,6 +386,11 @@ POSE_KINDS = {
     "record3d_quaternion_zero": posed(record3d(lambda m: {**m, "poses": [[0.0] * 4 + p[4:] for p in m["poses"]]})),
     "record3d_pose_nan": posed(record3d(lambda m: {**m, "poses": [[float("nan")] * 7] + m["poses"][1:]})),
     "record3d_width_zero": posed(record3d(lambda m: {**m, "w": 0})),
+    "mvsnet_no_intrinsic": posed(mvsnet(lambda text: text.replace("intrinsic", "lens"))),
+    "mvsnet_extrinsic_text": posed(mvsnet(lambda text: text.replace("extrinsic\n", "extrinsic\nR t\n"))),
+    "mvsnet_extrinsic_singular": posed(mvsnet(lambda text: "extrinsic\n" + "0 0 0 1\n" * 4 + text.split("\n\n", 1)[1])),
+    "mvsnet_focal_zero": posed(mvsnet(lambda text: text.split("intrinsic")[0] + "intrinsic\n0 0 1\n0 0 1\n0 0 1\n")),
+    "mvsnet_binary": posed(mvsnet(lambda text: b"\xff\xfe\x00")),
     "metashape_component_flat": posed(metashape(lambda text: text.replace(
         "<cameras>", '<components><component id="0"><transform><scale>0</scale></transform></component></components>'
         "<cameras>").replace('sensor_id="0"', 'sensor_id="0" component_id="0"'))),

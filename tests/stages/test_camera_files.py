@@ -1,6 +1,7 @@
 """Folders with a camera file a photo: NSVF's and NeRF++'s (svox2's Tanks and Temples and its own captures: a text
 file of OpenCV camera-to-world, beside a pinhole's K; their splits held out as the folder says) and Polycam's raw
-export (a JSON file a photo); and Record3D's export (one metadata file for its numbered frames)."""
+export (a JSON file a photo), MVSNet's cams/ (world-to-camera and K in one text file a photo); and Record3D's
+export (one metadata file for its numbered frames)."""
 from __future__ import annotations
 
 import json
@@ -197,3 +198,23 @@ def test_record3d_export_poses_each_numbered_frame_from_its_row(synthetic, truth
     (export / "rgb" / "3(1).jpg").write_bytes((export / "rgb" / "3.jpg").read_bytes())  # a copy the phone made
     run(export, tmp_path / "out", f"ingest.max_side={truth['w']}")
     assert assert_poses(tmp_path / "out", truth, names)["source"] == "record3d"
+
+
+def mvsnet_cam(c2w: np.ndarray, k: np.ndarray) -> str:
+    """A camera file as MVSNet writes them: world-to-camera (OpenCV axes), K, then the depth range."""
+    rows = lambda m: "\n".join(" ".join(f"{v:.12g}" for v in row) for row in m)
+    return f"extrinsic\n{rows(np.linalg.inv(c2w @ FLIP_YZ))}\n\nintrinsic\n{rows(k)}\n\n425.0 2.5 192 905.0\n"
+
+
+def test_mvsnet_cams_pose_the_photos_beside_them(synthetic, truth, tmp_path):
+    folder = tmp_path / "Family"
+    (folder / "cams").mkdir(parents=True)
+    names = {}
+    for i, frame in enumerate(sorted(truth["frames"], key=lambda f: f["file_path"])):
+        write_photo(synthetic, frame, folder / "images" / f"{i:08d}.jpg", scale=2)
+        text = mvsnet_cam(np.asarray(frame["transform_matrix"]), k_matrix(truth, 2.0)[:3, :3])
+        (folder / "cams" / f"{i:08d}_cam.txt").write_text(text)
+        names[f"{i:08d}"] = Path(frame["file_path"]).stem
+    (folder / "pair.txt").write_text(f"{len(names)}\n")
+    run(folder, tmp_path / "out", f"ingest.max_side={truth['w']}")
+    assert assert_poses(tmp_path / "out", truth, names)["source"] == "mvsnet"
