@@ -336,7 +336,10 @@ def scene_files(scene: Path) -> list[Path]:
         folders = [split_folder(scene, split) for split in DATASET_SPLITS]
         return [p for folder in folders if folder is not None and folder.is_dir()
                 for p in sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith("."))]
-    return [p for p, _ in scene_photos(scene, "none")]
+    photos, folder = [p for p, _ in scene_photos(scene, "none")], photo_folder(scene)
+    if photos and nsvf_splits(folder, [p.name for p in photos]):  # every split's photos, whichever is held out
+        return sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith("."))
+    return photos
 
 
 def raw_twins(photos: list[Path]) -> list[Path]:

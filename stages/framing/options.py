@@ -16,7 +16,7 @@ class SceneOptions:
     """Scene type the fit models; auto: decided from the cameras, points and backdrop."""
     holdout_every: int = 8
     """Every Nth image by sorted name is held out for evaluation; 0: none. A dataset that names its splits
-    (train/, val/, test/ folders) holds out the split ingest.holdout_split names instead."""
+    (train/, val/, test/ folders; NSVF's 0_, 1_, 2_ names) holds out the split ingest.holdout_split names instead."""
     train_every: int = 1
     """Train on every Nth of the training photos by sorted name and leave the rest unused (1: all): a few-views
     study, as the papers' 25 of lego's 100 training views."""

@@ -43,7 +43,8 @@ class Settings:
     min_images: int = 3
     """Fail when fewer usable images than this remain (at least 3)."""
     holdout_split: str = "val"
-    """A NeRF synthetic dataset folder (train/, val/, test/): the split held out for scoring (val, test or none)."""
+    """A dataset folder that names its splits (NeRF synthetic's train/, val/, test/; NeRF++'s train/, validation/,
+    test/; NSVF's photos named 0_, 1_, 2_): the split held out for scoring (val, test or none)."""
     masks: bool = True
     """Read the object's masks from a masks/ (or mask/) folder beside the photos, one per photo by name: poses come
     from features inside them and the fit models the object alone. Off: ignore the folder (alpha channels still count)."""

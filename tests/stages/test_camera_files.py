@@ -113,6 +113,19 @@ def test_nsvf_test_split_and_a_split_it_lacks(synthetic, truth, tmp_path):
         run(folder, tmp_path / "val", f"ingest.max_side={truth['w']}")
 
 
+def test_nsvf_photos_of_every_split_key_the_ingest(synthetic, truth, tmp_path):
+    from stages.settings.ingest import fingerprint
+
+    folder = tmp_path / "nsvf"
+    nsvf_folder(synthetic, truth, folder, ["0_"] * 5 + ["1_"] * 2 + ["2_"])
+    before = fingerprint(folder)
+    for name in ("1_0005.png", "2_0007.png"):  # a held-out photo replaced, whichever split is held out
+        with open(folder / "rgb" / name, "ab") as photo:
+            photo.write(b"\0")
+        assert fingerprint(folder) != before
+        before = fingerprint(folder)
+
+
 def nerfpp_folder(synthetic: Path, truth: dict, folder: Path, splits_of: dict[str, list[int]]) -> dict[str, str]:
     """NeRF++'s layout: <split>/rgb/<i>.png, <split>/pose/<i>.txt and <split>/intrinsics/<i>.txt, 16 numbers on one
     line each; file names repeat across splits, as its Tanks and Temples' do."""
