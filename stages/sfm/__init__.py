@@ -8,7 +8,8 @@
 - `pose_files`: the pose files beside a scene's photos (`candidates`, `pose_files`).
 - `pose_import`: poses the user already has (COLMAP model, transforms.json, LLFF, IDR/NeuS, and the formats below) as
   the same COLMAP model; `metashape`, `opensfm`, `nsvf` (NSVF's and NeRF++'s pose folders), `polycam`, `mvsnet` and
-  `record3d` read their tools' files; `imported_model` the COLMAP model every import builds (its cameras, rigid poses, 360 views).
+  `record3d` read their tools' files; `imported_model` the COLMAP model every import builds (its cameras, rigid
+  poses, 360 views).
 - `outputs`: undistorting a model and writing transforms.json, images, masks, sparse/ and points.npz.
 - `compare`: two pose sets of the same images compared up to a similarity.
 """

@@ -1,5 +1,5 @@
 """NSVF's and NeRF++'s camera files, one text file a photo (the format svox2 reads Tanks and Temples and its own
-captures in), read for the importer (pose_import.from_nsvf).
+captures in), read for the importer (pose_import.from_camera_files).
 
 A photo's pose is a text file named as the photo in a pose folder beside the photos' folder: NSVF keeps rgb/ and
 pose/ side by side, NeRF++ rgb/, pose/ and intrinsics/ in each of train/, validation/ and test/. A pose is

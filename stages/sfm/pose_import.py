@@ -451,10 +451,10 @@ CAMERA_FILES = {"nsvf": (".txt", nsvf), "polycam": (".json", polycam), "mvsnet":
 
 
 def from_camera_files(kind: str, folders: list[Path], records: list[dict], scene: Path) -> Imported:
-    """Poses from folders of a camera file a photo (stages/sfm/nsvf.py, polycam.py, mvsnet.py): a photo takes the file named as
-    it in its own camera folder (beside its photos' folder), where that is among `folders`; a photo with no camera
-    folder of its own, the one file of its name in `folders` (NeRF++'s splits repeat names, so a file is never
-    taken from another split)."""
+    """Poses from folders of a camera file a photo (stages/sfm/nsvf.py, polycam.py, mvsnet.py): a photo takes the
+    file named as it in its own camera folder (beside its photos' folder), where that is among `folders`; a photo with
+    no camera folder of its own, the one file of its name in `folders` (NeRF++'s splits repeat names, so a file is
+    never taken from another split)."""
     suffix, reader = CAMERA_FILES[kind]
     photos, named_folders = photo_folder(scene), {lexical_path(f) for f in folders}
     by_name: dict[str, list[Path]] = {}

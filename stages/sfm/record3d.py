@@ -40,8 +40,8 @@ def read(path: Path) -> tuple[Intrinsics, np.ndarray]:
 def camera_to_world(pose: np.ndarray, where: str) -> np.ndarray:
     """A frame's camera-to-world (ours) from its quaternion (x, y, z, w) and translation."""
     if not np.isfinite(pose).all() or abs(np.linalg.norm(pose[:4]) - 1.0) > 1e-3:
-        raise UserError(f"{where}: its pose is not a unit quaternion and a translation of finite numbers; fix it or set "
-                        "poses.source=sfm")
+        raise UserError(f"{where}: its pose is not a unit quaternion and a translation of finite numbers; fix it or "
+                        "set poses.source=sfm")
     c2w = np.eye(4)
     c2w[:3, :3] = pycolmap.Rotation3d(pose[:4]).matrix()
     c2w[:3, 3] = pose[4:]

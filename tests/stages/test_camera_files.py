@@ -192,7 +192,8 @@ def quaternion_xyzw(rotation: np.ndarray) -> list[float]:
     """A rotation matrix's unit quaternion, (x, y, z, w)."""
     w = np.sqrt(max(0.0, 1.0 + np.trace(rotation))) / 2
     x, y, z = (np.sqrt(max(0.0, 1.0 + 2 * rotation[i, i] - np.trace(rotation))) / 2 for i in range(3))
-    x, y, z = (np.copysign(v, rotation[j, i] - rotation[i, j]) for v, (i, j) in zip((x, y, z), ((1, 2), (2, 0), (0, 1))))
+    signs = (rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1])
+    x, y, z = (np.copysign(v, sign) for v, sign in zip((x, y, z), signs))
     return [float(x), float(y), float(z), float(w)]
 
 
