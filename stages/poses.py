@@ -53,7 +53,7 @@ def run(ctx) -> dict:
         pycolmap.set_random_seed(s.seed)
         found = pose_import.find(s.source, s.path, records, ctx.scene)
         if found is None:
-            source, source_path, bounds = "sfm", None, {}
+            source, source_path, bounds, gravity = "sfm", None, {}, None
             try:
                 reconstruction, info, left_out = _sfm(ctx, s, ingest, records)
             except UserError as refused:
@@ -78,12 +78,12 @@ def run(ctx) -> dict:
         else:
             source, imported = found
             reconstruction, info = imported.reconstruction, {"seconds": {}}
-            source_path, bounds = imported.path, imported.bounds
+            source_path, bounds, gravity = imported.path, imported.bounds, imported.gravity
             ctx.report.info(f"importing {source} poses from {imported.path}")
             left_out = _check_registered(reconstruction, records, s.min_registered_share, f"{imported.path}")
         step = time.perf_counter()
         written = write_poses(ctx.work, ctx.scratch, ingest, reconstruction, records, source, source_path, bounds,
-                              ctx.report)
+                              ctx.report, gravity)
         info["seconds"]["undistort_and_triangulate"] = time.perf_counter() - step
 
     registered = written["frames"]

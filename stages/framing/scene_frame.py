@@ -38,7 +38,7 @@ SceneType = Literal["object", "forward", "unbounded"]
 class Aim:
     """Where the capture points, in the input frame: the turn that makes it z up and the point the optical axes meet."""
     rotation: np.ndarray       # [3, 3] input frame -> z-up frame (before centring and scaling)
-    up: np.ndarray             # the up axis in the input frame
+    up: np.ndarray             # the cameras' own up axis in the input frame (a forward reference is level with it)
     axes_point: np.ndarray     # where the cameras' optical axes come closest
     camera_distance: float     # the cameras' median distance from it
 
@@ -71,7 +71,7 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
     reasons = [spread.reason]
     family_forward = options.scene_type == "forward" or (options.scene_type == "auto" and spread.looks_forward)
 
-    aim = aim_of(cams, spread.looks_forward, measured)
+    aim = aim_of(cams, spread.looks_forward, measured, gravity_of(transforms))
     reference_input = reference_camera(cams, cams.view_dirs, aim.up) if family_forward else None
     box_rot, box_from = first_box(cams, xyz, seen, family_forward, aim, reference_input, measured)
     backdrop, own = backdrops(cams, poses_dir, spread.looks_forward, options, measured)
@@ -154,10 +154,25 @@ def viewing_spread(cams: Cameras, options: SceneOptions) -> Spread:
     return Spread(cone, borderline, looks_forward, reason)
 
 
-def aim_of(cams: Cameras, looks_forward: bool, measured: dict) -> Aim:
-    """Up, the turn to z up (heading from the first camera by name) and where the optical axes meet."""
+def gravity_of(transforms: dict) -> np.ndarray | None:
+    """The world's up the poses' source fixes (transforms.json's `up`), where it is a direction."""
+    try:
+        up = np.asarray(transforms.get("up"), dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):
+        return None
+    return up if np.isfinite(up).all() and np.linalg.norm(up) > 1e-9 else None
+
+
+def aim_of(cams: Cameras, looks_forward: bool, measured: dict, gravity: np.ndarray | None = None) -> Aim:
+    """Up, the turn to z up (heading from the first camera by name) and where the optical axes meet. Up is
+    `gravity` where the poses' source fixes it (a phone's or a survey's world), else found from the cameras; a
+    forward capture's reference camera stays level with the cameras' own up (a survey looks down along gravity)."""
     dirs = cams.view_dirs
-    up, up_rule = camera_up(cams.c2w, inward=not looks_forward)
+    level, up_rule = camera_up(cams.c2w, inward=not looks_forward)
+    up, up_rule = (gravity / np.linalg.norm(gravity), "the pose file's gravity") if gravity is not None \
+        else (level, up_rule)
+    if gravity is not None:
+        measured["cameras_up_from_gravity_deg"] = round(float(np.degrees(np.arccos(np.clip(level @ up, -1, 1)))), 2)
     axes_point, axes_conditioning = closest_point_of_axes(cams.origins, dirs)
     first_by_name = min(range(len(cams.names)), key=lambda i: cams.names[i])
     rotation = rotation_to_z_up(up, horizontal_heading(dirs, up, first_by_name))
@@ -167,7 +182,7 @@ def aim_of(cams: Cameras, looks_forward: bool, measured: dict) -> Aim:
     if axes_conditioning < 1e-3:  # parallel axes meet nowhere: stand in a point in front of the cameras
         axes_point = cams.origins.mean(axis=0) + dirs.mean(axis=0) * np.linalg.norm(np.ptp(cams.origins, axis=0))
     camera_distance = float(np.median(np.linalg.norm(cams.origins - axes_point, axis=1)))
-    return Aim(rotation, up, axes_point, camera_distance)
+    return Aim(rotation, level, axes_point, camera_distance)
 
 
 def first_box(cams: Cameras, xyz: np.ndarray, seen: list[np.ndarray] | None, family_forward: bool, aim: Aim,

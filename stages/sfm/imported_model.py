@@ -31,6 +31,7 @@ class Imported:
     missing: list[str]                            # ingested images the pose file has no entry for
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)  # name -> (near, far), LLFF only
     path_matches: int = 0                         # images matched by their path rather than only their stem
+    gravity: tuple[float, float, float] | None = None  # world up, where the format fixes it (ARKit's +y, ENU's +z)
 
 
 def file_stem(name: str) -> str:

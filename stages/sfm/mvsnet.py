@@ -14,6 +14,7 @@ import numpy as np
 from plenoxels.core.cameras import Intrinsics, OPENCV_TO_OPENGL_AXES
 from plenoxels.core.errors import UserError
 
+GRAVITY = None  # the world is whatever frame the poses were made in
 CAMERA_FOLDER = "cams"
 SUFFIX = "_cam.txt"
 

@@ -19,6 +19,7 @@ from plenoxels.core.cameras import Intrinsics, OPENCV_TO_OPENGL_AXES
 from plenoxels.core.errors import UserError
 from stages.capture.photos import POSE_FOLDERS
 
+GRAVITY = None  # the world is whatever frame the poses were made in
 INTRINSICS_FOLDERS = ("intrinsics", "intrinsic")
 INTRINSICS_FILES = ("intrinsics.txt", "intrinsic.txt")
 

@@ -24,6 +24,9 @@ from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
 from plenoxels.core.errors import UserError
 
 PANORAMA_PROJECTIONS = ("spherical", "equirectangular")
+# OpenSfM's world is east-north-up around the survey where its photos have GPS, and z up by its orientation prior
+# where they have none.
+GRAVITY = (0.0, 0.0, 1.0)
 
 
 def read(path: Path) -> list[dict]:

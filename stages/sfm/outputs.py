@@ -39,10 +39,11 @@ def _undistort_mask(mask: np.ndarray, camera: pycolmap.Camera) -> np.ndarray:
 
 
 def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.Reconstruction, records: list[dict],
-                source: str, source_path: Path | None, bounds: dict, report) -> dict:
+                source: str, source_path: Path | None, bounds: dict, report, gravity=None) -> dict:
     """Undistorts the posed images of `distorted` (a model of the ingested PNGs in `ingest_dir`) and writes the poses
     output into `out`: images/, masks/, sparse/, transforms.json and points.npz. `bounds` maps image names to LLFF
-    (near, far); `scratch` holds the intermediate models."""
+    (near, far); `gravity` is the world's up where the poses' source fixes it; `scratch` holds the intermediate
+    models."""
     model_dir, undistorted_dir = scratch / "distorted", scratch / "undistorted"
     for folder in (model_dir, undistorted_dir):
         shutil.rmtree(folder, ignore_errors=True)
@@ -107,7 +108,8 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
     write_json(out / TRANSFORMS_JSON, {
         "camera_model": "PINHOLE", **shared, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
         "original_camera": originals[0], "source": source,
-        "source_path": str(source_path) if source_path else None, "frames": frames})
+        "source_path": str(source_path) if source_path else None,
+        **({"up": [float(v) for v in gravity]} if gravity is not None else {}), "frames": frames})
     written = {"frames": len(frames), "width": shared["w"], "height": shared["h"]}
     if bounds:
         # LLFF's poses bring each photo's depth range, which is all normalize would take from points.

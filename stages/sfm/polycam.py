@@ -16,6 +16,7 @@ import numpy as np
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.errors import UserError
 from stages.capture.photos import POLYCAM_CAMERAS as CAMERA_FOLDERS
+GRAVITY = (0.0, 1.0, 0.0)  # ARKit's world: y up
 POSE_KEYS = tuple(f"t_{row}{column}" for row in range(3) for column in range(4))
 
 

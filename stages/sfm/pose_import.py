@@ -442,7 +442,7 @@ def from_opensfm(path: Path, records: list[dict]) -> Imported:
         k, model, coefficients = opensfm.camera_and_lens(camera, where)
         camera_id = cameras.id_for(at_ingested_size(k, record, str(path)), (model, coefficients))
         add_image(reconstruction, len(reconstruction.images) + 1, record, camera_id, c2w, where)
-    return Imported(reconstruction, path, missing)
+    return Imported(reconstruction, path, missing, gravity=opensfm.GRAVITY)
 
 
 # ---- a camera file a photo: NSVF's, NeRF++'s, Polycam's, MVSNet's ---------------------------------------
@@ -476,7 +476,8 @@ def from_camera_files(kind: str, folders: list[Path], records: list[dict], scene
         k, c2w = reader.camera(named[0], record["original_width"], record["original_height"], where)
         add_image(reconstruction, len(reconstruction.images) + 1, record,
                   cameras.id_for(at_ingested_size(k, record, where)), c2w, where)
-    return Imported(reconstruction, folders[0] if len(folders) == 1 else scene, missing)
+    return Imported(reconstruction, folders[0] if len(folders) == 1 else scene, missing,
+                    gravity=reader.GRAVITY)
 
 
 # ---- Record3D metadata.json --------------------------------------------------------------------------------
@@ -496,4 +497,4 @@ def from_record3d(path: Path, records: list[dict]) -> Imported:
         add_image(reconstruction, len(reconstruction.images) + 1, record,
                   cameras.id_for(at_ingested_size(k, record, str(path))),
                   record3d.camera_to_world(poses[int(number)], where), where)
-    return Imported(reconstruction, path, missing)
+    return Imported(reconstruction, path, missing, gravity=record3d.GRAVITY)

@@ -17,6 +17,8 @@ from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.errors import UserError
 from stages.sfm.pose_files import RECORD3D_FILES as METADATA_FILES
 
+GRAVITY = (0.0, 1.0, 0.0)  # ARKit's world: y up
+
 
 def read(path: Path) -> tuple[Intrinsics, np.ndarray]:
     """The frames' pinhole (at the metadata's w x h) and their poses [N, 7]."""

@@ -232,3 +232,56 @@ def test_mvsnet_cams_pose_the_photos_beside_them(synthetic, truth, tmp_path):
     (folder / "pair.txt").write_text(f"{len(names)}\n")
     run(folder, tmp_path / "out", f"ingest.max_side={truth['w']}")
     assert assert_poses(tmp_path / "out", truth, names)["source"] == "mvsnet"
+
+
+def turn_taking(direction: np.ndarray, to: np.ndarray) -> np.ndarray:
+    """A 4x4 rotation taking the unit `direction` to the unit `to` (about their common normal)."""
+    axis = np.cross(direction, to)
+    sine, cosine = np.linalg.norm(axis), direction @ to
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]]) / max(sine, 1e-12)
+    turn = np.eye(4)
+    turn[:3, :3] = np.eye(3) + sine * k + (1 - cosine) * k @ k
+    return turn
+
+
+def test_a_phones_gravity_is_up_even_where_the_cameras_look_down_along_it(tmp_path):
+    # A capture whose cameras look along gravity (a survey, a scan of a table from above): the cameras cannot say
+    # which way is up, the phone's world (ARKit's, y up) can. The forward scene is turned so that its cameras look
+    # down ARKit's y.
+    scene = write_scene("forward", tmp_path / "forward", n_views=8, width=120, height=90, seed=2, supersample=1)
+    truth = read_json(scene / "transforms.json")
+    c2ws = np.stack([np.asarray(f["transform_matrix"]) for f in truth["frames"]])
+    looking = -c2ws[:, :3, 2].mean(axis=0)
+    turn = turn_taking(looking / np.linalg.norm(looking), np.array([0.0, -1.0, 0.0]))
+    export = tmp_path / "record3d"
+    poses = []
+    for i, (frame, c2w) in enumerate(zip(truth["frames"], c2ws)):
+        write_photo(scene, frame, export / "rgb" / f"{i}.jpg")
+        turned = turn @ c2w
+        poses.append(quaternion_xyzw(turned[:3, :3]) + turned[:3, 3].tolist())
+    k = k_matrix(truth)[:3, :3]
+    (export / "metadata.json").write_text(json.dumps({"K": k.T.ravel().tolist(), "w": truth["w"], "h": truth["h"],
+                                                      "poses": poses}))
+    run(export, tmp_path / "out")
+    normalized = read_json(tmp_path / "out" / "normalize" / "scene.json")
+    assert normalized["measured"]["up_from"] == "the pose file's gravity"
+    assert normalized["measured"]["cameras_up_from_gravity_deg"] > 60   # what the cameras alone would have taken
+    world = np.asarray(normalized["world_from_input"])
+    np.testing.assert_allclose(world[:3, :3] @ [0.0, 1.0, 0.0] / np.linalg.norm(world[:3, :3] @ [0.0, 1.0, 0.0]),
+                               [0.0, 0.0, 1.0], atol=1e-6)
+    for frame in normalized["frames"]:  # every camera looks down in the world, and the frame is whole
+        c2w = np.asarray(frame["transform_matrix"])
+        assert np.isfinite(c2w).all() and -c2w[2, 2] < -0.9
+    assert all(np.isfinite(v).all() for v in map(np.asarray, jsonable_numbers(normalized)))
+
+
+def jsonable_numbers(value):
+    """Every list of numbers in a JSON value."""
+    if isinstance(value, dict):
+        for item in value.values():
+            yield from jsonable_numbers(item)
+    elif isinstance(value, list) and value and all(isinstance(v, (int, float)) for v in value):
+        yield value
+    elif isinstance(value, list):
+        for item in value:
+            yield from jsonable_numbers(item)
