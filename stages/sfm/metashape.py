@@ -9,7 +9,8 @@ refused where they miss it by more than MAX_MODEL_ERROR_PX. Its fisheye is the e
 angle: OPENCV_FISHEYE. A camera's <transform> is its camera-to-world in its component's own frame (the chunk's where
 the file has no components), and a component's <transform> takes that frame to the world's, often geographic (metres
 from the earth's centre, which a float32 mesh cannot hold to the millimetre). So the cameras are kept in the first
-component's own frame: the others' brought into it by their transforms relative to its, the world's left out. A
+component's own frame: the others' brought into it by their transforms relative to its, the world's left out, but for
+the earth's up in it where the world is the earth's centre's frame (`gravity`). A
 spherical sensor's photos are equirectangular (longitude atan2(X, Z) across, latitude down the rows): ingest cuts them
 into views, and each takes its photo's pose turned to its yaw (imported_model.add_view)."""
 from __future__ import annotations
@@ -26,6 +27,9 @@ from plenoxels.core.errors import UserError
 # Skew, tangential terms a fisheye drops, and the ratio standing in for K1-K4: the most they may move a pixel (a drone
 # camera's skew in Metashape, b2 -0.31 at 3956 px high: 0.17 px).
 MAX_MODEL_ERROR_PX = 0.5
+# The distances from the earth's centre a georeferenced chunk's origin lies at: the earth's radius (6357 to 6378 km)
+# less the deepest land, plus the highest.
+EARTH_RADIUS_M = (6.35e6, 6.39e6)
 
 
 def calibrations(chunk: ElementTree.Element, path: Path) -> dict[str, tuple[str, dict[str, float] | None]]:
@@ -58,28 +62,46 @@ def calibrations(chunk: ElementTree.Element, path: Path) -> dict[str, tuple[str,
     return found
 
 
+def _similarity(transform: ElementTree.Element, what: str, path: Path) -> np.ndarray:
+    """A <transform>'s 4x4 similarity (scale times rotation, translation)."""
+    try:
+        rotation = np.array(transform.findtext("rotation", "1 0 0 0 1 0 0 0 1").split(), float).reshape(3, 3)
+        translation = np.array(transform.findtext("translation", "0 0 0").split(), float).reshape(3)
+        scale = float(transform.findtext("scale", "1"))
+        if not (scale > 0 and np.isfinite([*rotation.ravel(), *translation, scale]).all()
+                and abs(np.linalg.det(rotation)) > 0.5):
+            raise ValueError
+    except ValueError:
+        raise UserError(f"{path}: {what}'s transform is not a rotation, a translation and a positive scale; export "
+                        "the cameras again or set poses.source=sfm") from None
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[:3, 3] = scale * rotation, translation
+    return matrix
+
+
 def component_transforms(chunk: ElementTree.Element, path: Path) -> dict[str, np.ndarray]:
     """Each component's 4x4 similarity from its cameras' frame to the first component's (`camera_to_world`)."""
-    found = {}
-    for component in chunk.iterfind("components/component"):
-        transform = component.find("transform")
-        if transform is None:
-            continue
-        try:
-            rotation = np.array(transform.findtext("rotation", "1 0 0 0 1 0 0 0 1").split(), float).reshape(3, 3)
-            translation = np.array(transform.findtext("translation", "0 0 0").split(), float).reshape(3)
-            scale = float(transform.findtext("scale", "1"))
-            if not (scale > 0 and np.isfinite([*rotation.ravel(), *translation, scale]).all()
-                    and abs(np.linalg.det(rotation)) > 0.5):
-                raise ValueError
-        except ValueError:
-            raise UserError(f"{path}: component {component.get('id')}'s transform is not a rotation, a translation and "
-                            "a positive scale; export the cameras again or set poses.source=sfm") from None
-        matrix = np.eye(4)
-        matrix[:3, :3], matrix[:3, 3] = scale * rotation, translation
-        found[component.get("id")] = matrix
+    found = {component.get("id"): _similarity(component.find("transform"), f"component {component.get('id')}", path)
+             for component in chunk.iterfind("components/component") if component.find("transform") is not None}
     first = next(iter(found.values()), None)
     return {key: np.linalg.solve(first, matrix) for key, matrix in found.items()}
+
+
+def gravity(chunk: ElementTree.Element, path: Path) -> tuple[float, float, float] | None:
+    """The world's up in the cameras' frame (the first component's, else the chunk's), where that frame's transform
+    takes it to the earth's centre's frame (a georeferenced chunk: its origin the earth's radius from the centre, up
+    the direction away from the centre); None for a chunk in local coordinates."""
+    if "LOCAL_CS" in (chunk.findtext("reference") or ""):
+        return None
+    placed = chunk.find("components/component/transform")
+    placed = placed if placed is not None else chunk.find("transform")
+    if placed is None:
+        return None
+    matrix = _similarity(placed, "the chunk", path)
+    if not EARTH_RADIUS_M[0] < np.linalg.norm(matrix[:3, 3]) < EARTH_RADIUS_M[1]:
+        return None
+    up = np.linalg.solve(matrix[:3, :3], matrix[:3, 3])
+    return tuple(float(v) for v in up / np.linalg.norm(up))
 
 
 def camera_and_lens(kind: str, c: dict[str, float], where: str) -> tuple[Intrinsics, str, tuple[float, ...]]:

@@ -368,7 +368,7 @@ def from_idr(path: Path, records: list[dict], scene: Path) -> Imported:
 def from_metashape(path: Path, records: list[dict]) -> Imported:
     """Poses from Metashape's exported cameras (stages/sfm/metashape.py): a photo takes the aligned camera labelled
     with its file name, with or without its suffix; a label several cameras share is refused, never guessed."""
-    _, sensors, components, found = metashape.read(path)
+    chunk, sensors, components, found = metashape.read(path)
     by_label: dict[str, list[int]] = {}
     for index, (label, *_) in enumerate(found):
         by_label.setdefault(label, []).append(index)
@@ -397,7 +397,7 @@ def from_metashape(path: Path, records: list[dict]) -> Imported:
         k, model, coefficients = metashape.camera_and_lens(kind, calibration, where)
         camera_id = cameras.id_for(at_ingested_size(k, record, str(path)), (model, coefficients))
         add_image(reconstruction, len(reconstruction.images) + 1, record, camera_id, c2w, where)
-    return Imported(reconstruction, path, missing)
+    return Imported(reconstruction, path, missing, gravity=metashape.gravity(chunk, path))
 
 
 # ---- OpenSfM / OpenDroneMap reconstruction.json ------------------------------------------------------------

@@ -633,6 +633,36 @@ def test_metashape_cameras_import_in_their_first_components_frame_with_each_phot
     assert transforms["cx"] == pytest.approx(truth["cx"] + 1.5) and transforms["fl_x"] == pytest.approx(truth["fl_x"])
 
 
+def test_a_georeferenced_metashape_chunk_gives_the_earths_up_and_a_local_one_none(scene, truth, tmp_path):
+    # The synthetic world (z up) as a survey's east-north-up frame at 47.4 N, 8.5 E, 420 m up; the component's frame
+    # is that turned and scaled anyhow, placed in the earth's centre's frame.
+    lat, lon, radius = np.radians(47.4), np.radians(8.5), 6371000.0 + 420.0
+    up = np.array([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)])
+    east = np.array([-np.sin(lon), np.cos(lon), 0.0])
+    earth_from_world = np.eye(4)
+    earth_from_world[:3, :3], earth_from_world[:3, 3] = np.stack([east, np.cross(up, east), up], axis=1), radius * up
+    component = earth_from_world @ similarity(np.random.default_rng(5), 3.2, [4.0, -7.0, 1.5])
+    stems = photos(scene, tmp_path / "capture" / "images")
+    want = frames_by_name(truth)
+    cameras = [(stem, np.linalg.solve(component, earth_from_world @ np.array(want[stem]["transform_matrix"])
+                                      @ np.diag([1.0, -1.0, -1.0, 1.0])), "0") for stem in stems]
+    calibration = {"w": WIDTH, "h": HEIGHT, "f": truth["fl_x"], "cx": truth["cx"] - WIDTH / 2,
+                   "cy": truth["cy"] - HEIGHT / 2}
+    xml = metashape_xml(calibration, cameras, {"0": component})
+    (tmp_path / "capture" / "images" / "cameras.xml").write_text(xml)
+    run_poses(tmp_path / "capture" / "images", tmp_path / "out")
+    got = np.asarray(read_json(tmp_path / "out" / "poses" / "transforms.json")["up"])
+    world_from_component = np.linalg.solve(earth_from_world, component)[:3, :3]
+    in_world = world_from_component @ got
+    np.testing.assert_allclose(in_world / np.linalg.norm(in_world), [0.0, 0.0, 1.0], atol=1e-5)
+
+    local = '<reference>LOCAL_CS["Local Coordinates (m)",LOCAL_DATUM["Local Datum",0]]</reference>'
+    (tmp_path / "capture" / "images" / "cameras.xml").write_text(xml.replace('<chunk label="Chunk 1">',
+                                                                             f'<chunk label="Chunk 1">{local}'))
+    run_poses(tmp_path / "capture" / "images", tmp_path / "local")
+    assert "up" not in read_json(tmp_path / "local" / "poses" / "transforms.json")
+
+
 def metashape_project(rays: np.ndarray, c: dict) -> np.ndarray:
     """Pixels of OpenCV-axes rays through Metashape's frame camera, as its manual writes the model."""
     x, y = rays[:, 0] / rays[:, 2], rays[:, 1] / rays[:, 2]
