@@ -14,9 +14,8 @@ from stages.capture.photos import (DATASET_SPLITS, POLYCAM_CAMERAS, POSE_FOLDERS
 KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf", "polycam", "mvsnet", "record3d")
 # IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
 IDR_FILES = ("cameras_sphere.npz", "cameras.npz")
-# Bytes of an .xml file read to tell Metashape's cameras from other XML (and of a JSON file, Record3D's metadata from
-# another).
-METASHAPE_HEAD_BYTES = 4096
+# Bytes of a file read to tell a tool's pose file from others of its type (Metashape's XML, Record3D's JSON).
+HEAD_BYTES = 4096
 # Record3D's metadata, beside its rgb/ folder of frames.
 RECORD3D_FILES = ("metadata.json", "metadata")
 
@@ -72,20 +71,20 @@ def pose_folders(place: Path) -> list[Path]:
 
 
 def is_record3d(path: Path) -> bool:
-    """Whether a file is Record3D's metadata (a JSON object whose head holds its camera matrix, K)."""
+    """Whether a file is Record3D's metadata (a JSON object whose head holds its camera matrix, K, and its poses)."""
     try:
         with open(path, "rb") as f:
-            head = f.read(METASHAPE_HEAD_BYTES)
+            head = f.read(HEAD_BYTES)
     except OSError:
         return False
-    return head.lstrip().startswith(b"{") and b'"K"' in head
+    return head.lstrip().startswith(b"{") and b'"K"' in head and b'"poses"' in head
 
 
 def is_metashape(path: Path) -> bool:
     """Whether an .xml file is Metashape's cameras (a <document> whose head opens a <chunk>)."""
     try:
         with open(path, "rb") as f:
-            head = f.read(METASHAPE_HEAD_BYTES)
+            head = f.read(HEAD_BYTES)
     except OSError:
         return False
     return b"<document" in head and b"<chunk" in head
