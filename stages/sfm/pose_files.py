@@ -8,8 +8,8 @@ import json
 import re
 from pathlib import Path
 
-from stages.capture.photos import (DATASET_SPLITS, POLYCAM_CAMERAS, POSE_FOLDERS, photo_folder, split_folder,
-                                   split_layout)
+from stages.capture.photos import (DATASET_SPLITS, IMAGE_SUFFIXES, POLYCAM_CAMERAS, POSE_FOLDERS, photo_folder,
+                                   split_folder, split_layout)
 
 KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf", "polycam", "mvsnet", "record3d")
 # IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
@@ -47,14 +47,14 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
         found["metashape"] += [p for p in sorted(place.glob("*.xml")) if is_metashape(p)]
         found["opensfm"] += [p for p in (place / "opensfm" / "reconstruction.json", place / "reconstruction.json")
                              if p.is_file()]
-        found["nsvf"] += pose_folders(place)
+        found["nsvf"] += pose_folders(place, folder)
         found["record3d"] += [place / name for name in RECORD3D_FILES if is_record3d(place / name)]
-        found["mvsnet"] += [place / "cams"] if any((place / "cams").glob("*_cam.txt")) else []
+        found["mvsnet"] += [place / "cams"] if names_a_photo(place / "cams", "_cam.txt", folder) else []
     found["polycam"] += [camera_folder for camera_folder in [folder.parent / POLYCAM_CAMERAS.get(folder.name, "")]
                          if folder.name in POLYCAM_CAMERAS and camera_folder.is_dir()]
     if split_layout(scene) == "nerfpp":
         found["nsvf"] += [pose for split in DATASET_SPLITS if (photos := split_folder(scene, split)) is not None
-                          for pose in pose_folders(photos.parent)]
+                          for pose in pose_folders(photos.parent, photos)]
     return found
 
 
@@ -65,9 +65,18 @@ def numbered_frames(scene: Path) -> bool:
     return bool(found["record3d"]) and not any(paths for kind, paths in found.items() if kind != "record3d")
 
 
-def pose_folders(place: Path) -> list[Path]:
-    """NSVF's and NeRF++'s pose folders in `place` (pose/, poses/, extrinsic/) that hold pose files."""
-    return [place / name for name in POSE_FOLDERS if (place / name).is_dir() and any((place / name).glob("*.txt"))]
+def pose_folders(place: Path, photos: Path) -> list[Path]:
+    """NSVF's and NeRF++'s pose folders in `place` (pose/, poses/, extrinsic/) that pose a photo in `photos`."""
+    return [place / name for name in POSE_FOLDERS if names_a_photo(place / name, ".txt", photos)]
+
+
+def names_a_photo(folder: Path, suffix: str, photos: Path) -> bool:
+    """Whether `folder` holds a file named as a photo in `photos` (its stem and `suffix`): a folder of a camera file
+    a photo, not of notes that share its name."""
+    if not folder.is_dir() or not photos.is_dir():
+        return False
+    return any((folder / f"{photo.stem}{suffix}").is_file() for photo in photos.iterdir()
+               if photo.suffix.lower() in IMAGE_SUFFIXES)
 
 
 def is_record3d(path: Path) -> bool:

@@ -126,6 +126,24 @@ def test_nsvf_photos_of_every_split_key_the_ingest(synthetic, truth, tmp_path):
         before = fingerprint(folder)
 
 
+def test_a_folder_of_notes_beside_the_photos_is_no_pose_folder(synthetic, truth, tmp_path):
+    from stages.sfm.pose_files import candidates
+
+    frames = sorted(truth["frames"], key=lambda f: f["file_path"])[:3]
+    for frame in frames:
+        write_photo(synthetic, frame, tmp_path / "capture" / "images" / Path(frame["file_path"]).name)
+    for folder in ("poses", "cams"):
+        (tmp_path / "capture" / folder).mkdir()
+        (tmp_path / "capture" / folder / "notes.txt").write_text("shot on a cloudy day\n")
+    found = candidates(tmp_path / "capture")
+    assert found["nsvf"] == [] and found["mvsnet"] == []  # SfM poses this capture
+    stem = Path(frames[0]["file_path"]).stem
+    (tmp_path / "capture" / "poses" / f"{stem}.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1\n")
+    (tmp_path / "capture" / "cams" / f"{stem}_cam.txt").write_text("extrinsic\n")
+    found = candidates(tmp_path / "capture")
+    assert found["nsvf"] == [tmp_path / "capture" / "poses"] and found["mvsnet"] == [tmp_path / "capture" / "cams"]
+
+
 def nerfpp_folder(synthetic: Path, truth: dict, folder: Path, splits_of: dict[str, list[int]]) -> dict[str, str]:
     """NeRF++'s layout: <split>/rgb/<i>.png, <split>/pose/<i>.txt and <split>/intrinsics/<i>.txt, 16 numbers on one
     line each; file names repeat across splits, as its Tanks and Temples' do."""
