@@ -17,7 +17,7 @@ import pycolmap
 
 from stages.common.json_files import read_json
 from stages.capture.photos import is_video, photo_folder
-from stages.sfm import pose_import
+from stages.sfm import gimbal, pose_import
 from stages.sfm.outputs import write_poses
 from stages.common.text import short_list
 from stages.sfm.reconstruct import colmap_logging, reconstruct
@@ -75,6 +75,10 @@ def run(ctx) -> dict:
                                   "motion": denser["motion"],
                                   "posed_at": [full_records[0]["width"], full_records[0]["height"]]}
                 records = retried
+            if not is_video(ctx.scene):  # a drone's photos say which way is up
+                pitches = {f"{r['name']}.png": pitch for r in records
+                           if (pitch := gimbal.pitch(photo_folder(ctx.scene) / r["source"])) is not None}
+                gravity, info["gimbal"] = gimbal.gravity(reconstruction, pitches) if pitches else (None, None)
         else:
             source, imported = found
             reconstruction, info = imported.reconstruction, {"seconds": {}}
@@ -112,6 +116,11 @@ def run(ctx) -> dict:
                  f"posed at {info['denser']['posed_at'][0]}x{info['denser']['posed_at'][1]}")
     if info.get("other_scene"):
         line += f"; {len(info['other_scene'])} photos share no match with the rest (something else), left out"
+    if info.get("gimbal"):
+        found = info["gimbal"]
+        line += (f"; up from the gimbal pitch of {found['photos']} photos" if gravity is not None else
+                 f"; the gimbal pitch of {found['photos']}/{found['of']} photos not taken for up"
+                 + (f" (their ups {found['spread_deg']:.1f} deg apart)" if "spread_deg" in found else ""))
     if info.get("lens_probe"):
         line += "; the images mapped first showed a fisheye's lens, so the camera is OPENCV_FISHEYE"
     if info.get("attempt_why"):

@@ -165,13 +165,14 @@ def gravity_of(transforms: dict) -> np.ndarray | None:
 
 def aim_of(cams: Cameras, looks_forward: bool, measured: dict, gravity: np.ndarray | None = None) -> Aim:
     """Up, the turn to z up (heading from the first camera by name) and where the optical axes meet. Up is
-    `gravity` where the poses' source fixes it (a phone's or a survey's world), else found from the cameras; a
-    forward capture's reference camera stays level with the cameras' own up (a survey looks down along gravity)."""
+    `gravity` where the poses' source gives it (a phone's world, a survey's, a drone's gimbal), else found from the
+    cameras; a forward capture's reference camera stays level with the cameras' own up (a survey looks down along
+    gravity)."""
     dirs = cams.view_dirs
     level, up_rule = camera_up(cams.c2w, inward=not looks_forward)
-    up, up_rule = (gravity / np.linalg.norm(gravity), "the pose file's gravity") if gravity is not None \
-        else (level, up_rule)
+    up = level
     if gravity is not None:
+        up, up_rule = gravity / np.linalg.norm(gravity), "gravity, as the poses' source gives it (transforms.json's up)"
         measured["cameras_up_from_gravity_deg"] = round(float(np.degrees(np.arccos(np.clip(level @ up, -1, 1)))), 2)
     axes_point, axes_conditioning = closest_point_of_axes(cams.origins, dirs)
     first_by_name = min(range(len(cams.names)), key=lambda i: cams.names[i])

@@ -10,6 +10,7 @@
   the same COLMAP model; `metashape`, `opensfm`, `nsvf` (NSVF's and NeRF++'s pose folders), `polycam`, `mvsnet` and
   `record3d` read their tools' files; `imported_model` the COLMAP model every import builds (its cameras, rigid
   poses, 360 views).
+- `gimbal`: the world's up in an SfM model of a drone's photos, from their gimbal pitch (DJI's XMP).
 - `outputs`: undistorting a model and writing transforms.json, images, masks, sparse/ and points.npz.
 - `compare`: two pose sets of the same images compared up to a similarity.
 """

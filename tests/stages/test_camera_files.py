@@ -282,7 +282,7 @@ def test_a_phones_gravity_is_up_even_where_the_cameras_look_down_along_it(tmp_pa
                                                       "poses": poses}))
     run(export, tmp_path / "out")
     normalized = read_json(tmp_path / "out" / "normalize" / "scene.json")
-    assert normalized["measured"]["up_from"] == "the pose file's gravity"
+    assert normalized["measured"]["up_from"] == "gravity, as the poses' source gives it (transforms.json's up)"
     assert normalized["measured"]["cameras_up_from_gravity_deg"] > 60   # what the cameras alone would have taken
     world = np.asarray(normalized["world_from_input"])
     np.testing.assert_allclose(world[:3, :3] @ [0.0, 1.0, 0.0] / np.linalg.norm(world[:3, :3] @ [0.0, 1.0, 0.0]),

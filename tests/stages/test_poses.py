@@ -23,13 +23,14 @@ from pipeline.runner import Pipeline
 from stages.sfm import mapping, reconstruct
 from stages.sfm.compare import compare_poses
 from stages.framing.options import SceneOptions
+from stages.framing.orientation import camera_up
 from stages.framing.scene_frame import normalize_scene
 from stages.framing.sightings import read_points
 from stages.sfm.exif import FULL_FRAME_DIAGONAL_MM, exif_focal
 from stages.sfm.triangulate import neighbour_pairs
 from stages.sfm.model_checks import MAX_CONTRADICTED_SHARE, contradicted_images, detached_images
 from stages.capture.synthetic import write_scene
-from stages.capture.synthetic_scenes import build_scene, trace
+from stages.capture.synthetic_scenes import build_scene, render_view, trace
 from plenoxels.core.cameras import Intrinsics, colmap_w2c_from_opengl_c2w, look_at, opengl_c2w_from_llff, project
 from plenoxels.core.errors import UserError
 
@@ -117,6 +118,44 @@ def test_sfm_registers_every_view_and_matches_the_true_poses(scene, truth, tmp_p
         uv, depth = project(points["xyz"][seen], np.array(frame["transform_matrix"]), k)
         assert len(seen) > 20 and (depth > 0).all()
         assert ((uv > -1) & (uv < [k.w + 1, k.h + 1])).all()
+
+
+def dji_xmp(pitch_deg: float) -> bytes:
+    """The XMP packet a DJI drone writes into its photos, its gimbal's angles among it."""
+    return (b'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+            b'<rdf:Description xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" drone-dji:GimbalRollDegree="+0.00" '
+            + f'drone-dji:GimbalPitchDegree="{pitch_deg:+.2f}" drone-dji:GimbalYawDegree="+12.30"/>'.encode()
+            + b"</rdf:RDF></x:xmpmeta>")
+
+
+def test_a_drone_survey_looking_down_takes_up_from_its_gimbal_pitch(tmp_path):
+    # Rows flown over the still life, the drone heading one way throughout and its camera 10 degrees off straight
+    # down: the cameras' own up axes all lie near the heading, so only the photos' gimbal pitch says which way is up.
+    scene = build_scene("unbounded", seed=4)
+    k = Intrinsics.from_frame({"fl_x": 277.0, "fl_y": 277.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240})
+    folder = tmp_path / "survey"
+    folder.mkdir()
+    truth = {}
+    for row, y in enumerate(np.linspace(-1.2, 0.8, 4)):
+        heading = np.array([0.0, 1.0, 0.0])
+        for column, x in enumerate(np.linspace(-0.9, 1.5, 5)):
+            eye = np.array([x, y, 3.0])
+            look = np.cos(np.radians(-80.0)) * heading + np.sin(np.radians(-80.0)) * np.array([0.0, 0.0, 1.0])
+            c2w = look_at(eye, eye + look)
+            name = f"DJI_{row * 5 + column:04d}"
+            Image.fromarray(render_view(scene, c2w, k, supersample=1)[0]).save(folder / f"{name}.jpg", quality=95,
+                                                                               xmp=dji_xmp(-80.0))
+            truth[name] = c2w
+    manifest = run_poses(folder, tmp_path / "out")
+    assert "up from the gimbal pitch of 20 photos" in manifest["summary"]["line"]
+    transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    up = np.asarray(transforms["up"])
+    cameras = np.stack([np.asarray(frame["transform_matrix"]) for frame in transforms["frames"]])
+    assert camera_up(cameras, inward=False)[0] @ up / np.linalg.norm(up) < 0.5  # what the cameras alone would take
+    for frame in transforms["frames"]:  # up seen from each camera, as SfM placed it and as it truly is
+        seen = np.linalg.inv(np.asarray(frame["transform_matrix"]))[:3, :3] @ up
+        true = np.linalg.inv(truth[frame["name"]])[:3, :3] @ [0.0, 0.0, 1.0]
+        assert np.degrees(np.arccos(np.clip(seen @ true, -1, 1))) < 1.0
 
 
 def test_normalize_boxes_a_room_alike_whether_sfm_posed_it_or_its_poses_came_with_it(tmp_path):
