@@ -79,23 +79,24 @@ def names_a_photo(folder: Path, suffix: str, photos: Path) -> bool:
                if photo.suffix.lower() in IMAGE_SUFFIXES)
 
 
-def is_record3d(path: Path) -> bool:
-    """Whether a file is Record3D's metadata (a JSON object whose head holds its camera matrix, K, and its poses)."""
+def _head(path: Path) -> bytes:
+    """A file's first HEAD_BYTES (none where it cannot be read: the importer names it)."""
     try:
         with open(path, "rb") as f:
-            head = f.read(HEAD_BYTES)
+            return f.read(HEAD_BYTES)
     except OSError:
-        return False
+        return b""
+
+
+def is_record3d(path: Path) -> bool:
+    """Whether a file is Record3D's metadata (a JSON object whose head holds its camera matrix, K, and its poses)."""
+    head = _head(path)
     return head.lstrip().startswith(b"{") and b'"K"' in head and b'"poses"' in head
 
 
 def is_metashape(path: Path) -> bool:
     """Whether an .xml file is Metashape's cameras (a <document> whose head opens a <chunk>)."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(HEAD_BYTES)
-    except OSError:
-        return False
+    head = _head(path)
     return b"<document" in head and b"<chunk" in head
 
 
