@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plenoxels.core.cameras import Intrinsics, OPENCV_TO_OPENGL_AXES
+from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
 from plenoxels.core.errors import UserError
 
 GRAVITY = None  # the world is whatever frame the poses were made in
@@ -51,4 +51,5 @@ def camera(path: Path, width: int, height: int, where: str) -> tuple[Intrinsics,
     if min(k[0, 0], k[1, 1]) <= 0:
         raise UserError(f"{where}: {path.name} gives a focal length of {min(k[0, 0], k[1, 1]):g}, not a positive one; "
                         "fix it or set poses.source=sfm")
-    return Intrinsics(k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height), np.linalg.inv(w2c) @ OPENCV_TO_OPENGL_AXES
+    pinhole = Intrinsics(k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
+    return pinhole, opengl_c2w_from_colmap_w2c(w2c[:3, :3], w2c[:3, 3])

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plenoxels.core.cameras import Intrinsics, OPENCV_TO_OPENGL_AXES
+from plenoxels.core.cameras import Intrinsics, OPENCV_TO_OPENGL_AXES, opengl_c2w_from_colmap_w2c
 from plenoxels.core.errors import UserError
 from stages.capture.photos import POSE_FOLDERS
 
@@ -70,7 +70,7 @@ def camera_to_world(path: Path, where: str) -> np.ndarray:
     if path.parent.name == "extrinsic":  # NSVF's world-to-camera
         if abs(np.linalg.det(matrix[:3, :3])) < 1e-9:
             raise UserError(f"{where}: {path.name} is not an invertible pose; fix it or set poses.source=sfm")
-        matrix = np.linalg.inv(matrix)
+        return opengl_c2w_from_colmap_w2c(matrix[:3, :3], matrix[:3, 3])
     return matrix @ OPENCV_TO_OPENGL_AXES
 
 
