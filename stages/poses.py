@@ -75,9 +75,9 @@ def run(ctx) -> dict:
                                   "motion": denser["motion"],
                                   "posed_at": [full_records[0]["width"], full_records[0]["height"]]}
                 records = retried
-            if not is_video(ctx.scene):  # a drone's photos say which way is up
-                pitches = {f"{r['name']}.png": pitch for r in records
-                           if (pitch := gimbal.pitch(photo_folder(ctx.scene) / r["source"])) is not None}
+            if not is_video(ctx.scene):  # a drone's photos say which way is up; a 360 frame's views are cut level
+                pitches = {f"{r['name']}.png": pitch for r in records if "panorama" not in r
+                           and (pitch := gimbal.pitch(photo_folder(ctx.scene) / r["source"])) is not None}
                 gravity, info["gimbal"] = gimbal.gravity(reconstruction, pitches) if pitches else (None, None)
         else:
             source, imported = found
