@@ -9,6 +9,8 @@ from stages.framing.sightings import Cameras
 
 # Up from the camera x axes needs them to spread: the middle eigenvalue (per camera) must exceed this.
 RIGHT_AXES_MIN_SPREAD = 0.01
+# Below this length the mean of the cameras' unit up axes says they turn every way round the way they look.
+UPS_AGREE_MIN = 0.3
 
 
 
@@ -31,11 +33,14 @@ def camera_up(c2w: np.ndarray, inward: bool) -> tuple[np.ndarray, str]:
     People keep the horizon level far more than they keep the pitch fixed, so for inward captures up is
     the direction most nearly perpendicular to every camera's x (right) axis; that needs the right axes
     to spread, which an orbit gives. Forward captures (and narrow arcs) use the mean camera up axis.
-    Either way the sign follows the mean camera up axis.
+    Either way the sign follows the mean camera up axis. Where the cameras' up axes turn every way round the way they
+    look (a survey flown back and forth, a table shot from above: a camera held over what it looks down at, which a
+    level camera never is), up is against that way, and the sign follows it.
     """
     rights = _unit(c2w[:, :3, 0])
     ups = _unit(c2w[:, :3, 1])
-    mean_up = _unit(ups.mean(axis=0))
+    looking_down = np.linalg.norm(ups.mean(axis=0)) < UPS_AGREE_MIN
+    mean_up = _unit(c2w[:, :3, 2].mean(axis=0) if looking_down else ups.mean(axis=0))
     if inward:
         def smallest_axis(v):
             values, vectors = np.linalg.eigh(v.T @ v / len(v))
@@ -45,6 +50,8 @@ def camera_up(c2w: np.ndarray, inward: bool) -> tuple[np.ndarray, str]:
             kept = _trimmed(rights, lambda v: np.abs(v @ axis))
             axis = smallest_axis(kept)[1]
             return (axis if axis @ mean_up >= 0 else -axis), "perpendicular to the cameras' right axes"
+    if looking_down:
+        return mean_up, "against the way the cameras look (their up axes turn every way round it: looking down)"
     kept = _trimmed(ups, lambda v: 1.0 - v @ mean_up)
     return _unit(kept.mean(axis=0)), "mean of the cameras' up axes"
 
@@ -107,7 +114,10 @@ def horizontal_heading(dirs: np.ndarray, up: np.ndarray, first: int) -> np.ndarr
 def reference_camera(cams: Cameras, dirs: np.ndarray, up: np.ndarray) -> np.ndarray:
     """The average pose: at the mean camera centre, looking along the mean viewing direction, level with `up`."""
     forward = _unit(dirs.mean(axis=0))
-    right = _unit(np.cross(forward, up))
+    right = np.cross(forward, up)
+    if np.linalg.norm(right) < 1e-6:  # looking straight along up (a survey looking down): level with the first camera
+        right = np.cross(forward, cams.c2w[0, :3, 1])
+    right = _unit(right)
     c2w = np.eye(4)
     c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(right, forward), -forward, cams.origins.mean(axis=0)
     return c2w

@@ -280,6 +280,27 @@ def test_up_survives_a_few_tilted_shots(scenes):
     assert np.degrees(np.arccos(np.clip(rotation[2] @ [0, 0, 1], -1, 1))) < 2.0
 
 
+@pytest.mark.parametrize("pitch_deg", [-90.0, -80.0])
+def test_a_survey_flown_back_and_forth_looking_down_takes_up_against_the_way_it_looks(pitch_deg):
+    # Rows flown back and forth over the ground: each camera's up axis points along its row, half one way and half
+    # the other, so their mean says nothing; the way they all look says down.
+    frames = []
+    for row, y in enumerate(np.linspace(-1.0, 1.0, 4)):
+        heading = np.array([0.0, 1.0 if row % 2 == 0 else -1.0, 0.0])
+        look = math.cos(math.radians(pitch_deg)) * heading + math.sin(math.radians(pitch_deg)) * np.array([0, 0, 1.0])
+        for x in np.linspace(-1.0, 1.0, 5):
+            eye = np.array([x, y, 3.0])
+            frames.append({"file_path": f"images/{len(frames):03d}.png", "name": f"{len(frames):03d}",
+                           "transform_matrix": look_at(eye, eye + look, up=heading).tolist()})
+    ground = np.random.default_rng(2).uniform([-2.5, -2.5, 0.0], [2.5, 2.5, 0.3], size=(3000, 3))
+    transforms = {"fl_x": 60.0, "fl_y": 60.0, "cx": 48.0, "cy": 36.0, "w": 96, "h": 72, "frames": frames}
+    scene = normalize_scene(transforms, Points(ground, np.zeros(0, int), np.zeros(0, int)), SceneOptions())
+    assert "looking down" in scene["measured"]["up_from"]
+    rotation = np.asarray(scene["world_from_input"])[:3, :3] / scene["scale"]
+    assert np.degrees(np.arccos(np.clip(rotation[2] @ [0, 0, 1], -1, 1))) < 1.0
+    assert all(np.isfinite(np.asarray(f["transform_matrix"])).all() for f in scene["frames"])
+
+
 def test_split_holds_out_every_nth_by_sorted_name(scenes):
     transforms, points = _load(scenes["object"])
     transforms["frames"] = transforms["frames"][::-1]  # the split must not depend on the input order
