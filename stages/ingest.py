@@ -16,7 +16,7 @@ from stages.common.json_files import write_json
 from stages.capture.masks import mask_folder, match_masks, read_mask
 from stages.capture.photos import (IMAGE_SUFFIXES, SIDECAR_SUFFIXES, VIDEO_SUFFIXES, colour_spread,
                                    colourless_among_colour, fit_max_side, is_split_dataset, load_photo, not_a_scene,
-                                   not_read_why, photo_folder, photos_picture, raw_twins, repeated, scene_photos,
+                                   not_read_why, photo_folder, photos_picture, repeated, scene_photos, twin_words, twins,
                                    sharpness, stored_orientation, thumbnail)
 from stages.capture.panorama import (FRAME_SHARE, PANORAMA_VIEWS, frame_side, is_two_to_one, looks_equirect,
                                      photos_equirect, says_equirect, split_frame, view_focal, view_side)
@@ -36,7 +36,7 @@ def run(ctx) -> dict:
     images_dir.mkdir()
     records, unreadable, thumbnails = [], [], []
     clip = bars = sequence = None
-    twins: set[Path] = set()
+    left: dict[Path, str] = {}  # files beside a photo of their name, not read
     clips: list[str] = []
     panoramas: list[tuple[int, int]] = []  # the 360 frames split, their sizes
 
@@ -109,9 +109,9 @@ def run(ctx) -> dict:
     else:
         folder = photo_folder(ctx.scene)
         candidates = scene_photos(ctx.scene, s.holdout_split)
-        twins = set(raw_twins([p for p, _ in candidates]))
+        left = twins([p for p, _ in candidates])
         photos = [(p.relative_to(folder), split) for p, split in candidates
-                  if p.suffix.lower() in IMAGE_SUFFIXES and p not in twins]
+                  if p.suffix.lower() in IMAGE_SUFFIXES and p not in left]
         unreadable += [f"{p.name} ({not_read_why(p)})" for p, _ in candidates
                        if p.suffix.lower() not in IMAGE_SUFFIXES | VIDEO_SUFFIXES | SIDECAR_SUFFIXES]
         clips = [p.name for p, _ in candidates if p.suffix.lower() in VIDEO_SUFFIXES]
@@ -240,15 +240,15 @@ def run(ctx) -> dict:
         line += f", dropped {len(dropped)} blurriest"
     if sequence:
         line += f", one in {sequence[1]} of {sequence[0]} frames saved from a video"
-    if twins:
-        line += f", {len(twins)} RAW files left for the developed photos of their names"
+    if left:
+        line += f", {twin_words(left)}"
     if clips:
         line += f", {len(clips)} video(s) beside them not read"
     if unreadable:
         line += f", skipped {len(unreadable)} unreadable"
     return {"line": line, "images": len(records), "skipped": len(unreadable), "repeated": len(repeats),
             "dropped_blurry": len(dropped), "masked": masked, "colourless": len(colourless), "cropped": cropped,
-            "raw_twins": len(twins), "panorama_frames": len(panoramas),
+            "raw_twins": sum(kind == "raw" for kind in left.values()), "panorama_frames": len(panoramas),
             **({"sequence": {"photos": sequence[0], "step": sequence[1], "apart": round(sequence[2], 4)}}
                if sequence else {}),
             **({"video": clip} if clip is not None else {})}

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections import Counter
 from pathlib import Path
 
 import cv2
@@ -54,6 +55,13 @@ try:
 except ImportError:
     RAW_SUFFIXES = set()
 IMAGE_SUFFIXES |= RAW_SUFFIXES
+# Files a tool writes beside each photo from the photo itself (`twins`): BlendedMVS's `<stem>_masked.jpg` (the photo
+# blacked out where its reconstruction saw nothing), and an object's mask kept beside its photo (`<stem>_mask.png`,
+# which masks.py reads from a masks/ folder).
+DERIVED_TAILS = {"_masked": "masked", "_mask": "mask", "-mask": "mask"}
+TWIN_WORDS = {"raw": "RAW files left for the developed photos of their names",
+              "masked": "masked copies left for the photos of their names",
+              "mask": "masks beside the photos of their names not read (move them into a masks/ folder to use them)"}
 
 
 def is_video(scene: Path) -> bool:
@@ -161,9 +169,9 @@ def split_photos(scene: Path, split: str) -> list[Path]:
 
 def photo_folder(scene: Path) -> Path:
     """The folder the scene's photo paths are relative to: for a video, the folder it sits in; for a dataset
-    folder, its images/ (a COLMAP project or a nerfstudio folder), image/ (NeuS), rgb/ (NSVF), Polycam's
-    keyframes/corrected_images/ (or images/), or its largest images_N/ (LLFF), or the dataset itself when its photos
-    sit in split folders (NeRF synthetic, NeRF++); else the folder named."""
+    folder, its images/ (a COLMAP project or a nerfstudio folder), image/ (NeuS), rgb/ (NSVF), blended_images/
+    (BlendedMVS), Polycam's keyframes/corrected_images/ (or images/), or its largest images_N/ (LLFF), or the dataset
+    itself when its photos sit in split folders (NeRF synthetic, NeRF++); else the folder named."""
     if scene.is_file():
         return scene.parent
     if _has_photos(scene) or is_split_dataset(scene):
@@ -172,8 +180,9 @@ def photo_folder(scene: Path) -> Path:
         scene = scene / "keyframes"
     if _has_photos(scene / "corrected_images") and (scene / POLYCAM_CAMERAS["corrected_images"]).is_dir():
         return scene / "corrected_images"
-    # image/: the NeuS/IDR layout (beside mask/ and cameras_sphere.npz); rgb/: NSVF's (beside pose/)
-    for name in ("images", "image", "rgb"):
+    # image/: the NeuS/IDR layout (beside mask/ and cameras_sphere.npz); rgb/: NSVF's (beside pose/);
+    # blended_images/: BlendedMVS's (beside MVSNet's cams/)
+    for name in ("images", "image", "rgb", "blended_images"):
         if _has_photos(scene / name):
             return scene / name
     downscaled = [d for d in scene.glob("images_*") if d.name[7:].isdigit() and _has_photos(d)]
@@ -342,11 +351,24 @@ def scene_files(scene: Path) -> list[Path]:
     return photos
 
 
-def raw_twins(photos: list[Path]) -> list[Path]:
-    """The RAW files among `photos` that have a developed photo (not RAW) of the same name in the same folder."""
+def twins(photos: list[Path]) -> dict[Path, str]:
+    """The files among `photos` that stand beside another photo of their name in the same folder and are not read,
+    each with what it is (a key of TWIN_WORDS): a RAW file beside the photo the camera developed from it (a RAW of
+    its stem beside a JPEG or HEIC); a photo's masked copy or mask (its stem with a tail of DERIVED_TAILS)."""
     developed = {(p.parent, p.stem.lower()) for p in photos
                  if p.suffix.lower() in IMAGE_SUFFIXES and p.suffix.lower() not in RAW_SUFFIXES}
-    return [p for p in photos if p.suffix.lower() in RAW_SUFFIXES and (p.parent, p.stem.lower()) in developed]
+    found = {p: "raw" for p in photos if p.suffix.lower() in RAW_SUFFIXES and (p.parent, p.stem.lower()) in developed}
+    for p in photos:
+        tail = next((t for t in DERIVED_TAILS if p.stem.lower().endswith(t)), None)
+        if tail and p.suffix.lower() in IMAGE_SUFFIXES and (p.parent, p.stem.lower()[:-len(tail)]) in developed:
+            found[p] = DERIVED_TAILS[tail]
+    return found
+
+
+def twin_words(found: dict[Path, str]) -> str:
+    """What `twins` left out, in words for ingest's summary ("" where nothing)."""
+    counts = Counter(found.values())
+    return ", ".join(f"{counts[kind]} {words}" for kind, words in TWIN_WORDS.items() if counts[kind])
 
 
 def upright_size(path: Path) -> tuple[int, int] | None:

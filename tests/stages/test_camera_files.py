@@ -238,18 +238,29 @@ def mvsnet_cam(c2w: np.ndarray, k: np.ndarray) -> str:
     return f"extrinsic\n{rows(np.linalg.inv(c2w @ FLIP_YZ))}\n\nintrinsic\n{rows(k)}\n\n425.0 2.5 192 905.0\n"
 
 
-def test_mvsnet_cams_pose_the_photos_beside_them(synthetic, truth, tmp_path):
-    folder = tmp_path / "Family"
+@pytest.mark.parametrize("layout", ["mvsnet", "blendedmvs"])
+def test_mvsnet_cams_pose_the_photos_beside_them(synthetic, truth, tmp_path, layout):
+    """MVSNet's images/ beside cams/; BlendedMVS's blended_images/ beside cams/, where each photo has a masked copy
+    (blacked out where its reconstruction saw nothing) that is no photo of the scene."""
+    folder, photos = tmp_path / "Family", "images" if layout == "mvsnet" else "blended_images"
     (folder / "cams").mkdir(parents=True)
     names = {}
     for i, frame in enumerate(sorted(truth["frames"], key=lambda f: f["file_path"])):
-        write_photo(synthetic, frame, folder / "images" / f"{i:08d}.jpg", scale=2)
+        write_photo(synthetic, frame, folder / photos / f"{i:08d}.jpg", scale=2)
+        if layout == "blendedmvs":
+            masked = np.asarray(Image.open(folder / photos / f"{i:08d}.jpg")).copy()
+            masked[: masked.shape[0] // 2] = 0
+            Image.fromarray(masked).save(folder / photos / f"{i:08d}_masked.jpg")
         text = mvsnet_cam(np.asarray(frame["transform_matrix"]), k_matrix(truth, 2.0)[:3, :3])
         (folder / "cams" / f"{i:08d}_cam.txt").write_text(text)
         names[f"{i:08d}"] = Path(frame["file_path"]).stem
-    (folder / "pair.txt").write_text(f"{len(names)}\n")
+    (folder / ("pair.txt" if layout == "mvsnet" else "cams/pair.txt")).write_text(f"{len(names)}\n")
     run(folder, tmp_path / "out", f"ingest.max_side={truth['w']}")
     assert assert_poses(tmp_path / "out", truth, names)["source"] == "mvsnet"
+    if layout == "blendedmvs":
+        line = read_json(tmp_path / "out" / "ingest" / "manifest.json")["summary"]["line"]
+        assert line == f"{len(names)} images at {truth['w']}x{truth['h']}, {len(names)} masked copies left for the " \
+                       "photos of their names"
 
 
 def turn_taking(direction: np.ndarray, to: np.ndarray) -> np.ndarray:

@@ -486,6 +486,25 @@ def test_raw_photos_are_developed_upright_and_a_raw_beside_its_jpeg_is_left_for_
     assert "3 RAW files left for the developed photos of their names" in line and "skipped" not in line
 
 
+
+def test_a_mask_beside_its_photo_is_no_photo(tmp_path):
+    """`<stem>_mask.png` or `<stem>-mask.png` beside `<stem>.jpg` is the photo's mask; a name that only ends so, with
+    no photo of the rest of its name beside it, is a photo."""
+    folder = tmp_path / "object"
+    folder.mkdir()
+    for i in range(3):
+        Image.fromarray(smooth(seed=i)).save(folder / f"shot{i}.jpg", quality=95)
+    object_mask = np.zeros((60, 80), np.uint8)
+    object_mask[20:40, 30:50] = 255
+    Image.fromarray(object_mask).save(folder / "shot0_mask.png")
+    Image.fromarray(object_mask).save(folder / "shot1-mask.png")
+    Image.fromarray(smooth(seed=5)).save(folder / "halloween_mask.jpg", quality=95)  # a photo of a mask
+    out, listing = run_ingest(folder, tmp_path)
+    assert sorted(r["source"] for r in listing["images"]) == ["halloween_mask.jpg", "shot0.jpg", "shot1.jpg",
+                                                              "shot2.jpg"]
+    line = json.loads((out / "manifest.json").read_text())["summary"]["line"]
+    assert "2 masks beside the photos of their names not read (move them into a masks/ folder to use them)" in line
+
 def watermark(frame):
     """A caption and a solid badge, as an app burns them into every frame."""
     cv2.rectangle(frame, (120, 8), (150, 24), (255, 0, 0), -1)
