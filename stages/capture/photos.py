@@ -24,7 +24,7 @@ VIDEO_SUFFIXES = {".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v"}
 # A 360 camera's unstitched recordings: Insta360's video and photos, GoPro MAX's.
 RAW_360_SUFFIXES = {".insv", ".insp", ".360"}
 # Files beside the photos that are no photos and are passed over without a word: pose files and notes.
-SIDECAR_SUFFIXES = {".json", ".npy", ".npz", ".xml", ".txt", ".md"}
+SIDECAR_SUFFIXES = {".json", ".npy", ".npz", ".xml", ".txt", ".md", ".xmp", ".csv"}
 SHARPNESS_SIDE = 512  # score every image at the same size so scores compare across resolutions
 EXIF_ORIENTATION = 0x0112
 # A photo whose pixels nearly all sit within COLOURLESS_SPREAD of grey (the 99th percentile, over its pixels neither

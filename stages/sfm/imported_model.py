@@ -22,6 +22,7 @@ NON_RIGID_STRETCH = 1.02
 SIZE_TOLERANCE_PX = 1.5
 # A lens as COLMAP models it: the camera model's name and its distortion coefficients (after fx, fy, cx, cy).
 Lens = tuple[str, tuple[float, ...]]
+NO_LENS: Lens = ("OPENCV", ())  # a pinhole
 
 
 @dataclass
@@ -110,7 +111,7 @@ class CameraTable:
         self.reconstruction = reconstruction
         self.ids: dict[tuple, int] = {}
 
-    def id_for(self, k: Intrinsics, lens: Lens = ("OPENCV", ())) -> int:
+    def id_for(self, k: Intrinsics, lens: Lens = NO_LENS) -> int:
         key = (round(k.fl_x, 6), round(k.fl_y, 6), round(k.cx, 6), round(k.cy, 6), k.w, k.h, lens[0],
                *(round(d, 9) for d in lens[1]))
         if key not in self.ids:

@@ -13,6 +13,7 @@ import numpy as np
 
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
 from plenoxels.core.errors import UserError
+from stages.sfm.imported_model import NO_LENS, Lens
 
 GRAVITY = None  # the world is whatever frame the poses were made in
 CAMERA_FOLDER = "cams"
@@ -38,8 +39,9 @@ def _matrix(lines: list[str], word: str, size: int, path: Path, where: str) -> n
     return matrix
 
 
-def camera(path: Path, width: int, height: int, where: str) -> tuple[Intrinsics, np.ndarray]:
-    """The pinhole (for its photo, stored at width x height) and camera-to-world (ours) of a camera file."""
+def camera(path: Path, width: int, height: int, where: str) -> tuple[Intrinsics, np.ndarray, Lens]:
+    """The pinhole (for its photo, stored at width x height), camera-to-world (ours) and lens (none) of a camera
+    file."""
     try:
         lines = path.read_text().splitlines()
     except (OSError, UnicodeDecodeError):
@@ -52,4 +54,4 @@ def camera(path: Path, width: int, height: int, where: str) -> tuple[Intrinsics,
         raise UserError(f"{where}: {path.name} gives a focal length of {min(k[0, 0], k[1, 1]):g}, not a positive one; "
                         "fix it or set poses.source=sfm")
     pinhole = Intrinsics(k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
-    return pinhole, opengl_c2w_from_colmap_w2c(w2c[:3, :3], w2c[:3, 3])
+    return pinhole, opengl_c2w_from_colmap_w2c(w2c[:3, :3], w2c[:3, 3]), NO_LENS

@@ -17,6 +17,7 @@ import numpy as np
 
 from plenoxels.core.cameras import Intrinsics, OPENCV_TO_OPENGL_AXES, opengl_c2w_from_colmap_w2c
 from plenoxels.core.errors import UserError
+from stages.sfm.imported_model import NO_LENS, Lens
 from stages.capture.photos import POSE_FOLDERS
 
 GRAVITY = None  # the world is whatever frame the poses were made in
@@ -29,13 +30,14 @@ def own_folders(photos: Path) -> list[Path]:
     return [photos.parent / name for name in POSE_FOLDERS if (photos.parent / name).is_dir()]
 
 
-def camera(pose_file: Path, width: int, height: int, where: str) -> tuple[Intrinsics, np.ndarray]:
-    """The pinhole (for its photo, stored at width x height) and camera-to-world (ours) of a pose file."""
+def camera(pose_file: Path, width: int, height: int, where: str) -> tuple[Intrinsics, np.ndarray, Lens]:
+    """The pinhole (for its photo, stored at width x height), camera-to-world (ours) and lens (none) of a pose
+    file."""
     k_file = intrinsics_file(pose_file)
     if k_file is None:
         raise UserError(f"{where} has no intrinsics beside it (intrinsics.txt, or intrinsics/{pose_file.name}); add "
                         "them or set poses.source=sfm")
-    return intrinsics(k_file, width, height, where), camera_to_world(pose_file, where)
+    return intrinsics(k_file, width, height, where), camera_to_world(pose_file, where), NO_LENS
 
 
 def intrinsics_file(pose_file: Path) -> Path | None:

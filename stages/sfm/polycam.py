@@ -15,6 +15,7 @@ import numpy as np
 
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.errors import UserError
+from stages.sfm.imported_model import NO_LENS, Lens
 from stages.capture.photos import POLYCAM_CAMERAS as CAMERA_FOLDERS
 GRAVITY = (0.0, 1.0, 0.0)  # ARKit's world: y up
 POSE_KEYS = tuple(f"t_{row}{column}" for row in range(3) for column in range(4))
@@ -26,8 +27,9 @@ def own_folders(photos: Path) -> list[Path]:
     return [folder] if photos.name in CAMERA_FOLDERS and folder.is_dir() else []
 
 
-def camera(path: Path, width: int, height: int, where: str) -> tuple[Intrinsics, np.ndarray]:
-    """The pinhole (at the camera file's own width x height) and camera-to-world (ours) of a camera file."""
+def camera(path: Path, width: int, height: int, where: str) -> tuple[Intrinsics, np.ndarray, Lens]:
+    """The pinhole (at the camera file's own width x height), camera-to-world (ours) and lens (none: the photos are
+    undistorted) of a camera file."""
     try:
         data = json.loads(path.read_text())
         values = [float(data[key]) for key in ("fx", "fy", "cx", "cy", "width", "height", *POSE_KEYS)]
@@ -40,4 +42,4 @@ def camera(path: Path, width: int, height: int, where: str) -> tuple[Intrinsics,
     fx, fy, cx, cy, w, h = values[:6]
     c2w = np.eye(4)
     c2w[:3] = np.reshape(values[6:], (3, 4))
-    return Intrinsics(fx, fy, cx, cy, int(round(w)), int(round(h))), c2w
+    return Intrinsics(fx, fy, cx, cy, int(round(w)), int(round(h))), c2w, NO_LENS

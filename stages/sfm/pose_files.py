@@ -1,7 +1,7 @@
 """Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy, IDR/NeuS cameras,
 Metashape cameras .xml, OpenSfM reconstruction.json, NSVF's or NeRF++'s pose folders, Polycam's camera folder,
-MVSNet's cams/ and Record3D's metadata the importers (pose_import.py) could read. Finding them reads no
-pose, so a cache key lists them without loading COLMAP."""
+MVSNet's cams/, Record3D's metadata and RealityCapture's XMP files or CSV the importers (pose_import.py) could
+read. Finding them reads no pose, so a cache key lists them without loading COLMAP."""
 from __future__ import annotations
 
 import json
@@ -11,13 +11,18 @@ from pathlib import Path
 from stages.capture.photos import (DATASET_SPLITS, IMAGE_SUFFIXES, POLYCAM_CAMERAS, POSE_FOLDERS, photo_folder,
                                    split_folder, split_layout)
 
-KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf", "polycam", "mvsnet", "record3d")
+KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf", "polycam", "mvsnet", "record3d",
+         "realitycapture")
 # IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
 IDR_FILES = ("cameras_sphere.npz", "cameras.npz")
 # Bytes of a file read to tell a tool's pose file from others of its type (Metashape's XML, Record3D's JSON).
 HEAD_BYTES = 4096
 # Record3D's metadata, beside its rgb/ folder of frames.
 RECORD3D_FILES = ("metadata.json", "metadata")
+# RealityCapture's XMP file beside a photo that it aligned (its namespace, and a pose), and the columns of its camera
+# CSV export that the importer reads.
+REALITYCAPTURE_MARKS = (b"capturingreality.com/ns/xcr", b"Rotation", b"Position")
+REALITYCAPTURE_COLUMNS = ("#name", "x", "y", "alt", "heading", "pitch", "roll", "f", "px", "py")
 
 
 def colmap_models(folder: Path) -> list[Path]:
@@ -50,6 +55,9 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
         found["nsvf"] += pose_folders(place, folder)
         found["record3d"] += [place / name for name in RECORD3D_FILES if is_record3d(place / name)]
         found["mvsnet"] += [place / "cams"] if names_a_photo(place / "cams", "_cam.txt", folder) else []
+        found["realitycapture"] += [p for p in sorted(place.glob("*.csv")) if is_realitycapture_csv(p)]
+    if aligned_by_realitycapture(folder):  # its XMP files before its CSV
+        found["realitycapture"].insert(0, folder)
     found["polycam"] += [camera_folder for camera_folder in [folder.parent / POLYCAM_CAMERAS.get(folder.name, "")]
                          if folder.name in POLYCAM_CAMERAS and camera_folder.is_dir()]
     if split_layout(scene) == "nerfpp":
@@ -94,6 +102,20 @@ def is_record3d(path: Path) -> bool:
     return head.lstrip().startswith(b"{") and b'"K"' in head and b'"poses"' in head
 
 
+def aligned_by_realitycapture(photos: Path) -> bool:
+    """Whether a photo in `photos` has RealityCapture's XMP file beside it, with a pose (REALITYCAPTURE_MARKS): not
+    a photo editor's sidecar of the same name."""
+    return photos.is_dir() and any(all(mark in _head(photo.with_suffix(".xmp")) for mark in REALITYCAPTURE_MARKS)
+                                   for photo in photos.iterdir() if photo.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def is_realitycapture_csv(path: Path) -> bool:
+    """Whether a .csv file is RealityCapture's camera export (its header names the columns the importer reads)."""
+    first_line = _head(path).decode("utf-8-sig", errors="replace").splitlines()[:1]
+    header = [column.strip().lower() for column in first_line[0].split(",")] if first_line else []
+    return all(column in header for column in REALITYCAPTURE_COLUMNS)
+
+
 def is_metashape(path: Path) -> bool:
     """Whether an .xml file is Metashape's cameras (a <document> whose head opens a <chunk>)."""
     head = _head(path)
@@ -105,7 +127,9 @@ def pose_files(scene: Path) -> list[Path]:
     files: list[Path] = []
     for kind, paths in candidates(scene).items():
         for path in paths:
-            files += sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
+            suffix = ".xmp" if kind == "realitycapture" else ""  # the photo folder: its XMP files
+            files += sorted(p for p in path.iterdir() if p.is_file() and p.name.lower().endswith(suffix)) \
+                if path.is_dir() else [path]
     return files
 
 

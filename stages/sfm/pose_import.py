@@ -19,10 +19,11 @@ import pycolmap
 
 from stages.capture.photos import (DATASET_SPLITS, POSE_FOLDERS, frame_photo, lexical_path, photo_folder,
                                    split_layout)
-from stages.sfm import metashape, mvsnet, nsvf, opensfm, polycam, record3d
+from stages.sfm import metashape, mvsnet, nsvf, opensfm, polycam, realitycapture, record3d
 from stages.sfm.imported_model import (CameraTable, Imported, Lens, add_image, add_view, at_ingested_size, file_stem,
                                        finite_number, scale_factor)
-from stages.sfm.pose_files import KINDS, candidates, colmap_models, is_colmap_model
+from stages.sfm.pose_files import (KINDS, aligned_by_realitycapture, candidates, colmap_models, is_colmap_model,
+                                   is_realitycapture_csv)
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_llff, opengl_c2w_from_projection
 from plenoxels.core.errors import UserError
 
@@ -40,6 +41,8 @@ def kind_of(path: Path) -> str:
             return "polycam"
         if path.name == mvsnet.CAMERA_FOLDER:
             return "mvsnet"
+        if aligned_by_realitycapture(path):
+            return "realitycapture"
     elif path.name == "reconstruction.json":
         return "opensfm"
     elif path.name in record3d.METADATA_FILES:
@@ -52,9 +55,12 @@ def kind_of(path: Path) -> str:
         return "idr"
     elif path.suffix.lower() == ".xml":
         return "metashape"
+    elif is_realitycapture_csv(path):
+        return "realitycapture"
     raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json, a poses_bounds.npy, an "
                     "IDR/NeuS cameras*.npz, a Metashape cameras .xml, an OpenSfM reconstruction.json, an NSVF pose/ "
-                    "folder, Polycam's keyframes/cameras/, MVSNet's cams/ or Record3D's metadata.json")
+                    "folder, Polycam's keyframes/cameras/, MVSNet's cams/, Record3D's metadata.json, or "
+                    "RealityCapture's camera CSV or a folder of its XMP files")
 
 
 def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
@@ -74,10 +80,12 @@ def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
         return from_metashape(path, records)
     if kind == "opensfm":
         return from_opensfm(path, records)
-    if kind in CAMERA_FILES:
+    if kind in CAMERA_FILES and path.is_dir():
         return from_camera_files(kind, [path], records, scene)
     if kind == "record3d":
         return from_record3d(path, records)
+    if kind == "realitycapture":
+        return from_realitycapture_csv(path, records)
     return from_llff(path, records)
 
 
@@ -113,8 +121,9 @@ def find(source: str, path: str, records: list[dict], scene: Path) -> tuple[str,
         present = [p for p in splits if p.is_file()]
         return "transforms", from_transforms(present[0], records, scene, tuple(present[1:]))
     for kind in [source] if source != "auto" else list(KINDS):
-        if kind in CAMERA_FILES and found[kind]:  # one dataset's camera folders (a split each: NeRF++), together
-            return kind, from_camera_files(kind, found[kind], records, scene)
+        folders = [p for p in found[kind] if p.is_dir()] if kind in CAMERA_FILES else []
+        if folders:  # one dataset's camera folders (a split each: NeRF++), together
+            return kind, from_camera_files(kind, folders, records, scene)
         if found[kind]:
             return kind, choose(kind, found[kind], records, scene)
     if source != "auto":
@@ -445,13 +454,15 @@ def from_opensfm(path: Path, records: list[dict]) -> Imported:
     return Imported(reconstruction, path, missing, gravity=opensfm.GRAVITY)
 
 
-# ---- a camera file a photo: NSVF's, NeRF++'s, Polycam's, MVSNet's ---------------------------------------
+# ---- a camera file a photo: NSVF's, NeRF++'s, Polycam's, MVSNet's, RealityCapture's -------------------------
 
-CAMERA_FILES = {"nsvf": (".txt", nsvf), "polycam": (".json", polycam), "mvsnet": (mvsnet.SUFFIX, mvsnet)}
+CAMERA_FILES = {"nsvf": (".txt", nsvf), "polycam": (".json", polycam), "mvsnet": (mvsnet.SUFFIX, mvsnet),
+                "realitycapture": (realitycapture.SUFFIX, realitycapture)}
 
 
 def from_camera_files(kind: str, folders: list[Path], records: list[dict], scene: Path) -> Imported:
-    """Poses from folders of a camera file a photo (stages/sfm/nsvf.py, polycam.py, mvsnet.py): a photo takes the
+    """Poses from folders of a camera file a photo (stages/sfm/nsvf.py, polycam.py, mvsnet.py, realitycapture.py):
+    a photo takes the
     file named as it in its own camera folder (beside its photos' folder), where that is among `folders`; a photo with
     no camera folder of its own, the one file of its name in `folders` (NeRF++'s splits repeat names, so a file is
     never taken from another split)."""
@@ -473,9 +484,13 @@ def from_camera_files(kind: str, folders: list[Path], records: list[dict], scene
             missing.append(record["name"])
             continue
         where = f"{named[0].parent.name}/{named[0].name}"
-        k, c2w = reader.camera(named[0], record["original_width"], record["original_height"], where)
+        found = reader.camera(named[0], record["original_width"], record["original_height"], where)
+        if found is None:  # a file that does not pose its photo (RealityCapture's, for a photo it did not align)
+            missing.append(record["name"])
+            continue
+        k, c2w, lens = found
         add_image(reconstruction, len(reconstruction.images) + 1, record,
-                  cameras.id_for(at_ingested_size(k, record, where)), c2w, where)
+                  cameras.id_for(at_ingested_size(k, record, where), lens), c2w, where)
     return Imported(reconstruction, folders[0] if len(folders) == 1 else scene, missing,
                     gravity=reader.GRAVITY)
 
@@ -498,3 +513,23 @@ def from_record3d(path: Path, records: list[dict]) -> Imported:
                   cameras.id_for(at_ingested_size(k, record, str(path))),
                   record3d.camera_to_world(poses[int(number)], where), where)
     return Imported(reconstruction, path, missing, gravity=record3d.GRAVITY)
+
+
+# ---- RealityCapture's camera CSV ---------------------------------------------------------------------------
+
+def from_realitycapture_csv(path: Path, records: list[dict]) -> Imported:
+    """Poses from RealityCapture's camera CSV (stages/sfm/realitycapture.py): a photo takes the row of its stem."""
+    rows = realitycapture.csv_rows(path)
+    reconstruction = pycolmap.Reconstruction()
+    cameras = CameraTable(reconstruction)
+    missing = []
+    for record in records:
+        row = rows.get(file_stem(record["source"]))
+        if row is None:
+            missing.append(record["name"])
+            continue
+        where = f"{path.name}, {row['#name']}"
+        k, c2w, lens = realitycapture.csv_camera(row, record["original_width"], record["original_height"], where)
+        add_image(reconstruction, len(reconstruction.images) + 1, record,
+                  cameras.id_for(at_ingested_size(k, record, where), lens), c2w, where)
+    return Imported(reconstruction, path, missing, gravity=realitycapture.GRAVITY)

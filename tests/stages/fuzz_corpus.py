@@ -333,6 +333,37 @@ def mvsnet(spoil):
     return edit
 
 
+def realitycapture(spoil, first_only=True):
+    """RealityCapture's XMP files beside the template's photos, the first one's text (every one's where not
+    `first_only`) spoiled by `spoil`."""
+    def edit(folder, meta):
+        for n, f in enumerate(meta["frames"]):
+            c2w = np.array(f["transform_matrix"])
+            w2c = np.linalg.inv(c2w @ np.diag([1.0, -1, -1, 1]))
+            side = max(meta["w"], meta["h"])
+            text = ('<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-'
+                    'ns#"><rdf:Description '
+                    'xmlns:xcr="http://www.capturingreality.com/ns/xcr/1.1#" xcr:DistortionModel="brown3" '
+                    f'xcr:FocalLength35mm="{meta["fl_x"] * 36 / side!r}" xcr:PrincipalPointU="0" '
+                    f'xcr:PrincipalPointV="0"><xcr:Rotation>{" ".join(map(repr, w2c[:3, :3].ravel().tolist()))}'
+                    f'</xcr:Rotation><xcr:Position>{" ".join(map(repr, c2w[:3, 3].tolist()))}</xcr:Position>'
+                    "<xcr:DistortionCoeficients>0 0 0 0 0 0</xcr:DistortionCoeficients></rdf:Description></rdf:RDF>"
+                    "</x:xmpmeta>")
+            spoiled = spoil(text) if n == 0 or not first_only else text
+            path = folder / "images" / f"{Path(f['file_path']).stem}.xmp"
+            path.write_bytes(spoiled if isinstance(spoiled, bytes) else spoiled.encode())
+    return edit
+
+
+def realitycapture_csv(spoil):
+    """RealityCapture's camera CSV beside images/ (every camera looking along -z), its text spoiled by `spoil`."""
+    def edit(folder, meta):
+        rows = ["#name,x,y,alt,heading,pitch,roll,f,px,py,k1,k2,k3,k4,t1,t2"]
+        rows += [f"{Path(f['file_path']).name},0,0,{n},0,0,0,30,0,0,0,0,0,0,0,0" for n, f in enumerate(meta["frames"])]
+        (folder / "cameras.csv").write_text(spoil("\n".join(rows) + "\n"))
+    return edit
+
+
 def first_pose(text):
     return lambda folder: sorted((folder / "pose").iterdir())[0].write_text(text)
 
@@ -391,6 +422,20 @@ POSE_KINDS = {
     "mvsnet_extrinsic_singular": posed(mvsnet(lambda text: "extrinsic\n" + "0 0 0 1\n" * 4 + text.split("\n\n", 1)[1])),
     "mvsnet_focal_zero": posed(mvsnet(lambda text: text.split("intrinsic")[0] + "intrinsic\n0 0 1\n0 0 1\n0 0 1\n")),
     "mvsnet_binary": posed(mvsnet(lambda text: b"\xff\xfe\x00")),
+    "realitycapture_rotation_nan": posed(realitycapture(lambda text: re.sub(
+        "<xcr:Rotation>[^<]*", "<xcr:Rotation>" + "nan " * 9, text))),
+    "realitycapture_rotation_short": posed(realitycapture(lambda text: re.sub(
+        "<xcr:Rotation>[^<]*", "<xcr:Rotation>1 0 0 0 1 0", text))),
+    "realitycapture_no_focal": posed(realitycapture(lambda text: re.sub('xcr:FocalLength35mm="[^"]*"', "", text))),
+    "realitycapture_focal_text": posed(realitycapture(lambda text: re.sub(
+        'xcr:FocalLength35mm="[^"]*"', 'xcr:FocalLength35mm="wide"', text))),
+    "realitycapture_division_lens": posed(realitycapture(lambda text: text.replace("brown3", "division").replace(
+        ">0 0 0 0 0 0<", ">-0.1 0 0 0 0 0<"), first_only=False)),
+    "realitycapture_binary": posed(realitycapture(lambda text: text.encode()[:200] + b"\xff\xfe\x00")),
+    "realitycapture_csv_pitch_text": posed(realitycapture_csv(lambda text: text.replace(",0,0,0,30,", ",0,level,0,30,",
+                                                                                      1))),
+    "realitycapture_csv_focal_zero": posed(realitycapture_csv(lambda text: text.replace(",30,", ",0,"))),
+    "realitycapture_csv_cut_short": posed(realitycapture_csv(lambda text: text[:text.index("\n") + 12])),
     "metashape_component_flat": posed(metashape(lambda text: text.replace(
         "<cameras>", '<components><component id="0"><transform><scale>0</scale></transform></component></components>'
         "<cameras>").replace('sensor_id="0"', 'sensor_id="0" component_id="0"'))),

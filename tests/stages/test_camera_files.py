@@ -263,6 +263,118 @@ def test_mvsnet_cams_pose_the_photos_beside_them(synthetic, truth, tmp_path, lay
                        "photos of their names"
 
 
+def realitycapture_xmp(c2w: np.ndarray, k: np.ndarray, width: int, height: int, as_attributes: bool,
+                       model: str = "brown3", coefficients: tuple = (0.0,) * 6) -> str:
+    """An XMP file as RealityCapture writes one beside a photo it aligned: world-to-camera rotation (OpenCV axes),
+    the camera's centre, a 35 mm focal length and a principal point off the centre in units of the longer side;
+    its pose as elements or (RealityScan's newer files) attributes."""
+    w2c = np.linalg.inv(c2w @ FLIP_YZ)
+    side = max(width, height)
+    rotation, position = " ".join(f"{v:.15g}" for v in w2c[:3, :3].ravel()), " ".join(f"{v:.15g}" for v in c2w[:3, 3])
+    pose = (f'xcr:Rotation="{rotation}" xcr:Position="{position}"', "") if as_attributes else \
+        ("", f"<xcr:Rotation>{rotation}</xcr:Rotation><xcr:Position>{position}</xcr:Position>")
+    return (f'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+            f'<rdf:Description xmlns:xcr="http://www.capturingreality.com/ns/xcr/1.1#" xcr:Version="3" '
+            f'xcr:PosePrior="locked" xcr:Coordinates="absolute" xcr:DistortionModel="{model}" '
+            f'xcr:FocalLength35mm="{k[0, 0] * 36 / side:.15g}" xcr:Skew="0" xcr:AspectRatio="1" '
+            f'xcr:PrincipalPointU="{(k[0, 2] - width / 2) / side:.15g}" '
+            f'xcr:PrincipalPointV="{(k[1, 2] - height / 2) / side:.15g}" {pose[0]}>{pose[1]}'
+            f'<xcr:DistortionCoeficients>{" ".join(map(str, coefficients))}</xcr:DistortionCoeficients>'
+            "</rdf:Description></rdf:RDF></x:xmpmeta>")
+
+
+def test_realitycapture_xmp_files_pose_the_photos_they_stand_beside(synthetic, truth, tmp_path):
+    """Photos padded on the right (their principal point left of centre), each with RealityCapture's XMP file, its
+    pose an element or an attribute; one photo RealityCapture did not align (its file holds no pose), and a photo
+    editor's sidecar of another's name that is no pose file."""
+    folder, pad = tmp_path / "aligned", 40
+    names = {}
+    for i, frame in enumerate(sorted(truth["frames"], key=lambda f: f["file_path"])):
+        write_photo(synthetic, frame, folder / f"IMG_{i:04d}.jpg", scale=2)
+        photo = np.asarray(Image.open(folder / f"IMG_{i:04d}.jpg"))
+        Image.fromarray(np.pad(photo, ((0, 0), (0, pad), (0, 0)))).save(folder / f"IMG_{i:04d}.jpg", quality=95)
+        height, width = photo.shape[0], photo.shape[1] + pad
+        text = realitycapture_xmp(np.asarray(frame["transform_matrix"]), k_matrix(truth, 2.0), width, height, i % 2)
+        if i == 2:  # not aligned: calibration alone
+            text = text.replace("<xcr:Rotation>", "<xcr:Unused>").replace("</xcr:Rotation>", "</xcr:Unused>")
+        (folder / f"IMG_{i:04d}.xmp").write_text(text)
+        if i != 2:
+            names[f"IMG_{i:04d}"] = Path(frame["file_path"]).stem
+    run(folder, tmp_path / "out", f"ingest.max_side={2 * truth['w'] + pad}")
+    poses = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    want = {Path(f["file_path"]).stem: np.asarray(f["transform_matrix"]) for f in truth["frames"]}
+    assert poses["source"] == "realitycapture" and sorted(f["name"] for f in poses["frames"]) == sorted(names)
+    for frame in poses["frames"]:
+        np.testing.assert_allclose(frame["transform_matrix"], want[names[frame["name"]]], atol=1e-6)
+    for key, value in {"fl_x": 2 * truth["fl_x"], "cx": 2 * truth["cx"], "cy": 2 * truth["cy"],
+                       "w": 2 * truth["w"] + pad, "h": 2 * truth["h"]}.items():
+        assert poses[key] == pytest.approx(value, rel=1e-6), key
+
+    from stages.sfm import pose_files
+    edited = tmp_path / "edited"  # Lightroom's sidecars: the same names, no pose
+    for i in range(3):
+        write_photo(synthetic, truth["frames"][i], edited / f"IMG_{i:04d}.jpg")
+        (edited / f"IMG_{i:04d}.xmp").write_text('<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF><rdf:Description '
+                                                  'crs:Exposure2012="+0.50"/></rdf:RDF></x:xmpmeta>')
+    assert pose_files.candidates(edited)["realitycapture"] == []
+
+
+def test_realitycapture_lens_projects_as_the_opencv_lens_it_names(synthetic, truth, tmp_path):
+    """A Brown lens with three radial and two tangential terms (OpenCV's k1, k2, p1, p2, k3), written in
+    RealityCapture's order (k1, k2, k3, k4, t1, t2: t1 OpenCV's p2, as AliceVision reads them): the imported camera
+    projects points where OpenCV's lens does. A fourth radial term (brown4), which COLMAP's model lacks, is folded
+    into the others within a tenth of a pixel."""
+    import cv2
+    import pycolmap
+    k = k_matrix(truth)[:3, :3]
+    w, h = truth["w"], truth["h"]
+    points = np.random.default_rng(0).uniform([-w / 2, -h / 2], [w / 2, h / 2], (200, 2)) / truth["fl_x"]
+    points = np.concatenate([points, np.ones((len(points), 1))], axis=1)
+    r2 = (points[:, :2] ** 2).sum(axis=1, keepdims=True)
+    fourth_radial = points[:, :2] * (1 - 0.2 * r2 + 0.05 * r2 ** 2 + 0.02 * r2 ** 3 + 0.5 * r2 ** 4) * truth["fl_x"] \
+        + [truth["cx"], truth["cy"]]
+    opencv = cv2.projectPoints(points, np.zeros(3), np.zeros(3), k, np.array([-0.2, 0.05, 0.004, -0.003, 0.02]))[0]
+    for model, ours, want, within in [("brown3t2", (-0.2, 0.05, 0.02, 0, -0.003, 0.004), opencv.reshape(-1, 2), 1e-6),
+                                      ("brown4", (-0.2, 0.05, 0.02, 0.5, 0, 0), fourth_radial, 0.1)]:
+        folder = tmp_path / model
+        for i, frame in enumerate(sorted(truth["frames"], key=lambda f: f["file_path"])):
+            write_photo(synthetic, frame, folder / f"{i:03d}.png")
+            (folder / f"{i:03d}.xmp").write_text(realitycapture_xmp(np.asarray(frame["transform_matrix"]), k, w, h,
+                                                                    False, model, ours))
+        Pipeline(folder, tmp_path / f"out_{model}", overrides=[f"ingest.max_side={w}"],
+                 reporter=Reporter(quiet=True)).run(["ingest", "poses"])
+        original = read_json(tmp_path / f"out_{model}" / "poses" / "transforms.json")["original_camera"]
+        camera = pycolmap.Camera(model=original["model"], width=w, height=h, params=original["params"])
+        np.testing.assert_allclose(camera.img_from_cam(points), want, atol=within)
+
+
+def test_realitycapture_csv_poses_the_photos_it_names(synthetic, truth, tmp_path):
+    """RealityCapture's camera CSV beside images/ (as nerfstudio's `ns-process-data realitycapture` reads it): each
+    row's position, heading, pitch and roll (OpenGL's camera turned about z by -heading, x by pitch and y by roll),
+    35 mm focal length and principal point."""
+    folder = tmp_path / "capture"
+    rows = ["#name,x,y,alt,heading,pitch,roll,f,px,py,k1,k2,k3,k4,t1,t2"]
+    names = {}
+    for i, frame in enumerate(sorted(truth["frames"], key=lambda f: f["file_path"])):
+        write_photo(synthetic, frame, folder / "images" / f"IMG_{i:04d}.JPG", scale=2)
+        c2w = np.asarray(frame["transform_matrix"])
+        rotation = c2w[:3, :3]
+        pitch, roll = np.arcsin(rotation[2, 1]), np.arctan2(-rotation[2, 0], rotation[2, 2])
+        about_x = np.array([[1, 0, 0], [0, np.cos(pitch), -np.sin(pitch)], [0, np.sin(pitch), np.cos(pitch)]])
+        about_y = np.array([[np.cos(roll), 0, np.sin(roll)], [0, 1, 0], [-np.sin(roll), 0, np.cos(roll)]])
+        about_z = rotation @ about_y.T @ about_x.T
+        heading = -np.arctan2(about_z[1, 0], about_z[0, 0])
+        side = 2 * max(truth["w"], truth["h"])
+        values = [*c2w[:3, 3], *np.degrees([heading, pitch, roll]), truth["fl_x"] * 2 * 36 / side,
+                  (2 * truth["cx"] - truth["w"]) / side, (2 * truth["cy"] - truth["h"]) / side, 0, 0, 0, 0, 0, 0]
+        rows.append(",".join([f"IMG_{i:04d}.JPG"] + [f"{v:.15g}" for v in values]))
+        names[f"IMG_{i:04d}"] = Path(frame["file_path"]).stem
+    (folder / "cameras.csv").write_text("\n".join(rows) + "\n")
+    (folder / "notes.csv").write_text("photo,comment\nIMG_0000.JPG,first\n")  # no camera export
+    run(folder, tmp_path / "out", f"ingest.max_side={truth['w']}")
+    assert assert_poses(tmp_path / "out", truth, names)["source"] == "realitycapture"
+
+
 def turn_taking(direction: np.ndarray, to: np.ndarray) -> np.ndarray:
     """A 4x4 rotation taking the unit `direction` to the unit `to` (about their common normal)."""
     axis = np.cross(direction, to)
