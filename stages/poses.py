@@ -75,16 +75,16 @@ def run(ctx) -> dict:
                                   "motion": denser["motion"],
                                   "posed_at": [full_records[0]["width"], full_records[0]["height"]]}
                 records = retried
-            if not is_video(ctx.scene):  # a drone's photos say which way is up; a 360 frame's views are cut level
-                pitches = {f"{r['name']}.png": pitch for r in records if "panorama" not in r
-                           and (pitch := gimbal.pitch(photo_folder(ctx.scene) / r["source"])) is not None}
-                gravity, info["gimbal"] = gimbal.gravity(reconstruction, pitches) if pitches else (None, None)
         else:
             source, imported = found
             reconstruction, info = imported.reconstruction, {"seconds": {}}
             source_path, bounds, gravity = imported.path, imported.bounds, imported.gravity
             ctx.report.info(f"importing {source} poses from {imported.path}")
             left_out = _check_registered(reconstruction, records, s.min_registered_share, f"{imported.path}")
+        if gravity is None and not is_video(ctx.scene):  # a drone's photos say which way is up, whoever posed them
+            pitches = {f"{r['name']}.png": pitch for r in records if "panorama" not in r  # 360 views are cut level
+                       and (pitch := gimbal.pitch(photo_folder(ctx.scene) / r["source"])) is not None}
+            gravity, info["gimbal"] = gimbal.gravity(reconstruction, pitches) if pitches else (None, None)
         step = time.perf_counter()
         written = write_poses(ctx.work, ctx.scratch, ingest, reconstruction, records, source, source_path, bounds,
                               ctx.report, gravity)

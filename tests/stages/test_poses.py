@@ -128,13 +128,13 @@ def dji_xmp(pitch_deg: float) -> bytes:
             + b"</rdf:RDF></x:xmpmeta>")
 
 
-def test_a_drone_survey_looking_down_takes_up_from_its_gimbal_pitch(tmp_path):
-    # Rows flown over the still life, the drone heading one way throughout and its camera 10 degrees off straight
-    # down: the cameras' own up axes all lie near the heading, so only the photos' gimbal pitch says which way is up.
+def drone_survey(folder: Path) -> dict[str, np.ndarray]:
+    """Rows flown over the still life, the drone heading one way throughout and its camera 10 degrees off straight
+    down, each photo carrying DJI's gimbal pitch; the cameras' own up axes all lie near the heading, so only the
+    pitch says which way is up (+z). Returns each photo's camera-to-world."""
     scene = build_scene("unbounded", seed=4)
     k = Intrinsics.from_frame({"fl_x": 277.0, "fl_y": 277.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240})
-    folder = tmp_path / "survey"
-    folder.mkdir()
+    folder.mkdir(parents=True)
     truth = {}
     for row, y in enumerate(np.linspace(-1.2, 0.8, 4)):
         heading = np.array([0.0, 1.0, 0.0])
@@ -146,16 +146,39 @@ def test_a_drone_survey_looking_down_takes_up_from_its_gimbal_pitch(tmp_path):
             Image.fromarray(render_view(scene, c2w, k, supersample=1)[0]).save(folder / f"{name}.jpg", quality=95,
                                                                                xmp=dji_xmp(-80.0))
             truth[name] = c2w
-    manifest = run_poses(folder, tmp_path / "out")
+    return truth
+
+
+def assert_up_from_gimbal(out: Path, truth: dict[str, np.ndarray]) -> None:
+    manifest = read_json(out / "poses" / "manifest.json")
     assert "up from the gimbal pitch of 20 photos" in manifest["summary"]["line"]
-    transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    transforms = read_json(out / "poses" / "transforms.json")
     up = np.asarray(transforms["up"])
     cameras = np.stack([np.asarray(frame["transform_matrix"]) for frame in transforms["frames"]])
     assert camera_up(cameras, inward=False)[0] @ up / np.linalg.norm(up) < 0.5  # what the cameras alone would take
-    for frame in transforms["frames"]:  # up seen from each camera, as SfM placed it and as it truly is
+    for frame in transforms["frames"]:  # up seen from each camera, as it was posed and as it truly is
         seen = np.linalg.inv(np.asarray(frame["transform_matrix"]))[:3, :3] @ up
         true = np.linalg.inv(truth[frame["name"]])[:3, :3] @ [0.0, 0.0, 1.0]
         assert np.degrees(np.arccos(np.clip(seen @ true, -1, 1))) < 1.0
+
+
+def test_a_drone_survey_looking_down_takes_up_from_its_gimbal_pitch(tmp_path):
+    truth = drone_survey(tmp_path / "survey")
+    run_poses(tmp_path / "survey", tmp_path / "out")
+    assert_up_from_gimbal(tmp_path / "out", truth)
+
+
+def test_a_drone_surveys_own_poses_take_up_from_its_gimbal_pitch_where_their_file_gives_none(tmp_path):
+    # Poses another tool made, in a frame of its own (turned, as SfM's frames are, with no up in the file).
+    truth = drone_survey(tmp_path / "capture" / "images")
+    turn = np.eye(4)
+    turn[:3, :3] = cv2.Rodrigues(np.array([0.7, -0.4, 1.1]))[0]
+    frames = [{"file_path": f"images/{name}.jpg", "transform_matrix": (turn @ c2w).tolist()}
+              for name, c2w in truth.items()]
+    (tmp_path / "capture" / "transforms.json").write_text(json.dumps(
+        {"fl_x": 277.0, "fl_y": 277.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240, "frames": frames}))
+    run_poses(tmp_path / "capture", tmp_path / "out")
+    assert_up_from_gimbal(tmp_path / "out", truth)  # each camera sees up as it truly does, whatever the frame
 
 
 def test_normalize_boxes_a_room_alike_whether_sfm_posed_it_or_its_poses_came_with_it(tmp_path):
