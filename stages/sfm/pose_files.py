@@ -1,7 +1,7 @@
 """Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy, IDR/NeuS cameras,
 Metashape cameras .xml, OpenSfM reconstruction.json, NSVF's or NeRF++'s pose folders, Polycam's camera folder,
-MVSNet's cams/, Record3D's metadata and RealityCapture's XMP files or CSV the importers (pose_import.py) could
-read. Finding them reads no pose, so a cache key lists them without loading COLMAP."""
+MVSNet's cams/, Record3D's metadata, RealityCapture's XMP files or CSV and Meshroom's cameras.sfm the importers
+(pose_import.py) could read. Finding them reads no pose, so a cache key lists them without loading COLMAP."""
 from __future__ import annotations
 
 import json
@@ -12,7 +12,7 @@ from stages.capture.photos import (DATASET_SPLITS, IMAGE_SUFFIXES, POLYCAM_CAMER
                                    split_folder, split_layout)
 
 KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf", "polycam", "mvsnet", "record3d",
-         "realitycapture")
+         "realitycapture", "meshroom")
 # IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
 IDR_FILES = ("cameras_sphere.npz", "cameras.npz")
 # Bytes of a file read to tell a tool's pose file from others of its type (Metashape's XML, Record3D's JSON).
@@ -23,6 +23,8 @@ RECORD3D_FILES = ("metadata.json", "metadata")
 # CSV export that the importer reads.
 REALITYCAPTURE_MARKS = (b"capturingreality.com/ns/xcr", b"Rotation", b"Position")
 REALITYCAPTURE_COLUMNS = ("#name", "x", "y", "alt", "heading", "pitch", "roll", "f", "px", "py")
+# Meshroom's SfMData beside the photos, or in a Meshroom project's cache there.
+MESHROOM_FILES = ("*.sfm", "MeshroomCache/StructureFromMotion/*/cameras.sfm")
 
 
 def colmap_models(folder: Path) -> list[Path]:
@@ -56,6 +58,7 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
         found["record3d"] += [place / name for name in RECORD3D_FILES if is_record3d(place / name)]
         found["mvsnet"] += [place / "cams"] if names_a_photo(place / "cams", "_cam.txt", folder) else []
         found["realitycapture"] += [p for p in sorted(place.glob("*.csv")) if is_realitycapture_csv(p)]
+        found["meshroom"] += [p for pattern in MESHROOM_FILES for p in sorted(place.glob(pattern)) if is_meshroom(p)]
     if aligned_by_realitycapture(folder):  # its XMP files before its CSV
         found["realitycapture"].insert(0, folder)
     found["polycam"] += [camera_folder for camera_folder in [folder.parent / POLYCAM_CAMERAS.get(folder.name, "")]
@@ -114,6 +117,13 @@ def is_realitycapture_csv(path: Path) -> bool:
     first_line = _head(path).decode("utf-8-sig", errors="replace").splitlines()[:1]
     header = [column.strip().lower() for column in first_line[0].split(",")] if first_line else []
     return all(column in header for column in REALITYCAPTURE_COLUMNS)
+
+
+def is_meshroom(path: Path) -> bool:
+    """Whether a file is Meshroom's SfMData as JSON (its head holds AliceVision's version and views; an .sfm may be
+    Alembic, which is not read)."""
+    head = _head(path)
+    return head.lstrip().startswith(b"{") and b'"version"' in head and b'"views"' in head
 
 
 def is_metashape(path: Path) -> bool:

@@ -19,11 +19,11 @@ import pycolmap
 
 from stages.capture.photos import (DATASET_SPLITS, POSE_FOLDERS, frame_photo, lexical_path, photo_folder,
                                    split_layout)
-from stages.sfm import metashape, mvsnet, nsvf, opensfm, polycam, realitycapture, record3d
+from stages.sfm import meshroom, metashape, mvsnet, nsvf, opensfm, polycam, realitycapture, record3d
 from stages.sfm.imported_model import (CameraTable, Imported, Lens, add_image, add_view, at_ingested_size, file_stem,
                                        finite_number, scale_factor)
 from stages.sfm.pose_files import (KINDS, aligned_by_realitycapture, candidates, colmap_models, is_colmap_model,
-                                   is_realitycapture_csv)
+                                   is_meshroom, is_realitycapture_csv)
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_llff, opengl_c2w_from_projection
 from plenoxels.core.errors import UserError
 
@@ -47,6 +47,8 @@ def kind_of(path: Path) -> str:
         return "opensfm"
     elif path.name in record3d.METADATA_FILES:
         return "record3d"
+    elif path.suffix.lower() == ".sfm" or is_meshroom(path):  # Meshroom's SfMData, as .sfm or .json
+        return "meshroom"
     elif path.suffix == ".json":
         return "transforms"
     elif path.suffix == ".npy":
@@ -60,7 +62,7 @@ def kind_of(path: Path) -> str:
     raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json, a poses_bounds.npy, an "
                     "IDR/NeuS cameras*.npz, a Metashape cameras .xml, an OpenSfM reconstruction.json, an NSVF pose/ "
                     "folder, Polycam's keyframes/cameras/, MVSNet's cams/, Record3D's metadata.json, or "
-                    "RealityCapture's camera CSV or a folder of its XMP files")
+                    "RealityCapture's camera CSV or a folder of its XMP files, or Meshroom's cameras.sfm")
 
 
 def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
@@ -86,6 +88,8 @@ def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
         return from_record3d(path, records)
     if kind == "realitycapture":
         return from_realitycapture_csv(path, records)
+    if kind == "meshroom":
+        return from_meshroom(path, records)
     return from_llff(path, records)
 
 
@@ -533,3 +537,33 @@ def from_realitycapture_csv(path: Path, records: list[dict]) -> Imported:
         add_image(reconstruction, len(reconstruction.images) + 1, record,
                   cameras.id_for(at_ingested_size(k, record, where), lens), c2w, where)
     return Imported(reconstruction, path, missing, gravity=realitycapture.GRAVITY)
+
+
+# ---- Meshroom's cameras.sfm --------------------------------------------------------------------------------
+
+def from_meshroom(path: Path, records: list[dict]) -> Imported:
+    """Poses from Meshroom's SfMData (stages/sfm/meshroom.py): a photo takes the view of its file's stem, where one
+    view alone has it and SfM placed it."""
+    version, views, intrinsics, poses = meshroom.read(path)
+    by_stem: dict[str, list[dict]] = {}
+    for view in views:
+        by_stem.setdefault(file_stem(str(view.get("path", ""))), []).append(view)
+    reconstruction = pycolmap.Reconstruction()
+    cameras = CameraTable(reconstruction)
+    missing = []
+    for record in records:
+        named = by_stem.get(file_stem(record["source"]), [])
+        pose = poses.get(str(named[0].get("poseId"))) if len(named) == 1 else None
+        if pose is None:
+            missing.append(record["name"])
+            continue
+        where = f"{path.name}, view {named[0].get('viewId')} ({Path(str(named[0].get('path'))).name})"
+        intrinsic = intrinsics.get(str(named[0].get("intrinsicId")))
+        if intrinsic is None:
+            raise UserError(f"{where}: its intrinsic {named[0].get('intrinsicId')} is not in the file; export it "
+                            "again or set poses.source=sfm")
+        k, lens = meshroom.camera(intrinsic, version, where)
+        add_image(reconstruction, len(reconstruction.images) + 1, record,
+                  cameras.id_for(at_ingested_size(k, record, where), lens), meshroom.camera_to_world(pose, where),
+                  where)
+    return Imported(reconstruction, path, missing, gravity=meshroom.GRAVITY)

@@ -364,6 +364,26 @@ def realitycapture_csv(spoil):
     return edit
 
 
+def meshroom(spoil):
+    """Meshroom's cameras.sfm beside images/ for the template's photos (AliceVision 1.2.11: every value a string),
+    spoiled by `spoil` (a function of its data; a string it returns is written as the file's text)."""
+    def edit(folder, meta):
+        views, poses = [], []
+        for n, f in enumerate(meta["frames"]):
+            w2c = np.linalg.inv(np.array(f["transform_matrix"]) @ np.diag([1.0, -1, -1, 1]))
+            views.append({"viewId": str(n), "poseId": str(n), "intrinsicId": "7", "path": f["file_path"]})
+            poses.append({"poseId": str(n), "pose": {"transform": {
+                "rotation": [str(v) for v in w2c[:3, :3].T.ravel()],
+                "center": [str(v) for v in np.array(f["transform_matrix"])[:3, 3]]}}})
+        intrinsic = {"intrinsicId": "7", "width": str(meta["w"]), "height": str(meta["h"]), "sensorWidth": "36",
+                     "type": "pinhole", "distortionType": "none", "undistortionType": "none",
+                     "focalLength": str(meta["fl_y"] * 36 / max(meta["w"], meta["h"])),
+                     "pixelRatio": str(meta["fl_y"] / meta["fl_x"]), "principalPoint": ["0", "0"]}
+        data = spoil({"version": ["1", "2", "11"], "views": views, "intrinsics": [intrinsic], "poses": poses})
+        (folder / "cameras.sfm").write_text(data if isinstance(data, str) else json.dumps(data))
+    return edit
+
+
 def first_pose(text):
     return lambda folder: sorted((folder / "pose").iterdir())[0].write_text(text)
 
@@ -436,6 +456,15 @@ POSE_KINDS = {
                                                                                       1))),
     "realitycapture_csv_focal_zero": posed(realitycapture_csv(lambda text: text.replace(",30,", ",0,"))),
     "realitycapture_csv_cut_short": posed(realitycapture_csv(lambda text: text[:text.index("\n") + 12])),
+    "meshroom_cut_short": posed(meshroom(lambda d: json.dumps(d)[:-40])),
+    "meshroom_rotation_text": posed(meshroom(lambda d: {**d, "poses": [{**d["poses"][0], "pose": {"transform": {
+        **d["poses"][0]["pose"]["transform"], "rotation": ["up"] * 9}}}] + d["poses"][1:]})),
+    "meshroom_no_intrinsic": posed(meshroom(lambda d: {**d, "intrinsics": []})),
+    "meshroom_fisheye1": posed(meshroom(lambda d: {**d, "intrinsics": [{**d["intrinsics"][0],
+                                                                        "distortionType": "fisheye1"}]})),
+    "meshroom_focal_nan": posed(meshroom(lambda d: {**d, "intrinsics": [{**d["intrinsics"][0],
+                                                                         "focalLength": "nan"}]})),
+    "meshroom_views_not_a_list": posed(meshroom(lambda d: {**d, "views": 7})),
     "metashape_component_flat": posed(metashape(lambda text: text.replace(
         "<cameras>", '<components><component id="0"><transform><scale>0</scale></transform></component></components>'
         "<cameras>").replace('sensor_id="0"', 'sensor_id="0" component_id="0"'))),

@@ -375,6 +375,57 @@ def test_realitycapture_csv_poses_the_photos_it_names(synthetic, truth, tmp_path
     assert assert_poses(tmp_path / "out", truth, names)["source"] == "realitycapture"
 
 
+def meshroom_intrinsic(truth: dict, version: tuple[int, int, int], scale: float) -> dict:
+    """A camera as the AliceVision of `version` writes it (every value a string), for photos at `scale` x the truth's
+    size, on a phone's sensor 6.17 mm wide."""
+    fx, fy, cx, cy = (truth[key] * scale for key in ("fl_x", "fl_y", "cx", "cy"))
+    w, h, sensor = truth["w"] * scale, truth["h"] * scale, 6.17
+    camera = {"intrinsicId": "1052", "width": str(w), "height": str(h), "sensorWidth": str(sensor),
+              "sensorHeight": "4.55", "serialNumber": "phone", "type": "pinhole",
+              "distortionType": "radialk3", "distortionParams": ["0", "0", "0"], "undistortionType": "none"}
+    if version < (1, 2, 0):
+        camera["pxFocalLength"] = str(fx)
+    elif version < (1, 2, 2):
+        camera["pxFocalLength"] = [str(fx), str(fy)]
+    elif version < (1, 2, 5):
+        camera.update(focalLength=str(fx * sensor / w), pixelRatio=str(fx / fy))
+    elif version < (1, 2, 11):
+        camera.update(focalLength=str(fx * sensor / w), pixelRatio=str(fy / fx))
+    else:
+        camera.update(focalLength=str(fy * sensor / max(w, h)), pixelRatio=str(fy / fx))
+    camera["principalPoint"] = [str(cx), str(cy)] if version < (1, 2, 1) else [str(cx - w / 2), str(cy - h / 2)]
+    if version < (1, 2, 8):
+        camera["type"] = "radial3"
+    return camera
+
+
+@pytest.mark.parametrize("version", [(1, 2, 11), (1, 2, 6), (1, 2, 4), (1, 2, 0), (1, 0, 0)])
+def test_meshroom_cameras_pose_the_photos_they_name(synthetic, truth, tmp_path, version):
+    """A Meshroom project's cameras.sfm (its cache beside the photos; the photos' paths those of the machine it ran
+    on), in each of the file's versions whose focal length and principal point differ; one photo SfM did not place."""
+    folder = tmp_path / "capture"
+    views, poses, names = [], [], {}
+    for i, frame in enumerate(sorted(truth["frames"], key=lambda f: f["file_path"])):
+        write_photo(synthetic, frame, folder / "images" / f"IMG_{i:04d}.JPG", scale=2)
+        views.append({"viewId": str(9000 + i), "poseId": str(9000 + i), "intrinsicId": "1052",
+                      "path": f"C:/Users/someone/shots/IMG_{i:04d}.JPG", "width": str(2 * truth["w"]),
+                      "height": str(2 * truth["h"])})
+        if i == 5:
+            continue
+        w2c = np.linalg.inv(np.asarray(frame["transform_matrix"]) @ FLIP_YZ)
+        poses.append({"poseId": str(9000 + i), "pose": {"transform": {
+            "rotation": [repr(float(v)) for v in w2c[:3, :3].T.ravel()],  # column by column
+            "center": [repr(float(v)) for v in np.asarray(frame["transform_matrix"])[:3, 3]]}, "locked": "0"}})
+        names[f"IMG_{i:04d}"] = Path(frame["file_path"]).stem
+    data = {"version": [str(v) for v in version], "featuresFolders": [], "matchesFolders": [], "views": views,
+            "intrinsics": [meshroom_intrinsic(truth, version, 2.0)], "poses": poses}
+    cache = folder / "MeshroomCache" / "StructureFromMotion" / "3f5a0c"
+    cache.mkdir(parents=True)
+    (cache / "cameras.sfm").write_text(json.dumps(data, indent=4))
+    run(folder, tmp_path / "out", f"ingest.max_side={truth['w']}")
+    assert assert_poses(tmp_path / "out", truth, names)["source"] == "meshroom"
+
+
 def turn_taking(direction: np.ndarray, to: np.ndarray) -> np.ndarray:
     """A 4x4 rotation taking the unit `direction` to the unit `to` (about their common normal)."""
     axis = np.cross(direction, to)

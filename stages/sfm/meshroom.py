@@ -1,0 +1,120 @@
+"""Meshroom's (AliceVision's) cameras: the SfMData file its StructureFromMotion node writes (`cameras.sfm`, JSON),
+read for the importer (pose_import.from_meshroom).
+
+Every value is written as a string. `views` give each photo's path, its pose's and camera's ids; `poses` a rotation
+(world-to-camera, in OpenCV's camera axes: x right, y down, z forward; its nine numbers column by column) and the
+camera's centre; `intrinsics` a camera for photos of `width` x `height`: its focal length and principal point, whose
+units changed with the file's `version` (`focal_lengths`), and its lens (`distortionType`, and its
+`distortionParams`). A photo SfM did not place has a view and no pose."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
+from plenoxels.core.errors import UserError
+from stages.sfm.imported_model import NO_LENS, Lens
+
+GRAVITY = None  # SfM's frame, wherever its first pair put it
+# AliceVision's lenses as COLMAP models them: the model and the coefficients' order (their names in AliceVision's
+# distortionParams, 0 where COLMAP has a term AliceVision lacks). The files before version 1.2.8 name the lens in
+# the camera's `type`.
+LENSES = {"none": ("OPENCV", ()), "radialk1": ("OPENCV", ("k1", 0, 0, 0)),
+          "radialk3": ("FULL_OPENCV", ("k1", "k2", 0, 0, "k3", 0, 0, 0)),
+          "brown": ("FULL_OPENCV", ("k1", "k2", "t1", "t2", "k3", 0, 0, 0)),
+          "fisheye4": ("OPENCV_FISHEYE", ("k1", "k2", "k3", "k4"))}
+PARAMETERS = {"none": (), "radialk1": ("k1",), "radialk3": ("k1", "k2", "k3"), "brown": ("k1", "k2", "k3", "t1", "t2"),
+              "fisheye4": ("k1", "k2", "k3", "k4")}
+OLDER_TYPES = {"pinhole": "none", "radial1": "radialk1", "radial3": "radialk3", "brown": "brown",
+               "fisheye4": "fisheye4"}
+
+
+def read(path: Path) -> tuple[tuple[int, ...], list[dict], dict[str, dict], dict[str, dict]]:
+    """The file's version, its views, and its intrinsics and poses by id."""
+    try:
+        data = json.loads(path.read_text())
+        version = tuple(int(v) for v in data.get("version", ["1", "0", "0"]))
+        views = [view for view in data["views"] if isinstance(view, dict)]
+        intrinsics = {str(i["intrinsicId"]): i for i in data.get("intrinsics", []) if isinstance(i, dict)}
+        poses = {str(p["poseId"]): p["pose"] for p in data.get("poses", []) if isinstance(p, dict)}
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError):
+        raise UserError(f"{path} is not Meshroom's SfMData (a JSON object with views, intrinsics and poses); export "
+                        "it again from the StructureFromMotion node or set poses.source=sfm") from None
+    return version, views, intrinsics, poses
+
+
+def _number(value, name: str, where: str) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    if not math.isfinite(number):
+        raise UserError(f"{where}: {name} is {value!r}, not a finite number; fix it or set poses.source=sfm")
+    return number
+
+
+def _numbers(values, count: int, name: str, where: str) -> np.ndarray:
+    if not isinstance(values, list) or len(values) != count:
+        raise UserError(f"{where}: {name} is not {count} numbers; fix it or set poses.source=sfm")
+    return np.array([_number(v, name, where) for v in values])
+
+
+def camera_to_world(pose: dict, where: str) -> np.ndarray:
+    """A pose's camera-to-world (ours)."""
+    transform = pose.get("transform") if isinstance(pose, dict) else None
+    if not isinstance(transform, dict):
+        raise UserError(f"{where}: the pose has no transform; fix it or set poses.source=sfm")
+    rotation = _numbers(transform.get("rotation"), 9, "rotation", where).reshape(3, 3).T  # written column by column
+    centre = _numbers(transform.get("center"), 3, "center", where)
+    if abs(np.linalg.det(rotation)) < 1e-9:
+        raise UserError(f"{where}: the pose's rotation is not invertible; fix it or set poses.source=sfm")
+    return opengl_c2w_from_colmap_w2c(rotation, -rotation @ centre)
+
+
+def focal_lengths(intrinsic: dict, version: tuple[int, ...], width: float, height: float,
+                  where: str) -> tuple[float, float]:
+    """fx, fy in pixels. From 1.2.2 the file gives millimetres on a sensor `sensorWidth` wide and a ratio of the two,
+    which was fx / fy until 1.2.5, fy / fx since; since 1.2.11 the millimetres are fy's, across the longer side."""
+    if version < (1, 2, 2):
+        focal = intrinsic.get("pxFocalLength")
+        fx, fy = (focal, focal) if version < (1, 2, 0) or not isinstance(focal, list) else (focal + [None, None])[:2]
+        return _number(fx, "pxFocalLength", where), _number(fy, "pxFocalLength", where)
+    millimetres = _number(intrinsic.get("focalLength"), "focalLength", where)
+    sensor = _number(intrinsic.get("sensorWidth", 36.0), "sensorWidth", where)
+    ratio = _number(intrinsic.get("pixelRatio", 1.0), "pixelRatio", where)
+    if min(sensor, ratio) <= 0:
+        raise UserError(f"{where}: sensorWidth and pixelRatio must be positive; fix it or set poses.source=sfm")
+    if version >= (1, 2, 11):
+        fy = millimetres * max(width, height) / sensor
+        return fy / ratio, fy
+    fx = millimetres * width / sensor
+    return fx, (fx / ratio if version < (1, 2, 5) else fx * ratio)
+
+
+def camera(intrinsic: dict, version: tuple[int, ...], where: str) -> tuple[Intrinsics, Lens]:
+    """An intrinsic's pinhole (for its width x height) and lens."""
+    width, height = (_number(intrinsic.get(key), key, where) for key in ("width", "height"))
+    kind = str(intrinsic.get("type", "")).lower()
+    lens_name = OLDER_TYPES.get(kind) if version < (1, 2, 8) else \
+        str(intrinsic.get("distortionType", "none")).lower() if kind == "pinhole" else None
+    undistortion = str(intrinsic.get("undistortionType", "none")).lower()
+    if lens_name not in LENSES or undistortion != "none":
+        raise UserError(f"{where}: its camera is AliceVision's {kind} ({intrinsic.get('distortionType', kind)} lens"
+                        f"{', ' + undistortion + ' undistortion' if undistortion != 'none' else ''}), which this tool "
+                        f"does not read; reconstruct with a pinhole camera ({', '.join(LENSES)} lens) or set "
+                        "poses.source=sfm")
+    fx, fy = focal_lengths(intrinsic, version, width, height, where)
+    offset = _numbers(intrinsic.get("principalPoint"), 2, "principalPoint", where)
+    if version >= (1, 2, 1):  # from the photo's centre
+        offset = offset + [width / 2, height / 2]
+    if min(fx, fy, width, height) <= 0:
+        raise UserError(f"{where}: its focal lengths and size are not positive; fix it or set poses.source=sfm")
+    given = intrinsic.get("distortionParams", [])
+    values = dict(zip(PARAMETERS[lens_name], _numbers(given, len(PARAMETERS[lens_name]), "distortionParams", where)))
+    model, order = LENSES[lens_name]
+    coefficients = tuple(values[term] if isinstance(term, str) else 0.0 for term in order)
+    lens = (model, coefficients) if any(coefficients) or model == "OPENCV_FISHEYE" else NO_LENS
+    return Intrinsics(fx, fy, offset[0], offset[1], int(round(width)), int(round(height))), lens
