@@ -6,7 +6,6 @@ ingest/images.json listing every kept image with its original size, scale, sharp
 """
 from __future__ import annotations
 
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,7 @@ from stages.capture.panorama import (FRAME_SHARE, PANORAMA_VIEWS, frame_side, is
                                      photos_equirect, says_equirect, split_frame, view_focal, view_side)
 from stages.capture.video import clip_samples, sequence_step, video_frames
 from stages.sfm import pose_files
-from stages.common.text import short_list, text_name
+from stages.common.text import short_list, size_words, text_name
 from plenoxels.core.errors import UserError
 from plenoxels.core.photo_colour import capture_key
 from stages.settings.ingest import Settings
@@ -69,6 +68,8 @@ def run(ctx) -> dict:
                   "colour_spread": colour_spread(rgb), "mask": None}
         if split:
             record["split"] = split
+        if photo_orientation != 1:  # its pixels as stored are turned (EXIF): a pose file may describe them so
+            record["orientation"] = photo_orientation
         if within:
             record["bars_cropped"] = within
         if panorama:  # a 360 frame's view: a pinhole of known focal length, posed with the frame's other views
@@ -166,7 +167,7 @@ def run(ctx) -> dict:
             mask_file = mask_of.get(folder / relative)
             picture = bars[1] if bars is not None and size == bars[0] else None
             keep(name_of[relative], relative.as_posix(), rgb, alpha, size, split, mask_file,
-                 stored_orientation(folder / relative) if mask_file else 1, picture)
+                 stored_orientation(folder / relative), picture)
     if unreadable:
         ctx.report.warn(f"skipped {len(unreadable)} file(s) that are not readable photos: {'; '.join(unreadable)}")
 
@@ -252,16 +253,6 @@ def run(ctx) -> dict:
             **({"sequence": {"photos": sequence[0], "step": sequence[1], "apart": round(sequence[2], 4)}}
                if sequence else {}),
             **({"video": clip} if clip is not None else {})}
-
-
-def size_words(records: list[dict]) -> str:
-    """The photos' sizes: '640x480', or the most common first with their counts where they differ (portrait and
-    landscape photos mixed, two cameras)."""
-    sizes = Counter(f"{r['width']}x{r['height']}" for r in records).most_common()
-    if len(sizes) == 1:
-        return sizes[0][0]
-    shown = ", ".join(f"{size} ({count})" for size, count in sizes[:3])
-    return shown + (f" and {len(sizes) - 3} other sizes" if len(sizes) > 3 else "")
 
 
 def video_words(clip: dict, s: Settings) -> str:

@@ -18,6 +18,7 @@ import pycolmap
 from stages.common.json_files import read_json
 from stages.capture.photos import is_video, photo_folder
 from stages.sfm import gimbal, pose_import
+from stages.sfm.imported_model import turned_upright
 from stages.sfm.outputs import write_poses
 from stages.common.text import short_list
 from stages.sfm.reconstruct import colmap_logging, reconstruct
@@ -77,7 +78,8 @@ def run(ctx) -> dict:
                 records = retried
         else:
             source, imported = found
-            reconstruction, info = imported.reconstruction, {"seconds": {}}
+            reconstruction, turned = turned_upright(imported.reconstruction, records)
+            info = {"seconds": {}, **({"turned_upright": turned} if turned else {})}
             source_path, bounds, gravity = imported.path, imported.bounds, imported.gravity
             ctx.report.info(f"importing {source} poses from {imported.path}")
             left_out = _check_registered(reconstruction, records, s.min_registered_share, f"{imported.path}")
@@ -114,6 +116,9 @@ def run(ctx) -> dict:
         line += (f"; the ingested {info['denser']['first_frames']} frames did not hold together, so these poses come "
                  f"from the clip read again with a frame each {info['denser']['motion']:.1%} of the view's diagonal, "
                  f"posed at {info['denser']['posed_at'][0]}x{info['denser']['posed_at'][1]}")
+    if info.get("turned_upright"):
+        line += (f"; the pose file describes {info['turned_upright']} photos as stored, a quarter turn from upright "
+                 "(their EXIF orientation), so their cameras are turned with them")
     if info.get("other_scene"):
         line += f"; {len(info['other_scene'])} photos share no match with the rest (something else), left out"
     if info.get("gimbal"):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections import Counter
 from typing import Any
 
 from plenoxels.core.errors import UserError
@@ -71,3 +72,13 @@ def text_name(name: str) -> str:
     except UnicodeEncodeError:
         escaped = name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
         return escaped.replace("\\x", "%")
+
+
+def size_words(records: list[dict]) -> str:
+    """The photos' sizes: '640x480', or the most common first with their counts where they differ (portrait and
+    landscape photos mixed, two cameras)."""
+    sizes = Counter(f"{r['width']}x{r['height']}" for r in records).most_common()
+    if len(sizes) == 1:
+        return sizes[0][0]
+    shown = ", ".join(f"{size} ({count})" for size, count in sizes[:3])
+    return shown + (f" and {len(sizes) - 3} other sizes" if len(sizes) > 3 else "")

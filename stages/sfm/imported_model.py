@@ -20,6 +20,11 @@ NON_RIGID_STRETCH = 1.02
 
 # How far an image's size may be from the pose file's size after scaling before we call it a different image.
 SIZE_TOLERANCE_PX = 1.5
+# A photo's EXIF orientations that turn its stored pixels a quarter to show it upright -> the turn from the stored
+# pixels' camera axes to the upright photo's (OpenCV's: x right, y down, z forward). 6: turned clockwise (a phone held
+# upright), 8: anticlockwise. 5 and 7 also mirror it, which no camera does.
+QUARTER_TURNS = {6: np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+                 8: np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])}
 # A lens as COLMAP models it: the camera model's name and its distortion coefficients (after fx, fy, cx, cy).
 Lens = tuple[str, tuple[float, ...]]
 NO_LENS: Lens = ("OPENCV", ())  # a pinhole
@@ -75,14 +80,32 @@ def finite_number(value, key: str, where: str, positive: bool = False) -> float:
     return number
 
 
+def as_stored(record: dict, pose_w: float, pose_h: float) -> bool:
+    """Whether a pose file describes the photo as stored, a quarter turn from upright (its EXIF orientation not
+    applied, as COLMAP reads photos): its size has the other aspect, as the stored pixels do."""
+    if record.get("orientation") not in QUARTER_TURNS:
+        return False
+    factor = record["height"] / pose_w
+    return abs(pose_h * factor - record["width"]) <= SIZE_TOLERANCE_PX * max(1.0, factor) < abs(
+        pose_h * record["width"] / pose_w - record["height"])
+
+
+def ingested_size(record: dict, pose_w: float, pose_h: float) -> tuple[int, int]:
+    """The ingested photo's (width, height) as the pose file sees it: as stored where it describes the pixels so."""
+    turned = as_stored(record, pose_w, pose_h)
+    return (record["height"], record["width"]) if turned else (record["width"], record["height"])
+
+
 def scale_factor(record: dict, pose_w: float, pose_h: float, what: str) -> float:
-    """The factor from the pose file's image size to the ingested one; both sides must agree."""
+    """The factor from the pose file's image size to the ingested one (as the pose file sees it: `ingested_size`);
+    both sides must agree."""
     if "bars_cropped" in record:  # a pose file's camera sees the whole frame
         raise UserError(f"{what} describes the whole frames, but ingest cropped the black bars of {record['source']} "
                         f"to {record['original_width']}x{record['original_height']}; set ingest.crop_bars=false to "
                         "keep whole frames for these poses")
-    factor = record["width"] / pose_w
-    if abs(pose_h * factor - record["height"]) > SIZE_TOLERANCE_PX * max(1.0, factor):
+    width, height = ingested_size(record, pose_w, pose_h)
+    factor = width / pose_w
+    if abs(pose_h * factor - height) > SIZE_TOLERANCE_PX * max(1.0, factor):
         raise UserError(f"{record['source']} is {record['original_width']}x{record['original_height']} but {what} "
                         f"describes {pose_w:g}x{pose_h:g} images (a different aspect); use the matching photos "
                         "or set poses.source=sfm")
@@ -91,9 +114,10 @@ def scale_factor(record: dict, pose_w: float, pose_h: float, what: str) -> float
 
 def at_ingested_size(k: Intrinsics, record: dict, what: str, pose_w: float = 0.0, pose_h: float = 0.0) -> Intrinsics:
     """`k`, a pose file's camera for its images of pose_w x pose_h (k's own size where not given), scaled to the
-    ingested image (`scale_factor`)."""
-    scaled = k.scaled(scale_factor(record, pose_w or k.w, pose_h or k.h, what))
-    return Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, record["width"], record["height"])
+    ingested image as the pose file sees it (`scale_factor`; `turned_upright` turns it where that is as stored)."""
+    pose_w, pose_h = pose_w or k.w, pose_h or k.h
+    scaled = k.scaled(scale_factor(record, pose_w, pose_h, what))
+    return Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, *ingested_size(record, pose_w, pose_h))
 
 
 def _camera(camera_id: int, k: Intrinsics, lens: Lens) -> pycolmap.Camera:
@@ -141,3 +165,75 @@ def add_view(reconstruction: pycolmap.Reconstruction, cameras: CameraTable, reco
     k = Intrinsics(record["focal"], record["focal"], side / 2, record["height"] / 2, side, record["height"])
     add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k), c2w, where,
               yaw_rotation(record["panorama"]["yaw"]))
+
+
+# The camera models whose distortion is radial alone (a quarter turn keeps it), and those with OpenCV's tangential
+# terms (their indices in the parameters), which turn with the photo.
+RADIAL_MODELS = {"SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE",
+                 "RADIAL_FISHEYE", "FOV"}
+TANGENTIAL = {"OPENCV": (6, 7), "FULL_OPENCV": (6, 7)}
+
+
+def turned_camera(camera: pycolmap.Camera, orientation: int, camera_id: int) -> pycolmap.Camera:
+    """The camera of a photo's stored pixels, turned to the photo shown upright (QUARTER_TURNS[orientation])."""
+    if camera.model_name not in RADIAL_MODELS | set(TANGENTIAL):
+        raise UserError(f"the pose file's {camera.model_name} camera describes photos as stored, a quarter turn from "
+                        "upright (EXIF), and its lens does not turn with them here; give the photos upright (their "
+                        "pixels turned) with their poses, or set poses.source=sfm")
+    width, height = camera.width, camera.height
+    turned = pycolmap.Camera(model=camera.model_name, width=height, height=width, params=list(camera.params),
+                             camera_id=camera_id)
+    turned.focal_length_x, turned.focal_length_y = camera.focal_length_y, camera.focal_length_x
+    cx, cy = camera.principal_point_x, camera.principal_point_y
+    turned.principal_point_x, turned.principal_point_y = (height - cy, cx) if orientation == 6 else (cy, width - cx)
+    if camera.model_name in TANGENTIAL:  # OpenCV's (p2, p1) is a vector in the image plane: it turns with it
+        i1, i2 = TANGENTIAL[camera.model_name]
+        p2, p1 = QUARTER_TURNS[orientation][:2, :2] @ [camera.params[i2], camera.params[i1]]
+        params = turned.params
+        params[i1], params[i2] = p1, p2
+        turned.params = params
+    return turned
+
+
+def turned_upright(reconstruction: pycolmap.Reconstruction, records: list[dict]) -> tuple[pycolmap.Reconstruction,
+                                                                                             int]:
+    """The model with each image a pose file describes as its photo is stored, a quarter turn from upright
+    (`as_stored`: its camera has the other aspect), turned to the photo as ingested: its camera, pose and keypoints;
+    and how many were turned."""
+    by_name = {f"{record['name']}.png": record for record in records}
+
+    def orientation(image) -> int | None:
+        record, camera = by_name.get(image.name), reconstruction.cameras[image.camera_id]
+        if record is None or record.get("orientation") not in QUARTER_TURNS:
+            return None
+        return record["orientation"] if (camera.width, camera.height) == (record["height"], record["width"]) \
+            != (record["width"], record["height"]) else None
+
+    turns = {image_id: orientation(image) for image_id, image in reconstruction.images.items()}
+    if not any(turns.values()):
+        return reconstruction, 0
+    out = pycolmap.Reconstruction()
+    camera_ids: dict[tuple[int, int | None], int] = {}
+    for image_id in sorted(turns):
+        image, turn = reconstruction.images[image_id], turns[image_id]
+        camera = reconstruction.cameras[image.camera_id]
+        if (image.camera_id, turn) not in camera_ids:
+            camera_ids[image.camera_id, turn] = new_id = len(camera_ids) + 1
+            out.add_camera_with_trivial_rig(turned_camera(camera, turn, new_id) if turn else pycolmap.Camera(
+                model=camera.model_name, width=camera.width, height=camera.height, params=list(camera.params),
+                camera_id=new_id))
+        keypoints = np.array([p.xy for p in image.points2D], dtype=np.float64).reshape(-1, 2)
+        pose = image.cam_from_world()
+        if turn:
+            u, v = keypoints[:, 0].copy(), keypoints[:, 1].copy()
+            keypoints = np.stack([camera.height - v, u] if turn == 6 else [v, camera.width - u], axis=1)
+            turn_matrix = QUARTER_TURNS[turn]
+            pose = pycolmap.Rigid3d(pycolmap.Rotation3d(turn_matrix @ pose.rotation.matrix()),
+                                    turn_matrix @ pose.translation)
+        out.add_image_with_trivial_frame(pycolmap.Image(name=image.name, keypoints=keypoints,
+                                                        camera_id=camera_ids[image.camera_id, turn],
+                                                        image_id=image_id), pose)
+    for point in reconstruction.points3D.values():
+        out.add_point3D(point.xyz, point.track, point.color)
+    out.update_point_3d_errors()
+    return out, sum(1 for turn in turns.values() if turn)

@@ -21,7 +21,7 @@ from stages.capture.photos import (DATASET_SPLITS, POSE_FOLDERS, frame_photo, le
                                    split_layout)
 from stages.sfm import meshroom, metashape, mvsnet, nsvf, opensfm, polycam, realitycapture, record3d
 from stages.sfm.imported_model import (CameraTable, Imported, Lens, add_image, add_view, at_ingested_size, file_stem,
-                                       finite_number, scale_factor)
+                                       finite_number, ingested_size, scale_factor)
 from stages.sfm.pose_files import (KINDS, aligned_by_realitycapture, candidates, colmap_models, is_colmap_model,
                                    is_meshroom, is_realitycapture_csv)
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_llff, opengl_c2w_from_projection
@@ -159,14 +159,15 @@ def from_colmap(model_dir: Path, records: list[dict]) -> Imported:
             continue
         cam = source.cameras[image.camera_id]
         scale_factor(record, cam.width, cam.height, f"the COLMAP model in {model_dir}")
-        key = (image.camera_id, record["width"], record["height"])
+        width, height = ingested_size(record, cam.width, cam.height)  # as stored, where COLMAP read it so
+        key = (image.camera_id, width, height)
         if key not in camera_ids:
             scaled = pycolmap.Camera(model=cam.model_name, width=cam.width, height=cam.height,
                                      params=list(cam.params), camera_id=len(camera_ids) + 1)
-            scaled.rescale(record["width"], record["height"])
+            scaled.rescale(width, height)
             camera_ids[key] = scaled.camera_id
             out.add_camera_with_trivial_rig(scaled)
-        sx, sy = record["width"] / cam.width, record["height"] / cam.height
+        sx, sy = width / cam.width, height / cam.height
         new_id = len(kept) + 1
         keypoints = np.array([p.xy for p in image.points2D], dtype=np.float64).reshape(-1, 2) * [sx, sy]
         new_image = pycolmap.Image(name=f"{record['name']}.png", keypoints=keypoints, camera_id=camera_ids[key],
