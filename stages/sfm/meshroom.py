@@ -3,13 +3,14 @@ read for the importer (pose_import.from_meshroom).
 
 Every value is written as a string. `views` give each photo's path, its pose's and camera's ids; `poses` a rotation
 (world-to-camera, in OpenCV's camera axes: x right, y down, z forward; its nine numbers column by column) and the
-camera's centre; `intrinsics` a camera for photos of `width` x `height`: its focal length and principal point, whose
+camera's centre (a camera of a rig posed as one: its rig's pose, and its sub-pose in `rigs`); `intrinsics` a camera for photos of `width` x `height`: its focal length and principal point, whose
 units changed with the file's `version` (`focal_lengths`), and its lens (`distortionType`, and its
 `distortionParams`). A photo SfM did not place has a view and no pose."""
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,18 +33,28 @@ OLDER_TYPES = {"pinhole": "none", "radial1": "radialk1", "radial3": "radialk3", 
                "fisheye4": "fisheye4"}
 
 
-def read(path: Path) -> tuple[tuple[int, ...], list[dict], dict[str, dict], dict[str, dict]]:
-    """The file's version, its views, and its intrinsics and poses by id."""
+@dataclass
+class SfmData:
+    version: tuple[int, ...]
+    views: list[dict]
+    intrinsics: dict[str, dict]       # by intrinsicId
+    poses: dict[str, dict]            # by poseId
+    rigs: dict[str, list[dict]]       # by rigId: its sub-poses, by subPoseId
+
+
+def read(path: Path) -> SfmData:
     try:
         data = json.loads(path.read_text())
-        version = tuple(int(v) for v in data.get("version", ["1", "0", "0"]))
-        views = [view for view in data["views"] if isinstance(view, dict)]
-        intrinsics = {str(i["intrinsicId"]): i for i in data.get("intrinsics", []) if isinstance(i, dict)}
-        poses = {str(p["poseId"]): p["pose"] for p in data.get("poses", []) if isinstance(p, dict)}
+        found = SfmData(tuple(int(v) for v in data.get("version", ["1", "0", "0"])),
+                        [view for view in data["views"] if isinstance(view, dict)],
+                        {str(i["intrinsicId"]): i for i in data.get("intrinsics", []) if isinstance(i, dict)},
+                        {str(p["poseId"]): p["pose"] for p in data.get("poses", []) if isinstance(p, dict)},
+                        {str(r["rigId"]): list(r.get("subPoses", [])) for r in data.get("rigs", [])
+                         if isinstance(r, dict)})
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError):
         raise UserError(f"{path} is not Meshroom's SfMData (a JSON object with views, intrinsics and poses); export "
                         "it again from the StructureFromMotion node or set poses.source=sfm") from None
-    return version, views, intrinsics, poses
+    return found
 
 
 def _number(value, name: str, where: str) -> float:
@@ -62,16 +73,33 @@ def _numbers(values, count: int, name: str, where: str) -> np.ndarray:
     return np.array([_number(v, name, where) for v in values])
 
 
-def camera_to_world(pose: dict, where: str) -> np.ndarray:
-    """A pose's camera-to-world (ours)."""
-    transform = pose.get("transform") if isinstance(pose, dict) else None
+def _world_to_camera(transform, where: str) -> np.ndarray:
+    """A transform's 4x4 world-to-camera (OpenCV's axes)."""
     if not isinstance(transform, dict):
         raise UserError(f"{where}: the pose has no transform; fix it or set poses.source=sfm")
     rotation = _numbers(transform.get("rotation"), 9, "rotation", where).reshape(3, 3).T  # written column by column
     centre = _numbers(transform.get("center"), 3, "center", where)
     if abs(np.linalg.det(rotation)) < 1e-9:
         raise UserError(f"{where}: the pose's rotation is not invertible; fix it or set poses.source=sfm")
-    return opengl_c2w_from_colmap_w2c(rotation, -rotation @ centre)
+    w2c = np.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = rotation, -rotation @ centre
+    return w2c
+
+
+def camera_to_world(view: dict, sfm: SfmData, where: str) -> np.ndarray | None:
+    """A view's camera-to-world (ours); None where SfM did not place it. A camera of a rig posed as one (not
+    `isPoseIndependant`) is its rig's pose moved by its sub-pose."""
+    pose = sfm.poses.get(str(view.get("poseId")))
+    if pose is None:
+        return None
+    w2c = _world_to_camera(pose.get("transform") if isinstance(pose, dict) else None, where)
+    if "rigId" in view and str(view.get("isPoseIndependant", "true")).lower() in ("false", "0"):
+        sub_poses, index = sfm.rigs.get(str(view["rigId"]), []), view.get("subPoseId")
+        if not str(index).isdigit() or int(index) >= len(sub_poses) or not isinstance(sub_poses[int(index)], dict):
+            raise UserError(f"{where}: its rig {view['rigId']} has no sub-pose {index}; export it again or set "
+                            "poses.source=sfm")
+        w2c = _world_to_camera(sub_poses[int(index)].get("pose"), where) @ w2c
+    return opengl_c2w_from_colmap_w2c(w2c[:3, :3], w2c[:3, 3])
 
 
 def focal_lengths(intrinsic: dict, version: tuple[int, ...], width: float, height: float,

@@ -545,26 +545,25 @@ def from_realitycapture_csv(path: Path, records: list[dict]) -> Imported:
 def from_meshroom(path: Path, records: list[dict]) -> Imported:
     """Poses from Meshroom's SfMData (stages/sfm/meshroom.py): a photo takes the view of its file's stem, where one
     view alone has it and SfM placed it."""
-    version, views, intrinsics, poses = meshroom.read(path)
+    sfm = meshroom.read(path)
     by_stem: dict[str, list[dict]] = {}
-    for view in views:
+    for view in sfm.views:
         by_stem.setdefault(file_stem(str(view.get("path", ""))), []).append(view)
     reconstruction = pycolmap.Reconstruction()
     cameras = CameraTable(reconstruction)
     missing = []
     for record in records:
         named = by_stem.get(file_stem(record["source"]), [])
-        pose = poses.get(str(named[0].get("poseId"))) if len(named) == 1 else None
-        if pose is None:
+        where = f"{path.name}, view {named[0].get('viewId')} ({Path(str(named[0].get('path'))).name})" if named else ""
+        c2w = meshroom.camera_to_world(named[0], sfm, where) if len(named) == 1 else None
+        if c2w is None:
             missing.append(record["name"])
             continue
-        where = f"{path.name}, view {named[0].get('viewId')} ({Path(str(named[0].get('path'))).name})"
-        intrinsic = intrinsics.get(str(named[0].get("intrinsicId")))
+        intrinsic = sfm.intrinsics.get(str(named[0].get("intrinsicId")))
         if intrinsic is None:
             raise UserError(f"{where}: its intrinsic {named[0].get('intrinsicId')} is not in the file; export it "
                             "again or set poses.source=sfm")
-        k, lens = meshroom.camera(intrinsic, version, where)
+        k, lens = meshroom.camera(intrinsic, sfm.version, where)
         add_image(reconstruction, len(reconstruction.images) + 1, record,
-                  cameras.id_for(at_ingested_size(k, record, where), lens), meshroom.camera_to_world(pose, where),
-                  where)
+                  cameras.id_for(at_ingested_size(k, record, where), lens), c2w, where)
     return Imported(reconstruction, path, missing, gravity=meshroom.GRAVITY)

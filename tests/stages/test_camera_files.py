@@ -399,12 +399,21 @@ def meshroom_intrinsic(truth: dict, version: tuple[int, int, int], scale: float)
     return camera
 
 
-@pytest.mark.parametrize("version", [(1, 2, 11), (1, 2, 6), (1, 2, 4), (1, 2, 0), (1, 0, 0)])
-def test_meshroom_cameras_pose_the_photos_they_name(synthetic, truth, tmp_path, version):
+def meshroom_transform(w2c: np.ndarray) -> dict:
+    return {"rotation": [repr(float(v)) for v in w2c[:3, :3].T.ravel()],  # column by column
+            "center": [repr(float(v)) for v in -w2c[:3, :3].T @ w2c[:3, 3]]}
+
+
+@pytest.mark.parametrize("version, rig", [((1, 2, 11), False), ((1, 2, 6), False), ((1, 2, 4), False),
+                                          ((1, 2, 0), False), ((1, 0, 0), False), ((1, 2, 11), True)])
+def test_meshroom_cameras_pose_the_photos_they_name(synthetic, truth, tmp_path, version, rig):
     """A Meshroom project's cameras.sfm (its cache beside the photos; the photos' paths those of the machine it ran
-    on), in each of the file's versions whose focal length and principal point differ; one photo SfM did not place."""
+    on), in each of the file's versions whose focal length and principal point differ; one photo SfM did not place.
+    With `rig`, each camera is one of a rig posed as one: the rig's pose, moved by the camera's sub-pose."""
     folder = tmp_path / "capture"
     views, poses, names = [], [], {}
+    sub_pose = np.eye(4)
+    sub_pose[:3, :3], sub_pose[:3, 3] = turned_about_x(0.3)[:3, :3], [0.2, -0.1, 0.05]
     for i, frame in enumerate(sorted(truth["frames"], key=lambda f: f["file_path"])):
         write_photo(synthetic, frame, folder / "images" / f"IMG_{i:04d}.JPG", scale=2)
         views.append({"viewId": str(9000 + i), "poseId": str(9000 + i), "intrinsicId": "1052",
@@ -413,12 +422,14 @@ def test_meshroom_cameras_pose_the_photos_they_name(synthetic, truth, tmp_path, 
         if i == 5:
             continue
         w2c = np.linalg.inv(np.asarray(frame["transform_matrix"]) @ FLIP_YZ)
-        poses.append({"poseId": str(9000 + i), "pose": {"transform": {
-            "rotation": [repr(float(v)) for v in w2c[:3, :3].T.ravel()],  # column by column
-            "center": [repr(float(v)) for v in np.asarray(frame["transform_matrix"])[:3, 3]]}, "locked": "0"}})
+        if rig:
+            views[-1].update(rigId="0", subPoseId="0", isPoseIndependant="false")
+            w2c = np.linalg.inv(sub_pose) @ w2c
+        poses.append({"poseId": str(9000 + i), "pose": {"transform": meshroom_transform(w2c), "locked": "0"}})
         names[f"IMG_{i:04d}"] = Path(frame["file_path"]).stem
     data = {"version": [str(v) for v in version], "featuresFolders": [], "matchesFolders": [], "views": views,
-            "intrinsics": [meshroom_intrinsic(truth, version, 2.0)], "poses": poses}
+            "intrinsics": [meshroom_intrinsic(truth, version, 2.0)], "poses": poses,
+            "rigs": [{"rigId": "0", "subPoses": [{"status": "constant", "pose": meshroom_transform(sub_pose)}]}]}
     cache = folder / "MeshroomCache" / "StructureFromMotion" / "3f5a0c"
     cache.mkdir(parents=True)
     (cache / "cameras.sfm").write_text(json.dumps(data, indent=4))
