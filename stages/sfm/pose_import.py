@@ -504,7 +504,7 @@ def from_camera_files(kind: str, folders: list[Path], records: list[dict], scene
 
 def from_record3d(path: Path, records: list[dict]) -> Imported:
     """Poses from Record3D's metadata (stages/sfm/record3d.py): a frame named by its number takes that row."""
-    k, poses = record3d.read(path)
+    pinholes, poses = record3d.read(path)
     reconstruction = pycolmap.Reconstruction()
     cameras = CameraTable(reconstruction)
     missing = []
@@ -515,7 +515,7 @@ def from_record3d(path: Path, records: list[dict]) -> Imported:
             continue
         where = f"{path.name}, pose {int(number)}"
         add_image(reconstruction, len(reconstruction.images) + 1, record,
-                  cameras.id_for(at_ingested_size(k, record, str(path))),
+                  cameras.id_for(at_ingested_size(pinholes[int(number)], record, str(path))),
                   record3d.camera_to_world(poses[int(number)], where), where)
     return Imported(reconstruction, path, missing, gravity=record3d.GRAVITY)
 

@@ -3,7 +3,8 @@ their number (0.jpg, 1.jpg, ...), beside metadata.json, read for the importer (p
 
 The metadata holds `K`, the pinhole's 3x3 matrix column by column, for frames of `w` x `h` pixels, and `poses`, one a
 frame: camera-to-world as a unit quaternion (x, y, z, w) and a translation, in ARKit's axes (x right, y up, z back:
-ours), the world gravity-aligned."""
+ours), the world gravity-aligned. Newer exports add `perFrameIntrinsicCoeffs`, each frame's fx, fy, cx, cy (the
+focal length follows the lens's focus), which are read where there is one a frame."""
 from __future__ import annotations
 
 import json
@@ -20,13 +21,14 @@ from stages.sfm.pose_files import RECORD3D_FILES as METADATA_FILES
 GRAVITY = (0.0, 1.0, 0.0)  # ARKit's world: y up
 
 
-def read(path: Path) -> tuple[Intrinsics, np.ndarray]:
-    """The frames' pinhole (at the metadata's w x h) and their poses [N, 7]."""
+def read(path: Path) -> tuple[list[Intrinsics], np.ndarray]:
+    """Each frame's pinhole (at the metadata's w x h) and their poses [N, 7]."""
     try:
         data = json.loads(path.read_text())
         k = np.asarray(data["K"], dtype=np.float64).reshape(3, 3).T
         w, h = float(data["w"]), float(data["h"])
         poses = np.asarray(data["poses"], dtype=np.float64)
+        per_frame = np.asarray(data.get("perFrameIntrinsicCoeffs") or np.zeros((0, 4)), dtype=np.float64)
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError):
         raise UserError(f"{path} is not Record3D's metadata (K as 9 numbers, w, h and poses as rows of 7); fix it or "
                         "set poses.source=sfm") from None
@@ -36,7 +38,12 @@ def read(path: Path) -> tuple[Intrinsics, np.ndarray]:
     if not np.isfinite(k).all() or min(k[0, 0], k[1, 1], w, h) <= 0 or not (math.isfinite(w) and math.isfinite(h)):
         raise UserError(f"{path}: its K, w and h are not a camera (positive, finite focal lengths and size); fix it or "
                         "set poses.source=sfm")
-    return Intrinsics(k[0, 0], k[1, 1], k[0, 2], k[1, 2], int(round(w)), int(round(h))), poses
+    if per_frame.shape != (len(poses), 4):  # the shared K for all
+        per_frame = np.tile([k[0, 0], k[1, 1], k[0, 2], k[1, 2]], (len(poses), 1))
+    if not np.isfinite(per_frame).all() or per_frame[:, :2].min(initial=1.0) <= 0:
+        raise UserError(f"{path}: its perFrameIntrinsicCoeffs are not positive, finite focal lengths and finite "
+                        "principal points; fix it or set poses.source=sfm")
+    return [Intrinsics(*row, int(round(w)), int(round(h))) for row in per_frame], poses
 
 
 def camera_to_world(pose: np.ndarray, where: str) -> np.ndarray:

@@ -437,6 +437,8 @@ POSE_KINDS = {
     "record3d_quaternion_zero": posed(record3d(lambda m: {**m, "poses": [[0.0] * 4 + p[4:] for p in m["poses"]]})),
     "record3d_pose_nan": posed(record3d(lambda m: {**m, "poses": [[float("nan")] * 7] + m["poses"][1:]})),
     "record3d_width_zero": posed(record3d(lambda m: {**m, "w": 0})),
+    "record3d_per_frame_focal_nan": posed(record3d(lambda m: {**m, "perFrameIntrinsicCoeffs": [
+        [float("nan"), m["K"][4], m["K"][6], m["K"][7]]] * len(m["poses"])})),
     "mvsnet_no_intrinsic": posed(mvsnet(lambda text: text.replace("intrinsic", "lens"))),
     "mvsnet_extrinsic_text": posed(mvsnet(lambda text: text.replace("extrinsic\n", "extrinsic\nR t\n"))),
     "mvsnet_extrinsic_singular": posed(mvsnet(lambda text: "extrinsic\n" + "0 0 0 1\n" * 4 + text.split("\n\n", 1)[1])),

@@ -215,7 +215,10 @@ def quaternion_xyzw(rotation: np.ndarray) -> list[float]:
     return [float(x), float(y), float(z), float(w)]
 
 
-def test_record3d_export_poses_each_numbered_frame_from_its_row(synthetic, truth, tmp_path):
+@pytest.mark.parametrize("per_frame", [False, True])
+def test_record3d_export_poses_each_numbered_frame_from_its_row(synthetic, truth, tmp_path, per_frame):
+    """Record3D's metadata: K shared by every frame, or (newer exports) each frame's own fx, fy, cx, cy beside a K
+    that is no longer the frames' (the focus moved after the first)."""
     export = tmp_path / "record3d"
     frames = sorted(truth["frames"], key=lambda f: f["file_path"])
     poses, names = [], {}
@@ -225,8 +228,11 @@ def test_record3d_export_poses_each_numbered_frame_from_its_row(synthetic, truth
         poses.append(quaternion_xyzw(c2w[:3, :3]) + c2w[:3, 3].tolist())
         names[str(i)] = Path(frame["file_path"]).stem
     k = k_matrix(truth, 2.0)[:3, :3]
-    (export / "metadata.json").write_text(json.dumps({"K": k.T.ravel().tolist(), "w": 2 * truth["w"],
-                                                      "h": 2 * truth["h"], "fps": 60, "poses": poses}))
+    metadata = {"K": k.T.ravel().tolist(), "w": 2 * truth["w"], "h": 2 * truth["h"], "fps": 60, "poses": poses}
+    if per_frame:
+        metadata["perFrameIntrinsicCoeffs"] = [[k[0, 0], k[1, 1], k[0, 2], k[1, 2]]] * len(poses)
+        metadata["K"] = (k * [[1.2], [1.2], [1]]).T.ravel().tolist()
+    (export / "metadata.json").write_text(json.dumps(metadata))
     (export / "rgb" / "3(1).jpg").write_bytes((export / "rgb" / "3.jpg").read_bytes())  # a copy the phone made
     run(export, tmp_path / "out", f"ingest.max_side={truth['w']}")
     assert assert_poses(tmp_path / "out", truth, names)["source"] == "record3d"
