@@ -115,7 +115,7 @@ def csv_rows(path: Path) -> dict[str, dict[str, str]]:
     """The CSV's rows by the photo's stem."""
     try:
         with open(path, newline="", encoding="utf-8-sig") as file:
-            rows = [{key.strip().lower(): value for key, value in row.items() if key}
+            rows = [{key.strip().lower(): (value or "").strip() for key, value in row.items() if key}
                     for row in csv.DictReader(file)]
     except (OSError, UnicodeDecodeError, csv.Error):
         raise UserError(f"{path} cannot be read as RealityCapture's camera CSV; fix it or set poses.source=sfm") \
