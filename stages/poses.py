@@ -78,7 +78,7 @@ def run(ctx) -> dict:
                 records = retried
         else:
             source, imported = found
-            reconstruction, turned = turned_upright(imported.reconstruction, records)
+            reconstruction, turned = turned_upright(imported.reconstruction, records, half_turns=source == "colmap")
             info = {"seconds": {}, **({"turned_upright": turned} if turned else {})}
             source_path, bounds, gravity = imported.path, imported.bounds, imported.gravity
             ctx.report.info(f"importing {source} poses from {imported.path}")
@@ -117,8 +117,8 @@ def run(ctx) -> dict:
                  f"from the clip read again with a frame each {info['denser']['motion']:.1%} of the view's diagonal, "
                  f"posed at {info['denser']['posed_at'][0]}x{info['denser']['posed_at'][1]}")
     if info.get("turned_upright"):
-        line += (f"; the pose file describes {info['turned_upright']} photos as stored, a quarter turn from upright "
-                 "(their EXIF orientation), so their cameras are turned with them")
+        line += (f"; the pose file describes {info['turned_upright']} photos as stored, turned from upright (their "
+                 "EXIF orientation), so their cameras are turned with them")
     if info.get("other_scene"):
         line += f"; {len(info['other_scene'])} photos share no match with the rest (something else), left out"
     if info.get("gimbal"):

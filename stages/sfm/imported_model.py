@@ -20,11 +20,13 @@ NON_RIGID_STRETCH = 1.02
 
 # How far an image's size may be from the pose file's size after scaling before we call it a different image.
 SIZE_TOLERANCE_PX = 1.5
-# A photo's EXIF orientations that turn its stored pixels a quarter to show it upright -> the turn from the stored
-# pixels' camera axes to the upright photo's (OpenCV's: x right, y down, z forward). 6: turned clockwise (a phone held
-# upright), 8: anticlockwise. 5 and 7 also mirror it, which no camera does.
-QUARTER_TURNS = {6: np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
-                 8: np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])}
+# A photo's EXIF orientations that turn its stored pixels to show it upright -> the turn from the stored pixels'
+# camera axes to the upright photo's (OpenCV's: x right, y down, z forward). 6: a quarter clockwise (a phone held
+# upright), 8: anticlockwise, 3: a half turn (a phone held upside down). 2, 4, 5 and 7 also mirror it, which no camera
+# does.
+TURNS = {3: np.diag([-1.0, -1.0, 1.0]), 6: np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+         8: np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])}
+QUARTER_TURNS = (6, 8)
 # A lens as COLMAP models it: the camera model's name and its distortion coefficients (after fx, fy, cx, cy).
 Lens = tuple[str, tuple[float, ...]]
 NO_LENS: Lens = ("OPENCV", ())  # a pinhole
@@ -174,40 +176,50 @@ RADIAL_MODELS = {"SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
 TANGENTIAL = {"OPENCV": (6, 7), "FULL_OPENCV": (6, 7)}
 
 
+def upright_pixels(uv: np.ndarray, orientation: int, width: int, height: int) -> np.ndarray:
+    """Points [N, 2] of a photo's stored pixels (width x height) where the photo shown upright has them (TURNS)."""
+    u, v = uv[:, 0], uv[:, 1]
+    moved = {3: (width - u, height - v), 6: (height - v, u), 8: (v, width - u)}[orientation]
+    return np.stack(moved, axis=1)
+
+
 def turned_camera(camera: pycolmap.Camera, orientation: int, camera_id: int) -> pycolmap.Camera:
-    """The camera of a photo's stored pixels, turned to the photo shown upright (QUARTER_TURNS[orientation])."""
+    """The camera of a photo's stored pixels, turned to the photo shown upright (TURNS[orientation])."""
     if camera.model_name not in RADIAL_MODELS | set(TANGENTIAL):
         raise UserError(f"the pose file's {camera.model_name} camera describes photos as stored, a quarter turn from "
                         "upright (EXIF), and its lens does not turn with them here; give the photos upright (their "
                         "pixels turned) with their poses, or set poses.source=sfm")
     width, height = camera.width, camera.height
-    turned = pycolmap.Camera(model=camera.model_name, width=height, height=width, params=list(camera.params),
-                             camera_id=camera_id)
-    turned.focal_length_x, turned.focal_length_y = camera.focal_length_y, camera.focal_length_x
-    cx, cy = camera.principal_point_x, camera.principal_point_y
-    turned.principal_point_x, turned.principal_point_y = (height - cy, cx) if orientation == 6 else (cy, width - cx)
+    quarter = orientation in QUARTER_TURNS
+    turned = pycolmap.Camera(model=camera.model_name, width=height if quarter else width,
+                             height=width if quarter else height, params=list(camera.params), camera_id=camera_id)
+    if quarter:
+        turned.focal_length_x, turned.focal_length_y = camera.focal_length_y, camera.focal_length_x
+    (turned.principal_point_x, turned.principal_point_y), = upright_pixels(
+        np.array([[camera.principal_point_x, camera.principal_point_y]]), orientation, width, height)
     if camera.model_name in TANGENTIAL:  # OpenCV's (p2, p1) is a vector in the image plane: it turns with it
         i1, i2 = TANGENTIAL[camera.model_name]
-        p2, p1 = QUARTER_TURNS[orientation][:2, :2] @ [camera.params[i2], camera.params[i1]]
+        p2, p1 = TURNS[orientation][:2, :2] @ [camera.params[i2], camera.params[i1]]
         params = turned.params
         params[i1], params[i2] = p1, p2
         turned.params = params
     return turned
 
 
-def turned_upright(reconstruction: pycolmap.Reconstruction, records: list[dict]) -> tuple[pycolmap.Reconstruction,
-                                                                                             int]:
-    """The model with each image a pose file describes as its photo is stored, a quarter turn from upright
-    (`as_stored`: its camera has the other aspect), turned to the photo as ingested: its camera, pose and keypoints;
-    and how many were turned."""
+def turned_upright(reconstruction: pycolmap.Reconstruction, records: list[dict],
+                   half_turns: bool = False) -> tuple[pycolmap.Reconstruction, int]:
+    """The model with each image a pose file describes as its photo is stored, turned from upright, turned to the
+    photo as ingested (its camera, pose and keypoints); and how many were turned. A quarter turn shows in the
+    camera's aspect (`as_stored`); a half turn does not, and is taken where `half_turns` says the pose file's tool
+    reads photos as stored (COLMAP)."""
     by_name = {f"{record['name']}.png": record for record in records}
 
     def orientation(image) -> int | None:
         record, camera = by_name.get(image.name), reconstruction.cameras[image.camera_id]
-        if record is None or record.get("orientation") not in QUARTER_TURNS:
-            return None
-        return record["orientation"] if (camera.width, camera.height) == (record["height"], record["width"]) \
-            != (record["width"], record["height"]) else None
+        turn, size = (record or {}).get("orientation"), (camera.width, camera.height)
+        if turn in QUARTER_TURNS and size == (record["height"], record["width"]) != (record["width"], record["height"]):
+            return turn
+        return turn if turn == 3 and half_turns and size == (record["width"], record["height"]) else None
 
     turns = {image_id: orientation(image) for image_id, image in reconstruction.images.items()}
     if not any(turns.values()):
@@ -225,9 +237,8 @@ def turned_upright(reconstruction: pycolmap.Reconstruction, records: list[dict])
         keypoints = np.array([p.xy for p in image.points2D], dtype=np.float64).reshape(-1, 2)
         pose = image.cam_from_world()
         if turn:
-            u, v = keypoints[:, 0].copy(), keypoints[:, 1].copy()
-            keypoints = np.stack([camera.height - v, u] if turn == 6 else [v, camera.width - u], axis=1)
-            turn_matrix = QUARTER_TURNS[turn]
+            keypoints = upright_pixels(keypoints, turn, camera.width, camera.height)
+            turn_matrix = TURNS[turn]
             pose = pycolmap.Rigid3d(pycolmap.Rotation3d(turn_matrix @ pose.rotation.matrix()),
                                     turn_matrix @ pose.translation)
         out.add_image_with_trivial_frame(pycolmap.Image(name=image.name, keypoints=keypoints,

@@ -443,27 +443,29 @@ def test_meshroom_cameras_pose_the_photos_they_name(synthetic, truth, tmp_path, 
     assert assert_poses(tmp_path / "out", truth, names)["source"] == "meshroom"
 
 
-@pytest.mark.parametrize("orientation", [6, 8])
+@pytest.mark.parametrize("orientation", [6, 8, 3])
 def test_a_colmap_model_of_photos_as_stored_is_turned_upright_with_them(synthetic, truth, tmp_path, orientation):
-    """A phone's photos stored a quarter turn from upright, with the EXIF orientation that shows them upright, posed
-    by COLMAP, which reads the stored pixels: each camera turns with its photo, and the poses are the truth's."""
+    """A phone's photos stored turned from upright (a quarter or a half), with the EXIF orientation that shows them
+    upright, posed by COLMAP, which reads the stored pixels: each camera turns with its photo, and the poses are the
+    truth's."""
     import pycolmap
     from plenoxels.core.cameras import colmap_w2c_from_opengl_c2w
-    from stages.sfm.imported_model import QUARTER_TURNS
+    from stages.sfm.imported_model import TURNS
 
-    folder, turn = tmp_path / "phone", QUARTER_TURNS[orientation]  # stored camera axes -> upright
+    folder, turn = tmp_path / "phone", TURNS[orientation]  # stored camera axes -> upright
     (folder / "images").mkdir(parents=True)
     w, h, fx, fy, cx, cy = (truth[key] for key in ("w", "h", "fl_x", "fl_y", "cx", "cy"))
-    stored_cx, stored_cy = (cy, w - cx) if orientation == 6 else (h - cy, cx)
+    stored = {6: (h, w, fy, fx, cy, w - cx), 8: (h, w, fy, fx, h - cy, cx), 3: (w, h, fx, fy, w - cx, h - cy)}
+    width, height, *pinhole = stored[orientation]
     model = pycolmap.Reconstruction()
-    model.add_camera_with_trivial_rig(pycolmap.Camera(model="OPENCV", width=h, height=w, camera_id=1,
-                                                      params=[fy, fx, stored_cx, stored_cy, 0, 0, 0, 0]))
+    model.add_camera_with_trivial_rig(pycolmap.Camera(model="OPENCV", width=width, height=height, camera_id=1,
+                                                      params=[*pinhole, 0, 0, 0, 0]))
     names, points = {}, np.random.default_rng(2).uniform(-0.3, 0.3, (12, 3))
     for i, frame in enumerate(sorted(truth["frames"], key=lambda f: f["file_path"])):
         upright = np.asarray(Image.open(synthetic / frame["file_path"]).convert("RGB"))
         exif = Image.Exif()
         exif[0x0112] = orientation
-        Image.fromarray(np.rot90(upright, 1 if orientation == 6 else -1).copy()).save(
+        Image.fromarray(np.rot90(upright, {6: 1, 8: -1, 3: 2}[orientation]).copy()).save(
             folder / "images" / f"IMG_{i:04d}.jpg", quality=95, exif=exif)
         rotation, translation = colmap_w2c_from_opengl_c2w(np.asarray(frame["transform_matrix"]))
         rotation, translation = turn.T @ rotation, turn.T @ translation
@@ -480,25 +482,25 @@ def test_a_colmap_model_of_photos_as_stored_is_turned_upright_with_them(syntheti
     run(folder, tmp_path / "out", f"ingest.max_side={w}")
     assert assert_poses(tmp_path / "out", truth, names)["source"] == "colmap"
     summary = read_json(tmp_path / "out" / "poses" / "manifest.json")["summary"]
-    assert f"describes {len(names)} photos as stored, a quarter turn from upright" in summary["line"]
+    assert f"describes {len(names)} photos as stored, turned from upright" in summary["line"]
     assert summary["points"] == len(points) and summary["mean_reprojection_error"] < 1e-6  # its matches turned too
 
 
-@pytest.mark.parametrize("orientation", [6, 8])
+@pytest.mark.parametrize("orientation", [6, 8, 3])
 def test_a_turned_camera_projects_as_its_photo_turned(orientation):
     """The camera of a photo's stored pixels, turned: a point it sees lands where the stored camera puts it, moved
     as the photo's pixels move when it is shown upright (its lens's radial and tangential terms too)."""
     import pycolmap
-    from stages.sfm.imported_model import QUARTER_TURNS, turned_camera
+    from stages.sfm.imported_model import TURNS, turned_camera
 
     stored = pycolmap.Camera(model="FULL_OPENCV", width=160, height=120, camera_id=1,
                              params=[150, 140, 83, 57, -0.2, 0.05, 0.004, -0.003, 0.02, 0, 0, 0])
     turned = turned_camera(stored, orientation, 2)
-    assert (turned.width, turned.height) == (120, 160)
+    assert (turned.width, turned.height) == ((160, 120) if orientation == 3 else (120, 160))
     points = np.random.default_rng(1).uniform([-0.5, -0.4, 1.0], [0.5, 0.4, 1.0], (100, 3))
     u, v = stored.img_from_cam(points).T
-    want = np.stack([120 - v, u] if orientation == 6 else [v, 160 - u], axis=1)
-    np.testing.assert_allclose(turned.img_from_cam(points @ QUARTER_TURNS[orientation].T), want, atol=1e-9)
+    want = np.stack({6: [120 - v, u], 8: [v, 160 - u], 3: [160 - u, 120 - v]}[orientation], axis=1)
+    np.testing.assert_allclose(turned.img_from_cam(points @ TURNS[orientation].T), want, atol=1e-9)
 
 
 def turn_taking(direction: np.ndarray, to: np.ndarray) -> np.ndarray:
