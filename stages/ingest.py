@@ -140,8 +140,10 @@ def run(ctx) -> dict:
                 break
             names = [naming(p) for p, _ in photos]
         name_of = {p: text_name(name) for (p, _), name in zip(photos, names)}
-        masks_given = mask_folder(folder) if s.masks else None
-        mask_of = match_masks([folder / p for p, _ in photos], masks_given) if masks_given is not None else {}
+        beside = [p for p, kind in left.items() if kind == "mask"]  # masks kept beside their photos, where no folder
+        masks_given = (mask_folder(folder) or (folder if beside else None)) if s.masks else None
+        mask_of = match_masks([folder / p for p, _ in photos], masks_given, beside if masks_given == folder else None) \
+            if masks_given is not None else {}
         if masks_given is not None and not mask_of:
             ctx.report.warn(f"{masks_given} holds no mask named like any photo, so it is not used")
         elif masks_given is not None:
@@ -232,7 +234,7 @@ def run(ctx) -> dict:
     masked = sum(r["mask"] is not None for r in records)
     if masked:
         given = sum(r.get("mask_from") not in (None, "alpha") for r in records)
-        line += f", {masked} with masks ({f'{given} from the masks folder' if given else 'their alpha'})"
+        line += f", {masked} with masks ({f'{given} from mask files' if given else 'their alpha'})"
     if colourless:
         line += f", {len(colourless)} without colour (posed only)"
     if repeats:

@@ -64,10 +64,11 @@ def _keys(mask: Path) -> list[str]:
     return keys
 
 
-def match_masks(photos: list[Path], folder: Path) -> dict[Path, Path]:
-    """Each photo's mask in `folder` (photos without one are absent): by exact name first, then with numbers read
-    without their zero-padding; a name two photos or two masks share is left unmatched."""
-    masks = sorted(p for p in folder.iterdir() if _is_mask_file(p))
+def match_masks(photos: list[Path], folder: Path, masks: list[Path] | None = None) -> dict[Path, Path]:
+    """Each photo's mask in `folder` (or among `masks`, where the folder is the photos' own; photos without one are
+    absent): by exact name first, then with numbers read without their zero-padding; a name two photos or two masks
+    share is left unmatched."""
+    masks = sorted(masks if masks is not None else (p for p in folder.iterdir() if _is_mask_file(p)))
     found: dict[Path, Path] = {}
     for normalise in (lambda name: name, _unpadded):
         photo_of: dict[str, list[Path]] = {}

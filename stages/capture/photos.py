@@ -57,11 +57,11 @@ except ImportError:
 IMAGE_SUFFIXES |= RAW_SUFFIXES
 # Files a tool writes beside each photo from the photo itself (`twins`): BlendedMVS's `<stem>_masked.jpg` (the photo
 # blacked out where its reconstruction saw nothing), and an object's mask kept beside its photo (`<stem>_mask.png`,
-# which masks.py reads from a masks/ folder).
+# read as its mask where no masks/ folder is: masks.py).
 DERIVED_TAILS = {"_masked": "masked", "_mask": "mask", "-mask": "mask"}
 TWIN_WORDS = {"raw": "RAW files left for the developed photos of their names",
               "masked": "masked copies left for the photos of their names",
-              "mask": "masks beside the photos of their names not read (move them into a masks/ folder to use them)"}
+              "mask": "masks kept beside the photos of their names (read as their masks where no masks/ folder is)"}
 
 
 def is_video(scene: Path) -> bool:

@@ -487,9 +487,9 @@ def test_raw_photos_are_developed_upright_and_a_raw_beside_its_jpeg_is_left_for_
 
 
 
-def test_a_mask_beside_its_photo_is_no_photo(tmp_path):
-    """`<stem>_mask.png` or `<stem>-mask.png` beside `<stem>.jpg` is the photo's mask; a name that only ends so, with
-    no photo of the rest of its name beside it, is a photo."""
+def test_a_mask_beside_its_photo_is_its_mask_and_no_photo(tmp_path):
+    """`<stem>_mask.png` or `<stem>-mask.png` beside `<stem>.jpg` is the photo's mask, read as one; a name that only
+    ends so, with no photo of the rest of its name beside it, is a photo."""
     folder = tmp_path / "object"
     folder.mkdir()
     for i in range(3):
@@ -503,7 +503,10 @@ def test_a_mask_beside_its_photo_is_no_photo(tmp_path):
     assert sorted(r["source"] for r in listing["images"]) == ["halloween_mask.jpg", "shot0.jpg", "shot1.jpg",
                                                               "shot2.jpg"]
     line = json.loads((out / "manifest.json").read_text())["summary"]["line"]
-    assert "2 masks beside the photos of their names not read (move them into a masks/ folder to use them)" in line
+    assert "2 with masks (2 from mask files)" in line and "2 masks kept beside the photos of their names" in line
+    masks = {r["source"]: r["mask"] for r in listing["images"]}
+    assert masks["shot2.jpg"] is None and masks["halloween_mask.jpg"] is None
+    np.testing.assert_array_equal(np.asarray(Image.open(out / masks["shot0.jpg"]).convert("L")), object_mask)
 
 def watermark(frame):
     """A caption and a solid badge, as an app burns them into every frame."""

@@ -58,7 +58,7 @@ def test_masks_folder_beside_the_photos_is_read_by_name_thresholded_and_resized(
         # Downscaled with its photo; the JPEG's noise, under the threshold, is gone.
         assert mask.shape == (30, 40) and np.abs(mask - expected).mean() < 8
     summary = read_json(tmp_path / "out" / "ingest" / "manifest.json")["summary"]
-    assert summary["masked"] == 3 and "3 with masks (3 from the masks folder)" in summary["line"]
+    assert summary["masked"] == 3 and "3 with masks (3 from mask files)" in summary["line"]
 
 
 def test_masks_of_another_shape_or_unreadable_stop_with_one_line(tmp_path):
