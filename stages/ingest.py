@@ -15,8 +15,8 @@ from stages.common.json_files import write_json
 from stages.capture.masks import mask_folder, match_masks, read_mask
 from stages.capture.photos import (IMAGE_SUFFIXES, SIDECAR_SUFFIXES, VIDEO_SUFFIXES, colour_spread,
                                    colourless_among_colour, fit_max_side, is_split_dataset, load_photo, not_a_scene,
-                                   not_read_why, photo_folder, photos_picture, repeated, scene_photos, twin_words, twins,
-                                   sharpness, stored_orientation, thumbnail)
+                                   not_read_why, photo_folder, photos_picture, repeated, scene_photos, sharpness,
+                                   stored_orientation, thumbnail, twin_words, twins)
 from stages.capture.panorama import (FRAME_SHARE, PANORAMA_VIEWS, frame_side, is_two_to_one, looks_equirect,
                                      photos_equirect, says_equirect, split_frame, view_focal, view_side)
 from stages.capture.video import clip_samples, sequence_step, video_frames
