@@ -14,10 +14,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
 from plenoxels.core.errors import UserError
-from stages.sfm.imported_model import NO_LENS, Lens
+from stages.sfm.imported_model import NO_LENS, CameraTable, Imported, Lens, add_image, at_ingested_size, file_stem
 
 GRAVITY = None  # SfM's frame, wherever its first pair put it
 # AliceVision's lenses as COLMAP models them: the model and the coefficients' order (their names in AliceVision's
@@ -146,3 +147,30 @@ def camera(intrinsic: dict, version: tuple[int, ...], where: str) -> tuple[Intri
     coefficients = tuple(values[term] if isinstance(term, str) else 0.0 for term in order)
     lens = (model, coefficients) if any(coefficients) or model == "OPENCV_FISHEYE" else NO_LENS
     return Intrinsics(fx, fy, offset[0], offset[1], int(round(width)), int(round(height))), lens
+
+
+def imported(path: Path, records: list[dict]) -> Imported:
+    """Poses from Meshroom's SfMData: a photo takes the view of its file's stem, where one
+    view alone has it and SfM placed it."""
+    sfm = read(path)
+    by_stem: dict[str, list[dict]] = {}
+    for view in sfm.views:
+        by_stem.setdefault(file_stem(str(view.get("path", ""))), []).append(view)
+    reconstruction = pycolmap.Reconstruction()
+    cameras = CameraTable(reconstruction)
+    missing = []
+    for record in records:
+        named = by_stem.get(file_stem(record["source"]), [])
+        where = f"{path.name}, view {named[0].get('viewId')} ({Path(str(named[0].get('path'))).name})" if named else ""
+        c2w = camera_to_world(named[0], sfm, where) if len(named) == 1 else None
+        if c2w is None:
+            missing.append(record["name"])
+            continue
+        intrinsic = sfm.intrinsics.get(str(named[0].get("intrinsicId")))
+        if intrinsic is None:
+            raise UserError(f"{where}: its intrinsic {named[0].get('intrinsicId')} is not in the file; export it "
+                            "again or set poses.source=sfm")
+        k, lens = camera(intrinsic, sfm.version, where)
+        add_image(reconstruction, len(reconstruction.images) + 1, record,
+                  cameras.id_for(at_ingested_size(k, record, where), lens), c2w, where)
+    return Imported(reconstruction, path, missing, gravity=GRAVITY)

@@ -1,7 +1,8 @@
 """Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy, IDR/NeuS cameras,
 Metashape cameras .xml, OpenSfM reconstruction.json, NSVF's or NeRF++'s pose folders, Polycam's camera folder,
-MVSNet's cams/, Record3D's metadata, RealityCapture's XMP files or CSV and Meshroom's cameras.sfm the importers
-(pose_import.py) could read. Finding them reads no pose, so a cache key lists them without loading COLMAP."""
+MVSNet's cams/, Record3D's metadata, RealityCapture's XMP files or CSV, Meshroom's cameras.sfm and Bundler's
+bundle.out the importers (pose_import.py) could read. Finding them reads no pose, so a cache key lists them without
+loading COLMAP."""
 from __future__ import annotations
 
 import json
@@ -12,7 +13,7 @@ from stages.capture.photos import (DATASET_SPLITS, IMAGE_SUFFIXES, POLYCAM_CAMER
                                    split_folder, split_layout)
 
 KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf", "polycam", "mvsnet", "record3d",
-         "realitycapture", "meshroom")
+         "realitycapture", "meshroom", "bundler")
 # IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
 IDR_FILES = ("cameras_sphere.npz", "cameras.npz")
 # Bytes of a file read to tell a tool's pose file from others of its type (Metashape's XML, Record3D's JSON).
@@ -25,6 +26,9 @@ REALITYCAPTURE_MARKS = (b"capturingreality.com/ns/xcr", b"Rotation", b"Position"
 REALITYCAPTURE_COLUMNS = ("#name", "x", "y", "alt", "heading", "pitch", "roll", "f", "px", "py")
 # Meshroom's SfMData beside the photos, or in a Meshroom project's cache there.
 MESHROOM_FILES = ("*.sfm", "MeshroomCache/StructureFromMotion/*/cameras.sfm")
+# Bundler's cameras (in its bundle/ folder or beside the photos), and the names its list of photos goes by.
+BUNDLER_FILES = ("*.out", "bundle/*.out")
+BUNDLER_LISTS = ("{name}.list.txt", "{stem}.list.txt", "{stem}_list.txt", "list.txt", "imagelist.txt")
 
 
 def colmap_models(folder: Path) -> list[Path]:
@@ -59,6 +63,7 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
         found["mvsnet"] += [place / "cams"] if names_a_photo(place / "cams", "_cam.txt", folder) else []
         found["realitycapture"] += [p for p in sorted(place.glob("*.csv")) if is_realitycapture_csv(p)]
         found["meshroom"] += [p for pattern in MESHROOM_FILES for p in sorted(place.glob(pattern)) if is_meshroom(p)]
+        found["bundler"] += [p for pattern in BUNDLER_FILES for p in sorted(place.glob(pattern)) if is_bundler(p)]
     if aligned_by_realitycapture(folder):  # its XMP files before its CSV
         found["realitycapture"].insert(0, folder)
     found["polycam"] += [camera_folder for camera_folder in [folder.parent / POLYCAM_CAMERAS.get(folder.name, "")]
@@ -124,6 +129,11 @@ def is_meshroom(path: Path) -> bool:
     Alembic, which is not read)."""
     head = _head(path)
     return head.lstrip().startswith(b"{") and b'"version"' in head and b'"views"' in head
+
+
+def is_bundler(path: Path) -> bool:
+    """Whether a file is Bundler's cameras (its header says so)."""
+    return _head(path).lstrip().lower().startswith(b"# bundle file")
 
 
 def is_metashape(path: Path) -> bool:

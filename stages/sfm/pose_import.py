@@ -19,11 +19,11 @@ import pycolmap
 
 from stages.capture.photos import (DATASET_SPLITS, POSE_FOLDERS, frame_photo, lexical_path, photo_folder,
                                    split_layout)
-from stages.sfm import meshroom, metashape, mvsnet, nsvf, opensfm, polycam, realitycapture, record3d
+from stages.sfm import bundler, meshroom, metashape, mvsnet, nsvf, opensfm, polycam, realitycapture, record3d
 from stages.sfm.imported_model import (CameraTable, Imported, Lens, add_image, add_view, at_ingested_size, file_stem,
                                        finite_number, ingested_size, scale_factor)
 from stages.sfm.pose_files import (KINDS, aligned_by_realitycapture, candidates, colmap_models, is_colmap_model,
-                                   is_meshroom, is_realitycapture_csv)
+                                   is_bundler, is_meshroom, is_realitycapture_csv)
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_llff, opengl_c2w_from_projection
 from plenoxels.core.errors import UserError
 
@@ -49,6 +49,8 @@ def kind_of(path: Path) -> str:
         return "record3d"
     elif path.suffix.lower() == ".sfm" or is_meshroom(path):  # Meshroom's SfMData, as .sfm or .json
         return "meshroom"
+    elif path.suffix.lower() == ".out" or is_bundler(path):
+        return "bundler"
     elif path.suffix == ".json":
         return "transforms"
     elif path.suffix == ".npy":
@@ -62,7 +64,8 @@ def kind_of(path: Path) -> str:
     raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json, a poses_bounds.npy, an "
                     "IDR/NeuS cameras*.npz, a Metashape cameras .xml, an OpenSfM reconstruction.json, an NSVF pose/ "
                     "folder, Polycam's keyframes/cameras/, MVSNet's cams/, Record3D's metadata.json, or "
-                    "RealityCapture's camera CSV or a folder of its XMP files, or Meshroom's cameras.sfm")
+                    "RealityCapture's camera CSV or a folder of its XMP files, Meshroom's cameras.sfm or Bundler's "
+                    "bundle.out")
 
 
 def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
@@ -85,11 +88,13 @@ def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
     if kind in CAMERA_FILES and path.is_dir():
         return from_camera_files(kind, [path], records, scene)
     if kind == "record3d":
-        return from_record3d(path, records)
+        return record3d.imported(path, records)
     if kind == "realitycapture":
-        return from_realitycapture_csv(path, records)
+        return realitycapture.imported_csv(path, records)
     if kind == "meshroom":
-        return from_meshroom(path, records)
+        return meshroom.imported(path, records)
+    if kind == "bundler":
+        return bundler.imported(path, records)
     return from_llff(path, records)
 
 
@@ -498,72 +503,3 @@ def from_camera_files(kind: str, folders: list[Path], records: list[dict], scene
                   cameras.id_for(at_ingested_size(k, record, where), lens), c2w, where)
     return Imported(reconstruction, folders[0] if len(folders) == 1 else scene, missing,
                     gravity=reader.GRAVITY)
-
-
-# ---- Record3D metadata.json --------------------------------------------------------------------------------
-
-def from_record3d(path: Path, records: list[dict]) -> Imported:
-    """Poses from Record3D's metadata (stages/sfm/record3d.py): a frame named by its number takes that row."""
-    pinholes, poses = record3d.read(path)
-    reconstruction = pycolmap.Reconstruction()
-    cameras = CameraTable(reconstruction)
-    missing = []
-    for record in records:
-        number = file_stem(record["source"])
-        if not number.isdigit() or int(number) >= len(poses):
-            missing.append(record["name"])
-            continue
-        where = f"{path.name}, pose {int(number)}"
-        add_image(reconstruction, len(reconstruction.images) + 1, record,
-                  cameras.id_for(at_ingested_size(pinholes[int(number)], record, str(path))),
-                  record3d.camera_to_world(poses[int(number)], where), where)
-    return Imported(reconstruction, path, missing, gravity=record3d.GRAVITY)
-
-
-# ---- RealityCapture's camera CSV ---------------------------------------------------------------------------
-
-def from_realitycapture_csv(path: Path, records: list[dict]) -> Imported:
-    """Poses from RealityCapture's camera CSV (stages/sfm/realitycapture.py): a photo takes the row of its stem."""
-    rows = realitycapture.csv_rows(path)
-    reconstruction = pycolmap.Reconstruction()
-    cameras = CameraTable(reconstruction)
-    missing = []
-    for record in records:
-        row = rows.get(file_stem(record["source"]))
-        if row is None:
-            missing.append(record["name"])
-            continue
-        where = f"{path.name}, {row['#name']}"
-        k, c2w, lens = realitycapture.csv_camera(row, record["original_width"], record["original_height"], where)
-        add_image(reconstruction, len(reconstruction.images) + 1, record,
-                  cameras.id_for(at_ingested_size(k, record, where), lens), c2w, where)
-    return Imported(reconstruction, path, missing, gravity=realitycapture.GRAVITY)
-
-
-# ---- Meshroom's cameras.sfm --------------------------------------------------------------------------------
-
-def from_meshroom(path: Path, records: list[dict]) -> Imported:
-    """Poses from Meshroom's SfMData (stages/sfm/meshroom.py): a photo takes the view of its file's stem, where one
-    view alone has it and SfM placed it."""
-    sfm = meshroom.read(path)
-    by_stem: dict[str, list[dict]] = {}
-    for view in sfm.views:
-        by_stem.setdefault(file_stem(str(view.get("path", ""))), []).append(view)
-    reconstruction = pycolmap.Reconstruction()
-    cameras = CameraTable(reconstruction)
-    missing = []
-    for record in records:
-        named = by_stem.get(file_stem(record["source"]), [])
-        where = f"{path.name}, view {named[0].get('viewId')} ({Path(str(named[0].get('path'))).name})" if named else ""
-        c2w = meshroom.camera_to_world(named[0], sfm, where) if len(named) == 1 else None
-        if c2w is None:
-            missing.append(record["name"])
-            continue
-        intrinsic = sfm.intrinsics.get(str(named[0].get("intrinsicId")))
-        if intrinsic is None:
-            raise UserError(f"{where}: its intrinsic {named[0].get('intrinsicId')} is not in the file; export it "
-                            "again or set poses.source=sfm")
-        k, lens = meshroom.camera(intrinsic, sfm.version, where)
-        add_image(reconstruction, len(reconstruction.images) + 1, record,
-                  cameras.id_for(at_ingested_size(k, record, where), lens), c2w, where)
-    return Imported(reconstruction, path, missing, gravity=meshroom.GRAVITY)

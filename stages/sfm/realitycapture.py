@@ -19,10 +19,12 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
 from plenoxels.core.errors import UserError
-from stages.sfm.imported_model import NO_LENS, Lens, finite_number
+from stages.sfm.imported_model import (NO_LENS, CameraTable, Imported, Lens, add_image, at_ingested_size, file_stem,
+                                       finite_number)
 from stages.sfm.pose_files import REALITYCAPTURE_COLUMNS as CSV_COLUMNS
 
 GRAVITY = None  # a component's frame is geographic only where it was georeferenced, which neither file says
@@ -140,3 +142,21 @@ def csv_camera(row: dict[str, str], width: int, height: int, where: str) -> tupl
     k = pinhole(value["f"], value["px"], value["py"], 1.0, width, height)
     coefficients = [finite_number(row.get(key) or 0, key, where) for key in CSV_LENS_COLUMNS]
     return k, c2w, lens("brown4t2", coefficients, k, where)
+
+
+def imported_csv(path: Path, records: list[dict]) -> Imported:
+    """Poses from RealityCapture's camera CSV: a photo takes the row of its stem."""
+    rows = csv_rows(path)
+    reconstruction = pycolmap.Reconstruction()
+    cameras = CameraTable(reconstruction)
+    missing = []
+    for record in records:
+        row = rows.get(file_stem(record["source"]))
+        if row is None:
+            missing.append(record["name"])
+            continue
+        where = f"{path.name}, {row['#name']}"
+        k, c2w, lens = csv_camera(row, record["original_width"], record["original_height"], where)
+        add_image(reconstruction, len(reconstruction.images) + 1, record,
+                  cameras.id_for(at_ingested_size(k, record, where), lens), c2w, where)
+    return Imported(reconstruction, path, missing, gravity=GRAVITY)

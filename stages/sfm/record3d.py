@@ -16,6 +16,7 @@ import pycolmap
 
 from plenoxels.core.cameras import Intrinsics
 from plenoxels.core.errors import UserError
+from stages.sfm.imported_model import CameraTable, Imported, add_image, at_ingested_size, file_stem
 from stages.sfm.pose_files import RECORD3D_FILES as METADATA_FILES
 
 GRAVITY = (0.0, 1.0, 0.0)  # ARKit's world: y up
@@ -55,3 +56,21 @@ def camera_to_world(pose: np.ndarray, where: str) -> np.ndarray:
     c2w[:3, :3] = pycolmap.Rotation3d(pose[:4]).matrix()
     c2w[:3, 3] = pose[4:]
     return c2w
+
+
+def imported(path: Path, records: list[dict]) -> Imported:
+    """Poses from Record3D's metadata: a frame named by its number takes that row."""
+    pinholes, poses = read(path)
+    reconstruction = pycolmap.Reconstruction()
+    cameras = CameraTable(reconstruction)
+    missing = []
+    for record in records:
+        number = file_stem(record["source"])
+        if not number.isdigit() or int(number) >= len(poses):
+            missing.append(record["name"])
+            continue
+        where = f"{path.name}, pose {int(number)}"
+        add_image(reconstruction, len(reconstruction.images) + 1, record,
+                  cameras.id_for(at_ingested_size(pinholes[int(number)], record, str(path))),
+                  camera_to_world(poses[int(number)], where), where)
+    return Imported(reconstruction, path, missing, gravity=GRAVITY)

@@ -384,6 +384,27 @@ def meshroom(spoil):
     return edit
 
 
+def bundler(spoil, with_list=True):
+    """Bundler's bundle.out beside images/ for the template's photos, with its list.txt (where `with_list`), its
+    text spoiled by `spoil`."""
+    def edit(folder, meta):
+        cameras = []
+        for f in meta["frames"]:
+            w2c = np.linalg.inv(np.array(f["transform_matrix"]))
+            rows = [[meta["fl_x"], 0.0, 0.0], *w2c[:3, :3].tolist(), w2c[:3, 3].tolist()]
+            cameras.append("\n".join(" ".join(map(repr, map(float, row))) for row in rows))
+        text = f"# Bundle file v0.3\n{len(cameras)} 0\n" + "\n".join(cameras) + "\n"
+        (folder / "bundle.out").write_text(spoil(text))
+        if with_list:
+            (folder / "list.txt").write_text("".join(f"{f['file_path']}\n" for f in meta["frames"]))
+    return edit
+
+
+def lines_set(lines: dict[int, str]):
+    """A spoiler of a text file that sets the lines numbered (from 0) to the text given."""
+    return lambda text: "\n".join(lines.get(n, line) for n, line in enumerate(text.split("\n")))
+
+
 def first_pose(text):
     return lambda folder: sorted((folder / "pose").iterdir())[0].write_text(text)
 
@@ -467,6 +488,11 @@ POSE_KINDS = {
     "meshroom_focal_nan": posed(meshroom(lambda d: {**d, "intrinsics": [{**d["intrinsics"][0],
                                                                          "focalLength": "nan"}]})),
     "meshroom_views_not_a_list": posed(meshroom(lambda d: {**d, "views": 7})),
+    "bundler_no_list": posed(bundler(lambda text: text, with_list=False)),
+    "bundler_count_wrong": posed(bundler(lines_set({1: "1000 0"}))),
+    "bundler_focal_text": posed(bundler(lines_set({2: "wide 0 0"}))),
+    "bundler_rotation_nan": posed(bundler(lines_set({3: "nan nan nan"}))),
+    "bundler_rotation_singular": posed(bundler(lines_set({3: "0 0 0", 4: "0 0 0", 5: "0 0 0"}))),
     "metashape_component_flat": posed(metashape(lambda text: text.replace(
         "<cameras>", '<components><component id="0"><transform><scale>0</scale></transform></component></components>'
         "<cameras>").replace('sensor_id="0"', 'sensor_id="0" component_id="0"'))),

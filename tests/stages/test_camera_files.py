@@ -503,6 +503,28 @@ def test_a_turned_camera_projects_as_its_photo_turned(orientation):
     np.testing.assert_allclose(turned.img_from_cam(points @ TURNS[orientation].T), want, atol=1e-9)
 
 
+def test_bundler_cameras_pose_the_photos_their_list_names(synthetic, truth, tmp_path):
+    """Bundler's layout: list.txt beside images/, bundle/bundle.out (world-to-camera in OpenGL's axes, a focal length
+    in pixels and two radial terms a camera, the principal point at the photo's centre); a camera the reconstruction
+    left out has a focal length of 0."""
+    folder = tmp_path / "bundler"
+    (folder / "bundle").mkdir(parents=True)
+    cameras, listing, names = [], [], {}
+    for i, frame in enumerate(sorted(truth["frames"], key=lambda f: f["file_path"])):
+        write_photo(synthetic, frame, folder / "images" / f"IMG_{i:04d}.jpg", scale=2)
+        w2c = np.linalg.inv(np.asarray(frame["transform_matrix"]))
+        focal = 0.0 if i == 4 else 2 * truth["fl_x"]
+        rows = [[focal, 0.0, 0.0], *w2c[:3, :3], w2c[:3, 3]]
+        cameras.append("\n".join(" ".join(f"{v:.15g}" for v in row) for row in rows))
+        listing.append(f"images/IMG_{i:04d}.jpg 0 {focal:.6f}")
+        if i != 4:
+            names[f"IMG_{i:04d}"] = Path(frame["file_path"]).stem
+    (folder / "bundle" / "bundle.out").write_text(f"# Bundle file v0.3\n{len(cameras)} 0\n" + "\n".join(cameras) + "\n")
+    (folder / "list.txt").write_text("\n".join(listing) + "\n")
+    run(folder, tmp_path / "out", f"ingest.max_side={truth['w']}")
+    assert assert_poses(tmp_path / "out", truth, names)["source"] == "bundler"
+
+
 def turn_taking(direction: np.ndarray, to: np.ndarray) -> np.ndarray:
     """A 4x4 rotation taking the unit `direction` to the unit `to` (about their common normal)."""
     axis = np.cross(direction, to)
