@@ -41,6 +41,12 @@ STILL_MIN_SPLIT_PAIRS = 2
 STILL_MAX_PAIRS = 3000
 # Below STILL_MIN_SHARE, a refusal still names this share of still matches as a cause to look at.
 STILL_HINT_SHARE = 0.1
+# An imported pose contradicts its photo's matches where fewer than IMPORTED_MIN_AGREEING of the photo's matches with
+# its nearby photos (those that pass the ratio test, IMPORTED_MIN_MATCHES of them at least) lie on the epipolar lines
+# the poses give. Poses the photos fit: 23-89% of an image's matches agree (cup's, fox's, ball's and fern's); poses
+# shuffled among the photos: 0-4%; a pose turned 3 degrees: 0-29%, most below 10% (bench/README.md, "Poses").
+IMPORTED_MIN_AGREEING = 0.1
+IMPORTED_MIN_MATCHES = 100
 
 
 def detached_images(model: pycolmap.Reconstruction) -> list[str]:
@@ -130,6 +136,18 @@ def unlinked_models(db: Path, best: pycolmap.Reconstruction, models: list[pycolm
     if any(name not in by_name or root(by_name[name]) in reached for name in elsewhere):
         return []
     return sorted(Path(name).stem for name in elsewhere)
+
+
+def disagreeing_frames(agreement: np.ndarray, frames: int) -> dict[int, float]:
+    """The frames (by index) whose matches with nearby photos mostly lie off the epipolar lines of their poses, each
+    with the share that lies on them; `agreement` holds a row a pair: its frames, its matches, those that agree."""
+    matches, agreeing = np.zeros(frames), np.zeros(frames)
+    for i, j, found, kept in agreement:
+        matches[[i, j]] += found
+        agreeing[[i, j]] += kept
+    share = agreeing / np.maximum(matches, 1)
+    judged = (matches >= IMPORTED_MIN_MATCHES) & (share < IMPORTED_MIN_AGREEING)
+    return {int(i): float(share[i]) for i in np.flatnonzero(judged)}
 
 
 def drop_images(model: pycolmap.Reconstruction, stems: list[str]) -> None:

@@ -12,9 +12,12 @@ from PIL import Image
 
 from stages.common.media import write_png
 from stages.common.json_files import write_json
+from stages.common.text import short_list
+from stages.sfm.model_checks import MAX_CONTRADICTED_SHARE, disagreeing_frames, drop_images
 from stages.sfm.triangulate import triangulate
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
 from stages.common.layout import POINTS_NPZ, TRANSFORMS_JSON
+from plenoxels.core.errors import UserError
 
 
 # The first distortion coefficient a fisheye without any is given (a radius 1e-7 further at one radian off the axis).
@@ -39,11 +42,34 @@ def _undistort_mask(mask: np.ndarray, camera: pycolmap.Camera) -> np.ndarray:
 
 
 def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.Reconstruction, records: list[dict],
-                source: str, source_path: Path | None, bounds: dict, report, gravity=None) -> dict:
+                source: str, source_path: Path | None, bounds: dict, report, gravity=None,
+                check_matches: bool = False) -> dict:
     """Undistorts the posed images of `distorted` (a model of the ingested PNGs in `ingest_dir`) and writes the poses
     output into `out`: images/, masks/, sparse/, transforms.json and points.npz. `bounds` maps image names to LLFF
     (near, far); `gravity` is the world's up where the poses' source fixes it; `scratch` holds the intermediate
-    models."""
+    models. With `check_matches` (a pose file's poses), the photos whose matches with their neighbours contradict
+    their poses are left out and it is all written again, or where there are too many of them the file is refused."""
+    written = _write_poses(out, scratch, ingest_dir, distorted, records, source, source_path, bounds, report, gravity)
+    disagreeing = disagreeing_frames(written["agreement"], written["frames"]) \
+        if check_matches and "agreement" in written else {}
+    if not disagreeing:
+        return written
+    names = [written["names"][i] for i in disagreeing]
+    if len(names) > MAX_CONTRADICTED_SHARE * written["frames"]:
+        raise UserError(f"the poses in {source_path} contradict the photos' own matches: for {len(names)} of "
+                        f"{written['frames']} photos at most {max(disagreeing.values()):.0%} of their matches with "
+                        "nearby photos agree with their poses, where poses that fit agree with most; the pose file may "
+                        "be another capture's or in another convention: set poses.source=sfm to pose them anew")
+    report.warn(f"{len(names)} photo(s) whose imported poses contradict their own matches are left out: "
+                f"{short_list(names)}")
+    drop_images(distorted, names)
+    clear_poses(out)
+    written = _write_poses(out, scratch, ingest_dir, distorted, records, source, source_path, bounds, report, gravity)
+    return {**written, "contradicted": names}
+
+
+def _write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.Reconstruction, records: list[dict],
+                 source: str, source_path: Path | None, bounds: dict, report, gravity) -> dict:
     model_dir, undistorted_dir = scratch / "distorted", scratch / "undistorted"
     for folder in (model_dir, undistorted_dir):
         shutil.rmtree(folder, ignore_errors=True)
@@ -126,7 +152,16 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
                          [Intrinsics.from_frame({**shared, **f}) for f in frames])
     np.savez(out / POINTS_NPZ, **points.arrays())
     written["triangulated"] = {"points": len(points.xyz), "pairs": points.pairs}
+    written["names"], written["agreement"] = [f["name"] for f in frames], points.agreement
     return written
+
+
+def clear_poses(out: Path) -> None:
+    """Everything write_poses wrote into `out`, removed (to write it again)."""
+    for folder in ("images", "masks", "sparse"):
+        shutil.rmtree(out / folder, ignore_errors=True)
+    for name in (TRANSFORMS_JSON, POINTS_NPZ):
+        (out / name).unlink(missing_ok=True)
 
 
 def write_points(path: Path, reconstruction: pycolmap.Reconstruction, frame_index: dict[int, int]) -> None:

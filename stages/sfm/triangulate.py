@@ -44,6 +44,9 @@ class TriangulatedPoints:
     obs_frame: np.ndarray    # [2P] frame index of each observation
     obs_point: np.ndarray    # [2P] point index of each observation
     pairs: int               # image pairs matched
+    # [Q, 4] for each pair matched: its two frames, its matches that pass the ratio test, and how many of them agree
+    # with the poses' epipolar geometry
+    agreement: np.ndarray = None
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The layout of poses/points.npz."""
@@ -116,7 +119,7 @@ def triangulate(images: Iterable[np.ndarray], c2w: np.ndarray, intrinsics: list[
         scales.append(scale)
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     pairs = neighbour_pairs(c2w)
-    xyz_all, err_all, rgb_all, obs_all = [], [], [], []
+    xyz_all, err_all, rgb_all, obs_all, agreement = [], [], [], [], []
     for i, j in pairs:
         (xy_i, desc_i, rgb_i), (xy_j, desc_j, _) = features[i], features[j]
         if desc_i is None or desc_j is None or len(desc_i) < 2 or len(desc_j) < 2:
@@ -131,6 +134,7 @@ def triangulate(images: Iterable[np.ndarray], c2w: np.ndarray, intrinsics: list[
         p1, p2 = _projection(c2w[i], intrinsics[i]), _projection(c2w[j], intrinsics[j])
         tolerance = EPIPOLAR_PX / min(scales[i], scales[j])
         keep = _epipolar_distance(_fundamental(p1, p2, c2w[i][:3, 3]), x1, x2) < tolerance
+        agreement.append((i, j, len(good), int(keep.sum())))
         if keep.sum() < 8:
             continue
         x1, x2, a, b = x1[keep], x2[keep], a[keep], b[keep]
@@ -152,7 +156,8 @@ def triangulate(images: Iterable[np.ndarray], c2w: np.ndarray, intrinsics: list[
         obs_all.append((np.repeat([i, j], count), np.concatenate([index, index])))
     if not xyz_all or sum(len(x) for x in xyz_all) == 0:
         empty = np.zeros(0, dtype=np.int64)
-        return TriangulatedPoints(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0), empty, empty, len(pairs))
+        return TriangulatedPoints(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0), empty, empty, len(pairs),
+                                  np.array(agreement, dtype=np.int64).reshape(-1, 4))
     xyz = np.concatenate(xyz_all)
     error = np.concatenate(err_all)
     obs_frame = np.concatenate([o[0] for o in obs_all])
@@ -166,4 +171,5 @@ def triangulate(images: Iterable[np.ndarray], c2w: np.ndarray, intrinsics: list[
         kept = remap[obs_point] >= 0
         obs_frame, obs_point = obs_frame[kept], remap[obs_point[kept]]
         xyz, error, rgb = xyz[chosen], error[chosen], rgb[chosen]
-    return TriangulatedPoints(xyz, rgb, error, obs_frame, obs_point, len(pairs))
+    return TriangulatedPoints(xyz, rgb, error, obs_frame, obs_point, len(pairs),
+                              np.array(agreement, dtype=np.int64).reshape(-1, 4))

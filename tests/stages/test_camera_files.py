@@ -525,6 +525,37 @@ def test_bundler_cameras_pose_the_photos_their_list_names(synthetic, truth, tmp_
     assert assert_poses(tmp_path / "out", truth, names)["source"] == "bundler"
 
 
+def test_a_pose_file_that_contradicts_its_photos_matches_is_refused_and_a_photo_that_does_left_out(tmp_path):
+    """A pose file checked against the photos' own matches: a pose turned 10 degrees leaves its photo out; poses
+    shuffled among the photos (a file of another capture, or read in another convention) stop the poses stage with
+    one line that says so."""
+    import cv2
+    from plenoxels.core.errors import UserError
+
+    scene = write_scene("room", tmp_path / "room", n_views=10, width=320, height=240, seed=3, supersample=1)
+    truth = read_json(scene / "transforms.json")
+    turned = json.loads(json.dumps(truth))
+    c2w = np.asarray(turned["frames"][3]["transform_matrix"])
+    c2w[:3, :3] = cv2.Rodrigues(np.array([0.17, 0.0, 0.0]))[0] @ c2w[:3, :3]
+    turned["frames"][3]["transform_matrix"] = c2w.tolist()
+    (scene / "transforms.json").write_text(json.dumps(turned))
+    summary = Pipeline(scene, tmp_path / "turned", reporter=Reporter(quiet=True)).run(["poses"])["poses"]["summary"]
+    assert summary["contradicted"] == [Path(truth["frames"][3]["file_path"]).stem] and summary["registered"] == 9
+    assert "1 photo(s) whose imported poses contradict their own matches left out" in summary["line"]
+
+    shuffled = json.loads(json.dumps(truth))
+    matrices = [frame["transform_matrix"] for frame in shuffled["frames"]]
+    for frame, n in zip(shuffled["frames"], np.random.default_rng(0).permutation(len(matrices))):
+        frame["transform_matrix"] = matrices[n]
+    (scene / "transforms.json").write_text(json.dumps(shuffled))
+    with pytest.raises(UserError, match="contradict the photos' own matches.*set poses.source=sfm"):
+        Pipeline(scene, tmp_path / "shuffled", reporter=Reporter(quiet=True)).run(["poses"])
+    assert not (tmp_path / "shuffled" / "poses").exists()
+    (scene / "transforms.json").write_text(json.dumps(truth))  # the file as it was: every photo posed
+    assert Pipeline(scene, tmp_path / "true", reporter=Reporter(quiet=True)).run(["poses"])["poses"]["summary"][
+        "registered"] == 10
+
+
 def turn_taking(direction: np.ndarray, to: np.ndarray) -> np.ndarray:
     """A 4x4 rotation taking the unit `direction` to the unit `to` (about their common normal)."""
     axis = np.cross(direction, to)
