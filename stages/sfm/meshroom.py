@@ -9,7 +9,6 @@ units changed with the file's `version` (`focal_lengths`), and its lens (`distor
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,7 +17,8 @@ import pycolmap
 
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
 from plenoxels.core.errors import UserError
-from stages.sfm.imported_model import NO_LENS, CameraTable, Imported, Lens, add_image, at_ingested_size, file_stem
+from stages.sfm.imported_model import (NO_LENS, CameraTable, Imported, Lens, add_image, at_ingested_size, file_stem,
+                                       finite_number)
 
 GRAVITY = None  # SfM's frame, wherever its first pair put it
 # AliceVision's lenses as COLMAP models them: the model and the coefficients' order (their names in AliceVision's
@@ -58,20 +58,10 @@ def read(path: Path) -> SfmData:
     return found
 
 
-def _number(value, name: str, where: str) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        number = math.nan
-    if not math.isfinite(number):
-        raise UserError(f"{where}: {name} is {value!r}, not a finite number; fix it or set poses.source=sfm")
-    return number
-
-
 def _numbers(values, count: int, name: str, where: str) -> np.ndarray:
     if not isinstance(values, list) or len(values) != count:
         raise UserError(f"{where}: {name} is not {count} numbers; fix it or set poses.source=sfm")
-    return np.array([_number(v, name, where) for v in values])
+    return np.array([finite_number(v, name, where) for v in values])
 
 
 def _world_to_camera(transform, where: str) -> np.ndarray:
@@ -110,10 +100,10 @@ def focal_lengths(intrinsic: dict, version: tuple[int, ...], width: float, heigh
     if version < (1, 2, 2):
         focal = intrinsic.get("pxFocalLength")
         fx, fy = (focal, focal) if version < (1, 2, 0) or not isinstance(focal, list) else (focal + [None, None])[:2]
-        return _number(fx, "pxFocalLength", where), _number(fy, "pxFocalLength", where)
-    millimetres = _number(intrinsic.get("focalLength"), "focalLength", where)
-    sensor = _number(intrinsic.get("sensorWidth", 36.0), "sensorWidth", where)
-    ratio = _number(intrinsic.get("pixelRatio", 1.0), "pixelRatio", where)
+        return finite_number(fx, "pxFocalLength", where), finite_number(fy, "pxFocalLength", where)
+    millimetres = finite_number(intrinsic.get("focalLength"), "focalLength", where)
+    sensor = finite_number(intrinsic.get("sensorWidth", 36.0), "sensorWidth", where)
+    ratio = finite_number(intrinsic.get("pixelRatio", 1.0), "pixelRatio", where)
     if min(sensor, ratio) <= 0:
         raise UserError(f"{where}: sensorWidth and pixelRatio must be positive; fix it or set poses.source=sfm")
     if version >= (1, 2, 11):
@@ -125,7 +115,7 @@ def focal_lengths(intrinsic: dict, version: tuple[int, ...], width: float, heigh
 
 def camera(intrinsic: dict, version: tuple[int, ...], where: str) -> tuple[Intrinsics, Lens]:
     """An intrinsic's pinhole (for its width x height) and lens."""
-    width, height = (_number(intrinsic.get(key), key, where) for key in ("width", "height"))
+    width, height = (finite_number(intrinsic.get(key), key, where) for key in ("width", "height"))
     kind = str(intrinsic.get("type", "")).lower()
     lens_name = OLDER_TYPES.get(kind) if version < (1, 2, 8) else \
         str(intrinsic.get("distortionType", "none")).lower() if kind == "pinhole" else None
