@@ -91,7 +91,7 @@ def run(ctx) -> dict:
         written = write_poses(ctx.work, ctx.scratch, ingest, reconstruction, records, source, source_path, bounds,
                               ctx.report, gravity, check_matches=source != "sfm")  # SfM's model was checked already
         if written.get("contradicted"):
-            info["contradicted"] = written["contradicted"]
+            info["pose_file_contradicted"] = written["contradicted"]
         info["seconds"]["undistort_and_triangulate"] = time.perf_counter() - step
 
     registered = written["frames"]
@@ -118,9 +118,9 @@ def run(ctx) -> dict:
         line += (f"; the ingested {info['denser']['first_frames']} frames did not hold together, so these poses come "
                  f"from the clip read again with a frame each {info['denser']['motion']:.1%} of the view's diagonal, "
                  f"posed at {info['denser']['posed_at'][0]}x{info['denser']['posed_at'][1]}")
-    if info.get("contradicted"):
-        line += (f"; {len(info['contradicted'])} photo(s) whose imported poses contradict their own matches left "
-                 f"out: {short_list(info['contradicted'])}")
+    if info.get("pose_file_contradicted"):
+        line += (f"; {len(info['pose_file_contradicted'])} photo(s) whose imported poses contradict their own matches "
+                 f"left out: {short_list(info['pose_file_contradicted'])}")
     if info.get("turned_upright"):
         line += (f"; the pose file describes {info['turned_upright']} photos as stored, turned from upright (their "
                  "EXIF orientation), so their cameras are turned with them")

@@ -540,7 +540,8 @@ def test_a_pose_file_that_contradicts_its_photos_matches_is_refused_and_a_photo_
     turned["frames"][3]["transform_matrix"] = c2w.tolist()
     (scene / "transforms.json").write_text(json.dumps(turned))
     summary = Pipeline(scene, tmp_path / "turned", reporter=Reporter(quiet=True)).run(["poses"])["poses"]["summary"]
-    assert summary["contradicted"] == [Path(truth["frames"][3]["file_path"]).stem] and summary["registered"] == 9
+    assert summary["pose_file_contradicted"] == [Path(truth["frames"][3]["file_path"]).stem]
+    assert summary["registered"] == 9
     assert "1 photo(s) whose imported poses contradict their own matches left out" in summary["line"]
 
     shuffled = json.loads(json.dumps(truth))
