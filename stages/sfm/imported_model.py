@@ -87,9 +87,10 @@ def as_stored(record: dict, pose_w: float, pose_h: float) -> bool:
     applied, as COLMAP reads photos): its size has the other aspect, as the stored pixels do."""
     if record.get("orientation") not in QUARTER_TURNS:
         return False
-    factor = record["height"] / pose_w
-    return abs(pose_h * factor - record["width"]) <= SIZE_TOLERANCE_PX * max(1.0, factor) < abs(
-        pose_h * record["width"] / pose_w - record["height"])
+    tolerance = SIZE_TOLERANCE_PX * max(1.0, record["height"] / pose_w)
+    fits_stored = abs(pose_h * record["height"] / pose_w - record["width"]) <= tolerance
+    fits_upright = abs(pose_h * record["width"] / pose_w - record["height"]) <= tolerance
+    return fits_stored and not fits_upright
 
 
 def ingested_size(record: dict, pose_w: float, pose_h: float) -> tuple[int, int]:
@@ -186,9 +187,9 @@ def upright_pixels(uv: np.ndarray, orientation: int, width: int, height: int) ->
 def turned_camera(camera: pycolmap.Camera, orientation: int, camera_id: int) -> pycolmap.Camera:
     """The camera of a photo's stored pixels, turned to the photo shown upright (TURNS[orientation])."""
     if camera.model_name not in RADIAL_MODELS | set(TANGENTIAL):
-        raise UserError(f"the pose file's {camera.model_name} camera describes photos as stored, a quarter turn from "
-                        "upright (EXIF), and its lens does not turn with them here; give the photos upright (their "
-                        "pixels turned) with their poses, or set poses.source=sfm")
+        raise UserError(f"the pose file's {camera.model_name} camera describes photos as stored, turned from upright "
+                        "(EXIF), and its lens does not turn with them here; give the photos upright (their pixels "
+                        "turned) with their poses, or set poses.source=sfm")
     width, height = camera.width, camera.height
     quarter = orientation in QUARTER_TURNS
     turned = pycolmap.Camera(model=camera.model_name, width=height if quarter else width,

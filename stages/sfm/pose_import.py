@@ -1,7 +1,9 @@
 """Poses a user already has: a COLMAP sparse model, a NeRF / instant-ngp / nerfstudio / Blender transforms.json, LLFF
 poses_bounds.npy, IDR/NeuS cameras_sphere.npz (DTU-style sets), Metashape's exported cameras.xml, OpenSfM's
-(OpenDroneMap's) reconstruction.json, NSVF's and NeRF++'s pose folders (svox2's), MVSNet's cams/, Polycam's raw export
-or Record3D's, turned into the same distorted COLMAP model that SfM makes.
+(OpenDroneMap's) reconstruction.json, NSVF's and NeRF++'s pose folders (svox2's), MVSNet's cams/, Polycam's raw export,
+RealityCapture's XMP files, turned into the same distorted COLMAP model that SfM makes; the single-file formats whose
+reader holds its own import (Record3D's metadata, RealityCapture's CSV, Meshroom's cameras.sfm, Bundler's bundle.out)
+dispatched to it.
 
 Every importer returns an `Imported`: a `pycolmap.Reconstruction` whose image names are the ingested PNGs
 (`<name>.png`) and whose cameras are scaled to the ingested image size, so it is undistorted and written exactly as an
@@ -472,10 +474,9 @@ CAMERA_FILES = {"nsvf": (".txt", nsvf), "polycam": (".json", polycam), "mvsnet":
 
 def from_camera_files(kind: str, folders: list[Path], records: list[dict], scene: Path) -> Imported:
     """Poses from folders of a camera file a photo (stages/sfm/nsvf.py, polycam.py, mvsnet.py, realitycapture.py):
-    a photo takes the
-    file named as it in its own camera folder (beside its photos' folder), where that is among `folders`; a photo with
-    no camera folder of its own, the one file of its name in `folders` (NeRF++'s splits repeat names, so a file is
-    never taken from another split)."""
+    a photo takes the file named as it in its own camera folder (beside its photos' folder, or its own folder), where
+    that is among `folders`; a photo with no camera folder of its own, the one file of its name in `folders`
+    (NeRF++'s splits repeat names, so a file is never taken from another split)."""
     suffix, reader = CAMERA_FILES[kind]
     photos, named_folders = photo_folder(scene), {lexical_path(f) for f in folders}
     by_name: dict[str, list[Path]] = {}

@@ -46,7 +46,7 @@ class TriangulatedPoints:
     pairs: int               # image pairs matched
     # [Q, 4] for each pair matched: its two frames, its matches that pass the ratio test, and how many of them agree
     # with the poses' epipolar geometry
-    agreement: np.ndarray = None
+    agreement: np.ndarray
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The layout of poses/points.npz."""
