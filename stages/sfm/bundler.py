@@ -1,6 +1,6 @@
 """Bundler's cameras (`bundle.out`, v0.3: Bundler's and VisualSFM's own, and the export RealityCapture, Metashape and
 Meshroom offer), with the list of the photos they pose in order (`list.txt`), read for the importer
-(pose_import.from_bundler).
+(`imported`).
 
 After a header line, the file gives the counts of cameras and points, then for each camera its focal length in
 pixels and two radial coefficients (on a line), its world-to-camera rotation (three lines) and translation (a line),
@@ -80,8 +80,8 @@ def camera_to_world(w2c: np.ndarray) -> np.ndarray:
 
 
 def imported(path: Path, records: list[dict]) -> Imported:
-    """Poses from Bundler's cameras and their list of photos: a photo takes the camera of the
-    line that names its stem, where one line alone does and the reconstruction kept it."""
+    """Poses from Bundler's cameras and their list of photos: a photo takes the camera of the line that names its
+    stem, where one line alone does and the reconstruction kept it."""
     names, cameras_of = read(path)
     by_stem: dict[str, list[int]] = {}
     for i, name in enumerate(names):

@@ -1,5 +1,5 @@
 """Meshroom's (AliceVision's) cameras: the SfMData file its StructureFromMotion node writes (`cameras.sfm`, JSON),
-read for the importer (pose_import.from_meshroom).
+read for the importer (`imported`).
 
 Every value is written as a string. `views` give each photo's path, its pose's and camera's ids; `poses` a rotation
 (world-to-camera, in OpenCV's camera axes: x right, y down, z forward; its nine numbers column by column) and the
@@ -131,7 +131,7 @@ def camera(intrinsic: dict, version: tuple[int, ...], where: str) -> tuple[Intri
         offset = offset + [width / 2, height / 2]
     if min(fx, fy, width, height) <= 0:
         raise UserError(f"{where}: its focal lengths and size are not positive; fix it or set poses.source=sfm")
-    given = intrinsic.get("distortionParams", [])
+    given = intrinsic.get("distortionParams", []) if lens_name != "none" else []  # AliceVision ignores those, too
     values = dict(zip(PARAMETERS[lens_name], _numbers(given, len(PARAMETERS[lens_name]), "distortionParams", where)))
     model, order = LENSES[lens_name]
     coefficients = tuple(values[term] if isinstance(term, str) else 0.0 for term in order)
@@ -140,8 +140,8 @@ def camera(intrinsic: dict, version: tuple[int, ...], where: str) -> tuple[Intri
 
 
 def imported(path: Path, records: list[dict]) -> Imported:
-    """Poses from Meshroom's SfMData: a photo takes the view of its file's stem, where one
-    view alone has it and SfM placed it."""
+    """Poses from Meshroom's SfMData: a photo takes the view of its file's stem, where one view alone has it and SfM
+    placed it."""
     sfm = read(path)
     by_stem: dict[str, list[dict]] = {}
     for view in sfm.views:

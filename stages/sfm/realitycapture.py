@@ -1,6 +1,6 @@
-"""RealityCapture's (RealityScan's) cameras, read for the importer: the XMP file it writes beside each photo it
-aligned (`<stem>.xmp`: pose_import.from_camera_files), and its "Internal/External camera parameters" CSV export (one
-row a photo, as nerfstudio's `ns-process-data realitycapture` reads it: pose_import.from_realitycapture_csv).
+"""RealityCapture's (RealityScan's) cameras: the XMP file it writes beside each photo it aligned (`<stem>.xmp`, read
+for pose_import.from_camera_files), and its "Internal/External camera parameters" CSV export (one row a photo, as
+nerfstudio's `ns-process-data realitycapture` reads it: `imported_csv`).
 
 An XMP's `xcr:Rotation` is world-to-camera, row by row, in OpenCV's camera axes (x right, y down, z forward), and
 `xcr:Position` the camera's centre; each is an element or an attribute. `xcr:FocalLength35mm` is the focal length of
@@ -81,8 +81,8 @@ def lens(model: str, coefficients: list[float], k: Intrinsics, where: str) -> Le
 
 
 def camera(path: Path, width: int, height: int, where: str) -> tuple[Intrinsics, np.ndarray, Lens] | None:
-    """The pinhole (for its photo as stored, width x height), camera-to-world (ours) and lens of an XMP file; None
-    where it holds no pose (RealityCapture did not align the photo)."""
+    """The pinhole (for its photo, width x height), camera-to-world (ours) and lens of an XMP file; None where it
+    holds no pose (RealityCapture did not align the photo)."""
     try:
         text = path.read_text(errors="replace")
     except OSError:

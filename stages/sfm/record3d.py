@@ -1,5 +1,5 @@
 """Record3D's export (an iPhone's LiDAR capture app, as nerfstudio and svox2 read it): its frames in rgb/, named by
-their number (0.jpg, 1.jpg, ...), beside metadata.json, read for the importer (pose_import.from_record3d).
+their number (0.jpg, 1.jpg, ...), beside metadata.json, read for the importer (`imported`).
 
 The metadata holds `K`, the pinhole's 3x3 matrix column by column, for frames of `w` x `h` pixels, and `poses`, one a
 frame: camera-to-world as a unit quaternion (x, y, z, w) and a translation, in ARKit's axes (x right, y up, z back:
