@@ -117,6 +117,12 @@ def aligned_by_realitycapture(photos: Path) -> bool:
                                    for photo in photos.iterdir() if photo.suffix.lower() in IMAGE_SUFFIXES)
 
 
+def holds_realitycapture_xmp(folder: Path) -> bool:
+    """Whether a folder holds RealityCapture's XMP files with a pose (the folder they were exported to)."""
+    return folder.is_dir() and any(all(mark in _head(xmp) for mark in REALITYCAPTURE_MARKS)
+                                   for xmp in folder.iterdir() if xmp.suffix.lower() == ".xmp")
+
+
 def is_realitycapture_csv(path: Path) -> bool:
     """Whether a .csv file is RealityCapture's camera export (its header names the columns the importer reads)."""
     first_line = _head(path).decode("utf-8-sig", errors="replace").splitlines()[:1]

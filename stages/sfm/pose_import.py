@@ -24,8 +24,8 @@ from stages.capture.photos import (DATASET_SPLITS, POSE_FOLDERS, frame_photo, le
 from stages.sfm import bundler, meshroom, metashape, mvsnet, nsvf, opensfm, polycam, realitycapture, record3d
 from stages.sfm.imported_model import (CameraTable, Imported, Lens, add_image, add_view, at_ingested_size, file_stem,
                                        finite_number, ingested_size, scale_factor)
-from stages.sfm.pose_files import (KINDS, aligned_by_realitycapture, candidates, colmap_models, is_colmap_model,
-                                   is_bundler, is_meshroom, is_realitycapture_csv)
+from stages.sfm.pose_files import (KINDS, candidates, colmap_models, holds_realitycapture_xmp, is_bundler,
+                                   is_colmap_model, is_meshroom, is_realitycapture_csv)
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_llff, opengl_c2w_from_projection
 from plenoxels.core.errors import UserError
 
@@ -43,7 +43,7 @@ def kind_of(path: Path) -> str:
             return "polycam"
         if path.name == mvsnet.CAMERA_FOLDER:
             return "mvsnet"
-        if aligned_by_realitycapture(path):
+        if holds_realitycapture_xmp(path):
             return "realitycapture"
     elif path.name == "reconstruction.json":
         return "opensfm"

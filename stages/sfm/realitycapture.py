@@ -26,6 +26,7 @@ from plenoxels.core.errors import UserError
 from stages.sfm.imported_model import (NO_LENS, CameraTable, Imported, Lens, add_image, at_ingested_size, file_stem,
                                        finite_number)
 from stages.sfm.pose_files import REALITYCAPTURE_COLUMNS as CSV_COLUMNS
+from stages.sfm.pose_files import aligned_by_realitycapture
 
 GRAVITY = None  # a component's frame is geographic only where it was georeferenced, which neither file says
 SUFFIX = ".xmp"
@@ -35,8 +36,9 @@ CSV_LENS_COLUMNS = ("k1", "k2", "k3", "k4", "t1", "t2")
 
 
 def own_folders(photos: Path) -> list[Path]:
-    """The folder of a photo's XMP file: its own."""
-    return [photos]
+    """The folder of a photo's XMP file: its own, where RealityCapture wrote them beside the photos; else none (they
+    were exported to a folder of their own, which poses.path names)."""
+    return [photos] if aligned_by_realitycapture(photos) else []
 
 
 def _field(text: str, name: str) -> str | None:

@@ -316,6 +316,17 @@ def test_realitycapture_xmp_files_pose_the_photos_they_stand_beside(synthetic, t
                        "w": 2 * truth["w"] + pad, "h": 2 * truth["h"]}.items():
         assert poses[key] == pytest.approx(value, rel=1e-6), key
 
+    exported = tmp_path / "exported"  # the XMP files exported to a folder of their own, which poses.path names
+    (exported / "photos").mkdir(parents=True)
+    (exported / "xmp").mkdir()
+    for photo in folder.glob("*.jpg"):
+        (exported / "photos" / photo.name).write_bytes(photo.read_bytes())
+        (exported / "xmp" / f"{photo.stem}.xmp").write_text(photo.with_suffix(".xmp").read_text())
+    run(exported / "photos", tmp_path / "out_exported", f"ingest.max_side={2 * truth['w'] + pad}",
+        "ingest.crop_bars=false", f"poses.path={exported / 'xmp'}")  # the padding's black is no video's bars
+    exported_poses = read_json(tmp_path / "out_exported" / "poses" / "transforms.json")
+    assert exported_poses["source"] == "realitycapture" and len(exported_poses["frames"]) == len(names)
+
     from stages.sfm import pose_files
     edited = tmp_path / "edited"  # Lightroom's sidecars: the same names, no pose
     for i in range(3):
