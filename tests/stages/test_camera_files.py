@@ -421,12 +421,16 @@ def meshroom_transform(w2c: np.ndarray) -> dict:
             "center": [repr(float(v)) for v in -w2c[:3, :3].T @ w2c[:3, 3]]}
 
 
-@pytest.mark.parametrize("version, rig", [((1, 2, 11), False), ((1, 2, 6), False), ((1, 2, 4), False),
-                                          ((1, 2, 0), False), ((1, 0, 0), False), ((1, 2, 11), True)])
-def test_meshroom_cameras_pose_the_photos_they_name(synthetic, truth, tmp_path, version, rig):
+@pytest.mark.parametrize("version, rig, lensless", [((1, 2, 11), False, False), ((1, 2, 6), False, False),
+                                                    ((1, 2, 4), False, False), ((1, 2, 0), False, False),
+                                                    ((1, 0, 0), False, False), ((1, 2, 11), True, False),
+                                                    ((1, 2, 11), False, True)])
+def test_meshroom_cameras_pose_the_photos_they_name(synthetic, truth, tmp_path, version, rig, lensless):
     """A Meshroom project's cameras.sfm (its cache beside the photos; the photos' paths those of the machine it ran
     on), in each of the file's versions whose focal length and principal point differ; one photo SfM did not place.
-    With `rig`, each camera is one of a rig posed as one: the rig's pose, moved by the camera's sub-pose."""
+    With `rig`, each camera is one of a rig posed as one: the rig's pose, moved by the camera's sub-pose. With
+    `lensless`, the camera has no lens, and the coefficients a writer left beside it are not read (AliceVision's
+    loader passes them over too)."""
     folder = tmp_path / "capture"
     views, poses, names = [], [], {}
     sub_pose = np.eye(4)
@@ -444,8 +448,11 @@ def test_meshroom_cameras_pose_the_photos_they_name(synthetic, truth, tmp_path, 
             w2c = np.linalg.inv(sub_pose) @ w2c
         poses.append({"poseId": str(9000 + i), "pose": {"transform": meshroom_transform(w2c), "locked": "0"}})
         names[f"IMG_{i:04d}"] = Path(frame["file_path"]).stem
+    intrinsic = meshroom_intrinsic(truth, version, 2.0)
+    if lensless:
+        intrinsic.update(distortionType="none", distortionParams=["0", "0", "0"])
     data = {"version": [str(v) for v in version], "featuresFolders": [], "matchesFolders": [], "views": views,
-            "intrinsics": [meshroom_intrinsic(truth, version, 2.0)], "poses": poses,
+            "intrinsics": [intrinsic], "poses": poses,
             "rigs": [{"rigId": "0", "subPoses": [{"status": "constant", "pose": meshroom_transform(sub_pose)}]}]}
     cache = folder / "MeshroomCache" / "StructureFromMotion" / "3f5a0c"
     cache.mkdir(parents=True)
