@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+from scipy.spatial.transform import Rotation
 
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
 from plenoxels.core.errors import UserError
@@ -127,19 +128,13 @@ def csv_rows(path: Path) -> dict[str, dict[str, str]]:
     return {Path(row["#name"].replace("\\", "/")).stem: row for row in rows if row.get("#name")}
 
 
-def _turn(axis: int, degrees: float) -> np.ndarray:
-    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
-    i, j = [a for a in range(3) if a != axis]
-    turn = np.eye(3)
-    turn[i, i], turn[i, j], turn[j, i], turn[j, j] = c, -s, s, c
-    return turn if axis != 1 else turn.T  # about y, x turns toward -z
-
-
 def csv_camera(row: dict[str, str], width: int, height: int, where: str) -> tuple[Intrinsics, np.ndarray, Lens]:
     """The pinhole, camera-to-world (ours) and lens of a CSV row, for its photo as stored (width x height)."""
     value = {key: finite_number(row.get(key), key, where, positive=key == "f") for key in CSV_COLUMNS[1:]}
     c2w = np.eye(4)
-    c2w[:3, :3] = _turn(2, -value["heading"]) @ _turn(0, value["pitch"]) @ _turn(1, value["roll"])
+    # OpenGL's camera turned about z by -heading, then about its x by pitch and its y by roll (nerfstudio's reading)
+    angles = [-value["heading"], value["pitch"], value["roll"]]
+    c2w[:3, :3] = Rotation.from_euler("ZXY", angles, degrees=True).as_matrix()
     c2w[:3, 3] = value["x"], value["y"], value["alt"]
     k = pinhole(value["f"], value["px"], value["py"], 1.0, width, height)
     coefficients = [finite_number(row.get(key) or 0, key, where) for key in CSV_LENS_COLUMNS]
