@@ -1,8 +1,8 @@
 """Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy, IDR/NeuS cameras,
 Metashape cameras .xml, OpenSfM reconstruction.json, NSVF's or NeRF++'s pose folders, Polycam's camera folder,
-MVSNet's cams/, Record3D's metadata, RealityCapture's XMP files or CSV, Meshroom's cameras.sfm and Bundler's
-bundle.out the importers (pose_import.py) could read. Finding them reads no pose, so a cache key lists them without
-loading COLMAP."""
+MVSNet's cams/, Record3D's metadata, RealityCapture's XMP files or CSV, Meshroom's cameras.sfm, Bundler's bundle.out
+and OpenMVG's sfm_data.json the importers (pose_import.py) could read. Finding them reads no pose, so a cache key
+lists them without loading COLMAP."""
 from __future__ import annotations
 
 import json
@@ -13,7 +13,7 @@ from stages.capture.photos import (DATASET_SPLITS, IMAGE_SUFFIXES, POLYCAM_CAMER
                                    split_folder, split_layout)
 
 KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf", "polycam", "mvsnet", "record3d",
-         "realitycapture", "meshroom", "bundler")
+         "realitycapture", "meshroom", "bundler", "openmvg")
 # IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
 IDR_FILES = ("cameras_sphere.npz", "cameras.npz")
 # Bytes of a file read to tell a tool's pose file from others of its type (Metashape's XML, Record3D's JSON).
@@ -29,6 +29,8 @@ MESHROOM_FILES = ("*.sfm", "MeshroomCache/StructureFromMotion/*/cameras.sfm")
 # Bundler's cameras (in its bundle/ folder or beside the photos), and the names its list of photos goes by.
 BUNDLER_FILES = ("*.out", "bundle/*.out")
 BUNDLER_LISTS = ("{name}.list.txt", "{stem}.list.txt", "{stem}_list.txt", "list.txt", "imagelist.txt")
+# OpenMVG's scene as JSON, beside the photos or in an output folder there (reconstruction_sequential/, ...).
+OPENMVG_FILES = ("sfm_data*.json", "*/sfm_data*.json")
 
 
 def colmap_models(folder: Path) -> list[Path]:
@@ -64,6 +66,8 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
         found["realitycapture"] += [p for p in sorted(place.glob("*.csv")) if is_realitycapture_csv(p)]
         found["meshroom"] += [p for pattern in MESHROOM_FILES for p in sorted(place.glob(pattern)) if is_meshroom(p)]
         found["bundler"] += [p for pattern in BUNDLER_FILES for p in sorted(place.glob(pattern)) if is_bundler(p)]
+        found["openmvg"] += [p for pattern in OPENMVG_FILES for p in sorted(place.glob(pattern)) if is_openmvg(p)]
+    found["openmvg"] = list(dict.fromkeys(found["openmvg"]))  # the photo folder's, found from its parent too
     if aligned_by_realitycapture(folder):  # its XMP files before its CSV
         found["realitycapture"].insert(0, folder)
     found["polycam"] += [camera_folder for camera_folder in [folder.parent / POLYCAM_CAMERAS.get(folder.name, "")]
@@ -142,6 +146,12 @@ def is_bundler(path: Path) -> bool:
     return _head(path).lstrip().lower().startswith(b"# bundle file")
 
 
+def is_openmvg(path: Path) -> bool:
+    """Whether a file is OpenMVG's SfM_Data as JSON (its head names the format's version)."""
+    head = _head(path)
+    return head.lstrip().startswith(b"{") and b'"sfm_data_version"' in head
+
+
 def is_metashape(path: Path) -> bool:
     """Whether an .xml file is Metashape's cameras (a <document> whose head opens a <chunk>)."""
     head = _head(path)
@@ -161,11 +171,13 @@ def pose_files(scene: Path) -> list[Path]:
 
 def poses_equirect(scene: Path) -> bool:
     """Whether a pose file beside the photos poses 360 frames: a transforms.json's camera_model EQUIRECTANGULAR
-    (nerfstudio's, for the file or any of its frames), a Metashape spherical sensor or an OpenSfM spherical camera.
+    (nerfstudio's, for the file or any of its frames), a Metashape spherical sensor, an OpenSfM or OpenMVG spherical
+    camera.
     Ingest then cuts the frames into views, and the import poses each view from its frame's pose."""
     found = candidates(scene)
     marks = [(path, rb"\"projection_type\"\s*:\s*\"(spherical|equirectangular)\"") for path in found["opensfm"]]
     marks += [(path, rb"<sensor\b[^>]*\btype=\"spherical\"") for path in found["metashape"]]
+    marks += [(path, rb"\"polymorphic_name\"\s*:\s*\"spherical\"") for path in found["openmvg"]]
     for path, mark in marks:
         try:
             if re.search(mark, path.read_bytes()):

@@ -2,8 +2,8 @@
 poses_bounds.npy, IDR/NeuS cameras_sphere.npz (DTU-style sets), Metashape's exported cameras.xml, OpenSfM's
 (OpenDroneMap's) reconstruction.json, NSVF's and NeRF++'s pose folders (svox2's), MVSNet's cams/, Polycam's raw export,
 RealityCapture's XMP files, turned into the same distorted COLMAP model that SfM makes; the single-file formats whose
-reader holds its own import (Record3D's metadata, RealityCapture's CSV, Meshroom's cameras.sfm, Bundler's bundle.out)
-dispatched to it.
+reader holds its own import (Record3D's metadata, RealityCapture's CSV, Meshroom's cameras.sfm, Bundler's bundle.out,
+OpenMVG's sfm_data.json) dispatched to it.
 
 Every importer returns an `Imported`: a `pycolmap.Reconstruction` whose image names are the ingested PNGs
 (`<name>.png`) and whose cameras are scaled to the ingested image size, so it is undistorted and written exactly as an
@@ -21,11 +21,12 @@ import pycolmap
 
 from stages.capture.photos import (DATASET_SPLITS, POSE_FOLDERS, frame_photo, lexical_path, photo_folder,
                                    split_layout)
-from stages.sfm import bundler, meshroom, metashape, mvsnet, nsvf, opensfm, polycam, realitycapture, record3d
+from stages.sfm import (bundler, meshroom, metashape, mvsnet, nsvf, openmvg, opensfm, polycam, realitycapture,
+                        record3d)
 from stages.sfm.imported_model import (CameraTable, Imported, Lens, add_image, add_view, at_ingested_size, file_stem,
                                        finite_number, ingested_size, scale_factor)
 from stages.sfm.pose_files import (KINDS, candidates, colmap_models, holds_realitycapture_xmp, is_bundler,
-                                   is_colmap_model, is_meshroom, is_realitycapture_csv)
+                                   is_colmap_model, is_meshroom, is_openmvg, is_realitycapture_csv)
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_llff, opengl_c2w_from_projection
 from plenoxels.core.errors import UserError
 
@@ -53,6 +54,8 @@ def kind_of(path: Path) -> str:
         return "meshroom"
     elif path.suffix.lower() == ".out" or is_bundler(path):
         return "bundler"
+    elif is_openmvg(path):
+        return "openmvg"
     elif path.suffix == ".json":
         return "transforms"
     elif path.suffix == ".npy":
@@ -66,8 +69,8 @@ def kind_of(path: Path) -> str:
     raise UserError(f"poses.path {path} is not a COLMAP model folder, a transforms*.json, a poses_bounds.npy, an "
                     "IDR/NeuS cameras*.npz, a Metashape cameras .xml, an OpenSfM reconstruction.json, an NSVF pose/ "
                     "folder, Polycam's keyframes/cameras/, MVSNet's cams/, Record3D's metadata.json, or "
-                    "RealityCapture's camera CSV or a folder of its XMP files, Meshroom's cameras.sfm or Bundler's "
-                    "bundle.out")
+                    "RealityCapture's camera CSV or a folder of its XMP files, Meshroom's cameras.sfm, Bundler's "
+                    "bundle.out or OpenMVG's sfm_data.json")
 
 
 def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
@@ -97,6 +100,8 @@ def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
         return meshroom.imported(path, records)
     if kind == "bundler":
         return bundler.imported(path, records)
+    if kind == "openmvg":
+        return openmvg.imported(path, records)
     return from_llff(path, records)
 
 

@@ -400,6 +400,38 @@ def bundler(spoil, with_list=True):
     return edit
 
 
+def openmvg(spoil):
+    """OpenMVG's sfm_data.json beside images/ for the template's photos (cereal's JSON: each view and intrinsic behind
+    a pointer), spoiled by `spoil` (a function of its data; a string it returns is written as the file's text)."""
+    def edit(folder, meta):
+        views, poses = [], []
+        for n, f in enumerate(meta["frames"]):
+            c2w = np.array(f["transform_matrix"])
+            view = {"filename": Path(f["file_path"]).name, "id_view": n, "id_intrinsic": 0, "id_pose": n}
+            views.append({"key": n, "value": {"polymorphic_id": 1073741824,
+                                              "ptr_wrapper": {"id": 2147483650 + n, "data": view}}})
+            poses.append({"key": n, "value": {"rotation": (c2w[:3, :3] @ np.diag([1.0, -1, -1])).T.tolist(),
+                                              "center": c2w[:3, 3].tolist()}})
+        intrinsic = {"width": meta["w"], "height": meta["h"], "focal_length": meta["fl_x"],
+                     "principal_point": [meta["cx"], meta["cy"]]}
+        intrinsics = [{"key": 0, "value": {"polymorphic_id": 2147483649, "polymorphic_name": "pinhole",
+                                           "ptr_wrapper": {"id": 2147483649, "data": intrinsic}}}]
+        data = spoil({"sfm_data_version": "0.3", "views": views, "intrinsics": intrinsics, "extrinsics": poses})
+        (folder / "sfm_data.json").write_text(data if isinstance(data, str) else json.dumps(data))
+    return edit
+
+
+def first_openmvg_intrinsic(**changed):
+    """A spoiler of OpenMVG's scene that changes its intrinsic's keys (`polymorphic_name`) or data (the rest)."""
+    def spoil(d):
+        value = d["intrinsics"][0]["value"]
+        name = {"polymorphic_name": changed.pop("polymorphic_name")} if "polymorphic_name" in changed else {}
+        data = {**value["ptr_wrapper"]["data"], **changed}
+        return {**d, "intrinsics": [{"key": 0, "value": {**value, **name, "ptr_wrapper": {"id": 2147483649,
+                                                                                          "data": data}}}]}
+    return spoil
+
+
 def lines_set(lines: dict[int, str]):
     """A spoiler of a text file that sets the lines numbered (from 0) to the text given."""
     return lambda text: "\n".join(lines.get(n, line) for n, line in enumerate(text.split("\n")))
@@ -493,6 +525,17 @@ POSE_KINDS = {
     "bundler_focal_text": posed(bundler(lines_set({2: "wide 0 0"}))),
     "bundler_rotation_nan": posed(bundler(lines_set({3: "nan nan nan"}))),
     "bundler_rotation_singular": posed(bundler(lines_set({3: "0 0 0", 4: "0 0 0", 5: "0 0 0"}))),
+    "openmvg_cut_short": posed(openmvg(lambda d: json.dumps(d)[:-30])),
+    "openmvg_rotation_text": posed(openmvg(lambda d: {**d, "extrinsics": [{"key": 0, "value": {
+        **d["extrinsics"][0]["value"], "rotation": [["up"] * 3] * 3}}] + d["extrinsics"][1:]})),
+    "openmvg_rotation_short": posed(openmvg(lambda d: {**d, "extrinsics": [{"key": 0, "value": {
+        **d["extrinsics"][0]["value"], "rotation": [[1, 0, 0], [0, 1, 0]]}}] + d["extrinsics"][1:]})),
+    "openmvg_no_intrinsic": posed(openmvg(lambda d: {**d, "intrinsics": []})),
+    "openmvg_focal_zero": posed(openmvg(first_openmvg_intrinsic(focal_length=0))),
+    "openmvg_lens_unknown": posed(openmvg(first_openmvg_intrinsic(polymorphic_name="pinhole_division"))),
+    "openmvg_lens_short": posed(openmvg(first_openmvg_intrinsic(polymorphic_name="pinhole_radial_k3",
+                                                                disto_k3=[0.1]))),
+    "openmvg_views_not_a_list": posed(openmvg(lambda d: {**d, "views": {"0": 1}})),
     "metashape_component_flat": posed(metashape(lambda text: text.replace(
         "<cameras>", '<components><component id="0"><transform><scale>0</scale></transform></component></components>'
         "<cameras>").replace('sensor_id="0"', 'sensor_id="0" component_id="0"'))),

@@ -543,6 +543,87 @@ def test_bundler_cameras_pose_the_photos_their_list_names(synthetic, truth, tmp_
     assert assert_poses(tmp_path / "out", truth, names)["source"] == "bundler"
 
 
+def cereal_objects(values: list[tuple[int, str | None, dict]]) -> list[dict]:
+    """A list of {key, value} as cereal writes OpenMVG's pointers: a type's name the first time it comes, its number
+    alone after (the first with the high bit set), a new pointer's id with the high bit set too."""
+    numbers: dict[str, int] = {}
+    entries = []
+    for pointer, (key, name, data) in enumerate(values, start=1):
+        value = {"polymorphic_id": 1073741824}  # the base type, not a polymorphic one
+        if name is not None and name not in numbers:
+            numbers[name] = len(numbers) + 1
+            value = {"polymorphic_id": 0x80000000 | numbers[name], "polymorphic_name": name}
+        elif name is not None:
+            value = {"polymorphic_id": numbers[name]}
+        entries.append({"key": key, "value": {**value, "ptr_wrapper": {"id": 0x80000000 | pointer, "data": data}}})
+    return entries
+
+
+@pytest.mark.parametrize("lens", ["pinhole", "pinhole_radial_k3", "pinhole_brown_t2"])
+def test_openmvg_scene_poses_the_photos_it_names(synthetic, truth, tmp_path, lens):
+    """OpenMVG's layout: images/ beside reconstruction_sequential/sfm_data.json (converted from its .bin) and
+    matches/sfm_data.json, the listing made before SfM (views and intrinsics, no pose), which poses nothing. Two
+    intrinsics of one type (the second named by its number alone, as cereal writes it); a view SfM did not pose."""
+    folder = tmp_path / "openmvg"
+    frames = sorted(truth["frames"], key=lambda f: f["file_path"])
+    views, extrinsics, names = [], [], {}
+    for i, frame in enumerate(frames):
+        write_photo(synthetic, frame, folder / "images" / f"DSC_{i:04d}.JPG", scale=2)
+        views.append((i, None, {"local_path": "/home/someone/images/", "filename": f"DSC_{i:04d}.JPG",
+                                "width": 2 * truth["w"], "height": 2 * truth["h"], "id_view": i,
+                                "id_intrinsic": i % 2, "id_pose": 4294967295 if i == 2 else i}))
+        if i != 2:
+            w2c = np.linalg.inv(np.asarray(frame["transform_matrix"]) @ FLIP_YZ)
+            extrinsics.append({"key": i, "value": {"rotation": w2c[:3, :3].tolist(),
+                                                   "center": (-w2c[:3, :3].T @ w2c[:3, 3]).tolist()}})
+            names[f"DSC_{i:04d}"] = Path(frame["file_path"]).stem
+    assert truth["fl_x"] == pytest.approx(truth["fl_y"])  # OpenMVG's pinhole has one focal length
+    intrinsic = {"width": 2 * truth["w"], "height": 2 * truth["h"], "focal_length": 2 * truth["fl_x"],
+                 "principal_point": [2 * truth["cx"], 2 * truth["cy"]]}
+    from stages.sfm.openmvg import LENSES
+    key, _, order = LENSES[lens]
+    if key:
+        intrinsic[key] = [0.0] * len(set(order) - {None})
+    intrinsics = cereal_objects([(0, lens, intrinsic), (1, lens, dict(intrinsic))])
+    listing = {"sfm_data_version": "0.3", "root_path": "/home/someone/images", "views": cereal_objects(views),
+               "intrinsics": intrinsics, "extrinsics": [], "structure": [], "control_points": []}
+    for place, data in (("matches", listing), ("reconstruction_sequential", {**listing, "extrinsics": extrinsics})):
+        (folder / place).mkdir()
+        (folder / place / "sfm_data.json").write_text(json.dumps(data, indent=4))
+    run(folder, tmp_path / "out", f"ingest.max_side={truth['w']}")
+    assert assert_poses(tmp_path / "out", truth, names)["source"] == "openmvg"
+
+
+@pytest.mark.parametrize("lens", ["pinhole_radial_k1", "pinhole_radial_k3", "pinhole_brown_t2", "fisheye"])
+def test_an_openmvg_lens_projects_as_openmvg_projects(lens):
+    """Each of OpenMVG's lenses read as a COLMAP camera puts a point where OpenMVG's own model puts it (its
+    formulas, from its cameras' source): radial terms, Brown's tangential pair and the fisheye's angle terms in
+    order."""
+    import pycolmap
+    from stages.sfm.openmvg import LENSES, camera
+
+    given = {"pinhole_radial_k1": [-0.21], "pinhole_radial_k3": [-0.2, 0.06, -0.01],
+             "pinhole_brown_t2": [-0.2, 0.06, -0.01, 0.004, -0.003], "fisheye": [0.05, -0.02, 0.01, -0.004]}[lens]
+    intrinsic = {"width": 640, "height": 480, "focal_length": 500.0, "principal_point": [322.0, 236.0],
+                 LENSES[lens][0]: given}
+    k, (model, coefficients) = camera(lens, intrinsic, "test")
+    colmap = pycolmap.Camera(model=model, width=k.w, height=k.h, params=[k.fl_x, k.fl_y, k.cx, k.cy, *coefficients])
+    x, y = np.random.default_rng(4).uniform(-0.5, 0.5, (2, 200))
+    r2 = x * x + y * y
+    if lens == "fisheye":
+        theta = np.arctan(np.sqrt(r2))
+        bent = theta * (1 + sum(c * theta ** (2 * n + 2) for n, c in enumerate(given))) / np.sqrt(r2)
+        dx, dy = x * bent, y * bent
+    else:
+        k1, k2, k3, t1, t2 = (given + [0.0] * 5)[:5]
+        radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+        dx = x * radial + t2 * (r2 + 2 * x * x) + 2 * t1 * x * y
+        dy = y * radial + t1 * (r2 + 2 * y * y) + 2 * t2 * x * y
+    want = np.stack([500.0 * dx + 322.0, 500.0 * dy + 236.0], axis=1)
+    got = colmap.img_from_cam(np.stack([x, y, np.ones_like(x)], axis=1))
+    np.testing.assert_allclose(got, want, atol=1e-9)
+
+
 def test_a_pose_file_that_contradicts_its_photos_matches_is_refused_and_a_photo_that_does_left_out(tmp_path):
     """A pose file checked against the photos' own matches: a pose turned 10 degrees leaves its photo out; poses
     shuffled among the photos (a file of another capture, or read in another convention) stop the poses stage with

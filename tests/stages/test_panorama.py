@@ -161,7 +161,7 @@ def test_a_360_video_is_posed_as_views_of_one_known_camera_that_share_each_frame
     assert errors["centre_error_share_median"] < 0.01, errors
 
 
-@pytest.mark.parametrize("pose_file", ["transforms", "metashape", "opensfm"])
+@pytest.mark.parametrize("pose_file", ["transforms", "metashape", "opensfm", "openmvg"])
 def test_360_frames_posed_in_a_pose_file_give_each_view_its_frames_pose_turned_to_its_yaw(tmp_path, pose_file):
     # nerfstudio's camera_model EQUIRECTANGULAR, or Metashape's exported cameras of a spherical sensor (its camera
     # axes OpenCV's, its frames' longitude atan2(X, Z) across): one pose per frame.
@@ -184,6 +184,15 @@ def test_360_frames_posed_in_a_pose_file_give_each_view_its_frames_pose_turned_t
         (capture / "opensfm").mkdir()
         (capture / "opensfm" / "reconstruction.json").write_text(json.dumps([{"shots": shots, "cameras": {
             "theta": {"projection_type": "spherical", "width": 384, "height": 192}}}]))
+    elif pose_file == "openmvg":  # OpenMVG's spherical camera: world-to-camera rotation and centre, cereal's JSON
+        views = [{"key": n, "value": {"polymorphic_id": 1073741824, "ptr_wrapper": {"id": 0x80000001 + n, "data": {
+            "filename": f"{n}.png", "id_view": n, "id_intrinsic": 0, "id_pose": n}}}} for n in range(len(truth))]
+        poses = [{"key": n, "value": {"rotation": (c2w[:3, :3] @ np.diag([1.0, -1, -1])).T.tolist(),
+                                      "center": c2w[:3, 3].tolist()}} for n, c2w in enumerate(truth)]
+        intrinsics = [{"key": 0, "value": {"polymorphic_id": 0x80000001, "polymorphic_name": "spherical",
+                                           "ptr_wrapper": {"id": 0x80000100, "data": {"width": 384, "height": 192}}}}]
+        (capture / "sfm_data.json").write_text(json.dumps({"sfm_data_version": "0.3", "views": views,
+                                                           "intrinsics": intrinsics, "extrinsics": poses}))
     else:
         cameras = "".join(f'<camera id="{n}" sensor_id="0" label="{n}"><transform>'
                           f'{" ".join(map(repr, (c2w @ np.diag([1.0, -1, -1, 1])).ravel().tolist()))}</transform>'
