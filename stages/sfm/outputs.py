@@ -137,22 +137,23 @@ def _write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap
         "source_path": str(source_path) if source_path else None,
         **({"up": [float(v) for v in gravity]} if gravity is not None else {}), "frames": frames})
     written = {"frames": len(frames), "width": shared["w"], "height": shared["h"]}
-    if bounds:
-        # LLFF's poses bring each photo's depth range, which is all normalize would take from points.
-        write_points(out / POINTS_NPZ, undistorted, frame_index)
-        return written
     # Points from pairs of nearby photos at the final poses, whatever the poses came from. SfM's points are one a
     # track, spread over whatever textured surface it matched (a wooden floor around a ball); pairs count a surface
     # once for each pair of nearby photos that sees it, so the bulk normalize boxes is what the photos are about, and
     # the box does not depend on where the poses came from (bench/README.md, "How normalize boxes a room"). The SfM
-    # model's own points stay in sparse/.
-    report.info("triangulating points between nearby photos for the scene's box and depths")
+    # model's own points stay in sparse/. The pairs' matches also say how far the poses agree with the photos.
+    report.info("triangulating points between nearby photos for the scene's box and depths" if not bounds else
+                "matching nearby photos to check their poses")
     points = triangulate((np.asarray(Image.open(out / f["file_path"]).convert("RGB")) for f in frames),
                          np.stack([np.asarray(f["transform_matrix"]) for f in frames]),
                          [Intrinsics.from_frame({**shared, **f}) for f in frames])
+    written["names"], written["agreement"] = [f["name"] for f in frames], points.agreement
+    if bounds:
+        # LLFF's poses bring each photo's depth range, which is all normalize would take from points.
+        write_points(out / POINTS_NPZ, undistorted, frame_index)
+        return written
     np.savez(out / POINTS_NPZ, **points.arrays())
     written["triangulated"] = {"points": len(points.xyz), "pairs": points.pairs}
-    written["names"], written["agreement"] = [f["name"] for f in frames], points.agreement
     return written
 
 

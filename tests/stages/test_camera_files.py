@@ -624,10 +624,26 @@ def test_an_openmvg_lens_projects_as_openmvg_projects(lens):
     np.testing.assert_allclose(got, want, atol=1e-9)
 
 
-def test_a_pose_file_that_contradicts_its_photos_matches_is_refused_and_a_photo_that_does_left_out(tmp_path):
+def write_pose_file(scene: Path, meta: dict, kind: str) -> None:
+    """The poses of `meta` (a transforms.json's) as a transforms.json, or as LLFF's poses_bounds.npy in its place."""
+    if kind == "transforms":
+        (scene / "transforms.json").write_text(json.dumps(meta))
+        return
+    (scene / "transforms.json").unlink(missing_ok=True)
+    rows = []
+    for frame in sorted(meta["frames"], key=lambda f: f["file_path"]):
+        c2w = np.asarray(frame["transform_matrix"])
+        llff = np.stack([-c2w[:3, 1], c2w[:3, 0], c2w[:3, 2], c2w[:3, 3]], 1)  # LLFF's [down, right, back]
+        hwf = np.array([[meta["h"]], [meta["w"]], [meta["fl_x"]]])
+        rows.append(np.concatenate([np.concatenate([llff, hwf], 1).ravel(), [0.5, 20.0]]))
+    np.save(scene / "poses_bounds.npy", np.array(rows))
+
+
+@pytest.mark.parametrize("kind", ["transforms", "llff"])
+def test_a_pose_file_that_contradicts_its_photos_matches_is_refused_and_a_photo_that_does_left_out(tmp_path, kind):
     """A pose file checked against the photos' own matches: a pose turned 10 degrees leaves its photo out; poses
     shuffled among the photos (a file of another capture, or read in another convention) stop the poses stage with
-    one line that says so."""
+    one line that says so. LLFF's poses too, though their depth ranges leave nothing to triangulate."""
     import cv2
     from plenoxels.core.errors import UserError
 
@@ -637,8 +653,9 @@ def test_a_pose_file_that_contradicts_its_photos_matches_is_refused_and_a_photo_
     c2w = np.asarray(turned["frames"][3]["transform_matrix"])
     c2w[:3, :3] = cv2.Rodrigues(np.array([0.17, 0.0, 0.0]))[0] @ c2w[:3, :3]
     turned["frames"][3]["transform_matrix"] = c2w.tolist()
-    (scene / "transforms.json").write_text(json.dumps(turned))
+    write_pose_file(scene, turned, kind)
     summary = Pipeline(scene, tmp_path / "turned", reporter=Reporter(quiet=True)).run(["poses"])["poses"]["summary"]
+    assert summary["source"] == kind
     assert summary["pose_file_contradicted"] == [Path(truth["frames"][3]["file_path"]).stem]
     assert summary["registered"] == 9
     assert "1 photo(s) whose imported poses contradict their own matches left out" in summary["line"]
@@ -647,11 +664,11 @@ def test_a_pose_file_that_contradicts_its_photos_matches_is_refused_and_a_photo_
     matrices = [frame["transform_matrix"] for frame in shuffled["frames"]]
     for frame, n in zip(shuffled["frames"], np.random.default_rng(0).permutation(len(matrices))):
         frame["transform_matrix"] = matrices[n]
-    (scene / "transforms.json").write_text(json.dumps(shuffled))
+    write_pose_file(scene, shuffled, kind)
     with pytest.raises(UserError, match="contradict the photos' own matches.*set poses.source=sfm"):
         Pipeline(scene, tmp_path / "shuffled", reporter=Reporter(quiet=True)).run(["poses"])
     assert not (tmp_path / "shuffled" / "poses").exists()
-    (scene / "transforms.json").write_text(json.dumps(truth))  # the file as it was: every photo posed
+    write_pose_file(scene, truth, kind)  # the file as it was: every photo posed
     assert Pipeline(scene, tmp_path / "true", reporter=Reporter(quiet=True)).run(["poses"])["poses"]["summary"][
         "registered"] == 10
 
