@@ -10,7 +10,9 @@ photo's centre in units of that side. The lens is Brown's (`xcr:DistortionModel`
 (importKnownPoses) takes as OpenCV's p2, p1. A photo RealityCapture did not align has no pose in its file.
 
 The CSV gives each photo's position (x, y, alt) and its heading, pitch and roll in degrees (pitch 0 looking straight
-down, 90 level; heading clockwise from +y), the same 35 mm focal length, principal point and lens in its columns."""
+down, 90 level; heading clockwise from +y), the same 35 mm focal length, principal point and lens in its columns.
+Exported in a geographic system (WGS 84), x and y are longitude and latitude in degrees beside an altitude in metres:
+those are taken to metres east and north of the cameras' middle (`in_metres`), and z is up."""
 from __future__ import annotations
 
 import csv
@@ -34,6 +36,10 @@ SUFFIX = ".xmp"
 FRAME_MM = 36.0  # the 35 mm film frame's width, which the focal length is given against
 BROWN_MODELS = ("brown3", "brown4", "brown3t2", "brown4t2")
 CSV_LENS_COLUMNS = ("k1", "k2", "k3", "k4", "t1", "t2")
+# A CSV's x and y are degrees of longitude and latitude where the cameras spread over fewer of them than this share of
+# their metres of altitude: a degree is some 100 km, and no capture in metres spreads a hundred times higher than wide.
+DEGREES_SPREAD_SHARE = 0.01
+EARTH_RADIUS_M = 6_371_008.8  # the mean radius: east and north of a survey's middle to well within a centimetre a km
 
 
 def own_folders(photos: Path) -> list[Path]:
@@ -141,9 +147,27 @@ def csv_camera(row: dict[str, str], width: int, height: int, where: str) -> tupl
     return k, c2w, lens("brown4t2", coefficients, k, where)
 
 
+def in_metres(rows: dict[str, dict[str, str]], where: str) -> bool:
+    """Whether the rows' x and y are longitude and latitude (DEGREES_SPREAD_SHARE), which are then set to metres east
+    and north of the cameras' middle, in place."""
+    position = np.array([[finite_number(row.get(key), key, f"{where}, {row['#name']}") for key in ("x", "y", "alt")]
+                         for row in rows.values()]).reshape(-1, 3)
+    spread = np.ptp(position, axis=0) if len(position) else np.zeros(3)
+    degrees = (len(position) > 1 and (np.abs(position[:, 0]) <= 180).all() and (np.abs(position[:, 1]) <= 90).all()
+               and 0 < max(spread[:2]) < DEGREES_SPREAD_SHARE * spread[2])
+    if degrees:
+        middle = (position.max(axis=0) + position.min(axis=0)) / 2
+        metres_a_degree = math.radians(1) * EARTH_RADIUS_M
+        for row, (lon, lat, _) in zip(rows.values(), position):
+            row["x"] = repr(float((lon - middle[0]) * metres_a_degree * math.cos(math.radians(middle[1]))))
+            row["y"] = repr(float((lat - middle[1]) * metres_a_degree))
+    return degrees
+
+
 def imported_csv(path: Path, records: list[dict]) -> Imported:
     """Poses from RealityCapture's camera CSV: a photo takes the row of its stem."""
     rows = csv_rows(path)
+    geographic = in_metres(rows, path.name)
     reconstruction = pycolmap.Reconstruction()
     cameras = CameraTable(reconstruction)
     missing = []
@@ -156,4 +180,4 @@ def imported_csv(path: Path, records: list[dict]) -> Imported:
         k, c2w, lens = csv_camera(row, record["original_width"], record["original_height"], where)
         add_image(reconstruction, len(reconstruction.images) + 1, record,
                   cameras.id_for(at_ingested_size(k, record, where), lens), c2w, where)
-    return Imported(reconstruction, path, missing, gravity=GRAVITY)
+    return Imported(reconstruction, path, missing, gravity=(0.0, 0.0, 1.0) if geographic else GRAVITY)

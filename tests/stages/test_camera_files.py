@@ -365,14 +365,27 @@ def test_realitycapture_lens_projects_as_the_opencv_lens_it_names(synthetic, tru
         np.testing.assert_allclose(camera.img_from_cam(points), want, atol=within)
 
 
-def test_realitycapture_csv_poses_the_photos_it_names(synthetic, truth, tmp_path):
+@pytest.mark.parametrize("geographic", [False, True])
+def test_realitycapture_csv_poses_the_photos_it_names(synthetic, truth, tmp_path, geographic):
     """RealityCapture's camera CSV beside images/ (as nerfstudio's `ns-process-data realitycapture` reads it): each
     row's position, heading, pitch and roll (OpenGL's camera turned about z by -heading, x by pitch and y by roll),
-    35 mm focal length and principal point."""
+    35 mm focal length and principal point. With `geographic`, exported in WGS 84: x and y are longitude and latitude
+    (the truth's metres east and north of a place in Zurich), alt metres above the sea; the poses come in metres east
+    and north of the cameras' middle, and z is the world's up."""
     folder = tmp_path / "capture"
     rows = ["#name,x,y,alt,heading,pitch,roll,f,px,py,k1,k2,k3,k4,t1,t2"]
+    frames = sorted(truth["frames"], key=lambda f: f["file_path"])
+    centres = np.array([np.asarray(frame["transform_matrix"])[:3, 3] for frame in frames])
+    middle = (centres.max(axis=0) + centres.min(axis=0)) / 2
+    world = np.eye(4)
+    if geographic:
+        radius, latitude = 6_371_008.8, 47.3769 + np.degrees(centres[:, 1] / 6_371_008.8)
+        mid_latitude = (latitude.max() + latitude.min()) / 2
+        longitude = 8.5417 + np.degrees(centres[:, 0] / (radius * np.cos(np.radians(mid_latitude))))
+        positions = np.stack([longitude, latitude, centres[:, 2] + 408.0], axis=1)
+        world[:3, 3] = -middle[0], -middle[1], 408.0
     names = {}
-    for i, frame in enumerate(sorted(truth["frames"], key=lambda f: f["file_path"])):
+    for i, frame in enumerate(frames):
         write_photo(synthetic, frame, folder / "images" / f"IMG_{i:04d}.JPG", scale=2)
         c2w = np.asarray(frame["transform_matrix"])
         rotation = c2w[:3, :3]
@@ -382,14 +395,17 @@ def test_realitycapture_csv_poses_the_photos_it_names(synthetic, truth, tmp_path
         about_z = rotation @ about_y.T @ about_x.T
         heading = -np.arctan2(about_z[1, 0], about_z[0, 0])
         side = 2 * max(truth["w"], truth["h"])
-        values = [*c2w[:3, 3], *np.degrees([heading, pitch, roll]), truth["fl_x"] * 2 * 36 / side,
-                  (2 * truth["cx"] - truth["w"]) / side, (2 * truth["cy"] - truth["h"]) / side, 0, 0, 0, 0, 0, 0]
-        rows.append(",".join([f"IMG_{i:04d}.JPG"] + [f"{v:.15g}" for v in values]))
+        values = [*(positions[i] if geographic else c2w[:3, 3]), *np.degrees([heading, pitch, roll]),
+                  truth["fl_x"] * 2 * 36 / side, (2 * truth["cx"] - truth["w"]) / side,
+                  (2 * truth["cy"] - truth["h"]) / side, 0, 0, 0, 0, 0, 0]
+        rows.append(",".join([f"IMG_{i:04d}.JPG"] + [repr(float(v)) for v in values]))
         names[f"IMG_{i:04d}"] = Path(frame["file_path"]).stem
     (folder / "cameras.csv").write_text("\n".join(rows) + "\n")
     (folder / "notes.csv").write_text("photo,comment\nIMG_0000.JPG,first\n")  # no camera export
     run(folder, tmp_path / "out", f"ingest.max_side={truth['w']}")
-    assert assert_poses(tmp_path / "out", truth, names)["source"] == "realitycapture"
+    poses = assert_poses(tmp_path / "out", truth, names, world)
+    assert poses["source"] == "realitycapture"
+    assert poses.get("up") == ([0.0, 0.0, 1.0] if geographic else None)
 
 
 def meshroom_intrinsic(truth: dict, version: tuple[int, int, int], scale: float) -> dict:
