@@ -31,6 +31,7 @@ BUNDLER_FILES = ("*.out", "bundle/*.out")
 BUNDLER_LISTS = ("{name}.list.txt", "{stem}.list.txt", "{stem}_list.txt", "list.txt", "imagelist.txt")
 # OpenMVG's scene as JSON, beside the photos or in an output folder there (reconstruction_sequential/, ...).
 OPENMVG_FILES = ("sfm_data*.json", "*/sfm_data*.json")
+OPENMVG_BINARY = ("sfm_data.bin", "*/sfm_data.bin")  # its SfM's own output, which cereal's binary archive holds
 
 
 def colmap_models(folder: Path) -> list[Path]:
@@ -76,6 +77,15 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
         found["nsvf"] += [pose for split in DATASET_SPLITS if (photos := split_folder(scene, split)) is not None
                           for pose in pose_folders(photos.parent, photos)]
     return found
+
+
+def unread_openmvg(scene: Path) -> list[Path]:
+    """OpenMVG's scenes beside the photos as it writes them (binary, not read), where none of them is there as JSON."""
+    folder = photo_folder(scene)
+    if scene.is_file() or candidates(scene)["openmvg"]:
+        return []
+    return list(dict.fromkeys(p for place in (folder, folder.parent) for pattern in OPENMVG_BINARY
+                              for p in sorted(place.glob(pattern)) if p.is_file()))
 
 
 def numbered_frames(scene: Path) -> bool:
