@@ -20,12 +20,13 @@ class Settings(SfmOptions):
     """SfM's options (stages.sfm.options.SfmOptions, which checks its own), and where poses come from."""
     source: Literal["auto", "sfm", "colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf",
                     "polycam", "mvsnet", "record3d", "realitycapture", "meshroom", "bundler",
-                    "openmvg"] = "auto"
+                    "openmvg", "pix4d"] = "auto"
     """Where poses come from: auto imports pose files found beside the photos (a COLMAP model, a transforms.json,
     LLFF's poses_bounds.npy, IDR/NeuS's cameras_sphere.npz, Metashape's exported cameras .xml, OpenSfM's or
     OpenDroneMap's opensfm/reconstruction.json, NSVF's or NeRF++'s pose/ folders, Polycam's keyframes/cameras/,
     MVSNet's cams/, Record3D's metadata.json, RealityCapture's XMP files beside the photos or its camera CSV,
-    Meshroom's cameras.sfm, Bundler's bundle.out with its list.txt, OpenMVG's sfm_data.json), else runs SfM."""
+    Meshroom's cameras.sfm, Bundler's bundle.out with its list.txt, OpenMVG's sfm_data.json,
+    Pix4D's calibrated camera parameters), else runs SfM."""
     path: str = ""
     """An explicit pose file or COLMAP model folder to import (kind taken from source, or guessed)."""
     min_registered_share: float = 0.5

@@ -1,7 +1,7 @@
 """Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy, IDR/NeuS cameras,
 Metashape cameras .xml, OpenSfM reconstruction.json, NSVF's or NeRF++'s pose folders, Polycam's camera folder,
 MVSNet's cams/, Record3D's metadata, RealityCapture's XMP files or CSV, Meshroom's cameras.sfm, Bundler's bundle.out
-and OpenMVG's sfm_data.json the importers (pose_import.py) could read. Finding them reads no pose, so a cache key
+OpenMVG's sfm_data.json and Pix4D's calibrated camera parameters the importers (pose_import.py) could read. Finding them reads no pose, so a cache key
 lists them without loading COLMAP."""
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from stages.capture.photos import (DATASET_SPLITS, IMAGE_SUFFIXES, POLYCAM_CAMER
                                    split_folder, split_layout)
 
 KINDS = ("colmap", "transforms", "llff", "idr", "metashape", "opensfm", "nsvf", "polycam", "mvsnet", "record3d",
-         "realitycapture", "meshroom", "bundler", "openmvg")
+         "realitycapture", "meshroom", "bundler", "openmvg", "pix4d")
 # IDR's and NeuS's camera files: the projection of the i-th photo (sorted by name) and the sphere around the object.
 IDR_FILES = ("cameras_sphere.npz", "cameras.npz")
 # Bytes of a file read to tell a tool's pose file from others of its type (Metashape's XML, Record3D's JSON).
@@ -31,6 +31,9 @@ BUNDLER_FILES = ("*.out", "bundle/*.out")
 BUNDLER_LISTS = ("{name}.list.txt", "{stem}.list.txt", "{stem}_list.txt", "list.txt", "imagelist.txt")
 # OpenMVG's scene as JSON, beside the photos or in an output folder there (reconstruction_sequential/, ...).
 OPENMVG_FILES = ("sfm_data*.json", "*/sfm_data*.json")
+# Pix4D's cameras: in its project's params folder (the project beside the photos, or the photos in it), or beside them.
+PIX4D_FILES = tuple(f"{folder}*_calibrated_camera_parameters.txt"
+                    for folder in ("", "params/", "1_initial/params/", "*/1_initial/params/"))
 OPENMVG_BINARY = ("sfm_data.bin", "*/sfm_data.bin")  # its SfM's own output, which cereal's binary archive holds
 
 
@@ -68,7 +71,9 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
         found["meshroom"] += [p for pattern in MESHROOM_FILES for p in sorted(place.glob(pattern)) if is_meshroom(p)]
         found["bundler"] += [p for pattern in BUNDLER_FILES for p in sorted(place.glob(pattern)) if is_bundler(p)]
         found["openmvg"] += [p for pattern in OPENMVG_FILES for p in sorted(place.glob(pattern)) if is_openmvg(p)]
-    found["openmvg"] = list(dict.fromkeys(found["openmvg"]))  # the photo folder's, found from its parent too
+        found["pix4d"] += [p for pattern in PIX4D_FILES for p in sorted(place.glob(pattern)) if is_pix4d(p)]
+    for kind in ("openmvg", "pix4d"):  # the photo folder's, found from its parent too
+        found[kind] = list(dict.fromkeys(found[kind]))
     if aligned_by_realitycapture(folder):  # its XMP files before its CSV
         found["realitycapture"].insert(0, folder)
     found["polycam"] += [camera_folder for camera_folder in [folder.parent / POLYCAM_CAMERAS.get(folder.name, "")]
@@ -160,6 +165,12 @@ def is_openmvg(path: Path) -> bool:
     """Whether a file is OpenMVG's SfM_Data as JSON (its head names the format's version)."""
     head = _head(path)
     return head.lstrip().startswith(b"{") and b'"sfm_data_version"' in head
+
+
+def is_pix4d(path: Path) -> bool:
+    """Whether a file is Pix4D's calibrated camera parameters (its header names the fields)."""
+    head = _head(path)
+    return head.lstrip().startswith(b"fileName imageWidth imageHeight") and b"camera rotation R" in head
 
 
 def is_metashape(path: Path) -> bool:

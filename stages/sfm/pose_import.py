@@ -3,7 +3,7 @@ poses_bounds.npy, IDR/NeuS cameras_sphere.npz (DTU-style sets), Metashape's expo
 (OpenDroneMap's) reconstruction.json, NSVF's and NeRF++'s pose folders (svox2's), MVSNet's cams/, Polycam's raw export,
 RealityCapture's XMP files, turned into the same distorted COLMAP model that SfM makes; the single-file formats whose
 reader holds its own import (Record3D's metadata, RealityCapture's CSV, Meshroom's cameras.sfm, Bundler's bundle.out,
-OpenMVG's sfm_data.json) dispatched to it.
+OpenMVG's sfm_data.json, Pix4D's calibrated camera parameters) dispatched to it.
 
 Every importer returns an `Imported`: a `pycolmap.Reconstruction` whose image names are the ingested PNGs
 (`<name>.png`) and whose cameras are scaled to the ingested image size, so it is undistorted and written exactly as an
@@ -21,12 +21,13 @@ import pycolmap
 
 from stages.capture.photos import (DATASET_SPLITS, POSE_FOLDERS, frame_photo, lexical_path, photo_folder,
                                    split_layout)
-from stages.sfm import (bundler, meshroom, metashape, mvsnet, nsvf, openmvg, opensfm, polycam, realitycapture,
-                        record3d)
+from stages.sfm import (bundler, meshroom, metashape, mvsnet, nsvf, openmvg, opensfm, pix4d, polycam,
+                        realitycapture, record3d)
 from stages.sfm.imported_model import (CameraTable, Imported, Lens, add_image, add_view, at_ingested_size, file_stem,
                                        finite_number, ingested_size, scale_factor)
 from stages.sfm.pose_files import (KINDS, candidates, colmap_models, holds_realitycapture_xmp, is_bundler,
-                                   is_colmap_model, is_meshroom, is_openmvg, is_realitycapture_csv)
+                                   is_colmap_model, is_meshroom, is_openmvg, is_pix4d,
+                                   is_realitycapture_csv)
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_llff, opengl_c2w_from_projection
 from plenoxels.core.errors import UserError
 
@@ -56,6 +57,8 @@ def kind_of(path: Path) -> str:
         return "bundler"
     elif is_openmvg(path):
         return "openmvg"
+    elif is_pix4d(path):
+        return "pix4d"
     elif path.suffix == ".json":
         return "transforms"
     elif path.suffix == ".npy":
@@ -70,7 +73,7 @@ def kind_of(path: Path) -> str:
                     "IDR/NeuS cameras*.npz, a Metashape cameras .xml, an OpenSfM reconstruction.json, an NSVF pose/ "
                     "folder, Polycam's keyframes/cameras/, MVSNet's cams/, Record3D's metadata.json, or "
                     "RealityCapture's camera CSV or a folder of its XMP files, Meshroom's cameras.sfm, Bundler's "
-                    "bundle.out or OpenMVG's sfm_data.json")
+                    "bundle.out, OpenMVG's sfm_data.json or Pix4D's *_calibrated_camera_parameters.txt")
 
 
 def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
@@ -102,6 +105,8 @@ def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
         return bundler.imported(path, records)
     if kind == "openmvg":
         return openmvg.imported(path, records)
+    if kind == "pix4d":
+        return pix4d.imported(path, records)
     return from_llff(path, records)
 
 

@@ -432,6 +432,24 @@ def first_openmvg_intrinsic(**changed):
     return spoil
 
 
+def pix4d(spoil):
+    """Pix4D's calibrated camera parameters beside images/ for the template's photos (its header, then a block of ten
+    lines a photo), its text spoiled by `spoil`."""
+    def edit(folder, meta):
+        header = ("fileName imageWidth imageHeight\ncamera matrix K [3x3]\nradial distortion [3x1]\n"
+                  "tangential distortion [2x1]\ncamera position t [3x1]\ncamera rotation R [3x3]\n"
+                  "camera model m = K [R|-Rt] X\n\n")
+        blocks = []
+        for f in meta["frames"]:
+            c2w = np.array(f["transform_matrix"]) @ np.diag([1.0, -1, -1, 1])
+            k = [[meta["fl_x"], 0, meta["cx"]], [0, meta["fl_y"], meta["cy"]], [0, 0, 1]]
+            rows = [*k, [0, 0, 0], [0, 0], c2w[:3, 3].tolist(), *c2w[:3, :3].T.tolist()]
+            blocks.append(f"{Path(f['file_path']).name} {meta['w']} {meta['h']}\n" +
+                          "".join(" ".join(map(repr, map(float, row))) + "\n" for row in rows))
+        (folder / "p_calibrated_camera_parameters.txt").write_text(spoil(header + "".join(blocks)))
+    return edit
+
+
 def lines_set(lines: dict[int, str]):
     """A spoiler of a text file that sets the lines numbered (from 0) to the text given."""
     return lambda text: "\n".join(lines.get(n, line) for n, line in enumerate(text.split("\n")))
@@ -536,6 +554,12 @@ POSE_KINDS = {
     "openmvg_lens_short": posed(openmvg(first_openmvg_intrinsic(polymorphic_name="pinhole_radial_k3",
                                                                 disto_k3=[0.1]))),
     "openmvg_views_not_a_list": posed(openmvg(lambda d: {**d, "views": {"0": 1}})),
+    "pix4d_cut_short": posed(pix4d(lambda text: text[:-60])),
+    "pix4d_no_size": posed(pix4d(lines_set({8: "0000.png"}))),
+    "pix4d_focal_text": posed(pix4d(lines_set({9: "wide 0 20"}))),
+    "pix4d_focal_zero": posed(pix4d(lines_set({9: "0 0 20"}))),
+    "pix4d_rotation_singular": posed(pix4d(lines_set({15: "0 0 0", 16: "0 0 0", 17: "0 0 0"}))),
+    "pix4d_numbers_over": posed(pix4d(lines_set({17: "0 0 1 7"}))),
     "metashape_component_flat": posed(metashape(lambda text: text.replace(
         "<cameras>", '<components><component id="0"><transform><scale>0</scale></transform></component></components>'
         "<cameras>").replace('sensor_id="0"', 'sensor_id="0" component_id="0"'))),

@@ -665,6 +665,53 @@ def test_an_openmvg_lens_projects_as_openmvg_projects(lens):
     np.testing.assert_allclose(got, want, atol=1e-9)
 
 
+PIX4D_HEADER = ("fileName imageWidth imageHeight \ncamera matrix K [3x3] \nradial distortion [3x1] \n"
+                "tangential distortion [2x1] \ncamera position t [3x1] \ncamera rotation R [3x3] \n"
+                "camera model m = K [R|-Rt] X \n\n")
+
+
+def test_pix4d_calibrated_cameras_pose_the_photos_they_name(synthetic, truth, tmp_path):
+    """Pix4D's project beside the photos (`survey/1_initial/params/survey_calibrated_camera_parameters.txt`): a block
+    a calibrated photo, one after the other (name and size, K, radial and tangential terms, position, world-to-camera
+    rotation in OpenCV's axes); a photo Pix4D did not calibrate has none. Its world's z is up."""
+    folder = tmp_path / "capture"
+    blocks, names = [], {}
+    for i, frame in enumerate(sorted(truth["frames"], key=lambda f: f["file_path"])):
+        write_photo(synthetic, frame, folder / "images" / f"DJI_{i:04d}.JPG", scale=2)
+        if i == 6:
+            continue
+        c2w = np.asarray(frame["transform_matrix"]) @ FLIP_YZ
+        rows = [*k_matrix(truth, 2.0)[:3, :3], [0, 0, 0], [0, 0], c2w[:3, 3], *c2w[:3, :3].T]
+        blocks.append(f"DJI_{i:04d}.JPG {2 * truth['w']} {2 * truth['h']}\n" +
+                      "".join(" ".join(f"{float(v):.20f}" for v in row) + " \n" for row in rows))
+        names[f"DJI_{i:04d}"] = Path(frame["file_path"]).stem
+    params = folder / "survey" / "1_initial" / "params"
+    params.mkdir(parents=True)
+    (params / "survey_calibrated_camera_parameters.txt").write_text(PIX4D_HEADER + "".join(blocks))
+    run(folder, tmp_path / "out", f"ingest.max_side={truth['w']}")
+    poses = assert_poses(tmp_path / "out", truth, names)
+    assert poses["source"] == "pix4d" and poses["up"] == [0.0, 0.0, 1.0]
+
+
+def test_a_pix4d_lens_projects_as_pix4d_defines_it():
+    """Pix4D's lens read as a COLMAP camera puts a point where Pix4D's own definition of it does (its radial terms,
+    and T1, T2 as OpenCV's p1, p2)."""
+    import pycolmap
+    from stages.sfm.pix4d import camera
+
+    radial, tangential = [-0.12, 0.05, -0.01], [0.0024, -0.0029]
+    numbers = np.array([500.0, 0, 322, 0, 500, 236, 0, 0, 1, *radial, *tangential, 0, 0, 0, *np.eye(3).ravel()])
+    k, (model, coefficients), _ = camera(640, 480, numbers, "test")
+    colmap = pycolmap.Camera(model=model, width=k.w, height=k.h, params=[k.fl_x, k.fl_y, k.cx, k.cy, *coefficients])
+    x, y = np.random.default_rng(5).uniform(-0.5, 0.5, (2, 200))
+    r2 = x * x + y * y
+    scale = 1 + radial[0] * r2 + radial[1] * r2 ** 2 + radial[2] * r2 ** 3
+    (t1, t2) = tangential
+    dx, dy = x * scale + 2 * t1 * x * y + t2 * (r2 + 2 * x * x), y * scale + 2 * t2 * x * y + t1 * (r2 + 2 * y * y)
+    got = colmap.img_from_cam(np.stack([x, y, np.ones_like(x)], axis=1))
+    np.testing.assert_allclose(got, np.stack([500 * dx + 322, 500 * dy + 236], axis=1), atol=1e-9)
+
+
 def write_pose_file(scene: Path, meta: dict, kind: str) -> None:
     """The poses of `meta` (a transforms.json's) as a transforms.json, or as LLFF's poses_bounds.npy in its place."""
     if kind == "transforms":
