@@ -1,8 +1,8 @@
 """Pose files beside a scene's photos: the COLMAP models, transforms*.json, poses_bounds.npy, IDR/NeuS cameras,
 Metashape cameras .xml, OpenSfM reconstruction.json, NSVF's or NeRF++'s pose folders, Polycam's camera folder,
-MVSNet's cams/, Record3D's metadata, RealityCapture's XMP files or CSV, Meshroom's cameras.sfm, Bundler's bundle.out
-OpenMVG's sfm_data.json and Pix4D's calibrated camera parameters the importers (pose_import.py) could read. Finding them reads no pose, so a cache key
-lists them without loading COLMAP."""
+MVSNet's cams/, Record3D's metadata, RealityCapture's XMP files or CSV, Meshroom's cameras.sfm, Bundler's bundle.out,
+OpenMVG's sfm_data.json and Pix4D's calibrated camera parameters the importers (pose_import.py) could read. Finding
+them reads no pose, so a cache key lists them without loading COLMAP."""
 from __future__ import annotations
 
 import json

@@ -99,8 +99,8 @@ def test_spoiled_pose_file(kind, tmp_path):
     assert stopped, f"{kind}: the poses stage took a spoiled pose file: {line}"
     assert "\n" not in line, f"{kind}: a UserError of more than one line: {line}"
     files = ("transforms", "poses_bounds", "sparse", "cameras.xml", "reconstruction.json", "pose/",
-             "cameras/", "metadata.json", "_cam.txt", ".xmp", "cameras.csv", "cameras.sfm", "bundle.out", "sfm_data.json",
-             "calibrated_camera_parameters")
+             "cameras/", "metadata.json", "_cam.txt", ".xmp", "cameras.csv", "cameras.sfm", "bundle.out",
+             "sfm_data.json", "calibrated_camera_parameters")
     assert any(name in line for name in files), \
         f"{kind}: the line does not name the pose file: {line}"
     assert not (tmp_path / "out" / "poses").exists()
