@@ -45,7 +45,7 @@ class TriangulatedPoints:
     obs_point: np.ndarray    # [2P] point index of each observation
     pairs: int               # image pairs matched
     # [Q, 4] for each pair matched: its two frames, its matches that pass the ratio test, and how many of them agree
-    # with the poses' epipolar geometry
+    # with the poses' epipolar geometry (on their epipolar lines, and not meeting behind a camera)
     agreement: np.ndarray
 
     def arrays(self) -> dict[str, np.ndarray]:
@@ -134,8 +134,8 @@ def triangulate(images: Iterable[np.ndarray], c2w: np.ndarray, intrinsics: list[
         p1, p2 = _projection(c2w[i], intrinsics[i]), _projection(c2w[j], intrinsics[j])
         tolerance = EPIPOLAR_PX / min(scales[i], scales[j])
         keep = _epipolar_distance(_fundamental(p1, p2, c2w[i][:3, 3]), x1, x2) < tolerance
-        agreement.append((i, j, len(good), int(keep.sum())))
         if keep.sum() < 8:
+            agreement.append((i, j, len(good), int(keep.sum())))
             continue
         x1, x2, a, b = x1[keep], x2[keep], a[keep], b[keep]
         homogeneous = cv2.triangulatePoints(p1, p2, x1.T, x2.T)
@@ -145,8 +145,11 @@ def triangulate(images: Iterable[np.ndarray], c2w: np.ndarray, intrinsics: list[
         error = 0.5 * (np.linalg.norm(uv1 - x1, axis=1) + np.linalg.norm(uv2 - x2, axis=1))
         ray1, ray2 = xyz - c2w[i][:3, 3], xyz - c2w[j][:3, 3]
         cos = (ray1 * ray2).sum(1) / np.maximum(np.linalg.norm(ray1, axis=1) * np.linalg.norm(ray2, axis=1), 1e-12)
-        good_point = ((depth1 > 0) & (depth2 > 0) & (error < REPROJECTION_PX / min(scales[i], scales[j]))
-                      & (cos < math.cos(math.radians(MIN_ANGLE_DEG))) & np.isfinite(xyz).all(1))
+        meets = (cos < math.cos(math.radians(MIN_ANGLE_DEG))) & np.isfinite(xyz).all(1)
+        # A match on its epipolar line whose rays meet behind a camera contradicts the poses all the same: cameras
+        # that slide along one line keep each other's epipolar lines wherever the file puts them, not the side.
+        agreement.append((i, j, len(good), int(keep.sum() - (meets & ((depth1 <= 0) | (depth2 <= 0))).sum())))
+        good_point = ((depth1 > 0) & (depth2 > 0) & (error < REPROJECTION_PX / min(scales[i], scales[j])) & meets)
         start = sum(len(x) for x in xyz_all)
         count = int(good_point.sum())
         xyz_all.append(xyz[good_point])

@@ -1314,3 +1314,21 @@ def test_triangulation_pairs_only_cameras_that_face_the_same_way():
     pairs = neighbour_pairs(c2w, neighbours=2)
     assert (0, 1) in pairs and (1, 2) in pairs
     assert all(4 not in p for p in pairs) and all(3 not in p for p in pairs)
+
+
+def test_matches_that_meet_behind_the_cameras_contradict_poses_their_epipolar_lines_allow():
+    """Cameras that slide along one line and face one way, posed in the reverse order (a forward capture's file read
+    backwards): every pair's epipolar lines are where the true order puts them, but its matches meet behind the
+    cameras, so they count as contradicting the poses; in the true order they agree."""
+    from stages.sfm.triangulate import triangulate
+
+    scene, k = build_scene("forward", 1), Intrinsics(300.0, 300.0, 160.0, 120.0, 320, 240)
+    c2w = np.stack([look_at([x, -4.2, 0.87], [x, 0.0, 0.87]) for x in (-0.4, -0.2, 0.0, 0.2, 0.4)])
+    photos = [render_view(scene, pose, k, supersample=1)[0] for pose in c2w]
+
+    def agreeing_share(poses: np.ndarray) -> float:
+        rows = triangulate(iter(photos), poses, [k] * len(poses)).agreement
+        return rows[:, 3].sum() / rows[:, 2].sum()
+
+    assert agreeing_share(c2w) > 0.8
+    assert agreeing_share(c2w[::-1]) < 0.1
