@@ -19,7 +19,7 @@ from stages.common.json_files import read_json
 from stages.capture.photos import is_video, photo_folder
 from stages.sfm import gimbal, pose_import
 from stages.sfm.imported_model import turned_upright
-from stages.sfm.pose_files import unread_openmvg
+from stages.sfm.pose_files import unread
 from stages.sfm.outputs import write_poses
 from stages.common.text import short_list
 from stages.sfm.reconstruct import colmap_logging, reconstruct
@@ -56,10 +56,9 @@ def run(ctx) -> dict:
         found = pose_import.find(s.source, s.path, records, ctx.scene)
         if found is None:
             source, source_path, bounds, gravity = "sfm", None, {}, None
-            for binary in unread_openmvg(ctx.scene) if s.source == "auto" else []:
-                ctx.report.warn(f"{binary} is OpenMVG's scene in its binary form, which is not read, so SfM poses the "
-                                f"photos; to take its poses, write it as JSON beside it (openMVG_main_ConvertSfM_Data"
-                                f"Format -i {binary.name} -o sfm_data.json)")
+            for binary, what, command in unread(ctx.scene) if s.source == "auto" else []:
+                ctx.report.warn(f"{binary} is {what}, which is not read, so SfM poses the photos; to take its poses, "
+                                f"write it as a file that is read beside it ({command})")
             try:
                 reconstruction, info, left_out = _sfm(ctx, s, ingest, records)
             except UserError as refused:

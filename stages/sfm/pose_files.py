@@ -34,7 +34,14 @@ OPENMVG_FILES = ("sfm_data*.json", "*/sfm_data*.json")
 # Pix4D's cameras: in its project's params folder (the project beside the photos, or the photos in it), or beside them.
 PIX4D_FILES = tuple(f"{folder}*_calibrated_camera_parameters.txt"
                     for folder in ("", "params/", "1_initial/params/", "*/1_initial/params/"))
-OPENMVG_BINARY = ("sfm_data.bin", "*/sfm_data.bin")  # its SfM's own output, which cereal's binary archive holds
+# Binary pose files (not read): where each tool writes them beside the photos, what it is, and the command that writes
+# one that is read ({name}: the file's name).
+BINARY_POSE_FILES = {
+    ("sfm_data.bin", "*/sfm_data.bin"): ("openmvg", "OpenMVG's scene in its binary form",
+                                         "openMVG_main_ConvertSfM_DataFormat -i {name} -o sfm_data.json"),
+    ("sfm*.abc", "cameras*.abc", "MeshroomCache/StructureFromMotion/*/sfm*.abc"): (
+        "meshroom", "Meshroom's SfMData as Alembic", "aliceVision_convertSfMFormat -i {name} -o cameras.sfm"),
+}
 
 
 def colmap_models(folder: Path) -> list[Path]:
@@ -84,13 +91,17 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
     return found
 
 
-def unread_openmvg(scene: Path) -> list[Path]:
-    """OpenMVG's scenes beside the photos as it writes them (binary, not read), where none of them is there as JSON."""
+def unread(scene: Path) -> list[tuple[Path, str, str]]:
+    """Binary pose files beside the photos (BINARY_POSE_FILES) of a tool none of whose readable files is there: each
+    with what it is and the command that writes one that is read."""
     folder = photo_folder(scene)
-    if scene.is_file() or candidates(scene)["openmvg"]:
+    if scene.is_file():
         return []
-    return list(dict.fromkeys(p for place in (folder, folder.parent) for pattern in OPENMVG_BINARY
-                              for p in sorted(place.glob(pattern)) if p.is_file()))
+    found = candidates(scene)
+    listed = {p: (what, command.format(name=p.name)) for patterns, (kind, what, command) in BINARY_POSE_FILES.items()
+              if not found[kind] for place in (folder, folder.parent) for pattern in patterns
+              for p in sorted(place.glob(pattern)) if p.is_file()}
+    return [(path, what, command) for path, (what, command) in listed.items()]
 
 
 def numbered_frames(scene: Path) -> bool:

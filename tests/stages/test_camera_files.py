@@ -610,17 +610,21 @@ def test_openmvg_scene_poses_the_photos_it_names(synthetic, truth, tmp_path, len
     assert assert_poses(tmp_path / "out", truth, names)["source"] == "openmvg"
 
 
-def test_openmvg_binary_scene_is_named_with_how_to_convert_it(synthetic, truth, tmp_path, monkeypatch, capsys):
-    """OpenMVG's SfM writes its scene in binary (sfm_data.bin), which is not read: SfM poses the photos, and a warning
-    names the file and the command that writes it as JSON."""
+@pytest.mark.parametrize("binary, command", [
+    ("reconstruction_sequential/sfm_data.bin", "openMVG_main_ConvertSfM_DataFormat -i sfm_data.bin -o sfm_data.json"),
+    ("MeshroomCache/StructureFromMotion/3f5a0c/sfm.abc", "aliceVision_convertSfMFormat -i sfm.abc -o cameras.sfm")])
+def test_a_binary_pose_file_is_named_with_how_to_convert_it(synthetic, truth, tmp_path, monkeypatch, capsys, binary,
+                                                            command):
+    """OpenMVG's SfM writes its scene in binary (sfm_data.bin), Meshroom's as Alembic (sfm.abc): neither is read, so
+    SfM poses the photos, and a warning names the file and the command that writes one that is read."""
     import stages.poses
     from plenoxels.core.errors import UserError
 
-    folder = tmp_path / "openmvg"
+    folder = tmp_path / "capture"
     for i, frame in enumerate(sorted(truth["frames"], key=lambda f: f["file_path"])):
         write_photo(synthetic, frame, folder / "images" / f"DSC_{i:04d}.JPG")
-    (folder / "reconstruction_sequential").mkdir()
-    (folder / "reconstruction_sequential" / "sfm_data.bin").write_bytes(bytes(range(256)) * 4)
+    (folder / binary).parent.mkdir(parents=True)
+    (folder / binary).write_bytes(bytes(range(256)) * 4)
 
     def sfm(*args, **kwargs):
         raise UserError("SfM ran")
@@ -628,11 +632,11 @@ def test_openmvg_binary_scene_is_named_with_how_to_convert_it(synthetic, truth, 
     monkeypatch.setattr(stages.poses, "reconstruct", sfm)
     with pytest.raises(UserError, match="SfM ran"):
         run(folder, tmp_path / "out")
-    warnings = [line for line in capsys.readouterr().err.splitlines() if "sfm_data.bin" in line]
-    assert len(warnings) == 1 and "openMVG_main_ConvertSfM_DataFormat -i sfm_data.bin -o sfm_data.json" in warnings[0]
+    warnings = [line for line in capsys.readouterr().err.splitlines() if Path(binary).name in line]
+    assert len(warnings) == 1 and command in warnings[0]
     with pytest.raises(UserError, match="SfM ran"):
         run(folder, tmp_path / "sfm", "poses.source=sfm")  # SfM asked for: nothing to say
-    assert "sfm_data.bin" not in capsys.readouterr().err
+    assert Path(binary).name not in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("lens", ["pinhole_radial_k1", "pinhole_radial_k3", "pinhole_brown_t2", "fisheye"])
