@@ -17,7 +17,7 @@ import pycolmap
 
 from stages.common.json_files import read_json
 from stages.capture.photos import is_video, photo_folder
-from stages.sfm import gimbal, pose_import
+from stages.sfm import gimbal, gps, pose_import
 from stages.sfm.imported_model import turned_upright
 from stages.sfm.pose_files import unread
 from stages.sfm.outputs import write_poses
@@ -91,6 +91,12 @@ def run(ctx) -> dict:
             pitches = {f"{r['name']}.png": pitch for r in records if "panorama" not in r  # 360 views are cut level
                        and (pitch := gimbal.pitch(photo_folder(ctx.scene) / r["source"])) is not None}
             gravity, info["gimbal"] = gimbal.gravity(reconstruction, pitches) if pitches else (None, None)
+        if gravity is None and not is_video(ctx.scene):  # a drone's GPS across a survey says it too
+            positions = {f"{r['name']}.png": where for r in records if "panorama" not in r
+                         and (where := gps.position(photo_folder(ctx.scene) / r["source"])) is not None}
+            gravity, info["gps"] = gps.gravity(reconstruction, positions) if positions else (None, None)
+            if gravity is not None:
+                info["gps"]["taken"] = True
         step = time.perf_counter()
         written = write_poses(ctx.work, ctx.scratch, ingest, reconstruction, records, source, source_path, bounds,
                               ctx.report, gravity, check_matches=source != "sfm")  # SfM's model was checked already
@@ -135,6 +141,10 @@ def run(ctx) -> dict:
         line += (f"; up from the gimbal pitch of {found['photos']} photos" if gravity is not None else
                  f"; the gimbal pitch of {found['photos']}/{found['of']} photos not taken for up"
                  + (f" (their ups {found['spread_deg']:.1f} deg apart)" if "spread_deg" in found else ""))
+    if (info.get("gps") or {}).get("taken"):
+        found = info["gps"]
+        line += (f"; up from the GPS of {found['photos']} photos ({found['span_m']:.0f} m across, the cameras fitted to "
+                 f"it within {found['fit_m']:.1f} m)")
     if info.get("lens_probe"):
         line += "; the images mapped first showed a fisheye's lens, so the camera is OPENCV_FISHEYE"
     if info.get("attempt_why"):

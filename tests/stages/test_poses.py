@@ -128,10 +128,29 @@ def dji_xmp(pitch_deg: float) -> bytes:
             + b"</rdf:RDF></x:xmpmeta>")
 
 
-def drone_survey(folder: Path) -> dict[str, np.ndarray]:
+def gps_exif(east_north_up: np.ndarray) -> Image.Exif:
+    """EXIF with where a photo was taken (its latitude, longitude and altitude as a drone writes them), from metres
+    east, north and up of a place near Zurich."""
+    import pycolmap
+    latitude, longitude, altitude = pycolmap.GPSTransform().enu_to_ellipsoid(
+        np.asarray([east_north_up], dtype=np.float64), 47.3769, 8.5417, 408.0)[0]
+    exif = Image.Exif()
+    gps = exif.get_ifd(0x8825)
+
+    def dms(value: float) -> tuple[float, float, float]:
+        minutes, seconds = divmod(abs(value) * 3600.0, 60.0)
+        return float(minutes // 60), float(minutes % 60), round(seconds, 4)
+    gps.update({1: "N" if latitude >= 0 else "S", 2: dms(latitude), 3: "E" if longitude >= 0 else "W",
+                4: dms(longitude), 5: b"\x00", 6: round(float(altitude), 2)})
+    return exif
+
+
+def drone_survey(folder: Path, pitch: bool = True, gps: bool = False) -> dict[str, np.ndarray]:
     """Rows flown over the still life, the drone heading one way throughout and its camera 10 degrees off straight
-    down, each photo carrying DJI's gimbal pitch; the cameras' own up axes all lie near the heading, so only the
-    pitch says which way is up (+z). Returns each photo's camera-to-world."""
+    down, each photo carrying DJI's gimbal pitch (`pitch`) or where it was taken (`gps`: the scene's units as 100 m,
+    up its +z, each position off by GPS's error, half a metre across and a metre in height); the cameras' own up
+    axes all lie near the heading, so only the pitch or the positions say which way is up (+z). Returns each photo's
+    camera-to-world."""
     scene = build_scene("unbounded", seed=4)
     k = Intrinsics.from_frame({"fl_x": 277.0, "fl_y": 277.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240})
     folder.mkdir(parents=True)
@@ -143,15 +162,18 @@ def drone_survey(folder: Path) -> dict[str, np.ndarray]:
             look = np.cos(np.radians(-80.0)) * heading + np.sin(np.radians(-80.0)) * np.array([0.0, 0.0, 1.0])
             c2w = look_at(eye, eye + look)
             name = f"DJI_{row * 5 + column:04d}"
-            Image.fromarray(render_view(scene, c2w, k, supersample=1)[0]).save(folder / f"{name}.jpg", quality=95,
-                                                                               xmp=dji_xmp(-80.0))
+            error = np.random.default_rng(row * 5 + column).normal(0.0, [0.5, 0.5, 1.0])
+            Image.fromarray(render_view(scene, c2w, k, supersample=1)[0]).save(
+                folder / f"{name}.jpg", quality=95, xmp=dji_xmp(-80.0) if pitch else b"",
+                exif=gps_exif(100.0 * eye + error) if gps else Image.Exif())
             truth[name] = c2w
     return truth
 
 
-def assert_up_from_gimbal(out: Path, truth: dict[str, np.ndarray]) -> None:
+def assert_up_from_gimbal(out: Path, truth: dict[str, np.ndarray], said: str = "the gimbal pitch of 20 photos"
+                          ) -> None:
     manifest = read_json(out / "poses" / "manifest.json")
-    assert "up from the gimbal pitch of 20 photos" in manifest["summary"]["line"]
+    assert f"up from {said}" in manifest["summary"]["line"]
     transforms = read_json(out / "poses" / "transforms.json")
     up = np.asarray(transforms["up"])
     cameras = np.stack([np.asarray(frame["transform_matrix"]) for frame in transforms["frames"]])
@@ -179,6 +201,52 @@ def test_a_drone_surveys_own_poses_take_up_from_its_gimbal_pitch_where_their_fil
         {"fl_x": 277.0, "fl_y": 277.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240, "frames": frames}))
     run_poses(tmp_path / "capture", tmp_path / "out")
     assert_up_from_gimbal(tmp_path / "out", truth)  # each camera sees up as it truly does, whatever the frame
+
+
+def test_a_drone_survey_without_gimbal_tags_takes_up_from_its_gps(tmp_path):
+    """The survey's photos with GPS and no gimbal pitch (a drone of another maker), posed in a frame of their own:
+    the cameras fitted to where the photos were taken carry its up into their frame."""
+    truth = drone_survey(tmp_path / "capture" / "images", pitch=False, gps=True)
+    turn = np.eye(4)
+    turn[:3, :3] = cv2.Rodrigues(np.array([0.7, -0.4, 1.1]))[0]
+    frames = [{"file_path": f"images/{name}.jpg", "transform_matrix": (turn @ c2w).tolist()}
+              for name, c2w in truth.items()]
+    (tmp_path / "capture" / "transforms.json").write_text(json.dumps(
+        {"fl_x": 277.0, "fl_y": 277.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240, "frames": frames}))
+    run_poses(tmp_path / "capture", tmp_path / "out")
+    assert_up_from_gimbal(tmp_path / "out", truth, "the GPS of 20 photos (")
+
+
+def test_gps_that_cannot_say_up_is_not_taken_for_it():
+    """Positions too close together for GPS's error (a phone's orbit of a thing), along one line (a turn about it is
+    free), or that the cameras do not fit (another capture's): no up, and what was found says why."""
+    import pycolmap
+    from stages.sfm import gps
+
+    rng = np.random.default_rng(0)
+    grid = np.array([[x, y, 0.0] for x in np.linspace(-1, 1, 5) for y in np.linspace(-1, 1, 4)])
+    grid[:, 2] = rng.normal(0.0, 0.003, len(grid))  # a drone's height wanders (COLMAP fits no exact plane)
+    model = pycolmap.Reconstruction()
+    model.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=64, height=48, camera_id=1,
+                                                      params=[50, 50, 32, 24]))
+    for i, centre in enumerate(grid):
+        model.add_image_with_trivial_frame(pycolmap.Image(name=f"{i}.png", camera_id=1, image_id=i + 1),
+                                           pycolmap.Rigid3d(pycolmap.Rotation3d(), -centre))
+
+    def located(metres: np.ndarray) -> dict[str, tuple[float, float, float]]:
+        where = pycolmap.GPSTransform().enu_to_ellipsoid(metres, 47.3769, 8.5417, 408.0)
+        return {f"{i}.png": tuple(row) for i, row in enumerate(where)}
+
+    up, found = gps.gravity(model, located(100.0 * grid + rng.normal(0, 0.5, grid.shape)))
+    np.testing.assert_allclose(up, [0.0, 0.0, 1.0], atol=0.02)  # the model's z is up: the survey as it is
+    assert found["span_m"] == pytest.approx(200.0, abs=5.0) and found["fit_m"] < 1.5
+    up, found = gps.gravity(model, located(2.0 * grid + rng.normal(0, 0.5, grid.shape)))
+    assert up is None and found["span_m"] < gps.MIN_SPAN_M  # a phone's few metres
+    line = np.stack([np.linspace(0, 300, len(grid)), np.zeros(len(grid)), np.zeros(len(grid))], axis=1)
+    up, found = gps.gravity(model, located(line + rng.normal(0, 0.5, grid.shape)))
+    assert up is None and "fit_m" not in found  # one line
+    up, found = gps.gravity(model, located(100.0 * grid[rng.permutation(len(grid))]))
+    assert up is None  # the cameras do not fit where the photos were taken
 
 
 def test_normalize_boxes_a_room_alike_whether_sfm_posed_it_or_its_poses_came_with_it(tmp_path):
