@@ -12,7 +12,7 @@ photo's centre in units of that side. The lens is Brown's (`xcr:DistortionModel`
 The CSV gives each photo's position (x, y, alt) and its heading, pitch and roll in degrees (pitch 0 looking straight
 down, 90 level; heading clockwise from +y), the same 35 mm focal length, principal point and lens in its columns.
 Exported in a geographic system (WGS 84), x and y are longitude and latitude in degrees beside an altitude in metres:
-those are taken to metres east and north of the cameras' middle (`in_metres`), and z is up."""
+those are taken to metres east, north and up of the first camera (`in_metres`), and z is up."""
 from __future__ import annotations
 
 import csv
@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_colmap_w2c
 from plenoxels.core.errors import UserError
+from stages.sfm.gps import east_north_up
 from stages.sfm.imported_model import (NO_LENS, CameraTable, Imported, Lens, add_image, at_ingested_size, file_stem,
                                        finite_number)
 from stages.sfm.pose_files import REALITYCAPTURE_COLUMNS as CSV_COLUMNS
@@ -39,7 +40,6 @@ CSV_LENS_COLUMNS = ("k1", "k2", "k3", "k4", "t1", "t2")
 # A CSV's x and y are degrees of longitude and latitude where the cameras spread over fewer of them than this share of
 # their metres of altitude: a degree is some 100 km, and no capture in metres spreads a hundred times higher than wide.
 DEGREES_SPREAD_SHARE = 0.01
-EARTH_RADIUS_M = 6_371_008.8  # the mean radius: east and north of a survey's middle to well within a centimetre a km
 
 
 def own_folders(photos: Path) -> list[Path]:
@@ -148,19 +148,16 @@ def csv_camera(row: dict[str, str], width: int, height: int, where: str) -> tupl
 
 
 def in_metres(rows: dict[str, dict[str, str]], where: str) -> bool:
-    """Whether the rows' x and y are longitude and latitude (DEGREES_SPREAD_SHARE), which are then set to metres east
-    and north of the cameras' middle, in place."""
+    """Whether the rows' x and y are longitude and latitude (DEGREES_SPREAD_SHARE), which are then set to metres east,
+    north and up of the first row, in place."""
     position = np.array([[finite_number(row.get(key), key, f"{where}, {row['#name']}") for key in ("x", "y", "alt")]
                          for row in rows.values()]).reshape(-1, 3)
     spread = np.ptp(position, axis=0) if len(position) else np.zeros(3)
     degrees = (len(position) > 1 and (np.abs(position[:, 0]) <= 180).all() and (np.abs(position[:, 1]) <= 90).all()
                and 0 < max(spread[:2]) < DEGREES_SPREAD_SHARE * spread[2])
     if degrees:
-        middle = (position.max(axis=0) + position.min(axis=0)) / 2
-        metres_a_degree = math.radians(1) * EARTH_RADIUS_M
-        for row, (lon, lat, _) in zip(rows.values(), position):
-            row["x"] = repr(float((lon - middle[0]) * metres_a_degree * math.cos(math.radians(middle[1]))))
-            row["y"] = repr(float((lat - middle[1]) * metres_a_degree))
+        for row, metres in zip(rows.values(), east_north_up(position[:, [1, 0, 2]])):
+            row["x"], row["y"], row["alt"] = (repr(float(v)) for v in metres)
     return degrees
 
 

@@ -370,20 +370,19 @@ def test_realitycapture_csv_poses_the_photos_it_names(synthetic, truth, tmp_path
     """RealityCapture's camera CSV beside images/ (as nerfstudio's `ns-process-data realitycapture` reads it): each
     row's position, heading, pitch and roll (OpenGL's camera turned about z by -heading, x by pitch and y by roll),
     35 mm focal length and principal point. With `geographic`, exported in WGS 84: x and y are longitude and latitude
-    (the truth's metres east and north of a place in Zurich), alt metres above the sea; the poses come in metres east
-    and north of the cameras' middle, and z is the world's up."""
+    (the truth's metres east, north and up of a place in Zurich), alt metres above the sea; the poses come in metres
+    east, north and up of the first camera, and z is the world's up."""
+    import pycolmap
     folder = tmp_path / "capture"
     rows = ["#name,x,y,alt,heading,pitch,roll,f,px,py,k1,k2,k3,k4,t1,t2"]
     frames = sorted(truth["frames"], key=lambda f: f["file_path"])
     centres = np.array([np.asarray(frame["transform_matrix"])[:3, 3] for frame in frames])
-    middle = (centres.max(axis=0) + centres.min(axis=0)) / 2
     world = np.eye(4)
     if geographic:
-        radius, latitude = 6_371_008.8, 47.3769 + np.degrees(centres[:, 1] / 6_371_008.8)
-        mid_latitude = (latitude.max() + latitude.min()) / 2
-        longitude = 8.5417 + np.degrees(centres[:, 0] / (radius * np.cos(np.radians(mid_latitude))))
-        positions = np.stack([longitude, latitude, centres[:, 2] + 408.0], axis=1)
-        world[:3, 3] = -middle[0], -middle[1], 408.0
+        latitude, longitude, altitude = pycolmap.GPSTransform().enu_to_ellipsoid(
+            centres - centres[0], 47.3769, 8.5417, 408.0).T
+        positions = np.stack([longitude, latitude, altitude], axis=1)
+        world[:3, 3] = -centres[0]
     names = {}
     for i, frame in enumerate(frames):
         write_photo(synthetic, frame, folder / "images" / f"IMG_{i:04d}.JPG", scale=2)
