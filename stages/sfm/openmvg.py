@@ -100,6 +100,10 @@ def imported(path: Path, records: list[dict]) -> Imported:
     """Poses from OpenMVG's sfm_data.json: a photo takes the view of its file's stem, where one view alone has it and
     SfM posed it."""
     views, intrinsics, poses = read(path)
+    if not poses:
+        raise UserError(f"{path} holds no poses (OpenMVG's image listing, made before its SfM); give the sfm_data.json "
+                        "its SfM made (openMVG_main_ConvertSfM_DataFormat writes it from sfm_data.bin) or set "
+                        "poses.source=sfm")
     by_stem: dict[str, list[dict]] = {}
     for view in views.values():
         by_stem.setdefault(file_stem(str(view.get("filename", ""))), []).append(view)

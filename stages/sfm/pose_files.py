@@ -31,6 +31,7 @@ BUNDLER_FILES = ("*.out", "bundle/*.out")
 BUNDLER_LISTS = ("{name}.list.txt", "{stem}.list.txt", "{stem}_list.txt", "list.txt", "imagelist.txt")
 # OpenMVG's scene as JSON, beside the photos or in an output folder there (reconstruction_sequential/, ...).
 OPENMVG_FILES = ("sfm_data*.json", "*/sfm_data*.json")
+OPENMVG_LISTING = "matches"  # the folder of its image listing, made before SfM: views without poses
 # Pix4D's cameras: in its project's params folder (the project beside the photos, or the photos in it), or beside them.
 PIX4D_FILES = tuple(f"{folder}*_calibrated_camera_parameters.txt"
                     for folder in ("", "params/", "1_initial/params/", "*/1_initial/params/"))
@@ -77,7 +78,8 @@ def candidates(scene: Path) -> dict[str, list[Path]]:
         found["realitycapture"] += [p for p in sorted(place.glob("*.csv")) if is_realitycapture_csv(p)]
         found["meshroom"] += [p for pattern in MESHROOM_FILES for p in sorted(place.glob(pattern)) if is_meshroom(p)]
         found["bundler"] += [p for pattern in BUNDLER_FILES for p in sorted(place.glob(pattern)) if is_bundler(p)]
-        found["openmvg"] += [p for pattern in OPENMVG_FILES for p in sorted(place.glob(pattern)) if is_openmvg(p)]
+        found["openmvg"] += [p for pattern in OPENMVG_FILES for p in sorted(place.glob(pattern))
+                             if is_openmvg(p) and p.parent.name != OPENMVG_LISTING]
         found["pix4d"] += [p for pattern in PIX4D_FILES for p in sorted(place.glob(pattern)) if is_pix4d(p)]
     for kind in ("openmvg", "pix4d"):  # the photo folder's, found from its parent too
         found[kind] = list(dict.fromkeys(found[kind]))

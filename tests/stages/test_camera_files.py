@@ -615,7 +615,8 @@ def test_openmvg_scene_poses_the_photos_it_names(synthetic, truth, tmp_path, len
 def test_a_binary_pose_file_is_named_with_how_to_convert_it(synthetic, truth, tmp_path, monkeypatch, capsys, binary,
                                                             command):
     """OpenMVG's SfM writes its scene in binary (sfm_data.bin), Meshroom's as Alembic (sfm.abc): neither is read, so
-    SfM poses the photos, and a warning names the file and the command that writes one that is read."""
+    SfM poses the photos, and a warning names the file and the command that writes one that is read. OpenMVG's image
+    listing beside them (matches/sfm_data.json) poses nothing, and is passed over."""
     import stages.poses
     from plenoxels.core.errors import UserError
 
@@ -624,6 +625,9 @@ def test_a_binary_pose_file_is_named_with_how_to_convert_it(synthetic, truth, tm
         write_photo(synthetic, frame, folder / "images" / f"DSC_{i:04d}.JPG")
     (folder / binary).parent.mkdir(parents=True)
     (folder / binary).write_bytes(bytes(range(256)) * 4)
+    (folder / "matches").mkdir()  # OpenMVG's image listing, made before its SfM: views, no poses
+    (folder / "matches" / "sfm_data.json").write_text(json.dumps({"sfm_data_version": "0.3", "views": [],
+                                                                  "intrinsics": [], "extrinsics": []}))
 
     def sfm(*args, **kwargs):
         raise UserError("SfM ran")
