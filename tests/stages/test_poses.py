@@ -170,8 +170,7 @@ def drone_survey(folder: Path, pitch: bool = True, gps: bool = False) -> dict[st
     return truth
 
 
-def assert_up_from_gimbal(out: Path, truth: dict[str, np.ndarray], said: str = "the gimbal pitch of 20 photos"
-                          ) -> None:
+def assert_up_from(out: Path, truth: dict[str, np.ndarray], said: str = "the gimbal pitch of 20 photos") -> None:
     manifest = read_json(out / "poses" / "manifest.json")
     assert f"up from {said}" in manifest["summary"]["line"]
     transforms = read_json(out / "poses" / "transforms.json")
@@ -187,12 +186,15 @@ def assert_up_from_gimbal(out: Path, truth: dict[str, np.ndarray], said: str = "
 def test_a_drone_survey_looking_down_takes_up_from_its_gimbal_pitch(tmp_path):
     truth = drone_survey(tmp_path / "survey")
     run_poses(tmp_path / "survey", tmp_path / "out")
-    assert_up_from_gimbal(tmp_path / "out", truth)
+    assert_up_from(tmp_path / "out", truth)
 
 
-def test_a_drone_surveys_own_poses_take_up_from_its_gimbal_pitch_where_their_file_gives_none(tmp_path):
-    # Poses another tool made, in a frame of its own (turned, as SfM's frames are, with no up in the file).
-    truth = drone_survey(tmp_path / "capture" / "images")
+@pytest.mark.parametrize("told", ["gimbal", "gps"])
+def test_a_drone_surveys_own_poses_take_up_from_its_photos_where_their_file_gives_none(tmp_path, told):
+    """Poses another tool made, in a frame of its own (turned, as SfM's frames are, with no up in the file): the
+    photos' gimbal pitch, or without it (a drone of another maker) where they were taken (the cameras fitted to their
+    GPS), says which way is up."""
+    truth = drone_survey(tmp_path / "capture" / "images", pitch=told == "gimbal", gps=told == "gps")
     turn = np.eye(4)
     turn[:3, :3] = cv2.Rodrigues(np.array([0.7, -0.4, 1.1]))[0]
     frames = [{"file_path": f"images/{name}.jpg", "transform_matrix": (turn @ c2w).tolist()}
@@ -200,21 +202,9 @@ def test_a_drone_surveys_own_poses_take_up_from_its_gimbal_pitch_where_their_fil
     (tmp_path / "capture" / "transforms.json").write_text(json.dumps(
         {"fl_x": 277.0, "fl_y": 277.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240, "frames": frames}))
     run_poses(tmp_path / "capture", tmp_path / "out")
-    assert_up_from_gimbal(tmp_path / "out", truth)  # each camera sees up as it truly does, whatever the frame
-
-
-def test_a_drone_survey_without_gimbal_tags_takes_up_from_its_gps(tmp_path):
-    """The survey's photos with GPS and no gimbal pitch (a drone of another maker), posed in a frame of their own:
-    the cameras fitted to where the photos were taken carry its up into their frame."""
-    truth = drone_survey(tmp_path / "capture" / "images", pitch=False, gps=True)
-    turn = np.eye(4)
-    turn[:3, :3] = cv2.Rodrigues(np.array([0.7, -0.4, 1.1]))[0]
-    frames = [{"file_path": f"images/{name}.jpg", "transform_matrix": (turn @ c2w).tolist()}
-              for name, c2w in truth.items()]
-    (tmp_path / "capture" / "transforms.json").write_text(json.dumps(
-        {"fl_x": 277.0, "fl_y": 277.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240, "frames": frames}))
-    run_poses(tmp_path / "capture", tmp_path / "out")
-    assert_up_from_gimbal(tmp_path / "out", truth, "the GPS of 20 photos (")
+    # each camera sees up as it truly does, whatever the frame
+    assert_up_from(tmp_path / "out", truth, "the gimbal pitch of 20 photos" if told == "gimbal" else
+                   "the GPS of 20 photos (")
 
 
 def test_gps_that_cannot_say_up_is_not_taken_for_it():
