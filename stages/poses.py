@@ -141,10 +141,11 @@ def run(ctx) -> dict:
         line += (f"; up from the gimbal pitch of {found['photos']} photos" if gravity is not None else
                  f"; the gimbal pitch of {found['photos']}/{found['of']} photos not taken for up"
                  + (f" (their ups {found['spread_deg']:.1f} deg apart)" if "spread_deg" in found else ""))
-    if (info.get("gps") or {}).get("taken"):
+    if "fit_m" in (info.get("gps") or {}):  # a survey's GPS, taken or not
         found = info["gps"]
-        line += (f"; up from the GPS of {found['photos']} photos ({found['span_m']:.0f} m across, the cameras fitted to "
-                 f"it within {found['fit_m']:.1f} m)")
+        line += (f"; {'up from ' if found.get('taken') else ''}the GPS of {found['photos']} photos "
+                 f"({found['span_m']:.0f} m across, the cameras fitted to it within {found['fit_m']:.1f} m)"
+                 + ("" if found.get("taken") else f" not taken for up (past {gps.MAX_TILT_DEG:g} deg)"))
     if info.get("lens_probe"):
         line += "; the images mapped first showed a fisheye's lens, so the camera is OPENCV_FISHEYE"
     if info.get("attempt_why"):

@@ -38,8 +38,10 @@ FRAME_MM = 36.0  # the 35 mm film frame's width, which the focal length is given
 BROWN_MODELS = ("brown3", "brown4", "brown3t2", "brown4t2")
 CSV_LENS_COLUMNS = ("k1", "k2", "k3", "k4", "t1", "t2")
 # A CSV's x and y are degrees of longitude and latitude where the cameras spread over fewer of them than this share of
-# their metres of altitude: a degree is some 100 km, and no capture in metres spreads a hundred times higher than wide.
+# their metres of altitude, or than DEGREES_SPREAD away from the origin: a degree is some 100 km, and no capture in
+# metres spreads a hundred times higher than wide, or stays within a centimetre across.
 DEGREES_SPREAD_SHARE = 0.01
+DEGREES_SPREAD = 0.01
 
 
 def own_folders(photos: Path) -> list[Path]:
@@ -148,13 +150,14 @@ def csv_camera(row: dict[str, str], width: int, height: int, where: str) -> tupl
 
 
 def in_metres(rows: dict[str, dict[str, str]], where: str) -> bool:
-    """Whether the rows' x and y are longitude and latitude (DEGREES_SPREAD_SHARE), which are then set to metres east,
-    north and up of the first row, in place."""
+    """Whether the rows' x and y are longitude and latitude (DEGREES_SPREAD_SHARE, DEGREES_SPREAD), which are then set
+    to metres east, north and up of the first row, in place."""
     position = np.array([[finite_number(row.get(key), key, f"{where}, {row['#name']}") for key in ("x", "y", "alt")]
                          for row in rows.values()]).reshape(-1, 3)
     spread = np.ptp(position, axis=0) if len(position) else np.zeros(3)
+    across, away = max(spread[:2]), np.abs(position[:, :2].mean(axis=0)).min() if len(position) else 0.0
     degrees = (len(position) > 1 and (np.abs(position[:, 0]) <= 180).all() and (np.abs(position[:, 1]) <= 90).all()
-               and 0 < max(spread[:2]) < DEGREES_SPREAD_SHARE * spread[2])
+               and 0 < across and (across < DEGREES_SPREAD_SHARE * spread[2] or across < DEGREES_SPREAD < away))
     if degrees:
         for row, metres in zip(rows.values(), east_north_up(position[:, [1, 0, 2]])):
             row["x"], row["y"], row["alt"] = (repr(float(v)) for v in metres)

@@ -407,6 +407,26 @@ def test_realitycapture_csv_poses_the_photos_it_names(synthetic, truth, tmp_path
     assert poses.get("up") == ([0.0, 0.0, 1.0] if geographic else None)
 
 
+def test_a_realitycapture_csv_is_read_in_degrees_only_where_its_numbers_cannot_be_metres():
+    """Longitude and latitude where the cameras spread over far fewer of them than metres of altitude, or over less
+    than a hundredth away from the origin (a survey flown level); metres otherwise (a crane's shot, rising ten metres
+    over half a metre across, around the origin)."""
+    from stages.sfm.realitycapture import in_metres
+
+    def rows(positions):
+        return {str(n): {"#name": f"{n}.jpg", "x": repr(float(x)), "y": repr(float(y)), "alt": repr(float(z))}
+                for n, (x, y, z) in enumerate(positions)}
+    level = rows([(8.5417 + 0.002 * (n % 3), 47.3769 + 0.001 * (n // 3), 508.0) for n in range(9)])
+    assert in_metres(level, "cameras.csv")
+    east = [float(row["x"]) for row in level.values()]
+    assert max(east) - min(east) == pytest.approx(0.004 * 6_378_137 * np.pi / 180 * np.cos(np.radians(47.38)),
+                                                  rel=0.01)  # 0.004 degrees of longitude, in metres
+    rising = rows([(0.25 * np.cos(a), 0.25 * np.sin(a), 10.0 * a / 6) for a in np.linspace(0, 6, 9)])
+    assert not in_metres(rising, "cameras.csv") and rising["1"]["alt"] == repr(10.0 * 0.75 / 6)
+    walked = rows([(3.0 * np.cos(a), 3.0 * np.sin(a), 1.5) for a in np.linspace(0, 6, 9)])
+    assert not in_metres(walked, "cameras.csv")
+
+
 def meshroom_intrinsic(truth: dict, version: tuple[int, int, int], scale: float) -> dict:
     """A camera as the AliceVision of `version` writes it (every value a string), for photos at `scale` x the truth's
     size, on a phone's sensor 6.17 mm wide."""
