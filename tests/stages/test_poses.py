@@ -215,7 +215,7 @@ def test_gps_that_cannot_say_up_is_not_taken_for_it():
 
     rng = np.random.default_rng(0)
     grid = np.array([[x, y, 0.0] for x in np.linspace(-1, 1, 5) for y in np.linspace(-1, 1, 4)])
-    grid[:, 2] = rng.normal(0.0, 0.003, len(grid))  # a drone's height wanders (COLMAP fits no exact plane)
+    grid[:, 2] = rng.normal(0.0, 0.003, len(grid))  # a drone's height wanders (COLMAP fits no points in one plane)
     model = pycolmap.Reconstruction()
     model.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=64, height=48, camera_id=1,
                                                       params=[50, 50, 32, 24]))
