@@ -31,6 +31,10 @@ from stages.sfm.pose_files import (KINDS, candidates, colmap_models, holds_reali
 from plenoxels.core.cameras import Intrinsics, opengl_c2w_from_llff, opengl_c2w_from_projection
 from plenoxels.core.errors import UserError
 
+# The single-file formats whose reader holds its own import (RealityCapture's CSV: its XMP files are camera files).
+SINGLE_FILE_IMPORTS = {"record3d": record3d.imported, "realitycapture": realitycapture.imported_csv,
+                       "meshroom": meshroom.imported, "bundler": bundler.imported, "openmvg": openmvg.imported,
+                       "pix4d": pix4d.imported}
 # nerfstudio's perspective camera models: their k1, k2, p1, p2 (k3) are OpenCV's radial-tangential distortion.
 PERSPECTIVE_MODELS = {"OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"}
 
@@ -95,18 +99,8 @@ def load(kind: str, path: Path, records: list[dict], scene: Path) -> Imported:
         return from_opensfm(path, records)
     if kind in CAMERA_FILES and path.is_dir():
         return from_camera_files(kind, [path], records, scene)
-    if kind == "record3d":
-        return record3d.imported(path, records)
-    if kind == "realitycapture":
-        return realitycapture.imported_csv(path, records)
-    if kind == "meshroom":
-        return meshroom.imported(path, records)
-    if kind == "bundler":
-        return bundler.imported(path, records)
-    if kind == "openmvg":
-        return openmvg.imported(path, records)
-    if kind == "pix4d":
-        return pix4d.imported(path, records)
+    if kind in SINGLE_FILE_IMPORTS:
+        return SINGLE_FILE_IMPORTS[kind](path, records)
     return from_llff(path, records)
 
 
