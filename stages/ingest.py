@@ -55,7 +55,7 @@ def run(ctx) -> dict:
             given = read_mask(mask_file, original, s.mask_threshold, photo_orientation)
             alpha = given if alpha is None else np.minimum(alpha, given)
             mask_from = mask_file.relative_to(mask_file.parent.parent).as_posix()
-        within = None
+        within, frame = None, original
         if picture is not None:  # within black bars: the photo is what the picture shows
             rgb = np.ascontiguousarray(rgb[picture])
             alpha = np.ascontiguousarray(alpha[picture]) if alpha is not None else None
@@ -70,8 +70,8 @@ def run(ctx) -> dict:
             record["split"] = split
         if photo_orientation != 1:  # its pixels as stored are turned (EXIF): a pose file may describe them so
             record["orientation"] = photo_orientation
-        if within:
-            record["bars_cropped"] = within
+        if within:  # a pose file given elsewhere describes the whole frame
+            record["bars_cropped"], record["frame_size"] = within, list(frame)
         if panorama:  # a 360 frame's view: a pinhole of known focal length, posed with the frame's other views
             record["panorama"], record["focal"] = panorama, view_focal(rgb.shape[1])
         write_png(images_dir / f"{name}.png", rgb)

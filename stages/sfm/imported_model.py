@@ -117,10 +117,27 @@ def scale_factor(record: dict, pose_w: float, pose_h: float, what: str) -> float
 
 def at_ingested_size(k: Intrinsics, record: dict, what: str, pose_w: float = 0.0, pose_h: float = 0.0) -> Intrinsics:
     """`k`, a pose file's camera for its images of pose_w x pose_h (k's own size where not given), scaled to the
-    ingested image as the pose file sees it (`scale_factor`; `turned_upright` turns it where that is as stored)."""
+    ingested image as the pose file sees it (`scale_factor`; `turned_upright` turns it where that is as stored), or
+    moved to the picture ingest cropped from a frame's black bars (`within_bars`)."""
     pose_w, pose_h = pose_w or k.w, pose_h or k.h
+    if "frame_size" in record:
+        return within_bars(k, record, what, pose_w, pose_h)
     scaled = k.scaled(scale_factor(record, pose_w, pose_h, what))
     return Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, *ingested_size(record, pose_w, pose_h))
+
+
+def within_bars(k: Intrinsics, record: dict, what: str, pose_w: float, pose_h: float) -> Intrinsics:
+    """`k`, a pose file's camera of a whole frame (pose_w x pose_h), for the picture ingest cropped from within the
+    frame's black bars (`bars_cropped`: x, y, width and height in the frame's pixels), at the ingested size: the crop
+    moves the principal point, and a lens's terms, about it, stay as they are."""
+    (frame_w, frame_h), (x, y, width, _) = record["frame_size"], record["bars_cropped"]
+    factor = frame_w / pose_w
+    if abs(pose_h * factor - frame_h) > SIZE_TOLERANCE_PX * max(1.0, factor):
+        raise UserError(f"{record['source']} is {frame_w}x{frame_h} but {what} describes {pose_w:g}x{pose_h:g} images "
+                        "(a different aspect); use the matching photos or set poses.source=sfm")
+    whole, scale = k.scaled(factor), record["width"] / width
+    return Intrinsics(whole.fl_x * scale, whole.fl_y * scale, (whole.cx - x) * scale, (whole.cy - y) * scale,
+                      record["width"], record["height"])
 
 
 def _camera(camera_id: int, k: Intrinsics, lens: Lens) -> pycolmap.Camera:

@@ -424,15 +424,38 @@ def test_black_bars_of_photos_saved_from_a_padded_clip_are_cropped_with_their_ma
     assert "black bars cropped from 5 (the picture 40x60 of their 80x60)" in line
 
 
-def test_photos_a_pose_file_describes_keep_their_bars_and_a_crop_refuses_poses_given_elsewhere(tmp_path):
+def test_photos_a_pose_file_describes_keep_their_bars_or_take_its_camera_moved_within_them(tmp_path):
+    """A pose file beside padded photos keeps their whole frames. Given elsewhere (poses.path), ingest crops the black
+    bars as it does without one, and the file's camera of the whole frame moves with the crop: its principal point
+    20 rows up. A COLMAP model, whose matches would have to move too, is refused with the line that says what to
+    set."""
+    import pycolmap
+    from plenoxels.core.cameras import colmap_w2c_from_opengl_c2w, look_at
+
     folder = padded_photos(tmp_path / "capture" / "images", count=3, pad=(0, 20))
-    frames = [{"file_path": f"images/f{i}.png", "transform_matrix": np.eye(4).tolist()} for i in range(3)]
+    c2w = [look_at([0.3 * i, -3.0, 0.2], [0.0, 0.0, 0.0]) for i in range(3)]
+    frames = [{"file_path": f"images/f{i}.png", "transform_matrix": c2w[i].tolist()} for i in range(3)]
     pose_file = tmp_path / "capture" / "transforms.json"
-    pose_file.write_text(json.dumps({"fl_x": 50, "w": 40, "h": 100, "frames": frames}))
+    pose_file.write_text(json.dumps({"fl_x": 50, "fl_y": 50, "cx": 21, "cy": 52, "w": 40, "h": 100, "frames": frames}))
     _, listing = run_ingest(folder, tmp_path / "beside")
     assert {(r["width"], r["height"]) for r in listing["images"]} == {(40, 100)}
     pose_file.rename(tmp_path / "elsewhere.json")
-    pipe = Pipeline(folder, tmp_path / "given" / "out", overrides=[f"poses.path={tmp_path / 'elsewhere.json'}"],
+    Pipeline(folder, tmp_path / "given" / "out", overrides=[f"poses.path={tmp_path / 'elsewhere.json'}"],
+             reporter=Reporter(quiet=True)).run(["poses"])
+    poses = json.loads((tmp_path / "given" / "out" / "poses" / "transforms.json").read_text())
+    assert [poses[key] for key in ("w", "h", "fl_x", "fl_y", "cx", "cy")] == pytest.approx([40, 60, 50, 50, 21, 32])
+    assert len(poses["frames"]) == 3
+
+    model = pycolmap.Reconstruction()
+    model.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=40, height=100, camera_id=1,
+                                                      params=[50, 50, 21, 52]))
+    for i in range(3):
+        rotation, translation = colmap_w2c_from_opengl_c2w(c2w[i])
+        model.add_image_with_trivial_frame(pycolmap.Image(name=f"f{i}.png", camera_id=1, image_id=i + 1),
+                                           pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation))
+    (tmp_path / "model").mkdir()
+    model.write(tmp_path / "model")
+    pipe = Pipeline(folder, tmp_path / "colmap" / "out", overrides=[f"poses.path={tmp_path / 'model'}"],
                     reporter=Reporter(quiet=True))
     with pytest.raises(UserError, match="cropped the black bars of f0.png to 40x60; set ingest.crop_bars=false"):
         pipe.run(["poses"])
