@@ -102,10 +102,6 @@ def ingested_size(record: dict, pose_w: float, pose_h: float) -> tuple[int, int]
 def scale_factor(record: dict, pose_w: float, pose_h: float, what: str) -> float:
     """The factor from the pose file's image size to the ingested one (as the pose file sees it: `ingested_size`);
     both sides must agree."""
-    if "bars_cropped" in record:  # a pose file's camera sees the whole frame
-        raise UserError(f"{what} describes the whole frames, but ingest cropped the black bars of {record['source']} "
-                        f"to {record['original_width']}x{record['original_height']}; set ingest.crop_bars=false to "
-                        "keep whole frames for these poses")
     width, height = ingested_size(record, pose_w, pose_h)
     factor = width / pose_w
     if abs(pose_h * factor - height) > SIZE_TOLERANCE_PX * max(1.0, factor):
@@ -126,18 +122,46 @@ def at_ingested_size(k: Intrinsics, record: dict, what: str, pose_w: float = 0.0
     return Intrinsics(scaled.fl_x, scaled.fl_y, scaled.cx, scaled.cy, *ingested_size(record, pose_w, pose_h))
 
 
-def within_bars(k: Intrinsics, record: dict, what: str, pose_w: float, pose_h: float) -> Intrinsics:
-    """`k`, a pose file's camera of a whole frame (pose_w x pose_h), for the picture ingest cropped from within the
-    frame's black bars (`bars_cropped`: x, y, width and height in the frame's pixels), at the ingested size: the crop
-    moves the principal point, and a lens's terms, about it, stay as they are."""
-    (frame_w, frame_h), (x, y, width, _) = record["frame_size"], record["bars_cropped"]
+def _frame_factor(record: dict, what: str, pose_w: float, pose_h: float) -> float:
+    """The factor from a pose file's image size to the whole frame whose black bars ingest cropped; both sides must
+    agree."""
+    frame_w, frame_h = record["frame_size"]
     factor = frame_w / pose_w
     if abs(pose_h * factor - frame_h) > SIZE_TOLERANCE_PX * max(1.0, factor):
         raise UserError(f"{record['source']} is {frame_w}x{frame_h} but {what} describes {pose_w:g}x{pose_h:g} images "
                         "(a different aspect); use the matching photos or set poses.source=sfm")
-    whole, scale = k.scaled(factor), record["width"] / width
+    return factor
+
+
+def within_bars(k: Intrinsics, record: dict, what: str, pose_w: float, pose_h: float) -> Intrinsics:
+    """`k`, a pose file's camera of a whole frame (pose_w x pose_h), for the picture ingest cropped from within the
+    frame's black bars (`bars_cropped`: x, y, width and height in the frame's pixels), at the ingested size: the crop
+    moves the principal point, and a lens's terms, about it, stay as they are."""
+    x, y, width, _ = record["bars_cropped"]
+    whole, scale = k.scaled(_frame_factor(record, what, pose_w, pose_h)), record["width"] / width
     return Intrinsics(whole.fl_x * scale, whole.fl_y * scale, (whole.cx - x) * scale, (whole.cy - y) * scale,
                       record["width"], record["height"])
+
+
+def camera_within_bars(camera: pycolmap.Camera, record: dict, what: str) -> pycolmap.Camera:
+    """A COLMAP camera of a whole frame, moved to the picture ingest cropped from within its black bars and scaled to
+    the ingested size, as `within_bars` moves a pinhole."""
+    _frame_factor(record, what, camera.width, camera.height)
+    (frame_w, frame_h), (x, y, width, height) = record["frame_size"], record["bars_cropped"]
+    moved = pycolmap.Camera(model=camera.model_name, width=camera.width, height=camera.height,
+                            params=list(camera.params), camera_id=camera.camera_id)
+    moved.rescale(frame_w, frame_h)
+    moved.principal_point_x, moved.principal_point_y = moved.principal_point_x - x, moved.principal_point_y - y
+    moved.width, moved.height = width, height
+    moved.rescale(record["width"], record["height"])
+    return moved
+
+
+def pixels_within_bars(uv: np.ndarray, width: int, height: int, record: dict) -> np.ndarray:
+    """Points [N, 2] of a whole frame's image of width x height where the picture ingest cropped from within its black
+    bars has them, at the ingested size."""
+    (frame_w, frame_h), (x, y, crop_w, crop_h) = record["frame_size"], record["bars_cropped"]
+    return (uv * [frame_w / width, frame_h / height] - [x, y]) * [record["width"] / crop_w, record["height"] / crop_h]
 
 
 def _camera(camera_id: int, k: Intrinsics, lens: Lens) -> pycolmap.Camera:

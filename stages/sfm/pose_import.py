@@ -23,8 +23,9 @@ from stages.capture.photos import (DATASET_SPLITS, POSE_FOLDERS, frame_photo, le
                                    split_layout)
 from stages.sfm import (bundler, meshroom, metashape, mvsnet, nsvf, openmvg, opensfm, pix4d, polycam,
                         realitycapture, record3d)
-from stages.sfm.imported_model import (CameraTable, Imported, Lens, add_image, add_view, at_ingested_size, file_stem,
-                                       finite_number, ingested_size, scale_factor)
+from stages.sfm.imported_model import (CameraTable, Imported, Lens, add_image, add_view, at_ingested_size,
+                                       camera_within_bars, file_stem, finite_number, ingested_size, pixels_within_bars,
+                                       scale_factor)
 from stages.sfm.pose_files import (KINDS, candidates, colmap_models, holds_realitycapture_xmp, is_bundler,
                                    is_colmap_model, is_meshroom, is_openmvg, is_pix4d,
                                    is_realitycapture_csv)
@@ -168,19 +169,23 @@ def from_colmap(model_dir: Path, records: list[dict]) -> Imported:
         if image is None:
             missing.append(record["name"])
             continue
-        cam = source.cameras[image.camera_id]
-        scale_factor(record, cam.width, cam.height, f"the COLMAP model in {model_dir}")
+        cam, what = source.cameras[image.camera_id], f"the COLMAP model in {model_dir}"
+        cropped = "frame_size" in record  # the model's camera sees the whole frame whose black bars ingest cropped
+        if not cropped:
+            scale_factor(record, cam.width, cam.height, what)
         width, height = ingested_size(record, cam.width, cam.height)  # as stored, where COLMAP read it so
         key = (image.camera_id, width, height)
         if key not in camera_ids:
             scaled = pycolmap.Camera(model=cam.model_name, width=cam.width, height=cam.height,
                                      params=list(cam.params), camera_id=len(camera_ids) + 1)
+            scaled = camera_within_bars(scaled, record, what) if cropped else scaled
             scaled.rescale(width, height)
             camera_ids[key] = scaled.camera_id
             out.add_camera_with_trivial_rig(scaled)
-        sx, sy = width / cam.width, height / cam.height
         new_id = len(kept) + 1
-        keypoints = np.array([p.xy for p in image.points2D], dtype=np.float64).reshape(-1, 2) * [sx, sy]
+        keypoints = np.array([p.xy for p in image.points2D], dtype=np.float64).reshape(-1, 2)
+        keypoints = pixels_within_bars(keypoints, cam.width, cam.height, record) if cropped else \
+            keypoints * [width / cam.width, height / cam.height]
         new_image = pycolmap.Image(name=f"{record['name']}.png", keypoints=keypoints, camera_id=camera_ids[key],
                                    image_id=new_id)
         out.add_image_with_trivial_frame(new_image, image.cam_from_world())

@@ -424,11 +424,11 @@ def test_black_bars_of_photos_saved_from_a_padded_clip_are_cropped_with_their_ma
     assert "black bars cropped from 5 (the picture 40x60 of their 80x60)" in line
 
 
-def test_photos_a_pose_file_describes_keep_their_bars_or_take_its_camera_moved_within_them(tmp_path):
+@pytest.mark.parametrize("given", ["transforms", "colmap"])
+def test_photos_a_pose_file_describes_keep_their_bars_or_take_its_camera_moved_within_them(tmp_path, given):
     """A pose file beside padded photos keeps their whole frames. Given elsewhere (poses.path), ingest crops the black
     bars as it does without one, and the file's camera of the whole frame moves with the crop: its principal point
-    20 rows up. A COLMAP model, whose matches would have to move too, is refused with the line that says what to
-    set."""
+    20 rows up; a COLMAP model's matches move with it, and its points reproject onto them as before."""
     import pycolmap
     from plenoxels.core.cameras import colmap_w2c_from_opengl_c2w, look_at
 
@@ -440,25 +440,34 @@ def test_photos_a_pose_file_describes_keep_their_bars_or_take_its_camera_moved_w
     _, listing = run_ingest(folder, tmp_path / "beside")
     assert {(r["width"], r["height"]) for r in listing["images"]} == {(40, 100)}
     pose_file.rename(tmp_path / "elsewhere.json")
-    Pipeline(folder, tmp_path / "given" / "out", overrides=[f"poses.path={tmp_path / 'elsewhere.json'}"],
-             reporter=Reporter(quiet=True)).run(["poses"])
+    if given == "colmap":  # the same cameras as a model, its matches those of points before them
+        model = pycolmap.Reconstruction()
+        model.add_camera_with_trivial_rig(pycolmap.Camera(model="OPENCV", width=40, height=100, camera_id=1,
+                                                          params=[50, 50, 21, 52, -0.05, 0, 0, 0]))
+        points = np.random.default_rng(3).uniform(-0.3, 0.3, (10, 3))
+        for i in range(3):
+            rotation, translation = colmap_w2c_from_opengl_c2w(c2w[i])
+            seen = model.cameras[1].img_from_cam(points @ rotation.T + translation)
+            model.add_image_with_trivial_frame(pycolmap.Image(name=f"f{i}.png", camera_id=1, image_id=i + 1,
+                                                              keypoints=seen),
+                                               pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation))
+        for n, xyz in enumerate(points):
+            model.add_point3D(xyz, pycolmap.Track([pycolmap.TrackElement(i + 1, n) for i in range(3)]),
+                              np.zeros(3, np.uint8))
+        (tmp_path / "model").mkdir()
+        model.write(tmp_path / "model")
+    path = tmp_path / ("model" if given == "colmap" else "elsewhere.json")
+    summary = Pipeline(folder, tmp_path / "given" / "out", overrides=[f"poses.path={path}"],
+                       reporter=Reporter(quiet=True)).run(["poses"])["poses"]["summary"]
     poses = json.loads((tmp_path / "given" / "out" / "poses" / "transforms.json").read_text())
-    assert [poses[key] for key in ("w", "h", "fl_x", "fl_y", "cx", "cy")] == pytest.approx([40, 60, 50, 50, 21, 32])
     assert len(poses["frames"]) == 3
-
-    model = pycolmap.Reconstruction()
-    model.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=40, height=100, camera_id=1,
-                                                      params=[50, 50, 21, 52]))
-    for i in range(3):
-        rotation, translation = colmap_w2c_from_opengl_c2w(c2w[i])
-        model.add_image_with_trivial_frame(pycolmap.Image(name=f"f{i}.png", camera_id=1, image_id=i + 1),
-                                           pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), translation))
-    (tmp_path / "model").mkdir()
-    model.write(tmp_path / "model")
-    pipe = Pipeline(folder, tmp_path / "colmap" / "out", overrides=[f"poses.path={tmp_path / 'model'}"],
-                    reporter=Reporter(quiet=True))
-    with pytest.raises(UserError, match="cropped the black bars of f0.png to 40x60; set ingest.crop_bars=false"):
-        pipe.run(["poses"])
+    if given == "transforms":
+        assert (poses["w"], poses["h"]) == (40, 60)
+        assert [poses[key] for key in ("fl_x", "fl_y", "cx", "cy")] == pytest.approx([50, 50, 21, 32])
+    else:  # undistorted: the lens's centre, where its principal point is, moved with the crop
+        camera = poses["original_camera"]
+        assert camera["params"][:4] == pytest.approx([50, 50, 21, 32]) and camera["params"][4] == pytest.approx(-0.05)
+        assert summary["points"] == 10 and summary["mean_reprojection_error"] < 1e-6
     whole = Pipeline(folder, tmp_path / "whole" / "out", overrides=["ingest.crop_bars=false"],
                      reporter=Reporter(quiet=True))
     whole.run(["ingest"])
