@@ -61,8 +61,9 @@ class Settings:
     with their poses, where a transforms.json says camera_model EQUIRECTANGULAR (each view takes its frame's pose)."""
     crop_bars: bool = True
     """Crop black bars along the frame's edges (a portrait clip in a landscape frame, a letterbox), dark in every
-    frame of a video, or in every photo of the common size where SfM poses them (no pose file beside the photos,
-    whose cameras describe the whole frame): trained, they are a black wall in front of every camera."""
+    frame of a video, or in every photo of the common size where no pose file is beside the photos (those keep the
+    whole frames their cameras describe; a pose file poses.path names elsewhere has its cameras moved with the crop):
+    trained, they are a black wall in front of every camera."""
 
     def check(self) -> None:
         require(self.max_side == 0 or self.max_side >= 32, "ingest.max_side must be 0 (full size) or at least 32")
