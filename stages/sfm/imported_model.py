@@ -146,7 +146,7 @@ def within_bars(k: Intrinsics, record: dict, what: str, pose_w: float, pose_h: f
 def camera_within_bars(camera: pycolmap.Camera, record: dict, what: str) -> pycolmap.Camera:
     """A COLMAP camera of a whole frame, moved to the picture ingest cropped from within its black bars and scaled to
     the ingested size, as `within_bars` moves a pinhole."""
-    _frame_factor(record, what, camera.width, camera.height)
+    _frame_factor(record, what, camera.width, camera.height)  # its aspect the frame's, or one line that says not
     (frame_w, frame_h), (x, y, width, height) = record["frame_size"], record["bars_cropped"]
     moved = pycolmap.Camera(model=camera.model_name, width=camera.width, height=camera.height,
                             params=list(camera.params), camera_id=camera.camera_id)
