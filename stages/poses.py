@@ -18,6 +18,7 @@ import pycolmap
 from stages.common.json_files import read_json
 from stages.capture.photos import is_video, photo_folder
 from stages.sfm import gimbal, gps, pose_import
+from stages.sfm.exif import exif_position
 from stages.sfm.imported_model import turned_upright
 from stages.sfm.pose_files import unread
 from stages.sfm.outputs import write_poses
@@ -93,7 +94,7 @@ def run(ctx) -> dict:
             gravity, info["gimbal"] = gimbal.gravity(reconstruction, pitches) if pitches else (None, None)
         if gravity is None and not is_video(ctx.scene):  # a drone's GPS across a survey says it too
             positions = {f"{r['name']}.png": where for r in records if "panorama" not in r
-                         and (where := gps.position(photo_folder(ctx.scene) / r["source"])) is not None}
+                         and (where := exif_position(photo_folder(ctx.scene) / r["source"])) is not None}
             gravity, info["gps"] = gps.gravity(reconstruction, positions) if positions else (None, None)
             if gravity is not None:
                 info["gps"]["taken"] = True

@@ -1,7 +1,8 @@
 """What the photos' EXIF says about their cameras: the camera model (to decide whether photos share one
-camera) and the focal length (to start COLMAP's cameras from it)."""
+camera), the focal length (to start COLMAP's cameras from it) and where they were taken (for up, stages/sfm/gps.py)."""
 from __future__ import annotations
 
+import math
 import statistics
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from stages.sfm.lens import FISHEYE_DIAGONAL_FOV_DEG, fisheye_focal
 
 EXIF_MODEL_TAG = 0x0110
 EXIF_IFD = 0x8769
+GPS_IFD = 0x8825
 EXIF_FOCAL_35MM = 0xA405                # FocalLengthIn35mmFilm, mm
 EXIF_FOCAL = 0x920A                     # FocalLength, mm
 EXIF_FOCAL_PLANE_X_RESOLUTION = 0xA20E  # sensor pixels per unit, in units of the tag below
@@ -134,3 +136,22 @@ def set_focal_priors(db: Path, records: list[dict], photos: Path, sensor_width_m
         return None
     return {"focal_px": round(statistics.median(f for f, _, _ in found), 2), "from": found[0][1],
             "images": sum(n for _, _, n in found), "cameras": len(found)}
+
+
+def _degrees(value, ref: str, negative: str) -> float:
+    degrees, minutes, seconds = (float(v) for v in value)
+    return (-1.0 if str(ref).strip().upper() == negative else 1.0) * (degrees + minutes / 60.0 + seconds / 3600.0)
+
+
+def exif_position(photo: Path) -> tuple[float, float, float] | None:
+    """A photo's latitude, longitude (degrees) and altitude (metres) from its EXIF; None without all three."""
+    try:
+        with Image.open(photo) as image:
+            gps = image.getexif().get_ifd(GPS_IFD)
+        latitude, longitude = _degrees(gps[2], gps.get(1, "N"), "S"), _degrees(gps[4], gps.get(3, "E"), "W")
+        below = gps.get(5, 0) in (1, b"\x01")
+        altitude = (-1.0 if below else 1.0) * float(gps[6])
+    except Exception:  # any photo or tag a reader cannot take means the same thing here: no position
+        return None
+    found = (latitude, longitude, altitude)
+    return found if all(math.isfinite(v) for v in found) and abs(latitude) <= 90 and abs(longitude) <= 180 else None

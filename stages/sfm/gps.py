@@ -1,6 +1,7 @@
-"""Which way is up from the photos' GPS: where they were taken (EXIF's latitude, longitude and altitude) turned to
-metres east, north and up (WGS 84, pycolmap's GPSTransform), and the model's camera centres fitted to them by a
-similarity (pycolmap's estimate_sim3d_robust). The fit carries the up of those metres into the model's frame.
+"""Which way is up from the photos' GPS: where they were taken (their EXIF's latitude, longitude and altitude:
+exif.exif_position) turned to metres east, north and up (WGS 84, pycolmap's GPSTransform), and the model's camera
+centres fitted to them by a similarity (pycolmap's estimate_sim3d_robust). The fit carries the up of those metres
+into the model's frame.
 
 GPS is metres off, more in height than across, so it is taken only where it spans far more than that (a drone's
 survey, not a phone's orbit of a thing) and not along one line (which leaves a turn about the line free), and where
@@ -8,13 +9,10 @@ the fit holds to a small angle over the span; past either, the photos' gimbal or
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pycolmap
-from PIL import Image
 
-GPS_IFD = 0x8825
 # The share of the model's photos that must carry a position, the span (metres) they must cover across, how far
 # their second extent must reach beside their first (not a line), and the angle (degrees) by which the fit's
 # residuals may tilt the span.
@@ -22,25 +20,6 @@ MIN_SHARE = 0.75
 MIN_SPAN_M = 20.0
 MIN_WIDTH_SHARE = 0.1
 MAX_TILT_DEG = 2.0
-
-
-def _degrees(value, ref: str, negative: str) -> float:
-    degrees, minutes, seconds = (float(v) for v in value)
-    return (-1.0 if str(ref).strip().upper() == negative else 1.0) * (degrees + minutes / 60.0 + seconds / 3600.0)
-
-
-def position(photo: Path) -> tuple[float, float, float] | None:
-    """A photo's latitude, longitude (degrees) and altitude (metres) from its EXIF; None without all three."""
-    try:
-        with Image.open(photo) as image:
-            gps = image.getexif().get_ifd(GPS_IFD)
-        latitude, longitude = _degrees(gps[2], gps.get(1, "N"), "S"), _degrees(gps[4], gps.get(3, "E"), "W")
-        below = gps.get(5, 0) in (1, b"\x01")
-        altitude = (-1.0 if below else 1.0) * float(gps[6])
-    except Exception:  # any photo or tag a reader cannot take means the same thing here: no position
-        return None
-    found = (latitude, longitude, altitude)
-    return found if all(math.isfinite(v) for v in found) and abs(latitude) <= 90 and abs(longitude) <= 180 else None
 
 
 def east_north_up(positions: np.ndarray) -> np.ndarray:
