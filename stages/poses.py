@@ -18,7 +18,6 @@ import pycolmap
 from stages.common.json_files import read_json
 from stages.capture.photos import is_video, photo_folder
 from stages.sfm import gimbal, gps, pose_import
-from stages.sfm.exif import exif_position
 from stages.sfm.imported_model import turned_upright
 from stages.sfm.pose_files import unread
 from stages.sfm.outputs import write_poses
@@ -93,8 +92,7 @@ def run(ctx) -> dict:
                        and (pitch := gimbal.pitch(photo_folder(ctx.scene) / r["source"])) is not None}
             gravity, info["gimbal"] = gimbal.gravity(reconstruction, pitches) if pitches else (None, None)
         if gravity is None and not is_video(ctx.scene):  # a drone's GPS across a survey says it too
-            positions = {f"{r['name']}.png": where for r in records if "panorama" not in r
-                         and (where := exif_position(photo_folder(ctx.scene) / r["source"])) is not None}
+            positions = gps.photo_positions(records, photo_folder(ctx.scene))
             gravity, info["gps"] = gps.gravity(reconstruction, positions) if positions else (None, None)
             if gravity is not None:
                 info["gps"]["taken"] = True
@@ -142,6 +140,8 @@ def run(ctx) -> dict:
         line += (f"; up from the gimbal pitch of {found['photos']} photos" if gravity is not None else
                  f"; the gimbal pitch of {found['photos']}/{found['of']} photos not taken for up"
                  + (f" (their ups {found['spread_deg']:.1f} deg apart)" if "spread_deg" in found else ""))
+    if info.get("gps_priors"):
+        line += f"; the cameras held near the GPS of {info['gps_priors']} photos in bundle adjustment"
     if "fit_m" in (info.get("gps") or {}):  # a survey's GPS, taken or not
         found = info["gps"]
         line += (f"; {'up from ' if found.get('taken') else ''}the GPS of {found['photos']} photos "

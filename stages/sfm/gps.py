@@ -1,7 +1,8 @@
-"""Which way is up from the photos' GPS: where they were taken (their EXIF's latitude, longitude and altitude:
-exif.exif_position) turned to metres east, north and up (WGS 84, pycolmap's GPSTransform), and the model's camera
-centres fitted to them by a similarity (pycolmap's estimate_sim3d_robust). The fit carries the up of those metres
-into the model's frame.
+"""What the photos' GPS says: where they were taken (their EXIF's latitude, longitude and altitude:
+exif.exif_position) turned to metres east, north and up (WGS 84, pycolmap's GPSTransform). Across a survey it holds
+SfM's model to those metres (`write_priors`: COLMAP's pose priors, which bundle adjustment keeps the cameras near, so
+a survey's rows cannot bend into a dome), and it says which way is up (`gravity`: the model's camera centres fitted
+to them by a similarity, pycolmap's estimate_sim3d_robust, whose rotation carries the metres' up into the model).
 
 GPS is metres off, more in height than across, so it is taken only where it spans far more than that (a drone's
 survey, not a phone's orbit of a thing) and not along one line (which leaves a turn about the line free), and where
@@ -10,9 +11,16 @@ from __future__ import annotations
 
 import math
 
+from pathlib import Path
+
 import numpy as np
 import pycolmap
 
+from stages.sfm.exif import exif_position
+
+# How far (metres, one standard deviation) a drone's GPS is taken to be off across and in height, for the priors.
+GPS_ERROR_ACROSS_M = 2.0
+GPS_ERROR_UP_M = 4.0
 # The share of the model's photos that must carry a position, the span (metres) they must cover across, how far
 # their second extent must reach beside their first (not a line), and the angle (degrees) by which the fit's
 # residuals may tilt the span.
@@ -28,6 +36,49 @@ def east_north_up(positions: np.ndarray) -> np.ndarray:
     return np.asarray(pycolmap.GPSTransform().ellipsoid_to_enu(positions, latitude, longitude, altitude))
 
 
+def photo_positions(records: list[dict], photos: Path) -> dict[str, tuple[float, float, float]]:
+    """Where each ingested photo (by its image's name) was taken, for those whose EXIF says; a 360 frame's views are
+    cut from one photo and left out."""
+    return {f"{r['name']}.png": where for r in records if "panorama" not in r
+            and (where := exif_position(photos / r["source"])) is not None}
+
+
+def spans_survey(metres: np.ndarray) -> bool:
+    """True where positions (metres east, north and up [N, 3]) span MIN_SPAN_M across and do not lie along one line."""
+    across = np.linalg.svd(metres[:, :2] - metres[:, :2].mean(axis=0), compute_uv=False) / math.sqrt(len(metres))
+    return np.ptp(metres[:, :2], axis=0).max() >= MIN_SPAN_M and across[1] >= MIN_WIDTH_SHARE * across[0]
+
+
+def survey_metres(positions: dict[str, tuple[float, float, float]], of: int) -> dict[str, np.ndarray] | None:
+    """The positions as metres east, north and up, by name, where they can hold a model: at least MIN_SHARE of `of`
+    photos carry one and they span a survey (`spans_survey`); else None."""
+    if len(positions) < max(3, MIN_SHARE * of):
+        return None
+    metres = east_north_up(np.asarray(list(positions.values())))
+    return dict(zip(positions, metres)) if spans_survey(metres) else None
+
+
+def write_priors(db: Path, metres: dict[str, np.ndarray]) -> int:
+    """Writes each image's position (metres east, north and up) into the database as COLMAP's pose prior, replacing
+    any there; returns how many were written."""
+    covariance = np.diag([GPS_ERROR_ACROSS_M ** 2, GPS_ERROR_ACROSS_M ** 2, GPS_ERROR_UP_M ** 2])
+    database = pycolmap.Database.open(db)
+    try:
+        database.clear_pose_priors()
+        written = 0
+        for image in database.read_all_images():
+            if image.name in metres:
+                prior = pycolmap.PosePrior()
+                prior.corr_data_id, prior.position = image.data_id, metres[image.name]
+                prior.position_covariance = covariance
+                prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
+                database.write_pose_prior(prior)
+                written += 1
+    finally:
+        database.close()
+    return written
+
+
 def gravity(reconstruction: pycolmap.Reconstruction, positions: dict[str, tuple[float, float, float]],
             ) -> tuple[np.ndarray | None, dict]:
     """The world's up in the model's frame from where its images were taken (by image name), and what was found."""
@@ -41,9 +92,8 @@ def gravity(reconstruction: pycolmap.Reconstruction, positions: dict[str, tuple[
     if len(located) < max(3, MIN_SHARE * posed):
         return None, found
     metres = east_north_up(np.asarray(located))
-    across = np.linalg.svd(metres[:, :2] - metres[:, :2].mean(axis=0), compute_uv=False) / math.sqrt(len(metres))
     found["span_m"] = round(float(np.ptp(metres[:, :2], axis=0).max()), 1)
-    if found["span_m"] < MIN_SPAN_M or across[1] < MIN_WIDTH_SHARE * across[0]:
+    if not spans_survey(metres):
         return None, found
     options = pycolmap.RANSACOptions()
     options.max_error, options.random_seed = max(1.0, 0.02 * found["span_m"]), 0

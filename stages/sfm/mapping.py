@@ -22,10 +22,11 @@ def colmap_threads(s: SfmOptions) -> int:
 
 
 def incremental_mapping(db: Path, image_dir: Path, out: Path, s: SfmOptions, relaxed: bool = False,
-                        fixed_cameras: bool = False, image_names: list[str] | None = None
+                        fixed_cameras: bool = False, image_names: list[str] | None = None, priors: bool = False
                         ) -> list[pycolmap.Reconstruction]:
     """COLMAP's incremental mapper, of `image_names` alone where given; `fixed_cameras`: the cameras' focal lengths and
-    distortion are known (a 360 frame's views), and bundle adjustment keeps them."""
+    distortion are known (a 360 frame's views), and bundle adjustment keeps them; `priors`: the database holds
+    positions (gps.write_priors) that bundle adjustment keeps the cameras near, a robust loss letting a bad fix go."""
     options = pycolmap.IncrementalPipelineOptions()
     options.image_names = image_names or []
     options.num_threads = colmap_threads(s)
@@ -36,6 +37,7 @@ def incremental_mapping(db: Path, image_dir: Path, out: Path, s: SfmOptions, rel
     options.ba_refine_principal_point = s.refine_principal_point
     if fixed_cameras:
         options.ba_refine_focal_length = options.ba_refine_extra_params = False
+    options.use_prior_position = options.use_robust_loss_on_prior_position = priors
     if relaxed:
         options.mapper.abs_pose_min_num_inliers = RELAXED_ABS_POSE_MIN_INLIERS
         options.mapper.abs_pose_min_inlier_ratio = RELAXED_ABS_POSE_MIN_INLIER_RATIO
@@ -66,14 +68,16 @@ def largest_model(models: list[pycolmap.Reconstruction]) -> pycolmap.Reconstruct
 
 
 def map_images(db: Path, image_dir: Path, scratch: Path, s: SfmOptions, report,
-               fixed_cameras: bool = False) -> tuple[list, pycolmap.Reconstruction | None, str]:
+               fixed_cameras: bool = False, priors: bool = False) -> tuple[list, pycolmap.Reconstruction | None, str]:
     """Maps with the chosen mapper; returns the models, the largest, and why the global mapper was replaced, if it was.
 
     Global mapping (rotation averaging, then positions) has no loop to correct a bad relative pose where the view graph
     is a chain, as sequential matching leaves the start of an orbit, and its wrong poses can still reproject their own
     points to a fraction of a pixel: such images come back tied to nothing, or contradicting their verified matches
     (bench/README.md, "Poses"). The incremental mapper, which registers each image against points it already has,
-    poses those captures correctly, so a global model that fails the checks is mapped again with it."""
+    poses those captures correctly, so a global model that fails the checks is mapped again with it. `priors`: the
+    database holds the photos' positions, which the incremental mapper keeps the cameras near (the global one here
+    does not read them)."""
     if s.mapper == "global":
         report.info("global mapping")
         models = global_mapping(db, image_dir, scratch / "models", s, fixed_cameras)
@@ -90,5 +94,5 @@ def map_images(db: Path, image_dir: Path, scratch: Path, s: SfmOptions, report,
     else:
         fallback = ""
     report.info("incremental mapping")
-    models = incremental_mapping(db, image_dir, scratch / "models", s, fixed_cameras=fixed_cameras)
+    models = incremental_mapping(db, image_dir, scratch / "models", s, fixed_cameras=fixed_cameras, priors=priors)
     return models, largest_model(models), fallback

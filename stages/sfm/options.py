@@ -39,6 +39,10 @@ class SfmOptions:
     loop_neighbours: int = 5
     """In sequential matching, each image is also matched with this many of the most alike images outside its
     neighbours, and the first images with the last, so a walk around a scene closes its loop; 0: off."""
+    gps_priors: bool = True
+    """Hold the incremental mapper's cameras near where the photos' EXIF GPS says they were taken (COLMAP's position
+    priors), where those positions span a survey (stages/sfm/gps.py): a drone's rows then cannot bend into a dome, and
+    the model comes out in metres east, north and up."""
     mapper: Literal["incremental", "global"] = "incremental"
     """COLMAP mapper; a global model that contradicts its matches is mapped again incrementally."""
     refine_principal_point: bool = False

@@ -24,6 +24,7 @@ import pycolmap
 
 from stages.capture.panorama import is_two_to_one
 from stages.common.text import short_list
+from stages.sfm import gps
 from stages.sfm.exif import one_camera, resized_since_capture, set_focal_priors
 from stages.sfm.lens import PINHOLE_LENS_MODELS, lens_words, may_be_fisheye, probe_images, wide_lens
 from stages.sfm.mapping import colmap_threads, incremental_mapping, largest_model, map_images
@@ -465,6 +466,12 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
     if info["focal_prior"]:
         prior = info["focal_prior"]
         report.info(f"initial focal length {prior['focal_px']:.1f} px from {prior['from']} ({prior['images']} photos)")
+    survey = gps.survey_metres(gps.photo_positions(records, photos), len(records)) if (
+        s.gps_priors and not from_video) else None
+    priors = survey is not None and gps.write_priors(db, survey) >= 3
+    if priors:
+        info["gps_priors"] = len(survey)
+        report.info(f"holding the cameras near the GPS of {len(survey)} photos")
     seconds["extract"] = time.perf_counter() - started
     mode = s.matching
     if mode == "auto":
@@ -490,7 +497,7 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
                 again["lens_probe"] = {"stretch": stretch, "seconds": round(sum(seconds.values()), 2)}
                 return best, again, models
             started = time.perf_counter()
-        models, best, fallback = map_images(db, image_dir, scratch, s, report, attempt.known_cameras)
+        models, best, fallback = map_images(db, image_dir, scratch, s, report, attempt.known_cameras, priors)
         seconds["map"] += time.perf_counter() - started
         complete = best is not None and best.num_reg_images() == len(names) and not detached_images(best)
         # Photos that are not an ordered sequence lose pairs under sequential matching: when auto chose it for a
@@ -509,7 +516,7 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
         before = best.num_reg_images() - len(detached_images(best)) if best else 0
         report.info(f"{before}/{len(names)} registered; mapping again with looser registration thresholds")
         relaxed = largest_model(incremental_mapping(db, image_dir, scratch / "models_relaxed", s, relaxed=True,
-                                                    fixed_cameras=attempt.known_cameras))
+                                                    fixed_cameras=attempt.known_cameras, priors=priors))
         if relaxed is not None and relaxed.num_reg_images() - len(detached_images(relaxed)) > before:
             strict = {im.name for im in best.images.values() if im.has_pose} if best else set()
             info["relaxed_only"] = sorted(Path(im.name).stem for im in relaxed.images.values()
