@@ -18,7 +18,7 @@ from stages.capture.photos import (IMAGE_SUFFIXES, SIDECAR_SUFFIXES, VIDEO_SUFFI
                                    not_read_why, photo_folder, photos_picture, repeated, scene_photos, sharpness,
                                    stored_orientation, thumbnail, twin_words, twins)
 from stages.capture.panorama import (FRAME_SHARE, PANORAMA_VIEWS, frame_side, is_two_to_one, looks_equirect,
-                                     photos_equirect, says_equirect, split_frame, view_focal, view_side)
+                                     photos_equirect, says_equirect, split_frame, view_focal, view_name, view_side)
 from stages.capture.video import clip_samples, sequence_step, video_frames
 from stages.sfm import pose_files
 from stages.common.text import short_list, size_words, text_name
@@ -42,9 +42,9 @@ def run(ctx) -> dict:
     def keep_views(name: str, source: str, rgb: np.ndarray) -> None:
         """A 360 frame as its pinhole views, each named for its frame and yaw, with its known focal length."""
         panoramas.append((rgb.shape[1], rgb.shape[0]))
-        for yaw, view in split_frame(rgb, view_side(rgb.shape[1], s.max_side)):
-            keep(f"{name}_{yaw:03.0f}", source, view, None, (view.shape[1], view.shape[0]),
-                 panorama={"frame": name, "yaw": yaw})
+        for turn, view in split_frame(rgb, view_side(rgb.shape[1], s.max_side), s.equirect_poles):
+            keep(view_name(name, turn), source, view, None, (view.shape[1], view.shape[0]),
+                 panorama={"frame": name, **turn})
 
     def keep(name: str, source: str, rgb: np.ndarray, alpha: np.ndarray | None, original: tuple[int, int],
              split: str | None = None, mask_file: Path | None = None, photo_orientation: int = 1,
@@ -98,7 +98,7 @@ def run(ctx) -> dict:
             frames, clip = video_frames(ctx.scene, frame_side(s.max_side), s.video_motion, s.video_fps, ctx.report,
                                         s.video_frames // FRAME_SHARE, False, s.video_max_frames // FRAME_SHARE,
                                         s.paint_overlays, samples)
-            clip["panorama"] = PANORAMA_VIEWS
+            clip["panorama"], clip["poles"] = PANORAMA_VIEWS, s.equirect_poles
         else:
             frames, clip = video_frames(ctx.scene, s.max_side, s.video_motion, s.video_fps, ctx.report,
                                         s.video_frames, s.crop_bars, s.video_max_frames, s.paint_overlays, samples)
@@ -230,7 +230,7 @@ def run(ctx) -> dict:
         views = sum("panorama" in r for r in records)
         sizes = size_words([dict(zip(("width", "height"), p)) for p in panoramas])
         line += (f", {len(panoramas)} equirectangular 360-degree frames ({sizes}) cut into {views} pinhole views of "
-                 "90 degrees around the horizon")
+                 f"90 degrees around the horizon{' and straight down and up' if s.equirect_poles else ''}")
     masked = sum(r["mask"] is not None for r in records)
     if masked:
         given = sum(r.get("mask_from") not in (None, "alpha") for r in records)

@@ -17,7 +17,9 @@ import pycolmap
 
 from stages.common.json_files import read_json
 from stages.capture.photos import is_video, photo_folder
+from stages.capture.panorama import at_pole
 from stages.sfm import gimbal, gps, pose_import
+from stages.sfm.pole_views import add_pole_views
 from stages.sfm.imported_model import turned_upright
 from stages.sfm.pose_files import unread
 from stages.sfm.outputs import write_poses
@@ -40,9 +42,13 @@ def _check_registered(reconstruction: pycolmap.Reconstruction, records: list[dic
 
 
 def _sfm(ctx, s: Settings, folder: Path, records: list[dict]) -> tuple[pycolmap.Reconstruction, dict, list[str]]:
-    reconstruction, info = reconstruct(records, folder / "images", photo_folder(ctx.scene), is_video(ctx.scene),
+    """SfM's model of the images (a 360 frame's views at the poles posed from its others: pole_views.py), what
+    happened on the way, and the images it leaves out."""
+    around = [r for r in records if not at_pole(r)]
+    reconstruction, info = reconstruct(around, folder / "images", photo_folder(ctx.scene), is_video(ctx.scene),
                                        ctx.scratch / f"sfm_{folder.name}", s, ctx.report, s.min_registered_share)
-    return reconstruction, info, _check_registered(reconstruction, records, s.min_registered_share, "SfM")
+    left_out = _check_registered(reconstruction, around, s.min_registered_share, "SfM")
+    return reconstruction, info, left_out + add_pole_views(reconstruction, records)
 
 
 def run(ctx) -> dict:

@@ -4,9 +4,11 @@ split into pinhole views around the horizon, which SfM poses and the fit trains 
 An equirectangular frame maps longitude to its columns (-180 to 180 degrees, the camera's forward at the middle) and
 latitude to its rows (+90 at the top). SfM's cameras are pinholes: trained as it is, a 360 frame is a photo whose
 straight lines curve, and no focal length poses it. Each frame is cut into PANORAMA_VIEWS square views of
-VIEW_FOV_DEG, at yaws evenly spaced around the horizon, neighbours overlapping by half; one view's pixel is sampled
-from the frame's by bilinear interpolation across the seam. The zenith and nadir (a ceiling or the sky, the hand or
-stick that holds the camera) are left out.
+VIEW_FOV_DEG, at yaws evenly spaced around the horizon, neighbours overlapping by half, and one view straight down
+and one straight up (the floor or ground, the ceiling or sky), which with them cover the whole sphere; one view's
+pixel is sampled from the frame's by bilinear interpolation across the seam. SfM poses the views around the horizon
+(a ceiling's or the sky's plain view would find few matches) and the two at the poles take their frame's pose
+(stages/sfm/pole_views.py).
 
 A frame is read as equirectangular where the file says so (a 360 camera's XMP `ProjectionType`, a video's spherical
 metadata) and its sides are 2:1, or, without that, where the pixels show it: sides 2:1, the left and right edges
@@ -25,6 +27,8 @@ import numpy as np
 from stages.capture.photos import load_photo, upright_size
 
 PANORAMA_VIEWS = 8
+# The pitches of the views at the poles, and the names they end in.
+POLES = {-90.0: "down", 90.0: "up"}
 # A 360 frame's views stand in for this many of a video's frames: ingest.video_frames, video_max_frames and
 # video_min_frames ask this many times fewer 360 frames.
 FRAME_SHARE = 4
@@ -115,41 +119,58 @@ def view_focal(side: int) -> float:
     return side / 2 / math.tan(math.radians(VIEW_FOV_DEG) / 2)
 
 
-def view_maps(frame_shape: tuple[int, int], side: int, yaw_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """cv2.remap's maps from a view (square, `side` pixels, looking at `yaw_deg` on the horizon) into an
-    equirectangular frame of (height, width) pixels. The view is a pinhole in the project's convention (x right,
-    y up, looking down -z), turned about the frame's up axis."""
+def view_maps(frame_shape: tuple[int, int], side: int, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap's maps from a view (square, `side` pixels, turned by `rotation` from the frame's forward view:
+    `view_rotation`) into an equirectangular frame of (height, width) pixels. The view is a pinhole in the project's
+    convention (x right, y up, looking down -z)."""
     h, w = frame_shape
     f = view_focal(side)
     centre = (np.arange(side) + 0.5 - side / 2) / f
     x, y = np.meshgrid(centre, -centre)
-    z = -np.ones_like(x)
-    yaw = math.radians(yaw_deg)
-    # Turning counter-clockwise seen from above (about +y) takes the view's forward (-z) towards -x: to the left.
-    tx = math.cos(yaw) * x + math.sin(yaw) * z
-    tz = -math.sin(yaw) * x + math.cos(yaw) * z
+    tx, ty, tz = np.einsum("ij,jhw->ihw", rotation, np.stack([x, y, -np.ones_like(x)]))
     longitude = np.arctan2(tx, -tz)
-    latitude = np.arctan2(y, np.hypot(tx, tz))
+    latitude = np.arctan2(ty, np.hypot(tx, tz))
     u = (longitude / (2 * math.pi) + 0.5) * w - 0.5
     v = (0.5 - latitude / math.pi) * h - 0.5
     return u.astype(np.float32), v.astype(np.float32)
 
 
-def split_frame(rgb: np.ndarray, side: int, views: int = PANORAMA_VIEWS) -> list[tuple[float, np.ndarray]]:
-    """An equirectangular frame's pinhole views around the horizon: (yaw in degrees, RGB of side x side)."""
+def frame_views(poles: bool = True) -> list[dict[str, float]]:
+    """The views cut from each frame, as {"yaw", "pitch"} in degrees: PANORAMA_VIEWS around the horizon, then (with
+    `poles`) straight down and straight up."""
+    around = [{"yaw": yaw, "pitch": 0.0} for yaw in view_yaws()]
+    return around + ([{"yaw": 0.0, "pitch": pitch} for pitch in POLES] if poles else [])
+
+
+def view_name(frame: str, view: dict[str, float]) -> str:
+    """A view's image name: its frame's and its yaw in degrees, or the pole it looks at."""
+    pitch = view.get("pitch", 0.0)
+    return f"{frame}_{POLES[pitch]}" if pitch else f"{frame}_{view['yaw']:03.0f}"
+
+
+def at_pole(record: dict) -> bool:
+    """Whether an ingested image is a 360 frame's view straight up or down."""
+    return bool(record.get("panorama", {}).get("pitch", 0.0))
+
+
+def split_frame(rgb: np.ndarray, side: int, poles: bool = True) -> list[tuple[dict[str, float], np.ndarray]]:
+    """An equirectangular frame's pinhole views (`frame_views`): (the view's yaw and pitch, RGB of side x side)."""
     out = []
-    for yaw in view_yaws(views):
-        u, v = view_maps(rgb.shape[:2], side, yaw)
-        out.append((yaw, cv2.remap(rgb, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)))
+    for view in frame_views(poles):
+        u, v = view_maps(rgb.shape[:2], side, view_rotation(view["yaw"], view["pitch"]))
+        out.append((view, cv2.remap(rgb, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)))
     return out
 
 
-def yaw_rotation(yaw_deg: float) -> np.ndarray:
-    """3x3 rotation of a view at `yaw_deg` relative to the frame's forward view (camera axes, the project's
-    convention): counter-clockwise about +y, seen from above."""
-    yaw = math.radians(yaw_deg)
+def view_rotation(yaw_deg: float, pitch_deg: float = 0.0) -> np.ndarray:
+    """3x3 rotation of a view at `yaw_deg` and `pitch_deg` relative to the frame's forward view (camera axes, the
+    project's convention): turned counter-clockwise about +y seen from above (towards -x, the left), then tipped up
+    about its own x (a pitch of -90 looks straight down, its up the frame's way ahead)."""
+    yaw, pitch = math.radians(yaw_deg), math.radians(pitch_deg)
     c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    turned = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    c, s = math.cos(pitch), math.sin(pitch)
+    return turned @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 def frame_side(max_side: int) -> int:

@@ -56,9 +56,14 @@ class Settings:
     fixed in front of every camera that SfM takes for a still background behind a turning object."""
     equirect: Literal["auto", "yes", "no"] = "auto"
     """A 360 camera's equirectangular video or photos (2:1, the whole sphere) are cut into 8 pinhole views around the
-    horizon, which SfM poses as one camera of known focal length; auto: where the file's metadata or the pixels say a
+    horizon, which SfM poses as one camera of known focal length (and, with equirect_poles, one view straight down and
+    one straight up, which take their frame's pose); auto: where the file's metadata or the pixels say a
     2:1 picture is one (its left and right edges meet, its top or bottom row is one point drawn wide), or, for photos
     with their poses, where a transforms.json says camera_model EQUIRECTANGULAR (each view takes its frame's pose)."""
+    equirect_poles: bool = True
+    """Also cut each 360 frame's view straight down and straight up (the floor or ground, the ceiling or sky, and
+    whatever holds the camera), so the fit learns the whole sphere around the path, not only 45 degrees either side
+    of the horizon."""
     crop_bars: bool = True
     """Crop black bars along the frame's edges (a portrait clip in a landscape frame, a letterbox), dark in every
     frame of a video, or in every photo of the common size where no pose file is beside the photos (those keep the

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from stages.capture.panorama import yaw_rotation
+from stages.capture.panorama import view_rotation
 from plenoxels.core.cameras import Intrinsics, colmap_w2c_from_opengl_c2w
 from plenoxels.core.errors import UserError
 
@@ -196,8 +196,8 @@ def add_image(reconstruction: pycolmap.Reconstruction, image_id: int, record: di
 
 def add_view(reconstruction: pycolmap.Reconstruction, cameras: CameraTable, record: dict, model: str,
              equirect: bool, c2w, where: str) -> None:
-    """A view ingest cut from a 360 frame: its frame's pose turned to the view's yaw, the pinhole it was cut as;
-    `model` names the pose file's camera, `equirect` whether it is a 360 camera's."""
+    """A view ingest cut from a 360 frame: its frame's pose turned to the view's yaw and pitch, the pinhole it was cut
+    as; `model` names the pose file's camera, `equirect` whether it is a 360 camera's."""
     if not equirect:
         raise UserError(f"{where}: ingest cut {record['source']} into 360 views (ingest.equirect), but the pose file's "
                         f"camera is {model}; set ingest.equirect=auto to import the photos as they are")
@@ -208,7 +208,7 @@ def add_view(reconstruction: pycolmap.Reconstruction, cameras: CameraTable, reco
     side = record["width"]
     k = Intrinsics(record["focal"], record["focal"], side / 2, record["height"] / 2, side, record["height"])
     add_image(reconstruction, len(reconstruction.images) + 1, record, cameras.id_for(k), c2w, where,
-              yaw_rotation(record["panorama"]["yaw"]))
+              view_rotation(record["panorama"]["yaw"], record["panorama"].get("pitch", 0.0)))
 
 
 # The camera models whose distortion is radial alone (a quarter turn keeps it), and those with OpenCV's tangential

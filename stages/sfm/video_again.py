@@ -7,7 +7,7 @@ from pathlib import Path
 import pycolmap
 
 from stages.common.media import write_png
-from stages.capture.panorama import split_frame, view_focal, view_side
+from stages.capture.panorama import split_frame, view_focal, view_name, view_side
 from stages.capture.photos import fit_max_side
 from stages.capture.video import video_frames
 
@@ -23,8 +23,8 @@ def denser_frames(scene: Path, clip: dict, records: list[dict], scratch: Path,
                                   crop_bars=clip.get("crop_bars", True), max_frames=2 * clip.get("max_frames", 0),
                                   paint_overlays=clip.get("paint_overlays", True))
     if clip.get("panorama"):  # a 360 clip's frames, cut into their views at the frames' own resolution
-        frames = [(f"{name}_{yaw:03.0f}", view, {"panorama": {"frame": name, "yaw": yaw}})
-                  for name, rgb in frames for yaw, view in split_frame(rgb, view_side(rgb.shape[1], 0))]
+        frames = [(view_name(name, turn), view, {"panorama": {"frame": name, **turn}}) for name, rgb in frames
+                  for turn, view in split_frame(rgb, view_side(rgb.shape[1], 0), clip.get("poles", False))]
     else:
         frames = [(name, rgb, {}) for name, rgb in frames]
     full, ingested = scratch / "denser_full", scratch / "denser"

@@ -13,8 +13,8 @@ from pipeline.report import Reporter
 from pipeline.runner import Pipeline
 from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.errors import UserError
-from stages.capture.panorama import (looks_equirect, photos_equirect, says_equirect, split_frame, view_focal, view_side,
-                                     yaw_rotation)
+from stages.capture.panorama import (POLES, looks_equirect, photos_equirect, says_equirect, split_frame, view_focal,
+                                     view_rotation, view_side)
 from stages.capture.synthetic import write_panorama_video
 from stages.capture.synthetic_scenes import (OBJECT_CENTRE, build_scene, render_equirect, render_float, to_uint8,
                                              walk_poses)
@@ -37,21 +37,31 @@ def grey(rgb: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
 
 
-def test_each_view_is_what_a_pinhole_at_its_yaw_sees(equirect):
+def turned_to(c2w: np.ndarray, view_name: str, mirror: bool = False) -> np.ndarray:
+    """A frame's camera-to-world turned to its view of `view_name` (the frame's name, then the view's yaw or pole), or
+    turned the other way (`mirror`)."""
+    tail = view_name.rsplit("_", 1)[1]
+    pole = {name: pitch for pitch, name in POLES.items()}
+    yaw, pitch = (0.0, pole[tail]) if tail in pole else (float(tail), 0.0)
+    turned = c2w.copy()
+    turned[:3, :3] = c2w[:3, :3] @ (view_rotation(-yaw, -pitch) if mirror else view_rotation(yaw, pitch))
+    return turned
+
+
+def test_each_view_is_what_a_pinhole_at_its_yaw_and_pitch_sees(equirect):
     frame, c2w = equirect
     side = 64
     k = Intrinsics(view_focal(side), view_focal(side), side / 2, side / 2, side, side)
     views = split_frame(frame, side)
-    assert [yaw for yaw, _ in views] == [0, 45, 90, 135, 180, 225, 270, 315]
-    for yaw, view in views:
-        turned = c2w.copy()
-        turned[:3, :3] = c2w[:3, :3] @ yaw_rotation(yaw)
-        mirrored = c2w.copy()
-        mirrored[:3, :3] = c2w[:3, :3] @ yaw_rotation(-yaw)
-        error = np.median(np.abs(view / 255 - render_float(ROOM, turned, k, 1)[0]))
-        assert error < 0.03, (yaw, error)
-        if yaw not in (0, 180):  # turned the other way, the view shows another wall
-            assert np.median(np.abs(view / 255 - render_float(ROOM, mirrored, k, 1)[0])) > 3 * error
+    assert [(turn["yaw"], turn["pitch"]) for turn, _ in views] == [
+        (0, 0), (45, 0), (90, 0), (135, 0), (180, 0), (225, 0), (270, 0), (315, 0), (0, -90), (0, 90)]
+    for turn, view in views:
+        name = f"frame_{POLES[turn['pitch']] if turn['pitch'] else round(turn['yaw'])}"
+        error = np.median(np.abs(view / 255 - render_float(ROOM, turned_to(c2w, name), k, 1)[0]))
+        assert error < 0.03, (name, error)
+        if turn["pitch"] or turn["yaw"] not in (0, 180):  # turned the other way, it shows another wall, or pole
+            assert np.median(np.abs(view / 255 - render_float(ROOM, turned_to(c2w, name, True), k, 1)[0])) > 3 * error
+    assert len(split_frame(frame, side, poles=False)) == 8
 
 
 def test_equirect_frames_are_told_from_ordinary_two_to_one_pictures(equirect):
@@ -74,18 +84,21 @@ def run_ingest(scene: Path, out: Path, *overrides: str) -> dict:
     return json.loads((out / "ingest" / "images.json").read_text())
 
 
-def test_a_360_video_is_ingested_as_views_around_the_horizon(tmp_path):
+def test_a_360_video_is_ingested_as_views_around_the_horizon_and_at_the_poles(tmp_path):
     clip = tmp_path / "walk.mp4"
     write_panorama_video(clip, n_frames=12, width=384, fps=4)
     listing = run_ingest(clip, tmp_path / "out", "ingest.video_frames=0")
     views = listing["images"]
     frames = sorted({r["panorama"]["frame"] for r in views})
-    assert len(views) == 8 * len(frames) and len(frames) >= 6
+    assert len(views) == 10 * len(frames) and len(frames) >= 6
     side = view_side(384, 960)
     assert {(r["width"], r["height"]) for r in views} == {(side, side)}
     assert all(r["focal"] == pytest.approx(side / 2) for r in views)
     first = [r for r in views if r["panorama"]["frame"] == frames[0]]
-    assert [r["name"] for r in first] == [f"{frames[0]}_{yaw:03d}" for yaw in range(0, 360, 45)]
+    assert [r["name"] for r in first] == [f"{frames[0]}_{yaw:03d}" for yaw in range(0, 360, 45)] + [
+        f"{frames[0]}_down", f"{frames[0]}_up"]
+    assert len(run_ingest(clip, tmp_path / "around", "ingest.video_frames=0", "ingest.equirect_poles=false")[
+        "images"]) == 8 * len(frames)
     # Told not to, ingest keeps the frames whole, as any video's.
     whole = run_ingest(clip, tmp_path / "whole", "ingest.video_frames=0", "ingest.equirect=no")["images"]
     assert whole and all("panorama" not in r and r["width"] == 2 * r["height"] for r in whole)
@@ -115,7 +128,7 @@ def test_360_photos_are_cut_where_their_metadata_or_their_pixels_say_so(tmp_path
     for n, c2w in enumerate(walk_poses(8)[2:4], start=1):
         Image.fromarray(to_uint8(render_equirect(ROOM, c2w, 512, supersample=1))).save(folder / f"pano{n}.png")
     listing = run_ingest(folder, tmp_path / "out")
-    assert len(listing["images"]) == 24 and {r["panorama"]["frame"] for r in listing["images"]} == {
+    assert len(listing["images"]) == 30 and {r["panorama"]["frame"] for r in listing["images"]} == {
         "pano0", "pano1", "pano2"}
     # A 360 camera's JPEG says so in its XMP: read as one even where its pixels would not tell (a flat one).
     marked = tmp_path / "marked"
@@ -150,11 +163,8 @@ def test_a_360_video_is_posed_as_views_of_one_known_camera_that_share_each_frame
     assert transforms["fl_x"] == pytest.approx(view_focal(side), rel=1e-6)  # kept by bundle adjustment
     frames = transforms["frames"]
     got = np.array([f["transform_matrix"] for f in frames])
-    want = []
-    for f in frames:
-        c2w = truth[int(f["panorama_frame"].split("_")[1])].copy()
-        c2w[:3, :3] = c2w[:3, :3] @ yaw_rotation(int(f["name"].split("_")[-1]))
-        want.append(c2w)
+    want = [turned_to(truth[int(f["panorama_frame"].split("_")[1])], f["name"]) for f in frames]
+    assert sum(f["name"].endswith(("_up", "_down")) for f in frames) == 2 * len({f["panorama_frame"] for f in frames})
     errors = compare_poses(got, np.array(want))
     # Measured: the worst view 0.42 degrees and 1.3% of the path's spread off, the median 0.09 and 0.3%.
     assert errors["rotation_error_deg_max"] < 1.0 and errors["centre_error_share_max"] < 0.04, errors
@@ -204,21 +214,19 @@ def test_360_frames_posed_in_a_pose_file_give_each_view_its_frames_pose_turned_t
     manifest = Pipeline(capture, tmp_path / "out", reporter=Reporter(quiet=True)).run(["ingest", "poses"])
     assert manifest["poses"]["summary"]["source"] == pose_file
     transforms = json.loads((tmp_path / "out" / "poses" / "transforms.json").read_text())
-    assert len(transforms["frames"]) == 8 * len(truth)
+    assert len(transforms["frames"]) == 10 * len(truth)  # eight around the horizon, one down, one up
     side = transforms["w"]
     k = Intrinsics(transforms["fl_x"], transforms["fl_y"], transforms["cx"], transforms["cy"], side, transforms["h"])
     assert k.fl_x == pytest.approx(view_focal(side))
     for f in transforms["frames"]:
         frame, yaw = f["name"].rsplit("_", 1)
-        turned, mirrored = truth[int(frame)].copy(), truth[int(frame)].copy()
-        turned[:3, :3] = truth[int(frame)][:3, :3] @ yaw_rotation(int(yaw))
-        mirrored[:3, :3] = truth[int(frame)][:3, :3] @ yaw_rotation(-int(yaw))
+        turned, mirrored = turned_to(truth[int(frame)], f["name"]), turned_to(truth[int(frame)], f["name"], True)
         assert np.allclose(f["transform_matrix"], turned, atol=1e-6), f["name"]
         # the view's pixels are what a pinhole at that pose sees, and not what one turned the other way sees
         view = np.asarray(Image.open(tmp_path / "out" / "poses" / f["file_path"]).convert("RGB")) / 255
         error = np.median(np.abs(view - render_float(ROOM, turned, k, 2)[0]))
         assert error < 0.03, (f["name"], error)
-        if int(yaw) not in (0, 180):
+        if yaw not in ("000", "180"):
             assert np.median(np.abs(view - render_float(ROOM, mirrored, k, 2)[0])) > 3 * error, f["name"]
 
 
@@ -243,6 +251,7 @@ def test_a_360_clip_sfm_refuses_is_read_again_as_views_of_closer_frames(tmp_path
     assert {(r["width"], r["height"], r["focal"]) for r in again} == {(side, side, view_focal(side))}
     frames = {r["panorama"]["frame"] for r in again}
     assert len(again) == 8 * len(frames) and len(frames) > len({r["panorama"]["frame"] for r in first})
+    assert not any(r["panorama"]["pitch"] for r in first + again)  # SfM is given the views around the horizon
 
 
 def test_a_videos_spherical_metadata_says_equirect_only_with_its_projection(tmp_path):
@@ -273,7 +282,7 @@ def test_the_holder_a_360_clip_carries_in_every_frame_is_painted_over(tmp_path):
     manifest = json.loads((tmp_path / "out" / "ingest" / "manifest.json").read_text())
     assert "its holder" in manifest["summary"]["line"]
     listing = json.loads((tmp_path / "out" / "ingest" / "images.json").read_text())
-    ahead = [r for r in listing["images"] if r["panorama"]["yaw"] == 0]
+    ahead = [r for r in listing["images"] if r["panorama"]["yaw"] == 0 and r["panorama"]["pitch"] == 0]
     view = cv2.imread(str(tmp_path / "out" / "ingest" / ahead[0]["file"]))
     stamp = split_frame(np.pad(holder[..., ::-1], ((128, 24), (160, 160), (0, 0))), view.shape[0])[0][1]
     shown = stamp.any(axis=-1)  # where the holder would be in the view ahead
