@@ -172,9 +172,13 @@ def run(ctx) -> dict:
     sizes = {name: (ctx.work / f).stat().st_size for name, f in files.items()}
 
     frame_name = "input (the poses' COLMAP frame)" if s.frame == "input" else "normalized (z up, foreground in [-1, 1]^3)"
+    place = scene.get("georeference") if s.frame == "input" else None  # the poses in metres of a place (their GPS)
+    if place:
+        frame_name = "input (the poses' frame: {}, {:.6f}, {:.6f}, {:.1f} m)".format(place["axes"], *place["origin"])
     record = {
         "frame": s.frame,
         "frame_description": frame_name,
+        **({"georeference": place} if place else {}),
         "output_from_normalized": to_output.tolist(),
         "scene_type": scene.get("type"),
         "fit_frame": "ndc" if frame.ndc is not None else "inner cube of a contracted grid"
@@ -193,7 +197,9 @@ def run(ctx) -> dict:
     write_json(ctx.work / EXPORT_JSON, record)
     lo, hi = record["mesh"]["bounds"]["min"], record["mesh"]["bounds"]["max"]
     line = (f"mesh {_count(len(mesh.faces))} faces ({_size(sizes['ply'])} PLY), {_count(len(points))} points "
-            f"({_size(sizes.get('points', 0))}) in the {s.frame} frame, bounds "
+            f"({_size(sizes.get('points', 0))}) in the {s.frame} frame"
+            + (" (metres east, north and up of {:.6f}, {:.6f}, {:.1f} m)".format(*place["origin"]) if place else "")
+            + ", bounds "
             f"[{', '.join(f'{v:.3g}' for v in lo)}] to [{', '.join(f'{v:.3g}' for v in hi)}], "
             f"level {decisions['level']:.3g}{' (auto)' if s.level == 'auto' else ''}, resolution {decisions['resolution']}"
             + (f", texture {'x'.join(map(str, decisions['texture']['size']))}" if s.texture else ", vertex colours")

@@ -51,6 +51,15 @@ def _sfm(ctx, s: Settings, folder: Path, records: list[dict]) -> tuple[pycolmap.
     return reconstruction, info, left_out + add_pole_views(reconstruction, records)
 
 
+def georeference(found: dict | None) -> dict | None:
+    """transforms.json's `georeference`, where the model's frame is metres east, north and up of a place (gps.gravity's
+    `in_metres_of`)."""
+    if not found or "in_metres_of" not in found:
+        return None
+    return {"origin": found["in_metres_of"], "origin_is": "latitude, longitude (degrees), altitude (metres), WGS 84",
+            "axes": "metres east, north and up of the origin", "within_m": found["fit_m"]}
+
+
 def run(ctx) -> dict:
     s: Settings = ctx.settings
     ingest = ctx.upstream["ingest"]
@@ -97,14 +106,19 @@ def run(ctx) -> dict:
             pitches = {f"{r['name']}.png": pitch for r in records if "panorama" not in r  # 360 views are cut level
                        and (pitch := gimbal.pitch(photo_folder(ctx.scene) / r["source"])) is not None}
             gravity, info["gimbal"] = gimbal.gravity(reconstruction, pitches) if pitches else (None, None)
-        if gravity is None and not is_video(ctx.scene):  # a drone's GPS across a survey says it too
-            positions = gps.photo_positions(records, photo_folder(ctx.scene))
-            gravity, info["gps"] = gps.gravity(reconstruction, positions) if positions else (None, None)
             if gravity is not None:
-                info["gps"]["taken"] = True
+                info["gimbal"]["taken"] = True
+        held = (info.get("gps_priors") or {}).get("origin")
+        # A survey's GPS says up too, and where SfM held the cameras near it, whether its metres are the model's frame
+        if (gravity is None or held) and not is_video(ctx.scene):
+            positions = gps.photo_positions(records, photo_folder(ctx.scene))
+            up, info["gps"] = gps.gravity(reconstruction, positions, held) if positions else (None, None)
+            if gravity is None and up is not None:
+                gravity, info["gps"]["taken"] = up, True
         step = time.perf_counter()
         written = write_poses(ctx.work, ctx.scratch, ingest, reconstruction, records, source, source_path, bounds,
-                              ctx.report, gravity, check_matches=source != "sfm")  # SfM's model was checked already
+                              ctx.report, gravity, check_matches=source != "sfm",  # SfM's model was checked already
+                              georeference=georeference(info.get("gps")))
         if written.get("contradicted"):
             info["pose_file_contradicted"] = written["contradicted"]
         info["seconds"]["undistort_and_triangulate"] = time.perf_counter() - step
@@ -143,16 +157,22 @@ def run(ctx) -> dict:
         line += f"; {len(info['other_scene'])} photos share no match with the rest (something else), left out"
     if info.get("gimbal"):
         found = info["gimbal"]
-        line += (f"; up from the gimbal pitch of {found['photos']} photos" if gravity is not None else
+        line += (f"; up from the gimbal pitch of {found['photos']} photos" if found.get("taken") else
                  f"; the gimbal pitch of {found['photos']}/{found['of']} photos not taken for up"
                  + (f" (their ups {found['spread_deg']:.1f} deg apart)" if "spread_deg" in found else ""))
     if info.get("gps_priors"):
-        line += f"; the cameras held near the GPS of {info['gps_priors']} photos in bundle adjustment"
-    if "fit_m" in (info.get("gps") or {}):  # a survey's GPS, taken or not
-        found = info["gps"]
-        line += (f"; {'up from ' if found.get('taken') else ''}the GPS of {found['photos']} photos "
-                 f"({found['span_m']:.0f} m across, the cameras fitted to it within {found['fit_m']:.1f} m)"
-                 + ("" if found.get("taken") else f" not taken for up (past {gps.MAX_TILT_DEG:g} deg)"))
+        line += f"; the cameras held near the GPS of {info['gps_priors']['photos']} photos in bundle adjustment"
+    found = info.get("gps") or {}
+    if found.get("taken"):
+        line += (f"; up from the GPS of {found['photos']} photos ({found['span_m']:.0f} m across, the cameras fitted "
+                 f"to it within {found['fit_m']:.1f} m)")
+    elif "fit_m" in found and not (info.get("gimbal") or {}).get("taken"):
+        line += (f"; the GPS of {found['photos']} photos ({found['span_m']:.0f} m across, the cameras fitted to it "
+                 f"within {found['fit_m']:.1f} m) not taken for up (past {gps.MAX_TILT_DEG:g} deg)")
+    if "in_metres_of" in found:
+        latitude, longitude, altitude = found["in_metres_of"]
+        line += (f"; the poses in metres east, north and up of {latitude:.6f}, {longitude:.6f}, {altitude:.1f} m (the "
+                 "first photo's GPS: transforms.json's georeference)")
     if info.get("lens_probe"):
         line += "; the images mapped first showed a fisheye's lens, so the camera is OPENCV_FISHEYE"
     if info.get("attempt_why"):

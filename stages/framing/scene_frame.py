@@ -117,6 +117,7 @@ def normalize_scene(transforms: dict, points: Points, options: SceneOptions, pos
         "world_from_input": world_from_input.tolist(), "input_from_world": np.linalg.inv(world_from_input).tolist(),
         "scale": scale, "foreground": {"min": foreground_box[0].tolist(), "max": foreground_box[1].tolist()},
         "frames": scene_frames(cams, held_out, near_far, c2w_world, options, poses_dir, path_prefix, own_colours),
+        **({"georeference": transforms["georeference"]} if "georeference" in transforms else {}),
     }
     if not family_forward and has_points:
         surroundings, growth = surroundings_box(xyz_world, foreground_box, c2w_world[:, :3, 3], options.beyond_factor)

@@ -28,11 +28,15 @@ MIN_SHARE = 0.75
 MIN_SPAN_M = 20.0
 MIN_WIDTH_SHARE = 0.1
 MAX_TILT_DEG = 2.0
+# A model held near the GPS is taken to be in its metres where the fit scales it by no more than this (its log) and
+# moves it by no more than this share of the span (or a metre), turning it by no more than MAX_TILT_DEG.
+MAX_GEO_SCALE_LOG = 0.02
+MAX_GEO_SHIFT_SHARE = 0.01
 
 
-def east_north_up(positions: np.ndarray) -> np.ndarray:
-    """Latitude, longitude and altitude [N, 3] as metres east, north and up of the first."""
-    latitude, longitude, altitude = positions[0]
+def east_north_up(positions: np.ndarray, origin=None) -> np.ndarray:
+    """Latitude, longitude and altitude [N, 3] as metres east, north and up of `origin` (the first where not given)."""
+    latitude, longitude, altitude = positions[0] if origin is None else origin
     return np.asarray(pycolmap.GPSTransform().ellipsoid_to_enu(positions, latitude, longitude, altitude))
 
 
@@ -80,8 +84,10 @@ def write_priors(db: Path, metres: dict[str, np.ndarray]) -> int:
 
 
 def gravity(reconstruction: pycolmap.Reconstruction, positions: dict[str, tuple[float, float, float]],
-            ) -> tuple[np.ndarray | None, dict]:
-    """The world's up in the model's frame from where its images were taken (by image name), and what was found."""
+            origin: tuple[float, float, float] | None = None) -> tuple[np.ndarray | None, dict]:
+    """The world's up in the model's frame from where its images were taken (by image name), and what was found;
+    with the `origin` of the metres SfM held the cameras near (`write_priors`), whether the model's frame is those
+    metres (found["in_metres_of"]: the fit moves it by no more than GPS can tell)."""
     centres, located = [], []
     for image in reconstruction.images.values():
         if image.has_pose and image.name in positions:
@@ -91,7 +97,7 @@ def gravity(reconstruction: pycolmap.Reconstruction, positions: dict[str, tuple[
     found = {"photos": len(located), "of": posed}
     if len(located) < max(3, MIN_SHARE * posed):
         return None, found
-    metres = east_north_up(np.asarray(located))
+    metres = east_north_up(np.asarray(located), origin)
     found["span_m"] = round(float(np.ptp(metres[:, :2], axis=0).max()), 1)
     if not spans_survey(metres):
         return None, found
@@ -105,5 +111,9 @@ def gravity(reconstruction: pycolmap.Reconstruction, positions: dict[str, tuple[
     found["fit_m"] = round(float(np.sqrt(np.mean(residual ** 2))), 2)
     if math.degrees(math.atan2(found["fit_m"], found["span_m"])) > MAX_TILT_DEG:
         return None, found
+    turned = math.degrees(math.acos(np.clip((np.trace(sim3.rotation.matrix()) - 1) / 2, -1.0, 1.0)))
+    if origin is not None and turned <= MAX_TILT_DEG and abs(math.log(sim3.scale)) <= MAX_GEO_SCALE_LOG and (
+            np.linalg.norm(sim3.translation) <= max(1.0, MAX_GEO_SHIFT_SHARE * found["span_m"])):
+        found["in_metres_of"] = [float(v) for v in origin]
     up = sim3.rotation.matrix().T @ [0.0, 0.0, 1.0]
     return up / np.linalg.norm(up), found

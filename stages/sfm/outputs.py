@@ -43,13 +43,15 @@ def _undistort_mask(mask: np.ndarray, camera: pycolmap.Camera) -> np.ndarray:
 
 def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.Reconstruction, records: list[dict],
                 source: str, source_path: Path | None, bounds: dict, report, gravity=None,
-                check_matches: bool = False) -> dict:
+                check_matches: bool = False, georeference: dict | None = None) -> dict:
     """Undistorts the posed images of `distorted` (a model of the ingested PNGs in `ingest_dir`) and writes the poses
     output into `out`: images/, masks/, sparse/, transforms.json and points.npz. `bounds` maps image names to LLFF
-    (near, far); `gravity` is the world's up where the poses' source fixes it; `scratch` holds the intermediate
-    models. With `check_matches` (a pose file's poses), the photos whose matches with their neighbours contradict
-    their poses are left out and it is all written again, or where there are too many of them the file is refused."""
-    written = _write_poses(out, scratch, ingest_dir, distorted, records, source, source_path, bounds, report, gravity)
+    (near, far); `gravity` is the world's up where the poses' source fixes it, `georeference` where the frame is
+    metres east, north and up of a place (gps.gravity); `scratch` holds the intermediate models. With
+    `check_matches` (a pose file's poses), the photos whose matches with their neighbours contradict their poses are
+    left out and it is all written again, or where there are too many of them the file is refused."""
+    written = _write_poses(out, scratch, ingest_dir, distorted, records, source, source_path, bounds, report, gravity,
+                           georeference)
     disagreeing = disagreeing_frames(written["agreement"], written["frames"]) \
         if check_matches and "agreement" in written else {}
     if not disagreeing:
@@ -64,12 +66,14 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
                 f"{short_list(names)}")
     drop_images(distorted, names)
     clear_poses(out)
-    written = _write_poses(out, scratch, ingest_dir, distorted, records, source, source_path, bounds, report, gravity)
+    written = _write_poses(out, scratch, ingest_dir, distorted, records, source, source_path, bounds, report, gravity,
+                           georeference)
     return {**written, "contradicted": names}
 
 
 def _write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.Reconstruction, records: list[dict],
-                 source: str, source_path: Path | None, bounds: dict, report, gravity) -> dict:
+                 source: str, source_path: Path | None, bounds: dict, report, gravity,
+                 georeference: dict | None = None) -> dict:
     model_dir, undistorted_dir = scratch / "distorted", scratch / "undistorted"
     for folder in (model_dir, undistorted_dir):
         shutil.rmtree(folder, ignore_errors=True)
@@ -135,7 +139,8 @@ def _write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap
         "camera_model": "PINHOLE", **shared, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
         "original_camera": originals[0], "source": source,
         "source_path": str(source_path) if source_path else None,
-        **({"up": [float(v) for v in gravity]} if gravity is not None else {}), "frames": frames})
+        **({"up": [float(v) for v in gravity]} if gravity is not None else {}),
+        **({"georeference": georeference} if georeference else {}), "frames": frames})
     written = {"frames": len(frames), "width": shared["w"], "height": shared["h"]}
     # Points from pairs of nearby photos at the final poses, whatever the poses came from. SfM's points are one a
     # track, spread over whatever textured surface it matched (a wooden floor around a ball); pairs count a surface

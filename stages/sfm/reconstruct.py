@@ -466,11 +466,11 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
     if info["focal_prior"]:
         prior = info["focal_prior"]
         report.info(f"initial focal length {prior['focal_px']:.1f} px from {prior['from']} ({prior['images']} photos)")
-    survey = gps.survey_metres(gps.photo_positions(records, photos), len(records)) if (
-        s.gps_priors and not from_video) else None
+    located = gps.photo_positions(records, photos) if s.gps_priors and not from_video else {}
+    survey = gps.survey_metres(located, len(records))
     priors = survey is not None and gps.write_priors(db, survey) >= 3
-    if priors:
-        info["gps_priors"] = len(survey)
+    if priors:  # metres of the first photo located: the frame the model comes out in
+        info["gps_priors"] = {"photos": len(survey), "origin": list(next(iter(located.values())))}
         report.info(f"holding the cameras near the GPS of {len(survey)} photos")
     seconds["extract"] = time.perf_counter() - started
     mode = s.matching

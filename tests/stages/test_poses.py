@@ -222,6 +222,17 @@ def test_sfm_holds_a_drone_survey_to_its_gps_so_its_rows_stay_flat_and_it_says_u
     similarity = pycolmap.estimate_sim3d(centres, flown)
     off = np.linalg.norm(np.stack([similarity * c for c in centres]) - flown, axis=1)
     assert off.max() < 0.01 * np.ptp(flown[:, :2], axis=0).max()
+    # The poses come out in the GPS's own metres, east, north and up of the first photo, and say so down to the export
+    from stages.sfm.exif import exif_position
+    from stages.sfm.gps import east_north_up
+    place = read_json(tmp_path / "out" / "poses" / "transforms.json")["georeference"]
+    first = sorted((tmp_path / "survey").glob("*.jpg"))[0]
+    assert place["origin"] == pytest.approx(exif_position(first))
+    located = np.stack([exif_position(tmp_path / "survey" / f"{name}.jpg") for name in truth])
+    metres = east_north_up(located, place["origin"])
+    assert np.sqrt(np.mean(np.sum((centres - metres) ** 2, axis=1))) < 2.0  # the GPS's own error: 0.5 m, 1 m in height
+    Pipeline(tmp_path / "survey", tmp_path / "out", reporter=Reporter(quiet=True)).run(["normalize"])
+    assert read_json(tmp_path / "out" / "normalize" / "scene.json")["georeference"] == place
 
 
 def test_gps_that_contradicts_the_photos_neither_breaks_the_model_nor_says_up(tmp_path):
