@@ -10,7 +10,6 @@ the fit holds to a small angle over the span; past either, the photos' gimbal or
 from __future__ import annotations
 
 import math
-
 from pathlib import Path
 
 import numpy as np
