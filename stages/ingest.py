@@ -17,8 +17,9 @@ from stages.capture.photos import (IMAGE_SUFFIXES, SIDECAR_SUFFIXES, VIDEO_SUFFI
                                    colourless_among_colour, fit_max_side, is_split_dataset, load_photo, not_a_scene,
                                    not_read_why, photo_folder, photos_picture, repeated, scene_photos, sharpness,
                                    stored_orientation, thumbnail, twin_words, twins)
-from stages.capture.panorama import (FRAME_SHARE, PANORAMA_VIEWS, frame_side, is_two_to_one, looks_equirect,
-                                     photos_equirect, says_equirect, split_frame, view_focal, view_name, view_side)
+from stages.capture.panorama import (FRAME_SHARE, PANORAMA_VIEWS, POLE_WORDS, frame_side, is_two_to_one,
+                                     looks_equirect, photos_equirect, says_equirect, split_frame, view_focal, view_name,
+                                     view_side)
 from stages.capture.video import clip_samples, sequence_step, video_frames
 from stages.sfm import pose_files
 from stages.common.text import short_list, size_words, text_name
@@ -230,7 +231,7 @@ def run(ctx) -> dict:
         views = sum("panorama" in r for r in records)
         sizes = size_words([dict(zip(("width", "height"), p)) for p in panoramas])
         line += (f", {len(panoramas)} equirectangular 360-degree frames ({sizes}) cut into {views} pinhole views of "
-                 f"90 degrees around the horizon{' and straight down and up' if s.equirect_poles else ''}")
+                 f"90 degrees around the horizon{POLE_WORDS[s.equirect_poles]}")
     masked = sum(r["mask"] is not None for r in records)
     if masked:
         given = sum(r.get("mask_from") not in (None, "alpha") for r in records)

@@ -4,11 +4,11 @@ split into pinhole views around the horizon, which SfM poses and the fit trains 
 An equirectangular frame maps longitude to its columns (-180 to 180 degrees, the camera's forward at the middle) and
 latitude to its rows (+90 at the top). SfM's cameras are pinholes: trained as it is, a 360 frame is a photo whose
 straight lines curve, and no focal length poses it. Each frame is cut into PANORAMA_VIEWS square views of
-VIEW_FOV_DEG, at yaws evenly spaced around the horizon, neighbours overlapping by half, and one view straight down
-and one straight up (the floor or ground, the ceiling or sky), which with them cover the whole sphere; one view's
-pixel is sampled from the frame's by bilinear interpolation across the seam. SfM poses the views around the horizon
-(a ceiling's or the sky's plain view would find few matches) and the two at the poles take their frame's pose
-(stages/sfm/pole_views.py).
+VIEW_FOV_DEG, at yaws evenly spaced around the horizon, neighbours overlapping by half, and a view straight up (the
+ceiling or sky) and, where asked, one straight down (the floor or ground: ingest.equirect_poles), which with them
+cover the whole sphere; one view's pixel is sampled from the frame's by bilinear interpolation across the seam. SfM
+poses the views around the horizon (a ceiling's or the sky's plain view would find few matches) and those at the
+poles take their frame's pose (stages/sfm/pole_views.py).
 
 A frame is read as equirectangular where the file says so (a 360 camera's XMP `ProjectionType`, a video's spherical
 metadata) and its sides are 2:1, or, without that, where the pixels show it: sides 2:1, the left and right edges
@@ -29,6 +29,8 @@ from stages.capture.photos import load_photo, upright_size
 PANORAMA_VIEWS = 8
 # The pitches of the views at the poles, and the names they end in.
 POLES = {-90.0: "down", 90.0: "up"}
+# What ingest's summary adds for each choice of views at the poles (ingest.equirect_poles).
+POLE_WORDS = {"up": " and straight up", "both": " and straight down and up", "none": ""}
 # A 360 frame's views stand in for this many of a video's frames: ingest.video_frames, video_max_frames and
 # video_min_frames ask this many times fewer 360 frames.
 FRAME_SHARE = 4
@@ -135,11 +137,12 @@ def view_maps(frame_shape: tuple[int, int], side: int, rotation: np.ndarray) -> 
     return u.astype(np.float32), v.astype(np.float32)
 
 
-def frame_views(poles: bool = True) -> list[dict[str, float]]:
+def frame_views(poles: str = "up") -> list[dict[str, float]]:
     """The views cut from each frame, as {"yaw", "pitch"} in degrees: PANORAMA_VIEWS around the horizon, then (with
-    `poles`) straight down and straight up."""
+    `poles`: up, both or none) straight down and straight up."""
     around = [{"yaw": yaw, "pitch": 0.0} for yaw in view_yaws()]
-    return around + ([{"yaw": 0.0, "pitch": pitch} for pitch in POLES] if poles else [])
+    pitches = {"up": (90.0,), "both": (-90.0, 90.0), "none": ()}[poles]
+    return around + [{"yaw": 0.0, "pitch": pitch} for pitch in pitches]
 
 
 def view_name(frame: str, view: dict[str, float]) -> str:
@@ -153,7 +156,7 @@ def at_pole(record: dict) -> bool:
     return bool(record.get("panorama", {}).get("pitch", 0.0))
 
 
-def split_frame(rgb: np.ndarray, side: int, poles: bool = True) -> list[tuple[dict[str, float], np.ndarray]]:
+def split_frame(rgb: np.ndarray, side: int, poles: str = "up") -> list[tuple[dict[str, float], np.ndarray]]:
     """An equirectangular frame's pinhole views (`frame_views`): (the view's yaw and pitch, RGB of side x side)."""
     out = []
     for view in frame_views(poles):

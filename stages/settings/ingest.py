@@ -56,14 +56,16 @@ class Settings:
     fixed in front of every camera that SfM takes for a still background behind a turning object."""
     equirect: Literal["auto", "yes", "no"] = "auto"
     """A 360 camera's equirectangular video or photos (2:1, the whole sphere) are cut into 8 pinhole views around the
-    horizon, which SfM poses as one camera of known focal length (and, with equirect_poles, one view straight down and
-    one straight up, which take their frame's pose); auto: where the file's metadata or the pixels say a
+    horizon, which SfM poses as one camera of known focal length (and the views at the poles equirect_poles names,
+    which take their frame's pose); auto: where the file's metadata or the pixels say a
     2:1 picture is one (its left and right edges meet, its top or bottom row is one point drawn wide), or, for photos
     with their poses, where a transforms.json says camera_model EQUIRECTANGULAR (each view takes its frame's pose)."""
-    equirect_poles: bool = True
-    """Also cut each 360 frame's view straight down and straight up (the floor or ground, the ceiling or sky, and
-    whatever holds the camera), so the fit learns the whole sphere around the path, not only 45 degrees either side
-    of the horizon."""
+    equirect_poles: Literal["up", "both", "none"] = "up"
+    """Which of each 360 frame's views straight up and straight down are cut beside those around the horizon, so the
+    fit learns more of the sphere than 45 degrees either side of it: up (the ceiling or sky, which the views around
+    see least), both (the floor or ground too: for a camera on a tripod, whose still legs are painted over, or a
+    drone's), or none. The view down of a camera held on a stick shows the hand and the person who hold it, which
+    move with the camera and would be fitted as a thing under every place it went."""
     crop_bars: bool = True
     """Crop black bars along the frame's edges (a portrait clip in a landscape frame, a letterbox), dark in every
     frame of a video, or in every photo of the common size where no pose file is beside the photos (those keep the

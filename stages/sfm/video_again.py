@@ -24,7 +24,7 @@ def denser_frames(scene: Path, clip: dict, records: list[dict], scratch: Path,
                                   paint_overlays=clip.get("paint_overlays", True))
     if clip.get("panorama"):  # a 360 clip's frames, cut into their views at the frames' own resolution
         frames = [(view_name(name, turn), view, {"panorama": {"frame": name, **turn}}) for name, rgb in frames
-                  for turn, view in split_frame(rgb, view_side(rgb.shape[1], 0), clip.get("poles", False))]
+                  for turn, view in split_frame(rgb, view_side(rgb.shape[1], 0), clip.get("poles", "none"))]
     else:
         frames = [(name, rgb, {}) for name, rgb in frames]
     full, ingested = scratch / "denser_full", scratch / "denser"

@@ -52,7 +52,7 @@ def test_each_view_is_what_a_pinhole_at_its_yaw_and_pitch_sees(equirect):
     frame, c2w = equirect
     side = 64
     k = Intrinsics(view_focal(side), view_focal(side), side / 2, side / 2, side, side)
-    views = split_frame(frame, side)
+    views = split_frame(frame, side, poles="both")
     assert [(turn["yaw"], turn["pitch"]) for turn, _ in views] == [
         (0, 0), (45, 0), (90, 0), (135, 0), (180, 0), (225, 0), (270, 0), (315, 0), (0, -90), (0, 90)]
     for turn, view in views:
@@ -61,7 +61,7 @@ def test_each_view_is_what_a_pinhole_at_its_yaw_and_pitch_sees(equirect):
         assert error < 0.03, (name, error)
         if turn["pitch"] or turn["yaw"] not in (0, 180):  # turned the other way, it shows another wall, or pole
             assert np.median(np.abs(view / 255 - render_float(ROOM, turned_to(c2w, name, True), k, 1)[0])) > 3 * error
-    assert len(split_frame(frame, side, poles=False)) == 8
+    assert [len(split_frame(frame, side, poles)) for poles in ("up", "none")] == [9, 8]
 
 
 def test_equirect_frames_are_told_from_ordinary_two_to_one_pictures(equirect):
@@ -90,15 +90,15 @@ def test_a_360_video_is_ingested_as_views_around_the_horizon_and_at_the_poles(tm
     listing = run_ingest(clip, tmp_path / "out", "ingest.video_frames=0")
     views = listing["images"]
     frames = sorted({r["panorama"]["frame"] for r in views})
-    assert len(views) == 10 * len(frames) and len(frames) >= 6
+    assert len(views) == 9 * len(frames) and len(frames) >= 6  # eight around the horizon, one up
     side = view_side(384, 960)
     assert {(r["width"], r["height"]) for r in views} == {(side, side)}
     assert all(r["focal"] == pytest.approx(side / 2) for r in views)
     first = [r for r in views if r["panorama"]["frame"] == frames[0]]
-    assert [r["name"] for r in first] == [f"{frames[0]}_{yaw:03d}" for yaw in range(0, 360, 45)] + [
-        f"{frames[0]}_down", f"{frames[0]}_up"]
-    assert len(run_ingest(clip, tmp_path / "around", "ingest.video_frames=0", "ingest.equirect_poles=false")[
-        "images"]) == 8 * len(frames)
+    assert [r["name"] for r in first] == [f"{frames[0]}_{yaw:03d}" for yaw in range(0, 360, 45)] + [f"{frames[0]}_up"]
+    for poles, views in (("both", 10), ("none", 8)):
+        listed = run_ingest(clip, tmp_path / poles, "ingest.video_frames=0", f"ingest.equirect_poles={poles}")
+        assert len(listed["images"]) == views * len(frames)
     # Told not to, ingest keeps the frames whole, as any video's.
     whole = run_ingest(clip, tmp_path / "whole", "ingest.video_frames=0", "ingest.equirect=no")["images"]
     assert whole and all("panorama" not in r and r["width"] == 2 * r["height"] for r in whole)
@@ -128,7 +128,7 @@ def test_360_photos_are_cut_where_their_metadata_or_their_pixels_say_so(tmp_path
     for n, c2w in enumerate(walk_poses(8)[2:4], start=1):
         Image.fromarray(to_uint8(render_equirect(ROOM, c2w, 512, supersample=1))).save(folder / f"pano{n}.png")
     listing = run_ingest(folder, tmp_path / "out")
-    assert len(listing["images"]) == 30 and {r["panorama"]["frame"] for r in listing["images"]} == {
+    assert len(listing["images"]) == 27 and {r["panorama"]["frame"] for r in listing["images"]} == {
         "pano0", "pano1", "pano2"}
     # A 360 camera's JPEG says so in its XMP: read as one even where its pixels would not tell (a flat one).
     marked = tmp_path / "marked"
@@ -154,7 +154,7 @@ def test_a_360_frames_views_are_held_out_together():
 def test_a_360_video_is_posed_as_views_of_one_known_camera_that_share_each_frames_centre(tmp_path):
     clip = tmp_path / "walk.mp4"
     truth = write_panorama_video(clip, n_frames=16, width=640, fps=4)
-    manifest = Pipeline(clip, tmp_path / "out", overrides=["ingest.video_frames=0"],
+    manifest = Pipeline(clip, tmp_path / "out", overrides=["ingest.video_frames=0", "ingest.equirect_poles=both"],
                         reporter=Reporter(quiet=True)).run(["ingest", "poses"])
     views = manifest["ingest"]["summary"]["images"]
     assert manifest["poses"]["summary"]["registered"] == views
@@ -214,7 +214,7 @@ def test_360_frames_posed_in_a_pose_file_give_each_view_its_frames_pose_turned_t
     manifest = Pipeline(capture, tmp_path / "out", reporter=Reporter(quiet=True)).run(["ingest", "poses"])
     assert manifest["poses"]["summary"]["source"] == pose_file
     transforms = json.loads((tmp_path / "out" / "poses" / "transforms.json").read_text())
-    assert len(transforms["frames"]) == 10 * len(truth)  # eight around the horizon, one down, one up
+    assert len(transforms["frames"]) == 9 * len(truth)  # eight around the horizon, one up
     side = transforms["w"]
     k = Intrinsics(transforms["fl_x"], transforms["fl_y"], transforms["cx"], transforms["cy"], side, transforms["h"])
     assert k.fl_x == pytest.approx(view_focal(side))
