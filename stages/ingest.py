@@ -41,7 +41,7 @@ def run(ctx) -> dict:
     panoramas: list[tuple[int, int]] = []  # the 360 frames split, their sizes
 
     def keep_views(name: str, source: str, rgb: np.ndarray) -> None:
-        """A 360 frame as its pinhole views, each named for its frame and yaw, with its known focal length."""
+        """A 360 frame as its pinhole views, each named for its frame and yaw (or pole), with its known focal length."""
         panoramas.append((rgb.shape[1], rgb.shape[0]))
         for turn, view in split_frame(rgb, view_side(rgb.shape[1], s.max_side), s.equirect_poles):
             keep(view_name(name, turn), source, view, None, (view.shape[1], view.shape[0]),

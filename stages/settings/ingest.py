@@ -57,9 +57,9 @@ class Settings:
     equirect: Literal["auto", "yes", "no"] = "auto"
     """A 360 camera's equirectangular video or photos (2:1, the whole sphere) are cut into 8 pinhole views around the
     horizon, which SfM poses as one camera of known focal length (and the views at the poles equirect_poles names,
-    which take their frame's pose); auto: where the file's metadata or the pixels say a
-    2:1 picture is one (its left and right edges meet, its top or bottom row is one point drawn wide), or, for photos
-    with their poses, where a transforms.json says camera_model EQUIRECTANGULAR (each view takes its frame's pose)."""
+    which take their frame's pose); auto: where the file's metadata or the pixels say a 2:1 picture is one (its left
+    and right edges meet, its top or bottom row is one point drawn wide), or, for photos with their poses, where a
+    transforms.json says camera_model EQUIRECTANGULAR (each view takes its frame's pose)."""
     equirect_poles: Literal["up", "both", "none"] = "up"
     """Which of each 360 frame's views straight up and straight down are cut beside those around the horizon, so the
     fit learns more of the sphere than 45 degrees either side of it: up (the ceiling or sky, which the views around
