@@ -31,11 +31,11 @@ def frame_poses(reconstruction: pycolmap.Reconstruction, records: list[dict]) ->
         camera_of[record["panorama"]["frame"]] = image.camera_id
     poses = {}
     for frame, c2ws in turned_back.items():
-        u, _, vt = np.linalg.svd(np.mean([c2w[:3, :3] for c2w in c2ws], axis=0))
-        c2w = np.eye(4)
-        c2w[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-        c2w[:3, 3] = np.mean([c2w[:3, 3] for c2w in c2ws], axis=0)
-        poses[frame] = (c2w, camera_of[frame])
+        u, _, vt = np.linalg.svd(np.mean([view[:3, :3] for view in c2ws], axis=0))
+        averaged = np.eye(4)
+        averaged[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        averaged[:3, 3] = np.mean([view[:3, 3] for view in c2ws], axis=0)
+        poses[frame] = (averaged, camera_of[frame])
     return poses
 
 
