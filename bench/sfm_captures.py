@@ -4,14 +4,17 @@ measure from a scene's own poses, this one measures as a new user meets it.
 
 Scenes: fox, cup, ball and fern (their photo folders; fern's images_4), apple (its 5 s clip), ball_video (ball's 127
 frames written as an 8 fps MP4 under bench/out/sfm_captures/, a 16 s phone video), cup_video (cup's 77 photos in
-the order taken, a 10 s video) and room_360 (a 360 camera's equirectangular video of the synthetic room kind, 48
-frames at 960x480 carried once around its still life: `write_panorama_video`). Each run records the evaluate stage's
+the order taken, a 10 s video), room_360 (a 360 camera's equirectangular video of the synthetic room kind, 48
+frames at 960x480 carried once around its still life: `write_panorama_video`), room_fisheye (an action camera's
+clip of it: `write_fisheye_video`) and drone_video (a drone's mapping flight over the unbounded kind with its flight
+log: `write_drone_video`; its poses also against where it flew). Each run records the evaluate stage's
 held-out PSNR, SSIM and LPIPS (every 8th frame held out, at the fit's image scale), the fit's seconds and grid, the
 poses' points and the foreground box in units of the cameras' distance (what sets the cells' size); a run the
 pipeline refuses, its one-line reason and how long it took to give it. Writes bench/results/sfm_captures.json (a run
 replaces the one of the same scene, preset and label).
 
-    .venv/bin/python -m bench.sfm_captures [--scenes fox cup ball fern apple ball_video cup_video room_360]
+    .venv/bin/python -m bench.sfm_captures [--scenes fox cup ball fern apple ball_video cup_video room_360 room_fisheye
+        drone_video]
         [--preset fast] [--label L] [--set SECTION.KEY=VALUE ...]
 """
 from __future__ import annotations
@@ -31,7 +34,8 @@ from bench.fit import machine
 REPO = Path(__file__).resolve().parent.parent
 OUT = REPO / "bench" / "out" / "sfm_captures"
 RESULTS = REPO / "bench" / "results" / "sfm_captures.json"
-SCENES = ("fox", "cup", "ball", "fern", "apple", "ball_video", "cup_video", "room_360", "room_fisheye")
+SCENES = ("fox", "cup", "ball", "fern", "apple", "ball_video", "cup_video", "room_360", "room_fisheye", "drone_video")
+DRONE_TRUTH = OUT / "drone_video" / "truth.npy"  # each frame's camera-to-world, the scene's units as 100 m
 VIDEO_FPS = 8
 
 
@@ -54,6 +58,13 @@ def scene_input(name: str, data: Path) -> Path:
             OUT.mkdir(parents=True, exist_ok=True)
             write_fisheye_video(video, n_frames=60)
         return video
+    if name == "drone_video":  # a mapping flight's clip with its flight log beside it
+        video = OUT / "drone_video" / "DJI_0001.MP4"
+        if not DRONE_TRUTH.is_file():
+            from stages.capture.synthetic import write_drone_video
+            video.parent.mkdir(parents=True, exist_ok=True)
+            np.save(DRONE_TRUTH, write_drone_video(video))
+        return video
     if not name.endswith("_video"):
         return data / name / "images"
     video = OUT / f"{name}.mp4"
@@ -73,6 +84,25 @@ def scene_input(name: str, data: Path) -> Path:
 
 def summary(out: Path, stage: str) -> dict:
     return json.loads((out / stage / "manifest.json").read_text())["summary"]
+
+
+def flight_errors(out: Path) -> dict:
+    """The drone video's poses against where it flew: the cameras' distance (metres, rms and most) from a similarity
+    fitted to the flight, and how far (degrees) the poses' up is from each camera's true up."""
+    import pycolmap
+    truth, transforms = np.load(DRONE_TRUTH), json.loads((out / "poses" / "transforms.json").read_text())
+    up = np.asarray(transforms.get("up", [0.0, 0.0, 1.0]))
+    frames = transforms["frames"]
+    flown = np.stack([truth[int(f["name"].split("_")[1])] for f in frames])
+    posed = np.stack([np.asarray(f["transform_matrix"]) for f in frames])
+    similarity = pycolmap.estimate_sim3d(posed[:, :3, 3], 100.0 * flown[:, :3, 3])
+    off = np.linalg.norm(np.stack([similarity * c for c in posed[:, :3, 3]]) - 100.0 * flown[:, :3, 3], axis=1)
+    seen = np.einsum("nji,j->ni", posed[:, :3, :3], up / np.linalg.norm(up))  # up in each camera's axes
+    true = flown[:, 2, :3]  # the world's +z in each true camera's axes
+    angle = np.degrees(np.arccos(np.clip(np.sum(seen * true, axis=1), -1.0, 1.0)))
+    return {"off_flight_m": {"rms": round(float(np.sqrt(np.mean(off ** 2))), 3), "max": round(float(off.max()), 3)},
+            "up_off_deg": {"median": round(float(np.median(angle)), 2), "max": round(float(angle.max()), 2)},
+            "georeference": transforms.get("georeference")}
 
 
 def one_run(name: str, data: Path, preset: str, label: str, overrides: list[str]) -> dict:
@@ -100,7 +130,8 @@ def one_run(name: str, data: Path, preset: str, label: str, overrides: list[str]
                       "seconds": poses["seconds_total"], "line": poses["line"]},
             "foreground_in_camera_distances": (np.subtract(box["max"], box["min"])
                                                / scene["measured"]["camera_distance"]).round(3).tolist(),
-            "surroundings_growth": scene["measured"].get("surroundings_growth")}
+            "surroundings_growth": scene["measured"].get("surroundings_growth"),
+            **({"flight": flight_errors(out)} if name == "drone_video" else {})}
 
 
 def main() -> int:

@@ -20,6 +20,7 @@ from stages.capture.photos import (IMAGE_SUFFIXES, SIDECAR_SUFFIXES, VIDEO_SUFFI
 from stages.capture.panorama import (FRAME_SHARE, PANORAMA_VIEWS, POLE_WORDS, frame_side, is_two_to_one,
                                      looks_equirect, photos_equirect, says_equirect, split_frame, view_focal, view_name,
                                      view_side)
+from stages.capture.flight_log import locate_frames
 from stages.capture.video import clip_samples, sequence_step, video_frames
 from stages.sfm import pose_files
 from stages.common.text import short_list, size_words, text_name
@@ -108,6 +109,8 @@ def run(ctx) -> dict:
                 keep_views(name, ctx.scene.name, rgb)
             else:
                 keep(name, ctx.scene.name, rgb, None, (rgb.shape[1], rgb.shape[0]))
+        if not panorama and (flight := locate_frames(records, ctx.scene, clip["fps"])) is not None:
+            clip["flight_log"] = flight  # where a drone was as it filmed, for SfM to hold its frames near
     else:
         folder = photo_folder(ctx.scene)
         candidates = scene_photos(ctx.scene, s.holdout_split)
@@ -270,6 +273,9 @@ def video_words(clip: dict, s: Settings) -> str:
     if "overlay" in clip:
         what = "what moves with the camera: its holder, a logo" if clip.get("panorama") else "a watermark or caption"
         words += f", a still overlay painted over ({clip['overlay']:.1%} of the picture: {what})"
+    if flight := clip.get("flight_log"):
+        words += (f", {flight['why']}, so its frames are posed without it" if "why" in flight else
+                  f", where the drone was for {flight['frames']} of them from its flight log {flight['file']}")
     if "bars" in clip:
         (width, height), kept = clip["bars"]["frame"], clip["bars"]["kept"]
         words += f", black bars cropped (the picture {kept[2]}x{kept[3]} of its {width}x{height} frame)"

@@ -51,12 +51,13 @@ def _sfm(ctx, s: Settings, folder: Path, records: list[dict]) -> tuple[pycolmap.
     return reconstruction, info, left_out + add_pole_views(reconstruction, records)
 
 
-def georeference(found: dict | None) -> dict | None:
+def georeference(found: dict | None, above_take_off: bool = False) -> dict | None:
     """transforms.json's `georeference`, where the model's frame is metres east, north and up of a place (gps.gravity's
-    `in_metres_of`)."""
+    `in_metres_of`); its altitude above where the drone took off where its heights were (a flight log's barometer)."""
     if not found or "in_metres_of" not in found:
         return None
-    return {"origin": found["in_metres_of"], "origin_is": "latitude, longitude (degrees), altitude (metres), WGS 84",
+    altitude = "altitude (metres above the take-off)" if above_take_off else "altitude (metres)"
+    return {"origin": found["in_metres_of"], "origin_is": f"latitude, longitude (degrees), {altitude}, WGS 84",
             "axes": "metres east, north and up of the origin", "within_m": found["fit_m"]}
 
 
@@ -110,7 +111,7 @@ def run(ctx) -> dict:
                 info["gimbal"]["taken"] = True
         held = (info.get("gps_priors") or {}).get("origin")
         # A survey's GPS says up too, and where SfM held the cameras near it, whether its metres are the model's frame
-        if (gravity is None or held) and not is_video(ctx.scene):
+        if gravity is None or held:
             positions = gps.photo_positions(records, photo_folder(ctx.scene))
             up, info["gps"] = gps.gravity(reconstruction, positions, held) if positions else (None, None)
             if gravity is None and up is not None:
@@ -118,7 +119,7 @@ def run(ctx) -> dict:
         step = time.perf_counter()
         written = write_poses(ctx.work, ctx.scratch, ingest, reconstruction, records, source, source_path, bounds,
                               ctx.report, gravity, check_matches=source != "sfm",  # SfM's model was checked already
-                              georeference=georeference(info.get("gps")))
+                              georeference=georeference(info.get("gps"), gps.above_take_off(records)))
         if written.get("contradicted"):
             info["pose_file_contradicted"] = written["contradicted"]
         info["seconds"]["undistort_and_triangulate"] = time.perf_counter() - step

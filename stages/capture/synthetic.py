@@ -44,11 +44,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from plenoxels.core.cameras import Intrinsics
+from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.errors import UserError
 from stages.capture.synthetic_scenes import (ENVIRONMENT_RADIUS, WORLD_UP, camera_directions, render_equirect,
                                              render_fisheye, render_float, to_uint8, build_scene, camera_poses,
-                                             intrinsics_for, turn_angles, view_scene, walk_poses)
+                                             intrinsics_for, render_view, turn_angles, view_scene, walk_poses)
 from stages.common.json_files import read_json, write_json
 from stages.common.media import write_png
 
@@ -156,6 +156,53 @@ def write_fisheye_video(path: Path | str, n_frames: int = 48, width: int = 640, 
         writer.write(to_uint8(render_fisheye(scene, c2w, width, height, focal))[..., ::-1])
     writer.release()
     return poses
+
+
+def write_drone_video(path: Path | str, fps: float = 24.0, hold: int = 2, seed: int = 4,
+                      origin: tuple[float, float, float] = (47.3769, 8.5417, 408.0)) -> np.ndarray:
+    """A drone's mapping flight over the unbounded kind as its video (320x240, MPEG-4) and the flight log DJI writes
+    beside it (a subtitle file of the clip's name, a caption a frame: stages/capture/flight_log.py): four rows flown
+    at 3 units up, the camera 10 degrees off straight down and heading one way throughout, so the cameras' own up
+    axes all lie near the heading. Each view is held for `hold` frames; the log gives the frames' places with the
+    scene's units as 100 m east, north and up of `origin` (latitude, longitude, altitude), each off by GPS's error
+    (half a metre across, a metre in height). Returns each frame's camera-to-world matrix, in the scene's units."""
+    import pycolmap
+    scene = build_scene("unbounded", seed)
+    k = Intrinsics.from_frame({"fl_x": 277.0, "fl_y": 277.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240})
+    rows, flight = np.linspace(-1.2, 0.8, 4), []
+    for row, y in enumerate(rows):
+        across = np.linspace(-0.9, 1.5, 17)
+        flight += [(x, y) for x in (across if row % 2 == 0 else across[::-1])]
+        if row + 1 < len(rows):  # over to the next row
+            flight += [(flight[-1][0], y + share * (rows[1] - rows[0])) for share in (0.25, 0.5, 0.75)]
+    pitch = math.radians(-80.0)
+    look = math.cos(pitch) * np.array([0.0, 1.0, 0.0]) + math.sin(pitch) * np.asarray(WORLD_UP)
+    error = np.random.default_rng(seed).normal(0.0, [0.5, 0.5, 1.0], (len(flight) * hold, 3))
+    path = Path(path)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (320, 240))
+    poses, captions = [], []
+    for x, y in flight:
+        eye = np.array([x, y, 3.0])
+        c2w = look_at(eye, eye + look)
+        bgr = np.ascontiguousarray(render_view(scene, c2w, k, supersample=1)[0][..., ::-1])
+        for _ in range(hold):
+            index = len(poses)
+            writer.write(bgr)
+            poses.append(c2w)
+            latitude, longitude, altitude = pycolmap.GPSTransform().enu_to_ellipsoid(
+                np.asarray([100.0 * eye + error[index]]), *origin)[0]
+            span = " --> ".join(_srt_time(t / fps) for t in (index, index + 1))
+            captions.append(f'{index + 1}\n{span}\n<font size="28">FrameCnt: {index + 1}, DiffTime: '
+                            f'{1000 / fps:.0f}ms\n[iso: 100] [latitude: {latitude:.6f}] [longitude: {longitude:.6f}] '
+                            f"[rel_alt: {altitude - origin[2]:.3f} abs_alt: {altitude:.3f}] </font>\n")
+    writer.release()
+    path.with_suffix(".SRT").write_text("\n".join(captions))
+    return np.stack(poses)
+
+
+def _srt_time(seconds: float) -> str:
+    ms = round(seconds * 1000)
+    return f"{ms // 3_600_000:02d}:{ms // 60_000 % 60:02d}:{ms // 1000 % 60:02d},{ms % 1000:03d}"
 
 
 def _depth_range(depth: np.ndarray, k: Intrinsics) -> dict:

@@ -70,6 +70,16 @@ def sequence_step(paths: list[Path], motion: float, max_frames: int, target_fram
     return max(1, math.ceil(len(paths) / max_frames) if max_frames else 1, spaced), apart
 
 
+def frame_name(index: int) -> str:
+    """A kept frame's name, from its index in the clip."""
+    return f"frame_{index:06d}"
+
+
+def frame_seconds(name: str, fps: float) -> float:
+    """How far into its clip a kept frame (by its name) was taken: the middle of its span."""
+    return (int(name.removeprefix("frame_")) + 0.5) / fps
+
+
 def open_video(path: Path) -> cv2.VideoCapture:
     """A video opened for reading, upright (its rotation metadata applied), or one line that says it cannot be. A path
     that is not UTF-8 (a name from another system), which OpenCV cannot take, is opened through a link of a plain name,
@@ -205,7 +215,7 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
     def keep(frame: tuple[float, int, np.ndarray | None]) -> None:
         nonlocal last_kept, due, counting
         if frame[2] is not None:
-            kept.append((f"frame_{frame[1]:06d}", frame[2]))
+            kept.append((frame_name(frame[1]), frame[2]))
             if max_frames and len(kept) > max_frames:
                 kept.clear()
                 counting = True
@@ -261,5 +271,5 @@ def frames_by_motion(path: Path, max_side: int, motion: float, max_per_second: f
         rows, columns = picture
         bars = {"bars": {"frame": [frame_shape[1], frame_shape[0]],
                          "kept": [columns.start, rows.start, columns.stop - columns.start, rows.stop - rows.start]}}
-    return kept, {"seconds": round(index / fps, 2), "total_motion": round(total_motion + counted, 4),
+    return kept, {"seconds": round(index / fps, 2), "fps": fps, "total_motion": round(total_motion + counted, 4),
                   "most_frames": index // min_gap + 1, "due": due, **bars}

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Literal
 
 from plenoxels.core.errors import require
+from stages.capture.flight_log import flight_log
 from stages.capture.masks import mask_folder
 from stages.capture.photos import photo_folder, scene_files
 from stages.sfm.pose_files import candidates
@@ -89,7 +90,9 @@ class Settings:
 
 def fingerprint(scene: Path) -> list:
     folder = photo_folder(scene)
-    listed = [[str(p.relative_to(folder)), p.stat().st_size, p.stat().st_mtime_ns] for p in scene_files(scene)]
+    log = flight_log(scene) if scene.is_file() else None  # where a drone was as it filmed the clip
+    listed = [[str(p.relative_to(folder)), p.stat().st_size, p.stat().st_mtime_ns]
+              for p in scene_files(scene) + ([log] if log else [])]
     masks = mask_folder(folder) if not scene.is_file() else None
     if masks is not None:
         listed += [[str(p.relative_to(masks.parent)), p.stat().st_size, p.stat().st_mtime_ns]

@@ -40,10 +40,23 @@ def east_north_up(positions: np.ndarray, origin=None) -> np.ndarray:
 
 
 def photo_positions(records: list[dict], photos: Path) -> dict[str, tuple[float, float, float]]:
-    """Where each ingested photo (by its image's name) was taken, for those whose EXIF says; a 360 frame's views are
-    cut from one photo and left out."""
+    """Where each ingested photo (by its image's name) was taken, for those whose EXIF says or a video's frames whose
+    flight log did (their records' `gps`: stages/capture/flight_log.py); a 360 frame's views are cut from one photo
+    and left out."""
     return {f"{r['name']}.png": where for r in records if "panorama" not in r
-            and (where := exif_position(photos / r["source"])) is not None}
+            and (where := tuple(r["gps"]["position"]) if "gps" in r else exif_position(photos / r["source"]))}
+
+
+def position_errors(records: list[dict]) -> dict[str, tuple[float, float]]:
+    """How far (metres across and in height) each photo's position may be off where its source rounds it (a flight
+    log's degrees written to few places): GPS's own error and the rounding's together."""
+    return {f"{r['name']}.png": (math.hypot(GPS_ERROR_ACROSS_M, r["gps"]["rounding_m"]), GPS_ERROR_UP_M)
+            for r in records if r.get("gps", {}).get("rounding_m")}
+
+
+def above_take_off(records: list[dict]) -> bool:
+    """True where the photos' heights are above where the drone took off (its barometer's), not above the sea."""
+    return any(r.get("gps", {}).get("height") == "take-off" for r in records)
 
 
 def spans_survey(metres: np.ndarray) -> bool:
@@ -61,10 +74,12 @@ def survey_metres(positions: dict[str, tuple[float, float, float]], of: int) -> 
     return dict(zip(positions, metres)) if spans_survey(metres) else None
 
 
-def write_priors(db: Path, metres: dict[str, np.ndarray]) -> int:
+def write_priors(db: Path, metres: dict[str, np.ndarray], errors: dict[str, tuple[float, float]] | None = None
+                 ) -> int:
     """Writes each image's position (metres east, north and up) into the database as COLMAP's pose prior, replacing
-    any there; returns how many were written."""
-    covariance = np.diag([GPS_ERROR_ACROSS_M ** 2, GPS_ERROR_ACROSS_M ** 2, GPS_ERROR_UP_M ** 2])
+    any there, each as far off as `errors` says (metres across and in height, by name; GPS_ERROR_ACROSS_M and
+    GPS_ERROR_UP_M where it does not); returns how many were written."""
+    errors = errors or {}
     database = pycolmap.Database.open(db)
     try:
         database.clear_pose_priors()
@@ -73,7 +88,8 @@ def write_priors(db: Path, metres: dict[str, np.ndarray]) -> int:
             if image.name in metres:
                 prior = pycolmap.PosePrior()
                 prior.corr_data_id, prior.position = image.data_id, metres[image.name]
-                prior.position_covariance = covariance
+                across, up = errors.get(image.name, (GPS_ERROR_ACROSS_M, GPS_ERROR_UP_M))
+                prior.position_covariance = np.diag([across ** 2, across ** 2, up ** 2])
                 prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
                 database.write_pose_prior(prior)
                 written += 1

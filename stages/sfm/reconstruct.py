@@ -466,9 +466,9 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
     if info["focal_prior"]:
         prior = info["focal_prior"]
         report.info(f"initial focal length {prior['focal_px']:.1f} px from {prior['from']} ({prior['images']} photos)")
-    located = gps.photo_positions(records, photos) if s.gps_priors and not from_video else {}
+    located = gps.photo_positions(records, photos) if s.gps_priors else {}
     survey = gps.survey_metres(located, len(records))
-    priors = survey is not None and gps.write_priors(db, survey) >= 3
+    priors = survey is not None and gps.write_priors(db, survey, gps.position_errors(records)) >= 3
     if priors:  # metres of the first photo located: the frame the model comes out in
         info["gps_priors"] = {"photos": len(survey), "origin": list(next(iter(located.values())))}
         report.info(f"holding the cameras near the GPS of {len(survey)} photos")

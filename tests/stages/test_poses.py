@@ -247,6 +247,59 @@ def test_gps_that_contradicts_the_photos_neither_breaks_the_model_nor_says_up(tm
     assert line.startswith(f"registered {len(truth)}/{len(truth)} images") and "up from the GPS" not in line
 
 
+def drone_orbit_video(folder: Path, views: int = 36, hold: int = 3, fps: int = 24) -> list[list[float]]:
+    """A drone circling the unbounded scene at 140 m out and 220 m up (the scene's units as 100 m), filmed at `fps`
+    with each of its `views` held for `hold` frames, and the flight log DJI writes beside the clip: a caption a frame,
+    its place off by GPS's error (half a metre across, a metre in height). Returns each frame's logged place."""
+    scene = build_scene("unbounded", seed=4)
+    k = Intrinsics.from_frame({"fl_x": 277.0, "fl_y": 277.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240})
+    folder.mkdir(parents=True)
+    writer = cv2.VideoWriter(str(folder / "DJI_0001.MP4"), cv2.VideoWriter_fourcc(*"mp4v"), fps, (320, 240))
+    places, captions = [], []
+    error = np.random.default_rng(0).normal(0.0, [0.5, 0.5, 1.0], (views * hold, 3))
+    for view in range(views):
+        turn = 2.0 * math.pi * view / views
+        eye = np.array([1.4 * math.cos(turn), 1.4 * math.sin(turn), 2.2])
+        bgr = cv2.cvtColor(render_view(scene, look_at(eye, np.zeros(3)), k, supersample=1)[0], cv2.COLOR_RGB2BGR)
+        for index in range(view * hold, (view + 1) * hold):
+            writer.write(bgr)
+            places.append(pycolmap.GPSTransform().enu_to_ellipsoid(
+                np.asarray([100.0 * eye + error[index]]), 47.3769, 8.5417, 408.0)[0].tolist())
+            (latitude, longitude, altitude), ms = places[-1], [1000 * index // fps, 1000 * (index + 1) // fps]
+            span = " --> ".join(f"00:00:{t // 1000:02d},{t % 1000:03d}" for t in ms)
+            captions.append(f"{index + 1}\n{span}\n<font size=\"28\">FrameCnt: {index + 1}, DiffTime: 42ms\n[iso: 100] "
+                            f"[latitude: {latitude:.6f}] [longitude: {longitude:.6f}] [rel_alt: {altitude - 408.0:.3f} "
+                            f"abs_alt: {altitude:.3f}] </font>\n")
+    writer.release()
+    (folder / "DJI_0001.SRT").write_text("\n".join(captions))
+    return places
+
+
+def test_a_drone_video_is_held_near_its_flight_log_and_posed_in_its_metres(tmp_path):
+    """A drone's clip carries no GPS in its frames; the flight log beside it says where the drone was for each, so SfM
+    holds the frames near those places as it holds a survey's photos, and the poses come out in their metres."""
+    places = drone_orbit_video(tmp_path / "flight")
+    out = tmp_path / "out"
+    pipeline = Pipeline(tmp_path / "flight" / "DJI_0001.MP4", out, reporter=Reporter(quiet=True))
+    manifest = pipeline.run(["ingest", "poses"])
+    assert "where the drone was for" in manifest["ingest"]["summary"]["line"]
+    registered = manifest["poses"]["summary"]["registered"]
+    assert registered >= 20
+    assert f"the cameras held near the GPS of {registered} photos" in manifest["poses"]["summary"]["line"]
+    transforms = read_json(out / "poses" / "transforms.json")
+    origin = transforms["georeference"]["origin"]  # the first frame's place, as logged (to 6 places, a centimetre)
+    assert origin[:2] == pytest.approx(places[0][:2], abs=1e-6) and origin[2] == pytest.approx(places[0][2], abs=0.01)
+    from stages.sfm.gps import east_north_up
+    frames = transforms["frames"]
+    logged = east_north_up(np.asarray([places[int(f["name"].split("_")[1])] for f in frames]), places[0])
+    centres = np.stack([np.asarray(f["transform_matrix"])[:3, 3] for f in frames])
+    assert np.sqrt(np.mean(np.sum((centres - logged) ** 2, axis=1))) < 2.0  # the log's own error: 0.5 m, 1 m up
+    # the log is part of what ingest read: changing it makes ingest's output stale
+    log = tmp_path / "flight" / "DJI_0001.SRT"
+    log.write_text(log.read_text().replace("[iso: 100]", "[iso: 200]"))
+    assert pipeline.status("ingest")[0] == "stale"
+
+
 def test_gps_that_cannot_say_up_is_not_taken_for_it():
     """Positions too close together for GPS's error (a phone's orbit of a thing), along one line (a turn about it is
     free), or that the cameras do not fit (another capture's): no up, and what was found says why."""
