@@ -163,6 +163,9 @@ def run(ctx) -> dict:
                  + (f" (their ups {found['spread_deg']:.1f} deg apart)" if "spread_deg" in found else ""))
     if info.get("gps_priors"):
         line += f"; the cameras held near the GPS of {info['gps_priors']['photos']} photos in bundle adjustment"
+        if "stated" in info["gps_priors"]:
+            stated, across = info["gps_priors"]["stated"]
+            line += f" ({stated} at the error their source gives, median {across:.2f} m across)"
     found = info.get("gps") or {}
     if found.get("taken"):
         line += (f"; up from the GPS of {found['photos']} photos ({found['span_m']:.0f} m across, the cameras fitted "

@@ -1,8 +1,10 @@
 """What the photos' EXIF says about their cameras: the camera model (to decide whether photos share one
-camera), the focal length (to start COLMAP's cameras from it) and where they were taken (for up, stages/sfm/gps.py)."""
+camera), the focal length (to start COLMAP's cameras from it), where they were taken (for up, stages/sfm/gps.py) and
+how far that may be off (EXIF's horizontal positioning error, a DJI RTK drone's deviations in its XMP)."""
 from __future__ import annotations
 
 import math
+import re
 import statistics
 from pathlib import Path
 
@@ -16,6 +18,12 @@ from stages.sfm.lens import FISHEYE_DIAGONAL_FOV_DEG, fisheye_focal
 EXIF_MODEL_TAG = 0x0110
 EXIF_IFD = 0x8769
 GPS_IFD = 0x8825
+GPS_H_POSITIONING_ERROR = 0x1F          # GPSHPositioningError (EXIF 2.31), metres
+# DJI's XMP on an RTK drone: its fix (50: fixed) and the deviations (metres) of its latitude, longitude and height.
+DJI_RTK_FIXED = 50
+DJI_RTK = {name: re.compile(rb"drone-dji:" + name.encode() + rb'\s*(?:=\s*"|>)\s*([+-]?\d+(?:\.\d*)?)')
+           for name in ("RtkFlag", "RtkStdLat", "RtkStdLon", "RtkStdHgt")}
+XMP_HEAD_BYTES = 1 << 17  # cameras write their XMP packet near the start
 EXIF_FOCAL_35MM = 0xA405                # FocalLengthIn35mmFilm, mm
 EXIF_FOCAL = 0x920A                     # FocalLength, mm
 EXIF_FOCAL_PLANE_X_RESOLUTION = 0xA20E  # sensor pixels per unit, in units of the tag below
@@ -155,3 +163,20 @@ def exif_position(photo: Path) -> tuple[float, float, float] | None:
         return None
     found = (latitude, longitude, altitude)
     return found if all(math.isfinite(v) for v in found) and abs(latitude) <= 90 and abs(longitude) <= 180 else None
+
+
+def position_error(photo: Path) -> tuple[float, float] | None:
+    """How far (metres, one standard deviation, across and in height) a photo says its position may be off: a DJI RTK
+    drone's deviations where its fix is fixed (XMP), else the horizontal error a phone writes (EXIF), twice that in
+    height; None where it says neither."""
+    try:
+        with open(photo, "rb") as f:
+            head = f.read(XMP_HEAD_BYTES)
+        rtk = {name: float(found.group(1)) for name, pattern in DJI_RTK.items() if (found := pattern.search(head))}
+        if rtk.get("RtkFlag") == DJI_RTK_FIXED and {"RtkStdLat", "RtkStdLon", "RtkStdHgt"} <= set(rtk):
+            return math.hypot(rtk["RtkStdLat"], rtk["RtkStdLon"]) / math.sqrt(2.0), rtk["RtkStdHgt"]
+        with Image.open(photo) as image:
+            across = float(image.getexif().get_ifd(GPS_IFD)[GPS_H_POSITIONING_ERROR])
+    except Exception:  # any photo or tag a reader cannot take means the same thing here: nothing said
+        return None
+    return (across, 2.0 * across) if math.isfinite(across) and across > 0.0 else None

@@ -4,9 +4,10 @@ SfM's model to those metres (`write_priors`: COLMAP's pose priors, which bundle 
 a survey's rows cannot bend into a dome), and it says which way is up (`gravity`: the model's camera centres fitted
 to them by a similarity, pycolmap's estimate_sim3d_robust, whose rotation carries the metres' up into the model).
 
-GPS is metres off, more in height than across, so it is taken only where it spans far more than that (a drone's
-survey, not a phone's orbit of a thing) and not along one line (which leaves a turn about the line free), and where
-the fit holds to a small angle over the span; past either, the photos' gimbal or the cameras decide."""
+GPS is metres off, more in height than across (each prior as far as its photo says, where it does: an RTK fix's
+centimetres, a phone's stated error, a flight log's rounding), so it is taken only where it spans far more than that
+(a drone's survey, not a phone's orbit of a thing) and not along one line (which leaves a turn about the line free),
+and where the fit holds to a small angle over the span; past either, the photos' gimbal or the cameras decide."""
 from __future__ import annotations
 
 import math
@@ -15,11 +16,16 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from stages.sfm.exif import exif_position
+from stages.capture.photos import VIDEO_SUFFIXES
+from stages.sfm.exif import exif_position, position_error
 
 # How far (metres, one standard deviation) a drone's GPS is taken to be off across and in height, for the priors.
 GPS_ERROR_ACROSS_M = 2.0
 GPS_ERROR_UP_M = 4.0
+# The least error a position is taken at, however small its source says it is (an RTK fix's centimetres): the antenna
+# sits a hand's width from the camera's centre, and its clock a few milliseconds from the shutter.
+MIN_ERROR_ACROSS_M = 0.05
+MIN_ERROR_UP_M = 0.10
 # The share of the model's photos that must carry a position, the span (metres) they must cover across, how far
 # their second extent must reach beside their first (not a line), and the angle (degrees) by which the fit's
 # residuals may tilt the span.
@@ -47,11 +53,21 @@ def photo_positions(records: list[dict], photos: Path) -> dict[str, tuple[float,
             and (where := tuple(r["gps"]["position"]) if "gps" in r else exif_position(photos / r["source"]))}
 
 
-def position_errors(records: list[dict]) -> dict[str, tuple[float, float]]:
-    """How far (metres across and in height) each photo's position may be off where its source rounds it (a flight
-    log's degrees written to few places): GPS's own error and the rounding's together."""
-    return {f"{r['name']}.png": (math.hypot(GPS_ERROR_ACROSS_M, r["gps"]["rounding_m"]), GPS_ERROR_UP_M)
-            for r in records if r.get("gps", {}).get("rounding_m")}
+def position_errors(records: list[dict], photos: Path) -> dict[str, tuple[float, float]]:
+    """How far (metres across and in height) each photo's position may be off, where its source says: a flight log
+    rounding its degrees (GPS's own error beside the rounding's), an RTK drone's deviations or a phone's stated error
+    (exif.position_error), never under MIN_ERROR_ACROSS_M and MIN_ERROR_UP_M; the rest are taken at GPS_ERROR_ACROSS_M
+    and GPS_ERROR_UP_M."""
+    errors = {}
+    for r in records:
+        if "gps" in r:
+            said = math.hypot(GPS_ERROR_ACROSS_M, r["gps"].get("rounding_m", 0.0)), GPS_ERROR_UP_M
+        elif "panorama" in r or Path(r["source"]).suffix.lower() in VIDEO_SUFFIXES:
+            continue
+        elif (said := position_error(photos / r["source"])) is None:
+            continue
+        errors[f"{r['name']}.png"] = max(said[0], MIN_ERROR_ACROSS_M), max(said[1], MIN_ERROR_UP_M)
+    return errors
 
 
 def above_take_off(records: list[dict]) -> bool:

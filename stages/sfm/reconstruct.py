@@ -468,9 +468,12 @@ def sfm_attempt(records: list[dict], image_dir: Path, photos: Path, from_video: 
         report.info(f"initial focal length {prior['focal_px']:.1f} px from {prior['from']} ({prior['images']} photos)")
     located = gps.photo_positions(records, photos) if s.gps_priors else {}
     survey = gps.survey_metres(located, len(records))
-    priors = survey is not None and gps.write_priors(db, survey, gps.position_errors(records)) >= 3
+    stated = {name: error for name, error in gps.position_errors(records, photos).items() if name in (survey or {})}
+    priors = survey is not None and gps.write_priors(db, survey, stated) >= 3
     if priors:  # metres of the first photo located: the frame the model comes out in
         info["gps_priors"] = {"photos": len(survey), "origin": list(next(iter(located.values())))}
+        if stated:  # each at the error its source gives (an RTK fix, a log's rounding), not the one taken for all
+            info["gps_priors"]["stated"] = [len(stated), round(float(np.median([e[0] for e in stated.values()])), 3)]
         report.info(f"holding the cameras near the GPS of {len(survey)} photos")
     seconds["extract"] = time.perf_counter() - started
     mode = s.matching

@@ -300,6 +300,47 @@ def test_a_drone_video_is_held_near_its_flight_log_and_posed_in_its_metres(tmp_p
     assert pipeline.status("ingest")[0] == "stale"
 
 
+def test_each_photos_stated_gps_error_reaches_its_prior(tmp_path):
+    """An RTK drone's photos say their positions to centimetres (DJI's XMP deviations, where its fix is fixed), a
+    phone's EXIF gives its horizontal error; each photo's prior in the database is as wide as its own says, never
+    narrower than the least taken, and a photo that says nothing, or an RTK fix that is not fixed, takes GPS's own."""
+    import pycolmap
+    from stages.sfm import gps
+
+    def rtk(flag: int, lat: float, lon: float, height: float) -> bytes:
+        return (b'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+                b'<rdf:Description xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" '
+                + f'drone-dji:RtkFlag="{flag}" drone-dji:RtkStdLon="{lon}" drone-dji:RtkStdLat="{lat}" '
+                  f'drone-dji:RtkStdHgt="{height}"/>'.encode() + b"</rdf:RDF></x:xmpmeta>")
+
+    phone = gps_exif(np.zeros(3))
+    phone.get_ifd(0x8825)[0x1F] = 4.5  # GPSHPositioningError, metres
+    photos = {"fixed": dict(xmp=rtk(50, 0.012, 0.016, 0.03)), "fine": dict(xmp=rtk(50, 0.001, 0.001, 0.002)),
+              "floating": dict(xmp=rtk(16, 0.4, 0.5, 0.9)), "phone": dict(exif=phone), "silent": {}}
+    for name, tags in photos.items():
+        Image.fromarray(np.full((24, 32, 3), 128, np.uint8)).save(tmp_path / f"{name}.jpg", **tags)
+    records = [{"name": name, "source": f"{name}.jpg"} for name in photos]
+    errors = gps.position_errors(records, tmp_path)
+    assert errors["fixed.png"] == pytest.approx((0.05, 0.10))  # centimetres, taken at the least
+    assert errors["phone.png"] == pytest.approx((4.5, 9.0))
+    assert "fine.png" in errors and "floating.png" not in errors and "silent.png" not in errors
+    db = tmp_path / "database.db"
+    database = pycolmap.Database.open(db)
+    camera = database.write_camera(pycolmap.Camera(model="PINHOLE", width=32, height=24, params=[30, 30, 16, 12]))
+    for name in photos:
+        database.write_image(pycolmap.Image(name=f"{name}.png", camera_id=camera))
+    database.close()
+    assert gps.write_priors(db, {f"{name}.png": np.zeros(3) for name in photos}, errors) == len(photos)
+    database = pycolmap.Database.open(db)
+    names = {image.data_id: image.name for image in database.read_all_images()}
+    widths = {names[prior.corr_data_id]: np.sqrt(np.diag(prior.position_covariance))
+              for prior in database.read_all_pose_priors()}
+    database.close()
+    np.testing.assert_allclose(widths["fine.png"], [0.05, 0.05, 0.10])
+    np.testing.assert_allclose(widths["phone.png"], [4.5, 4.5, 9.0])
+    np.testing.assert_allclose(widths["silent.png"], [gps.GPS_ERROR_ACROSS_M] * 2 + [gps.GPS_ERROR_UP_M])
+
+
 def test_gps_that_cannot_say_up_is_not_taken_for_it():
     """Positions too close together for GPS's error (a phone's orbit of a thing), along one line (a turn about it is
     free), or that the cameras do not fit (another capture's): no up, and what was found says why."""
