@@ -8,7 +8,7 @@ Captions come in two families. Current drones label each value (`[latitude: 47.3
 write an unlabelled tuple (`GPS(8.5417,47.3769,14) BAROMETER:30.1`, `GPS (8.5417, 47.3769, 15), ... H 30.10m`) whose
 order differs between models (longitude first on a Mavic Pro or a Phantom 4 RTK, latitude first on a Matrice 300),
 so a tuple is read only where one of its values is past 90 degrees and so must be the longitude. Their heights are
-above the take-off (the barometer's); current drones' `abs_alt` above the sea, which is taken where written. Tuples
+above the take-off (the barometer's); current drones' `abs_alt` above the sea, which is taken where written. Some tuples
 round their degrees to 4 places (11 m), which each position says (`rounding_m`: the standard deviation of an error
 spread evenly across its last digit)."""
 from __future__ import annotations
@@ -45,9 +45,9 @@ def flight_log(clip: Path) -> Path | None:
 
 
 def read_track(log: Path) -> dict:
-    """The drone's positions over the clip: `seconds` [N] (the middle of each caption's span), `positions` [N, 3] (latitude,
-    longitude in degrees, height in metres), `height` (which height: "sea" or "take-off"), `rounding_m` (what the
-    degrees' last written digit leaves unsaid, metres across); or `why` where the file gives none."""
+    """The drone's positions over the clip: `seconds` [N] (the middle of each caption's span), `positions` [N, 3]
+    (latitude, longitude in degrees, height in metres), `height` (which height: "sea" or "take-off"), `rounding_m`
+    (what the degrees' last written digit leaves unsaid, metres across); or `why` where the file gives none."""
     text = log.read_text(encoding="utf-8", errors="replace")
     captions = [c for c in re.split(r"\n\s*\n", text.replace("\r\n", "\n")) if _SPAN.search(c)]
     if not captions:

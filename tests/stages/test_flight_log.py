@@ -28,7 +28,8 @@ def labelled(latitude: float, longitude: float, rel: float, sea: float, spelling
 
 
 def tuple_form(first: float, second: float, barometer: float) -> str:
-    """An older DJI drone's caption (a Mavic Pro's): an unlabelled GPS tuple to four places, height from its barometer."""
+    """An older DJI drone's caption (a Mavic Pro's): an unlabelled GPS tuple to four places, height from its
+    barometer."""
     return (f"HOME({first:.4f},{second:.4f}) 2017.07.29 15:18:50\nGPS({first:.4f},{second:.4f},14) "
             f"BAROMETER:{barometer:.1f}\nISO:100 Shutter:60 EV: Fnum:2.2 ")
 
