@@ -88,7 +88,8 @@ def summary(out: Path, stage: str) -> dict:
 
 def flight_errors(out: Path) -> dict:
     """The drone video's poses against where it flew: the cameras' distance (metres, rms and most) from a similarity
-    fitted to the flight, and how far (degrees) the poses' up is from each camera's true up."""
+    fitted to the flight, how far (degrees) the poses' up is from each camera's true up, and the focal length found
+    (pixels at 320x240; the truth's 277)."""
     import pycolmap
     truth, transforms = np.load(DRONE_TRUTH), json.loads((out / "poses" / "transforms.json").read_text())
     up = np.asarray(transforms.get("up", [0.0, 0.0, 1.0]))
@@ -102,7 +103,7 @@ def flight_errors(out: Path) -> dict:
     angle = np.degrees(np.arccos(np.clip(np.sum(seen * true, axis=1), -1.0, 1.0)))
     return {"off_flight_m": {"rms": round(float(np.sqrt(np.mean(off ** 2))), 3), "max": round(float(off.max()), 3)},
             "up_off_deg": {"median": round(float(np.median(angle)), 2), "max": round(float(angle.max()), 2)},
-            "georeference": transforms.get("georeference")}
+            "focal_px": round(float(transforms["fl_x"]), 1), "georeference": transforms.get("georeference")}
 
 
 def one_run(name: str, data: Path, preset: str, label: str, overrides: list[str]) -> dict:
