@@ -7,6 +7,7 @@ from pathlib import Path
 import pycolmap
 
 from stages.common.media import write_png
+from stages.capture.flight_log import locate_frames
 from stages.capture.panorama import split_frame, view_focal, view_name, view_side
 from stages.capture.photos import fit_max_side
 from stages.capture.video import video_frames
@@ -17,7 +18,8 @@ def denser_frames(scene: Path, clip: dict, records: list[dict], scratch: Path,
     """The clip read again with frames twice as close (and up to twice as many a second) and at full size, where a clip
     whose frames do not hold together often does: neighbours overlap more, and a downscaled frame's finer texture is
     back for SfM. Two folders laid out as ingest's: the frames at full size (to pose) and at the ingested size (the
-    output), with their records; a 360 clip's frames cut into their views."""
+    output), with their records (each frame's place where the clip's flight log gives it); a 360 clip's frames cut
+    into their views."""
     side = max(records[0]["width"], records[0]["height"])
     frames, denser = video_frames(scene, 0, clip["motion"] / 2, 2 * clip["max_per_second"], report,
                                   crop_bars=clip.get("crop_bars", True), max_frames=2 * clip.get("max_frames", 0),
@@ -36,6 +38,9 @@ def denser_frames(scene: Path, clip: dict, records: list[dict], scratch: Path,
             kept.append({"name": name, "file": f"images/{name}.png", "source": scene.name,
                          "width": image.shape[1], "height": image.shape[0], "mask": None,
                          **({**view, "focal": view_focal(image.shape[1])} if view else {})})
+    if not clip.get("panorama"):  # where the drone was for each, where a flight log beside the clip says
+        for kept in (full_records, ingested_records):
+            locate_frames(kept, scene, denser["fps"])
     return full, full_records, ingested, ingested_records, denser
 
 

@@ -300,6 +300,22 @@ def test_a_drone_video_is_held_near_its_flight_log_and_posed_in_its_metres(tmp_p
     assert pipeline.status("ingest")[0] == "stale"
 
 
+def test_a_drone_clip_read_again_keeps_its_frames_places(tmp_path):
+    # A clip SfM refuses is read again with frames closer together (stages/sfm/video_again.py): those frames take
+    # their places from the flight log too, so the second try is held as the first was.
+    from stages.sfm.video_again import denser_frames
+
+    places = drone_orbit_video(tmp_path / "flight", views=12)
+    records = [{"name": "frame_000000", "width": 320, "height": 240}]
+    clip = {"motion": 0.05, "max_per_second": 10.0, "crop_bars": False, "paint_overlays": False}
+    _, full, _, ingested, _ = denser_frames(tmp_path / "flight" / "DJI_0001.MP4", clip, records, tmp_path / "scratch",
+                                            Reporter(quiet=True))
+    assert len(full) >= 6 and len(full) == len(ingested)
+    for record in full + ingested:
+        logged = places[int(record["name"].split("_")[1])]
+        assert record["gps"]["position"][:2] == pytest.approx(logged[:2], abs=1e-6)
+
+
 def test_each_photos_stated_gps_error_reaches_its_prior(tmp_path):
     """An RTK drone's photos say their positions to centimetres (DJI's XMP deviations, where its fix is fixed), a
     phone's EXIF gives its horizontal error; each photo's prior in the database is as wide as its own says, never
