@@ -20,7 +20,7 @@ from stages.capture.photos import (IMAGE_SUFFIXES, SIDECAR_SUFFIXES, VIDEO_SUFFI
 from stages.capture.panorama import (FRAME_SHARE, PANORAMA_VIEWS, POLE_WORDS, frame_side, is_two_to_one,
                                      looks_equirect, photos_equirect, says_equirect, split_frame, view_focal, view_name,
                                      view_side)
-from stages.capture.flight_log import flight_words, locate_frames
+from stages.capture.flight_log import locate_frames
 from stages.capture.video import clip_samples, sequence_step, video_frames
 from stages.sfm import pose_files
 from stages.common.text import short_list, size_words, text_name
@@ -274,7 +274,8 @@ def video_words(clip: dict, s: Settings) -> str:
         what = "what moves with the camera: its holder, a logo" if clip.get("panorama") else "a watermark or caption"
         words += f", a still overlay painted over ({clip['overlay']:.1%} of the picture: {what})"
     if flight := clip.get("flight_log"):
-        words += f", {flight['why']}, so its frames are posed without it" if "why" in flight else flight_words(flight)
+        words += (f", {flight['why']}, so its frames are posed without it" if "why" in flight else
+                  f", where the drone was for {flight['frames']} of them from its flight log {flight['file']}")
     if "bars" in clip:
         (width, height), kept = clip["bars"]["frame"], clip["bars"]["kept"]
         words += f", black bars cropped (the picture {kept[2]}x{kept[3]} of its {width}x{height} frame)"

@@ -24,14 +24,11 @@ from stages.capture.video import frame_seconds
 SUFFIXES = (".srt", ".SRT", ".Srt")
 # Metres of latitude in a degree, for what a position's last written digit spans.
 METRES_PER_DEGREE = 111_320.0
-# How far (a share of their median) the captions' focal lengths may spread and still be one lens's: past it, a zoom.
-MAX_FOCAL_SPREAD = 0.02
 
 _NUMBER = r"([-+]?\d+(?:\.(\d+))?)"
 _TIME = r"(\d+):(\d+):(\d+)[,.](\d+)"
 _SPAN = re.compile(rf"{_TIME}\s*-->\s*{_TIME}")
 _LABELLED = re.compile(rf"\[\s*latitude\s*:\s*{_NUMBER}\s*\]\s*\[\s*longt?itude\s*:\s*{_NUMBER}\s*\]", re.I)
-_FOCAL = re.compile(r"focal_len\s*:\s*(\d+)(\.\d+)?", re.I)
 _TUPLE = re.compile(rf"GPS\s*\(\s*{_NUMBER}\s*,\s*{_NUMBER}\s*[,)]", re.I)
 # Heights in the order they are taken: above the sea where written, else above the take-off.
 _HEIGHTS = (re.compile(rf"abs_alt\s*:\s*{_NUMBER}", re.I), re.compile(rf"\[\s*altitude\s*:\s*{_NUMBER}", re.I),
@@ -50,8 +47,7 @@ def flight_log(clip: Path) -> Path | None:
 def read_track(log: Path) -> dict:
     """The drone's positions over the clip: `seconds` [N] (the middle of each caption's span), `positions` [N, 3]
     (latitude, longitude in degrees, height in metres), `height` (which height: "sea" or "take-off"), `rounding_m`
-    (what the degrees' last written digit leaves unsaid, metres across), `focal_35mm` where the captions give the
-    lens's (`lens_focal`); or `why` where the file gives none."""
+    (what the degrees' last written digit leaves unsaid, metres across); or `why` where the file gives none."""
     text = log.read_text(encoding="utf-8", errors="replace")
     captions = [c for c in re.split(r"\n\s*\n", text.replace("\r\n", "\n")) if _SPAN.search(c)]
     if not captions:
@@ -78,23 +74,9 @@ def read_track(log: Path) -> dict:
         return {"why": f"{log.name}'s GPS does not say which of its values is the latitude" if tuples
                 else f"{log.name} gives no positions"}
     order = np.argsort(seconds, kind="stable")
-    focal = lens_focal(captions)
     return {"seconds": np.asarray(seconds)[order], "positions": np.asarray(positions)[order],
             "height": "sea" if rank == 0 else "take-off",
-            "rounding_m": round(METRES_PER_DEGREE * 10.0 ** -places / math.sqrt(12.0), 3),
-            **({"focal_35mm": focal} if focal else {})}
-
-
-def lens_focal(captions: list[str]) -> float | None:
-    """The lens's focal length (mm, 35 mm equivalent) the captions give (`focal_len`: tenths of a millimetre where
-    written as a whole number, as older firmwares do, else millimetres), where they give one that holds over the
-    clip (a clip zoomed as it was filmed gives none)."""
-    written = [m.groups() for caption in captions if (m := _FOCAL.search(caption))]
-    found = [float(whole + fraction) if fraction else float(whole) / 10.0 for whole, fraction in written]
-    if not found or len(found) < len(captions) / 2:
-        return None
-    median = float(np.median(found))
-    return round(median, 2) if median > 0 and np.ptp(found) <= MAX_FOCAL_SPREAD * median else None
+            "rounding_m": round(METRES_PER_DEGREE * 10.0 ** -places / math.sqrt(12.0), 3)}
 
 
 def clock(parts: tuple[str, ...]) -> float:
@@ -136,8 +118,7 @@ def position_at(track: dict, seconds: float) -> list[float] | None:
 
 def locate_frames(records: list[dict], clip: Path, fps: float) -> dict | None:
     """Each frame's place from the clip's flight log, where it has one: its record's `gps` (`position`: latitude,
-    longitude, height; `rounding_m`; `height`: "sea" or "take-off") and, where the log gives the lens's, its
-    `focal_35mm`. Returns what was read for the summary
+    longitude, height; `rounding_m`; `height`: "sea" or "take-off"). Returns what was read for the summary
     (`file`, `frames` located; or `why` none were), None without a log."""
     log = flight_log(clip)
     if log is None:
@@ -150,13 +131,4 @@ def locate_frames(records: list[dict], clip: Path, fps: float) -> dict | None:
         if (position := position_at(track, frame_seconds(record["name"], fps))) is not None:
             record["gps"] = {"position": position, "rounding_m": track["rounding_m"], "height": track["height"]}
             located += 1
-        if "focal_35mm" in track:  # where SfM starts the camera (stages/sfm/exif.py set_focal_priors)
-            record["focal_35mm"] = track["focal_35mm"]
-    return {"file": log.name, "frames": located, "rounding_m": track["rounding_m"], "height": track["height"],
-            **({"focal_35mm": track["focal_35mm"]} if "focal_35mm" in track else {})}
-
-
-def flight_words(found: dict) -> str:
-    """The ingest summary's words on what a clip's flight log gave (`locate_frames`)."""
-    lens = f" (its lens {found['focal_35mm']:g} mm, 35 mm equivalent)" if "focal_35mm" in found else ""
-    return f", where the drone was for {found['frames']} of them from its flight log {found['file']}{lens}"
+    return {"file": log.name, "frames": located, "rounding_m": track["rounding_m"], "height": track["height"]}

@@ -159,16 +159,13 @@ def write_fisheye_video(path: Path | str, n_frames: int = 48, width: int = 640, 
 
 
 def write_drone_video(path: Path | str, fps: float = 24.0, hold: int = 2, seed: int = 4,
-                      origin: tuple[float, float, float] = (47.3769, 8.5417, 408.0), lens_mm: float = 28.0
-                      ) -> np.ndarray:
+                      origin: tuple[float, float, float] = (47.3769, 8.5417, 408.0)) -> np.ndarray:
     """A drone's mapping flight over the unbounded kind as its video (320x240, MPEG-4) and the flight log DJI writes
     beside it (a subtitle file of the clip's name, a caption a frame: stages/capture/flight_log.py): four rows flown
     at 3 units up, the camera 10 degrees off straight down and heading one way throughout, so the cameras' own up
     axes all lie near the heading. Each view is held for `hold` frames; the log gives the frames' places with the
     scene's units as 100 m east, north and up of `origin` (latitude, longitude, altitude), each off by GPS's error
-    (half a metre across, a metre in height), and the lens as `lens_mm` (35 mm equivalent; the frames' own is 30.0,
-    which a photo's nominal 28 misses as a video cropped from the photo's frame does). Returns each frame's
-    camera-to-world matrix, in the scene's units."""
+    (half a metre across, a metre in height). Returns each frame's camera-to-world matrix, in the scene's units."""
     import pycolmap
     scene = build_scene("unbounded", seed)
     k = Intrinsics.from_frame({"fl_x": 277.0, "fl_y": 277.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240})
@@ -196,8 +193,7 @@ def write_drone_video(path: Path | str, fps: float = 24.0, hold: int = 2, seed: 
                 np.asarray([100.0 * eye + error[index]]), *origin)[0]
             span = " --> ".join(_srt_time(t / fps) for t in (index, index + 1))
             captions.append(f'{index + 1}\n{span}\n<font size="28">FrameCnt: {index + 1}, DiffTime: '
-                            f'{1000 / fps:.0f}ms\n[iso: 100] [focal_len: {lens_mm:.2f}] [latitude: {latitude:.6f}] '
-                            f'[longitude: {longitude:.6f}] '
+                            f'{1000 / fps:.0f}ms\n[iso: 100] [latitude: {latitude:.6f}] [longitude: {longitude:.6f}] '
                             f"[rel_alt: {altitude - origin[2]:.3f} abs_alt: {altitude:.3f}] </font>\n")
     writer.release()
     path.with_suffix(".SRT").write_text("\n".join(captions))

@@ -112,9 +112,9 @@ def set_focal_priors(db: Path, records: list[dict], photos: Path, sensor_width_m
                      from_exif: bool = True) -> dict | None:
     """Starts each camera in the database from the EXIF focal length of its photos (the median where photos share one,
     scaled to the ingested size), marked as a prior so verification estimates essential matrices; from the focal
-    length a record gives (a 360 frame's view, `focal`; a drone clip's frame, its flight log's lens, `focal_35mm`)
-    where it gives one, EXIF or not. Without either (or with `from_exif` off), a fisheye camera starts from
-    `fisheye_focal`, and others from COLMAP's guess of 1.2 x the longest side."""
+    length a record gives (a 360 frame's view, `focal`) where it gives one, EXIF or not. Without either (or with
+    `from_exif` off), a fisheye camera starts from `fisheye_focal`, and others from COLMAP's guess of 1.2 x the
+    longest side."""
     by_name = {f"{r['name']}.png": r for r in records}
     found = []
     with pycolmap.Database.open(db) as database:
@@ -126,11 +126,6 @@ def set_focal_priors(db: Path, records: list[dict], photos: Path, sensor_width_m
             for record in camera_records:
                 if "focal" in record:
                     priors.append((record["focal"], "the 360 views' field of view"))
-                    continue
-                if "focal_35mm" in record:  # a drone clip's lens, from its flight log
-                    diagonal = math.hypot(record["width"], record["height"])
-                    priors.append((record["focal_35mm"] / FULL_FRAME_DIAGONAL_MM * diagonal,
-                                   f"the flight log's {record['focal_35mm']:g} mm (35 mm equivalent)"))
                     continue
                 exif = exif_focal(photos / record["source"], sensor_width_mm) if from_exif else None
                 if exif is not None:

@@ -92,28 +92,3 @@ def test_captions_without_a_fix_are_left_out_and_a_log_without_heights_gives_non
                    + caption(2, 1, 2, "[latitude: 47.3770] [longitude: 8.5417]"))
     assert "no height" in read_track(log)["why"]
     assert flight_log(tmp_path / "b.mp4") is None
-
-
-def test_the_logs_lens_starts_the_clips_camera_unless_it_zooms(tmp_path):
-    """Current firmwares write the lens's 35 mm equivalent in millimetres, older ones in tenths as a whole number;
-    SfM starts the clip's camera from it (a flat survey seen from above leaves the focal length free to trade with
-    the distance, so the start matters). A clip zoomed as it was filmed gives no one lens."""
-    import pycolmap
-    from stages.capture.flight_log import lens_focal
-    from stages.sfm.exif import FULL_FRAME_DIAGONAL_MM, set_focal_priors
-
-    assert lens_focal(["[focal_len: 24.00]"] * 3) == lens_focal(["[focal_len : 240]"] * 3) == 24.0
-    assert lens_focal(["[focal_len: 24.00]", "[focal_len: 48.00]", "[focal_len: 72.00]"]) is None
-    log = tmp_path / "DJI_0005.SRT"
-    log.write_text("\n".join(caption(i + 1, i / 30, (i + 1) / 30, labelled(47.3769 + 1e-5 * i, 8.5417, i, 400.0 + i)
-                                     .replace("[focal_len: 24.00]", "[focal_len: 26.00]")) for i in range(10)))
-    records = [{"name": "frame_000003", "source": "DJI_0005.MP4", "width": 320, "height": 240}]
-    assert locate_frames(records, tmp_path / "DJI_0005.MP4", 30.0)["focal_35mm"] == 26.0
-    db = tmp_path / "database.db"
-    with pycolmap.Database.open(db) as database:
-        camera = database.write_camera(pycolmap.Camera(model="SIMPLE_RADIAL", width=320, height=240,
-                                                       params=[384.0, 160.0, 120.0, 0.0]))
-        database.write_image(pycolmap.Image(name="frame_000003.png", camera_id=camera))
-    found = set_focal_priors(db, records, tmp_path, 6.17)
-    assert found["focal_px"] == pytest.approx(26.0 / FULL_FRAME_DIAGONAL_MM * 400.0, rel=1e-3)
-    assert "flight log" in found["from"]
