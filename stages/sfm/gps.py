@@ -60,8 +60,10 @@ def position_errors(records: list[dict], photos: Path) -> dict[str, tuple[float,
     and GPS_ERROR_UP_M."""
     errors = {}
     for r in records:
-        if "gps" in r:
-            said = math.hypot(GPS_ERROR_ACROSS_M, r["gps"].get("rounding_m", 0.0)), GPS_ERROR_UP_M
+        if "gps" in r:  # a log written to a centimetre says nothing GPS's own error does not
+            if r["gps"].get("rounding_m", 0.0) < MIN_ERROR_ACROSS_M:
+                continue
+            said = math.hypot(GPS_ERROR_ACROSS_M, r["gps"]["rounding_m"]), GPS_ERROR_UP_M
         elif "panorama" in r or Path(r["source"]).suffix.lower() in VIDEO_SUFFIXES:
             continue
         elif (said := position_error(photos / r["source"])) is None:

@@ -340,6 +340,12 @@ def test_each_photos_stated_gps_error_reaches_its_prior(tmp_path):
     assert errors["fixed.png"] == pytest.approx((0.05, 0.10))  # centimetres, taken at the least
     assert errors["phone.png"] == pytest.approx((4.5, 9.0))
     assert "fine.png" in errors and "floating.png" not in errors and "silent.png" not in errors
+    # a drone clip's frames: a flight log rounding its degrees to 11 m widens them; one written to a centimetre does not
+    logged = gps.position_errors([{"name": name, "source": "DJI_0001.MP4", "gps": {"position": [0.0] * 3,
+                                                                                   "rounding_m": rounding}}
+                                  for name, rounding in (("coarse", 3.21), ("fine_log", 0.03))], tmp_path)
+    assert list(logged) == ["coarse.png"]
+    assert logged["coarse.png"] == pytest.approx((math.hypot(gps.GPS_ERROR_ACROSS_M, 3.21), gps.GPS_ERROR_UP_M))
     db = tmp_path / "database.db"
     database = pycolmap.Database.open(db)
     camera = database.write_camera(pycolmap.Camera(model="PINHOLE", width=32, height=24, params=[30, 30, 16, 12]))
