@@ -50,8 +50,8 @@ def read_track(log: Path) -> dict:
     (what the degrees' last written digit leaves unsaid, metres across); or `why` where the file gives none."""
     text = log.read_text(encoding="utf-8", errors="replace")
     captions = [c for c in re.split(r"\n\s*\n", text.replace("\r\n", "\n")) if _SPAN.search(c)]
-    if not captions:
-        return {"why": f"{log.name} holds no captions"}
+    if not any(_LABELLED.search(c) or _TUPLE.search(c) for c in captions):  # a film's subtitles, say
+        return {"why": f"{log.name} gives no positions"}
     for rank, height in enumerate(_HEIGHTS):  # one kind of height for the whole clip, the first every caption has
         if all(height.search(c) for c in captions):
             break
@@ -70,7 +70,7 @@ def read_track(log: Path) -> dict:
         positions.append((latitude, longitude, float(height.search(caption).group(1))))
         places = max(places, written)
     if len(positions) < 2:
-        tuples = any(_TUPLE.search(c) for c in captions) and not any(_LABELLED.search(c) for c in captions)
+        tuples = not any(_LABELLED.search(c) for c in captions)
         return {"why": f"{log.name}'s GPS does not say which of its values is the latitude" if tuples
                 else f"{log.name} gives no positions"}
     order = np.argsort(seconds, kind="stable")

@@ -91,4 +91,8 @@ def test_captions_without_a_fix_are_left_out_and_a_log_without_heights_gives_non
     log.write_text(caption(1, 0, 1, "[latitude: 47.3769] [longitude: 8.5417]") + "\n"
                    + caption(2, 1, 2, "[latitude: 47.3770] [longitude: 8.5417]"))
     assert "no height" in read_track(log)["why"]
+    log.write_text(caption(1, 0, 1, "Where were you?") + "\n" + caption(2, 1, 2, "Filming."))  # a film's subtitles
+    assert "gives no positions" in read_track(log)["why"]
+    log.write_bytes(bytes(range(256)) * 8)  # not text at all
+    assert "gives no positions" in read_track(log)["why"]
     assert flight_log(tmp_path / "b.mp4") is None
