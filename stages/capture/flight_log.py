@@ -123,7 +123,10 @@ def locate_frames(records: list[dict], clip: Path, fps: float) -> dict | None:
     log = flight_log(clip)
     if log is None:
         return None
-    track = read_track(log)
+    try:
+        track = read_track(log)
+    except OSError as error:  # unreadable where it lies: the frames are posed without it, as without a log
+        track = {"why": f"{log.name} could not be read ({error.strerror or error})"}
     if "why" in track:
         return {"file": log.name, "why": track["why"]}
     located = 0

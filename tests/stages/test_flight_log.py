@@ -96,3 +96,18 @@ def test_captions_without_a_fix_are_left_out_and_a_log_without_heights_gives_non
     log.write_bytes(bytes(range(256)) * 8)  # not text at all
     assert "gives no positions" in read_track(log)["why"]
     assert flight_log(tmp_path / "b.mp4") is None
+    (tmp_path / "c.SRT").mkdir()  # a folder of its name, which no reader can open as a file
+    assert flight_log(tmp_path / "c.mp4") is None
+
+
+def test_a_log_that_cannot_be_read_leaves_the_frames_unplaced_and_says_why(tmp_path, monkeypatch):
+    import stages.capture.flight_log as module
+
+    (tmp_path / "DJI_0006.SRT").write_text(caption(1, 0, 1, labelled(47.3769, 8.5417, 1.0, 401.0)))
+
+    def refused(log):
+        raise PermissionError(13, "Permission denied", str(log))
+    monkeypatch.setattr(module, "read_track", refused)
+    records = [{"name": "frame_000000"}]
+    found = locate_frames(records, tmp_path / "DJI_0006.MP4", 30.0)
+    assert found["why"] == "DJI_0006.SRT could not be read (Permission denied)" and "gps" not in records[0]
