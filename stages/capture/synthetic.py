@@ -43,6 +43,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pycolmap
 
 from plenoxels.core.cameras import Intrinsics, look_at
 from plenoxels.core.errors import UserError
@@ -166,7 +167,6 @@ def write_drone_video(path: Path | str, fps: float = 24.0, hold: int = 2, seed: 
     axes all lie near the heading. Each view is held for `hold` frames; the log gives the frames' places with the
     scene's units as 100 m east, north and up of `origin` (latitude, longitude, altitude), each off by GPS's error
     (half a metre across, a metre in height). Returns each frame's camera-to-world matrix, in the scene's units."""
-    import pycolmap
     scene = build_scene("unbounded", seed)
     k = Intrinsics.from_frame({"fl_x": 277.0, "fl_y": 277.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240})
     rows, flight = np.linspace(-1.2, 0.8, 4), []
