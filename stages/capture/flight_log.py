@@ -45,9 +45,10 @@ def flight_log(clip: Path) -> Path | None:
 
 
 def read_track(log: Path) -> dict:
-    """The drone's positions over the clip: `seconds` [N] (the middle of each caption's span), `positions` [N, 3]
-    (latitude, longitude in degrees, height in metres), `height` (which height: "sea" or "take-off"), `rounding_m`
-    (what the degrees' last written digit leaves unsaid, metres across); or `why` where the file gives none."""
+    """The drone's positions over the clip: `seconds` [N] (the middle of each caption's span; `step` apart, the median),
+    `positions` [N, 3] (latitude, longitude in degrees, height in metres), `height` (which height: "sea" or
+    "take-off"), `rounding_m` (what the degrees' last written digit leaves unsaid, metres across); or `why` where the
+    file gives none."""
     text = log.read_text(encoding="utf-8", errors="replace")
     captions = [c for c in re.split(r"\n\s*\n", text.replace("\r\n", "\n")) if _SPAN.search(c)]
     if not any(_LABELLED.search(c) or _TUPLE.search(c) for c in captions):  # a film's subtitles, say
@@ -75,6 +76,7 @@ def read_track(log: Path) -> dict:
                 else f"{log.name} gives no positions"}
     order = np.argsort(seconds, kind="stable")
     return {"seconds": np.asarray(seconds)[order], "positions": np.asarray(positions)[order],
+            "step": float(np.median(np.diff(np.asarray(seconds)[order]))),
             "height": "sea" if rank == 0 else "take-off",
             "rounding_m": round(METRES_PER_DEGREE * 10.0 ** -places / math.sqrt(12.0), 3)}
 
@@ -109,8 +111,7 @@ def place(caption: str) -> tuple[float, float, int] | None:
 def position_at(track: dict, seconds: float) -> list[float] | None:
     """Where the drone was `seconds` into the clip, between the captions around it; None outside the log's span (a
     caption's length past either end)."""
-    times = track["seconds"]
-    step = float(np.median(np.diff(times))) if len(times) > 1 else 0.0
+    times, step = track["seconds"], track["step"]
     if not times[0] - step <= seconds <= times[-1] + step:
         return None
     return [float(np.interp(seconds, times, track["positions"][:, axis])) for axis in range(3)]
