@@ -110,10 +110,19 @@ def run(ctx) -> dict:
             if gravity is not None:
                 info["gimbal"]["taken"] = True
         held = (info.get("gps_priors") or {}).get("origin")
-        # A survey's GPS says up too, and where SfM held the cameras near it, whether its metres are the model's frame
-        if gravity is None or held:
-            positions = gps.photo_positions(records, photo_folder(ctx.scene))
-            up, info["gps"] = gps.gravity(reconstruction, positions, held) if positions else (None, None)
+        imported_frame = source != "sfm"
+        located = (gps.photo_positions(records, photo_folder(ctx.scene)) if gravity is None or held or imported_frame
+                   else {})
+        if imported_frame and located:  # a pose file's frame, moved into the photos' GPS metres where it fits them
+            given = gravity
+            gravity, info["gps"], scale = gps.into_metres(reconstruction, located, gravity)
+            bounds = {name: (near * scale, far * scale) for name, (near, far) in bounds.items()}
+            if given is None and "in_metres_of" in info["gps"]:
+                info["gps"]["taken"] = True
+        elif gravity is None or held:
+            # A survey's GPS says up too, and where SfM held the cameras near it, whether its metres are the model's
+            # frame
+            up, info["gps"] = gps.gravity(reconstruction, located, held) if located else (None, None)
             if gravity is None and up is not None:
                 gravity, info["gps"]["taken"] = up, True
         step = time.perf_counter()
@@ -170,7 +179,7 @@ def run(ctx) -> dict:
     if found.get("taken"):
         line += (f"; up from the GPS of {found['photos']} photos ({found['span_m']:.0f} m across, the cameras fitted "
                  f"to it within {found['fit_m']:.1f} m)")
-    elif "fit_m" in found and not (info.get("gimbal") or {}).get("taken"):
+    elif "fit_m" in found and "in_metres_of" not in found and not (info.get("gimbal") or {}).get("taken"):
         line += (f"; the GPS of {found['photos']} photos ({found['span_m']:.0f} m across, the cameras fitted to it "
                  f"within {found['fit_m']:.1f} m) not taken for up (past {gps.MAX_TILT_DEG:g} deg)")
     if "in_metres_of" in found:

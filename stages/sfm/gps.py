@@ -121,6 +121,22 @@ def gravity(reconstruction: pycolmap.Reconstruction, positions: dict[str, tuple[
     """The world's up in the model's frame from where its images were taken (by image name), and what was found;
     with the `origin` of the metres SfM held the cameras near (`write_priors`), whether the model's frame is those
     metres (found["in_metres_of"]: the fit moves it by no more than GPS can tell)."""
+    sim3, found = fit_model(reconstruction, positions, origin)
+    if sim3 is None:
+        return None, found
+    turned = math.degrees(math.acos(np.clip((np.trace(sim3.rotation.matrix()) - 1) / 2, -1.0, 1.0)))
+    if origin is not None and turned <= MAX_TILT_DEG and abs(math.log(sim3.scale)) <= MAX_GEO_SCALE_LOG and (
+            np.linalg.norm(sim3.translation) <= max(1.0, MAX_GEO_SHIFT_SHARE * found["span_m"])):
+        found["in_metres_of"] = [float(v) for v in origin]
+    up = sim3.rotation.matrix().T @ [0.0, 0.0, 1.0]
+    return up / np.linalg.norm(up), found
+
+
+def fit_model(reconstruction: pycolmap.Reconstruction, positions: dict[str, tuple[float, float, float]],
+              origin: tuple[float, float, float] | None = None) -> tuple[pycolmap.Sim3d | None, dict]:
+    """The similarity that takes the model's camera centres to where their images were taken (metres east, north and
+    up of `origin`, the first located where not given), where GPS can say it (a survey: `spans_survey`, the fit's
+    residuals tilting its span by no more than MAX_TILT_DEG); and what was found."""
     centres, located = [], []
     for image in reconstruction.images.values():
         if image.has_pose and image.name in positions:
@@ -144,9 +160,19 @@ def gravity(reconstruction: pycolmap.Reconstruction, positions: dict[str, tuple[
     found["fit_m"] = round(float(np.sqrt(np.mean(residual ** 2))), 2)
     if math.degrees(math.atan2(found["fit_m"], found["span_m"])) > MAX_TILT_DEG:
         return None, found
-    turned = math.degrees(math.acos(np.clip((np.trace(sim3.rotation.matrix()) - 1) / 2, -1.0, 1.0)))
-    if origin is not None and turned <= MAX_TILT_DEG and abs(math.log(sim3.scale)) <= MAX_GEO_SCALE_LOG and (
-            np.linalg.norm(sim3.translation) <= max(1.0, MAX_GEO_SHIFT_SHARE * found["span_m"])):
-        found["in_metres_of"] = [float(v) for v in origin]
-    up = sim3.rotation.matrix().T @ [0.0, 0.0, 1.0]
-    return up / np.linalg.norm(up), found
+    return sim3, found
+
+
+def into_metres(reconstruction: pycolmap.Reconstruction, positions: dict[str, tuple[float, float, float]],
+                up: np.ndarray | None) -> tuple[np.ndarray | None, dict, float]:
+    """A model nothing held near the GPS (a pose file's) moved into the GPS's metres east, north and up of the first
+    photo located, where it fits them (`fit_model`): the world's up in it (`up`, as the file or the gimbal gave it,
+    turned with the model; +z where none was given), what was found (`in_metres_of`) and the scale applied (1 where
+    it was not moved)."""
+    origin = next(iter(positions.values()))
+    sim3, found = fit_model(reconstruction, positions, origin)
+    if sim3 is None:
+        return up, found, 1.0
+    reconstruction.transform(sim3)
+    found["in_metres_of"] = [float(v) for v in origin]
+    return (np.array([0.0, 0.0, 1.0]) if up is None else sim3.rotation.matrix() @ up), found, float(sim3.scale)

@@ -189,12 +189,13 @@ def test_a_drone_survey_looking_down_takes_up_from_its_gimbal_pitch(tmp_path):
     assert_up_from(tmp_path / "out", truth)
 
 
-@pytest.mark.parametrize("told", ["gimbal", "gps"])
+@pytest.mark.parametrize("told", ["gimbal", "gps", "both"])
 def test_a_drone_surveys_own_poses_take_up_from_its_photos_where_their_file_gives_none(tmp_path, told):
     """Poses another tool made, in a frame of its own (turned, as SfM's frames are, with no up in the file): the
     photos' gimbal pitch, or without it (a drone of another maker) where they were taken (the cameras fitted to their
-    GPS), says which way is up."""
-    truth = drone_survey(tmp_path / "capture" / "images", pitch=told == "gimbal", gps=told == "gps")
+    GPS), says which way is up; where the photos carry GPS that the cameras fit, the poses are moved into its metres
+    (the gimbal's up turned with them)."""
+    truth = drone_survey(tmp_path / "capture" / "images", pitch=told != "gps", gps=told != "gimbal")
     turn = np.eye(4)
     turn[:3, :3] = cv2.Rodrigues(np.array([0.7, -0.4, 1.1]))[0]
     frames = [{"file_path": f"images/{name}.jpg", "transform_matrix": (turn @ c2w).tolist()}
@@ -203,8 +204,21 @@ def test_a_drone_surveys_own_poses_take_up_from_its_photos_where_their_file_give
         {"fl_x": 277.0, "fl_y": 277.0, "cx": 160.0, "cy": 120.0, "w": 320, "h": 240, "frames": frames}))
     run_poses(tmp_path / "capture", tmp_path / "out")
     # each camera sees up as it truly does, whatever the frame
-    assert_up_from(tmp_path / "out", truth, "the gimbal pitch of 20 photos" if told == "gimbal" else
+    assert_up_from(tmp_path / "out", truth, "the gimbal pitch of 20 photos" if told != "gps" else
                    "the GPS of 20 photos (")
+    transforms = read_json(tmp_path / "out" / "poses" / "transforms.json")
+    if told == "gimbal":  # no GPS: the file's own frame
+        assert "georeference" not in transforms
+        return
+    from stages.sfm.exif import exif_position
+    from stages.sfm.gps import east_north_up
+    origin = transforms["georeference"]["origin"]
+    assert origin == pytest.approx(exif_position(tmp_path / "capture" / "images" / "DJI_0000.jpg"))
+    frames = frames_by_name(transforms)
+    centres = np.stack([np.asarray(frames[name]["transform_matrix"])[:3, 3] for name in truth])
+    located = east_north_up(np.stack([exif_position(tmp_path / "capture" / "images" / f"{name}.jpg")
+                                      for name in truth]), origin)
+    assert np.sqrt(np.mean(np.sum((centres - located) ** 2, axis=1))) < 2.0  # the GPS's own error: 0.5 m, 1 m up
 
 
 def test_sfm_holds_a_drone_survey_to_its_gps_so_its_rows_stay_flat_and_it_says_up(tmp_path):
