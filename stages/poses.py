@@ -120,8 +120,7 @@ def run(ctx) -> dict:
             if given is None and "in_metres_of" in info["gps"]:
                 info["gps"]["taken"] = True
         elif gravity is None or held:
-            # A survey's GPS says up too, and where SfM held the cameras near it, whether its metres are the model's
-            # frame
+            # A survey's GPS says up too; where SfM held the cameras near it, whether the model's frame is its metres
             up, info["gps"] = gps.gravity(reconstruction, located, held) if located else (None, None)
             if gravity is None and up is not None:
                 gravity, info["gps"]["taken"] = up, True
