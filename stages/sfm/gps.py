@@ -1,8 +1,9 @@
 """What the photos' GPS says: where they were taken (their EXIF's latitude, longitude and altitude:
 exif.exif_position) turned to metres east, north and up (WGS 84, pycolmap's GPSTransform). Across a survey it holds
 SfM's model to those metres (`write_priors`: COLMAP's pose priors, which bundle adjustment keeps the cameras near, so
-a survey's rows cannot bend into a dome), and it says which way is up (`gravity`: the model's camera centres fitted
-to them by a similarity, pycolmap's estimate_sim3d_robust, whose rotation carries the metres' up into the model).
+a survey's rows cannot bend into a dome), it says which way is up (`gravity`: the model's camera centres fitted
+to them by a similarity, pycolmap's estimate_sim3d_robust, whose rotation carries the metres' up into the model), and
+it moves a pose file's model, which nothing held, into those metres where its cameras fit them (`into_metres`).
 
 GPS is metres off, more in height than across (each prior as far as its photo says, where it does: an RTK fix's
 centimetres, a phone's stated error, a flight log's rounding), so it is taken only where it spans far more than that
