@@ -180,24 +180,35 @@ def write_drone_video(path: Path | str, fps: float = 24.0, hold: int = 2, seed: 
     error = np.random.default_rng(seed).normal(0.0, [0.5, 0.5, 1.0], (len(flight) * hold, 3))
     path = Path(path)
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (320, 240))
-    poses, captions = [], []
+    poses, places = [], []
     for x, y in flight:
         eye = np.array([x, y, 3.0])
         c2w = look_at(eye, eye + look)
         bgr = np.ascontiguousarray(render_view(scene, c2w, k, supersample=1)[0][..., ::-1])
         for _ in range(hold):
-            index = len(poses)
             writer.write(bgr)
+            places.append(100.0 * eye + error[len(poses)])
             poses.append(c2w)
-            latitude, longitude, altitude = pycolmap.GPSTransform().enu_to_ellipsoid(
-                np.asarray([100.0 * eye + error[index]]), *origin)[0]
-            span = " --> ".join(_srt_time(t / fps) for t in (index, index + 1))
-            captions.append(f'{index + 1}\n{span}\n<font size="28">FrameCnt: {index + 1}, DiffTime: '
-                            f'{1000 / fps:.0f}ms\n[iso: 100] [latitude: {latitude:.6f}] [longitude: {longitude:.6f}] '
-                            f"[rel_alt: {altitude - origin[2]:.3f} abs_alt: {altitude:.3f}] </font>\n")
     writer.release()
-    path.with_suffix(".SRT").write_text("\n".join(captions))
+    write_flight_log(path.with_suffix(".SRT"), np.asarray(places), fps, origin)
     return np.stack(poses)
+
+
+def write_flight_log(path: Path, places: np.ndarray, fps: float, origin: tuple[float, float, float]
+                     ) -> list[list[float]]:
+    """The flight log DJI writes beside a clip (as a current drone labels it): a caption a frame, with the frame's
+    place given as metres east, north and up of `origin` (latitude, longitude, altitude; its height above the take-off
+    from there). Returns each frame's place as written (latitude, longitude, altitude)."""
+    written, captions = [], []
+    for index, (latitude, longitude, altitude) in enumerate(
+            pycolmap.GPSTransform().enu_to_ellipsoid(np.asarray(places, dtype=np.float64), *origin)):
+        span = " --> ".join(_srt_time(t / fps) for t in (index, index + 1))
+        captions.append(f'{index + 1}\n{span}\n<font size="28">FrameCnt: {index + 1}, DiffTime: {1000 / fps:.0f}ms\n'
+                        f"[iso: 100] [latitude: {latitude:.6f}] [longitude: {longitude:.6f}] "
+                        f"[rel_alt: {altitude - origin[2]:.3f} abs_alt: {altitude:.3f}] </font>\n")
+        written.append([float(latitude), float(longitude), float(altitude)])
+    path.write_text("\n".join(captions))
+    return written
 
 
 def _srt_time(seconds: float) -> str:
