@@ -52,8 +52,9 @@ def _sfm(ctx, s: Settings, folder: Path, records: list[dict]) -> tuple[pycolmap.
 
 
 def georeference(found: dict | None, above_take_off: bool = False) -> dict | None:
-    """transforms.json's `georeference`, where the model's frame is metres east, north and up of a place (gps.gravity's
-    `in_metres_of`); its altitude above where the drone took off where its heights were (a flight log's barometer)."""
+    """transforms.json's `georeference`, where the model's frame is metres east, north and up of a place
+    (`in_metres_of`: gps.gravity's for a held model, gps.into_metres's for a pose file's); its altitude above where
+    the drone took off where its heights were (a flight log's barometer)."""
     if not found or "in_metres_of" not in found:
         return None
     altitude = "altitude (metres above the take-off)" if above_take_off else "altitude (metres)"

@@ -47,7 +47,7 @@ def write_poses(out: Path, scratch: Path, ingest_dir: Path, distorted: pycolmap.
     """Undistorts the posed images of `distorted` (a model of the ingested PNGs in `ingest_dir`) and writes the poses
     output into `out`: images/, masks/, sparse/, transforms.json and points.npz. `bounds` maps image names to LLFF
     (near, far); `gravity` is the world's up where the poses' source fixes it, `georeference` where the frame is
-    metres east, north and up of a place (gps.gravity); `scratch` holds the intermediate models. With
+    metres east, north and up of a place (stages/sfm/gps.py); `scratch` holds the intermediate models. With
     `check_matches` (a pose file's poses), the photos whose matches with their neighbours contradict their poses are
     left out and it is all written again, or where there are too many of them the file is refused."""
     written = _write_poses(out, scratch, ingest_dir, distorted, records, source, source_path, bounds, report, gravity,
