@@ -41,7 +41,8 @@ from plenoxels.planning.fit_plan import photo_scale
 from plenoxels.core.errors import UserError
 from plenoxels.core.native import resolve_device
 from plenoxels.core.scene_model import BACKDROP_MIN_TRAIN_PSNR, SceneModel, backdrop_check_step
-from plenoxels.core.train import Diverged, Fitter, Schedule
+from plenoxels.core.schedule import Schedule
+from plenoxels.core.train import Diverged, Fitter
 from stages.settings.fit import Settings
 from stages.common.layout import CHECKPOINT_PT, FIT_JSON, SCENE_JSON
 

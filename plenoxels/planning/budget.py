@@ -26,7 +26,8 @@ from plenoxels.planning.fit_plan import (COARSE_LAST, FINE_MIN_SHARE, FINEST_MAX
                                          choose, finest_worth, finish_seconds, ladder_at, replan, upsample_band)
 from plenoxels.core.memory import voxels_that_fit
 from plenoxels.core.scene_model import SceneModel
-from plenoxels.core.train import Fitter, Schedule, pruning_rays
+from plenoxels.core.schedule import Schedule
+from plenoxels.core.train import Fitter, pruning_rays
 from plenoxels.core.ray_set import RaySet
 
 # Re-plan every this many steps; a level's step time is the mean of its latest STEP_WINDOW, after its first few.

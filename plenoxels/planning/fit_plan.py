@@ -36,7 +36,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from plenoxels.core.train import coarse_start
+from plenoxels.core.schedule import coarse_start
 from plenoxels.planning.fit_cost import CostModel, change_passes
 
 # Shares of a rung's steps a plan may give: at least MIN_SHARE (a level needs enough steps to converge), at most

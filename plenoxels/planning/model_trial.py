@@ -32,7 +32,8 @@ import numpy as np
 import torch
 
 from plenoxels.core.scene_model import SceneModel, psnr, reaches_far
-from plenoxels.core.train import Fitter, Schedule
+from plenoxels.core.schedule import Schedule
+from plenoxels.core.train import Fitter
 from plenoxels.core.ray_set import RaySet
 
 # The models a trial chooses between, by the fit's toggles that make each.

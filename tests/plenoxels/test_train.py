@@ -19,7 +19,8 @@ from plenoxels.core.optim import GridGrad, decayed_lr
 from plenoxels.core.render import RenderOptions, loss_and_grad
 from plenoxels.core.regularizers import tv_scale_for_views, views_per_point
 from plenoxels.core.scene_model import ModelOptions, SceneModel, background_width_for
-from plenoxels.core.train import Diverged, Fitter, Schedule, TrainOptions, prune_mask, pruning_rays, pruning_stride
+from plenoxels.core.schedule import Schedule
+from plenoxels.core.train import Diverged, Fitter, TrainOptions, prune_mask, pruning_rays, pruning_stride
 from plenoxels.core.ray_set import RaySet, coherent_order, random_backdrops
 from tests.stages.test_fit import make_scene
 

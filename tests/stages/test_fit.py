@@ -23,7 +23,7 @@ from plenoxels.core.errors import UserError
 from plenoxels.core.native import cuda_ready
 from plenoxels.core.optim import SparseRMSProp
 from plenoxels.core.scene_model import SceneModel
-from plenoxels.core import train
+from plenoxels.core import schedule, train
 from plenoxels.core.train import Fitter
 from stages import fit
 
@@ -250,7 +250,7 @@ def test_a_fit_whose_per_thread_tables_would_pass_their_memory_share_adds_gradie
     ([39, 39, 78], 0.99, [39, 39, 78]),  # rounding never makes it finer
 ])
 def test_a_coarse_start_scales_the_first_level_and_its_early_pruned_rest(resolutions, scale, expected):
-    assert train.coarse_start(resolutions, scale) == expected
+    assert schedule.coarse_start(resolutions, scale) == expected
 
 
 def test_a_fit_with_a_coarse_start_fits_its_first_level_coarser(fresh):
