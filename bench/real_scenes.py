@@ -15,7 +15,8 @@ bench/out/real_scenes/renders/<scene>-<preset>-<views>.png (not committed: 0.3 M
 The synthetic scenes (stages/capture/synthetic.py) are 40 views at 320x240, written under bench/out/ with their true
 poses as a transforms.json: `synthetic_unbounded`, an object on an endless textured ground inside a textured sphere;
 `synthetic_room`, the object on the floor of a closed textured room, seen from inside it (what a phone video of a thing
-on a floor sees).
+on a floor sees); `synthetic_room_passers_by`, the same room with a person walking through 40% of its training views
+(in each somewhere else; its held-out views clean), which no one scene explains.
 
     .venv/bin/python -m bench.real_scenes                                     # every scene, preset and view count
     .venv/bin/python -m bench.real_scenes --scenes fox --presets fast --views all quarter
@@ -61,7 +62,10 @@ from plenoxels.planning.model_trial import MODELS  # noqa: E402
 RESULTS = REPO / "bench" / "results" / "real_scenes.json"
 CACHE = REPO / "bench" / "out" / "real_scenes"
 RENDERS = CACHE / "renders"
-SCENES = ("fox", "cup", "fern", "synthetic_unbounded", "synthetic_room", "ball", "apple")
+SCENES = ("fox", "cup", "fern", "synthetic_unbounded", "synthetic_room", "synthetic_room_passers_by", "ball", "apple")
+# The synthetic scenes: their kind, and the share of their views a person walks through (never a held-out one).
+SYNTHETIC = {"synthetic_unbounded": ("unbounded", 0.0), "synthetic_room": ("room", 0.0),
+             "synthetic_room_passers_by": ("room", 0.4)}
 # Scenes given as one file (a phone's video) rather than a folder of photos.
 FILES = {"apple": "apple.mp4"}
 PRESETS = ("fast", "balanced", "default", "quality")
@@ -85,7 +89,8 @@ def scene_folder(name: str, data: Path) -> Path:
 
     folder = CACHE / f"{name}-photos"
     if not (folder / "transforms.json").is_file():
-        write_scene(name.removeprefix("synthetic_"), folder, n_views=40, width=320, height=240)
+        kind, passers_by = SYNTHETIC[name]
+        write_scene(kind, folder, n_views=40, width=320, height=240, passers_by=passers_by)
     return folder
 
 

@@ -52,6 +52,7 @@ from stages.capture.synthetic_scenes import (ENVIRONMENT_RADIUS, WORLD_UP, camer
                                              intrinsics_for, render_view, turn_angles, view_scene, walk_poses)
 from stages.common.json_files import read_json, write_json
 from stages.common.media import write_png
+from stages.framing.options import SceneOptions
 
 
 def _silently(items, total=None, desc=""):
@@ -61,16 +62,19 @@ def _silently(items, total=None, desc=""):
 
 def write_scene(kind: str, out_dir: Path | str, n_views: int = 40, width: int = 320, height: int = 240,
                 seed: int = 0, alpha: bool = False, supersample: int = 2, masks: bool = False, mast: bool = False,
-                track=None) -> Path:
+                passers_by: float = 0.0, track=None) -> Path:
     """Renders a synthetic scene into out_dir (replacing an earlier synthetic scene there) and returns out_dir.
     `masks` writes a mask per photo into masks/ (the object's coverage of each pixel); `mast` adds a thin mast;
-    `track(items, total, desc)` wraps the views rendered, for progress (a Reporter's `track`).
+    `passers_by` paints a person walking through into about that share of the views, in each somewhere else (never in
+    a view normalize holds out by default, so held-out PSNR scores the scene; each person's pixels in
+    ground_truth/passers_by/); `track(items, total, desc)` wraps the views rendered, for progress (a Reporter's
+    `track`).
 
     The scene is assembled in a sibling folder and renamed into place, so out_dir is either the old
     scene or the complete new one. Same arguments, same bytes.
     """
     scene = build_scene(kind, seed, mast=mast)
-    _check_arguments(kind, n_views, width, height, alpha, supersample)
+    _check_arguments(kind, n_views, width, height, alpha, supersample, passers_by)
     out_dir = Path(out_dir)
     _check_replaceable(out_dir)
 
@@ -80,6 +84,9 @@ def write_scene(kind: str, out_dir: Path | str, n_views: int = 40, width: int = 
     (tmp / "ground_truth").mkdir()
     if masks:
         (tmp / "masks").mkdir()
+    if passers_by:
+        (tmp / "ground_truth" / "passers_by").mkdir()
+    walkers = np.random.default_rng(seed + 1)
     k = intrinsics_for(kind, width, height)
     poses = camera_poses(scene, n_views)
     angles = turn_angles(n_views) if scene.room else np.zeros(n_views)
@@ -88,6 +95,9 @@ def write_scene(kind: str, out_dir: Path | str, n_views: int = 40, width: int = 
                                                   desc=f"rendering {kind} scene")):
         rgb, depth, coverage = render_float(view_scene(scene, angle), c2w, k, supersample)
         name = f"images/{n:04d}.png"
+        if n % SceneOptions().holdout_every and walkers.random() < passers_by:
+            rgb, person = paint_passer_by(rgb, walkers)
+            write_png(tmp / "ground_truth" / "passers_by" / f"{n:04d}.png", to_uint8(person.astype(np.float32)))
         if masks:
             write_png(tmp / "masks" / f"{n:04d}.png", to_uint8(coverage))
         if alpha:
@@ -110,7 +120,7 @@ def write_scene(kind: str, out_dir: Path | str, n_views: int = 40, width: int = 
         "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
         "frames": frames,
         "synthetic": {"kind": kind, "seed": seed, "n_views": n_views, "alpha": alpha, "supersample": supersample,
-                      "masks": masks, "mast": mast},
+                      "masks": masks, "mast": mast, "passers_by": passers_by},
     })
     scene.mesh().export(tmp / "ground_truth" / "mesh.ply")
     bounds = scene.object_bounds()
@@ -130,6 +140,21 @@ def write_scene(kind: str, out_dir: Path | str, n_views: int = 40, width: int = 
     os.replace(tmp, out_dir)
     return out_dir
 
+
+
+def paint_passer_by(rgb: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A person painted into a view (float RGB [h, w, 3]) where `rng` puts them: a body in clothes of one colour with
+    folds, and a head, standing somewhere across the frame and cut by its bottom edge. Returns the view and the
+    person's pixels [h, w] (bool). A person seen in one view and not the next is what no one scene explains."""
+    h, w = rgb.shape[:2]
+    centre, feet, tall = rng.uniform(0.1, 0.9) * w, rng.uniform(0.8, 1.3) * h, rng.uniform(0.5, 0.9) * h
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    body = ((x - centre) / (0.16 * tall)) ** 2 + ((y - (feet - 0.45 * tall)) / (0.45 * tall)) ** 2 < 1.0
+    head = (x - centre) ** 2 + (y - (feet - 0.98 * tall)) ** 2 < (0.09 * tall) ** 2
+    folds = 0.8 + 0.2 * np.sin(x / 3.0 + y / 7.0)[..., None]
+    painted = np.where(body[..., None], np.clip(rng.uniform(0.05, 0.95, 3) * folds, 0.0, 1.0), rgb)
+    painted[head] = (0.85, 0.65, 0.5)
+    return painted.astype(rgb.dtype), body | head
 
 
 def write_panorama_video(path: Path | str, n_frames: int = 48, width: int = 960, seed: int = 0, fps: float = 8.0,
@@ -228,7 +253,8 @@ def _depth_range(depth: np.ndarray, k: Intrinsics) -> dict:
 
 
 
-def _check_arguments(kind: str, n_views: int, width: int, height: int, alpha: bool, supersample: int) -> None:
+def _check_arguments(kind: str, n_views: int, width: int, height: int, alpha: bool, supersample: int,
+                     passers_by: float = 0.0) -> None:
     if n_views < 1:
         raise UserError(f"the number of views must be at least 1 (got {n_views})")
     if width < 8 or height < 8:
@@ -237,6 +263,8 @@ def _check_arguments(kind: str, n_views: int, width: int, height: int, alpha: bo
         raise UserError(f"supersample must be at least 1 (got {supersample})")
     if alpha and kind != "object":
         raise UserError(f"alpha only applies to the object kind (the {kind} scene has no empty background)")
+    if not 0.0 <= passers_by <= 1.0 or (passers_by and alpha):
+        raise UserError(f"passers_by is a share of the views in [0, 1], without alpha (got {passers_by})")
 
 
 
