@@ -149,6 +149,10 @@ class TrainOptions:
     """Share of each batch of random rays drawn where the render still disagrees with the photos, in proportion to
     the RMS error of each block of pixels (plenoxels/core/error_map.py); the rest are uniform (0: every ray uniform;
     batch_mode rays only)."""
+    leave_out_transients: bool = True
+    """Leave out of the fit what moved between the photos (a person walking through, a car): the patches of a photo
+    whose colour the render, fitted to all of them, says is not the scene's, found at each measurement from the
+    second level on (plenoxels/core/error_map.py, find_transients; batch_mode rays only)."""
     measure_every: int = 200
     """Steps between two measurements of the training photos against the render (their colours, the error map); each
     level's start measures them too. Only a fit that uses either measures."""

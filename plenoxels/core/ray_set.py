@@ -129,6 +129,13 @@ class RaySet:
         """The flat indices [B] of these pixels into the set's table of pixels."""
         return self.offsets[image] + row * self.sizes[image, 1] + col
 
+    def unflat(self, pixel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The (image, row, column) [B] of the pixels at flat indices `pixel`, on the CPU."""
+        image = torch.searchsorted(self.offsets, pixel, right=True) - 1
+        within = pixel - self.offsets[image]
+        width = self.sizes[image, 1]
+        return image.cpu(), (within // width).cpu(), (within % width).cpu()
+
     def pixel_rays(self, pixel: torch.Tensor, coherent: bool = False) -> tuple[torch.Tensor, ...]:
         """(order [B], image [B], world origins, unit directions [B, 3], colours [B, 3] in [0, 1]) of the pixels at
         flat indices `pixel`, output i being pixel order[i]: the pixels' own order, or with `coherent` coherent_order's
@@ -151,6 +158,8 @@ class RaySet:
         if mode == "rays":
             by_error = round(size * error_share) if error_map is not None and error_map.measured else 0
             pixel = torch.randint(self.num_pixels, (size - by_error,), generator=generator).to(device)
+            if error_map is not None and error_map.leaves_out:  # what moved between the photos is never drawn
+                pixel = pixel[error_map.kept(*self.unflat(pixel)).to(device)]
             if by_error:
                 pixel = torch.cat([pixel, self.flat(*(t.to(device) for t in error_map.draw(by_error, generator)))])
         else:

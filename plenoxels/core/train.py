@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 from plenoxels.core.background import BackgroundOptimiser
-from plenoxels.core.error_map import ErrorMap, measure_stride
+from plenoxels.core.error_map import ErrorMap, kept_inside, measure_stride
 from plenoxels.core.errors import UserError
 from plenoxels.core.files import write_whole
 from plenoxels.core.grid import SparseGrid, sh_count
@@ -102,10 +102,10 @@ class Fitter:
         self.background_seconds = 0.0       # of this run's steps, spent training the background (and drawing it, on a GPU)
         self.checkpoint_step: int | None = None
         self.regularisation = self._regularisation()
-        measured_rays = options.measure_rays if options.error_share > 0 else min(options.measure_rays, COLOUR_RAYS)
+        mapped = (options.error_share > 0 or options.leave_out_transients) and options.batch_mode == "rays"
+        measured_rays = options.measure_rays if mapped else min(options.measure_rays, COLOUR_RAYS)
         self.measure_stride = measure_stride(train.sizes, measured_rays)
-        self.error_map = (ErrorMap(train.sizes, self.measure_stride)
-                          if options.error_share > 0 and options.batch_mode == "rays" else None)
+        self.error_map = ErrorMap(train.sizes, self.measure_stride) if mapped else None
         self.colour = PhotoColour(len(train))
         self.colour_measures: list[float] = []  # what the gains of each deciding measure brought (dB nearer)
         self.colour_decided = False  # whether those measures have decided if the photos differ in colour
@@ -336,6 +336,7 @@ class Fitter:
         if self.backdrop_as_taken:
             # Where the render is still partly the backdrop, its colour is not yet the object's.
             inside = (opacity > OPAQUE) & (True if inside is None else inside)
+        inside = kept_inside(self.error_map, image, row, col, inside)
         if self.colour_deciding:
             # Measured against the photos as they are, which the field has been trained on: gains it has not learnt.
             self.colour.fit(image, rendered, photo, inside)
@@ -351,7 +352,9 @@ class Fitter:
         if self.error_map is not None:
             common = self.colour.to_common(image, photo, put_in) if self.fits_colour else photo
             targets = floor_targets(common, self.train.floors_at(self.train.flat(*pixels)).cpu())
-            self.error_map.measure(image, row, col, (colour_error(rendered, targets) ** 2).mean(dim=1))
+            self.error_map.measure(image, row, col, colour_error(rendered, targets))
+            if self.options.leave_out_transients and self.level > 0:
+                self.error_map.find_transients()
 
     def gain_fields(self) -> torch.Tensor | None:
         """Each training photo's gains across its frame [P, rows, cols, 3] against the model as it stands, measured
@@ -366,7 +369,8 @@ class Fitter:
         inside = None if inside is None else inside.cpu()
         if self.backdrop_as_taken:
             inside = (opacity > OPAQUE) & (True if inside is None else inside)
-        return gain_fields(image, row, col, self.train.sizes.cpu(), rendered, photo, self.colour.gain, shape, inside)
+        return gain_fields(image, row, col, self.train.sizes.cpu(), rendered, photo, self.colour.gain, shape,
+                           kept_inside(self.error_map, image, row, col, inside))
 
     def gain_field_rays(self) -> int:
         """Rays gain_fields renders at the fit's end, which a budget keeps time for (0: photos taken as they are)."""

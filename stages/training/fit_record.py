@@ -74,6 +74,8 @@ def fit_record(fitter: Fitter, inputs: FitInputs, ending: Ending, budget: TimeBu
         "memory_bytes": memory,
         "regularisation": fitter.regularisation,
         "photo_colour": fitter.colour_record(),
+        "transients": (fitter.error_map.transients_record()
+                       if fitter.error_map is not None and fitter.options.leave_out_transients else None),
         "background_added": ending.background_why or None,
         "scene_model": model_trial.model_name(model), "model_choice": inputs.choice or {},
         "own_backdrops": fitter.train.backdrops is not None and model.background is None,
@@ -132,6 +134,9 @@ def summary(ctx, fitter: Fitter, inputs: FitInputs, ending: Ending, record: dict
     if choice.get("chosen") or choice.get("questions"):
         line += "; " + model_trial.summary(choice)
     line += fitter.regularisation_summary() + fitter.colour_summary()
+    if (transients := record["transients"]) and transients["photos"]:
+        line += (f", {transients['share']:.1%} of the photos' pixels left out, in {transients['photos']} of "
+                 f"{len(fitter.train)} (what moved between them)")
     threads = record.get("gradient_threads")
     if threads and threads["used"] < threads["available"]:
         line += (f", gradients on {threads['used']} of {threads['available']} "

@@ -132,9 +132,9 @@ def test_the_error_map_draws_pixels_from_the_blocks_that_are_wrong():
     error_map = ErrorMap(sizes, stride=2)
     image, row, col = lattice(sizes, 2)
     # Wrong only in photo 1's block at rows 4-7, columns 8-11, and a little everywhere in photo 0.
-    errors = torch.where((image == 1) & (row // 4 == 1) & (col // 4 == 2), 0.25, 0.0)
-    errors = errors + torch.where(image == 0, 1e-4, 0.0)
-    error_map.measure(image, row, col, errors)
+    difference = torch.where((image == 1) & (row // 4 == 1) & (col // 4 == 2), 0.5, 0.0)
+    difference = (difference + torch.where(image == 0, 1e-2, 0.0))[:, None].expand(-1, 3)
+    error_map.measure(image, row, col, difference)
     drawn_image, drawn_row, drawn_col = error_map.draw(20000, torch.Generator().manual_seed(0))
     in_block = (drawn_image == 1) & (drawn_row // 4 == 1) & (drawn_col // 4 == 2)
     # Drawn in proportion to pixels x RMS error: 16 x 0.5 against 1200 x 0.01 for photo 0.
@@ -144,6 +144,59 @@ def test_the_error_map_draws_pixels_from_the_blocks_that_are_wrong():
     # Every pixel of the block is drawn, none outside it in photo 1.
     assert len({(r, c) for r, c in zip(drawn_row[in_block].tolist(), drawn_col[in_block].tolist())}) == 16
     assert not bool(((drawn_image == 1) & ~in_block).any())
+
+
+def test_a_patch_the_render_disagrees_with_in_colour_is_left_out_and_blur_seams_specks_and_exposure_are_not():
+    """What moved between photos shifts the colour of a patch of one photo away from what the others say is there;
+    the detail a grid blurs is as often above the photo as below it, and averages out over a few blocks."""
+    sizes = torch.tensor([[64, 80]] * 4)
+    error_map = ErrorMap(sizes, stride=2)  # blocks of 4 pixels: 16 x 20 a photo
+    image, row, col = lattice(sizes, 2)
+    gen = torch.Generator().manual_seed(0)
+    difference = 0.2 * (torch.randint(0, 2, (image.shape[0], 3), generator=gen) * 2 - 1).double()  # blurred detail
+    person = (image == 0) & (row >= 20) & (row < 44) & (col >= 28) & (col < 44)  # 6 x 4 blocks
+    difference[person] += torch.tensor([0.3, -0.2, 0.25], dtype=torch.float64)
+    seam = (image == 1) & (col // 4 == 10)  # one block wide, the whole photo down
+    difference[seam] += 0.2
+    speck = (image == 2) & (row // 4 == 8) & (col // 4 == 8)  # one block
+    difference[speck] += 0.6
+    exposure = (image == 3) & (row < 44)  # most of a photo: its light, not something in front of it
+    difference[exposure] += 0.3
+    error_map.measure(image, row, col, difference)
+    error_map.find_transients()
+    left_out = ~error_map.kept(image, row, col)
+    assert bool(left_out[person].all())
+    around = (image == 0) & (row >= 16) & (row < 48) & (col >= 24) & (col < 48)  # a block's margin round the patch
+    assert not bool((left_out & ~around).any())
+    record = error_map.transients_record()
+    assert record["photos"] == 1 and 24 * 16 / (4 * 64 * 80) <= record["share"] <= 32 * 24 / (4 * 64 * 80)
+    # Measured again with the patch gone (the person walked on), the photo is whole again.
+    difference[person] -= torch.tensor([0.3, -0.2, 0.25], dtype=torch.float64)
+    error_map.measure(image, row, col, difference)
+    error_map.find_transients()
+    assert bool(error_map.kept(image, row, col).all()) and error_map.transients_record()["photos"] == 0
+
+
+def test_no_ray_is_drawn_from_what_is_left_out():
+    h, w, photos = 24, 32, 3
+    rows, cols = np.mgrid[0:h, 0:w]
+    # Each pixel's colour says where it is: its row, its column and its photo.
+    images = [np.stack([rows * 8, cols * 8, np.full_like(rows, 64 * i)], axis=-1).astype(np.uint8) for i in range(photos)]
+    rays = RaySet(images, [np.eye(4)] * photos, [Intrinsics(20.0, 20.0, w / 2, h / 2, w, h)] * photos)
+    error_map = ErrorMap(rays.sizes, stride=2)
+    image, row, col = rays.lattice(2)
+    out = (image == 1) & (row < 12) & (col < 16)
+    difference = torch.where(out, 0.5, 0.01)[:, None].double().expand(-1, 3)
+    error_map.measure(image, row, col, difference)
+    error_map.left_out = error_map.block_of(image, row, col).new_zeros(error_map.error.shape[0], dtype=torch.bool)
+    error_map.left_out[error_map.block_of(image[out], row[out], col[out])] = True
+    for share in (0.0, 0.5):
+        _, _, target = rays.batch(4096, "rays", 16, torch.Generator().manual_seed(0), error_map=error_map,
+                                  error_share=share)
+        drawn_row, drawn_col, drawn_image = (torch.round(target * 255) / torch.tensor([8, 8, 64])).round().long().T
+        assert not bool(((drawn_image == 1) & (drawn_row < 12) & (drawn_col < 16)).any())
+        # What is left out is an eighth of the pixels: the rest of the batch is drawn.
+        assert target.shape[0] >= 4096 * 0.8 and bool((drawn_image == 1).any())
 
 
 def lattice(sizes: torch.Tensor, stride: int):

@@ -505,6 +505,7 @@ def test_a_fit_stopped_between_the_early_prune_and_the_upsample_resumes_to_the_s
     if measures:
         assert torch.equal(resumed.colour.gain, whole.colour.gain) and not bool(whole.colour.gain.eq(1).all())
         assert torch.equal(resumed.error_map.error, whole.error_map.error) and whole.error_map.measured
+        assert torch.equal(resumed.error_map.left_out, whole.error_map.left_out)
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])

@@ -7,6 +7,7 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 import pytest
+import scipy.ndimage
 import torch
 
 from pipeline import config
@@ -14,6 +15,7 @@ from stages.common.frames import read_frame
 from stages.common.layout import CHECKPOINT_PT, RESUME
 from stages.common.json_files import read_json, write_json
 from pipeline.report import Reporter
+from pipeline.runner import Pipeline
 from stages.framing.options import SceneOptions
 from stages.framing.scene_frame import normalize_scene
 from stages.framing.sightings import Points
@@ -96,6 +98,8 @@ def test_fit_reaches_quality_and_writes_outputs(scene):
     assert max(resolution) == 32  # the last level's 32 vertices along the box's longest side
     shape = "32^3" if len(set(resolution)) == 1 else "x".join(map(str, resolution))
     assert summary["line"].startswith(f"{shape} grid") and "held-out" in summary["line"]
+    # Nothing moved between these photos, and nothing of them is left out.
+    assert record["transients"] == {"share": 0.0, "photos": 0} and "moved" not in summary["line"]
     level = record["levels"][0]
     assert level["kept"] < level["pruned_from"]  # empty space around the object was pruned
     model = read_json(scene / "fit" / "model.json")
@@ -431,3 +435,29 @@ def test_photos_that_agree_on_colour_are_taken_as_they_are(fresh):
     run_stage(fresh, fit, {**QUICK, "photo_colour": True, "measure_every": 40})
     record = read_json(fresh / "fit" / "fit.json")["photo_colour"]
     assert record["used"] and record["gain_db"] >= 0.15
+
+
+def test_a_fit_leaves_out_people_walking_through_a_room_and_little_else(tmp_path, monkeypatch):
+    """A room filmed with a person walking through some of its views: the fit stage leaves out most of each person,
+    little else, and says so."""
+    w, h = 160, 120
+    write_scene("room", tmp_path / "photos", n_views=40, width=w, height=h, passers_by=0.5)
+    fitted = []
+    finish = fit.finish
+    monkeypatch.setattr(fit, "finish", lambda ctx, fitter, *rest: fitted.append(fitter) or finish(ctx, fitter, *rest))
+    results = Pipeline(tmp_path / "photos", tmp_path / "out", preset="fast", overrides=["fit.image_scale=1.0"],
+                       reporter=Reporter(quiet=True)).run(["fit"])
+    fitter = fitted[-1]
+    frames = [f for f in read_json(tmp_path / "out" / "normalize" / "scene.json")["frames"] if f["split"] == "train"]
+    image, row, col = fitter.train.lattice(1)
+    left_out = (~fitter.error_map.kept(image, row, col)).reshape(len(frames), h, w).numpy()
+    painted = [tmp_path / "photos" / "ground_truth" / "passers_by" / Path(f["file_path"]).name for f in frames]
+    person = np.stack([iio.imread(p) > 127 if p.is_file() else np.zeros((h, w), bool) for p in painted])
+    assert person.any(axis=(1, 2)).sum() >= 10
+    assert left_out[person].mean() > 0.7  # most of each person
+    # Little else: the people and a margin round them (the blocks the measure averages over, 4 pixels each here).
+    margin = np.stack([scipy.ndimage.binary_dilation(p, np.ones((25, 25), bool)) for p in person])
+    assert (left_out & ~margin).sum() < 0.05 * left_out.sum()
+    record = read_json(tmp_path / "out" / "fit" / "fit.json")["transients"]
+    assert record["share"] == pytest.approx(left_out.mean(), abs=0.005)
+    assert f"in {record['photos']} of {len(frames)} (what moved between them)" in results["fit"]["summary"]["line"]
