@@ -154,11 +154,12 @@ class TrainOptions:
     whose colour the render, fitted to all of them, says is not the scene's, found at each measurement from the
     second level on (plenoxels/core/error_map.py, find_transients; batch_mode rays only)."""
     measure_every: int = 200
-    """Steps between two measurements of the training photos against the render (their colours, the error map); each
-    level's start measures them too. Only a fit that uses either measures."""
+    """Steps between two measurements of the training photos against the render (their colours, the error map, what
+    moved between them); each level's start measures them too. Only a fit that uses one of them measures."""
     measure_rays: int = 1 << 17
     """Rays one measurement renders: an even lattice of every photo's pixels, as fine as this allows (at most a quarter
-    of the default where it measures the photos' colours alone: plenoxels/core/photo_colour.py, COLOUR_RAYS)."""
+    of the default where it measures the photos' colours alone, with no error map to draw from or find what moved in:
+    plenoxels/core/photo_colour.py, COLOUR_RAYS)."""
     coherent_batches: bool = True
     """Order each batch's rays so that rays passing near each other sit together (the same rays, in another order:
     the kernel's threads then read neighbouring voxels, which is faster; bench/README.md, "Kernels")."""
