@@ -103,7 +103,8 @@ class Fitter:
         self.checkpoint_step: int | None = None
         self.regularisation = self._regularisation()
         mapped = (options.error_share > 0 or options.leave_out_transients) and options.batch_mode == "rays"
-        measured_rays = options.measure_rays if mapped else min(options.measure_rays, COLOUR_RAYS)
+        # What moved is found on the colours' lattice: patches of a photo, not the blocks the error map draws from.
+        measured_rays = options.measure_rays if options.error_share > 0 else min(options.measure_rays, COLOUR_RAYS)
         self.measure_stride = measure_stride(train.sizes, measured_rays)
         self.error_map = ErrorMap(train.sizes, self.measure_stride) if mapped else None
         self.colour = PhotoColour(len(train))
