@@ -15,15 +15,15 @@ pixels (four measured pixels a block). It is deterministic (no draw from the bat
 measures the same map.
 
 What moved between the photos (a person walking through, a car, a pet) is in some photos and not in the others, so no
-one scene explains it: a grid fitted to it draws ghosts and floaters in every view (a room with a person in 14 of its
-35 training photos: 2.7 dB lower held out; bench/README.md, "Real captures"). Where the render disagrees with a photo
-only in detail it blurs, the photo is as often above it as below, and the difference averages out over a few blocks;
-where something stood in front of the scene, the photo's colour is shifted the same way over the whole patch. So each
-block also keeps its mean difference (render less photo), and `find_transients` leaves out of the fit the patches
-where that difference, averaged over each block's neighbours, stays far off over a connected patch of blocks: rays
-are then never drawn there (RaySet.batch) and the photos' colours are measured without them. A patch of exposure over
-most of a photo is its light, which the photos' colours take (plenoxels/core/photo_colour.py), and is kept. The
-patches are found anew at each measurement, so a photo that the fit comes to explain is trained whole again.
+one scene explains it: a grid fitted to it draws ghosts and floaters in every view (a room with a person in 14 of its 35
+training photos: 1.7 dB lower held out, 0.3 with them left out; bench/README.md, "Real captures"). Where the render
+disagrees with a photo only in detail it blurs, the photo is as often above it as below, and the difference averages out
+over a few blocks; where something stood in front of the scene, the photo's colour is shifted the same way over the
+whole patch. So each block also keeps its mean difference (render less photo), and `find_transients` leaves out of the
+fit the patches where that difference, averaged over each block's neighbours, stays far off over a connected patch of
+blocks: rays are then never drawn there (RaySet.batch) and the photos' colours are measured without them. A patch of
+exposure over most of a photo is its light, which the photos' colours take (plenoxels/core/photo_colour.py), and is
+kept. The patches are found anew at each measurement, so a photo that the fit comes to explain is trained whole again.
 """
 from __future__ import annotations
 
@@ -41,8 +41,9 @@ MIN_BLOCK = 4
 # What moved between photos: the mean difference (render less photo, RGB in [0, 1]) over a block's neighbours (this
 # many blocks across) at least TRANSIENT_MIN_DIFFERENCE long, and TRANSIENT_RATIO times the capture's median and
 # TRANSIENT_SPREADS robust spreads above it, over a patch of at least TRANSIENT_MIN_BLOCKS blocks and
-# TRANSIENT_MIN_SHARE of its photo, but under TRANSIENT_MAX_SHARE of it. The least difference: fox's photos, whose
-# exposure and detail differ from view to view, lie under it in 99% of their blocks (bench/README.md, "Real captures").
+# TRANSIENT_MIN_SHARE of its photo, but under TRANSIENT_MAX_SHARE of it. The least difference: fox's and ball's photos,
+# whose light and detail differ from view to view, lie under it in over 99.9% of their blocks (bench/README.md, "Real
+# captures").
 TRANSIENT_NEIGHBOURS = 3
 TRANSIENT_MIN_DIFFERENCE = 0.15
 TRANSIENT_RATIO = 2.5

@@ -181,7 +181,8 @@ def test_no_ray_is_drawn_from_what_is_left_out():
     h, w, photos = 24, 32, 3
     rows, cols = np.mgrid[0:h, 0:w]
     # Each pixel's colour says where it is: its row, its column and its photo.
-    images = [np.stack([rows * 8, cols * 8, np.full_like(rows, 64 * i)], axis=-1).astype(np.uint8) for i in range(photos)]
+    images = [np.stack([rows * 8, cols * 8, np.full_like(rows, 64 * i)], axis=-1).astype(np.uint8)
+              for i in range(photos)]
     rays = RaySet(images, [np.eye(4)] * photos, [Intrinsics(20.0, 20.0, w / 2, h / 2, w, h)] * photos)
     error_map = ErrorMap(rays.sizes, stride=2)
     image, row, col = rays.lattice(2)

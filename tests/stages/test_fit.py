@@ -454,6 +454,7 @@ def test_a_fit_leaves_out_people_walking_through_a_room_and_little_else(tmp_path
     painted = [tmp_path / "photos" / "ground_truth" / "passers_by" / Path(f["file_path"]).name for f in frames]
     person = np.stack([iio.imread(p) > 127 if p.is_file() else np.zeros((h, w), bool) for p in painted])
     assert person.any(axis=(1, 2)).sum() >= 10
+    assert not any((painted[0].parent / f"{n:04d}.png").is_file() for n in range(0, 40, 8))  # held out: clean
     assert left_out[person].mean() > 0.7  # most of each person
     # Little else: the people and a margin of 3 blocks round them: the block a patch is grown by, the neighbours each
     # block's difference is averaged over, and the block a person's edge falls in.
