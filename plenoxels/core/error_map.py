@@ -91,9 +91,10 @@ class ErrorMap:
         self.error = torch.zeros(self.image.shape[0], dtype=torch.float64)
         self.difference = torch.zeros(self.image.shape[0], 3, dtype=torch.float64)
         self.left_out = torch.zeros(self.image.shape[0], dtype=torch.bool)
-        self.widths = sizes[:, 1]
         # Each photo's blocks as a lattice (rows, columns), stored one photo after the other, row by row.
         self.lattices = [(-(-h // self.block), -(-w // self.block)) for h, w in sizes.tolist()]
+        self.across = torch.tensor([cols for _, cols in self.lattices], dtype=torch.long)
+        self.first = torch.tensor([0] + [rows * cols for rows, cols in self.lattices], dtype=torch.long).cumsum(0)
 
     @property
     def measured(self) -> bool:
@@ -105,10 +106,7 @@ class ErrorMap:
 
     def block_of(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
         """The block index of each pixel."""
-        first = torch.zeros(int(self.widths.shape[0]) + 1, dtype=torch.long)
-        first[1:] = torch.bincount(self.image, minlength=int(self.widths.shape[0])).cumsum(0)
-        across = (self.widths + self.block - 1) // self.block
-        return first[image] + (row // self.block) * across[image] + col // self.block
+        return self.first[image] + (row // self.block) * self.across[image] + col // self.block
 
     def kept(self, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
         """Whether the fit trains on each of these pixels [P] (bool): not left out by find_transients."""

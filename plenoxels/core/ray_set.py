@@ -130,11 +130,11 @@ class RaySet:
         return self.offsets[image] + row * self.sizes[image, 1] + col
 
     def unflat(self, pixel: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The (image, row, column) [B] of the pixels at flat indices `pixel`, on the CPU."""
+        """The (image, row, column) [B] of the pixels at flat indices `pixel` (flat's inverse)."""
         image = torch.searchsorted(self.offsets, pixel, right=True) - 1
-        within = pixel - self.offsets[image]
+        local = pixel - self.offsets[image]
         width = self.sizes[image, 1]
-        return image.cpu(), (within // width).cpu(), (within % width).cpu()
+        return image, local // width, local % width
 
     def pixel_rays(self, pixel: torch.Tensor, coherent: bool = False) -> tuple[torch.Tensor, ...]:
         """(order [B], image [B], world origins, unit directions [B, 3], colours [B, 3] in [0, 1]) of the pixels at
@@ -159,7 +159,7 @@ class RaySet:
             by_error = round(size * error_share) if error_map is not None and error_map.measured else 0
             pixel = torch.randint(self.num_pixels, (size - by_error,), generator=generator).to(device)
             if error_map is not None and error_map.leaves_out:  # what moved between the photos is never drawn
-                pixel = pixel[error_map.kept(*self.unflat(pixel)).to(device)]
+                pixel = pixel[error_map.kept(*(t.cpu() for t in self.unflat(pixel))).to(device)]
             if by_error:
                 pixel = torch.cat([pixel, self.flat(*(t.to(device) for t in error_map.draw(by_error, generator)))])
         else:
@@ -273,12 +273,10 @@ COHERENT_EXTENT = 2.0
 
 def torch_pixel_rays(rays: RaySet, pixel: torch.Tensor, coherent: bool = False) -> tuple[torch.Tensor, ...]:
     """RaySet.pixel_rays made of torch's operators, on any device: what the native pass computes on the CPU."""
-    image = torch.searchsorted(rays.offsets, pixel, right=True) - 1
-    local = pixel - rays.offsets[image]
-    w = rays.sizes[image, 1]
+    image, row, col = rays.unflat(pixel)
     k = rays.k[image]
-    d_cam = torch.stack([((local % w).float() + 0.5 - k[:, 2]) / k[:, 0],
-                         -(((local // w).float() + 0.5 - k[:, 3]) / k[:, 1]), -torch.ones_like(k[:, 0])], dim=-1)
+    d_cam = torch.stack([(col.float() + 0.5 - k[:, 2]) / k[:, 0],
+                         -((row.float() + 0.5 - k[:, 3]) / k[:, 1]), -torch.ones_like(k[:, 0])], dim=-1)
     c2w = rays.c2w[image]
     d = (c2w[:, :3, :3] * d_cam[:, None, :]).sum(-1)
     o, d = c2w[:, :3, 3].contiguous(), (d / d.norm(dim=-1, keepdim=True)).contiguous()
