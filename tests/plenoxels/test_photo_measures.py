@@ -189,14 +189,14 @@ def test_no_ray_is_drawn_from_what_is_left_out():
     out = (image == 1) & (row < 12) & (col < 16)
     difference = torch.where(out, 0.5, 0.01)[:, None].double().expand(-1, 3)
     error_map.measure(image, row, col, difference)
-    error_map.left_out = error_map.block_of(image, row, col).new_zeros(error_map.error.shape[0], dtype=torch.bool)
+    error_map.left_out = torch.zeros_like(error_map.left_out)
     error_map.left_out[error_map.block_of(image[out], row[out], col[out])] = True
     for share in (0.0, 0.5):
         _, _, target = rays.batch(4096, "rays", 16, torch.Generator().manual_seed(0), error_map=error_map,
                                   error_share=share)
         drawn_row, drawn_col, drawn_image = (torch.round(target * 255) / torch.tensor([8, 8, 64])).round().long().T
         assert not bool(((drawn_image == 1) & (drawn_row < 12) & (drawn_col < 16)).any())
-        # What is left out is an eighth of the pixels: the rest of the batch is drawn.
+        # What is left out is a twelfth of the pixels: the rest of the batch is drawn.
         assert target.shape[0] >= 4096 * 0.8 and bool((drawn_image == 1).any())
 
 
