@@ -16,7 +16,9 @@ The synthetic scenes (stages/capture/synthetic.py) are 40 views at 320x240, writ
 poses as a transforms.json: `synthetic_unbounded`, an object on an endless textured ground inside a textured sphere;
 `synthetic_room`, the object on the floor of a closed textured room, seen from inside it (what a phone video of a thing
 on a floor sees); `synthetic_room_passers_by`, the same room with a person walking through 40% of its training views
-(in each somewhere else; its held-out views clean), which no one scene explains.
+(in each somewhere else; its held-out views clean), which no one scene explains. Real captures with people painted into
+them the same way (`paint_passers_by`; ground_truth/passers_by/ holds each person): `fox_passers_by`, a person close by
+in 20% of fox's training photos; `fox_far_passers_by`, a small one farther off in 60% of them.
 
     .venv/bin/python -m bench.real_scenes                                     # every scene, preset and view count
     .venv/bin/python -m bench.real_scenes --scenes fox --presets fast --views all quarter
@@ -49,6 +51,7 @@ import json
 import os
 import re
 import resource
+import shutil
 import sys
 from pathlib import Path
 
@@ -62,10 +65,13 @@ from plenoxels.planning.model_trial import MODELS  # noqa: E402
 RESULTS = REPO / "bench" / "results" / "real_scenes.json"
 CACHE = REPO / "bench" / "out" / "real_scenes"
 RENDERS = CACHE / "renders"
-SCENES = ("fox", "cup", "fern", "synthetic_unbounded", "synthetic_room", "synthetic_room_passers_by", "ball", "apple")
+SCENES = ("fox", "cup", "fern", "synthetic_unbounded", "synthetic_room", "synthetic_room_passers_by", "ball", "apple",
+          "fox_passers_by", "fox_far_passers_by")
 # The synthetic scenes: their kind, and the share of their views a person walks through (never a held-out one).
 SYNTHETIC = {"synthetic_unbounded": ("unbounded", 0.0), "synthetic_room": ("room", 0.0),
              "synthetic_room_passers_by": ("room", 0.4)}
+# Real scenes with people painted into them: the scene, the share of its training photos, the person's size.
+PAINTED = {"fox_passers_by": ("fox", 0.2, 1.0), "fox_far_passers_by": ("fox", 0.6, 0.3)}
 # Scenes given as one file (a phone's video) rather than a folder of photos.
 FILES = {"apple": "apple.mp4"}
 PRESETS = ("fast", "balanced", "default", "quality")
@@ -80,6 +86,19 @@ MODEL_FLAGS = {"auto": None, "ndc": "ndc", "contracted": "contracted", "backgrou
 
 def scene_folder(name: str, data: Path) -> Path:
     """The photo folder the pipeline is pointed at (a dataset folder for the real scenes)."""
+    if name in PAINTED:
+        from stages.capture.synthetic import paint_passers_by
+
+        source, share, size = PAINTED[name]
+        folder = CACHE / f"{name}-photos"
+        if not (folder / "ground_truth" / "passers_by").is_dir():  # painted whole, or not there
+            copy = folder.with_name(folder.name + ".tmp")
+            shutil.rmtree(copy, ignore_errors=True)
+            shutil.copytree(scene_folder(source, data), copy)
+            paint_passers_by(copy, share, size)
+            shutil.rmtree(folder, ignore_errors=True)
+            copy.rename(folder)
+        return folder
     if not name.startswith("synthetic_"):
         folder = data / name
         if not folder.is_dir():

@@ -142,19 +142,41 @@ def write_scene(kind: str, out_dir: Path | str, n_views: int = 40, width: int = 
 
 
 
-def paint_passer_by(rgb: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def paint_passer_by(rgb: np.ndarray, rng: np.random.Generator, size: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """A person painted into a view (float RGB [h, w, 3]) where `rng` puts them: a body in clothes of one colour with
-    folds, and a head, standing somewhere across the frame and cut by its bottom edge. Returns the view and the
-    person's pixels [h, w] (bool). A person seen in one view and not the next is what no one scene explains."""
+    folds, and a head, standing somewhere across the frame. At `size` 1 they stand 0.5-0.9 of the frame tall, cut by
+    its bottom edge; smaller, they stand farther off, higher in the frame. Returns the view and the person's pixels
+    [h, w] (bool). A person seen in one view and not the next is what no one scene explains."""
     h, w = rgb.shape[:2]
-    centre, feet, tall = rng.uniform(0.1, 0.9) * w, rng.uniform(0.8, 1.3) * h, rng.uniform(0.5, 0.9) * h
+    centre, low, tall = rng.uniform(0.1, 0.9) * w, rng.uniform(0.8, 1.3), rng.uniform(0.5, 0.9) * h * size
+    feet = h * (0.5 + size * (low - 0.5))
     y, x = np.mgrid[0:h, 0:w].astype(np.float32)
     body = ((x - centre) / (0.16 * tall)) ** 2 + ((y - (feet - 0.45 * tall)) / (0.45 * tall)) ** 2 < 1.0
     head = (x - centre) ** 2 + (y - (feet - 0.98 * tall)) ** 2 < (0.09 * tall) ** 2
-    folds = 0.8 + 0.2 * np.sin(x / 3.0 + y / 7.0)[..., None]
+    grain = max(1.0, h / 240)  # the folds as wide in a large photo as in a small one, for its size
+    folds = 0.8 + 0.2 * np.sin(x / (3.0 * grain) + y / (7.0 * grain))[..., None]
     painted = np.where(body[..., None], np.clip(rng.uniform(0.05, 0.95, 3) * folds, 0.0, 1.0), rgb)
     painted[head] = (0.85, 0.65, 0.5)
     return painted.astype(rgb.dtype), body | head
+
+
+def paint_passers_by(folder: Path | str, share: float, size: float = 1.0, seed: int = 0) -> int:
+    """Paints a person (`paint_passer_by` at `size`) into about `share` of the photos in folder/images, in place, each
+    somewhere else, never into a photo normalize holds out by default (every holdout_every-th by sorted name); each
+    person's pixels go to ground_truth/passers_by/<stem>.png. A real capture with people walking through it, for the
+    bench. Returns how many photos were painted."""
+    folder, rng, painted = Path(folder), np.random.default_rng(seed), 0
+    (folder / "ground_truth" / "passers_by").mkdir(parents=True, exist_ok=True)
+    photos = sorted(p for p in (folder / "images").iterdir() if p.suffix.lower() in {".png", ".jpg", ".jpeg"})
+    for rank, path in enumerate(photos):
+        if rank % SceneOptions().holdout_every == 0 or rng.random() >= share:
+            continue
+        rgb, person = paint_passer_by(cv2.imread(str(path), cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255.0,
+                                      rng, size)
+        cv2.imwrite(str(path), to_uint8(rgb)[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])
+        write_png(folder / "ground_truth" / "passers_by" / f"{path.stem}.png", to_uint8(person.astype(np.float32)))
+        painted += 1
+    return painted
 
 
 def write_panorama_video(path: Path | str, n_frames: int = 48, width: int = 960, seed: int = 0, fps: float = 8.0,

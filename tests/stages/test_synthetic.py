@@ -1,5 +1,6 @@
 """The synthetic scene generator: determinism, exact geometry, camera layouts, the true mesh, and SIFT-friendliness."""
 import json
+import shutil
 
 import cv2
 import imageio.v3 as iio
@@ -8,7 +9,7 @@ import pytest
 import torch
 import trimesh
 
-from stages.capture.synthetic import write_scene
+from stages.capture.synthetic import paint_passers_by, write_scene
 
 from stages.capture.synthetic_scenes import KINDS, build_scene, camera_poses, intrinsics_for, render_view, surface_colour, surface_points, trace
 
@@ -60,6 +61,29 @@ def test_alpha_images_composite_back_to_the_rgb_images(tmp_path):
         alpha = rgba[..., 3:]
         assert rgba.shape[-1] == 4 and alpha.min() == 0 and alpha.max() == 1 and 0 < alpha.mean() < 1
         assert np.abs(alpha * rgba[..., :3] + (1 - alpha) * background - rgb).max() < 2.5 / 255
+
+
+def test_people_painted_into_a_capture_stay_out_of_its_held_out_photos_and_where_the_truth_says(tmp_path):
+    """A capture with people painted into it (real photos, for the bench): about the share asked, never a photo normalize
+    holds out, each person's pixels in ground_truth/passers_by/ where the photo changed and nowhere else."""
+    clean = write_scene("room", tmp_path / "clean", n_views=24, width=96, height=72)
+    painted = tmp_path / "painted"
+    shutil.copytree(clean, painted)
+    for path in sorted((painted / "images").glob("*.png"))[1::2]:  # JPEGs too, as a phone writes them
+        cv2.imwrite(str(path.with_suffix(".jpg")), cv2.imread(str(path)), [cv2.IMWRITE_JPEG_QUALITY, 98])
+        path.unlink()
+    before = {p.stem: iio.imread(p).astype(np.int16) for p in (painted / "images").iterdir()}
+    count = paint_passers_by(painted, share=0.5, size=0.5, seed=1)
+    truths = sorted((painted / "ground_truth" / "passers_by").iterdir())
+    assert len(truths) == count and 6 <= count <= 16
+    assert not any(int(t.stem) % 8 == 0 for t in truths)  # held out (every 8th by name): as taken
+    for path in (painted / "images").iterdir():
+        changed = np.abs(iio.imread(path).astype(np.int16) - before[path.stem]).max(axis=-1) > 24
+        truth = painted / "ground_truth" / "passers_by" / f"{path.stem}.png"
+        person = iio.imread(truth) > 127 if truth.is_file() else np.zeros(changed.shape, bool)
+        assert (changed & ~person).mean() < 0.01  # a JPEG's ringing round a person, at most
+        assert not person.any() or (person & changed).sum() > 0.5 * person.sum()
+        assert 0.005 < person.mean() < 0.2 or not truth.is_file()  # at half size: a person farther off
 
 
 def test_bad_requests_are_user_errors_and_leave_other_folders_alone(tmp_path):
