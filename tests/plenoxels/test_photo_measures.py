@@ -177,6 +177,29 @@ def test_a_patch_the_render_disagrees_with_in_colour_is_left_out_and_blur_seams_
     assert bool(error_map.kept(image, row, col).all()) and error_map.transients_record()["photos"] == 0
 
 
+def test_a_small_person_is_found_where_each_measured_pixel_is_a_block_and_missed_on_blocks_of_four():
+    """Where the map only finds what moved, each measured pixel is its own block: a person a few strides across is a
+    patch of enough blocks to tell from a speck, where averaged over blocks of four it is not."""
+    sizes = torch.tensor([[64, 80]] * 4)
+    image, row, col = lattice(sizes, 2)
+    gen = torch.Generator().manual_seed(1)
+    difference = 0.1 * (torch.randint(0, 2, (image.shape[0], 3), generator=gen) * 2 - 1).double()  # blurred detail
+    small = (image == 2) & (row >= 40) & (row < 54) & (col >= 20) & (col < 30)  # 7 x 5 measured pixels
+    difference[small] += torch.tensor([0.3, -0.2, 0.25], dtype=torch.float64)
+    speck = (image == 1) & (row == 31) & (col == 31)  # one measured pixel
+    difference[speck] += 0.6
+    found = {}
+    for side in (2, 1):
+        error_map = ErrorMap(sizes, stride=2, side=side)
+        error_map.measure(image, row, col, difference)
+        error_map.find_transients()
+        found[side] = ~error_map.kept(image, row, col)
+    assert not bool(found[2].any())
+    assert bool(found[1][small].all())
+    # Nothing else: the person and a margin of 2 blocks round it (the neighbours averaged, the block it is grown by).
+    assert not bool((found[1] & ~((image == 2) & (row >= 36) & (row < 58) & (col >= 16) & (col < 34))).any())
+
+
 def test_no_ray_is_drawn_from_what_is_left_out():
     h, w, photos = 24, 32, 3
     rows, cols = np.mgrid[0:h, 0:w]
@@ -212,7 +235,7 @@ def test_the_measuring_stride_renders_about_the_rays_asked():
     stride = measure_stride(sizes, 1 << 17)
     pixels = 100 * 400 * 400
     assert (pixels / stride ** 2) >= (1 << 17) > pixels / (stride + 1) ** 2
-    assert measure_stride(torch.tensor([[8, 8]]), 1 << 17) == 2  # never finer than blocks of MIN_BLOCK pixels
+    assert measure_stride(torch.tensor([[8, 8]]), 1 << 17) == 2  # never finer than MIN_STRIDE
 
 
 def test_a_fit_of_photos_in_several_exposures_finds_each_photos_gains(tmp_path):
