@@ -64,8 +64,8 @@ def test_alpha_images_composite_back_to_the_rgb_images(tmp_path):
 
 
 def test_people_painted_into_a_capture_stay_out_of_its_held_out_photos_and_where_the_truth_says(tmp_path):
-    """A capture with people painted into it (real photos, for the bench): about the share asked, never a photo normalize
-    holds out, each person's pixels in ground_truth/passers_by/ where the photo changed and nowhere else."""
+    """A capture with people painted into it (real photos, for the bench): about the share asked, never a photo
+    normalize holds out, each person's pixels in ground_truth/passers_by/ where the photo changed and nowhere else."""
     clean = write_scene("room", tmp_path / "clean", n_views=24, width=96, height=72)
     painted = tmp_path / "painted"
     shutil.copytree(clean, painted)
