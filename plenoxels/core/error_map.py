@@ -38,8 +38,10 @@ import torch
 
 # Measured pixels along each side of a block where the map draws rays: the block is this many strides across.
 PIXELS_PER_BLOCK_SIDE = 2
-# The measured pixels are at least this many apart (a map finer than the photos' own grain measures noise).
-MIN_STRIDE = 2
+# The blocks are at least this many pixels across (a map finer than the photos' own grain measures noise), so the
+# measured pixels at least MIN_STRIDE apart.
+MIN_BLOCK = 4
+MIN_STRIDE = MIN_BLOCK // PIXELS_PER_BLOCK_SIDE
 # What moved between photos: the mean difference (render less photo, RGB in [0, 1]) over a block's neighbours (this
 # many blocks across) at least TRANSIENT_MIN_DIFFERENCE long, and TRANSIENT_RATIO times the capture's median and
 # TRANSIENT_SPREADS robust spreads above it, over a patch of at least TRANSIENT_MIN_BLOCKS blocks and
@@ -59,6 +61,12 @@ def measure_stride(sizes: torch.Tensor, rays: int) -> int:
     """The pixel stride at which a measurement of photos of these [N, 2] sizes renders about `rays` rays."""
     pixels = float((sizes[:, 0].double() * sizes[:, 1].double()).sum())
     return max(MIN_STRIDE, math.floor(math.sqrt(pixels / max(rays, 1))))
+
+
+def block_side(stride: int, draws: bool) -> int:
+    """Measured pixels along each side of a map's blocks at this stride: PIXELS_PER_BLOCK_SIDE where the map draws rays
+    (their error wants an average), else one, each measured pixel its own block, where that is MIN_BLOCK across."""
+    return PIXELS_PER_BLOCK_SIDE if draws else max(1, -(-MIN_BLOCK // stride))
 
 
 def kept_inside(error_map: ErrorMap | None, image: torch.Tensor, row: torch.Tensor, col: torch.Tensor,

@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 from plenoxels.core.background import BackgroundOptimiser
-from plenoxels.core.error_map import PIXELS_PER_BLOCK_SIDE, ErrorMap, kept_inside, measure_stride
+from plenoxels.core.error_map import ErrorMap, block_side, kept_inside, measure_stride
 from plenoxels.core.errors import UserError
 from plenoxels.core.files import write_whole
 from plenoxels.core.grid import SparseGrid, sh_count
@@ -105,8 +105,8 @@ class Fitter:
         mapped = (options.error_share > 0 or options.leave_out_transients) and options.batch_mode == "rays"
         # What moved is found on the colours' lattice, each measured pixel a block, where the map draws no rays.
         measured_rays = options.measure_rays if options.error_share > 0 else min(options.measure_rays, COLOUR_RAYS)
-        side = PIXELS_PER_BLOCK_SIDE if options.error_share > 0 else 1
         self.measure_stride = measure_stride(train.sizes, measured_rays)
+        side = block_side(self.measure_stride, draws=options.error_share > 0)
         self.error_map = ErrorMap(train.sizes, self.measure_stride, side) if mapped else None
         self.colour = PhotoColour(len(train))
         self.colour_measures: list[float] = []  # what the gains of each deciding measure brought (dB nearer)

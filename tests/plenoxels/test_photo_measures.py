@@ -5,7 +5,7 @@ import torch
 
 from stages.common.json_files import read_json
 from plenoxels.core.cameras import Intrinsics
-from plenoxels.core.error_map import ErrorMap, measure_stride
+from plenoxels.core.error_map import ErrorMap, block_side, measure_stride
 from plenoxels.core.photo_colour import (PhotoColour, PhotoGains, field_image, gain_field_lattice, gain_fields,
                                          lattice_shape)
 from plenoxels.core.render import SH_C0
@@ -235,7 +235,10 @@ def test_the_measuring_stride_renders_about_the_rays_asked():
     stride = measure_stride(sizes, 1 << 17)
     pixels = 100 * 400 * 400
     assert (pixels / stride ** 2) >= (1 << 17) > pixels / (stride + 1) ** 2
-    assert measure_stride(torch.tensor([[8, 8]]), 1 << 17) == 2  # never finer than MIN_STRIDE
+    assert measure_stride(torch.tensor([[8, 8]]), 1 << 17) == 2  # never finer than blocks of MIN_BLOCK pixels
+    # Each measured pixel its own block where the map only finds what moved, but never a block under MIN_BLOCK across.
+    assert [block_side(stride, draws=False) for stride in (2, 3, 4, 8)] == [2, 2, 1, 1]
+    assert [block_side(stride, draws=True) for stride in (2, 8)] == [2, 2]
 
 
 def test_a_fit_of_photos_in_several_exposures_finds_each_photos_gains(tmp_path):
