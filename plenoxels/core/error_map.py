@@ -11,10 +11,11 @@ lego at `fast` about 0.2 dB at equal time and fox and ball nothing, so `fit.erro
 
 The map is measured, not learned from the batches: the fit renders every `stride`-th row and column of each photo
 with the model as it stands (Fitter.measure_photos). Where it draws rays, the squared error is averaged over blocks of
-`2 * stride` pixels (four measured pixels a block); where it only finds what moved, each measured pixel is its block,
-so a patch's edge is found to a stride, and a person a few strides across is found at all (a small person in 60% of
-fox's training photos: 70% of their pixels left out against 12% on blocks of four; bench/README.md, "Real captures").
-It is deterministic (no draw from the batches' generator), so a resumed fit measures the same map.
+`2 * stride` pixels (four measured pixels a block); where it only finds what moved, each measured pixel is its block
+(where that is MIN_BLOCK pixels across), so a patch's edge is found to a stride, and a person a few strides across is
+found at all (a small person in 60% of fox's training photos: 70% of their pixels left out against 12% on blocks of
+four; bench/README.md, "Real captures"). It is deterministic (no draw from the batches' generator), so a resumed fit
+measures the same map.
 
 What moved between the photos (a person walking through, a car, a pet) is in some photos and not in the others, so no
 one scene explains it: a grid fitted to it draws ghosts and floaters in every view (a room with a person in 14 of its 35
