@@ -18,7 +18,8 @@ poses as a transforms.json: `synthetic_unbounded`, an object on an endless textu
 on a floor sees); `synthetic_room_passers_by`, the same room with a person walking through 40% of its training views
 (in each somewhere else; its held-out views clean), which no one scene explains. Real captures with people painted into
 them the same way (`paint_passers_by`; ground_truth/passers_by/ holds each person): `fox_passers_by`, a person close by
-in 20% of fox's training photos; `fox_far_passers_by`, a small one farther off in 60% of them.
+in 20% of fox's training photos; `fox_far_passers_by`, a small one farther off in 60% of them; `ball_far_passers_by`,
+small ones in 60% of ball's 111 (a capture of many photos, whose error map's blocks are coarser).
 
     .venv/bin/python -m bench.real_scenes                                     # every scene, preset and view count
     .venv/bin/python -m bench.real_scenes --scenes fox --presets fast --views all quarter
@@ -66,12 +67,13 @@ RESULTS = REPO / "bench" / "results" / "real_scenes.json"
 CACHE = REPO / "bench" / "out" / "real_scenes"
 RENDERS = CACHE / "renders"
 SCENES = ("fox", "cup", "fern", "synthetic_unbounded", "synthetic_room", "synthetic_room_passers_by", "ball", "apple",
-          "fox_passers_by", "fox_far_passers_by")
+          "fox_passers_by", "fox_far_passers_by", "ball_far_passers_by")
 # The synthetic scenes: their kind, and the share of their views a person walks through (never a held-out one).
 SYNTHETIC = {"synthetic_unbounded": ("unbounded", 0.0), "synthetic_room": ("room", 0.0),
              "synthetic_room_passers_by": ("room", 0.4)}
 # Real scenes with people painted into them: the scene, the share of its training photos, the person's size.
-PAINTED = {"fox_passers_by": ("fox", 0.2, 1.0), "fox_far_passers_by": ("fox", 0.6, 0.3)}
+PAINTED = {"fox_passers_by": ("fox", 0.2, 1.0), "fox_far_passers_by": ("fox", 0.6, 0.3),
+           "ball_far_passers_by": ("ball", 0.6, 0.3)}
 # Scenes given as one file (a phone's video) rather than a folder of photos.
 FILES = {"apple": "apple.mp4"}
 PRESETS = ("fast", "balanced", "default", "quality")
